@@ -1,0 +1,329 @@
+"""Calibration readers: WILDTRACK/MultiviewX XML, AI City 2024 JSON, and cblrs JSON.
+
+All readers return :class:`cblrs.camera.Camera` objects in metres, whatever unit the files
+use (WILDTRACK stores centimetres).
+
+The cblrs JSON format (one camera per file, or ``{"cameras": [...]}``) takes one of three
+forms, all in metres::
+
+    {"name": "cam1", "image_size": [1920, 1080], "homography": [[...], [...], [...]]}
+    {"name": "cam1", "image_size": [1920, 1080], "intrinsics": [[...]], "distortion": [...],
+     "rvec": [...] | "rotation": [[...]], "tvec": [...]}
+    {"name": "cam1", "image_size": [1920, 1080], "position": [x, y, z],
+     "pan_deg": 90, "tilt_deg": 30, "roll_deg": 0, "focal_px": 1200}
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import xml.etree.ElementTree as ElementTree
+from pathlib import Path
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from cblrs.camera import Camera
+from cblrs.errors import CalibrationError
+
+WILDTRACK_CAMERAS = ("CVLab1", "CVLab2", "CVLab3", "CVLab4", "IDIAP1", "IDIAP2", "IDIAP3")
+WILDTRACK_IMAGE_SIZE = (1920, 1080)
+MULTIVIEWX_IMAGE_SIZE = (1920, 1080)
+
+
+def read_opencv_matrices(path: str | Path, names: tuple[str, ...]) -> dict[str, NDArray]:
+    """Read named matrices from an OpenCV FileStorage XML/YAML file.
+
+    Handles both proper ``type_id="opencv-matrix"`` nodes and the bare whitespace-separated
+    numbers WILDTRACK's extrinsic files use (``<rvec>1.7 0.4 -0.3</rvec>``), which OpenCV
+    does not read as matrices. Missing names are left out of the result.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise CalibrationError(f"calibration file {path} does not exist.")
+    found: dict[str, NDArray] = {}
+    storage = None
+    try:
+        storage = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+    except cv2.error:
+        storage = None
+    if storage is not None and storage.isOpened():
+        for name in names:
+            node = storage.getNode(name)
+            if node.empty() or node.isNone():
+                continue
+            if node.isMap():
+                try:
+                    matrix = node.mat()
+                except cv2.error:
+                    matrix = None
+                if matrix is not None:
+                    found[name] = np.asarray(matrix, dtype=np.float64)
+                continue
+            if node.isSeq():
+                found[name] = np.array(
+                    [node.at(i).real() for i in range(node.size())], dtype=np.float64
+                )
+                continue
+            if node.isString():
+                values = _parse_numbers(node.string(), path, name)
+                if values is not None:
+                    found[name] = values
+            elif node.isReal() or node.isInt():
+                found[name] = np.array([node.real()])
+        storage.release()
+    missing = [name for name in names if name not in found]
+    if missing and path.suffix.lower() == ".xml":
+        try:
+            root = ElementTree.parse(path).getroot()
+        except ElementTree.ParseError as error:
+            raise CalibrationError(f"{path} is not valid XML: {error}.") from None
+        for name in missing:
+            element = root.find(name)
+            if element is None:
+                continue
+            data = element.find("data")
+            text = data.text if data is not None else element.text
+            values = _parse_numbers(text or "", path, name)
+            if values is None:
+                continue
+            rows, cols = element.find("rows"), element.find("cols")
+            if rows is not None and cols is not None:
+                values = values.reshape(int(rows.text or 0), int(cols.text or 0))
+            found[name] = values
+    return found
+
+
+def _parse_numbers(text: str, path: Path, name: str) -> NDArray | None:
+    tokens = re.split(r"[\s,]+", text.strip())
+    tokens = [token for token in tokens if token]
+    if not tokens:
+        return None
+    try:
+        return np.array([float(token) for token in tokens], dtype=np.float64)
+    except ValueError:
+        raise CalibrationError(f"{path}: {name} holds non-numeric values.") from None
+
+
+def read_opencv_camera(
+    name: str,
+    intrinsic_path: str | Path,
+    extrinsic_path: str | Path,
+    image_size: tuple[int, int],
+    unit_to_metres: float = 1.0,
+    use_distortion: bool = True,
+) -> Camera:
+    """One camera from an intrinsic and an extrinsic OpenCV file.
+
+    Args:
+        unit_to_metres: scale of the extrinsic translation (0.01 for centimetres).
+        use_distortion: False ignores the distortion coefficients (for undistorted frames).
+    """
+    intrinsic = read_opencv_matrices(intrinsic_path, ("camera_matrix", "distortion_coefficients"))
+    extrinsic = read_opencv_matrices(extrinsic_path, ("rvec", "tvec"))
+    if "camera_matrix" not in intrinsic:
+        raise CalibrationError(f"{intrinsic_path} has no camera_matrix.")
+    for key in ("rvec", "tvec"):
+        if key not in extrinsic:
+            raise CalibrationError(f"{extrinsic_path} has no {key}.")
+    matrix = intrinsic["camera_matrix"]
+    if matrix.size != 9:
+        raise CalibrationError(f"{intrinsic_path}: camera_matrix must be 3x3, got {matrix.size} values.")
+    rvec, tvec = extrinsic["rvec"].ravel(), extrinsic["tvec"].ravel()
+    if rvec.size != 3 or tvec.size != 3:
+        raise CalibrationError(f"{extrinsic_path}: rvec and tvec must have 3 values each.")
+    distortion = intrinsic.get("distortion_coefficients")
+    if distortion is None or not use_distortion:
+        distortion = np.zeros(0)
+    return Camera.from_extrinsics(
+        name,
+        matrix.reshape(3, 3),
+        rvec,
+        tvec * unit_to_metres,
+        image_size,
+        distortion=distortion.ravel(),
+    )
+
+
+def read_wildtrack_cameras(root: str | Path, distorted: bool = False) -> list[Camera]:
+    """The seven WILDTRACK cameras, in view order (viewNum 0..6), in metres.
+
+    Args:
+        root: the dataset folder (with ``calibrations/``).
+        distorted: use ``intrinsic_original`` (lens distortion, for the raw video) instead of
+            ``intrinsic_zero`` (for the undistorted frames the annotations refer to).
+    """
+    root = Path(root)
+    calibrations = root / "calibrations"
+    if not calibrations.is_dir():
+        raise CalibrationError(f"{root} has no calibrations/ folder.")
+    intrinsic_dir = calibrations / ("intrinsic_original" if distorted else "intrinsic_zero")
+    return [
+        read_opencv_camera(
+            name,
+            intrinsic_dir / f"intr_{name}.xml",
+            calibrations / "extrinsic" / f"extr_{name}.xml",
+            WILDTRACK_IMAGE_SIZE,
+            unit_to_metres=0.01,
+            use_distortion=distorted,
+        )
+        for name in WILDTRACK_CAMERAS
+    ]
+
+
+def read_multiviewx_cameras(root: str | Path, use_distortion: bool = True) -> list[Camera]:
+    """MultiviewX's cameras ``Camera1..CameraN`` in view order; translations are metres."""
+    root = Path(root)
+    intrinsic_dir = root / "calibrations" / "intrinsic"
+    paths = sorted(
+        intrinsic_dir.glob("intr_Camera*.xml"),
+        key=lambda path: int(re.sub(r"\D", "", path.stem) or 0),
+    )
+    if not paths:
+        raise CalibrationError(f"{intrinsic_dir} has no intr_Camera*.xml files.")
+    cameras = []
+    for path in paths:
+        name = path.stem.removeprefix("intr_")
+        cameras.append(
+            read_opencv_camera(
+                name,
+                path,
+                root / "calibrations" / "extrinsic" / f"extr_{name}.xml",
+                MULTIVIEWX_IMAGE_SIZE,
+                unit_to_metres=1.0,
+                use_distortion=use_distortion,
+            )
+        )
+    return cameras
+
+
+def read_aicity_calibration(
+    path: str | Path, name: str | None = None, image_size: tuple[int, int] = (1920, 1080)
+) -> Camera:
+    """An AI City Challenge 2024 ``calibration.json``.
+
+    Uses the "homography matrix" (world metres -> pixel). When "camera projection matrix"
+    (3x4) is present it is decomposed into K, R, t so planes above the ground work too.
+    """
+    path = Path(path)
+    data = _read_json(path)
+    name = name or path.parent.name or path.stem
+    size = tuple(data.get("image_size", image_size))
+    projection = data.get("camera projection matrix")
+    if projection is not None:
+        projection = np.asarray(projection, dtype=np.float64)
+        if projection.shape != (3, 4):
+            raise CalibrationError(f"{path}: camera projection matrix must be 3x4.")
+        intrinsics, rotation, centre_h = cv2.decomposeProjectionMatrix(projection)[:3]
+        centre = (centre_h[:3] / centre_h[3]).ravel()
+        intrinsics = intrinsics / intrinsics[2, 2]
+        if np.linalg.det(rotation) < 0:
+            rotation = -rotation
+        translation = -rotation @ centre
+        camera = Camera.from_extrinsics(name, intrinsics, rotation, translation, size)
+        return camera
+    homography = data.get("homography matrix")
+    if homography is None:
+        raise CalibrationError(f"{path} has neither 'homography matrix' nor 'camera projection matrix'.")
+    return Camera.from_homography(name, np.asarray(homography, dtype=np.float64), size)
+
+
+def read_camera_json(path: str | Path) -> list[Camera]:
+    """cameras from a cblrs JSON file (see the module docstring for the format)."""
+    path = Path(path)
+    data = _read_json(path)
+    items = data.get("cameras", [data]) if isinstance(data, dict) else data
+    if not isinstance(items, list) or not items:
+        raise CalibrationError(f"{path}: expected a camera object or {{'cameras': [...]}}.")
+    return [camera_from_dict(item, source=str(path)) for item in items]
+
+
+def camera_from_dict(data: dict, source: str = "<dict>") -> Camera:
+    if not isinstance(data, dict):
+        raise CalibrationError(f"{source}: each camera must be a JSON object.")
+    try:
+        name = str(data["name"])
+        size = (int(data["image_size"][0]), int(data["image_size"][1]))
+        if "homography" in data:
+            return Camera.from_homography(name, np.asarray(data["homography"], float), size)
+        if "intrinsics" in data:
+            rotation = data.get("rotation", data.get("rvec"))
+            if rotation is None or "tvec" not in data:
+                raise CalibrationError(f"{source}: camera {name!r} needs rvec/rotation and tvec.")
+            return Camera.from_extrinsics(
+                name,
+                np.asarray(data["intrinsics"], float),
+                np.asarray(rotation, float),
+                np.asarray(data["tvec"], float),
+                size,
+                distortion=np.asarray(data.get("distortion", []), float),
+            )
+        if "position" in data:
+            return Camera.from_pose(
+                name,
+                tuple(float(v) for v in data["position"]),
+                float(data.get("pan_deg", 0.0)),
+                float(data.get("tilt_deg", 0.0)),
+                float(data["focal_px"]),
+                size,
+                roll_deg=float(data.get("roll_deg", 0.0)),
+                distortion=np.asarray(data.get("distortion", []), float),
+            )
+    except (KeyError, IndexError, TypeError, ValueError) as error:
+        raise CalibrationError(f"{source}: invalid camera entry ({error}).") from None
+    raise CalibrationError(
+        f"{source}: camera {data.get('name')!r} needs 'homography', 'intrinsics' or 'position'."
+    )
+
+
+def camera_to_dict(camera: Camera) -> dict:
+    """The cblrs JSON form of a camera (full parameters when known, else the homography)."""
+    data: dict = {"name": camera.name, "image_size": list(camera.image_size)}
+    if camera.has_pose:
+        assert camera.intrinsics is not None and camera.rotation is not None
+        assert camera.translation is not None
+        data["intrinsics"] = camera.intrinsics.tolist()
+        data["distortion"] = camera.distortion.tolist()
+        data["rvec"] = cv2.Rodrigues(camera.rotation)[0].ravel().tolist()
+        data["tvec"] = camera.translation.tolist()
+    else:
+        data["homography"] = camera.homography.tolist()
+    return data
+
+
+def read_cameras(path: str | Path, distorted: bool = False) -> list[Camera]:
+    """Read cameras from any supported source, detected from what ``path`` holds.
+
+    * a WILDTRACK folder (``calibrations/extrinsic/extr_CVLab1.xml``),
+    * a MultiviewX folder (``calibrations/intrinsic/intr_Camera1.xml``),
+    * an AI City ``calibration.json`` (or a scene folder with ``c*/calibration.json``),
+    * a cblrs camera JSON file.
+    """
+    path = Path(path)
+    if path.is_dir():
+        if (path / "calibrations" / "extrinsic" / "extr_CVLab1.xml").is_file():
+            return read_wildtrack_cameras(path, distorted=distorted)
+        if list((path / "calibrations" / "intrinsic").glob("intr_Camera*.xml")):
+            return read_multiviewx_cameras(path, use_distortion=True)
+        calibration_files = sorted(path.glob("*/calibration.json"))
+        if calibration_files:
+            return [read_aicity_calibration(file) for file in calibration_files]
+        raise CalibrationError(
+            f"{path} is not a WILDTRACK, MultiviewX or AI City folder (no calibration files found)."
+        )
+    if not path.is_file():
+        raise CalibrationError(f"calibration path {path} does not exist.")
+    data = _read_json(path)
+    if isinstance(data, dict) and ("homography matrix" in data or "camera projection matrix" in data):
+        return [read_aicity_calibration(path)]
+    return read_camera_json(path)
+
+
+def _read_json(path: Path) -> dict | list:
+    try:
+        return json.loads(path.read_text())
+    except FileNotFoundError:
+        raise CalibrationError(f"calibration file {path} does not exist.") from None
+    except (OSError, UnicodeDecodeError, ValueError) as error:
+        raise CalibrationError(f"{path} is not valid JSON: {error}.") from None

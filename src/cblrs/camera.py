@@ -1,0 +1,436 @@
+"""Camera model: intrinsics, lens distortion, pose and ground-plane homographies.
+
+Conventions:
+    * World coordinates are metres, right-handed, z up; the ground is the plane z = 0.
+    * Pixel coordinates follow OpenCV: x to the right, y down, the centre of pixel (i, j)
+      at (i, j).
+    * ``rotation`` and ``translation`` map world to camera: ``X_cam = R @ X_world + t``.
+    * A homography ``H`` maps homogeneous world ``(x, y, 1)`` on a plane to homogeneous
+      *undistorted* pixels.
+
+A camera is either fully calibrated (``K``, distortion, ``R``, ``t``) or known only by its
+ground homography (as in AI City 2024). The second kind can only map the plane z = 0 and
+has no lens model.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from cblrs.errors import CalibrationError
+
+FloatArray = NDArray[np.float64]
+BoolArray = NDArray[np.bool_]
+
+# Rays meeting the plane closer than this to the camera (in camera depth, metres) are treated
+# as not hitting it; it also excludes the horizon line where the depth tends to infinity.
+_MIN_DEPTH_M = 1e-6
+
+
+def _as_points(points: NDArray[np.floating] | list, name: str) -> FloatArray:
+    array = np.asarray(points, dtype=np.float64)
+    if array.ndim != 2 or array.shape[1] != 2:
+        raise ValueError(f"{name} must have shape (N, 2), got {array.shape}")
+    return array
+
+
+def _check_matrix(matrix: NDArray, shape: tuple[int, ...], name: str) -> FloatArray:
+    array = np.asarray(matrix, dtype=np.float64)
+    if array.shape != shape:
+        raise CalibrationError(f"{name} must have shape {shape}, got {array.shape}.")
+    if not np.all(np.isfinite(array)):
+        raise CalibrationError(f"{name} contains NaN or infinite values.")
+    return array
+
+
+def rotation_from_pose(pan_deg: float, tilt_deg: float, roll_deg: float = 0.0) -> FloatArray:
+    """World-to-camera rotation for a camera given by pan, tilt and roll.
+
+    Args:
+        pan_deg: heading of the optical axis in the ground plane, degrees counter-clockwise
+            from the world +x axis.
+        tilt_deg: angle of the optical axis below the horizon, degrees (90 looks straight
+            down).
+        roll_deg: rotation about the optical axis, degrees (clockwise in the image).
+
+    Returns:
+        (3, 3) rotation matrix R with ``X_cam = R @ (X_world - C)``.
+    """
+    pan, tilt, roll = np.radians([pan_deg, tilt_deg, roll_deg])
+    forward = np.array([np.cos(tilt) * np.cos(pan), np.cos(tilt) * np.sin(pan), -np.sin(tilt)])
+    # The image x axis stays horizontal for zero roll, even when looking straight down.
+    right = np.array([np.sin(pan), -np.cos(pan), 0.0])
+    down = np.cross(forward, right)
+    rotation = np.stack([right, down, forward])
+    cos_r, sin_r = np.cos(roll), np.sin(roll)
+    roll_matrix = np.array([[cos_r, -sin_r, 0.0], [sin_r, cos_r, 0.0], [0.0, 0.0, 1.0]])
+    return roll_matrix @ rotation
+
+
+@dataclass(frozen=True, eq=False)
+class Camera:
+    """A camera observing ground planes.
+
+    Build one with :meth:`from_extrinsics`, :meth:`from_pose` or :meth:`from_homography`
+    rather than directly.
+
+    Attributes:
+        name: camera identifier, unique within a scene.
+        image_size: ``(width, height)`` in pixels.
+        intrinsics: (3, 3) matrix K, or None for a homography-only camera.
+        distortion: OpenCV distortion coefficients (k1, k2, p1, p2[, k3, ...]); empty if none.
+        rotation: (3, 3) world-to-camera rotation, or None for a homography-only camera.
+        translation: (3,) world-to-camera translation in metres, or None.
+        homography: (3, 3) map from the ground plane z = 0 (metres) to undistorted pixels.
+    """
+
+    name: str
+    image_size: tuple[int, int]
+    homography: FloatArray
+    intrinsics: FloatArray | None = None
+    distortion: FloatArray = field(default_factory=lambda: np.zeros(0))
+    rotation: FloatArray | None = None
+    translation: FloatArray | None = None
+
+    def __post_init__(self) -> None:
+        width, height = self.image_size
+        if int(width) <= 0 or int(height) <= 0:
+            raise CalibrationError(
+                f"camera {self.name!r}: image size must be positive, got {self.image_size}."
+            )
+        object.__setattr__(self, "image_size", (int(width), int(height)))
+        object.__setattr__(
+            self, "homography", _check_matrix(self.homography, (3, 3), "homography")
+        )
+        if abs(np.linalg.det(self.homography)) < 1e-12:
+            raise CalibrationError(f"camera {self.name!r}: the homography is singular.")
+        distortion = np.asarray(self.distortion, dtype=np.float64).ravel()
+        if not np.all(np.isfinite(distortion)):
+            raise CalibrationError(f"camera {self.name!r}: distortion has NaN or inf values.")
+        object.__setattr__(self, "distortion", distortion)
+        has_pose = self.intrinsics is not None
+        if has_pose != (self.rotation is not None) or has_pose != (self.translation is not None):
+            raise CalibrationError(
+                f"camera {self.name!r}: intrinsics, rotation and translation go together."
+            )
+        if self.intrinsics is not None:
+            object.__setattr__(
+                self, "intrinsics", _check_matrix(self.intrinsics, (3, 3), "intrinsics")
+            )
+            object.__setattr__(self, "rotation", _check_matrix(self.rotation, (3, 3), "rotation"))
+            object.__setattr__(
+                self, "translation", _check_matrix(self.translation, (3,), "translation")
+            )
+        elif np.any(distortion != 0):
+            raise CalibrationError(
+                f"camera {self.name!r}: lens distortion needs intrinsics; "
+                "a homography-only camera has none."
+            )
+
+    # ------------------------------------------------------------------ constructors
+    @classmethod
+    def from_extrinsics(
+        cls,
+        name: str,
+        intrinsics: NDArray,
+        rotation: NDArray,
+        translation: NDArray,
+        image_size: tuple[int, int],
+        distortion: NDArray | None = None,
+    ) -> Camera:
+        """Camera from K, a world-to-camera rotation (matrix or Rodrigues vector) and t in metres."""
+        rotation = np.asarray(rotation, dtype=np.float64)
+        if rotation.shape in ((3,), (3, 1), (1, 3)):
+            rotation = cv2.Rodrigues(rotation.reshape(3, 1))[0]
+        intrinsics = _check_matrix(intrinsics, (3, 3), "intrinsics")
+        rotation = _check_matrix(rotation, (3, 3), "rotation")
+        translation = _check_matrix(np.asarray(translation, dtype=np.float64).ravel(), (3,), "t")
+        homography = plane_homography(intrinsics, rotation, translation, 0.0)
+        return cls(
+            name=name,
+            image_size=image_size,
+            homography=homography,
+            intrinsics=intrinsics,
+            distortion=np.zeros(0) if distortion is None else np.asarray(distortion).ravel(),
+            rotation=rotation,
+            translation=translation,
+        )
+
+    @classmethod
+    def from_pose(
+        cls,
+        name: str,
+        position: tuple[float, float, float],
+        pan_deg: float,
+        tilt_deg: float,
+        focal_px: float,
+        image_size: tuple[int, int],
+        roll_deg: float = 0.0,
+        distortion: NDArray | None = None,
+    ) -> Camera:
+        """Camera in the paper's form: position, three angles, focal length, image size.
+
+        Args:
+            position: camera centre (x, y, z) in metres; z is the height above the ground.
+            pan_deg, tilt_deg, roll_deg: see :func:`rotation_from_pose`.
+            focal_px: focal length in pixels (square pixels, principal point at the centre).
+            image_size: (width, height) in pixels.
+        """
+        width, height = image_size
+        intrinsics = np.array(
+            [[focal_px, 0.0, (width - 1) / 2.0], [0.0, focal_px, (height - 1) / 2.0], [0, 0, 1]]
+        )
+        rotation = rotation_from_pose(pan_deg, tilt_deg, roll_deg)
+        translation = -rotation @ np.asarray(position, dtype=np.float64)
+        return cls.from_extrinsics(
+            name, intrinsics, rotation, translation, image_size, distortion=distortion
+        )
+
+    @classmethod
+    def from_homography(
+        cls, name: str, homography: NDArray, image_size: tuple[int, int]
+    ) -> Camera:
+        """Camera known only by its ground homography (world metres -> pixels).
+
+        The sign of a homography is arbitrary; it is fixed here so that the bottom row of the
+        image, which a ground-looking camera sees, lies in front of the camera.
+        """
+        homography = _check_matrix(homography, (3, 3), "homography")
+        width, height = int(image_size[0]), int(image_size[1])
+        try:
+            inverse = np.linalg.inv(homography)
+        except np.linalg.LinAlgError:
+            raise CalibrationError(f"camera {name!r}: the homography is singular.") from None
+        bottom = np.stack(
+            [np.linspace(0, width - 1, 16), np.full(16, height - 1.0), np.ones(16)], axis=1
+        )
+        if np.median((bottom @ inverse.T)[:, 2]) < 0:
+            homography = -homography
+        return cls(name=name, image_size=(width, height), homography=homography)
+
+    # ------------------------------------------------------------------ properties
+    @property
+    def has_pose(self) -> bool:
+        """True when K, R and t are known (the camera can map planes at any height)."""
+        return self.intrinsics is not None
+
+    @property
+    def has_distortion(self) -> bool:
+        return bool(np.any(self.distortion != 0))
+
+    @property
+    def centre(self) -> FloatArray:
+        """Camera centre in world metres (3,); needs a posed camera."""
+        rotation, translation = self._pose()
+        return -rotation.T @ translation
+
+    def _pose(self) -> tuple[FloatArray, FloatArray]:
+        if self.rotation is None or self.translation is None:
+            raise CalibrationError(
+                f"camera {self.name!r} is known only by a homography; this needs K, R and t."
+            )
+        return self.rotation, self.translation
+
+    def plane_homography(self, height_m: float = 0.0) -> FloatArray:
+        """Homography from the horizontal plane z = ``height_m`` to undistorted pixels."""
+        if height_m == 0.0:
+            return self.homography
+        rotation, translation = self._pose()
+        assert self.intrinsics is not None
+        return plane_homography(self.intrinsics, rotation, translation, height_m)
+
+    # ------------------------------------------------------------------ distortion
+    def undistort_pixels(self, pixels: NDArray) -> FloatArray:
+        """Map raw (distorted) pixels to ideal pinhole pixels, shape (N, 2).
+
+        Strong lens models fold over near the image corners, where a raw pixel has no
+        unique ideal position; such pixels (whose round trip misses by more than
+        0.05 pixel) come back as NaN rather than as a wrong position.
+        """
+        pixels = _as_points(pixels, "pixels")
+        if not self.has_distortion or len(pixels) == 0:
+            return pixels.copy()
+        assert self.intrinsics is not None
+        criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 40, 1e-9)
+        finite = np.isfinite(pixels).all(axis=1)
+        undistorted = np.full_like(pixels, np.nan)
+        if finite.any():
+            undistorted[finite] = cv2.undistortPoints(
+                pixels[finite].reshape(-1, 1, 2),
+                self.intrinsics,
+                self.distortion,
+                R=np.eye(3),
+                P=self.intrinsics,
+                criteria=criteria,
+            ).reshape(-1, 2)
+            round_trip = self.distort_pixels(undistorted[finite])
+            miss = np.hypot(*(round_trip - pixels[finite]).T) > 0.05
+            rows = np.flatnonzero(finite)[miss]
+            undistorted[rows] = np.nan
+        return undistorted
+
+    def distort_pixels(self, pixels: NDArray) -> FloatArray:
+        """Map ideal pinhole pixels to raw (distorted) pixels, shape (N, 2)."""
+        pixels = _as_points(pixels, "pixels")
+        if not self.has_distortion or len(pixels) == 0:
+            return pixels.copy()
+        assert self.intrinsics is not None
+        inverse_k = np.linalg.inv(self.intrinsics)
+        normalised = np.column_stack([pixels, np.ones(len(pixels))]) @ inverse_k.T
+        rays = normalised.reshape(-1, 1, 3)
+        projected, _ = cv2.projectPoints(
+            rays, np.zeros(3), np.zeros(3), self.intrinsics, self.distortion
+        )
+        return projected.reshape(-1, 2).astype(np.float64)
+
+    # ------------------------------------------------------------------ projections
+    def pixel_to_world(
+        self, pixels: NDArray, height_m: float = 0.0
+    ) -> tuple[FloatArray, BoolArray]:
+        """Intersect the rays through raw pixels with the plane z = ``height_m``.
+
+        Args:
+            pixels: (N, 2) raw image coordinates (distorted if the camera has distortion).
+            height_m: plane height in metres.
+
+        Returns:
+            ``(world_xy, valid)``: (N, 2) metres and (N,) bool. A pixel is invalid when its
+            ray does not meet the plane in front of the camera (above the horizon); its
+            ``world_xy`` is NaN.
+
+        Example:
+            >>> camera = Camera.from_pose("c", (0, 0, 10), 0, 45, 1000, (1920, 1080))
+            >>> world_xy, valid = camera.pixel_to_world([[959.5, 539.5]])
+            >>> bool(valid[0]), world_xy.round(3).tolist()
+            (True, [[10.0, 0.0]])
+        """
+        undistorted = self.undistort_pixels(pixels)
+        return homography_pixel_to_world(self.plane_homography(height_m), undistorted)
+
+    def world_to_pixel(
+        self, world_xy: NDArray, height_m: float = 0.0
+    ) -> tuple[FloatArray, BoolArray]:
+        """Project ground points (metres) at height ``height_m`` to raw pixels.
+
+        Returns:
+            ``(pixels, valid)``: (N, 2) raw pixel coordinates and (N,) bool, False for points
+            behind the camera. Points in front but outside the image are valid; compare with
+            :meth:`contains` to know whether they are seen.
+        """
+        world_xy = _as_points(world_xy, "world_xy")
+        homography = self.plane_homography(height_m)
+        homogeneous = np.column_stack([world_xy, np.ones(len(world_xy))]) @ homography.T
+        depth = homogeneous[:, 2]
+        valid = depth > _MIN_DEPTH_M
+        with np.errstate(divide="ignore", invalid="ignore"):
+            pixels = homogeneous[:, :2] / depth[:, None]
+        pixels[~valid] = np.nan
+        if self.has_distortion and valid.any():
+            pixels[valid] = self.distort_pixels(pixels[valid])
+        return pixels, valid
+
+    def project_points(self, world_xyz: NDArray) -> tuple[FloatArray, BoolArray]:
+        """Project 3D world points (N, 3) in metres to raw pixels; needs a posed camera."""
+        rotation, translation = self._pose()
+        assert self.intrinsics is not None
+        world_xyz = np.asarray(world_xyz, dtype=np.float64)
+        if world_xyz.ndim != 2 or world_xyz.shape[1] != 3:
+            raise ValueError(f"world_xyz must have shape (N, 3), got {world_xyz.shape}")
+        camera_xyz = world_xyz @ rotation.T + translation
+        valid = camera_xyz[:, 2] > _MIN_DEPTH_M
+        pixels = np.full((len(world_xyz), 2), np.nan)
+        if valid.any():
+            projected, _ = cv2.projectPoints(
+                camera_xyz[valid].reshape(-1, 1, 3),
+                np.zeros(3),
+                np.zeros(3),
+                self.intrinsics,
+                self.distortion if self.has_distortion else None,
+            )
+            pixels[valid] = projected.reshape(-1, 2)
+        return pixels, valid
+
+    def contains(self, pixels: NDArray) -> BoolArray:
+        """True for pixels inside the image (pixel centres 0..size-1, with half a pixel margin)."""
+        pixels = _as_points(pixels, "pixels")
+        width, height = self.image_size
+        with np.errstate(invalid="ignore"):
+            return (
+                (pixels[:, 0] >= -0.5)
+                & (pixels[:, 0] < width - 0.5)
+                & (pixels[:, 1] >= -0.5)
+                & (pixels[:, 1] < height - 0.5)
+            )
+
+    def undistorted_grid(self) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+        """Ideal pinhole coordinates of every raw pixel, as two (H, W) float32 maps.
+
+        Without distortion this is the pixel grid itself. With distortion the exact inverse
+        is computed on a coarse grid (every 8 pixels) and interpolated bilinearly; the lens
+        model is smooth, so the interpolation error stays far below a pixel.
+        """
+        width, height = self.image_size
+        if not self.has_distortion:
+            map_x, map_y = np.meshgrid(
+                np.arange(width, dtype=np.float32), np.arange(height, dtype=np.float32)
+            )
+            return map_x, map_y
+        # Exact inverse on a coarse grid (every `step` pixels, padded by two samples), then
+        # a bilinear resize (exact float weights; OpenCV's bicubic kernel, a = -0.75, does
+        # not even reproduce a linear field). The lens field is smooth, so the error is
+        # about 1e-3 pixel. The grid is
+        # placed so resize's pixel-centre convention lands sample k on pixel step*k + offset.
+        step, pad = 8, 2
+        columns = -(-width // step) + 2 * pad
+        rows = -(-height // step) + 2 * pad
+        coarse_x = step * (np.arange(columns) - pad) + (step - 1) / 2.0
+        coarse_y = step * (np.arange(rows) - pad) + (step - 1) / 2.0
+        grid_x, grid_y = np.meshgrid(coarse_x, coarse_y)
+        coarse = self.undistort_pixels(np.column_stack([grid_x.ravel(), grid_y.ravel()]))
+        coarse = coarse.reshape(rows, columns, 2).astype(np.float32)
+        fine = cv2.resize(
+            coarse, (columns * step, rows * step), interpolation=cv2.INTER_LINEAR
+        )[pad * step : pad * step + height, pad * step : pad * step + width]
+        return np.ascontiguousarray(fine[..., 0]), np.ascontiguousarray(fine[..., 1])
+
+    def __repr__(self) -> str:
+        kind = "posed" if self.has_pose else "homography-only"
+        lens = ", distorted" if self.has_distortion else ""
+        return f"Camera({self.name!r}, {self.image_size[0]}x{self.image_size[1]}, {kind}{lens})"
+
+
+def plane_homography(
+    intrinsics: NDArray, rotation: NDArray, translation: NDArray, height_m: float
+) -> FloatArray:
+    """Homography from the plane z = height_m (metres) to pixels: ``K [r1 r2 (z r3 + t)]``."""
+    rotation = np.asarray(rotation, dtype=np.float64)
+    translation = np.asarray(translation, dtype=np.float64).ravel()
+    columns = np.column_stack([rotation[:, 0], rotation[:, 1], height_m * rotation[:, 2] + translation])
+    return np.asarray(intrinsics, dtype=np.float64) @ columns
+
+
+def homography_pixel_to_world(
+    homography: NDArray, pixels: NDArray
+) -> tuple[FloatArray, BoolArray]:
+    """Map undistorted pixels through the inverse of a world-to-pixel homography.
+
+    The homography's sign must make points in front of the camera have a positive third
+    coordinate (true for ``K [r1 r2 t]`` and for :meth:`Camera.from_homography`).
+
+    Returns:
+        ``(world_xy, valid)``; invalid rows (above the horizon) are NaN.
+    """
+    pixels = _as_points(pixels, "pixels")
+    inverse = np.linalg.inv(np.asarray(homography, dtype=np.float64))
+    homogeneous = np.column_stack([pixels, np.ones(len(pixels))]) @ inverse.T
+    scale = homogeneous[:, 2]
+    # depth of the world point = 1 / scale, so it is in front exactly when scale > 0.
+    valid = np.isfinite(scale) & (scale > _MIN_DEPTH_M * 1e-6)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        world_xy = homogeneous[:, :2] / scale[:, None]
+    world_xy[~valid] = np.nan
+    return world_xy, valid

@@ -1,0 +1,1 @@
+"""Command-line interface: one module per subcommand, each a thin call into the library."""

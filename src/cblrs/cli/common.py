@@ -1,0 +1,65 @@
+"""Helpers shared by the subcommands: errors, JSON output, progress bars."""
+
+from __future__ import annotations
+
+import json
+import sys
+from collections.abc import Iterable, Iterator
+from typing import Any, TypeVar
+
+import numpy as np
+
+T = TypeVar("T")
+
+
+class UsageError(Exception):
+    """A mistake in the command line; printed as one sentence, exit code 2."""
+
+
+def print_json(data: Any) -> None:
+    """Print one JSON document to stdout (numpy scalars and arrays are converted)."""
+    print(json.dumps(data, indent=2, default=_to_builtin, allow_nan=False))
+
+
+def _to_builtin(value: Any) -> Any:
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, np.generic):
+        return value.item()
+    if hasattr(value, "__fspath__"):
+        return str(value)
+    raise TypeError(f"cannot serialise {type(value).__name__} to JSON")
+
+
+def progress(
+    iterable: Iterable[T], description: str, quiet: bool = False, total: int | None = None
+) -> Iterator[T]:
+    """A tqdm progress bar on stderr, shown only on a terminal and without --quiet."""
+    from tqdm import tqdm
+
+    disable = quiet or not sys.stderr.isatty()
+    yield from tqdm(iterable, desc=description, total=total, disable=disable, leave=False)
+
+
+def add_output_options(parser: Any) -> None:
+    parser.add_argument("--json", action="store_true", help="print machine-readable JSON")
+    parser.add_argument("--quiet", action="store_true", help="no progress bars")
+
+
+def format_table(headers: list[str], rows: list[list[Any]]) -> str:
+    """A plain-text table with right-aligned numbers."""
+    cells = [[_cell(value) for value in row] for row in rows]
+    widths = [len(header) for header in headers]
+    for row in cells:
+        widths = [max(width, len(cell)) for width, cell in zip(widths, row, strict=True)]
+    lines = ["  ".join(header.ljust(width) for header, width in zip(headers, widths, strict=True))]
+    lines.append("  ".join("-" * width for width in widths))
+    for row in cells:
+        lines.append("  ".join(cell.rjust(width) for cell, width in zip(row, widths, strict=True)))
+    return "\n".join(lines)
+
+
+def _cell(value: Any) -> str:
+    if isinstance(value, float | np.floating):
+        return f"{value:.3f}" if np.isfinite(value) else "-"
+    return str(value)

@@ -1,0 +1,203 @@
+"""Core record types shared by the pipeline stages, as named numpy columns.
+
+* :class:`Detections` — boxes of one camera frame (what a detector gives).
+* :class:`CameraMessage` — what a camera sends: boxes and reference *colours*, never pixels
+  of the image (the paper's message M).
+* :class:`Tracks` — the matcher's output, one row per (frame, track), in world metres.
+
+Every column is vectorised over N rows and validated on construction.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, fields, replace
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+CLASS_NAMES: tuple[str, ...] = ("person", "car", "bicycle", "motorcycle", "bus", "truck")
+"""Class ids used on the wire: the index into this tuple."""
+
+MESSAGE_SCHEMA = "cblrs.detections/1"
+
+
+def class_id_of(name: str) -> int:
+    try:
+        return CLASS_NAMES.index(name)
+    except ValueError:
+        raise ValueError(f"unknown class {name!r}; known: {', '.join(CLASS_NAMES)}") from None
+
+
+def _column(value: Any, dtype: Any, shape: tuple[int | None, ...], name: str) -> NDArray:
+    array = np.asarray(value, dtype=dtype)
+    if array.ndim != len(shape) or any(
+        expected is not None and actual != expected
+        for actual, expected in zip(array.shape, shape, strict=False)
+    ):
+        wanted = "(" + ", ".join("N" if size is None else str(size) for size in shape) + ")"
+        raise ValueError(f"{name} must have shape {wanted}, got {array.shape}")
+    return array
+
+
+class _Columns:
+    """Shared behaviour of the column dataclasses: length checks, masks, concatenation."""
+
+    _row_columns: tuple[str, ...] = ()
+
+    def _validate_lengths(self) -> None:
+        lengths = {name: len(getattr(self, name)) for name in self._row_columns}
+        if len(set(lengths.values())) > 1:
+            raise ValueError(f"columns of {type(self).__name__} differ in length: {lengths}")
+
+    def __len__(self) -> int:
+        return len(getattr(self, self._row_columns[0]))
+
+    def __getitem__(self, index: Any):
+        """Rows selected by a boolean mask, an index array or a slice."""
+        if isinstance(index, int | np.integer):
+            index = [int(index)]
+        changes = {name: getattr(self, name)[index] for name in self._row_columns}
+        return replace(self, **changes)  # type: ignore[type-var]
+
+
+@dataclass(frozen=True, eq=False)
+class Detections(_Columns):
+    """Boxes of one camera frame.
+
+    Attributes:
+        xyxy: (N, 4) float64 pixels, (x_min, y_min, x_max, y_max).
+        confidence: (N,) float64 in 0..1.
+        class_id: (N,) int64, index into :data:`CLASS_NAMES`.
+        object_id: (N,) int64 ground-truth identity when known (datasets), else -1.
+    """
+
+    xyxy: NDArray[np.float64]
+    confidence: NDArray[np.float64] = field(default=None)  # type: ignore[assignment]
+    class_id: NDArray[np.int64] = field(default=None)  # type: ignore[assignment]
+    object_id: NDArray[np.int64] = field(default=None)  # type: ignore[assignment]
+
+    _row_columns = ("xyxy", "confidence", "class_id", "object_id")
+
+    def __post_init__(self) -> None:
+        xyxy = _column(self.xyxy, np.float64, (None, 4), "xyxy")
+        count = len(xyxy)
+        defaults = {
+            "confidence": (np.ones(count), np.float64),
+            "class_id": (np.zeros(count, dtype=np.int64), np.int64),
+            "object_id": (np.full(count, -1, dtype=np.int64), np.int64),
+        }
+        object.__setattr__(self, "xyxy", xyxy)
+        for name, (default, dtype) in defaults.items():
+            value = getattr(self, name)
+            object.__setattr__(
+                self, name, _column(default if value is None else value, dtype, (None,), name)
+            )
+        self._validate_lengths()
+
+    @classmethod
+    def empty(cls) -> Detections:
+        return cls(xyxy=np.zeros((0, 4)))
+
+    @classmethod
+    def concatenate(cls, parts: list[Detections]) -> Detections:
+        if not parts:
+            return cls.empty()
+        return cls(**{f.name: np.concatenate([getattr(p, f.name) for p in parts]) for f in fields(cls)})
+
+
+@dataclass(frozen=True, eq=False)
+class CameraMessage(_Columns):
+    """One camera frame as sent to the matcher (the paper's message M).
+
+    Only boxes and reference colours leave the camera; there is deliberately no field that
+    could carry image data.
+
+    Attributes:
+        camera_id: the sending camera.
+        sequence: per-camera message counter (for de-duplication), starting at 0.
+        timestamp: capture time in seconds (any epoch shared by all cameras).
+        frame: camera frame number.
+        xyxy: (N, 4) float64 pixel boxes.
+        confidence: (N,) float64.
+        class_id: (N,) int64, index into :data:`CLASS_NAMES`.
+        colour: (N, 3) int64 reference colours at the target pixels; B = 0 means the target
+            saw no plane.
+    """
+
+    camera_id: str
+    sequence: int
+    timestamp: float
+    frame: int
+    xyxy: NDArray[np.float64]
+    confidence: NDArray[np.float64]
+    class_id: NDArray[np.int64]
+    colour: NDArray[np.int64]
+    schema: str = MESSAGE_SCHEMA
+
+    _row_columns = ("xyxy", "confidence", "class_id", "colour")
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "xyxy", _column(self.xyxy, np.float64, (None, 4), "xyxy"))
+        object.__setattr__(
+            self, "confidence", _column(self.confidence, np.float64, (None,), "confidence")
+        )
+        object.__setattr__(self, "class_id", _column(self.class_id, np.int64, (None,), "class_id"))
+        object.__setattr__(self, "colour", _column(self.colour, np.int64, (None, 3), "colour"))
+        self._validate_lengths()
+
+    @classmethod
+    def empty(cls, camera_id: str, sequence: int, timestamp: float, frame: int) -> CameraMessage:
+        return cls(
+            camera_id, sequence, timestamp, frame,
+            np.zeros((0, 4)), np.zeros(0), np.zeros(0, np.int64), np.zeros((0, 3), np.int64),
+        )
+
+
+@dataclass(frozen=True, eq=False)
+class Tracks(_Columns):
+    """Tracker output, one row per (frame, track).
+
+    Attributes:
+        frame: (N,) int64 frame number (the dataset's own numbering).
+        timestamp: (N,) float64 seconds.
+        track_id: (N,) int64 global identity.
+        world_xy: (N, 2) float64 metres.
+        camera_id: (N,) int64 index of the camera whose box is reported (-1 if none).
+        xyxy: (N, 4) float64 that camera's box (NaN if none).
+    """
+
+    frame: NDArray[np.int64]
+    timestamp: NDArray[np.float64]
+    track_id: NDArray[np.int64]
+    world_xy: NDArray[np.float64]
+    camera_id: NDArray[np.int64] = field(default=None)  # type: ignore[assignment]
+    xyxy: NDArray[np.float64] = field(default=None)  # type: ignore[assignment]
+
+    _row_columns = ("frame", "timestamp", "track_id", "world_xy", "camera_id", "xyxy")
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "frame", _column(self.frame, np.int64, (None,), "frame"))
+        object.__setattr__(
+            self, "timestamp", _column(self.timestamp, np.float64, (None,), "timestamp")
+        )
+        object.__setattr__(self, "track_id", _column(self.track_id, np.int64, (None,), "track_id"))
+        object.__setattr__(
+            self, "world_xy", _column(self.world_xy, np.float64, (None, 2), "world_xy")
+        )
+        count = len(self.frame)
+        camera_id = np.full(count, -1) if self.camera_id is None else self.camera_id
+        xyxy = np.full((count, 4), np.nan) if self.xyxy is None else self.xyxy
+        object.__setattr__(self, "camera_id", _column(camera_id, np.int64, (None,), "camera_id"))
+        object.__setattr__(self, "xyxy", _column(xyxy, np.float64, (None, 4), "xyxy"))
+        self._validate_lengths()
+
+    @classmethod
+    def empty(cls) -> Tracks:
+        return cls(np.zeros(0, np.int64), np.zeros(0), np.zeros(0, np.int64), np.zeros((0, 2)))
+
+    @classmethod
+    def concatenate(cls, parts: list[Tracks]) -> Tracks:
+        if not parts:
+            return cls.empty()
+        return cls(**{f.name: np.concatenate([getattr(p, f.name) for p in parts]) for f in fields(cls)})

@@ -1,0 +1,214 @@
+"""Localisers: pixel -> world position on the ground, three ways behind one interface.
+
+* :class:`HomographyLocator` computes ``H^-1 p`` directly (the paper's baseline). It knows
+  nothing of lens distortion.
+* :class:`LUTLocator` reads a precomputed per-pixel table of world positions (float32).
+* :class:`ColorLocator` reads the reference image and decodes the colour (the paper's method).
+
+Each has a batched :meth:`locate` (vectorised over N pixels) and a one-point
+:meth:`locate_one` (plain Python, as the paper timed it in Table I).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+from numpy.typing import NDArray
+
+from cblrs.camera import Camera, homography_pixel_to_world
+from cblrs.errors import ReferenceImageError
+from cblrs.reference import ReferenceImage
+
+FloatArray = NDArray[np.float64]
+BoolArray = NDArray[np.bool_]
+
+
+@runtime_checkable
+class Locator(Protocol):
+    """Anything that maps pixels to ground positions."""
+
+    image_size: tuple[int, int]
+
+    def locate(self, pixels: NDArray) -> tuple[FloatArray, BoolArray]:
+        """(N, 2) pixels -> ((N, 2) world metres, (N,) valid)."""
+        ...
+
+    def locate_one(self, x: float, y: float) -> tuple[float, float] | None:
+        """One pixel -> (x, y) metres, or None when it sees no plane."""
+        ...
+
+
+class HomographyLocator:
+    """Direct homography: ``world ~ H^-1 (x, y, 1)``.
+
+    Args:
+        homography: (3, 3) world (metres) -> undistorted pixel map, with the sign convention
+            of :class:`cblrs.camera.Camera` (points in front have positive w).
+        image_size: (width, height); pixels outside are invalid.
+        bounds: optional ``(x0, y0, x1, y1)`` metres; positions outside are invalid, as for a
+            reference image's plane.
+    """
+
+    def __init__(
+        self,
+        homography: NDArray,
+        image_size: tuple[int, int],
+        bounds: tuple[float, float, float, float] | None = None,
+    ):
+        self.homography = np.asarray(homography, dtype=np.float64)
+        self.image_size = (int(image_size[0]), int(image_size[1]))
+        self.bounds = bounds
+        inverse = np.linalg.inv(self.homography)
+        self._inverse = inverse
+        self._coefficients = tuple(float(value) for value in inverse.ravel())
+
+    @classmethod
+    def from_camera(cls, camera: Camera, height_m: float = 0.0, bounds=None) -> HomographyLocator:
+        return cls(camera.plane_homography(height_m), camera.image_size, bounds)
+
+    def locate(self, pixels: NDArray) -> tuple[FloatArray, BoolArray]:
+        pixels = np.asarray(pixels, dtype=np.float64)
+        world_xy, valid = homography_pixel_to_world(self.homography, pixels)
+        width, height = self.image_size
+        with np.errstate(invalid="ignore"):
+            valid &= (
+                (pixels[:, 0] >= -0.5)
+                & (pixels[:, 0] < width - 0.5)
+                & (pixels[:, 1] >= -0.5)
+                & (pixels[:, 1] < height - 0.5)
+            )
+            if self.bounds is not None:
+                x0, y0, x1, y1 = self.bounds
+                valid &= (
+                    (world_xy[:, 0] >= x0)
+                    & (world_xy[:, 0] <= x1)
+                    & (world_xy[:, 1] >= y0)
+                    & (world_xy[:, 1] <= y1)
+                )
+        world_xy[~valid] = np.nan
+        return world_xy, valid
+
+    def locate_one(self, x: float, y: float) -> tuple[float, float] | None:
+        a, b, c, d, e, f, g, h, i = self._coefficients
+        scale = g * x + h * y + i
+        if scale <= 0.0:
+            return None
+        world_x = (a * x + b * y + c) / scale
+        world_y = (d * x + e * y + f) / scale
+        if self.bounds is not None:
+            x0, y0, x1, y1 = self.bounds
+            if not (x0 <= world_x <= x1 and y0 <= world_y <= y1):
+                return None
+        return world_x, world_y
+
+
+class LUTLocator:
+    """Per-pixel lookup table of world positions, float32 (H, W, 2), NaN where no plane.
+
+    Build it from a camera (exact, including distortion) or by decoding a reference image.
+    """
+
+    def __init__(self, table: NDArray[np.float32]):
+        table = np.asarray(table)
+        if table.ndim != 3 or table.shape[2] != 2:
+            raise ValueError(f"a LUT must have shape (H, W, 2), got {table.shape}")
+        self.table = np.ascontiguousarray(table, dtype=np.float32)
+        self.image_size = (self.table.shape[1], self.table.shape[0])
+        self._flat = self.table.reshape(-1, 2)
+
+    @classmethod
+    def from_camera(
+        cls, camera: Camera, height_m: float = 0.0, bounds=None
+    ) -> LUTLocator:
+        width, height = camera.image_size
+        map_x, map_y = camera.undistorted_grid()
+        pixels = np.column_stack([map_x.ravel(), map_y.ravel()])
+        world_xy, valid = homography_pixel_to_world(camera.plane_homography(height_m), pixels)
+        if bounds is not None:
+            x0, y0, x1, y1 = bounds
+            with np.errstate(invalid="ignore"):
+                valid &= (
+                    (world_xy[:, 0] >= x0) & (world_xy[:, 0] <= x1)
+                    & (world_xy[:, 1] >= y0) & (world_xy[:, 1] <= y1)
+                )
+        world_xy[~valid] = np.nan
+        return cls(world_xy.reshape(height, width, 2).astype(np.float32))
+
+    @classmethod
+    def from_reference(cls, reference: ReferenceImage) -> LUTLocator:
+        width, height = reference.image_size
+        colours = reference.pixels.reshape(-1, 3)
+        world_xy, _, _ = reference.planes.decode(colours)
+        return cls(world_xy.reshape(height, width, 2).astype(np.float32))
+
+    def save(self, path: str | Path) -> Path:
+        """Write the table as a .npy file (what the paper's LUT costs on disk)."""
+        path = Path(path)
+        np.save(path, self.table)
+        return path
+
+    @classmethod
+    def load(cls, path: str | Path) -> LUTLocator:
+        try:
+            return cls(np.load(path, allow_pickle=False))
+        except (OSError, ValueError) as error:
+            raise ReferenceImageError(f"cannot read LUT {path}: {error}.") from None
+
+    def locate(self, pixels: NDArray) -> tuple[FloatArray, BoolArray]:
+        pixels = np.asarray(pixels, dtype=np.float64)
+        if pixels.ndim != 2 or pixels.shape[1] != 2:
+            raise ValueError(f"pixels must have shape (N, 2), got {pixels.shape}")
+        width, height = self.image_size
+        finite = np.isfinite(pixels).all(axis=1)
+        columns = np.floor(np.where(finite, pixels[:, 0], -1) + 0.5).astype(np.int64)
+        rows = np.floor(np.where(finite, pixels[:, 1], -1) + 0.5).astype(np.int64)
+        inside = finite & (columns >= 0) & (columns < width) & (rows >= 0) & (rows < height)
+        world_xy = self._flat[np.where(inside, rows * width + columns, 0)].astype(np.float64)
+        valid = inside & np.isfinite(world_xy[:, 0])
+        world_xy[~valid] = np.nan
+        return world_xy, valid
+
+    def locate_one(self, x: float, y: float) -> tuple[float, float] | None:
+        column, row = int(x + 0.5), int(y + 0.5)
+        width, height = self.image_size
+        if not (0 <= column < width and 0 <= row < height):
+            return None
+        world_x = self.table.item(row, column, 0)
+        if world_x != world_x:  # NaN: no plane here
+            return None
+        return world_x, self.table.item(row, column, 1)
+
+
+class ColorLocator:
+    """The paper's method: read the reference colour at the pixel, decode it."""
+
+    def __init__(self, reference: ReferenceImage):
+        self.reference = reference
+        self.image_size = reference.image_size
+        self._packed = reference.packed
+        # plane id -> (x0, y0, step_x, step_y) for the one-point path
+        self._decoders = {
+            plane.plane_id: (plane.origin[0], plane.origin[1], *plane.step)
+            for plane in reference.planes
+        }
+
+    @classmethod
+    def load(cls, path: str | Path, expected_size: tuple[int, int] | None = None) -> ColorLocator:
+        return cls(ReferenceImage.load(path, expected_size=expected_size))
+
+    def locate(self, pixels: NDArray) -> tuple[FloatArray, BoolArray]:
+        return self.reference.locate(pixels)
+
+    def locate_one(self, x: float, y: float) -> tuple[float, float] | None:
+        column, row = int(x + 0.5), int(y + 0.5)
+        width, height = self.image_size
+        if not (0 <= column < width and 0 <= row < height):
+            return None
+        packed = self._packed.item(row * width + column)
+        decoder = self._decoders.get(packed >> 32)
+        if decoder is None:
+            return None
+        x0, y0, step_x, step_y = decoder
+        return x0 + (packed & 0xFFFF) * step_x, y0 + ((packed >> 16) & 0xFFFF) * step_y
