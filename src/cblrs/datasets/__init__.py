@@ -1,0 +1,5 @@
+"""Dataset readers and generators; each produces a :class:`cblrs.datasets.scene.Scene`."""
+
+from cblrs.datasets.scene import Scene
+
+__all__ = ["Scene"]
