@@ -31,6 +31,11 @@ WILDTRACK_CAMERAS = ("CVLab1", "CVLab2", "CVLab3", "CVLab4", "IDIAP1", "IDIAP2",
 WILDTRACK_IMAGE_SIZE = (1920, 1080)
 MULTIVIEWX_IMAGE_SIZE = (1920, 1080)
 
+# Annotated ground areas (x0, y0, width, length) in metres: WILDTRACK's 480 x 1440 grid of
+# 2.5 cm cells starting at (-3 m, -9 m); MultiviewX's 1000 x 640 grid starting at the origin.
+WILDTRACK_GROUND = (-3.0, -9.0, 12.0, 36.0)
+MULTIVIEWX_GROUND = (0.0, 0.0, 25.0, 16.0)
+
 
 def read_opencv_matrices(path: str | Path, names: tuple[str, ...]) -> dict[str, NDArray]:
     """Read named matrices from an OpenCV FileStorage XML/YAML file.
