@@ -297,6 +297,35 @@ def camera_to_dict(camera: Camera) -> dict:
     return data
 
 
+def calibration_layout(path: str | Path) -> str:
+    """What kind of calibration ``path`` holds, without reading it.
+
+    Returns:
+        "wildtrack", "multiviewx", "aicity" (a folder of ``*/calibration.json`` or one such
+        file) or "json" (any other file, read as cblrs camera JSON); "unknown" for a folder
+        with none of these.
+    """
+    path = Path(path)
+    if path.is_dir():
+        if (path / "calibrations" / "extrinsic" / "extr_CVLab1.xml").is_file():
+            return "wildtrack"
+        if list((path / "calibrations" / "intrinsic").glob("intr_Camera*.xml")):
+            return "multiviewx"
+        if list(path.glob("*/calibration.json")):
+            return "aicity"
+        return "unknown"
+    if path.name == "calibration.json":
+        return "aicity"
+    return "json"
+
+
+def default_ground(path: str | Path) -> tuple[float, float, float, float] | None:
+    """The annotated ground area ``(x0, y0, width, length)`` metres of a known layout, or None."""
+    return {"wildtrack": WILDTRACK_GROUND, "multiviewx": MULTIVIEWX_GROUND}.get(
+        calibration_layout(path)
+    )
+
+
 def read_cameras(path: str | Path, distorted: bool = False) -> list[Camera]:
     """Read cameras from any supported source, detected from what ``path`` holds.
 

@@ -1,0 +1,174 @@
+"""``cblrs render``: calibration -> one colour reference PNG per camera."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import re
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import cv2
+
+from cblrs.calibration import default_ground, read_cameras
+from cblrs.cli.common import UsageError, add_output_options, format_table, print_json, progress
+from cblrs.errors import PlaneError
+from cblrs.plane import PlaneSet, PlaneSpec
+from cblrs.reference import render_reference
+
+
+def register(subparsers) -> None:
+    parser = subparsers.add_parser(
+        "render",
+        help="render colour reference images from a calibration",
+        description=(
+            "Render one colour reference PNG per camera. CALIBRATION is a WILDTRACK or "
+            "MultiviewX folder, an AI City calibration.json (or a folder of them) or a cblrs "
+            "camera JSON file."
+        ),
+    )
+    parser.add_argument("calibration", metavar="CALIBRATION", help="calibration file or folder")
+    parser.add_argument("--out", required=True, type=Path, help="output folder")
+    parser.add_argument(
+        "--bits", type=int, choices=(8, 16), default=None, help="bits per channel (default 16)"
+    )
+    parser.add_argument(
+        "--plane",
+        action="append",
+        default=[],
+        metavar="X0,Y0,WIDTH,LENGTH[,HEIGHT]",
+        help="a plane in metres (repeatable; ids 1, 2, ...); default: the dataset's ground area",
+    )
+    parser.add_argument("--planes-file", type=Path, help="JSON list of plane specifications")
+    parser.add_argument(
+        "--distorted",
+        action="store_true",
+        help="use the lens-distortion calibration (WILDTRACK intrinsic_original) for raw video",
+    )
+    parser.add_argument(
+        "--preview", action="store_true", help="also write <camera>_preview.png with a 1 m grid"
+    )
+    add_output_options(parser)
+    parser.set_defaults(handler=run)
+
+
+def parse_plane(text: str, plane_id: int, bits: int) -> PlaneSpec:
+    """A plane from ``X0,Y0,WIDTH,LENGTH[,HEIGHT]`` (metres)."""
+    try:
+        values = [float(value) for value in text.split(",")]
+    except ValueError:
+        raise UsageError(f"--plane {text!r} must be numbers X0,Y0,WIDTH,LENGTH[,HEIGHT].") from None
+    if len(values) not in (4, 5):
+        raise UsageError(
+            f"--plane {text!r} needs 4 or 5 numbers (X0,Y0,WIDTH,LENGTH[,HEIGHT]), "
+            f"got {len(values)}."
+        )
+    height = values[4] if len(values) == 5 else 0.0
+    return PlaneSpec(plane_id, (values[0], values[1]), values[2], values[3], bits, height)
+
+
+def read_planes_file(path: Path, bits: int | None) -> list[PlaneSpec]:
+    """Planes from a JSON list (or ``{"planes": [...]}``) of plane specifications."""
+    try:
+        data = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise UsageError(f"planes file {path} does not exist.") from None
+    except (OSError, UnicodeDecodeError, ValueError) as error:
+        raise UsageError(f"planes file {path} is not valid JSON: {error}.") from None
+    if isinstance(data, dict):
+        data = data.get("planes")
+    if not isinstance(data, list) or not all(isinstance(item, dict) for item in data):
+        raise UsageError(f"planes file {path} must hold a list of plane objects.")
+    try:
+        planes = [PlaneSpec.from_dict(item) for item in data]
+    except PlaneError as error:
+        raise PlaneError(f"{path}: {error}") from None
+    if bits is not None:
+        planes = [replace(plane, bits=bits) for plane in planes]
+    return planes
+
+
+def build_planes(args: argparse.Namespace) -> PlaneSet:
+    bits = args.bits or 16
+    planes = [
+        parse_plane(text, plane_id, bits) for plane_id, text in enumerate(args.plane, start=1)
+    ]
+    if args.planes_file is not None:
+        extra = read_planes_file(args.planes_file, args.bits)
+        if planes and extra and args.bits is None:
+            extra = [replace(plane, bits=bits) for plane in extra]
+        planes += extra
+    if not planes:
+        ground = default_ground(args.calibration)
+        if ground is None:
+            raise UsageError(
+                f"{args.calibration} is not a WILDTRACK or MultiviewX folder, so give the "
+                "plane extent with --plane X0,Y0,WIDTH,LENGTH or --planes-file."
+            )
+        x0, y0, width, length = ground
+        planes = [PlaneSpec(1, (x0, y0), width, length, bits, name="ground")]
+    return PlaneSet(planes)
+
+
+def file_name(camera_name: str, index: int) -> str:
+    """A safe file stem for a camera name."""
+    stem = re.sub(r"[^A-Za-z0-9._-]+", "_", camera_name).strip("._")
+    return stem or f"camera{index + 1}"
+
+
+def run(args: argparse.Namespace) -> int:
+    cameras = read_cameras(args.calibration, distorted=args.distorted)
+    planes = build_planes(args)
+    args.out.mkdir(parents=True, exist_ok=True)
+    rows = []
+    for index, camera in enumerate(progress(cameras, "render", args.quiet)):
+        start = time.perf_counter()
+        reference = render_reference(camera, planes)
+        milliseconds = (time.perf_counter() - start) * 1000.0
+        stem = file_name(camera.name, index)
+        path = reference.save(args.out / f"{stem}.png")
+        row = {
+            "camera": camera.name,
+            "path": str(path),
+            "coverage": reference.coverage(),
+            "step_cm": [100.0 * step for step in planes[0].step],
+            "render_ms": milliseconds,
+            "bytes": path.stat().st_size,
+        }
+        if args.preview:
+            from cblrs.viz.reference import reference_overlay
+
+            preview = reference_overlay(reference, None, grid_m=1.0)
+            preview_path = args.out / f"{stem}_preview.png"
+            if not cv2.imwrite(str(preview_path), preview[..., ::-1]):
+                raise UsageError(f"could not write {preview_path}.")
+            row["preview"] = str(preview_path)
+        rows.append(row)
+    if args.json:
+        print_json(
+            {"bits": planes.bits, "planes": planes.to_list(), "distorted": args.distorted,
+             "cameras": rows}
+        )
+        return 0
+    table = [
+        [
+            row["camera"],
+            f"{100 * row['coverage']:.1f}",
+            "x".join(f"{step:.3g}" for step in row["step_cm"]),
+            f"{row['render_ms']:.0f}",
+            _size(row["bytes"]),
+        ]
+        for row in rows
+    ]
+    print(format_table(["camera", "coverage %", "step cm", "ms", "file"], table))
+    print(f"{len(rows)} reference image(s) in {args.out}")
+    return 0
+
+
+def _size(size: int) -> str:
+    for unit in ("B", "kB", "MB"):
+        if size < 1000 or unit == "MB":
+            return f"{size:.0f} {unit}" if unit == "B" else f"{size:.1f} {unit}"
+        size /= 1000  # type: ignore[assignment]
+    return str(size)
