@@ -134,7 +134,9 @@ def read_opencv_camera(
             raise CalibrationError(f"{extrinsic_path} has no {key}.")
     matrix = intrinsic["camera_matrix"]
     if matrix.size != 9:
-        raise CalibrationError(f"{intrinsic_path}: camera_matrix must be 3x3, got {matrix.size} values.")
+        raise CalibrationError(
+            f"{intrinsic_path}: camera_matrix must be 3x3, got {matrix.size} values."
+        )
     rvec, tvec = extrinsic["rvec"].ravel(), extrinsic["tvec"].ravel()
     if rvec.size != 3 or tvec.size != 3:
         raise CalibrationError(f"{extrinsic_path}: rvec and tvec must have 3 values each.")
@@ -230,7 +232,9 @@ def read_aicity_calibration(
         return camera
     homography = data.get("homography matrix")
     if homography is None:
-        raise CalibrationError(f"{path} has neither 'homography matrix' nor 'camera projection matrix'.")
+        raise CalibrationError(
+            f"{path} has neither 'homography matrix' nor 'camera projection matrix'."
+        )
     return Camera.from_homography(name, np.asarray(homography, dtype=np.float64), size)
 
 
@@ -349,7 +353,8 @@ def read_cameras(path: str | Path, distorted: bool = False) -> list[Camera]:
     if not path.is_file():
         raise CalibrationError(f"calibration path {path} does not exist.")
     data = _read_json(path)
-    if isinstance(data, dict) and ("homography matrix" in data or "camera projection matrix" in data):
+    aicity_keys = ("homography matrix", "camera projection matrix")
+    if isinstance(data, dict) and any(key in data for key in aicity_keys):
         return [read_aicity_calibration(path)]
     return read_camera_json(path)
 

@@ -67,7 +67,7 @@ def parse_pixels(text: str) -> np.ndarray:
             raise UsageError(f"pixel {item!r} must be two finite numbers x,y.")
         points.append(point)
     if not points:
-        raise UsageError("--pixels holds no pixel; write them as \"x,y;x,y\".")
+        raise UsageError('--pixels holds no pixel; write them as "x,y;x,y".')
     return np.array(points, dtype=np.float64)
 
 
@@ -130,7 +130,9 @@ def read_wildtrack_frame_boxes(
     try:
         people = json.loads(path.read_text())
     except FileNotFoundError:
-        raise DatasetError(f"WILDTRACK frame {frame} is not annotated ({path} is missing).") from None
+        raise DatasetError(
+            f"WILDTRACK frame {frame} is not annotated ({path} is missing)."
+        ) from None
     except (OSError, UnicodeDecodeError, ValueError) as error:
         raise DatasetError(f"{path} is not valid JSON: {error}.") from None
     boxes, person_ids, position_ids = [], [], []
@@ -199,8 +201,11 @@ def run(args: argparse.Namespace) -> int:
         rows.append(row)
     summary = _summary(rows) if truth_xy is not None else None
     if args.json:
-        output: dict = {"reference": str(args.reference), "camera": reference.camera_name,
-                        "positions": rows}
+        output: dict = {
+            "reference": str(args.reference),
+            "camera": reference.camera_name,
+            "positions": rows,
+        }
         if summary is not None:
             output["frame"] = args.frame
             output["summary"] = summary
@@ -209,13 +214,23 @@ def run(args: argparse.Namespace) -> int:
     headers = ["#", "pixel x", "pixel y", "x m", "y m", "valid"]
     table = []
     for row in rows:
-        cells = [row["index"], f"{row['pixel'][0]:.1f}", f"{row['pixel'][1]:.1f}",
-                 _metres(row["x"]), _metres(row["y"]), "yes" if row["valid"] else "no"]
+        cells = [
+            row["index"],
+            f"{row['pixel'][0]:.1f}",
+            f"{row['pixel'][1]:.1f}",
+            _metres(row["x"]),
+            _metres(row["y"]),
+            "yes" if row["valid"] else "no",
+        ]
         if classes:
             cells.insert(1, row["class"] or "-")
         if summary is not None:
-            cells += [row["person_id"], f"{row['truth'][0]:.3f}", f"{row['truth'][1]:.3f}",
-                      _metres(row["error_m"])]
+            cells += [
+                row["person_id"],
+                f"{row['truth'][0]:.3f}",
+                f"{row['truth'][1]:.3f}",
+                _metres(row["error_m"]),
+            ]
         table.append(cells)
     if classes:
         headers.insert(1, "class")

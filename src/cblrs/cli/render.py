@@ -147,8 +147,12 @@ def run(args: argparse.Namespace) -> int:
         rows.append(row)
     if args.json:
         print_json(
-            {"bits": planes.bits, "planes": planes.to_list(), "distorted": args.distorted,
-             "cameras": rows}
+            {
+                "bits": planes.bits,
+                "planes": planes.to_list(),
+                "distorted": args.distorted,
+                "cameras": rows,
+            }
         )
         return 0
     table = [

@@ -25,10 +25,19 @@ def register(subparsers) -> None:
     parser.add_argument("reference", type=Path, metavar="REFERENCE.png")
     parser.add_argument("--out", required=True, type=Path, metavar="OUT.png")
     parser.add_argument("--frame", type=Path, metavar="IMAGE", help="camera frame to draw over")
-    parser.add_argument("--grid", type=float, default=1.0, metavar="METRES",
-                        help="grid spacing in metres (0: no grid)")
-    parser.add_argument("--alpha", type=float, default=None,
-                        help="weight of the reference colours over the frame (default 0.45)")
+    parser.add_argument(
+        "--grid",
+        type=float,
+        default=1.0,
+        metavar="METRES",
+        help="grid spacing in metres (0: no grid)",
+    )
+    parser.add_argument(
+        "--alpha",
+        type=float,
+        default=None,
+        help="weight of the reference colours over the frame (default 0.45)",
+    )
     add_output_options(parser)
     parser.set_defaults(handler=run)
 
@@ -65,10 +74,17 @@ def run(args: argparse.Namespace) -> int:
     if not cv2.imwrite(str(args.out), image[..., ::-1]):
         raise UsageError(f"could not write {args.out}.")
     if args.json:
-        print_json({"out": str(args.out), "reference": str(args.reference),
-                    "camera": reference.camera_name, "image_size": list(reference.image_size),
-                    "coverage": reference.coverage(), "grid_m": args.grid,
-                    "frame": str(args.frame) if args.frame else None})
+        print_json(
+            {
+                "out": str(args.out),
+                "reference": str(args.reference),
+                "camera": reference.camera_name,
+                "image_size": list(reference.image_size),
+                "coverage": reference.coverage(),
+                "grid_m": args.grid,
+                "frame": str(args.frame) if args.frame else None,
+            }
+        )
     elif not args.quiet:
         print(f"wrote {args.out}")
     return 0

@@ -94,12 +94,16 @@ def draw_metric_grid(
         thickness = max(1, round(max(width, height) / 960))
     world = reference_world_map(reference)
     plane_ids = reference.pixels[..., 2].astype(np.int64)
+    font_scale = max(0.4, min(width, height) / 1080 * 0.8)
+    font_thickness = max(1, round(font_scale * 2))
+    text_height = cv2.getTextSize("x=0m", cv2.FONT_HERSHEY_SIMPLEX, font_scale, font_thickness)[0][
+        1
+    ]
     placed: list[tuple[int, int, int, int]] = []
     for axis, colour, prefix in ((0, x_colour, "x"), (1, y_colour, "y")):
+        values = world[..., axis]
         with np.errstate(invalid="ignore"):
-            cell = np.floor(world[..., axis] / grid_m)
-        known = np.isfinite(cell)
-        cell = np.where(known, cell, np.nan)
+            cell = np.floor(values / grid_m)
         line = np.zeros((height, width), dtype=bool)
         # A boundary between two horizontally or vertically adjacent pixels of the same plane.
         for first, second, first_id, second_id, target in (
@@ -109,13 +113,36 @@ def draw_metric_grid(
             with np.errstate(invalid="ignore"):
                 target |= (first != second) & (first_id == second_id) & np.isfinite(first)
             target &= np.isfinite(second)
+        # Far away the lines crowd into a solid band; leave them out where adjacent lines
+        # would be closer than a few line widths.
+        spacing = _line_spacing(values, grid_m, reach=4 * thickness)
+        with np.errstate(invalid="ignore"):
+            line &= ~(spacing < 3 * thickness + 2)
         if thickness > 1:
             kernel = np.ones((thickness, thickness), dtype=np.uint8)
             line = cv2.dilate(line.astype(np.uint8), kernel).astype(bool)
         output[line] = colour
         if labels:
-            _label_lines(output, world[..., axis], line, grid_m, prefix, colour, placed)
+            with np.errstate(invalid="ignore"):
+                roomy = line & (spacing >= 1.8 * text_height)
+            _label_lines(
+                output, values, roomy, grid_m, prefix, colour, placed, font_scale, font_thickness
+            )
     return output
+
+
+def _line_spacing(values: NDArray[np.float64], grid_m: float, reach: int) -> NDArray[np.float64]:
+    """Approximate distance in pixels between adjacent iso-lines of ``values``, per pixel.
+
+    Central differences over ``reach`` pixels (wide enough to see through the quantisation
+    steps of an 8-bit reference); NaN near plane edges.
+    """
+    gradient_x = np.full(values.shape, np.nan)
+    gradient_y = np.full(values.shape, np.nan)
+    gradient_x[:, reach:-reach] = (values[:, 2 * reach :] - values[:, : -2 * reach]) / (2 * reach)
+    gradient_y[reach:-reach, :] = (values[2 * reach :, :] - values[: -2 * reach, :]) / (2 * reach)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return grid_m / np.hypot(gradient_x, gradient_y)
 
 
 def _label_lines(
@@ -126,20 +153,21 @@ def _label_lines(
     prefix: str,
     colour: tuple[int, int, int],
     placed: list[tuple[int, int, int, int]],
+    font_scale: float,
+    font_thickness: int,
 ) -> None:
-    """Put a label on each drawn iso-line, near the image centre, avoiding earlier labels."""
+    """Put a label on each iso-line (``line`` marks where labels may go), near the image
+    centre, avoiding labels placed before."""
     height, width = line.shape
     rows, columns = np.nonzero(line)
     if len(rows) == 0:
         return
-    # The line value: round the world coordinate on the line to the nearest grid multiple.
+    # The line value: the world coordinate on the line rounded to the nearest grid multiple.
     with np.errstate(invalid="ignore"):
         line_values = np.rint(values[rows, columns] / grid_m)
     finite = np.isfinite(line_values)
     rows, columns, line_values = rows[finite], columns[finite], line_values[finite]
-    font_scale = max(0.4, min(width, height) / 1080 * 0.8)
-    font_thickness = max(1, round(font_scale * 2))
-    margin = 4
+    margin = max(4, round(6 * font_scale))
     centre = np.array([width / 2.0, height / 2.0])
     for value in np.unique(line_values):
         on_line = line_values == value
@@ -151,27 +179,46 @@ def _label_lines(
             text, cv2.FONT_HERSHEY_SIMPLEX, font_scale, font_thickness
         )
         distance = np.hypot(line_columns - centre[0], line_rows - centre[1])
-        for index in np.argsort(distance)[:: max(1, len(distance) // 40)]:
+        for index in np.argsort(distance)[:: max(1, len(distance) // 60)]:
             left = int(line_columns[index]) + 3
             bottom = int(line_rows[index]) - 3
-            box = (left - margin, bottom - text_height - margin, left + text_width + margin,
-                   bottom + baseline + margin)
+            box = (
+                left - margin,
+                bottom - text_height - margin,
+                left + text_width + margin,
+                bottom + baseline + margin,
+            )
             if box[0] < 0 or box[1] < 0 or box[2] >= width or box[3] >= height:
                 continue
             if any(_overlap(box, other) for other in placed):
                 continue
             placed.append(box)
-            cv2.putText(image, text, (left, bottom), cv2.FONT_HERSHEY_SIMPLEX, font_scale,
-                        (0, 0, 0), font_thickness + 2, cv2.LINE_AA)
-            cv2.putText(image, text, (left, bottom), cv2.FONT_HERSHEY_SIMPLEX, font_scale,
-                        colour, font_thickness, cv2.LINE_AA)
+            cv2.putText(
+                image,
+                text,
+                (left, bottom),
+                cv2.FONT_HERSHEY_SIMPLEX,
+                font_scale,
+                (0, 0, 0),
+                font_thickness + 2,
+                cv2.LINE_AA,
+            )
+            cv2.putText(
+                image,
+                text,
+                (left, bottom),
+                cv2.FONT_HERSHEY_SIMPLEX,
+                font_scale,
+                colour,
+                font_thickness,
+                cv2.LINE_AA,
+            )
             break
 
 
 def _overlap(first: tuple[int, int, int, int], second: tuple[int, int, int, int]) -> bool:
     return not (
-        first[2] < second[0] or second[2] < first[0] or first[3] < second[1]
-        or second[3] < first[1]
+        first[2] < second[0] or second[2] < first[0] or first[3] < second[1] or second[3] < first[1]
     )
 
 
