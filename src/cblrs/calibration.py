@@ -215,27 +215,43 @@ def read_aicity_calibration(
     """
     path = Path(path)
     data = _read_json(path)
+    if not isinstance(data, dict):
+        raise CalibrationError(f"{path}: an AI City calibration must be a JSON object.")
     name = name or path.parent.name or path.stem
-    size = tuple(data.get("image_size", image_size))
+    try:
+        size = (
+            int(data.get("image_size", image_size)[0]),
+            int(data.get("image_size", image_size)[1]),
+        )
+    except (TypeError, ValueError, IndexError):
+        raise CalibrationError(f"{path}: image_size must be [width, height].") from None
     projection = data.get("camera projection matrix")
     if projection is not None:
-        projection = np.asarray(projection, dtype=np.float64)
-        if projection.shape != (3, 4):
-            raise CalibrationError(f"{path}: camera projection matrix must be 3x4.")
-        intrinsics, rotation, centre_h = cv2.decomposeProjectionMatrix(projection)[:3]
-        centre = (centre_h[:3] / centre_h[3]).ravel()
-        intrinsics = intrinsics / intrinsics[2, 2]
-        if np.linalg.det(rotation) < 0:
-            rotation = -rotation
-        translation = -rotation @ centre
-        camera = Camera.from_extrinsics(name, intrinsics, rotation, translation, size)
-        return camera
+        return Camera.from_projection(
+            name, _matrix(projection, (3, 4), path, "camera projection matrix"), size
+        )
     homography = data.get("homography matrix")
     if homography is None:
         raise CalibrationError(
             f"{path} has neither 'homography matrix' nor 'camera projection matrix'."
         )
-    return Camera.from_homography(name, np.asarray(homography, dtype=np.float64), size)
+    return Camera.from_homography(
+        name, _matrix(homography, (3, 3), path, "homography matrix"), size
+    )
+
+
+def _matrix(value: object, shape: tuple[int, int], path: Path, key: str) -> NDArray:
+    try:
+        matrix = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise CalibrationError(
+            f"{path}: {key!r} must be a {shape[0]}x{shape[1]} matrix of numbers."
+        ) from None
+    if matrix.shape != shape:
+        raise CalibrationError(
+            f"{path}: {key!r} must be {shape[0]}x{shape[1]}, got shape {matrix.shape}."
+        )
+    return matrix
 
 
 def read_camera_json(path: str | Path) -> list[Camera]:

@@ -26,9 +26,12 @@ from cblrs.errors import CalibrationError
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
 
-# Rays meeting the plane closer than this to the camera (in camera depth, metres) are treated
-# as not hitting it; it also excludes the horizon line where the depth tends to infinity.
+# World points closer than this to the camera (in camera depth, metres) count as behind it.
 _MIN_DEPTH_M = 1e-6
+# Rays meeting a plane farther away than this (metres) count as missing it: they graze the
+# horizon, where rounding decides the side and the hit point is meaningless. The limit is a
+# world distance, so it does not depend on how a bare homography happens to be scaled.
+MAX_WORLD_DISTANCE_M = 1e7
 
 
 def _as_points(points: NDArray[np.floating] | list, name: str) -> FloatArray:
@@ -103,9 +106,7 @@ class Camera:
                 f"camera {self.name!r}: image size must be positive, got {self.image_size}."
             )
         object.__setattr__(self, "image_size", (int(width), int(height)))
-        object.__setattr__(
-            self, "homography", _check_matrix(self.homography, (3, 3), "homography")
-        )
+        object.__setattr__(self, "homography", _check_matrix(self.homography, (3, 3), "homography"))
         if abs(np.linalg.det(self.homography)) < 1e-12:
             raise CalibrationError(f"camera {self.name!r}: the homography is singular.")
         distortion = np.asarray(self.distortion, dtype=np.float64).ravel()
@@ -142,7 +143,7 @@ class Camera:
         image_size: tuple[int, int],
         distortion: NDArray | None = None,
     ) -> Camera:
-        """Camera from K, a world-to-camera rotation (matrix or Rodrigues vector) and t in metres."""
+        """Camera from K, a world-to-camera rotation (matrix or Rodrigues vector) and t, metres."""
         rotation = np.asarray(rotation, dtype=np.float64)
         if rotation.shape in ((3,), (3, 1), (1, 3)):
             rotation = cv2.Rodrigues(rotation.reshape(3, 1))[0]
@@ -191,9 +192,7 @@ class Camera:
         )
 
     @classmethod
-    def from_homography(
-        cls, name: str, homography: NDArray, image_size: tuple[int, int]
-    ) -> Camera:
+    def from_homography(cls, name: str, homography: NDArray, image_size: tuple[int, int]) -> Camera:
         """Camera known only by its ground homography (world metres -> pixels).
 
         The sign of a homography is arbitrary; it is fixed here so that the bottom row of the
@@ -211,6 +210,40 @@ class Camera:
         if np.median((bottom @ inverse.T)[:, 2]) < 0:
             homography = -homography
         return cls(name=name, image_size=(width, height), homography=homography)
+
+    @classmethod
+    def from_projection(
+        cls,
+        name: str,
+        projection: NDArray,
+        image_size: tuple[int, int],
+        distortion: NDArray | None = None,
+    ) -> Camera:
+        """Camera from a 3x4 projection matrix ``P ~ K [R | t]`` (world metres -> pixels).
+
+        ``P`` is defined up to a scale of either sign; the sign is fixed so that the focal
+        lengths come out positive and R is a proper rotation.
+        """
+        projection = _check_matrix(projection, (3, 4), "projection matrix")
+        if abs(np.linalg.det(projection[:, :3])) < 1e-12 * np.abs(projection).max() ** 3:
+            raise CalibrationError(f"camera {name!r}: the projection matrix is singular.")
+        # det(K R) > 0 for positive focal lengths and a proper rotation.
+        if np.linalg.det(projection[:, :3]) < 0:
+            projection = -projection
+        intrinsics, rotation = cv2.RQDecomp3x3(projection[:, :3])[:2]
+        # RQ is unique only up to the signs of K's diagonal; make them positive.
+        signs = np.diag(np.sign(np.diag(intrinsics)))
+        intrinsics, rotation = intrinsics @ signs, signs @ rotation
+        translation = np.linalg.solve(intrinsics, projection[:, 3])
+        scale = intrinsics[2, 2]
+        return cls.from_extrinsics(
+            name,
+            intrinsics / scale,
+            rotation,
+            translation / scale,
+            image_size,
+            distortion=distortion,
+        )
 
     # ------------------------------------------------------------------ properties
     @property
@@ -392,9 +425,9 @@ class Camera:
         grid_x, grid_y = np.meshgrid(coarse_x, coarse_y)
         coarse = self.undistort_pixels(np.column_stack([grid_x.ravel(), grid_y.ravel()]))
         coarse = coarse.reshape(rows, columns, 2).astype(np.float32)
-        fine = cv2.resize(
-            coarse, (columns * step, rows * step), interpolation=cv2.INTER_LINEAR
-        )[pad * step : pad * step + height, pad * step : pad * step + width]
+        fine = cv2.resize(coarse, (columns * step, rows * step), interpolation=cv2.INTER_LINEAR)[
+            pad * step : pad * step + height, pad * step : pad * step + width
+        ]
         return np.ascontiguousarray(fine[..., 0]), np.ascontiguousarray(fine[..., 1])
 
     def __repr__(self) -> str:
@@ -409,28 +442,35 @@ def plane_homography(
     """Homography from the plane z = height_m (metres) to pixels: ``K [r1 r2 (z r3 + t)]``."""
     rotation = np.asarray(rotation, dtype=np.float64)
     translation = np.asarray(translation, dtype=np.float64).ravel()
-    columns = np.column_stack([rotation[:, 0], rotation[:, 1], height_m * rotation[:, 2] + translation])
+    columns = np.column_stack(
+        [rotation[:, 0], rotation[:, 1], height_m * rotation[:, 2] + translation]
+    )
     return np.asarray(intrinsics, dtype=np.float64) @ columns
 
 
-def homography_pixel_to_world(
-    homography: NDArray, pixels: NDArray
-) -> tuple[FloatArray, BoolArray]:
+def homography_pixel_to_world(homography: NDArray, pixels: NDArray) -> tuple[FloatArray, BoolArray]:
     """Map undistorted pixels through the inverse of a world-to-pixel homography.
 
     The homography's sign must make points in front of the camera have a positive third
     coordinate (true for ``K [r1 r2 t]`` and for :meth:`Camera.from_homography`).
 
+    Args:
+        homography: (3, 3) world (metres) -> undistorted pixel map.
+        pixels: (N, 2) undistorted pixel coordinates.
+
     Returns:
-        ``(world_xy, valid)``; invalid rows (above the horizon) are NaN.
+        ``(world_xy, valid)``: (N, 2) metres and (N,) bool. Rows whose ray does not meet the
+        plane in front of the camera (at or above the horizon, or beyond
+        :data:`MAX_WORLD_DISTANCE_M`) are invalid and NaN.
     """
     pixels = _as_points(pixels, "pixels")
     inverse = np.linalg.inv(np.asarray(homography, dtype=np.float64))
     homogeneous = np.column_stack([pixels, np.ones(len(pixels))]) @ inverse.T
     scale = homogeneous[:, 2]
-    # depth of the world point = 1 / scale, so it is in front exactly when scale > 0.
-    valid = np.isfinite(scale) & (scale > _MIN_DEPTH_M * 1e-6)
-    with np.errstate(divide="ignore", invalid="ignore"):
+    # The depth of the world point is proportional to 1 / scale (exactly 1 / scale for
+    # K [r1 r2 t]), so the point is in front of the camera exactly when scale > 0.
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         world_xy = homogeneous[:, :2] / scale[:, None]
+        valid = (scale > 0) & (np.abs(world_xy) <= MAX_WORLD_DISTANCE_M).all(axis=1)
     world_xy[~valid] = np.nan
     return world_xy, valid

@@ -103,7 +103,9 @@ class Detections(_Columns):
     def concatenate(cls, parts: list[Detections]) -> Detections:
         if not parts:
             return cls.empty()
-        return cls(**{f.name: np.concatenate([getattr(p, f.name) for p in parts]) for f in fields(cls)})
+        return cls(
+            **{f.name: np.concatenate([getattr(p, f.name) for p in parts]) for f in fields(cls)}
+        )
 
 
 @dataclass(frozen=True, eq=False)
@@ -149,8 +151,14 @@ class CameraMessage(_Columns):
     @classmethod
     def empty(cls, camera_id: str, sequence: int, timestamp: float, frame: int) -> CameraMessage:
         return cls(
-            camera_id, sequence, timestamp, frame,
-            np.zeros((0, 4)), np.zeros(0), np.zeros(0, np.int64), np.zeros((0, 3), np.int64),
+            camera_id,
+            sequence,
+            timestamp,
+            frame,
+            np.zeros((0, 4)),
+            np.zeros(0),
+            np.zeros(0, np.int64),
+            np.zeros((0, 3), np.int64),
         )
 
 
@@ -200,4 +208,6 @@ class Tracks(_Columns):
     def concatenate(cls, parts: list[Tracks]) -> Tracks:
         if not parts:
             return cls.empty()
-        return cls(**{f.name: np.concatenate([getattr(p, f.name) for p in parts]) for f in fields(cls)})
+        return cls(
+            **{f.name: np.concatenate([getattr(p, f.name) for p in parts]) for f in fields(cls)}
+        )

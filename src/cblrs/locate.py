@@ -17,7 +17,7 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 from numpy.typing import NDArray
 
-from cblrs.camera import Camera, homography_pixel_to_world
+from cblrs.camera import MAX_WORLD_DISTANCE_M, Camera, homography_pixel_to_world
 from cblrs.errors import ReferenceImageError
 from cblrs.reference import ReferenceImage
 
@@ -91,12 +91,17 @@ class HomographyLocator:
         return world_xy, valid
 
     def locate_one(self, x: float, y: float) -> tuple[float, float] | None:
+        width, height = self.image_size
+        if not (-0.5 <= x < width - 0.5 and -0.5 <= y < height - 0.5):
+            return None
         a, b, c, d, e, f, g, h, i = self._coefficients
         scale = g * x + h * y + i
         if scale <= 0.0:
             return None
         world_x = (a * x + b * y + c) / scale
         world_y = (d * x + e * y + f) / scale
+        if not (abs(world_x) <= MAX_WORLD_DISTANCE_M and abs(world_y) <= MAX_WORLD_DISTANCE_M):
+            return None
         if self.bounds is not None:
             x0, y0, x1, y1 = self.bounds
             if not (x0 <= world_x <= x1 and y0 <= world_y <= y1):
@@ -119,9 +124,7 @@ class LUTLocator:
         self._flat = self.table.reshape(-1, 2)
 
     @classmethod
-    def from_camera(
-        cls, camera: Camera, height_m: float = 0.0, bounds=None
-    ) -> LUTLocator:
+    def from_camera(cls, camera: Camera, height_m: float = 0.0, bounds=None) -> LUTLocator:
         width, height = camera.image_size
         map_x, map_y = camera.undistorted_grid()
         pixels = np.column_stack([map_x.ravel(), map_y.ravel()])
@@ -130,8 +133,10 @@ class LUTLocator:
             x0, y0, x1, y1 = bounds
             with np.errstate(invalid="ignore"):
                 valid &= (
-                    (world_xy[:, 0] >= x0) & (world_xy[:, 0] <= x1)
-                    & (world_xy[:, 1] >= y0) & (world_xy[:, 1] <= y1)
+                    (world_xy[:, 0] >= x0)
+                    & (world_xy[:, 0] <= x1)
+                    & (world_xy[:, 1] >= y0)
+                    & (world_xy[:, 1] <= y1)
                 )
         world_xy[~valid] = np.nan
         return cls(world_xy.reshape(height, width, 2).astype(np.float32))
@@ -171,10 +176,11 @@ class LUTLocator:
         return world_xy, valid
 
     def locate_one(self, x: float, y: float) -> tuple[float, float] | None:
-        column, row = int(x + 0.5), int(y + 0.5)
         width, height = self.image_size
-        if not (0 <= column < width and 0 <= row < height):
+        # Written as one chained test so NaN (every comparison False) falls out too.
+        if not (-0.5 <= x < width - 0.5 and -0.5 <= y < height - 0.5):
             return None
+        column, row = int(x + 0.5), int(y + 0.5)
         world_x = self.table.item(row, column, 0)
         if world_x != world_x:  # NaN: no plane here
             return None
@@ -202,10 +208,11 @@ class ColorLocator:
         return self.reference.locate(pixels)
 
     def locate_one(self, x: float, y: float) -> tuple[float, float] | None:
-        column, row = int(x + 0.5), int(y + 0.5)
         width, height = self.image_size
-        if not (0 <= column < width and 0 <= row < height):
+        # Written as one chained test so NaN (every comparison False) falls out too.
+        if not (-0.5 <= x < width - 0.5 and -0.5 <= y < height - 0.5):
             return None
+        column, row = int(x + 0.5), int(y + 0.5)
         packed = self._packed.item(row * width + column)
         decoder = self._decoders.get(packed >> 32)
         if decoder is None:

@@ -186,7 +186,9 @@ class PlaneSet(Sequence[PlaneSpec]):
             raise PlaneError(f"plane ids must be distinct, got {ids}.")
         bits = {plane.bits for plane in self._planes}
         if len(bits) != 1:
-            raise PlaneError(f"all planes of one image need the same bit depth, got {sorted(bits)}.")
+            raise PlaneError(
+                f"all planes of one image need the same bit depth, got {sorted(bits)}."
+            )
         self.bits: int = bits.pop()
         self._by_id = {plane.plane_id: plane for plane in self._planes}
 
@@ -212,7 +214,9 @@ class PlaneSet(Sequence[PlaneSpec]):
         try:
             return self._by_id[int(plane_id)]
         except KeyError:
-            raise PlaneError(f"no plane with id {plane_id}; known ids: {sorted(self._by_id)}.") from None
+            raise PlaneError(
+                f"no plane with id {plane_id}; known ids: {sorted(self._by_id)}."
+            ) from None
 
     @property
     def ids(self) -> list[int]:

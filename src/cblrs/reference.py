@@ -140,9 +140,7 @@ class ReferenceImage:
         return path
 
     @classmethod
-    def load(
-        cls, path: str | Path, expected_size: tuple[int, int] | None = None
-    ) -> ReferenceImage:
+    def load(cls, path: str | Path, expected_size: tuple[int, int] | None = None) -> ReferenceImage:
         """Read a reference PNG written by :meth:`save`.
 
         Args:
