@@ -230,7 +230,7 @@ class Camera:
         # det(K R) > 0 for positive focal lengths and a proper rotation.
         if np.linalg.det(projection[:, :3]) < 0:
             projection = -projection
-        intrinsics, rotation = cv2.RQDecomp3x3(projection[:, :3])[:2]
+        intrinsics, rotation = cv2.RQDecomp3x3(projection[:, :3])[1:3]
         # RQ is unique only up to the signs of K's diagonal; make them positive.
         signs = np.diag(np.sign(np.diag(intrinsics)))
         intrinsics, rotation = intrinsics @ signs, signs @ rotation
