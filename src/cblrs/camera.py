@@ -234,13 +234,13 @@ class Camera:
         # RQ is unique only up to the signs of K's diagonal; make them positive.
         signs = np.diag(np.sign(np.diag(intrinsics)))
         intrinsics, rotation = intrinsics @ signs, signs @ rotation
+        # P = K [R | t] with the scale of P carried by K, so t = K^-1 p4 is already in metres.
         translation = np.linalg.solve(intrinsics, projection[:, 3])
-        scale = intrinsics[2, 2]
         return cls.from_extrinsics(
             name,
-            intrinsics / scale,
+            intrinsics / intrinsics[2, 2],
             rotation,
-            translation / scale,
+            translation,
             image_size,
             distortion=distortion,
         )
