@@ -1,0 +1,177 @@
+"""The AI City Challenge 2024 (track 1) text format for tracks and ground truth.
+
+One row per frame and track, whitespace separated::
+
+    <camera_id> <obj_id> <frame_id> <xmin> <ymin> <width> <height> <xworld> <yworld>
+
+``camera_id``, ``obj_id`` and ``frame_id`` are integers; the box is in pixels
+(converted from/to :class:`cblrs.detections.Tracks`' ``xyxy``), the world position in metres.
+Rows are written in the order given and read back in file order: the AI City evaluation
+counts only the first row of each (frame, id), so the order matters.
+
+A track without a box (``xyxy`` all NaN, e.g. a position fused from several cameras) is
+written with the box ``-1 -1 -1 -1`` and read back as NaN. A track without a camera has
+``camera_id`` -1.
+
+The format carries no time: :func:`read_tracks` sets ``timestamp`` to the frame number (or to
+``frame / frames_per_second`` when the rate is given); callers that know the dataset's timing
+map frames to seconds themselves.
+"""
+
+from __future__ import annotations
+
+import io
+import logging
+import warnings
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from cblrs.detections import Tracks
+from cblrs.errors import DatasetError
+
+logger = logging.getLogger(__name__)
+
+COLUMNS = (
+    "camera_id", "obj_id", "frame_id", "xmin", "ymin", "width", "height", "xworld", "yworld",
+)
+_INTEGER_COLUMNS = (0, 1, 2)
+_NO_BOX = -1.0
+
+
+def write_tracks(path: str | Path, tracks: Tracks) -> None:
+    """Write tracks as an AI City 2024 text file (rows in the given order).
+
+    Args:
+        path: the output file (overwritten).
+        tracks: the rows; ``camera_id``, ``track_id``, ``frame``, ``xyxy`` (pixels, NaN for
+            no box) and ``world_xy`` (metres) are written, ``timestamp`` is not.
+
+    Raises:
+        DatasetError: a world position is not finite, or the file cannot be written.
+    """
+    path = Path(path)
+    if not np.all(np.isfinite(tracks.world_xy)):
+        bad = int(np.flatnonzero(~np.isfinite(tracks.world_xy).all(axis=1))[0])
+        raise DatasetError(
+            f"cannot write {path}: row {bad} (frame {int(tracks.frame[bad])}, track "
+            f"{int(tracks.track_id[bad])}) has a non-finite world position."
+        )
+    xyxy = tracks.xyxy
+    has_box = np.isfinite(xyxy).all(axis=1)
+    boxes = np.full((len(tracks), 4), _NO_BOX)
+    boxes[has_box, 0:2] = xyxy[has_box, 0:2]
+    boxes[has_box, 2:4] = xyxy[has_box, 2:4] - xyxy[has_box, 0:2]
+    lines = [
+        f"{camera} {track} {frame} {x:.2f} {y:.2f} {width:.2f} {height:.2f} {wx:.4f} {wy:.4f}\n"
+        for camera, track, frame, (x, y, width, height), (wx, wy) in zip(
+            tracks.camera_id.tolist(),
+            tracks.track_id.tolist(),
+            tracks.frame.tolist(),
+            boxes.tolist(),
+            tracks.world_xy.tolist(),
+            strict=True,
+        )
+    ]
+    try:
+        path.write_text("".join(lines))
+    except OSError as error:
+        raise DatasetError(f"cannot write {path}: {error.strerror or error}.") from None
+    logger.debug("wrote %d rows to %s", len(tracks), path)
+
+
+def read_tracks(path: str | Path, frames_per_second: float | None = None) -> Tracks:
+    """Read an AI City 2024 text file of tracks or ground truth.
+
+    Args:
+        path: the file; blank lines (such as a trailing one) are skipped.
+        frames_per_second: when given, ``timestamp = frame / frames_per_second``; otherwise the
+            file has no timing and ``timestamp`` is the frame number as given.
+
+    Returns:
+        The rows in file order; boxes ``-1 -1 -1 -1`` become NaN ``xyxy``.
+
+    Raises:
+        DatasetError: the file is missing, or a row (named ``file:line``) has the wrong
+            number of columns, a non-numeric or non-finite value, or a fractional id.
+    """
+    path = Path(path)
+    if frames_per_second is not None and not frames_per_second > 0:
+        raise DatasetError(f"frames per second must be positive, got {frames_per_second}.")
+    try:
+        text = path.read_text()
+    except FileNotFoundError:
+        raise DatasetError(f"tracks file {path} does not exist.") from None
+    except (OSError, UnicodeDecodeError) as error:
+        raise DatasetError(f"cannot read tracks file {path}: {error}.") from None
+    if not text.strip():
+        return Tracks.empty()
+    values = _parse(text, path)
+    for column in _INTEGER_COLUMNS:
+        fractional = values[:, column] != np.round(values[:, column])
+        if fractional.any():
+            _raise_at_row(text, path, int(np.flatnonzero(fractional)[0]),
+                          f"{COLUMNS[column]} must be an integer")
+    frame = values[:, 2].astype(np.int64)
+    x, y, width, height = values[:, 3], values[:, 4], values[:, 5], values[:, 6]
+    xyxy = np.stack([x, y, x + width, y + height], axis=1)
+    no_box = (values[:, 3:7] == _NO_BOX).all(axis=1)
+    xyxy[no_box] = np.nan
+    timestamp = frame.astype(np.float64)
+    if frames_per_second is not None:
+        timestamp = timestamp / frames_per_second
+    return Tracks(
+        frame=frame,
+        timestamp=timestamp,
+        track_id=values[:, 1].astype(np.int64),
+        world_xy=values[:, 7:9].copy(),
+        camera_id=values[:, 0].astype(np.int64),
+        xyxy=xyxy,
+    )
+
+
+def _parse(text: str, path: Path) -> NDArray[np.float64]:
+    """(N, 9) float64 values of the non-blank rows; errors name the offending line."""
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            values = np.loadtxt(io.StringIO(text), dtype=np.float64, ndmin=2, comments=None)
+    except (ValueError, UserWarning):
+        values = None
+    if values is None or values.shape[1] != len(COLUMNS):
+        _raise_first_bad_line(text, path)
+    assert values is not None
+    finite = np.isfinite(values).all(axis=1)
+    if not finite.all():
+        _raise_at_row(text, path, int(np.flatnonzero(~finite)[0]), "a value is not finite")
+    return values
+
+
+def _raise_first_bad_line(text: str, path: Path) -> None:
+    for number, line in enumerate(text.splitlines(), start=1):
+        tokens = line.split()
+        if not tokens:
+            continue
+        if len(tokens) != len(COLUMNS):
+            raise DatasetError(
+                f"{path}:{number}: expected {len(COLUMNS)} columns ({' '.join(COLUMNS)}), "
+                f"got {len(tokens)}."
+            )
+        for name, token in zip(COLUMNS, tokens, strict=True):
+            try:
+                float(token)
+            except ValueError:
+                raise DatasetError(f"{path}:{number}: {name} {token!r} is not a number.") from None
+    raise DatasetError(f"{path} is not a valid AI City tracks file.")
+
+
+def _raise_at_row(text: str, path: Path, row: int, problem: str) -> None:
+    """Raise for the ``row``-th non-blank line (0-based), naming its line number."""
+    seen = -1
+    for number, line in enumerate(text.splitlines(), start=1):
+        if line.strip():
+            seen += 1
+            if seen == row:
+                raise DatasetError(f"{path}:{number}: {problem} in {line.strip()!r}.")
+    raise DatasetError(f"{path}: row {row + 1}: {problem}.")
