@@ -25,6 +25,7 @@ SUBCOMMANDS = [
     "render",
     "locate",
     "show",
+    "bench",
 ]
 
 

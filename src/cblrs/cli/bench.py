@@ -1,0 +1,149 @@
+"""``cblrs bench``: benchmarks of lookup, rendering, the paper's claims, tracker and pipeline.
+
+Each benchmark prints a markdown table (or ``--json``); ``--out DIR`` also writes
+``DIR/bench_<name>.json`` and ``DIR/bench_<name>.md`` (and figures where there are any).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from cblrs.cli.common import UsageError, add_output_options, print_json
+
+
+def register(subparsers) -> None:
+    parser = subparsers.add_parser(
+        "bench",
+        help="benchmarks: lookup (Table I), render, claims, tracker, pipeline, all",
+        description="Measure cblrs on this machine; medians over repeated runs.",
+    )
+    kinds = parser.add_subparsers(dest="benchmark", metavar="BENCHMARK")
+
+    lookup = kinds.add_parser("lookup", help="the paper's Table I: one-point and batched lookups")
+    lookup.add_argument("--n", type=int, default=100_000, help="random pixels (default 100000)")
+    lookup.add_argument("--repeats", type=int, default=5, help="timed runs (default 5)")
+    lookup.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    lookup.add_argument("--bits", type=int, choices=(8, 16), default=8, help="reference bits")
+    _common(lookup)
+    lookup.set_defaults(handler=run, benchmark="lookup")
+
+    render = kinds.add_parser("render", help="reference rendering time, 8/16 bit, with lens")
+    render.add_argument("--repeats", type=int, default=5, help="warm runs (default 5)")
+    _common(render)
+    render.set_defaults(handler=run, benchmark="render")
+
+    claims = kinds.add_parser(
+        "claims",
+        help="where the reference image wins: distortion, non-planar ground, planes, camera cost",
+    )
+    claims.add_argument("--n", type=int, default=20_000, help="random pixels (default 20000)")
+    claims.add_argument("--repeats", type=int, default=5, help="timed runs (default 5)")
+    claims.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    _common(claims)
+    claims.set_defaults(handler=run, benchmark="claims")
+
+    every = kinds.add_parser("all", help="every benchmark; writes JSON and markdown to --out")
+    every.add_argument("--repeats", type=int, default=5, help="timed runs (default 5)")
+    every.add_argument("--n", type=int, default=100_000, help="pixels for lookup (default 100000)")
+    _common(every, out_required=True)
+    every.set_defaults(handler=run, benchmark="all")
+    parser.set_defaults(handler=_usage(parser))
+
+
+def _common(parser: argparse.ArgumentParser, out_required: bool = False) -> None:
+    parser.add_argument(
+        "--calibration",
+        type=Path,
+        default=None,
+        help="WILDTRACK folder (default: $CBLRS_WILDTRACK or ../shared/data/wildtrack; "
+        "a built-in synthetic camera when absent)",
+    )
+    parser.add_argument(
+        "--out", type=Path, required=out_required, help="also write bench_<name>.json/.md here"
+    )
+    add_output_options(parser)
+
+
+def _usage(parser: argparse.ArgumentParser) -> Callable[[argparse.Namespace], int]:
+    def handler(args: argparse.Namespace) -> int:
+        parser.print_help()
+        return 2
+
+    return handler
+
+
+def _positive(value: int, name: str) -> int:
+    if value <= 0:
+        raise UsageError(f"{name} must be a positive integer, got {value}.")
+    return value
+
+
+def _run_one(name: str, args: argparse.Namespace) -> tuple[dict[str, Any], str]:
+    from cblrs.bench import report
+
+    repeats = _positive(args.repeats, "--repeats")
+    if name == "lookup":
+        from cblrs.bench.lookup import benchmark_lookup
+
+        result = benchmark_lookup(
+            count=_positive(args.n, "--n"),
+            repeats=repeats,
+            seed=args.seed,
+            bits=args.bits,
+            calibration=args.calibration,
+        )
+        return result, report.lookup_report(result)
+    if name == "render":
+        from cblrs.bench.render import benchmark_render
+
+        result = benchmark_render(repeats=repeats, calibration=args.calibration)
+        return result, report.render_report(result)
+    if name == "claims":
+        from cblrs.bench.claims import benchmark_claims, claims_report
+
+        result = benchmark_claims(
+            count=_positive(getattr(args, "claims_n", args.n), "--n"),
+            repeats=repeats,
+            seed=getattr(args, "seed", 0),
+            calibration=args.calibration,
+        )
+        return result, claims_report(result)
+    raise UsageError(f"unknown benchmark {name!r}.")
+
+
+def write_outputs(out: Path, name: str, result: dict[str, Any], text: str) -> list[Path]:
+    """Write ``bench_<name>.json`` and ``bench_<name>.md`` into ``out``."""
+    out.mkdir(parents=True, exist_ok=True)
+    json_path = out / f"bench_{name}.json"
+    json_path.write_text(json.dumps(result, indent=2, allow_nan=True) + "\n")
+    markdown_path = out / f"bench_{name}.md"
+    markdown_path.write_text(text + "\n")
+    return [json_path, markdown_path]
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.benchmark == "all":
+        names = ["lookup", "render", "claims"]
+        defaults = {"seed": 0, "bits": 8, "claims_n": 20_000}
+        for key, value in defaults.items():
+            if not hasattr(args, key):
+                setattr(args, key, value)
+    else:
+        names = [args.benchmark]
+    collected: dict[str, Any] = {}
+    texts = []
+    for name in names:
+        result, text = _run_one(name, args)
+        collected[name] = result
+        texts.append(text)
+        if args.out is not None:
+            write_outputs(args.out, name, result, text)
+    if args.json:
+        print_json(collected if len(names) > 1 else collected[names[0]])
+    else:
+        print("\n\n".join(texts))
+    return 0
