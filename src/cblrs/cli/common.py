@@ -16,6 +16,33 @@ class UsageError(Exception):
     """A mistake in the command line; printed as one sentence, exit code 2."""
 
 
+def parse_frame_range(text: str) -> tuple[int | None, int | None]:
+    """``"FIRST:LAST"`` (inclusive native frame numbers, either side may be empty) -> (first, last).
+
+    ``"100:"`` is frame 100 onwards, ``":995"`` up to 995, ``":"`` everything (None, None).
+
+    Raises:
+        UsageError: no colon, a side that is not a non-negative integer, or first > last.
+    """
+    if text.count(":") != 1:
+        raise UsageError(f"frame range {text!r} must be FIRST:LAST, e.g. 0:995, 100: or :995.")
+    bounds: list[int | None] = []
+    for side in text.split(":"):
+        side = side.strip()
+        if not side:
+            bounds.append(None)
+            continue
+        if not side.isdigit():
+            raise UsageError(
+                f"frame range {text!r}: {side!r} is not a non-negative integer frame number."
+            )
+        bounds.append(int(side))
+    first, last = bounds
+    if first is not None and last is not None and first > last:
+        raise UsageError(f"frame range {text!r} is empty: FIRST {first} is after LAST {last}.")
+    return first, last
+
+
 def print_json(data: Any) -> None:
     """Print one JSON document to stdout (numpy scalars and arrays are converted)."""
     print(json.dumps(data, indent=2, default=_to_builtin, allow_nan=False))
