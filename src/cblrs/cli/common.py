@@ -32,7 +32,7 @@ def parse_frame_range(text: str) -> tuple[int | None, int | None]:
         if not side:
             bounds.append(None)
             continue
-        if not side.isdigit():
+        if not (side.isascii() and side.isdigit()):
             raise UsageError(
                 f"frame range {text!r}: {side!r} is not a non-negative integer frame number."
             )

@@ -1,0 +1,95 @@
+"""``cblrs eval``: score AI City format tracks against a dataset's ground truth."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+
+from cblrs.cli.common import (
+    UsageError,
+    add_output_options,
+    format_table,
+    parse_frame_range,
+    print_json,
+)
+from cblrs.datasets.aicity import read_tracks
+from cblrs.datasets.multiview import load_scene
+from cblrs.detections import Tracks
+from cblrs.evaluation import Metrics, evaluate
+
+
+def register(subparsers) -> None:
+    parser = subparsers.add_parser(
+        "eval",
+        help="HOTA, DetA, AssA, LocA, MOTA, IDF1 of tracks against ground truth",
+        description=(
+            "Score world tracks (AI City 2024 text format) against the ground truth of a "
+            "WILDTRACK or MultiviewX folder, or of an AI City format ground-truth file, under "
+            "the AI City 2024 protocol: one sequence for all cameras, the first row per "
+            "(frame, id) counts, similarity max(0, 1 - d / 2 m) for HOTA, MOTA and IDF1 "
+            "within 1 m. Scores are percentages."
+        ),
+    )
+    parser.add_argument(
+        "dataset", type=Path, metavar="DATASET_DIR", help="dataset folder or ground-truth .txt"
+    )
+    parser.add_argument("tracks", type=Path, metavar="TRACKS.txt", help="predicted tracks")
+    parser.add_argument(
+        "--frames",
+        metavar="FIRST:LAST",
+        help="only these native frame numbers (inclusive; either side may be empty)",
+    )
+    add_output_options(parser)
+    parser.set_defaults(handler=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    first, last = parse_frame_range(args.frames) if args.frames else (None, None)
+    ground_truth = read_ground_truth(args.dataset)
+    predictions = read_tracks(args.tracks)
+    frames = select_frames(ground_truth, first, last, args.frames)
+    metrics = evaluate(ground_truth, predictions, frames=frames)
+    if args.json:
+        print_json(metrics.to_dict())
+    else:
+        print(format_summary(metrics))
+    return 0
+
+
+def read_ground_truth(path: Path) -> Tracks:
+    """Ground truth from a WILDTRACK/MultiviewX folder or an AI City format file."""
+    if path.is_dir():
+        return load_scene(path).ground_truth
+    if path.is_file():
+        return read_tracks(path)
+    raise UsageError(f"{path} is neither a dataset folder nor a ground-truth file.")
+
+
+def select_frames(
+    ground_truth: Tracks, first: int | None, last: int | None, text: str | None
+) -> np.ndarray | None:
+    """Ground-truth frame numbers in [first, last], or None for all of them."""
+    if first is None and last is None:
+        return None
+    frames = np.unique(ground_truth.frame)
+    keep = np.ones(len(frames), dtype=bool)
+    if first is not None:
+        keep &= frames >= first
+    if last is not None:
+        keep &= frames <= last
+    if not keep.any():
+        span = f"{frames.min()}..{frames.max()}" if len(frames) else "none"
+        raise UsageError(f"--frames {text} holds no ground-truth frame (ground truth: {span}).")
+    return frames[keep]
+
+
+def format_summary(metrics: Metrics) -> str:
+    scores = metrics.to_dict()
+    table = format_table(list(scores), [list(scores.values())])
+    return (
+        f"{table}\n"
+        f"(percent; {metrics.num_timesteps} frames, {metrics.num_gt_ids} ground-truth ids, "
+        f"{metrics.num_predicted_ids} predicted ids, {metrics.IDSW} id switches)"
+    )
