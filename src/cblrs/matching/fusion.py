@@ -1,0 +1,539 @@
+"""The fusion tracker: one observation per object per instant, Kalman-tracked on the ground.
+
+Where the paper's matcher compares every detection with every object, camera by camera,
+this tracker uses what the colour code makes possible: every camera's detections land in
+the same metric ground frame, so the views of one person at one instant are one noisy
+observation of one point. Per instant:
+
+1. decode all colours to world positions (metres);
+2. predict every track to the instant with a constant-velocity Kalman filter;
+3. associate, per camera, detections to tracks with the Hungarian algorithm on the negative
+   log-likelihood, gated by Mahalanobis and metric distance (a track takes at most one
+   detection from each camera, a detection feeds at most one track);
+4. fuse each track's detections (inverse-variance weighted mean) and update the filter once;
+5. cluster the leftover detections across cameras (at most one per camera per cluster,
+   complete linkage within ``cluster_radius_m``) and start a tentative track per cluster;
+6. confirm tracks with enough evidence (camera detections), merge duplicates (two tracks
+   that stay close without any camera seeing both), delete tracks unseen for too long.
+
+All parameters are physical (metres, seconds, m/s, m/s^2) so the same defaults serve 2 fps
+datasets and 10 or 20 fps video. Everything is online; there is no look-ahead.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+
+from cblrs.detections import CameraMessage, Tracks
+from cblrs.matching import kalman
+from cblrs.matching.base import (
+    MatcherError,
+    Observations,
+    build_config,
+    camera_index,
+    decode_messages,
+    instant_frame,
+    require,
+)
+from cblrs.plane import PlaneSet
+
+STATE_VERSION = "cblrs.fusion-tracker/1"
+_UNASSIGNABLE = 1.0e9
+
+
+def _positive(value: Any) -> bool:
+    return isinstance(value, int | float) and not isinstance(value, bool) and (
+        math.isfinite(value) and value > 0
+    )
+
+
+@dataclass(frozen=True)
+class FusionConfig:
+    """Options of the fusion tracker, all in physical units.
+
+    Attributes:
+        measurement_sigma_m: standard deviation of one camera's ground position of an object
+            (target pixel error seen on the ground), metres, close to the camera.
+        sigma_per_distance: added standard deviation per metre of distance between camera
+            and object (needs ``camera_positions``); a pixel error covers more ground far
+            away. Dimensionless (metres per metre).
+        camera_positions: optional ``{camera_id: (x, y)}`` ground positions of the cameras,
+            metres; without them the measurement noise is constant.
+        acceleration_sigma: white-noise acceleration of the motion model, m/s^2.
+        initial_velocity_sigma: velocity uncertainty of a new track, m/s.
+        gate_sigmas: Mahalanobis gate on the innovation (standard deviations).
+        max_gate_m: hard cap on the distance between a track and a detection it takes, metres.
+        cluster_radius_m: largest distance between two cameras' detections of one new object.
+        merge_radius_m: two confirmed tracks closer than this, observed at the same instant
+            by disjoint sets of cameras, are one object seen twice; the younger one is dropped.
+        confirm_evidence: camera detections (summed over instants) a track needs before it
+            is reported.
+        tentative_max_age_s: a tentative track unseen this long is dropped, seconds.
+        max_age_s: a confirmed track unseen this long is dropped, seconds.
+        report_coasting_s: keep reporting the prediction of a confirmed track that was
+            missed for at most this long, seconds (0: report only observed tracks).
+    """
+
+    measurement_sigma_m: float = 0.2
+    sigma_per_distance: float = 0.0
+    camera_positions: Mapping[str, Sequence[float]] | None = None
+    acceleration_sigma: float = 1.5
+    initial_velocity_sigma: float = 1.5
+    gate_sigmas: float = 4.0
+    max_gate_m: float = 2.0
+    cluster_radius_m: float = 1.0
+    merge_radius_m: float = 0.4
+    confirm_evidence: int = 2
+    tentative_max_age_s: float = 1.0
+    max_age_s: float = 2.0
+    report_coasting_s: float = 0.0
+
+    def __post_init__(self) -> None:
+        for name in (
+            "measurement_sigma_m", "acceleration_sigma", "initial_velocity_sigma",
+            "gate_sigmas", "max_gate_m", "cluster_radius_m", "tentative_max_age_s", "max_age_s",
+        ):
+            value = getattr(self, name)
+            require(_positive(value), f"{name} must be a positive number, got {value!r}.")
+        for name in ("sigma_per_distance", "merge_radius_m", "report_coasting_s"):
+            value = getattr(self, name)
+            require(
+                _positive(value) or value == 0,
+                f"{name} must be zero or a positive number, got {value!r}.",
+            )
+        require(
+            isinstance(self.confirm_evidence, int) and not isinstance(self.confirm_evidence, bool)
+            and self.confirm_evidence >= 1,
+            f"confirm_evidence must be a whole number >= 1, got {self.confirm_evidence!r}.",
+        )
+        if self.camera_positions is not None:
+            require(
+                isinstance(self.camera_positions, Mapping),
+                "camera_positions must map camera ids to (x, y) metres.",
+            )
+            positions = {}
+            for name, position in self.camera_positions.items():
+                point = np.asarray(position, dtype=np.float64).reshape(-1)
+                require(
+                    len(point) >= 2 and bool(np.isfinite(point[:2]).all()),
+                    f"camera position of {name!r} must be finite (x, y) metres, got {position!r}.",
+                )
+                positions[str(name)] = (float(point[0]), float(point[1]))
+            object.__setattr__(self, "camera_positions", positions)
+
+
+class FusionTracker:
+    """Multi-camera fusion tracker (the default matcher).
+
+    Args:
+        planes: the planes the cameras' colours refer to.
+        camera_ids: names of the cameras; a camera's index here is ``Tracks.camera_id``.
+        **options: fields of :class:`FusionConfig`.
+
+    Example:
+        >>> from cblrs.plane import PlaneSet, PlaneSpec
+        >>> tracker = FusionTracker(PlaneSet([PlaneSpec(1, (0, 0), 10, 10)]), ["a", "b"])
+        >>> len(tracker.update(0.0, []))
+        0
+    """
+
+    name = "fusion"
+
+    def __init__(self, planes: PlaneSet, camera_ids: Sequence[str], **options: Any):
+        self.config = build_config(FusionConfig, options, self.name)
+        self.planes = planes if isinstance(planes, PlaneSet) else PlaneSet(planes)
+        self.camera_ids = [str(name) for name in camera_ids]
+        self._cameras = camera_index(self.camera_ids)
+        self._camera_xy = np.full((len(self.camera_ids), 2), np.nan)
+        if self.config.camera_positions is not None:
+            unknown = sorted(set(self.config.camera_positions) - set(self.camera_ids))
+            require(not unknown, f"camera_positions names unknown camera(s): {unknown}.")
+            for name, position in self.config.camera_positions.items():
+                self._camera_xy[self._cameras[name]] = position
+        self.reset()
+
+    # ------------------------------------------------------------------ state
+    def reset(self) -> None:
+        self._time: float | None = None
+        self._next_id = 1
+        self._ids = np.zeros(0, np.int64)  # -1 while tentative
+        self._state = np.zeros((0, 4))
+        self._covariance = np.zeros((0, 4, 4))
+        self._evidence = np.zeros(0, np.int64)
+        self._last_seen = np.zeros(0)
+
+    @property
+    def track_count(self) -> int:
+        """Live tracks, tentative ones included."""
+        return len(self._ids)
+
+    def get_state(self) -> dict:
+        return {
+            "version": STATE_VERSION,
+            "camera_ids": list(self.camera_ids),
+            "time": self._time,
+            "next_id": self._next_id,
+            "ids": self._ids.tolist(),
+            "state": self._state.tolist(),
+            "covariance": self._covariance.tolist(),
+            "evidence": self._evidence.tolist(),
+            "last_seen": self._last_seen.tolist(),
+        }
+
+    def set_state(self, state: dict) -> None:
+        if not isinstance(state, dict) or state.get("version") != STATE_VERSION:
+            raise MatcherError(f"not a saved fusion-tracker state (expected {STATE_VERSION}).")
+        if state.get("camera_ids") != self.camera_ids:
+            raise MatcherError(
+                f"the saved state is for cameras {state.get('camera_ids')}, "
+                f"this tracker has {self.camera_ids}."
+            )
+        try:
+            time = state["time"]
+            self._time = None if time is None else float(time)
+            self._next_id = int(state["next_id"])
+            self._ids = np.asarray(state["ids"], np.int64).reshape(-1)
+            self._state = np.asarray(state["state"], np.float64).reshape(-1, 4)
+            self._covariance = np.asarray(state["covariance"], np.float64).reshape(-1, 4, 4)
+            self._evidence = np.asarray(state["evidence"], np.int64).reshape(-1)
+            self._last_seen = np.asarray(state["last_seen"], np.float64).reshape(-1)
+        except (KeyError, TypeError, ValueError) as error:
+            raise MatcherError(f"the saved fusion-tracker state is incomplete: {error}.") from None
+        lengths = {len(self._ids), len(self._state), len(self._covariance), len(self._evidence),
+                   len(self._last_seen)}
+        if len(lengths) != 1:
+            raise MatcherError("the saved fusion-tracker state has columns of different lengths.")
+
+    # ------------------------------------------------------------------ update
+    def update(self, timestamp: float, messages: Sequence[CameraMessage]) -> Tracks:
+        timestamp = float(timestamp)
+        observed = decode_messages(self.planes, self._cameras, messages)
+        self._predict(timestamp)
+        variance = self._measurement_variance(observed)
+
+        assigned = self._associate(observed, variance)
+        assigned = self._join_observed(observed, variance, assigned)
+        track_count = len(self._ids)
+        seen_now = np.zeros(track_count, dtype=bool)
+        report_camera = np.full(track_count, -1, np.int64)
+        report_box = np.full((track_count, 4), np.nan)
+        cameras_of_track = np.zeros((track_count, len(self.camera_ids)), dtype=bool)
+        matched = assigned >= 0
+        if matched.any():
+            rows = assigned[matched]
+            weight = 1.0 / variance[matched]
+            weight_sum = np.bincount(rows, weight, minlength=track_count)
+            fused = np.column_stack(
+                [np.bincount(rows, weight * observed.world_xy[matched, axis], track_count)
+                 for axis in (0, 1)]
+            )
+            seen_now = weight_sum > 0
+            fused_xy = fused[seen_now] / weight_sum[seen_now, None]
+            self._state[seen_now], self._covariance[seen_now] = kalman.update(
+                self._state[seen_now], self._covariance[seen_now], fused_xy,
+                1.0 / weight_sum[seen_now],
+            )
+            self._evidence += np.bincount(rows, minlength=track_count)
+            self._last_seen[seen_now] = timestamp
+            cameras_of_track[rows, observed.camera[matched]] = True
+            report_camera, report_box = self._largest_boxes(observed, matched, rows, track_count)
+
+        births = self._birth(_subset(observed, ~matched), variance[~matched], timestamp)
+        seen_now = np.concatenate([seen_now, np.ones(births, dtype=bool)])
+        report_camera = np.concatenate([report_camera, self._birth_camera])
+        report_box = np.concatenate([report_box, self._birth_box])
+        cameras_of_track = np.concatenate([cameras_of_track, self._birth_cameras])
+
+        keep = self._merge_duplicates(seen_now, cameras_of_track)
+        keep &= self._alive(timestamp)
+        self._select(keep)
+        seen_now, report_camera, report_box = seen_now[keep], report_camera[keep], report_box[keep]
+
+        newly_confirmed = (self._ids < 0) & (self._evidence >= self.config.confirm_evidence)
+        count = int(newly_confirmed.sum())
+        self._ids[newly_confirmed] = self._next_id + np.arange(count)
+        self._next_id += count
+        if not messages:
+            return Tracks.empty()
+        report = (self._ids >= 0) & (
+            seen_now | (timestamp - self._last_seen <= self.config.report_coasting_s)
+        )
+        order = np.argsort(self._ids[report], kind="stable")
+        rows = np.flatnonzero(report)[order]
+        return Tracks(
+            frame=np.full(len(rows), instant_frame(messages)),
+            timestamp=np.full(len(rows), timestamp),
+            track_id=self._ids[rows],
+            world_xy=self._state[rows, :2],
+            camera_id=report_camera[rows],
+            xyxy=report_box[rows],
+        )
+
+    # ------------------------------------------------------------------ steps
+    def _predict(self, timestamp: float) -> None:
+        if self._time is not None:
+            # Messages of slightly different timestamps can arrive out of order; a late
+            # one is treated as simultaneous rather than rewinding the filter.
+            dt = max(0.0, timestamp - self._time)
+            self._state, self._covariance = kalman.predict(
+                self._state, self._covariance, dt, self.config.acceleration_sigma
+            )
+            self._time = max(self._time, timestamp)
+        else:
+            self._time = timestamp
+
+    def _measurement_variance(self, observed: Observations) -> np.ndarray:
+        sigma = np.full(len(observed), self.config.measurement_sigma_m)
+        if self.config.sigma_per_distance > 0 and len(observed):
+            camera_xy = self._camera_xy[observed.camera]
+            distance = np.linalg.norm(observed.world_xy - camera_xy, axis=1)
+            known = np.isfinite(distance)
+            sigma[known] += self.config.sigma_per_distance * distance[known]
+        return sigma**2
+
+    def _associate(self, observed: Observations, variance: np.ndarray) -> np.ndarray:
+        """Track row of each detection (-1: none); one detection per camera per track."""
+        count, track_count = len(observed), len(self._ids)
+        assigned = np.full(count, -1, np.int64)
+        if count == 0 or track_count == 0:
+            return assigned
+        covariance = self._covariance
+        a = covariance[None, :, 0, 0] + variance[:, None]
+        b = np.broadcast_to(covariance[None, :, 0, 1], a.shape)
+        d = covariance[None, :, 1, 1] + variance[:, None]
+        determinant = a * d - b * b
+        dx = observed.world_xy[:, 0, None] - self._state[None, :, 0]
+        dy = observed.world_xy[:, 1, None] - self._state[None, :, 1]
+        mahalanobis = (d * dx * dx - 2.0 * b * dx * dy + a * dy * dy) / determinant
+        gated = (mahalanobis <= self.config.gate_sigmas**2) & (
+            dx * dx + dy * dy <= self.config.max_gate_m**2
+        )
+        if not gated.any():
+            return assigned
+        # Negative log-likelihood of the innovation (constant dropped).
+        cost = mahalanobis + np.log(determinant)
+
+        return assign_per_camera(cost, gated, observed.camera, len(self.camera_ids))
+
+    def _join_observed(
+        self, observed: Observations, variance: np.ndarray, assigned: np.ndarray
+    ) -> np.ndarray:
+        """Let detections the gate missed join a track other cameras saw at this instant.
+
+        The gate is a boundary in the prediction's frame; when it cuts through the views of
+        one object (a sudden turn), some cameras take the track and the rest would start a
+        duplicate. Leftovers within ``cluster_radius_m`` of a track's fused position this
+        instant, from a camera that gave the track nothing, join it instead.
+        """
+        matched = assigned >= 0
+        leftover = np.flatnonzero(~matched)
+        if len(leftover) == 0 or not matched.any():
+            return assigned
+        track_count = len(self._ids)
+        rows = assigned[matched]
+        weight = 1.0 / variance[matched]
+        weight_sum = np.bincount(rows, weight, minlength=track_count)
+        seen = np.flatnonzero(weight_sum > 0)
+        fused = np.column_stack(
+            [np.bincount(rows, weight * observed.world_xy[matched, axis], track_count)[seen]
+             for axis in (0, 1)]
+        ) / weight_sum[seen, None]
+        taken = np.zeros((track_count, len(self.camera_ids)), dtype=bool)
+        taken[rows, observed.camera[matched]] = True
+        distance = np.linalg.norm(
+            observed.world_xy[leftover, None, :] - fused[None, :, :], axis=2
+        )
+        gated = (distance <= self.config.cluster_radius_m) & ~taken[seen][:, observed.camera[
+            leftover]].T
+        if not gated.any():
+            return assigned
+        joined = assign_per_camera(distance, gated, observed.camera[leftover],
+                                   len(self.camera_ids))
+        assigned = assigned.copy()
+        ok = joined >= 0
+        assigned[leftover[ok]] = seen[joined[ok]]
+        return assigned
+
+    @staticmethod
+    def _largest_boxes(
+        observed: Observations, matched: np.ndarray, rows: np.ndarray, track_count: int
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Camera and box of each track's largest assigned box (the closest, best view)."""
+        boxes = observed.xyxy[matched]
+        area = (boxes[:, 2] - boxes[:, 0]) * (boxes[:, 3] - boxes[:, 1])
+        order = np.lexsort((area, rows))  # by track, then by area ascending
+        last_of_track = np.r_[rows[order][1:] != rows[order][:-1], True]
+        best = order[last_of_track]
+        camera = np.full(track_count, -1, np.int64)
+        box = np.full((track_count, 4), np.nan)
+        camera[rows[best]] = observed.camera[matched][best]
+        box[rows[best]] = boxes[best]
+        return camera, box
+
+    def _birth(self, leftovers: Observations, variance: np.ndarray, timestamp: float) -> int:
+        """Start a tentative track per cross-camera cluster of unassigned detections."""
+        labels = cluster_detections(
+            leftovers.world_xy, leftovers.camera, self.config.cluster_radius_m
+        )
+        count = int(labels.max()) + 1 if len(labels) else 0
+        camera_count = len(self.camera_ids)
+        self._birth_cameras = np.zeros((count, camera_count), dtype=bool)
+        self._birth_camera = np.full(count, -1, np.int64)
+        self._birth_box = np.full((count, 4), np.nan)
+        if count == 0:
+            return 0
+        weight = 1.0 / variance
+        weight_sum = np.bincount(labels, weight, count)
+        position = np.column_stack(
+            [np.bincount(labels, weight * leftovers.world_xy[:, axis], count) for axis in (0, 1)]
+        ) / weight_sum[:, None]
+        state = np.zeros((count, 4))
+        state[:, :2] = position
+        covariance = kalman.initial_covariance(
+            count, 1.0 / weight_sum, self.config.initial_velocity_sigma
+        )
+        self._birth_cameras[labels, leftovers.camera] = True
+        self._birth_camera, self._birth_box = self._largest_boxes(
+            leftovers, np.ones(len(labels), dtype=bool), labels, count
+        )
+        self._ids = np.concatenate([self._ids, np.full(count, -1, np.int64)])
+        self._state = np.concatenate([self._state, state])
+        self._covariance = np.concatenate([self._covariance, covariance])
+        self._evidence = np.concatenate([self._evidence, np.bincount(labels, minlength=count)])
+        self._last_seen = np.concatenate([self._last_seen, np.full(count, timestamp)])
+        return count
+
+    def _merge_duplicates(self, seen_now: np.ndarray, cameras_of_track: np.ndarray) -> np.ndarray:
+        """Keep-mask dropping the younger of two confirmed tracks that are one object."""
+        keep = np.ones(len(self._ids), dtype=bool)
+        if self.config.merge_radius_m <= 0:
+            return keep
+        candidates = np.flatnonzero(seen_now & (self._ids >= 0))
+        if len(candidates) < 2:
+            return keep
+        position = self._state[candidates, :2]
+        distance = np.linalg.norm(position[:, None] - position[None], axis=2)
+        shared_camera = (cameras_of_track[candidates].astype(np.int64)
+                         @ cameras_of_track[candidates].T.astype(np.int64)) > 0
+        close = np.triu((distance < self.config.merge_radius_m) & ~shared_camera, k=1)
+        for first, second in zip(*np.nonzero(close), strict=True):
+            one, other = candidates[first], candidates[second]
+            if keep[one] and keep[other]:
+                younger = one if self._ids[one] > self._ids[other] else other
+                keep[younger] = False
+        return keep
+
+    def _alive(self, timestamp: float) -> np.ndarray:
+        age = timestamp - self._last_seen
+        limit = np.where(self._ids >= 0, self.config.max_age_s, self.config.tentative_max_age_s)
+        return age <= limit
+
+    def _select(self, keep: np.ndarray) -> None:
+        self._ids = self._ids[keep]
+        self._state = self._state[keep]
+        self._covariance = self._covariance[keep]
+        self._evidence = self._evidence[keep]
+        self._last_seen = self._last_seen[keep]
+
+
+def _subset(observed: Observations, mask: np.ndarray) -> Observations:
+    return Observations(
+        world_xy=observed.world_xy[mask], colour=observed.colour[mask],
+        camera=observed.camera[mask], xyxy=observed.xyxy[mask],
+        confidence=observed.confidence[mask], class_id=observed.class_id[mask],
+    )
+
+
+def assign_per_camera(
+    cost: np.ndarray, gated: np.ndarray, camera: np.ndarray, camera_count: int
+) -> np.ndarray:
+    """Hungarian assignment of detections to tracks, solved per camera.
+
+    Each camera assigns its detections independently: a track takes at most one detection
+    of each camera, a detection goes to at most one track, only gated pairs are allowed and
+    the sum of costs is minimal among assignments with the most pairs.
+
+    Args:
+        cost: (N, T) float64 cost of detection n on track t (only read where gated).
+        gated: (N, T) bool allowed pairs.
+        camera: (N,) int64 camera index of each detection.
+        camera_count: number of cameras C.
+
+    Returns:
+        (N,) int64 track index of each detection, -1 for none.
+    """
+    count = len(camera)
+    assigned = np.full(count, -1, np.int64)
+    if count == 0 or not gated.any():
+        return assigned
+    # An edge alone in its row and alone in its (track, camera) column is its own component
+    # of the assignment graph: taking it is what the Hungarian would do. Only the rest, the
+    # contested pairs, go to the solver, camera by camera.
+    one_hot = np.zeros((count, camera_count), dtype=np.int64)
+    one_hot[np.arange(count), camera] = 1
+    per_row = gated.sum(axis=1)
+    per_column = gated.T.astype(np.int64) @ one_hot  # (tracks, cameras)
+    only_track = np.argmax(gated, axis=1)
+    trivial = (per_row == 1) & (per_column[only_track, camera] == 1)
+    assigned[trivial] = only_track[trivial]
+    ambiguous = np.flatnonzero((per_row > 0) & ~trivial)
+    for one_camera in np.unique(camera[ambiguous]).tolist():
+        rows = ambiguous[camera[ambiguous] == one_camera]
+        columns = np.flatnonzero(gated[rows].any(axis=0))
+        block = np.where(
+            gated[np.ix_(rows, columns)], cost[np.ix_(rows, columns)], _UNASSIGNABLE
+        )
+        chosen_rows, chosen_columns = linear_sum_assignment(block)
+        valid = block[chosen_rows, chosen_columns] < _UNASSIGNABLE
+        assigned[rows[chosen_rows[valid]]] = columns[chosen_columns[valid]]
+    return assigned
+
+
+def cluster_detections(world_xy: np.ndarray, camera: np.ndarray, radius_m: float) -> np.ndarray:
+    """Group same-instant detections of several cameras into objects.
+
+    Complete-linkage agglomeration over pairs closer than ``radius_m`` (closest first), with
+    at most one detection per camera in a cluster (a camera sees an object once).
+
+    Args:
+        world_xy: (N, 2) float64 metres.
+        camera: (N,) int64 camera index of each detection.
+        radius_m: largest distance between any two members of a cluster.
+
+    Returns:
+        (N,) int64 cluster labels 0..K-1, numbered by first member.
+    """
+    count = len(world_xy)
+    if count == 0:
+        return np.zeros(0, np.int64)
+    distance = np.linalg.norm(world_xy[:, None] - world_xy[None], axis=2)
+    candidate = (distance <= radius_m) & (camera[:, None] != camera[None, :])
+    first, second = np.nonzero(np.triu(candidate, k=1))
+    members: list[list[int]] = [[index] for index in range(count)]
+    label = list(range(count))
+    camera_list = camera.tolist()
+    cameras: list[set[int]] = [{camera_list[index]} for index in range(count)]
+    for pair in np.argsort(distance[first, second], kind="stable").tolist():
+        left, right = label[first[pair]], label[second[pair]]
+        if left == right or cameras[left] & cameras[right]:
+            continue
+        if distance[np.ix_(members[left], members[right])].max() > radius_m:
+            continue
+        for index in members[right]:
+            label[index] = left
+        members[left].extend(members[right])
+        cameras[left] |= cameras[right]
+        members[right] = []
+    _, labels = np.unique(np.asarray(label), return_inverse=True)
+    # Renumber by first appearance so labels are stable and deterministic.
+    order = {}
+    result = np.empty(count, np.int64)
+    for index, value in enumerate(labels.tolist()):
+        result[index] = order.setdefault(value, len(order))
+    return result
