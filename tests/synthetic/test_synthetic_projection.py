@@ -122,8 +122,11 @@ def test_clip_boxes_table(box, expected, nonempty):
 
 @settings(max_examples=60, deadline=None)
 @given(
-    x=st.floats(-4, 4), y=st.floats(-4, 4), yaw=st.floats(-180, 180),
-    tilt=st.floats(20, 90), height=st.floats(0.2, 3.0),
+    x=st.floats(-4, 4),
+    y=st.floats(-4, 4),
+    yaw=st.floats(-180, 180),
+    tilt=st.floats(20, 90),
+    height=st.floats(0.2, 3.0),
 )
 def test_projected_box_contains_every_visible_corner(x, y, yaw, tilt, height):
     camera = Camera.from_pose("c", (-12.0, 0.0, 8.0), 0.0, tilt, 700.0, (960, 540))
