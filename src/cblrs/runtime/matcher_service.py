@@ -1,0 +1,485 @@
+"""The central matcher service: receive -> validate -> store -> order -> track -> publish.
+
+One service serves one plane (the B channel of the reference colours): it subscribes to
+``cblrs/<plane>/+/detections`` and ``cblrs/<plane>/+/status`` with a persistent session and
+QoS 1, and acknowledges a delivery only after the message is durably in the SQLite inbox
+(:class:`~cblrs.runtime.store.RuntimeStore`), so nothing acknowledged can be lost.
+
+Per delivery:
+
+1. **validate** with :class:`~cblrs.runtime.wire.ValidationPolicy` (schema, types, sizes,
+   colour range, known camera, camera id = topic camera, capture time not too far in the
+   past or future); a rejection is counted by reason and acknowledged, the service goes on;
+2. **de-duplicate** by ``(camera, sequence)``: the inbox's primary key, so redeliveries are
+   recognised across restarts too;
+3. **order**: messages wait in a buffer grouped by equal capture timestamp. A group is
+   released, in timestamp order, when every camera of the plane has delivered that timestamp
+   or a later one (cameras send one message per frame, in order), or — so that a dead
+   camera does not stall the plane — when the group has waited ``window_s`` *and* each
+   camera still missing has been silent for ``window_s``. A camera that is still sending
+   older frames (e.g. a slower replay) is waited for, so an ordinary replay has no late
+   messages; a camera that says "offline" is not waited for. The window clock stops while
+   the service is disconnected from the broker, so an outage does not expire groups whose
+   remaining messages are queued at the broker. A message at or before the last released
+   timestamp is ``late``: stored, counted, not tracked;
+4. **track**: the group goes to the matcher (``update(timestamp, messages)``, messages in
+   camera order) and one transaction stores its track rows, marks its inbox rows processed
+   and saves the matcher state (``get_state()``); the rows are published on
+   ``cblrs/<plane>/tracks``.
+
+A restarted service resumes from what SQLite holds: the matcher state and the last released
+timestamp of the last committed group, the unprocessed inbox rows (back into the buffer) and
+the de-duplication set. Messages that were received but not yet stored were never
+acknowledged, so the broker delivers them again.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import queue
+import threading
+import time
+from collections import Counter, defaultdict
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+from cblrs.detections import CameraMessage, Tracks
+from cblrs.runtime.store import LATE, PENDING, RuntimeStore
+from cblrs.runtime.topics import (
+    TopicError,
+    detections_filter,
+    parse_detections_topic,
+    parse_status_topic,
+    status_filter,
+    tracks_topic,
+    validate_camera_id,
+)
+from cblrs.runtime.wire import (
+    RejectedMessage,
+    ValidationPolicy,
+    decode_status,
+    encode_tracks,
+)
+
+logger = logging.getLogger(__name__)
+
+COUNTER_NAMES = ("received", "accepted", "duplicates", "late", "processed", "groups", "tracks")
+"""Counters every summary shows (rejections add ``rejected.<reason>``)."""
+
+
+@dataclass
+class _Group:
+    messages: dict[str, CameraMessage]
+    first_arrival: float  # service clock
+
+
+class ServiceClock:
+    """Monotonic seconds that stand still while ``connected()`` is False.
+
+    Args:
+        connected: whether the service is currently connected to its broker.
+        monotonic: the underlying clock.
+    """
+
+    def __init__(
+        self, connected: Callable[[], bool], monotonic: Callable[[], float] = time.monotonic
+    ):
+        self._connected = connected
+        self._monotonic = monotonic
+        self._paused = 0.0
+        self._down_since: float | None = None
+        self._lock = threading.Lock()
+
+    def __call__(self) -> float:
+        with self._lock:
+            now = self._monotonic()
+            if not self._connected():
+                if self._down_since is None:
+                    self._down_since = now
+                return now - self._paused - (now - self._down_since)
+            if self._down_since is not None:
+                self._paused += now - self._down_since
+                self._down_since = None
+            return now - self._paused
+
+
+class MatcherService:
+    """The matcher of one plane, fed through a transport, persisted in a store.
+
+    Args:
+        transport: the :class:`~cblrs.runtime.transport.Transport` (persistent session).
+        store: the SQLite store of this plane's matcher.
+        matcher: a :class:`~cblrs.matching.Matcher` built for ``camera_ids``.
+        plane_id: the plane served.
+        camera_ids: the plane's cameras; ``Tracks.camera_id`` indexes this list.
+        policy: validation limits (its ``known_cameras`` is set to ``camera_ids``).
+        window_s: ordering window, seconds (see the module docstring).
+        publish_tracks: publish each group's rows on ``cblrs/<plane>/tracks``.
+        max_buffered_groups: release the oldest group regardless once more are waiting.
+        batch_size: deliveries stored per inbox transaction, at most.
+        settings: extra identity stored with the database (matcher name and options); a
+            reopened database must have been written with the same.
+        observer: optional object with ``on_stored(messages, wall_time)`` and/or
+            ``on_group(timestamp, messages, tracks, wall_time)`` (benchmarks, viewers).
+        wall_clock: seconds since the Unix epoch (for staleness checks and receipt times).
+    """
+
+    def __init__(
+        self,
+        transport: Any,
+        store: RuntimeStore,
+        matcher: Any,
+        plane_id: int,
+        camera_ids: Sequence[str],
+        *,
+        policy: ValidationPolicy | None = None,
+        window_s: float = 2.0,
+        publish_tracks: bool = True,
+        max_buffered_groups: int = 10_000,
+        batch_size: int = 500,
+        settings: dict[str, Any] | None = None,
+        observer: Any = None,
+        wall_clock: Callable[[], float] = time.time,
+    ):
+        if window_s < 0 or not math.isfinite(window_s):
+            raise ValueError(f"window must be a finite number >= 0, got {window_s}.")
+        self.camera_ids = [validate_camera_id(name) for name in camera_ids]
+        if not self.camera_ids or len(set(self.camera_ids)) != len(self.camera_ids):
+            raise ValueError(f"camera ids must be distinct and non-empty, got {camera_ids}.")
+        self.transport = transport
+        self.store = store
+        self.matcher = matcher
+        self.plane_id = int(plane_id)
+        base = policy or ValidationPolicy()
+        self.policy = ValidationPolicy(
+            known_cameras=frozenset(self.camera_ids),
+            bits=base.bits,
+            max_age_s=base.max_age_s,
+            max_future_s=base.max_future_s,
+            max_bytes=base.max_bytes,
+        )
+        self.window_s = float(window_s)
+        self.publish_tracks = publish_tracks
+        self.max_buffered_groups = int(max_buffered_groups)
+        self.batch_size = int(batch_size)
+        self.observer = observer
+        self._wall_clock = wall_clock
+        self.clock = ServiceClock(lambda: bool(getattr(transport, "connected", True)))
+        self._camera_order = {name: index for index, name in enumerate(self.camera_ids)}
+        self._settings = {"plane_id": self.plane_id, "camera_ids": self.camera_ids}
+        self._settings.update(settings or {})
+
+        self._inbox: queue.Queue = queue.Queue()
+        self._groups: dict[float, _Group] = {}
+        self._released: float | None = None
+        self._latest: dict[str, float] = {}
+        self._last_heard: dict[str, float] = {}
+        self._offline: dict[str, bool] = dict.fromkeys(self.camera_ids, False)
+        self._offline_at: dict[str, float | None] = dict.fromkeys(self.camera_ids, None)
+        self._active_this_run: set[str] = set()
+        self._last_delivery = 0.0
+        self._silence_origin: float | None = None
+        self._updates = 0
+        self._run_counters: Counter[str] = Counter()
+        self._stop = threading.Event()
+        self._flush_requested = threading.Event()
+        self._worker: threading.Thread | None = None
+        self._failure: BaseException | None = None
+        self._lock = threading.Lock()
+        self._started = False
+
+    # -- lifecycle -------------------------------------------------------------------------
+
+    def start(self) -> None:
+        """Resume from the store, subscribe and start the worker thread."""
+        if self._started:
+            return
+        self.store.bind(self._settings)
+        self._recover()
+        self._last_delivery = self.clock()
+        self._worker = threading.Thread(
+            target=self._work, name=f"cblrs-matcher-{self.plane_id}", daemon=True
+        )
+        self._worker.start()
+        self.transport.subscribe(status_filter(self.plane_id), self._on_status, qos=1)
+        self.transport.subscribe(detections_filter(self.plane_id), self._on_detections, qos=1)
+        self.transport.connect()
+        self._started = True
+
+    def stop(self, flush: bool = False, timeout: float = 30.0) -> None:
+        """Stop the worker; with ``flush``, first store and track everything received.
+
+        Without ``flush`` waiting groups stay pending in the store and a restarted service
+        processes them.
+        """
+        if flush:
+            self._flush_requested.set()
+        self._stop.set()
+        if self._worker is not None:
+            self._worker.join(timeout)
+            if self._worker.is_alive():
+                logger.warning("matcher worker did not stop within %.0f s", timeout)
+        if self._failure is not None:
+            raise RuntimeError("the matcher service worker failed") from self._failure
+
+    def close(self, flush: bool = False) -> None:
+        """:meth:`stop`, then close the transport (the store stays open for the caller)."""
+        try:
+            self.stop(flush=flush)
+        finally:
+            self.transport.close()
+
+    def _recover(self) -> None:
+        state = self.store.matcher_state()
+        if state is not None:
+            self.matcher.set_state(state)
+        self._released = self.store.released_timestamp()
+        for camera, summary in self.store.inbox_summary().items():
+            if camera in self._offline:
+                self._latest[camera] = summary["max_timestamp"]
+        now = self.clock()
+        pending = self.store.messages(PENDING)
+        for stored in pending:
+            self._buffer(stored.message, now)
+        if state is not None or pending:
+            logger.info(
+                "plane %d: resumed at %s with %d pending messages",
+                self.plane_id, self._released, len(pending),
+            )
+
+    # -- transport callbacks (transport thread) -----------------------------------------
+
+    def _on_detections(self, delivery: Any) -> None:
+        self._inbox.put(("detections", delivery, self._wall_clock()))
+
+    def _on_status(self, delivery: Any) -> None:
+        self._inbox.put(("status", delivery, self._wall_clock()))
+
+    # -- worker thread -------------------------------------------------------------------
+
+    def _work(self) -> None:
+        try:
+            while True:
+                timeout = 0.05 if self._groups else 0.2
+                batch = []
+                try:
+                    batch.append(self._inbox.get(timeout=timeout))
+                    while len(batch) < self.batch_size:
+                        batch.append(self._inbox.get_nowait())
+                except queue.Empty:
+                    pass
+                if batch:
+                    self._handle(batch)
+                self._release_ready()
+                if self._stop.is_set() and self._inbox.empty():
+                    break
+            if self._flush_requested.is_set():
+                self._release_ready(force=True)
+        except BaseException as error:  # surfaced by stop()
+            logger.exception("matcher service worker failed")
+            self._failure = error
+
+    def _handle(self, batch: list[tuple[str, Any, float]]) -> None:
+        now = self.clock()
+        counters: Counter[str] = Counter()
+        accepted: list[tuple[CameraMessage, str, float]] = []
+        acknowledge = []
+        for kind, delivery, received_at in batch:
+            acknowledge.append(delivery)
+            if kind == "status":
+                self._status(delivery, now)
+                continue
+            self._last_delivery = now
+            counters["received"] += 1
+            try:
+                plane_id, camera = parse_detections_topic(delivery.topic)
+                message, _ = self.policy.decode_with_plane(
+                    delivery.payload, topic_camera=camera, now=received_at, topic_plane=plane_id
+                )
+            except TopicError:
+                counters["rejected.bad_topic"] += 1
+                continue
+            except RejectedMessage as error:
+                counters[f"rejected.{error.reason.value}"] += 1
+                logger.debug("rejected on %s: %s", delivery.topic, error)
+                continue
+            late = self._released is not None and message.timestamp <= self._released
+            accepted.append((message, LATE if late else PENDING, received_at))
+        inserted = self.store.insert_messages(accepted, counters)
+        # Acknowledge only now: everything above is durably stored (or rejected on purpose).
+        for delivery in acknowledge:
+            delivery.ack()
+        stored = []
+        for (message, status, _), new in zip(accepted, inserted, strict=True):
+            if not new:
+                continue
+            stored.append(message)
+            self._active_this_run.add(message.camera_id)
+            self._last_heard[message.camera_id] = now
+            if self._silence_origin is None:
+                self._silence_origin = now
+            self._latest[message.camera_id] = max(
+                self._latest.get(message.camera_id, -math.inf), message.timestamp
+            )
+            if status == PENDING:
+                self._buffer(message, now)
+        self._run_counters.update(counters)
+        if self.observer is not None and hasattr(self.observer, "on_stored") and stored:
+            self.observer.on_stored(stored, self._wall_clock())
+
+    def _status(self, delivery: Any, now: float) -> None:
+        try:
+            plane_id, camera = parse_status_topic(delivery.topic)
+            status = decode_status(delivery.payload)
+        except (TopicError, RejectedMessage) as error:
+            logger.debug("ignored status on %s: %s", delivery.topic, error)
+            return
+        if camera not in self._offline or plane_id != self.plane_id:
+            return
+        offline = status.state == "offline"
+        self._offline[camera] = offline
+        self._offline_at[camera] = status.timestamp if offline else None
+        if not offline:
+            self._active_this_run.add(camera)
+            self._last_heard[camera] = now
+            if self._silence_origin is None:
+                self._silence_origin = now
+        logger.info("plane %d: camera %s is %s", self.plane_id, camera, status.state)
+
+    def _buffer(self, message: CameraMessage, now: float) -> None:
+        group = self._groups.get(message.timestamp)
+        if group is None:
+            group = self._groups[message.timestamp] = _Group({}, now)
+        group.messages[message.camera_id] = message
+
+    def _ready(self, timestamp: float, group: _Group, now: float) -> bool:
+        missing = [
+            camera
+            for camera in self.camera_ids
+            if self._latest.get(camera, -math.inf) < timestamp and not self._offline[camera]
+        ]
+        if not missing:
+            return True
+        if now - group.first_arrival < self.window_s:
+            return False
+        origin = self._silence_origin if self._silence_origin is not None else now
+        return all(
+            now - self._last_heard.get(camera, origin) >= self.window_s for camera in missing
+        )
+
+    def _release_ready(self, force: bool = False) -> None:
+        while self._groups:
+            now = self.clock()
+            timestamp = min(self._groups)
+            group = self._groups[timestamp]
+            if not (
+                force
+                or len(self._groups) > self.max_buffered_groups
+                or self._ready(timestamp, group, now)
+            ):
+                return
+            del self._groups[timestamp]
+            self._process(timestamp, group)
+
+    def _process(self, timestamp: float, group: _Group) -> None:
+        messages = sorted(group.messages.values(), key=lambda m: self._camera_order[m.camera_id])
+        tracks = self.matcher.update(timestamp, messages)
+        counters = {"processed": len(messages), "groups": 1, "tracks": len(tracks)}
+        self.store.commit_group(
+            [(message.camera_id, message.sequence) for message in messages],
+            tracks,
+            self.matcher.get_state(),
+            timestamp,
+            counters,
+        )
+        self._released = timestamp
+        self._run_counters.update(counters)
+        self._updates += 1
+        if self.publish_tracks:
+            try:
+                payload = encode_tracks(
+                    tracks, self.plane_id, sequence=self._updates, cameras=self.camera_ids
+                )
+                self.transport.publish(tracks_topic(self.plane_id), payload, qos=1)
+            except Exception:  # a viewer feed must never stop the matcher
+                logger.exception("could not publish tracks of %s", timestamp)
+        if self.observer is not None and hasattr(self.observer, "on_group"):
+            self.observer.on_group(timestamp, messages, tracks, self._wall_clock())
+
+    # -- queries (any thread) --------------------------------------------------------------
+
+    def idle_seconds(self) -> float:
+        """Seconds (service clock) since the last detections delivery."""
+        return self.clock() - self._last_delivery
+
+    def buffered(self) -> int:
+        """Messages waiting in the ordering buffer."""
+        return sum(len(group.messages) for group in list(self._groups.values()))
+
+    def cameras_done(self) -> bool:
+        """Whether every camera has said "offline" after taking part in this run.
+
+        A camera counts when it went offline after being online or sending during this
+        run, or when its "offline" is newer than everything the store holds from it (a
+        replay that finished while this service was down).
+        """
+        summary = None
+        for camera in self.camera_ids:
+            if not self._offline[camera]:
+                return False
+            if camera in self._active_this_run:
+                continue
+            if summary is None:
+                summary = self.store.inbox_summary()
+            offline_at = self._offline_at[camera]
+            if camera not in summary or offline_at is None:
+                return False
+            if offline_at < summary[camera]["max_received_at"]:
+                return False
+        return True
+
+    def drained(self) -> bool:
+        """Nothing waiting: no undelivered batch and no buffered group."""
+        return self._inbox.empty() and not self._groups
+
+    def failed(self) -> bool:
+        return self._failure is not None
+
+    def stats(self) -> dict[str, Any]:
+        """Totals from the store plus the live buffer state."""
+        summary = self.store.summary()
+        counters = summary["counters"]
+        rejected = {
+            name.split(".", 1)[1]: value
+            for name, value in counters.items()
+            if name.startswith("rejected.")
+        }
+        totals = {name: counters.get(name, 0) for name in COUNTER_NAMES}
+        totals["rejected"] = sum(rejected.values())
+        return {
+            "plane_id": self.plane_id,
+            "cameras": len(self.camera_ids),
+            **totals,
+            "rejected_by_reason": rejected,
+            "buffered_messages": self.buffered(),
+            "buffered_groups": len(self._groups),
+            "inbox": summary["inbox"],
+            "track_ids": summary["track_ids"],
+            "released_timestamp": self._released,
+            "offline_cameras": sorted(c for c, off in self._offline.items() if off),
+        }
+
+
+def stored_tracks(store: RuntimeStore) -> Tracks:
+    """All track rows of a store (convenience for callers holding only the service)."""
+    return store.tracks()
+
+
+def inbox_keys(store: RuntimeStore) -> dict[str, set[int]]:
+    """``camera -> {sequence}`` of every message in a store's inbox."""
+    keys: dict[str, set[int]] = defaultdict(set)
+    for stored in store.messages():
+        keys[stored.message.camera_id].add(stored.message.sequence)
+    return dict(keys)

@@ -1,0 +1,440 @@
+"""The matcher's durable state in one SQLite file (WAL mode).
+
+Tables:
+
+* ``inbox`` — every accepted camera message, keyed by ``(camera_id, sequence)``; the key is
+  the de-duplication set, so a re-delivered message is recognised across restarts. A row is
+  ``pending`` until its timestamp group has been tracked (then ``processed``), or ``late``
+  when it arrived after its timestamp had already been released.
+* ``tracks`` — the tracker's output rows (frame, timestamp, track id, world x/y, camera, box).
+* ``meta`` — the matcher state snapshot (``get_state()`` JSON), the last released timestamp
+  and the service settings.
+* ``counters`` — received, rejected by reason, duplicates, late, processed, ...
+
+Processing a timestamp group is one transaction (track rows + inbox rows marked processed +
+matcher state + counters), so after a crash the file holds either all of a group or none of
+it, and a restarted matcher resumes from exactly the last committed group.
+
+One writer (the matcher service) at a time; readers (``cblrs matcher --stats``) may open the
+file concurrently.
+"""
+
+from __future__ import annotations
+
+import json
+import sqlite3
+import threading
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from cblrs.detections import CameraMessage, Tracks
+from cblrs.errors import CblrsError
+
+SCHEMA_VERSION = 1
+
+PENDING = "pending"
+PROCESSED = "processed"
+LATE = "late"
+
+_SCHEMA = """
+CREATE TABLE IF NOT EXISTS inbox (
+    camera_id TEXT NOT NULL,
+    sequence INTEGER NOT NULL,
+    timestamp REAL NOT NULL,
+    frame INTEGER NOT NULL,
+    received_at REAL NOT NULL,
+    status TEXT NOT NULL,
+    body TEXT NOT NULL,
+    PRIMARY KEY (camera_id, sequence)
+) WITHOUT ROWID;
+CREATE INDEX IF NOT EXISTS inbox_pending ON inbox (status, timestamp);
+CREATE TABLE IF NOT EXISTS tracks (
+    row INTEGER PRIMARY KEY AUTOINCREMENT,
+    frame INTEGER NOT NULL,
+    timestamp REAL NOT NULL,
+    track_id INTEGER NOT NULL,
+    x REAL NOT NULL,
+    y REAL NOT NULL,
+    camera INTEGER NOT NULL,
+    x_min REAL, y_min REAL, x_max REAL, y_max REAL
+);
+CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
+CREATE TABLE IF NOT EXISTS counters (name TEXT PRIMARY KEY, value INTEGER NOT NULL);
+"""
+
+
+class StoreError(CblrsError):
+    """The runtime database cannot be opened or does not belong to this matcher."""
+
+
+@dataclass(frozen=True)
+class StoredMessage:
+    """An inbox row with its decoded message."""
+
+    message: CameraMessage
+    status: str
+    received_at: float
+
+
+def message_body(message: CameraMessage) -> str:
+    """The detection columns of a message as compact JSON (the inbox ``body``)."""
+    return json.dumps(
+        {
+            "xyxy": message.xyxy.tolist(),
+            "confidence": message.confidence.tolist(),
+            "class_id": message.class_id.tolist(),
+            "colour": message.colour.tolist(),
+        },
+        separators=(",", ":"),
+        allow_nan=False,
+    )
+
+
+def message_from_row(camera_id: str, sequence: int, timestamp: float, frame: int, body: str):
+    data = json.loads(body)
+    return CameraMessage(
+        camera_id=camera_id,
+        sequence=int(sequence),
+        timestamp=float(timestamp),
+        frame=int(frame),
+        xyxy=np.asarray(data["xyxy"], dtype=np.float64).reshape(-1, 4),
+        confidence=np.asarray(data["confidence"], dtype=np.float64),
+        class_id=np.asarray(data["class_id"], dtype=np.int64),
+        colour=np.asarray(data["colour"], dtype=np.int64).reshape(-1, 3),
+    )
+
+
+class RuntimeStore:
+    """The SQLite file of one matcher (one plane).
+
+    Args:
+        path: the database file (created with its tables when missing).
+        read_only: open for reading only (``--stats``); the file must exist.
+
+    Raises:
+        StoreError: the file is not a cblrs runtime database or cannot be opened.
+    """
+
+    def __init__(self, path: str | Path, read_only: bool = False):
+        self.path = Path(path)
+        self._lock = threading.RLock()
+        try:
+            if read_only:
+                if not self.path.is_file():
+                    raise StoreError(f"runtime database {self.path} does not exist.")
+                self._connection = sqlite3.connect(
+                    f"file:{self.path}?mode=ro", uri=True, check_same_thread=False
+                )
+            else:
+                self.path.parent.mkdir(parents=True, exist_ok=True)
+                self._connection = sqlite3.connect(
+                    str(self.path), check_same_thread=False, isolation_level=None
+                )
+                self._connection.execute("PRAGMA journal_mode=WAL")
+                # WAL + NORMAL: a commit survives a process crash (the case that matters for
+                # a killed matcher); only an OS crash can lose the last transactions.
+                self._connection.execute("PRAGMA synchronous=NORMAL")
+                self._connection.executescript(_SCHEMA)
+                self._check_version()
+            self._connection.execute("PRAGMA busy_timeout=5000")
+        except sqlite3.DatabaseError as error:
+            raise StoreError(f"{self.path} is not a usable SQLite database: {error}.") from None
+
+    # -- lifecycle -------------------------------------------------------------------------
+
+    def close(self) -> None:
+        with self._lock:
+            self._connection.close()
+
+    def __enter__(self) -> RuntimeStore:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def _check_version(self) -> None:
+        stored = self.get_meta("schema_version")
+        if stored is None:
+            self._execute_write(
+                "INSERT INTO meta (key, value) VALUES ('schema_version', ?)",
+                (json.dumps(SCHEMA_VERSION),),
+            )
+        elif stored != SCHEMA_VERSION:
+            raise StoreError(
+                f"{self.path} has runtime schema {stored}, this cblrs writes {SCHEMA_VERSION}."
+            )
+
+    def _execute_write(self, sql: str, parameters: tuple = ()) -> None:
+        with self._lock:
+            self._connection.execute(sql, parameters)
+
+    # -- meta ----------------------------------------------------------------------------
+
+    def get_meta(self, key: str, default: Any = None) -> Any:
+        with self._lock:
+            row = self._connection.execute(
+                "SELECT value FROM meta WHERE key = ?", (key,)
+            ).fetchone()
+        return default if row is None else json.loads(row[0])
+
+    def set_meta(self, key: str, value: Any) -> None:
+        with self._lock, self._transaction() as cursor:
+            _set_meta(cursor, key, value)
+
+    def bind(self, settings: Mapping[str, Any]) -> None:
+        """Record the matcher's identity (plane, cameras) or check it matches a reopened file.
+
+        Raises:
+            StoreError: the file was written by a matcher with other settings.
+        """
+        stored = self.get_meta("settings")
+        wanted = json.loads(json.dumps(dict(settings)))
+        if stored is None:
+            self.set_meta("settings", wanted)
+            return
+        different = sorted(
+            key for key in set(stored) | set(wanted) if stored.get(key) != wanted.get(key)
+        )
+        if different:
+            first = different[0]
+            raise StoreError(
+                f"{self.path} belongs to a matcher with {first}={stored.get(first)!r}, not "
+                f"{wanted.get(first)!r}; use another --db or the same settings."
+            )
+
+    # -- writes ----------------------------------------------------------------------------
+
+    def _transaction(self):
+        return _Transaction(self._connection)
+
+    def insert_messages(
+        self,
+        messages: Iterable[tuple[CameraMessage, str, float]],
+        counters: Mapping[str, int] | None = None,
+    ) -> list[bool]:
+        """Insert accepted messages into the inbox in one transaction.
+
+        Args:
+            messages: ``(message, status, received_at)`` with status ``pending`` or ``late``
+                and ``received_at`` in wall-clock seconds.
+            counters: counter increments committed in the same transaction.
+
+        Returns:
+            For each message, True if it was new, False if ``(camera, sequence)`` was already
+            stored (a duplicate; its row is left as it was). The counters ``accepted``,
+            ``duplicates`` and ``late`` are incremented accordingly in the same transaction.
+        """
+        inserted = []
+        statuses = []
+        with self._lock, self._transaction() as cursor:
+            for message, status, received_at in messages:
+                cursor.execute(
+                    "INSERT OR IGNORE INTO inbox "
+                    "(camera_id, sequence, timestamp, frame, received_at, status, body) "
+                    "VALUES (?, ?, ?, ?, ?, ?, ?)",
+                    (
+                        message.camera_id,
+                        int(message.sequence),
+                        float(message.timestamp),
+                        int(message.frame),
+                        float(received_at),
+                        status,
+                        message_body(message),
+                    ),
+                )
+                inserted.append(cursor.rowcount == 1)
+                statuses.append(status)
+            totals = dict(counters or {})
+            new = sum(inserted)
+            late = sum(1 for flag, status in zip(inserted, statuses, strict=True)
+                       if flag and status == LATE)
+            for name, value in (("accepted", new), ("duplicates", len(inserted) - new),
+                                ("late", late)):
+                totals[name] = totals.get(name, 0) + value
+            _add_counters(cursor, totals)
+        return inserted
+
+    def commit_group(
+        self,
+        keys: Iterable[tuple[str, int]],
+        tracks: Tracks,
+        matcher_state: Mapping[str, Any] | None,
+        released_timestamp: float,
+        counters: Mapping[str, int] | None = None,
+    ) -> None:
+        """Store one processed timestamp group atomically.
+
+        Args:
+            keys: ``(camera_id, sequence)`` of the group's messages, marked processed.
+            tracks: the tracker's output for the group.
+            matcher_state: the tracker's ``get_state()`` after the group (JSON-serialisable).
+            released_timestamp: the group's capture timestamp, seconds.
+            counters: counter increments.
+        """
+        rows = [
+            (
+                int(tracks.frame[index]),
+                float(tracks.timestamp[index]),
+                int(tracks.track_id[index]),
+                float(tracks.world_xy[index, 0]),
+                float(tracks.world_xy[index, 1]),
+                int(tracks.camera_id[index]),
+                *(_nullable(value) for value in tracks.xyxy[index]),
+            )
+            for index in range(len(tracks))
+        ]
+        with self._lock, self._transaction() as cursor:
+            cursor.executemany(
+                "UPDATE inbox SET status = 'processed' WHERE camera_id = ? AND sequence = ?",
+                [(camera_id, int(sequence)) for camera_id, sequence in keys],
+            )
+            cursor.executemany(
+                "INSERT INTO tracks (frame, timestamp, track_id, x, y, camera, "
+                "x_min, y_min, x_max, y_max) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                rows,
+            )
+            if matcher_state is not None:
+                _set_meta(cursor, "matcher_state", matcher_state)
+            _set_meta(cursor, "released_timestamp", float(released_timestamp))
+            _add_counters(cursor, counters or {})
+
+    def add_counters(self, counters: Mapping[str, int]) -> None:
+        with self._lock, self._transaction() as cursor:
+            _add_counters(cursor, counters)
+
+    # -- reads -----------------------------------------------------------------------------
+
+    def counters(self) -> dict[str, int]:
+        with self._lock:
+            rows = self._connection.execute("SELECT name, value FROM counters").fetchall()
+        return {name: int(value) for name, value in sorted(rows)}
+
+    def matcher_state(self) -> dict | None:
+        return self.get_meta("matcher_state")
+
+    def released_timestamp(self) -> float | None:
+        return self.get_meta("released_timestamp")
+
+    def messages(self, status: str | None = None) -> list[StoredMessage]:
+        """Inbox rows (all, or of one status) ordered by timestamp and camera."""
+        sql = "SELECT camera_id, sequence, timestamp, frame, body, status, received_at FROM inbox"
+        parameters: tuple = ()
+        if status is not None:
+            sql += " WHERE status = ?"
+            parameters = (status,)
+        sql += " ORDER BY timestamp, camera_id, sequence"
+        with self._lock:
+            rows = self._connection.execute(sql, parameters).fetchall()
+        return [
+            StoredMessage(message_from_row(*row[:5]), row[5], float(row[6])) for row in rows
+        ]
+
+    def inbox_summary(self) -> dict[str, dict[str, float]]:
+        """Per camera: message count, highest sequence, latest timestamp and receipt time."""
+        with self._lock:
+            rows = self._connection.execute(
+                "SELECT camera_id, COUNT(*), MAX(sequence), MAX(timestamp), MAX(received_at) "
+                "FROM inbox GROUP BY camera_id"
+            ).fetchall()
+        return {
+            camera: {
+                "count": int(count),
+                "max_sequence": int(sequence),
+                "max_timestamp": float(timestamp),
+                "max_received_at": float(received_at),
+            }
+            for camera, count, sequence, timestamp, received_at in rows
+        }
+
+    def status_counts(self) -> dict[str, int]:
+        with self._lock:
+            rows = self._connection.execute(
+                "SELECT status, COUNT(*) FROM inbox GROUP BY status"
+            ).fetchall()
+        return {status: int(count) for status, count in rows}
+
+    def tracks(self) -> Tracks:
+        """All stored track rows in insertion order."""
+        with self._lock:
+            rows = self._connection.execute(
+                "SELECT frame, timestamp, track_id, x, y, camera, x_min, y_min, x_max, y_max "
+                "FROM tracks ORDER BY row"
+            ).fetchall()
+        if not rows:
+            return Tracks.empty()
+        table = np.array(rows, dtype=object)
+        return Tracks(
+            frame=table[:, 0].astype(np.int64),
+            timestamp=table[:, 1].astype(np.float64),
+            track_id=table[:, 2].astype(np.int64),
+            world_xy=table[:, 3:5].astype(np.float64),
+            camera_id=table[:, 5].astype(np.int64),
+            xyxy=np.where(table[:, 6:10] == None, np.nan, table[:, 6:10]).astype(np.float64),  # noqa: E711
+        )
+
+    def summary(self) -> dict[str, Any]:
+        """Counters, inbox status counts, track rows and settings, for ``--stats``."""
+        with self._lock:
+            track_rows = self._connection.execute("SELECT COUNT(*) FROM tracks").fetchone()[0]
+            identities = self._connection.execute(
+                "SELECT COUNT(DISTINCT track_id) FROM tracks"
+            ).fetchone()[0]
+        return {
+            "database": str(self.path),
+            "settings": self.get_meta("settings"),
+            "counters": self.counters(),
+            "inbox": self.status_counts(),
+            "track_rows": int(track_rows),
+            "track_ids": int(identities),
+            "released_timestamp": self.released_timestamp(),
+        }
+
+
+class _Transaction:
+    """``BEGIN IMMEDIATE`` ... ``COMMIT`` (or ``ROLLBACK`` on an exception)."""
+
+    def __init__(self, connection: sqlite3.Connection):
+        self._connection = connection
+
+    def __enter__(self) -> sqlite3.Cursor:
+        self._cursor = self._connection.cursor()
+        self._cursor.execute("BEGIN IMMEDIATE")
+        return self._cursor
+
+    def __exit__(self, kind, value, traceback) -> None:
+        if kind is None:
+            self._cursor.execute("COMMIT")
+        else:
+            self._cursor.execute("ROLLBACK")
+
+
+def _set_meta(cursor: sqlite3.Cursor, key: str, value: Any) -> None:
+    cursor.execute(
+        "INSERT INTO meta (key, value) VALUES (?, ?) "
+        "ON CONFLICT(key) DO UPDATE SET value = excluded.value",
+        (key, json.dumps(value, default=_json_default)),
+    )
+
+
+def _add_counters(cursor: sqlite3.Cursor, counters: Mapping[str, int]) -> None:
+    cursor.executemany(
+        "INSERT INTO counters (name, value) VALUES (?, ?) "
+        "ON CONFLICT(name) DO UPDATE SET value = value + excluded.value",
+        [(name, int(value)) for name, value in counters.items() if value],
+    )
+
+
+def _nullable(value: float) -> float | None:
+    return None if not np.isfinite(value) else float(value)
+
+
+def _json_default(value: Any) -> Any:
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, np.generic):
+        return value.item()
+    raise TypeError(f"cannot store {type(value).__name__} in the matcher state")
