@@ -1,6 +1,20 @@
-"""Dataset readers and generators; each produces a :class:`cblrs.datasets.scene.Scene`."""
+"""Dataset readers and generators; each produces a :class:`cblrs.datasets.scene.Scene`.
 
-from cblrs.datasets.multiview import load_scene
+* :func:`load_scene` reads a WILDTRACK or MultiviewX folder;
+* :func:`simulate_detections` degrades a scene's boxes like a real detector;
+* :func:`read_tracks` / :func:`write_tracks` handle the AI City 2024 text format.
+"""
+
+from cblrs.datasets.aicity import read_tracks, write_tracks
+from cblrs.datasets.multiview import detect_layout, load_scene
 from cblrs.datasets.scene import Scene
+from cblrs.datasets.simulate import simulate_detections
 
-__all__ = ["Scene", "load_scene"]
+__all__ = [
+    "Scene",
+    "detect_layout",
+    "load_scene",
+    "read_tracks",
+    "simulate_detections",
+    "write_tracks",
+]
