@@ -198,6 +198,7 @@ class ReferenceImage:
             raise ReferenceImageError(
                 f"{source}: planes are {planes.bits}-bit but the image says {bits}-bit."
             )
+        _check_image_data(chunks, source)
         decoded = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
         if decoded is None:
             raise ReferenceImageError(f"{source}: the PNG image data is corrupt.")
@@ -297,6 +298,28 @@ def _insert_chunk(png: bytes, kind: bytes, body: bytes) -> bytes:
     chunk = struct.pack(">I", len(body)) + kind + body
     chunk += struct.pack(">I", zlib.crc32(kind + body) & 0xFFFFFFFF)
     return png[:33] + chunk + png[33:]
+
+
+def _check_image_data(chunks: list[tuple[bytes, bytes]], source: str) -> None:
+    """Inflate the image data and check its length against the header.
+
+    OpenCV's PNG decoder can return garbage pixels for a damaged compressed stream without
+    an error; zlib's own checksum (Adler-32) catches that.
+    """
+    header = next((body for kind, body in chunks if kind == b"IHDR"), None)
+    if header is None or len(header) != 13:
+        raise ReferenceImageError(f"{source}: the PNG file has no valid IHDR header.")
+    width, height, bit_depth, colour_type, _, _, interlace = struct.unpack(">IIBBBBB", header)
+    try:
+        raw = zlib.decompress(b"".join(body for kind, body in chunks if kind == b"IDAT"))
+    except zlib.error:
+        raise ReferenceImageError(f"{source}: the PNG image data is corrupt.") from None
+    channels = {0: 1, 2: 3, 3: 1, 4: 2, 6: 4}.get(colour_type)
+    if channels is None or interlace != 0:
+        return  # not something save() writes; the checks after decoding will say so
+    row_bytes = 1 + (width * channels * bit_depth + 7) // 8
+    if len(raw) != height * row_bytes:
+        raise ReferenceImageError(f"{source}: the PNG image data is corrupt (wrong length).")
 
 
 def _read_chunks(data: bytes, source: str) -> list[tuple[bytes, bytes]]:
