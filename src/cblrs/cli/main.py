@@ -27,6 +27,8 @@ SUBCOMMANDS = [
     "show",
     "bench",
     "eval",
+    "camera",
+    "matcher",
 ]
 
 

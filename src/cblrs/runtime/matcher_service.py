@@ -192,8 +192,12 @@ class MatcherService:
 
     # -- lifecycle -------------------------------------------------------------------------
 
-    def start(self) -> None:
-        """Resume from the store, subscribe and start the worker thread."""
+    def start(self, connect: bool = True) -> None:
+        """Resume from the store, subscribe and start the worker thread.
+
+        Args:
+            connect: also connect the transport (else the caller connects it afterwards).
+        """
         if self._started:
             return
         self.store.bind(self._settings)
@@ -205,7 +209,8 @@ class MatcherService:
         self._worker.start()
         self.transport.subscribe(status_filter(self.plane_id), self._on_status, qos=1)
         self.transport.subscribe(detections_filter(self.plane_id), self._on_detections, qos=1)
-        self.transport.connect()
+        if connect:
+            self.transport.connect()
         self._started = True
 
     def stop(self, flush: bool = False, timeout: float = 30.0) -> None:

@@ -1,0 +1,319 @@
+"""``cblrs camera``: an edge camera node publishing colour-located detections over MQTT."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+import signal
+import time
+from pathlib import Path
+from typing import Any
+
+from cblrs.cli.common import UsageError, add_output_options, print_json
+from cblrs.errors import CblrsError
+
+logger = logging.getLogger(__name__)
+
+PASSWORD_ENVIRONMENT = "CBLRS_MQTT_PASSWORD"
+
+
+def add_mqtt_options(parser: argparse.ArgumentParser) -> None:
+    """Broker address, login and TLS options shared by ``camera`` and ``matcher``."""
+    group = parser.add_argument_group("broker")
+    group.add_argument(
+        "--broker", default="127.0.0.1:1883", metavar="HOST[:PORT]",
+        help="MQTT broker (default 127.0.0.1:1883)",
+    )
+    group.add_argument("--username", help="MQTT user name (default: anonymous)")
+    group.add_argument(
+        "--password-file", type=Path,
+        help=f"file holding the MQTT password (default: ${PASSWORD_ENVIRONMENT})",
+    )
+    group.add_argument("--ca-file", type=Path, help="CA certificate of the broker; enables TLS")
+    group.add_argument("--cert-file", type=Path, help="client certificate (PEM) for TLS")
+    group.add_argument("--key-file", type=Path, help="client certificate key (PEM) for TLS")
+    group.add_argument("--client-id", help="MQTT client id (default derived from the role)")
+
+
+def mqtt_settings(args: argparse.Namespace) -> Any:
+    """:class:`MqttSettings` from the broker options; the password never comes from argv."""
+    from cblrs.runtime.transport import MqttSettings
+
+    host, _, port_text = args.broker.rpartition(":") if ":" in args.broker else (
+        args.broker, "", "1883"
+    )
+    try:
+        port = int(port_text)
+    except ValueError:
+        raise UsageError(f"--broker {args.broker!r} must be HOST or HOST:PORT.") from None
+    password = None
+    if args.password_file is not None:
+        try:
+            password = args.password_file.read_text().strip()
+        except OSError as error:
+            raise UsageError(
+                f"cannot read --password-file {args.password_file}: {error}."
+            ) from None
+    elif args.username is not None:
+        password = os.environ.get(PASSWORD_ENVIRONMENT)
+    for name in ("ca_file", "cert_file", "key_file"):
+        path = getattr(args, name)
+        if path is not None and not path.is_file():
+            raise UsageError(f"--{name.replace('_', '-')} {path} does not exist.")
+    return MqttSettings(
+        host=host or "127.0.0.1",
+        port=port,
+        username=args.username,
+        password=password,
+        ca_file=args.ca_file,
+        cert_file=args.cert_file,
+        key_file=args.key_file,
+    )
+
+
+def connect_or_queue(transport: Any) -> None:
+    """Connect; if the broker does not answer, keep trying in the background.
+
+    A refused login is an error; an absent broker is not: publishes are queued meanwhile.
+    """
+    from cblrs.runtime.transport import TransportError
+
+    try:
+        transport.connect()
+    except TransportError as error:
+        if "refused" in str(error):
+            raise
+        logger.warning("%s; queueing until it is reachable", error)
+        transport.connect(wait=False)
+
+
+def install_stop_handlers(stop) -> None:
+    """Call ``stop()`` on SIGINT / SIGTERM (main thread only)."""
+
+    def handle(signum, frame) -> None:
+        logger.info("signal %d: stopping", signum)
+        stop()
+
+    signal.signal(signal.SIGINT, handle)
+    signal.signal(signal.SIGTERM, handle)
+
+
+def register(subparsers) -> None:
+    parser = subparsers.add_parser(
+        "camera",
+        help="run an edge camera node: detections -> reference colours -> MQTT",
+        description=(
+            "Publish one camera's detections, located through its colour reference image, on "
+            "cblrs/<plane>/<camera>/detections (QoS 1). Only boxes and colours leave the "
+            "camera. Recorded timestamps are mapped to wall time as EPOCH + t; give every "
+            "camera of one replay the same --epoch."
+        ),
+    )
+    parser.add_argument("--camera", required=True, help="camera id (a dataset camera name)")
+    reference = parser.add_mutually_exclusive_group(required=True)
+    reference.add_argument("--reference", type=Path, help="the camera's reference PNG")
+    reference.add_argument(
+        "--references", type=Path, help="folder of reference PNGs named <camera>.png"
+    )
+    parser.add_argument(
+        "--plane", type=int, help="plane id to publish for (default: the reference's only plane)"
+    )
+    source = parser.add_argument_group("source (exactly one)")
+    source.add_argument("--detections", type=Path, help="detections file (MOT or AI City)")
+    source.add_argument(
+        "--format", choices=("mot", "aicity"), default="mot", help="detections file format"
+    )
+    source.add_argument(
+        "--aicity-camera", type=int, help="AI City: keep rows of this camera column value"
+    )
+    source.add_argument("--dataset", type=Path, help="WILDTRACK or MultiviewX folder")
+    source.add_argument("--video", help="video file (or a device number / URL with --live)")
+    source.add_argument("--images", type=Path, help="folder of image files, in name order")
+    source.add_argument("--live", action="store_true", help="video is a live feed")
+    source.add_argument("--fps", type=float, help="frame rate of the frame numbering")
+    source.add_argument(
+        "--frame-step", type=int, help="detections files: emit every Nth frame (default: auto)"
+    )
+    source.add_argument(
+        "--frames", metavar="FIRST:LAST", help="dataset: only these native frame numbers"
+    )
+    source.add_argument(
+        "--class", dest="class_name", default="person", help="class of file detections"
+    )
+    detector = parser.add_argument_group("detector (video / images)")
+    detector.add_argument("--detector", choices=("yolo", "blob"), default="yolo")
+    detector.add_argument("--weights", type=Path, help="YOLO model file (local; never downloaded)")
+    detector.add_argument("--confidence", type=float, default=0.25, help="YOLO minimum score")
+    detector.add_argument("--device", default="cpu", help="YOLO device")
+    detector.add_argument(
+        "--blob-colour", default="255,0,0", metavar="R,G,B", help="blob detector colour"
+    )
+    detector.add_argument("--blob-tolerance", type=int, default=30)
+    detector.add_argument("--blob-min-area", type=int, default=20)
+    timing = parser.add_argument_group("timing")
+    timing.add_argument(
+        "--realtime", action="store_true",
+        help="pace by the recorded timestamps (default for files: as fast as possible)",
+    )
+    timing.add_argument("--speed", type=float, default=1.0, help="with --realtime: speed-up")
+    timing.add_argument(
+        "--epoch", type=float,
+        help="seconds since 1970 added to recorded timestamps (same for every camera of a replay)",
+    )
+    timing.add_argument(
+        "--first-sequence", type=int, default=0, help="sequence number of the first message"
+    )
+    parser.add_argument(
+        "--flush-timeout", type=float, default=60.0,
+        help="seconds to wait at the end for the broker to acknowledge everything",
+    )
+    add_mqtt_options(parser)
+    add_output_options(parser)
+    parser.set_defaults(handler=run)
+
+
+def load_reference(args: argparse.Namespace, expected_size: tuple[int, int] | None):
+    from cblrs.reference import ReferenceImage
+
+    if args.reference is not None:
+        path = args.reference
+    else:
+        from cblrs.cli.render import file_name
+
+        path = args.references / f"{file_name(args.camera, 0)}.png"
+    return ReferenceImage.load(path, expected_size=expected_size)
+
+
+def _frames_range(text: str | None) -> tuple[int | None, int | None]:
+    if not text:
+        return None, None
+    first, separator, last = text.partition(":")
+    try:
+        return (int(first) if first else None), (int(last) if separator and last else None)
+    except ValueError:
+        raise UsageError(f"--frames {text!r} must be FIRST:LAST frame numbers.") from None
+
+
+def build_source(args: argparse.Namespace):
+    """``(frames iterator, expected image size or None)`` for the chosen source."""
+    from cblrs.detections import class_id_of
+    from cblrs.runtime import sources
+
+    chosen = [
+        name for name in ("detections", "dataset", "video", "images")
+        if getattr(args, name) is not None
+    ]
+    if len(chosen) != 1:
+        raise UsageError(
+            "give exactly one source: --detections, --dataset, --video or --images"
+            + (f" (got {', '.join('--' + name for name in chosen)})." if chosen else ".")
+        )
+    try:
+        class_id = class_id_of(args.class_name)
+    except ValueError as error:
+        raise UsageError(str(error)) from None
+    kind = chosen[0]
+    if kind == "dataset":
+        from cblrs.datasets import load_scene
+
+        scene = load_scene(args.dataset)
+        first, last = _frames_range(args.frames)
+        if first is not None or last is not None:
+            scene = scene.select_frames(first, last)
+        index = sources.camera_position(scene.camera_names, args.camera)
+        if scene.camera_names[index] != args.camera:
+            raise UsageError(
+                f"--camera must be the dataset's camera name ({scene.camera_names[index]})."
+            )
+        return sources.scene_source(scene, index), scene.cameras[index].image_size
+    if kind == "detections":
+        if args.fps is None:
+            raise UsageError("--detections needs --fps (frame rate of its frame numbers).")
+        if args.format == "mot":
+            frames = sources.mot_source(args.detections, args.fps, class_id, args.frame_step)
+        else:
+            frames = sources.aicity_source(
+                args.detections, args.fps, args.aicity_camera, class_id, args.frame_step
+            )
+        return frames, None
+    detector = build_detector(args, class_id)
+    if kind == "video":
+        return sources.video_source(args.video, detector, args.fps, live=args.live), None
+    return sources.image_folder_source(args.images, detector, args.fps or 10.0), None
+
+
+def build_detector(args: argparse.Namespace, class_id: int):
+    from cblrs.runtime import sources
+
+    if args.detector == "blob":
+        try:
+            colour = tuple(int(value) for value in args.blob_colour.split(","))
+        except ValueError:
+            raise UsageError(f"--blob-colour {args.blob_colour!r} must be R,G,B.") from None
+        if len(colour) != 3:
+            raise UsageError(f"--blob-colour {args.blob_colour!r} must be R,G,B.")
+        return sources.ColourBlobDetector(
+            colour, args.blob_tolerance, args.blob_min_area, class_id  # type: ignore[arg-type]
+        )
+    if args.weights is None:
+        raise UsageError("--detector yolo needs --weights MODEL.pt (a local file).")
+    try:
+        return sources.YoloDetector(args.weights, args.confidence, args.device)
+    except ImportError as error:
+        raise UsageError(str(error)) from None
+
+
+def run(args: argparse.Namespace) -> int:
+    from cblrs.runtime.camera_node import CameraNode, camera_last_will
+    from cblrs.runtime.topics import validate_camera_id
+    from cblrs.runtime.transport import MqttTransport, Will
+
+    validate_camera_id(args.camera)
+    if args.speed <= 0:
+        raise UsageError("--speed must be positive.")
+    settings = mqtt_settings(args)
+    frames, expected_size = build_source(args)
+    reference = load_reference(args, expected_size)
+    plane_ids = reference.planes.ids
+    plane_id = args.plane
+    if plane_id is None:
+        if len(plane_ids) != 1:
+            raise UsageError(f"the reference has planes {plane_ids}; choose one with --plane.")
+        plane_id = plane_ids[0]
+    elif plane_id not in plane_ids:
+        raise UsageError(f"--plane {plane_id} is not in the reference (planes {plane_ids}).")
+    topic, payload = camera_last_will(plane_id, args.camera)
+    transport = MqttTransport(
+        args.client_id or f"cblrs-camera-{plane_id}-{args.camera}",
+        settings,
+        persistent=False,
+        will=Will(topic, payload),
+    )
+    node = CameraNode(
+        transport, plane_id, args.camera, reference,
+        realtime=args.realtime, speed=args.speed, epoch=args.epoch,
+        first_sequence=args.first_sequence, flush_timeout_s=args.flush_timeout,
+    )
+    install_stop_handlers(node.stop)
+    connect_or_queue(transport)
+    started = time.perf_counter()
+    try:
+        report = node.run(frames, connect=False)
+    except CblrsError:
+        transport.close(unclean=True)
+        raise
+    transport.close(timeout=args.flush_timeout)
+    summary = report.to_dict()
+    summary["wall_s"] = time.perf_counter() - started
+    summary["refused_by_broker"] = transport.refused_publishes
+    if args.json:
+        print_json(summary)
+    else:
+        print(
+            f"camera {report.camera_id} (plane {report.plane_id}): {report.messages} messages, "
+            f"{report.detections} detections ({report.located} located), "
+            f"{report.bytes / 1024:.1f} kB in {report.elapsed_s:.2f} s; "
+            + ("all acknowledged" if report.flushed else "NOT all acknowledged by the broker")
+        )
+    return 0 if report.flushed and transport.refused_publishes == 0 else 1

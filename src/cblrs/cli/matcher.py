@@ -1,0 +1,254 @@
+"""``cblrs matcher``: the central matcher service of one plane (MQTT in, SQLite out)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+from cblrs.cli.camera import (
+    add_mqtt_options,
+    connect_or_queue,
+    install_stop_handlers,
+    mqtt_settings,
+)
+from cblrs.cli.common import UsageError, format_table, print_json
+
+logger = logging.getLogger(__name__)
+
+
+def register(subparsers) -> None:
+    parser = subparsers.add_parser(
+        "matcher",
+        help="run the central matcher of one plane: MQTT -> validate -> track -> SQLite",
+        description=(
+            "Subscribe to cblrs/<plane>/+/detections (persistent session, QoS 1), validate, "
+            "de-duplicate, order by capture time, track, and store everything in a SQLite file "
+            "(--db). Restarting with the same --db and --client-id resumes where it stopped. "
+            "With --stats DB, print the counters stored in DB and exit."
+        ),
+    )
+    parser.add_argument("--stats", type=Path, metavar="DB", help="print a database's counters")
+    parser.add_argument("--db", type=Path, help="SQLite file of this matcher (created if missing)")
+    parser.add_argument(
+        "--references", type=Path,
+        help="folder of the cameras' reference PNGs (gives camera ids and planes)",
+    )
+    parser.add_argument(
+        "--cameras", help="comma-separated camera ids, in this order (default: --references)"
+    )
+    parser.add_argument("--plane", type=int, help="plane id (default: the references' only plane)")
+    parser.add_argument("--matcher", default="fusion", help="fusion (default) or paper")
+    parser.add_argument(
+        "--option", action="append", default=[], metavar="KEY=VALUE",
+        help="matcher option (repeatable); VALUE is JSON or a string",
+    )
+    parser.add_argument(
+        "--window", type=float, default=2.0,
+        help="ordering window, seconds: how long a timestamp waits for a silent camera",
+    )
+    parser.add_argument("--out-tracks", type=Path, help="also write tracks (AI City format)")
+    parser.add_argument(
+        "--no-publish-tracks", action="store_true", help="do not publish on cblrs/<plane>/tracks"
+    )
+    validation = parser.add_argument_group("validation")
+    validation.add_argument(
+        "--max-age", type=float,
+        help="reject capture times older than this, seconds (default 1 day)",
+    )
+    validation.add_argument(
+        "--max-future", type=float, help="reject capture times ahead by more, seconds (default 60)"
+    )
+    validation.add_argument("--max-bytes", type=int, help="largest accepted payload, bytes")
+    stopping = parser.add_argument_group("stopping (default: run until SIGINT / SIGTERM)")
+    stopping.add_argument(
+        "--idle-exit", type=float, metavar="SECONDS",
+        help="stop after this long without detections (replays, tests)",
+    )
+    stopping.add_argument(
+        "--until-cameras-offline", action="store_true",
+        help="stop once every camera has published its final 'offline' status",
+    )
+    parser.add_argument(
+        "--stats-interval", type=float, metavar="SECONDS", help="log counters every N seconds"
+    )
+    add_mqtt_options(parser)
+    parser.add_argument("--json", action="store_true", help="print the final summary as JSON")
+    parser.add_argument("--quiet", action="store_true", help="no progress output")
+    parser.set_defaults(handler=run)
+
+
+def parse_options(items: list[str]) -> dict[str, Any]:
+    options: dict[str, Any] = {}
+    for item in items:
+        key, separator, value = item.partition("=")
+        if not separator or not key:
+            raise UsageError(f"--option {item!r} must be KEY=VALUE.")
+        try:
+            options[key] = json.loads(value)
+        except ValueError:
+            options[key] = value
+    return options
+
+
+def read_references(folder: Path) -> tuple[list[str], Any]:
+    """Camera ids (file-name order) and the shared planes of a folder of reference PNGs."""
+    from cblrs.reference import ReferenceImage
+
+    if not folder.is_dir():
+        raise UsageError(f"--references {folder} is not a folder.")
+    paths = sorted(path for path in folder.glob("*.png") if not path.stem.endswith("_preview"))
+    if not paths:
+        raise UsageError(f"{folder} holds no reference PNGs; render them with `cblrs render`.")
+    names, planes = [], None
+    for path in paths:
+        reference = ReferenceImage.load(path)
+        names.append(reference.camera_name or path.stem)
+        if planes is None:
+            planes = reference.planes
+        elif reference.planes != planes:
+            raise UsageError(f"{path} was rendered for other planes than {paths[0]}.")
+    return names, planes
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.stats is not None:
+        return show_stats(args.stats, args.json)
+    if args.db is None or args.references is None:
+        raise UsageError("give --db FILE and --references DIR (or --stats DB).")
+    from cblrs.matching import make_matcher
+    from cblrs.runtime.matcher_service import MatcherService
+    from cblrs.runtime.store import RuntimeStore
+    from cblrs.runtime.topics import matcher_status_topic, validate_client_id
+    from cblrs.runtime.transport import MqttTransport, Will
+    from cblrs.runtime.wire import ValidationPolicy, encode_status
+
+    names, planes = read_references(args.references)
+    if args.cameras:
+        wanted = [name.strip() for name in args.cameras.split(",") if name.strip()]
+        unknown = sorted(set(wanted) - set(names))
+        if unknown:
+            raise UsageError(f"no reference image for camera(s) {', '.join(unknown)}.")
+        names = wanted
+    plane_id = args.plane
+    if plane_id is None:
+        if len(planes.ids) != 1:
+            raise UsageError(f"the references have planes {planes.ids}; choose one with --plane.")
+        plane_id = planes.ids[0]
+    elif plane_id not in planes.ids:
+        raise UsageError(f"--plane {plane_id} is not in the references (planes {planes.ids}).")
+    options = parse_options(args.option)
+    matcher = make_matcher(args.matcher, planes, names, **options)
+    limits: dict[str, Any] = {"bits": planes.bits}
+    for name, value in (
+        ("max_age_s", args.max_age), ("max_future_s", args.max_future),
+        ("max_bytes", args.max_bytes),
+    ):
+        if value is not None:
+            limits[name] = value
+    policy = ValidationPolicy(**limits)
+    matcher_id = validate_client_id(args.client_id or f"cblrs-matcher-{plane_id}", "client id")
+    status_topic = matcher_status_topic(plane_id, matcher_id)
+    transport = MqttTransport(
+        matcher_id,
+        mqtt_settings(args),
+        persistent=True,
+        will=Will(status_topic, encode_status(matcher_id, "offline", role="matcher")),
+    )
+    store = RuntimeStore(args.db)
+    service = MatcherService(
+        transport, store, matcher, plane_id, names,
+        policy=policy, window_s=args.window, publish_tracks=not args.no_publish_tracks,
+        settings={"matcher": args.matcher, "options": options},
+    )
+    stop = threading.Event()
+    install_stop_handlers(stop.set)
+    started = time.perf_counter()
+    service.start(connect=False)  # handlers first, so nothing arrives without one
+    connect_or_queue(transport)
+    transport.publish(
+        status_topic,
+        encode_status(matcher_id, "online", role="matcher", timestamp=time.time()),
+        qos=1, retain=True,
+    )
+    if not args.quiet:
+        print(
+            f"matcher {matcher_id}: plane {plane_id}, cameras {', '.join(names)}, db {args.db}",
+            file=sys.stderr,
+        )
+    flush = _wait(service, stop, args)
+    try:
+        service.close(flush=flush)
+    finally:
+        summary = service.stats()
+        if args.out_tracks is not None:
+            from cblrs.datasets.aicity import write_tracks
+
+            write_tracks(args.out_tracks, store.tracks())
+            summary["out_tracks"] = str(args.out_tracks)
+        store.close()
+    summary["elapsed_s"] = time.perf_counter() - started
+    summary["database"] = str(args.db)
+    if args.json:
+        print_json(summary)
+    else:
+        print(_one_line(summary))
+    return 0
+
+
+def _wait(service: Any, stop: threading.Event, args: argparse.Namespace) -> bool:
+    """Block until a stop condition; returns whether to flush waiting groups."""
+    last_stats = time.monotonic()
+    settled = 0
+    while not stop.wait(0.2):
+        if service.failed():
+            return False
+        if args.stats_interval and time.monotonic() - last_stats >= args.stats_interval:
+            last_stats = time.monotonic()
+            print(_one_line(service.stats()), file=sys.stderr, flush=True)
+        if args.until_cameras_offline and service.cameras_done() and service.drained():
+            settled += 1
+            if settled >= 3:
+                return True
+        else:
+            settled = 0
+        if args.idle_exit is not None and service.idle_seconds() >= args.idle_exit:
+            return True
+    return False
+
+
+def _one_line(stats: dict[str, Any]) -> str:
+    rejected = stats.get("rejected_by_reason") or {}
+    details = ", ".join(f"{name} {value}" for name, value in sorted(rejected.items()))
+    return (
+        f"plane {stats['plane_id']}: received {stats['received']}, "
+        f"rejected {stats['rejected']}{f' ({details})' if details else ''}, "
+        f"duplicates {stats['duplicates']}, late {stats['late']}, "
+        f"processed {stats['processed']}, tracks {stats['tracks']}, "
+        f"buffered {stats['buffered_messages']}"
+    )
+
+
+def show_stats(path: Path, as_json: bool) -> int:
+    from cblrs.runtime.store import RuntimeStore
+
+    with RuntimeStore(path, read_only=True) as store:
+        summary = store.summary()
+    if as_json:
+        print_json(summary)
+        return 0
+    settings = summary.get("settings") or {}
+    print(
+        f"{path}: plane {settings.get('plane_id')}, cameras "
+        f"{', '.join(settings.get('camera_ids') or [])}, matcher {settings.get('matcher')}"
+    )
+    rows = [[name, value] for name, value in summary["counters"].items()]
+    rows += [[f"inbox {status}", count] for status, count in sorted(summary["inbox"].items())]
+    rows += [["track rows", summary["track_rows"]], ["track ids", summary["track_ids"]]]
+    print(format_table(["counter", "value"], rows))
+    return 0
