@@ -26,6 +26,7 @@ SUBCOMMANDS = [
     "locate",
     "show",
     "bench",
+    "track",
     "eval",
     "camera",
     "matcher",
