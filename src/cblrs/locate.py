@@ -124,29 +124,67 @@ class LUTLocator:
         self._flat = self.table.reshape(-1, 2)
 
     @classmethod
-    def from_camera(cls, camera: Camera, height_m: float = 0.0, bounds=None) -> LUTLocator:
+    def from_camera(
+        cls,
+        camera: Camera,
+        height_m: float = 0.0,
+        bounds: tuple[float, float, float, float] | None = None,
+    ) -> LUTLocator:
+        """Exact world position of every raw pixel centre (lens distortion included).
+
+        Args:
+            camera: the camera.
+            height_m: plane height in metres.
+            bounds: optional ``(x0, y0, x1, y1)`` metres; positions outside are NaN.
+        """
         width, height = camera.image_size
-        map_x, map_y = camera.undistorted_grid()
-        pixels = np.column_stack([map_x.ravel(), map_y.ravel()])
-        world_xy, valid = homography_pixel_to_world(camera.plane_homography(height_m), pixels)
-        if bounds is not None:
-            x0, y0, x1, y1 = bounds
-            with np.errstate(invalid="ignore"):
-                valid &= (
-                    (world_xy[:, 0] >= x0)
-                    & (world_xy[:, 0] <= x1)
-                    & (world_xy[:, 1] >= y0)
-                    & (world_xy[:, 1] <= y1)
-                )
-        world_xy[~valid] = np.nan
-        return cls(world_xy.reshape(height, width, 2).astype(np.float32))
+        if camera.has_distortion:
+            map_x, map_y = (grid.astype(np.float64) for grid in camera.undistorted_grid())
+        else:  # separable grid: broadcast a row and a column
+            map_x = np.arange(width, dtype=np.float64)[None, :]
+            map_y = np.arange(height, dtype=np.float64)[:, None]
+        inverse = np.linalg.inv(camera.plane_homography(height_m))
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+            inverse_scale = 1.0 / (inverse[2, 0] * map_x + inverse[2, 1] * map_y + inverse[2, 2])
+            world_x = (
+                inverse[0, 0] * map_x + inverse[0, 1] * map_y + inverse[0, 2]
+            ) * inverse_scale
+            world_y = (
+                inverse[1, 0] * map_x + inverse[1, 1] * map_y + inverse[1, 2]
+            ) * inverse_scale
+            # Same rule as homography_pixel_to_world: in front, not at the horizon.
+            valid = (inverse_scale > 0) & (np.abs(world_x) <= MAX_WORLD_DISTANCE_M)
+            valid &= np.abs(world_y) <= MAX_WORLD_DISTANCE_M
+            if bounds is not None:
+                x0, y0, x1, y1 = bounds
+                valid &= (world_x >= x0) & (world_x <= x1) & (world_y >= y0) & (world_y <= y1)
+        table = np.full((height, width, 2), np.nan, dtype=np.float32)
+        np.copyto(table[..., 0], world_x, where=valid, casting="unsafe")
+        np.copyto(table[..., 1], world_y, where=valid, casting="unsafe")
+        return cls(table)
 
     @classmethod
     def from_reference(cls, reference: ReferenceImage) -> LUTLocator:
+        """Decode every pixel of a reference image (cell centres; NaN where B = 0)."""
         width, height = reference.image_size
-        colours = reference.pixels.reshape(-1, 3)
-        world_xy, _, _ = reference.planes.decode(colours)
-        return cls(world_xy.reshape(height, width, 2).astype(np.float32))
+        pixels = reference.pixels
+        table = np.full((height, width, 2), np.nan, dtype=np.float32)
+        for plane in reference.planes:
+            seen = pixels[..., 2] == plane.plane_id
+            step_x, step_y = plane.step
+            np.copyto(
+                table[..., 0],
+                plane.origin[0] + pixels[..., 0] * step_x,
+                where=seen,
+                casting="unsafe",
+            )
+            np.copyto(
+                table[..., 1],
+                plane.origin[1] + pixels[..., 1] * step_y,
+                where=seen,
+                casting="unsafe",
+            )
+        return cls(table)
 
     def save(self, path: str | Path) -> Path:
         """Write the table as a .npy file (what the paper's LUT costs on disk)."""
