@@ -24,13 +24,13 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from cblrs.detections import CameraMessage, Tracks
+from cblrs.detections import CLASS_NAMES, CameraMessage, Tracks
 from cblrs.matching import kalman
 from cblrs.matching.base import (
     MatcherError,
@@ -47,6 +47,16 @@ STATE_VERSION = "cblrs.fusion-tracker/1"
 _UNASSIGNABLE = 1.0e9
 
 
+# Vehicles are located less precisely than people (their footprint is metres long and the
+# box bottom only bounds it) and turn harder; everything else falls back to the base values.
+DEFAULT_CLASS_MEASUREMENT_SIGMA_M: dict[str, float] = {
+    "car": 0.7, "truck": 1.0, "bus": 1.2, "bicycle": 0.3, "motorcycle": 0.4,
+}
+DEFAULT_CLASS_ACCELERATION_SIGMA: dict[str, float] = {
+    "car": 3.0, "truck": 2.0, "bus": 2.0, "bicycle": 1.5, "motorcycle": 3.0,
+}
+
+
 def _positive(value: Any) -> bool:
     return isinstance(value, int | float) and not isinstance(value, bool) and (
         math.isfinite(value) and value > 0
@@ -58,14 +68,18 @@ class FusionConfig:
     """Options of the fusion tracker, all in physical units.
 
     Attributes:
-        measurement_sigma_m: standard deviation of one camera's ground position of an object
+        measurement_sigma_m: standard deviation of one camera's ground position of a person
             (target pixel error seen on the ground), metres, close to the camera.
+        class_measurement_sigma_m: the same for other classes, ``{class name: metres}``;
+            distances that decide whether two detections can be one object (gate cap,
+            cluster and join radii) grow in proportion.
         sigma_per_distance: added standard deviation per metre of distance between camera
             and object (needs ``camera_positions``); a pixel error covers more ground far
             away. Dimensionless (metres per metre).
         camera_positions: optional ``{camera_id: (x, y)}`` ground positions of the cameras,
             metres; without them the measurement noise is constant.
-        acceleration_sigma: white-noise acceleration of the motion model, m/s^2.
+        acceleration_sigma: white-noise acceleration of a person's motion model, m/s^2.
+        class_acceleration_sigma: the same for other classes, ``{class name: m/s^2}``.
         initial_velocity_sigma: velocity uncertainty of a new track, m/s.
         gate_sigmas: Mahalanobis gate on the innovation (standard deviations).
         max_gate_m: hard cap on the distance between a track and a detection it takes, metres.
@@ -81,9 +95,15 @@ class FusionConfig:
     """
 
     measurement_sigma_m: float = 0.2
+    class_measurement_sigma_m: Mapping[str, float] = field(
+        default_factory=lambda: dict(DEFAULT_CLASS_MEASUREMENT_SIGMA_M)
+    )
     sigma_per_distance: float = 0.0
     camera_positions: Mapping[str, Sequence[float]] | None = None
-    acceleration_sigma: float = 1.5
+    acceleration_sigma: float = 1.0
+    class_acceleration_sigma: Mapping[str, float] = field(
+        default_factory=lambda: dict(DEFAULT_CLASS_ACCELERATION_SIGMA)
+    )
     initial_velocity_sigma: float = 1.5
     gate_sigmas: float = 4.0
     max_gate_m: float = 2.0
@@ -112,6 +132,19 @@ class FusionConfig:
             and self.confirm_evidence >= 1,
             f"confirm_evidence must be a whole number >= 1, got {self.confirm_evidence!r}.",
         )
+        for name in ("class_measurement_sigma_m", "class_acceleration_sigma"):
+            table = getattr(self, name)
+            require(isinstance(table, Mapping), f"{name} must map class names to numbers.")
+            for class_name, value in table.items():
+                require(
+                    class_name in CLASS_NAMES,
+                    f"{name}: unknown class {class_name!r}; known: {', '.join(CLASS_NAMES)}.",
+                )
+                require(
+                    _positive(value),
+                    f"{name}[{class_name!r}] must be a positive number, got {value!r}.",
+                )
+            object.__setattr__(self, name, {str(k): float(v) for k, v in table.items()})
         if self.camera_positions is not None:
             require(
                 isinstance(self.camera_positions, Mapping),
@@ -156,13 +189,30 @@ class FusionTracker:
             require(not unknown, f"camera_positions names unknown camera(s): {unknown}.")
             for name, position in self.config.camera_positions.items():
                 self._camera_xy[self._cameras[name]] = position
+        config = self.config
+        # Per class id (index into CLASS_NAMES; one extra slot for unknown ids).
+        self._class_sigma = np.array(
+            [config.class_measurement_sigma_m.get(name, config.measurement_sigma_m)
+             for name in CLASS_NAMES] + [config.measurement_sigma_m]
+        )
+        self._class_acceleration = np.array(
+            [config.class_acceleration_sigma.get(name, config.acceleration_sigma)
+             for name in CLASS_NAMES] + [config.acceleration_sigma]
+        )
+        self._class_scale = self._class_sigma / config.measurement_sigma_m
         self.reset()
+
+    def _class_slot(self, class_id: np.ndarray) -> np.ndarray:
+        class_id = np.asarray(class_id, np.int64)
+        return np.where((class_id >= 0) & (class_id < len(CLASS_NAMES)), class_id,
+                        len(CLASS_NAMES))
 
     # ------------------------------------------------------------------ state
     def reset(self) -> None:
         self._time: float | None = None
         self._next_id = 1
         self._ids = np.zeros(0, np.int64)  # -1 while tentative
+        self._class = np.zeros(0, np.int64)
         self._state = np.zeros((0, 4))
         self._covariance = np.zeros((0, 4, 4))
         self._evidence = np.zeros(0, np.int64)
@@ -180,6 +230,7 @@ class FusionTracker:
             "time": self._time,
             "next_id": self._next_id,
             "ids": self._ids.tolist(),
+            "class_id": self._class.tolist(),
             "state": self._state.tolist(),
             "covariance": self._covariance.tolist(),
             "evidence": self._evidence.tolist(),
@@ -199,14 +250,16 @@ class FusionTracker:
             self._time = None if time is None else float(time)
             self._next_id = int(state["next_id"])
             self._ids = np.asarray(state["ids"], np.int64).reshape(-1)
+            self._class = np.asarray(state["class_id"], np.int64).reshape(-1)
             self._state = np.asarray(state["state"], np.float64).reshape(-1, 4)
             self._covariance = np.asarray(state["covariance"], np.float64).reshape(-1, 4, 4)
             self._evidence = np.asarray(state["evidence"], np.int64).reshape(-1)
             self._last_seen = np.asarray(state["last_seen"], np.float64).reshape(-1)
         except (KeyError, TypeError, ValueError) as error:
             raise MatcherError(f"the saved fusion-tracker state is incomplete: {error}.") from None
-        lengths = {len(self._ids), len(self._state), len(self._covariance), len(self._evidence),
-                   len(self._last_seen)}
+        columns = (self._ids, self._class, self._state, self._covariance, self._evidence,
+                   self._last_seen)
+        lengths = {len(column) for column in columns}
         if len(lengths) != 1:
             raise MatcherError("the saved fusion-tracker state has columns of different lengths.")
 
@@ -282,14 +335,15 @@ class FusionTracker:
             # one is treated as simultaneous rather than rewinding the filter.
             dt = max(0.0, timestamp - self._time)
             self._state, self._covariance = kalman.predict(
-                self._state, self._covariance, dt, self.config.acceleration_sigma
+                self._state, self._covariance, dt,
+                self._class_acceleration[self._class_slot(self._class)],
             )
             self._time = max(self._time, timestamp)
         else:
             self._time = timestamp
 
     def _measurement_variance(self, observed: Observations) -> np.ndarray:
-        sigma = np.full(len(observed), self.config.measurement_sigma_m)
+        sigma = self._class_sigma[self._class_slot(observed.class_id)]
         if self.config.sigma_per_distance > 0 and len(observed):
             camera_xy = self._camera_xy[observed.camera]
             distance = np.linalg.norm(observed.world_xy - camera_xy, axis=1)
@@ -311,8 +365,11 @@ class FusionTracker:
         dx = observed.world_xy[:, 0, None] - self._state[None, :, 0]
         dy = observed.world_xy[:, 1, None] - self._state[None, :, 1]
         mahalanobis = (d * dx * dx - 2.0 * b * dx * dy + a * dy * dy) / determinant
-        gated = (mahalanobis <= self.config.gate_sigmas**2) & (
-            dx * dx + dy * dy <= self.config.max_gate_m**2
+        cap = self.config.max_gate_m * self._class_scale[self._class_slot(self._class)]
+        gated = (
+            (mahalanobis <= self.config.gate_sigmas**2)
+            & (dx * dx + dy * dy <= cap[None, :] ** 2)
+            & (observed.class_id[:, None] == self._class[None, :])
         )
         if not gated.any():
             return assigned
@@ -349,8 +406,13 @@ class FusionTracker:
         distance = np.linalg.norm(
             observed.world_xy[leftover, None, :] - fused[None, :, :], axis=2
         )
-        gated = (distance <= self.config.cluster_radius_m) & ~taken[seen][:, observed.camera[
-            leftover]].T
+        radius = self.config.cluster_radius_m * self._class_scale[
+            self._class_slot(observed.class_id[leftover])]
+        gated = (
+            (distance <= radius[:, None])
+            & ~taken[seen][:, observed.camera[leftover]].T
+            & (observed.class_id[leftover, None] == self._class[seen][None, :])
+        )
         if not gated.any():
             return assigned
         joined = assign_per_camera(distance, gated, observed.camera[leftover],
@@ -379,7 +441,10 @@ class FusionTracker:
     def _birth(self, leftovers: Observations, variance: np.ndarray, timestamp: float) -> int:
         """Start a tentative track per cross-camera cluster of unassigned detections."""
         labels = cluster_detections(
-            leftovers.world_xy, leftovers.camera, self.config.cluster_radius_m
+            leftovers.world_xy, leftovers.camera,
+            self.config.cluster_radius_m * self._class_scale[
+                self._class_slot(leftovers.class_id)],
+            leftovers.class_id,
         )
         count = int(labels.max()) + 1 if len(labels) else 0
         camera_count = len(self.camera_ids)
@@ -403,6 +468,9 @@ class FusionTracker:
             leftovers, np.ones(len(labels), dtype=bool), labels, count
         )
         self._ids = np.concatenate([self._ids, np.full(count, -1, np.int64)])
+        cluster_class = np.zeros(count, np.int64)
+        cluster_class[labels] = leftovers.class_id  # one class per cluster
+        self._class = np.concatenate([self._class, cluster_class])
         self._state = np.concatenate([self._state, state])
         self._covariance = np.concatenate([self._covariance, covariance])
         self._evidence = np.concatenate([self._evidence, np.bincount(labels, minlength=count)])
@@ -436,6 +504,7 @@ class FusionTracker:
 
     def _select(self, keep: np.ndarray) -> None:
         self._ids = self._ids[keep]
+        self._class = self._class[keep]
         self._state = self._state[keep]
         self._covariance = self._covariance[keep]
         self._evidence = self._evidence[keep]
@@ -495,16 +564,24 @@ def assign_per_camera(
     return assigned
 
 
-def cluster_detections(world_xy: np.ndarray, camera: np.ndarray, radius_m: float) -> np.ndarray:
+def cluster_detections(
+    world_xy: np.ndarray,
+    camera: np.ndarray,
+    radius_m: float | np.ndarray,
+    class_id: np.ndarray | None = None,
+) -> np.ndarray:
     """Group same-instant detections of several cameras into objects.
 
-    Complete-linkage agglomeration over pairs closer than ``radius_m`` (closest first), with
-    at most one detection per camera in a cluster (a camera sees an object once).
+    Complete-linkage agglomeration over pairs closer than their radius (closest first), with
+    at most one detection per camera and one class in a cluster (a camera sees an object
+    once).
 
     Args:
         world_xy: (N, 2) float64 metres.
         camera: (N,) int64 camera index of each detection.
-        radius_m: largest distance between any two members of a cluster.
+        radius_m: largest distance between two members of a cluster, metres; scalar or (N,)
+            per detection (a pair uses the larger of its two).
+        class_id: (N,) int64 classes; None treats all detections as one class.
 
     Returns:
         (N,) int64 cluster labels 0..K-1, numbered by first member.
@@ -513,7 +590,11 @@ def cluster_detections(world_xy: np.ndarray, camera: np.ndarray, radius_m: float
     if count == 0:
         return np.zeros(0, np.int64)
     distance = np.linalg.norm(world_xy[:, None] - world_xy[None], axis=2)
-    candidate = (distance <= radius_m) & (camera[:, None] != camera[None, :])
+    radius = np.broadcast_to(np.asarray(radius_m, np.float64), (count,))
+    pair_radius = np.maximum(radius[:, None], radius[None, :])
+    candidate = (distance <= pair_radius) & (camera[:, None] != camera[None, :])
+    if class_id is not None:
+        candidate &= class_id[:, None] == class_id[None, :]
     first, second = np.nonzero(np.triu(candidate, k=1))
     members: list[list[int]] = [[index] for index in range(count)]
     label = list(range(count))
@@ -523,7 +604,8 @@ def cluster_detections(world_xy: np.ndarray, camera: np.ndarray, radius_m: float
         left, right = label[first[pair]], label[second[pair]]
         if left == right or cameras[left] & cameras[right]:
             continue
-        if distance[np.ix_(members[left], members[right])].max() > radius_m:
+        block = np.ix_(members[left], members[right])
+        if (distance[block] > pair_radius[block]).any():
             continue
         for index in members[right]:
             label[index] = left

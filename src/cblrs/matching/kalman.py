@@ -16,7 +16,7 @@ FloatArray = NDArray[np.float64]
 
 
 def predict(
-    state: FloatArray, covariance: FloatArray, dt: float, acceleration_sigma: float
+    state: FloatArray, covariance: FloatArray, dt: float, acceleration_sigma: float | FloatArray
 ) -> tuple[FloatArray, FloatArray]:
     """Propagate states by ``dt`` seconds.
 
@@ -24,7 +24,7 @@ def predict(
         state: (T, 4) float64.
         covariance: (T, 4, 4) float64.
         dt: seconds (>= 0), the same for all tracks.
-        acceleration_sigma: white-noise acceleration, m/s^2.
+        acceleration_sigma: white-noise acceleration, m/s^2, scalar or (T,) per track.
 
     Returns:
         The predicted ``(state, covariance)``, new arrays.
@@ -34,12 +34,12 @@ def predict(
     transition = np.eye(4)
     transition[0, 2] = transition[1, 3] = dt
     state = state @ transition.T
-    q = acceleration_sigma**2
-    block = q * np.array([[dt**4 / 4, dt**3 / 2], [dt**3 / 2, dt**2]])
-    noise = np.zeros((4, 4))
-    noise[np.ix_([0, 2], [0, 2])] = block
-    noise[np.ix_([1, 3], [1, 3])] = block
-    covariance = transition @ covariance @ transition.T + noise
+    block = np.array([[dt**4 / 4, dt**3 / 2], [dt**3 / 2, dt**2]])
+    unit_noise = np.zeros((4, 4))
+    unit_noise[np.ix_([0, 2], [0, 2])] = block
+    unit_noise[np.ix_([1, 3], [1, 3])] = block
+    variance = np.broadcast_to(np.asarray(acceleration_sigma, np.float64) ** 2, (len(state),))
+    covariance = transition @ covariance @ transition.T + variance[:, None, None] * unit_noise
     return state, covariance
 
 
