@@ -48,6 +48,7 @@ _CORNER_SIGNS = np.array(
     ],
     dtype=np.float64,
 )
+_FACES = ((0, 1, 2, 3), (4, 5, 6, 7), (0, 1, 5, 4), (1, 2, 6, 5), (2, 3, 7, 6), (3, 0, 4, 7))
 _EDGES = np.array(
     [
         [0, 1],
@@ -425,7 +426,7 @@ class RandomWalkPath:
     area: tuple[float, float, float, float]
     speed: float = 1.3
     seed: int = 0
-    turn_deg_per_sqrt_s: float = 35.0
+    turn_deg_per_sqrt_s: float = 20.0
     start_s: float = 0.0
     end_s: float | None = None
     start_heading_deg: float | None = None
@@ -516,6 +517,70 @@ class MovingObject:
 
 
 @dataclass(frozen=True)
+class Structure:
+    """A static 3D box standing on the ground (a building, a monument, a kiosk).
+
+    Structures hide objects behind them but are never detected and have no ground truth.
+
+    Attributes:
+        centre: (x, y) footprint centre, metres.
+        size_lwh: (length, width, height) in metres.
+        yaw_deg: orientation of the length axis, degrees from +x.
+        name: a label.
+    """
+
+    centre: tuple[float, float]
+    size_lwh: tuple[float, float, float]
+    yaw_deg: float = 0.0
+    name: str = ""
+
+    def __post_init__(self) -> None:
+        if len(self.size_lwh) != 3 or min(self.size_lwh) <= 0:
+            raise ValueError(f"size_lwh must be three positive metres, got {self.size_lwh}")
+
+    def corners(self) -> FloatArray:
+        """(8, 3) corners in world metres (see :func:`box_corners_3d`)."""
+        return box_corners_3d(np.array([self.centre], float), self.size_lwh, self.yaw_deg)[0]
+
+    def blocks(self, origin: NDArray, points: NDArray) -> BoolArray:
+        """Whether the segments from ``origin`` (3,) to ``points`` (M, 3) pass through it."""
+        points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        yaw = np.radians(self.yaw_deg)
+        # Into the structure's frame: x along its length, y across, z up from its base.
+        rotation = np.array([[np.cos(yaw), np.sin(yaw)], [-np.sin(yaw), np.cos(yaw)]])
+        start = np.asarray(origin, dtype=np.float64).copy()
+        start[:2] = rotation @ (start[:2] - self.centre)
+        ends = points.copy()
+        ends[:, :2] = (points[:, :2] - self.centre) @ rotation.T
+        direction = ends - start
+        half = np.array(self.size_lwh) / 2.0
+        low = np.array([-half[0], -half[1], 0.0])
+        high = np.array([half[0], half[1], self.size_lwh[2]])
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t_low = (low - start) / direction
+            t_high = (high - start) / direction
+        t_near = np.nanmax(np.where(direction != 0, np.minimum(t_low, t_high), -np.inf), axis=1)
+        t_far = np.nanmin(np.where(direction != 0, np.maximum(t_low, t_high), np.inf), axis=1)
+        # Axes the segment runs parallel to: it must lie within that slab.
+        parallel_outside = ((direction == 0) & ((start < low) | (start > high))).any(axis=1)
+        # The end point itself (on the object) does not count: stop just short of it.
+        return (t_near < t_far) & (t_far > 0) & (t_near < 1 - 1e-6) & ~parallel_outside
+
+
+@dataclass(frozen=True)
+class GroundMarking:
+    """A filled polygon painted on the ground (roads, islands); used for pictures only.
+
+    Attributes:
+        polygon: ((x, y), ...) vertices in metres, at least three.
+        colour: (r, g, b) 0..255.
+    """
+
+    polygon: tuple[tuple[float, float], ...]
+    colour: tuple[int, int, int]
+
+
+@dataclass(frozen=True)
 class WorldSpec:
     """Everything that defines a synthetic scene.
 
@@ -530,8 +595,11 @@ class WorldSpec:
         min_visible_fraction: a camera reports a box only if at least this fraction of its
             (unclipped) image box lies inside the image.
         min_box_height_px: smaller boxes are not detected.
-        occlusion: drop boxes mostly hidden behind nearer boxes in the same camera.
+        occlusion: drop boxes mostly hidden behind nearer boxes in the same camera, or
+            behind structures.
         max_occluded_fraction: a box more covered than this is dropped when ``occlusion``.
+        structures: static boxes that hide objects (never detected).
+        markings: ground paint for pictures (drawn in the order given); no effect on data.
     """
 
     name: str
@@ -545,10 +613,14 @@ class WorldSpec:
     min_box_height_px: float = 8.0
     occlusion: bool = True
     max_occluded_fraction: float = 0.75
+    structures: tuple[Structure, ...] = ()
+    markings: tuple[GroundMarking, ...] = ()
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "cameras", tuple(self.cameras))
         object.__setattr__(self, "objects", tuple(self.objects))
+        object.__setattr__(self, "structures", tuple(self.structures))
+        object.__setattr__(self, "markings", tuple(self.markings))
         if not self.cameras:
             raise DatasetError("a synthetic world needs at least one camera.")
         for camera in self.cameras:
@@ -656,6 +728,9 @@ class SyntheticWorld:
         xyxy = clipped.reshape(frames, count, 4)
         in_view = in_view.reshape(frames, count)
         detected = in_view.copy()
+        if spec.occlusion and spec.structures and count:
+            hidden = self._hidden_by_structures(camera, states, sizes, in_view)
+            detected &= ~hidden
         if spec.occlusion and count > 1:
             depth = _camera_depth(camera, states.xy, sizes)
             occluders = in_front.reshape(frames, count)
@@ -665,6 +740,44 @@ class SyntheticWorld:
                 )
                 detected[frame] &= ~hidden
         return xyxy, detected, in_view
+
+    def _hidden_by_structures(
+        self, camera: Camera, states: ObjectStates, sizes: FloatArray, candidates: BoolArray
+    ) -> BoolArray:
+        """(T, N) bool: objects whose sample points are mostly hidden behind structures."""
+        hidden = np.zeros(candidates.shape, dtype=bool)
+        frame_index, column = np.nonzero(candidates)
+        if len(frame_index) == 0:
+            return hidden
+        corners = box_corners_3d(
+            states.xy[frame_index, column], sizes[column], states.yaw_deg[frame_index, column]
+        )
+        # Corners, face centres and the centre of each box: 15 points that see or are seen.
+        faces = np.stack([corners[:, list(face)].mean(axis=1) for face in _FACES], axis=1)
+        points = np.concatenate([corners, faces, corners.mean(axis=1, keepdims=True)], axis=1)
+        blocked = np.zeros(points.shape[:2], dtype=bool)
+        for structure in self.spec.structures:
+            blocked |= structure.blocks(camera.centre, points.reshape(-1, 3)).reshape(blocked.shape)
+        hidden[frame_index, column] = blocked.mean(axis=1) > self.spec.max_occluded_fraction
+        return hidden
+
+    def boxes_at(self, states: ObjectStates, frame_index: int) -> tuple[FloatArray, NDArray]:
+        """Corners and ids of the objects present at one frame.
+
+        Returns:
+            ``(corners, object_ids)``: (N, 8, 3) world metres and (N,) int64.
+        """
+        present = states.present[frame_index]
+        sizes = np.array([item.size_lwh for item in self.spec.objects], dtype=np.float64)
+        ids = np.array([item.object_id for item in self.spec.objects], dtype=np.int64)
+        if not present.any():
+            return np.zeros((0, 8, 3)), np.zeros(0, dtype=np.int64)
+        corners = box_corners_3d(
+            states.xy[frame_index][present],
+            sizes.reshape(-1, 3)[present],
+            states.yaw_deg[frame_index][present],
+        )
+        return corners, ids[present]
 
     def scene(self, name: str | None = None) -> Scene:
         """Project every object into every camera and collect the :class:`Scene`.
@@ -793,29 +906,53 @@ def roundabout_world(
 ) -> WorldSpec:
     """Two cameras over a roundabout; one car drives a full circle (the paper's hand-over case).
 
-    The car (radius 12 m, 7.5 m/s, counter-clockwise) starts and ends where only camera A
-    sees it; on the way it passes an overlap, a stretch only camera B sees, and a second
-    overlap, so its identity has to be handed from A to B and back. One lap takes about
-    10 s; the default duration (11 s) covers it.
+    The cameras stand on masts west and east of the roundabout and look across it; the
+    monument on the central island (a 10 x 10 x 7 m block set diagonally) hides the
+    far side of the ring from each. The car (radius 12 m, 7.5 m/s, counter-clockwise)
+    starts and ends where only camera A sees it; on the way it passes an overlap (north or
+    south, seen by both), the stretch only camera B sees, and a second overlap, so its
+    identity has to be handed from A to B and back. One lap takes about 10 s; the default
+    duration (10.6 s) covers it.
     """
     rng = np.random.default_rng(seed)
     radius, speed = 12.0, 7.5
-    # Tiny seeded jitter of the mounting so that seeds differ, without moving the overlaps.
-    jitter = rng.uniform(-0.2, 0.2, size=4)
+    # A small seeded jitter of the mounting so that seeds differ without moving the overlaps.
+    jitter = rng.uniform(-0.3, 0.3, size=4)
     cameras = (
-        Camera.from_pose("A", (-14.0, jitter[0], 12.0), jitter[1], 55.0, 750.0, _IMAGE_SIZE),
-        Camera.from_pose("B", (14.0, jitter[2], 12.0), 180.0 + jitter[3], 55.0, 750.0, _IMAGE_SIZE),
+        Camera.from_pose(
+            "A", (-24.0, -2.0 + jitter[0], 9.0), 4.8 + jitter[1], 22.0, 900.0, _IMAGE_SIZE
+        ),
+        Camera.from_pose(
+            "B", (24.0, 2.0 + jitter[2], 9.0), 184.8 + jitter[3], 22.0, 900.0, _IMAGE_SIZE
+        ),
     )
     car = MovingObject(
-        1, "car", class_size("car", rng), LoopPath((0.0, 0.0), radius, speed, start_angle_deg=140.0)
+        1, "car", class_size("car", rng), LoopPath((0.0, 0.0), radius, speed, start_angle_deg=160.0)
     )
+    monument = (Structure((0.0, 0.0), (10.0, 10.0, 7.0), 45.0, "monument"),)
     return WorldSpec(
         name="roundabout",
         cameras=cameras,
         objects=(car,),
         area=(-20.0, -20.0, 20.0, 20.0),
-        duration_s=11.0 if duration_s is None else duration_s,
+        duration_s=10.6 if duration_s is None else duration_s,
         fps=10.0 if fps is None else fps,
+        structures=monument,
+        markings=roundabout_markings(radius),
+    )
+
+
+def roundabout_markings(radius: float) -> tuple[GroundMarking, ...]:
+    """Asphalt ring, kerbs and a green central island of a roundabout (for pictures only)."""
+    angles = np.linspace(0, 2 * np.pi, 97)[:-1]
+
+    def circle(r: float) -> tuple[tuple[float, float], ...]:
+        return tuple((float(r * np.cos(a)), float(r * np.sin(a))) for a in angles)
+
+    return (
+        GroundMarking(circle(radius + 2.2), (70, 72, 76)),
+        GroundMarking(circle(radius - 2.0), (215, 215, 210)),
+        GroundMarking(circle(radius - 2.4), (92, 140, 70)),
     )
 
 
