@@ -51,7 +51,9 @@ def read_opencv_matrices(path: str | Path, names: tuple[str, ...]) -> dict[str, 
     storage = None
     try:
         storage = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
-    except cv2.error:
+    except (cv2.error, SystemError):
+        # OpenCV rejects XML without its header (SystemError from the binding); the plain
+        # XML reader below still reads such files.
         storage = None
     if storage is not None and storage.isOpened():
         for name in names:
@@ -67,9 +69,11 @@ def read_opencv_matrices(path: str | Path, names: tuple[str, ...]) -> dict[str, 
                     found[name] = np.asarray(matrix, dtype=np.float64)
                 continue
             if node.isSeq():
-                found[name] = np.array(
-                    [node.at(i).real() for i in range(node.size())], dtype=np.float64
-                )
+                items = [node.at(i) for i in range(node.size())]
+                # A text item reads as DBL_MAX through real(); refuse it instead.
+                if not all(item.isReal() or item.isInt() for item in items):
+                    raise CalibrationError(f"{path}: {name} holds non-numeric values.")
+                found[name] = np.array([item.real() for item in items], dtype=np.float64)
                 continue
             if node.isString():
                 values = _parse_numbers(node.string(), path, name)
