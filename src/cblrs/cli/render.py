@@ -50,6 +50,9 @@ def register(subparsers) -> None:
         "--preview", action="store_true", help="also write <camera>_preview.png with a 1 m grid"
     )
     add_output_options(parser)
+    # Let `--plane -3,-9,12,36` through: argparse (before Python 3.13) takes any word that
+    # starts with "-" and is not a plain negative number for an option.
+    parser._negative_number_matcher = re.compile(r"^-\.?\d")
     parser.set_defaults(handler=run)
 
 
