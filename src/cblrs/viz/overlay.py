@@ -53,6 +53,7 @@ def camera_overlay(
     grid_m: float | None = 1.0,
     title: str | None = None,
     highlight_pixels: NDArray | None = None,
+    caption: str | None = None,
 ) -> UInt8Image:
     """Reference colours, boxes and target pixels of one camera frame.
 
@@ -67,6 +68,7 @@ def camera_overlay(
         title: text written in the top-left corner.
         highlight_pixels: (M, 2) pixels marked with a green ring, e.g. one world point seen
             by several cameras (the paper's green dot).
+        caption: text written in the bottom-left corner (e.g. a legend).
 
     Returns:
         (H, W, 3) uint8 RGB image.
@@ -115,6 +117,8 @@ def camera_overlay(
                 )
     if title:
         _label(image, title, (0, 0), (255, 255, 255), font_scale * 1.4, thickness, inside=True)
+    if caption:
+        _label(image, caption, (0, height), (255, 255, 255), font_scale, thickness)
     return image
 
 
@@ -206,6 +210,7 @@ def draw_boxes_3d(
     camera: Camera,
     corners: NDArray,
     identities: NDArray | None = None,
+    colours: NDArray | None = None,
 ) -> UInt8Image:
     """Draw solid, shaded 3D boxes (far ones first) on a copy of an image.
 
@@ -215,6 +220,7 @@ def draw_boxes_3d(
         corners: (N, 8, 3) box corners in world metres, as from
             :func:`cblrs.datasets.synthetic.box_corners_3d`.
         identities: (N,) ids that pick each box's colour; default: all grey.
+        colours: (N, 3) RGB colours, overriding ``identities``.
 
     Returns:
         (H, W, 3) uint8 RGB image. Boxes reaching behind the camera are skipped.
@@ -234,7 +240,10 @@ def draw_boxes_3d(
             continue
         box = corners[index]
         pixels, _ = camera.project_points(box)
-        base = np.array(id_colour(int(ids[index])), dtype=np.float64)
+        if colours is not None:
+            base = np.asarray(colours[index], dtype=np.float64)
+        else:
+            base = np.array(id_colour(int(ids[index])), dtype=np.float64)
         box_centre = box.mean(axis=0)
         for face in _FACES:
             points = box[list(face)]

@@ -50,9 +50,9 @@ def colourise_reference(reference: ReferenceImage) -> UInt8Image:
 
 def reference_world_map(reference: ReferenceImage) -> NDArray[np.float64]:
     """World position of every pixel: (H, W, 2) metres, NaN where no plane is seen."""
-    width, height = reference.image_size
-    world_xy, _, _ = reference.planes.decode(reference.pixels.reshape(-1, 3))
-    return world_xy.reshape(height, width, 2)
+    from cblrs.locate import LUTLocator
+
+    return LUTLocator.from_reference(reference).table.astype(np.float64)
 
 
 def draw_metric_grid(

@@ -7,7 +7,7 @@ a window (the Agg backend is used when no Axes is given).
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -35,9 +35,7 @@ def _figure(
 
     aspect = (area[3] - area[1]) / max(area[2] - area[0], 1e-9)
     panel_height = float(np.clip(panel_width * aspect, 2.5, 2.0 * panel_width))
-    figure = Figure(
-        figsize=(panel_width * panels + 0.4, panel_height + 1.25), layout="constrained"
-    )
+    figure = Figure(figsize=(panel_width * panels + 0.4, panel_height + 1.25), layout="constrained")
     FigureCanvasAgg(figure)
     axes = figure.subplots(1, panels, squeeze=False)[0]
     return figure, list(axes)
@@ -146,6 +144,17 @@ def _draw_cameras(
             )
 
 
+def _draw_markings(ax: Axes, markings: Sequence[Any]) -> None:
+    from matplotlib.patches import Polygon
+
+    for marking in markings:
+        colour = tuple(channel / 255 for channel in marking.colour)
+        polygon = np.asarray(marking.polygon, dtype=np.float64).reshape(-1, 2)
+        ax.add_patch(
+            Polygon(polygon, closed=True, facecolor=colour, edgecolor="none", alpha=0.35, zorder=-1)
+        )
+
+
 def _rectangle(area: tuple[float, float, float, float], colour: tuple[float, ...]):
     from matplotlib.patches import Rectangle
 
@@ -248,8 +257,12 @@ def _legend(ax: Axes, show_ground_truth: bool, show_cameras: bool) -> None:
             )
         )
     ax.legend(
-        handles=handles, loc="upper center", bbox_to_anchor=(0.5, -0.12), ncol=3,
-        fontsize=7.5, frameon=False,
+        handles=handles,
+        loc="upper center",
+        bbox_to_anchor=(0.5, -0.12),
+        ncol=3,
+        fontsize=7.5,
+        frameon=False,
     )
 
 
@@ -284,6 +297,7 @@ def plot_trajectories(
     title: str | None = None,
     cameras: Sequence[Camera] | None = None,
     area: tuple[float, float, float, float] | None = None,
+    markings: Sequence[Any] = (),
 ) -> Figure:
     """Bird's-eye view of predicted trajectories against the ground truth.
 
@@ -299,6 +313,8 @@ def plot_trajectories(
         title: figure title (single panel: the panel title).
         cameras: cameras whose positions and ground footprints to draw.
         area: (x_min, y_min, x_max, y_max) in metres; default: around all positions.
+        markings: background polygons, objects with ``polygon`` ((x, y), ... metres) and
+            ``colour`` (r, g, b), e.g. roads of a synthetic world.
 
     Returns:
         The matplotlib Figure.
@@ -328,6 +344,8 @@ def plot_trajectories(
         if len(axes) != panels:
             raise ValueError(f"{panels} panel(s) to draw but {len(axes)} Axes given")
         figure = axes[0].figure
+    for axis in axes:
+        _draw_markings(axis, markings)
     for axis, (name, tracks) in zip(axes, named.items(), strict=False):
         _panel(axis, name, tracks, ground_truth, cameras, area)
     if not single:
