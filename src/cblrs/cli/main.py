@@ -26,6 +26,7 @@ SUBCOMMANDS = [
     "locate",
     "show",
     "bench",
+    "experiment",
     "track",
     "eval",
     "camera",

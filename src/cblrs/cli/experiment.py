@@ -1,0 +1,140 @@
+"""``cblrs experiment``: the paper's experiments rerun — targeting (IV-B) and resolution.
+
+Each prints a markdown table (or ``--json``); ``--out DIR`` also writes
+``DIR/experiment_<name>.json``, ``.md`` and the figures.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+from typing import Any
+
+from cblrs.cli.common import UsageError, add_output_options, print_json
+
+
+def register(subparsers) -> None:
+    parser = subparsers.add_parser(
+        "experiment",
+        help="rerun the paper's experiments: targeting (IV-B), resolution",
+        description="Rerun the paper's experiments on the synthetic world and WILDTRACK.",
+    )
+    kinds = parser.add_subparsers(dest="experiment", metavar="EXPERIMENT")
+
+    targeting = kinds.add_parser(
+        "targeting",
+        help="AOD per camera tilt x VTP x yaw, and geometry-aware targeting",
+    )
+    targeting.add_argument(
+        "--tilts", default="10,20,30,40,50,60,70,80,90", help="camera tilts, degrees"
+    )
+    targeting.add_argument("--yaws", default="0,45,90", help="object yaws, degrees")
+    targeting.add_argument("--draws", type=int, default=4, help="noisy draws per position")
+    targeting.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    targeting.add_argument(
+        "--wildtrack",
+        type=Path,
+        default=None,
+        help="WILDTRACK folder for the annotated-box check (default: found automatically)",
+    )
+    targeting.add_argument(
+        "--no-wildtrack", action="store_true", help="skip the WILDTRACK annotated-box check"
+    )
+    targeting.add_argument("--out", type=Path, help="write JSON, markdown and heat maps here")
+    add_output_options(targeting)
+    targeting.set_defaults(handler=run, experiment="targeting")
+
+    resolution = kinds.add_parser(
+        "resolution", help="plane size x bits -> raster step, and its effect on LocA / HOTA"
+    )
+    resolution.add_argument(
+        "--sizes", default="12,30,50,100,200", help="plane sizes (metres, longer side)"
+    )
+    resolution.add_argument("--bits", default="8,16", help="bit depths")
+    resolution.add_argument(
+        "--frames", type=int, default=None, help="use only the first N frames of each scene"
+    )
+    resolution.add_argument(
+        "--scenes", default="wildtrack,plaza", help="scenes: wildtrack and/or plaza (synthetic)"
+    )
+    resolution.add_argument("--wildtrack", type=Path, default=None, help="WILDTRACK folder")
+    resolution.add_argument("--out", type=Path, help="write JSON, markdown and the plot here")
+    add_output_options(resolution)
+    resolution.set_defaults(handler=run, experiment="resolution")
+
+    def usage(args: argparse.Namespace) -> int:
+        parser.print_help()
+        return 2
+
+    parser.set_defaults(handler=usage)
+
+
+def parse_numbers(text: str, option: str) -> tuple[float, ...]:
+    """``"10,20,30"`` -> (10.0, 20.0, 30.0); a clear error otherwise."""
+    try:
+        values = tuple(float(value) for value in text.split(",") if value.strip())
+    except ValueError:
+        raise UsageError(f"{option} {text!r} must be comma-separated numbers.") from None
+    if not values:
+        raise UsageError(f"{option} needs at least one number.")
+    # Whole numbers stay integers so that they print (and key JSON tables) as "30", not "30.0".
+    return tuple(int(value) if value.is_integer() else value for value in values)
+
+
+def _write(out: Path, name: str, result: dict[str, Any], text: str) -> None:
+    out.mkdir(parents=True, exist_ok=True)
+    (out / f"experiment_{name}.json").write_text(json.dumps(result, indent=2) + "\n")
+    (out / f"experiment_{name}.md").write_text(text + "\n")
+
+
+def run_targeting_command(args: argparse.Namespace) -> tuple[dict[str, Any], str]:
+    from cblrs.bench.cameras import find_wildtrack
+    from cblrs.experiments.targeting import (
+        TargetingSetup,
+        plot_targeting,
+        run_targeting,
+        targeting_report,
+        wildtrack_targeting,
+    )
+
+    tilts = parse_numbers(args.tilts, "--tilts")
+    if not all(0 < tilt <= 90 for tilt in tilts):
+        raise UsageError(f"--tilts must lie in (0, 90] degrees, got {args.tilts!r}.")
+    if args.draws <= 0:
+        raise UsageError(f"--draws must be a positive integer, got {args.draws}.")
+    setup = TargetingSetup(
+        tilts_deg=tilts,
+        yaws_deg=parse_numbers(args.yaws, "--yaws"),
+        noise_draws=args.draws,
+        seed=args.seed,
+    )
+    result = run_targeting(setup)
+    if not args.no_wildtrack:
+        root = find_wildtrack(args.wildtrack)
+        if root is None and args.wildtrack is not None:
+            raise UsageError(f"{args.wildtrack} is not a WILDTRACK folder (no calibrations/).")
+        if root is not None:
+            result["wildtrack"] = wildtrack_targeting(root)
+    text = targeting_report(result)
+    if args.out is not None:
+        figures = plot_targeting(result, args.out)
+        result["figures"] = [str(path) for path in figures]
+        _write(args.out, "targeting", result, text)
+    return result, text
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.experiment == "targeting":
+        result, text = run_targeting_command(args)
+    elif args.experiment == "resolution":
+        from cblrs.experiments.resolution import run_resolution_command
+
+        result, text = run_resolution_command(args)
+    else:  # pragma: no cover - argparse restricts the choices
+        raise UsageError(f"unknown experiment {args.experiment!r}.")
+    if args.json:
+        print_json(result)
+    else:
+        print(text)
+    return 0

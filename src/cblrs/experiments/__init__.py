@@ -1,0 +1,1 @@
+"""Experiments of the paper, rerun on synthetic and WILDTRACK data: targeting, resolution."""
