@@ -1,0 +1,87 @@
+"""Runtime: the paper's Fig. 4 as services talking through a broker.
+
+* :mod:`cblrs.runtime.wire` — message schemas (JSON, validated with msgspec);
+* :mod:`cblrs.runtime.topics` — MQTT topic layout ``cblrs/<plane>/<camera>/...``;
+* :mod:`cblrs.runtime.transport` — in-process broker and MQTT 5 (paho) transports;
+* :mod:`cblrs.runtime.broker` — Mosquitto configuration (users, ACL, TLS) and process.
+"""
+
+from __future__ import annotations
+
+from cblrs.runtime.broker import (
+    BrokerError,
+    BrokerFiles,
+    MosquittoProcess,
+    free_port,
+    write_broker_config,
+)
+from cblrs.runtime.topics import (
+    TopicError,
+    detections_filter,
+    detections_topic,
+    matcher_status_topic,
+    parse_detections_topic,
+    status_topic,
+    tracks_topic,
+    validate_camera_id,
+)
+from cblrs.runtime.transport import (
+    Delivery,
+    InProcessBroker,
+    InProcessTransport,
+    MqttSettings,
+    MqttTransport,
+    Transport,
+    TransportError,
+    Will,
+)
+from cblrs.runtime.wire import (
+    RejectedMessage,
+    RejectReason,
+    Status,
+    TracksUpdate,
+    ValidationPolicy,
+    decode_message,
+    decode_message_with_plane,
+    decode_status,
+    decode_tracks,
+    encode_message,
+    encode_status,
+    encode_tracks,
+)
+
+__all__ = [
+    "BrokerError",
+    "BrokerFiles",
+    "Delivery",
+    "InProcessBroker",
+    "InProcessTransport",
+    "MosquittoProcess",
+    "MqttSettings",
+    "MqttTransport",
+    "RejectReason",
+    "RejectedMessage",
+    "Status",
+    "TopicError",
+    "TracksUpdate",
+    "Transport",
+    "TransportError",
+    "ValidationPolicy",
+    "Will",
+    "decode_message",
+    "decode_message_with_plane",
+    "decode_status",
+    "decode_tracks",
+    "detections_filter",
+    "detections_topic",
+    "encode_message",
+    "encode_status",
+    "encode_tracks",
+    "free_port",
+    "matcher_status_topic",
+    "parse_detections_topic",
+    "status_topic",
+    "tracks_topic",
+    "validate_camera_id",
+    "write_broker_config",
+]

@@ -1,0 +1,570 @@
+"""Mosquitto configuration for the runtime: users, ACL, TLS, persistence; and a process wrapper.
+
+:func:`write_broker_config` writes everything a broker needs into one directory::
+
+    mosquitto.conf     listener, allow_anonymous false, password_file, acl_file, persistence
+    passwords          hashed with mosquitto_passwd
+    acl                a camera publishes only its own topics and reads nothing; matchers read
+                       detections and publish tracks; the viewer reads tracks and status
+    credentials.json   the generated passwords (mode 0600) — give each client its own
+    data/              persistence (queued QoS 1 messages survive a broker restart)
+    tls/               CA, server and client certificates (with ``tls=True``)
+
+:class:`MosquittoProcess` runs ``mosquitto -c mosquitto.conf`` as a child process (tests,
+benchmarks, demos), waits until its port accepts connections and keeps its log.
+"""
+
+from __future__ import annotations
+
+import datetime
+import ipaddress
+import json
+import logging
+import os
+import secrets
+import shutil
+import socket
+import subprocess
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from cblrs.errors import CblrsError
+from cblrs.runtime.topics import ROOT, validate_client_id
+from cblrs.runtime.transport import MqttSettings
+
+logger = logging.getLogger(__name__)
+
+MOSQUITTO = "mosquitto"
+MOSQUITTO_PASSWD = "mosquitto_passwd"
+VIEWER = "viewer"
+CERTIFICATE_DAYS = 365
+"""Validity of generated certificates (CA, server, clients), days from generation."""
+
+
+class BrokerError(CblrsError):
+    """The broker could not be configured or started."""
+
+
+@dataclass(frozen=True)
+class BrokerFiles:
+    """Where :func:`write_broker_config` put things.
+
+    Attributes:
+        directory: the output folder.
+        config: ``mosquitto.conf``.
+        port: the listener port.
+        bind: the listener address.
+        tls: whether the listener speaks TLS.
+        password_file: hashed passwords (None for an anonymous broker).
+        acl_file: access control list (None for an anonymous broker).
+        credentials_file: ``credentials.json`` with the clear-text passwords, mode 0600.
+        persistence_directory: where mosquitto stores its database.
+        ca_file: CA certificate clients use to verify the broker (TLS only).
+        client_certificates: user -> (certificate, key) paths (TLS only).
+        roles: user -> "camera" | "matcher" | "viewer".
+    """
+
+    directory: Path
+    config: Path
+    port: int
+    bind: str
+    tls: bool
+    password_file: Path | None
+    acl_file: Path | None
+    credentials_file: Path | None
+    persistence_directory: Path | None
+    ca_file: Path | None = None
+    client_certificates: dict[str, tuple[Path, Path]] = field(default_factory=dict)
+    roles: dict[str, str] = field(default_factory=dict)
+
+    def credentials(self) -> dict[str, str]:
+        """user -> password, read from the 0600 credentials file."""
+        if self.credentials_file is None:
+            return {}
+        return json.loads(self.credentials_file.read_text())["passwords"]
+
+    def settings(self, user: str | None = None, host: str | None = None, **options) -> MqttSettings:
+        """Connection settings for ``user`` (None: anonymous), with its certificate under TLS.
+
+        Extra keyword arguments go to :class:`MqttSettings` (timeouts, inflight window).
+        """
+        host = host or ("127.0.0.1" if self.bind in ("0.0.0.0", "::") else self.bind)
+        password = None
+        if user is not None:
+            credentials = self.credentials()
+            if user not in credentials:
+                raise BrokerError(f"no user {user!r} in {self.credentials_file}.")
+            password = credentials[user]
+        cert_file = key_file = None
+        if self.tls and user in self.client_certificates:
+            cert_file, key_file = self.client_certificates[user]
+        return MqttSettings(
+            host=host,
+            port=self.port,
+            username=user,
+            password=password,
+            ca_file=self.ca_file if self.tls else None,
+            cert_file=cert_file,
+            key_file=key_file,
+            **options,
+        )
+
+    def to_dict(self) -> dict:
+        return {
+            "directory": str(self.directory),
+            "config": str(self.config),
+            "port": self.port,
+            "bind": self.bind,
+            "tls": self.tls,
+            "password_file": _optional(self.password_file),
+            "acl_file": _optional(self.acl_file),
+            "credentials_file": _optional(self.credentials_file),
+            "persistence_directory": _optional(self.persistence_directory),
+            "ca_file": _optional(self.ca_file),
+            "client_certificates": {
+                user: {"certificate": str(cert), "key": str(key)}
+                for user, (cert, key) in self.client_certificates.items()
+            },
+            "roles": dict(self.roles),
+        }
+
+
+def _optional(path: Path | None) -> str | None:
+    return None if path is None else str(path)
+
+
+def write_broker_config(
+    directory: str | os.PathLike,
+    cameras: Sequence[str],
+    matchers: Sequence[str],
+    *,
+    port: int,
+    plane_ids: Sequence[int] = (1,),
+    tls: bool = False,
+    persistence: bool = True,
+    bind: str = "127.0.0.1",
+    viewer: bool = True,
+    allow_anonymous: bool = False,
+    passwords: dict[str, str] | None = None,
+) -> BrokerFiles:
+    """Write a Mosquitto configuration for a set of cameras and matchers.
+
+    Args:
+        directory: output folder (created; existing files of the same names are replaced).
+        cameras: camera ids; each becomes a user that may publish only
+            ``cblrs/+/<camera>/detections`` and ``cblrs/+/<camera>/status``.
+        matchers: matcher ids; each may read detections and status of the planes
+            ``plane_ids`` and publish their tracks and its own matcher status.
+        port: listener port.
+        plane_ids: planes the matchers serve.
+        tls: make the listener TLS-only with generated certificates; clients must present a
+            certificate signed by the generated CA as well as their password.
+        persistence: keep queued QoS 1 messages and sessions across broker restarts.
+        bind: listener address (use ``0.0.0.0`` to accept other machines).
+        viewer: add a read-only ``viewer`` user for tracks and status.
+        allow_anonymous: no users, no ACL (local experiments and benchmarks only).
+        passwords: fixed passwords for some users (default: random, from ``secrets``).
+
+    Returns:
+        The paths written.
+
+    Raises:
+        BrokerError: invalid names, or ``mosquitto_passwd`` missing or failing.
+    """
+    directory = Path(directory).resolve()
+    directory.mkdir(parents=True, exist_ok=True)
+    for name in cameras:
+        validate_client_id(name, "camera id")
+    for name in matchers:
+        validate_client_id(name, "matcher id")
+    users = list(cameras) + list(matchers) + ([VIEWER] if viewer else [])
+    if len(set(users)) != len(users):
+        raise BrokerError(f"camera, matcher and viewer names must be distinct, got {users}.")
+    if not allow_anonymous and not users:
+        raise BrokerError("give at least one camera or matcher (or allow anonymous access).")
+    planes = [int(plane) for plane in plane_ids]
+    if not planes or any(not 1 <= plane <= 65535 for plane in planes):
+        raise BrokerError(f"plane ids must be 1..65535, got {list(plane_ids)}.")
+    if not 0 < port < 65536:
+        raise BrokerError(f"port must be 1..65535, got {port}.")
+    roles = {name: "camera" for name in cameras}
+    roles.update({name: "matcher" for name in matchers})
+    if viewer:
+        roles[VIEWER] = "viewer"
+
+    lines = [
+        "# Written by cblrs broker-config. Start with:",
+        f"#   mosquitto -c {directory / 'mosquitto.conf'}",
+        "per_listener_settings false",
+        f"allow_anonymous {'true' if allow_anonymous else 'false'}",
+        "log_dest stderr",
+        "log_type error",
+        "log_type warning",
+        "log_type notice",
+        "log_type information",
+        "connection_messages true",
+        "max_queued_messages 100000",
+        "max_inflight_messages 100",
+    ]
+    if os.geteuid() == 0:
+        # As root mosquitto drops to the "mosquitto" user, which could not read these files.
+        lines.append("user root")
+    password_file = acl_file = credentials_file = None
+    if not allow_anonymous:
+        password_file = directory / "passwords"
+        acl_file = directory / "acl"
+        credentials_file = directory / "credentials.json"
+        chosen = dict(passwords or {})
+        credentials = {user: chosen.get(user) or secrets.token_urlsafe(18) for user in users}
+        _write_passwords(password_file, credentials)
+        _write_private(
+            credentials_file,
+            json.dumps({"passwords": credentials, "roles": roles}, indent=2) + "\n",
+        )
+        acl_file.write_text(_acl(cameras, matchers, planes, viewer))
+        lines += [f"password_file {password_file}", f"acl_file {acl_file}"]
+    persistence_directory = None
+    if persistence:
+        persistence_directory = directory / "data"
+        persistence_directory.mkdir(exist_ok=True)
+        lines += [
+            "persistence true",
+            f"persistence_location {persistence_directory}/",
+            "autosave_interval 60",
+        ]
+    else:
+        lines.append("persistence false")
+    lines.append("")
+    lines.append(f"listener {port} {bind}")
+    lines.append("protocol mqtt")
+    ca_file = None
+    client_certificates: dict[str, tuple[Path, Path]] = {}
+    if tls:
+        tls_directory = directory / "tls"
+        ca_file, server_cert, server_key, client_certificates = _write_certificates(
+            tls_directory, users, bind
+        )
+        lines += [
+            f"cafile {ca_file}",
+            f"certfile {server_cert}",
+            f"keyfile {server_key}",
+            "require_certificate true",
+            "use_identity_as_username false",
+            "tls_version tlsv1.2",
+        ]
+    config = directory / "mosquitto.conf"
+    config.write_text("\n".join(lines) + "\n")
+    return BrokerFiles(
+        directory=directory,
+        config=config,
+        port=port,
+        bind=bind,
+        tls=tls,
+        password_file=password_file,
+        acl_file=acl_file,
+        credentials_file=credentials_file,
+        persistence_directory=persistence_directory,
+        ca_file=ca_file,
+        client_certificates=client_certificates,
+        roles=roles,
+    )
+
+
+def _acl(cameras: Sequence[str], matchers: Sequence[str], planes: list[int], viewer: bool) -> str:
+    """Mosquitto ACL: default deny; each user gets only the topics of its role."""
+    lines = ["# Written by cblrs broker-config; anything not granted here is denied.", ""]
+    for camera in cameras:
+        lines += [
+            f"user {camera}",
+            f"topic write {ROOT}/+/{camera}/detections",
+            f"topic write {ROOT}/+/{camera}/status",
+            "",
+        ]
+    for matcher in matchers:
+        lines.append(f"user {matcher}")
+        for plane in planes:
+            lines += [
+                f"topic read {ROOT}/{plane}/+/detections",
+                f"topic read {ROOT}/{plane}/+/status",
+                f"topic write {ROOT}/{plane}/tracks",
+                f"topic write {ROOT}/{plane}/matchers/{matcher}/status",
+            ]
+        lines.append("")
+    if viewer:
+        lines += [
+            f"user {VIEWER}",
+            f"topic read {ROOT}/+/tracks",
+            f"topic read {ROOT}/+/+/status",
+            f"topic read {ROOT}/+/matchers/+/status",
+            "",
+        ]
+    return "\n".join(lines)
+
+
+def _write_private(path: Path, text: str) -> None:
+    descriptor = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    with os.fdopen(descriptor, "w") as handle:
+        handle.write(text)
+    os.chmod(path, 0o600)
+
+
+def _write_passwords(path: Path, credentials: dict[str, str]) -> None:
+    tool = shutil.which(MOSQUITTO_PASSWD) or (
+        "/usr/bin/mosquitto_passwd" if Path("/usr/bin/mosquitto_passwd").exists() else None
+    )
+    if tool is None:
+        raise BrokerError(
+            "mosquitto_passwd not found; install mosquitto (e.g. apt install mosquitto)."
+        )
+    _write_private(path, "")
+    for user, password in credentials.items():
+        # The password is visible to local `ps` for the few milliseconds the tool runs.
+        result = subprocess.run(
+            [tool, "-b", str(path), user, password], capture_output=True, text=True, timeout=30
+        )
+        if result.returncode != 0:
+            raise BrokerError(
+                f"mosquitto_passwd failed for {user!r}: {result.stderr.strip() or result.stdout}."
+            )
+    os.chmod(path, 0o600)
+
+
+def _write_certificates(
+    directory: Path, users: Sequence[str], bind: str
+) -> tuple[Path, Path, Path, dict[str, tuple[Path, Path]]]:
+    """A CA, a server certificate (SAN localhost, 127.0.0.1, the bind address) and one client
+    certificate per user (CN = user), ECDSA P-256, valid :data:`CERTIFICATE_DAYS` days."""
+    try:
+        from cryptography import x509
+        from cryptography.hazmat.primitives import hashes, serialization
+        from cryptography.hazmat.primitives.asymmetric import ec
+        from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
+    except ImportError as error:
+        raise BrokerError(
+            "TLS certificates need the cryptography package: pip install cryptography."
+        ) from error
+    directory.mkdir(parents=True, exist_ok=True)
+    now = datetime.datetime.now(datetime.UTC) - datetime.timedelta(minutes=5)
+    until = now + datetime.timedelta(days=CERTIFICATE_DAYS)
+
+    def name(common_name: str) -> x509.Name:
+        return x509.Name(
+            [
+                x509.NameAttribute(NameOID.ORGANIZATION_NAME, "cblrs"),
+                x509.NameAttribute(NameOID.COMMON_NAME, common_name),
+            ]
+        )
+
+    def save(stem: str, certificate, key) -> tuple[Path, Path]:
+        cert_path = directory / f"{stem}.crt"
+        key_path = directory / f"{stem}.key"
+        cert_path.write_bytes(certificate.public_bytes(serialization.Encoding.PEM))
+        _write_private(
+            key_path,
+            key.private_bytes(
+                serialization.Encoding.PEM,
+                serialization.PrivateFormat.PKCS8,
+                serialization.NoEncryption(),
+            ).decode(),
+        )
+        return cert_path, key_path
+
+    ca_key = ec.generate_private_key(ec.SECP256R1())
+    ca_name = name("cblrs broker CA")
+    ca_certificate = (
+        x509.CertificateBuilder()
+        .subject_name(ca_name)
+        .issuer_name(ca_name)
+        .public_key(ca_key.public_key())
+        .serial_number(x509.random_serial_number())
+        .not_valid_before(now)
+        .not_valid_after(until)
+        .add_extension(x509.BasicConstraints(ca=True, path_length=0), critical=True)
+        .add_extension(
+            x509.KeyUsage(
+                digital_signature=True, content_commitment=False, key_encipherment=False,
+                data_encipherment=False, key_agreement=False, key_cert_sign=True,
+                crl_sign=True, encipher_only=False, decipher_only=False,
+            ),
+            critical=True,
+        )
+        .sign(ca_key, hashes.SHA256())
+    )
+    ca_file, _ = save("ca", ca_certificate, ca_key)
+
+    def issue(common_name: str, server: bool):
+        key = ec.generate_private_key(ec.SECP256R1())
+        builder = (
+            x509.CertificateBuilder()
+            .subject_name(name(common_name))
+            .issuer_name(ca_name)
+            .public_key(key.public_key())
+            .serial_number(x509.random_serial_number())
+            .not_valid_before(now)
+            .not_valid_after(until)
+            .add_extension(x509.BasicConstraints(ca=False, path_length=None), critical=True)
+            .add_extension(
+                x509.ExtendedKeyUsage(
+                    [ExtendedKeyUsageOID.SERVER_AUTH if server else ExtendedKeyUsageOID.CLIENT_AUTH]
+                ),
+                critical=False,
+            )
+        )
+        if server:
+            alternative: list[x509.GeneralName] = [
+                x509.DNSName("localhost"),
+                x509.IPAddress(ipaddress.ip_address("127.0.0.1")),
+            ]
+            try:
+                address = ipaddress.ip_address(bind)
+                if str(address) not in ("127.0.0.1", "0.0.0.0", "::"):
+                    alternative.append(x509.IPAddress(address))
+            except ValueError:
+                alternative.append(x509.DNSName(bind))
+            builder = builder.add_extension(
+                x509.SubjectAlternativeName(alternative), critical=False
+            )
+        return builder.sign(ca_key, hashes.SHA256()), key
+
+    server_cert, server_key = save("server", *issue("localhost", server=True))
+    clients = {user: save(f"client-{user}", *issue(user, server=False)) for user in users}
+    return ca_file, server_cert, server_key, clients
+
+
+# --------------------------------------------------------------------------- process
+
+
+def free_port(host: str = "127.0.0.1") -> int:
+    """A TCP port on ``host`` that was free a moment ago (bind to port 0, read, release)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as probe:
+        probe.bind((host, 0))
+        return probe.getsockname()[1]
+
+
+def find_mosquitto() -> str | None:
+    """Path of the mosquitto binary, or None."""
+    found = shutil.which(MOSQUITTO)
+    if found:
+        return found
+    return "/usr/sbin/mosquitto" if Path("/usr/sbin/mosquitto").exists() else None
+
+
+class MosquittoProcess:
+    """``mosquitto -c CONFIG`` as a child process.
+
+    Args:
+        config_path: the configuration (e.g. from :func:`write_broker_config`).
+        port: the port it listens on (to wait for).
+        host: address to probe.
+        startup_timeout_s: how long ``start()`` waits for the port.
+        log_path: where its output goes (default: ``mosquitto.log`` beside the config).
+
+    Use as a context manager; ``stop()`` sends SIGTERM so a persistent broker saves its
+    database, ``restart()`` stops and starts it again on the same port.
+    """
+
+    def __init__(
+        self,
+        config_path: str | os.PathLike,
+        port: int,
+        *,
+        host: str = "127.0.0.1",
+        startup_timeout_s: float = 10.0,
+        log_path: str | os.PathLike | None = None,
+    ):
+        self.config_path = Path(config_path)
+        self.port = port
+        self.host = host
+        self.startup_timeout_s = startup_timeout_s
+        self.log_path = Path(log_path) if log_path else self.config_path.with_name("mosquitto.log")
+        self._process: subprocess.Popen | None = None
+
+    @classmethod
+    def from_files(cls, files: BrokerFiles, **options) -> MosquittoProcess:
+        host = "127.0.0.1" if files.bind in ("0.0.0.0", "::") else files.bind
+        return cls(files.config, files.port, host=host, **options)
+
+    @property
+    def running(self) -> bool:
+        return self._process is not None and self._process.poll() is None
+
+    @property
+    def pid(self) -> int | None:
+        return None if self._process is None else self._process.pid
+
+    def start(self) -> MosquittoProcess:
+        """Start the broker and wait until its port accepts connections.
+
+        Raises:
+            BrokerError: no mosquitto binary, it exited, or the port stayed closed; the message
+                ends with the last lines of its log.
+        """
+        if self.running:
+            return self
+        binary = find_mosquitto()
+        if binary is None:
+            raise BrokerError("mosquitto not found; install it (e.g. apt install mosquitto).")
+        with self.log_path.open("ab") as log:
+            self._process = subprocess.Popen(
+                [binary, "-c", str(self.config_path)],
+                stdout=log,
+                stderr=subprocess.STDOUT,
+                stdin=subprocess.DEVNULL,
+            )
+        deadline = time.monotonic() + self.startup_timeout_s
+        while time.monotonic() < deadline:
+            if self._process.poll() is not None:
+                raise BrokerError(
+                    f"mosquitto exited with code {self._process.returncode}: {self.log_tail()}"
+                )
+            try:
+                with socket.create_connection((self.host, self.port), timeout=0.2):
+                    return self
+            except OSError:
+                time.sleep(0.02)
+        self.stop()
+        raise BrokerError(
+            f"mosquitto did not open {self.host}:{self.port} within "
+            f"{self.startup_timeout_s:g} s: {self.log_tail()}"
+        )
+
+    def stop(self, timeout_s: float = 5.0) -> None:
+        """SIGTERM (mosquitto saves its persistence database), SIGKILL if it hangs."""
+        process = self._process
+        if process is None:
+            return
+        if process.poll() is None:
+            process.terminate()
+            try:
+                process.wait(timeout_s)
+            except subprocess.TimeoutExpired:
+                process.kill()
+                process.wait(timeout_s)
+        self._process = None
+
+    def kill(self) -> None:
+        """SIGKILL: a crash, without saving the persistence database."""
+        process = self._process
+        if process is not None and process.poll() is None:
+            process.kill()
+            process.wait(5)
+        self._process = None
+
+    def restart(self) -> None:
+        self.stop()
+        self.start()
+
+    def log_tail(self, lines: int = 15) -> str:
+        try:
+            text = self.log_path.read_text(errors="replace")
+        except OSError:
+            return "(no log)"
+        return " | ".join(text.strip().splitlines()[-lines:]) or "(empty log)"
+
+    def __enter__(self) -> MosquittoProcess:
+        return self.start()
+
+    def __exit__(self, *exc_info) -> None:
+        self.stop()

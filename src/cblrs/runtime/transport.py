@@ -1,0 +1,860 @@
+"""Publish/subscribe transports: an embedded in-process broker and MQTT 5 (paho-mqtt).
+
+Both implement :class:`Transport` with the same behaviour, so services and tests run on either:
+
+* topics with ``+``/``#`` wildcard filters, retained messages, a last will;
+* QoS 1 with *manual* acknowledgement: a delivery is acknowledged only when the handler
+  calls ``delivery.ack()`` (a service acks after storing durably, which makes the chain
+  at-least-once end to end); un-acknowledged messages are delivered again, flagged
+  ``duplicate``, when a persistent session reconnects;
+* persistent sessions: QoS 1 messages for a disconnected subscriber wait for it;
+* publishes made while the broker is away are queued in memory and sent on reconnection.
+
+Handlers run on the transport's own thread (paho's network thread, or one dispatcher thread
+per in-process client), one delivery at a time, in arrival order. A handler must not block
+for long; it may call ``publish`` and ``ack`` but should not call ``subscribe``.
+
+Example:
+    >>> broker = InProcessBroker()
+    >>> camera, matcher = InProcessTransport(broker, "cam"), InProcessTransport(broker, "m")
+    >>> camera.connect(); matcher.connect()
+    >>> seen = []
+    >>> matcher.subscribe("cblrs/1/+/detections", lambda d: (seen.append(d.payload), d.ack()))
+    >>> camera.publish("cblrs/1/cam/detections", b"{}")
+    >>> matcher.flush(1.0) and camera.close() is None
+    True
+"""
+
+from __future__ import annotations
+
+import itertools
+import logging
+import queue
+import ssl
+import threading
+import time
+import zlib
+from collections import OrderedDict, deque
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Protocol, runtime_checkable
+
+from cblrs.errors import CblrsError
+from cblrs.runtime.topics import topic_matches, validate_filter, validate_topic
+
+logger = logging.getLogger(__name__)
+
+
+class TransportError(CblrsError):
+    """Connecting, subscribing or publishing failed (refused, unreachable, not authorised)."""
+
+
+@dataclass(frozen=True)
+class Delivery:
+    """One received message.
+
+    Attributes:
+        topic: the topic it was published on.
+        payload: the bytes.
+        ack: acknowledge it (idempotent); until then the broker may deliver it again.
+        duplicate: True when this is a redelivery of a message not acknowledged before.
+        retain: True when it comes from the broker's retained store.
+        qos: the delivery's QoS (0 or 1).
+    """
+
+    topic: str
+    payload: bytes
+    ack: Callable[[], None]
+    duplicate: bool = False
+    retain: bool = False
+    qos: int = 1
+
+
+@dataclass(frozen=True)
+class Will:
+    """Last will: published by the broker when a client disappears without a clean close.
+
+    Transports also publish it themselves on a clean ``close()``, so a retained status topic
+    always ends "offline".
+    """
+
+    topic: str
+    payload: bytes
+    qos: int = 1
+    retain: bool = True
+
+
+Handler = Callable[[Delivery], None]
+
+
+@runtime_checkable
+class Transport(Protocol):
+    """The interface services use; see the module docstring for the guarantees."""
+
+    client_id: str
+
+    def connect(self) -> None:
+        """Connect (resuming the persistent session of ``client_id`` if there is one)."""
+
+    def publish(self, topic: str, payload: bytes, qos: int = 1, retain: bool = False) -> None:
+        """Publish; queued in memory while disconnected."""
+
+    def subscribe(self, topic_filter: str, handler: Handler, qos: int = 1) -> None:
+        """Call ``handler`` for each message matching ``topic_filter``."""
+
+    def flush(self, timeout: float) -> bool:
+        """Wait until every publish so far is acknowledged; False on timeout."""
+
+    def close(self, unclean: bool = False, timeout: float = 5.0) -> None:
+        """Flush (up to ``timeout``), publish the will, disconnect.
+
+        With ``unclean=True`` nothing is flushed and the broker publishes the will, as
+        after a crash.
+        """
+
+
+class _AckCounter:
+    """Acknowledge once, after every handler a delivery went to has acknowledged it."""
+
+    def __init__(self, count: int, send: Callable[[], None]):
+        self._remaining = count
+        self._send = send
+        self._lock = threading.Lock()
+
+    def part(self) -> Callable[[], None]:
+        done = threading.Event()
+
+        def ack() -> None:
+            if done.is_set():
+                return
+            done.set()
+            with self._lock:
+                self._remaining -= 1
+                fire = self._remaining == 0
+            if fire:
+                self._send()
+
+        return ack
+
+
+@dataclass(frozen=True)
+class _Incoming:
+    """A message as a transport receives it, before it is handed to handlers.
+
+    ``filters`` names the subscriptions it was delivered for (None: any that matches).
+    """
+
+    topic: str
+    payload: bytes
+    duplicate: bool
+    retain: bool
+    qos: int
+    send_ack: Callable[[], None]
+    filters: tuple[str, ...] | None = None
+
+
+class _HandlerTable:
+    """Handlers by filter, plus deliveries that arrived before a matching handler existed.
+
+    A broker delivers one copy of a message per matching subscription (Mosquitto does); each
+    copy goes to the handlers of its own filter only, so a handler sees a message once.
+    """
+
+    def __init__(self) -> None:
+        self._handlers: dict[str, list[Handler]] = {}
+        self._orphans: list[_Incoming] = []
+        self._lock = threading.Lock()
+
+    def add(self, topic_filter: str, handler: Handler) -> list[_Incoming]:
+        """Register ``handler``; return the waiting deliveries it should now receive."""
+        with self._lock:
+            self._handlers.setdefault(topic_filter, []).append(handler)
+            adopted = [item for item in self._orphans if self._wants(topic_filter, item)]
+            self._orphans = [item for item in self._orphans if item not in adopted]
+        return adopted
+
+    @staticmethod
+    def _wants(topic_filter: str, item: _Incoming) -> bool:
+        if item.filters is not None:
+            return topic_filter in item.filters
+        return topic_matches(topic_filter, item.topic)
+
+    def filters(self) -> list[str]:
+        with self._lock:
+            return list(self._handlers)
+
+    def dispatch(self, item: _Incoming) -> None:
+        with self._lock:
+            handlers = [
+                handler
+                for topic_filter, registered in self._handlers.items()
+                if self._wants(topic_filter, item) and topic_matches(topic_filter, item.topic)
+                for handler in registered
+            ]
+            if not handlers:
+                self._orphans.append(item)
+                return
+        counter = _AckCounter(len(handlers), item.send_ack)
+        for handler in handlers:
+            delivery = Delivery(
+                item.topic, item.payload, counter.part(), item.duplicate, item.retain, item.qos
+            )
+            try:
+                handler(delivery)
+            except Exception:
+                logger.exception("handler for %s failed; message left unacknowledged", item.topic)
+
+
+# --------------------------------------------------------------------------- in-process
+
+
+@dataclass
+class _Stored:
+    message_id: int
+    topic: str
+    payload: bytes
+    qos: int
+    retain: bool = False
+    topic_filter: str | None = None
+
+
+@dataclass
+class _Session:
+    client_id: str
+    persistent: bool
+    subscriptions: dict[str, int] = field(default_factory=dict)
+    pending: deque[_Stored] = field(default_factory=deque)
+    inflight: OrderedDict[int, _Stored] = field(default_factory=OrderedDict)
+    transport: InProcessTransport | None = None
+    will: Will | None = None
+
+
+class InProcessBroker:
+    """A thread-safe broker inside the process: the embedded default (no server needed).
+
+    It keeps sessions (subscriptions, un-acknowledged and queued QoS 1 messages) of
+    persistent clients across disconnections and retained messages per topic.
+    """
+
+    def __init__(self) -> None:
+        self._lock = threading.RLock()
+        self._sessions: dict[str, _Session] = {}
+        self._retained: dict[str, bytes] = {}
+        self._ids = itertools.count(1)
+
+    def session_count(self) -> int:
+        """Number of sessions held (connected or not)."""
+        with self._lock:
+            return len(self._sessions)
+
+    def queued(self, client_id: str) -> int:
+        """Messages waiting for ``client_id`` (queued plus un-acknowledged)."""
+        with self._lock:
+            session = self._sessions.get(client_id)
+            return 0 if session is None else len(session.pending) + len(session.inflight)
+
+    # Called by InProcessTransport ------------------------------------------------------
+
+    def _attach(self, transport: InProcessTransport) -> bool:
+        with self._lock:
+            session = self._sessions.get(transport.client_id)
+            present = session is not None and transport.persistent and session.persistent
+            if session is not None and session.transport is not None:
+                session.transport._taken_over()  # MQTT session takeover: old client goes away
+            if not present:
+                session = _Session(transport.client_id, transport.persistent)
+                self._sessions[transport.client_id] = session
+            assert session is not None
+            session.transport = transport
+            session.will = transport.will
+            for stored in session.inflight.values():
+                transport._enqueue(stored, duplicate=True)
+            while session.pending:
+                stored = session.pending.popleft()
+                session.inflight[stored.message_id] = stored
+                transport._enqueue(stored, duplicate=False)
+            return present
+
+    def _detach(self, transport: InProcessTransport, publish_will: bool) -> None:
+        with self._lock:
+            session = self._sessions.get(transport.client_id)
+            if session is None or session.transport is not transport:
+                return
+            session.transport = None
+            will = session.will
+            if not session.persistent:
+                del self._sessions[transport.client_id]
+            else:
+                # Un-acknowledged QoS 1 messages stay in flight, to be redelivered.
+                pass
+            if publish_will and will is not None:
+                self._publish(will.topic, will.payload, will.qos, will.retain)
+
+    def _subscribe(self, transport: InProcessTransport, topic_filter: str, qos: int) -> None:
+        with self._lock:
+            session = self._sessions[transport.client_id]
+            session.subscriptions[topic_filter] = qos
+            for topic, payload in self._retained.items():
+                if topic_matches(topic_filter, topic):
+                    stored = _Stored(
+                        next(self._ids), topic, payload, qos, retain=True, topic_filter=topic_filter
+                    )
+                    if qos > 0:
+                        session.inflight[stored.message_id] = stored
+                    transport._enqueue(stored, duplicate=False)
+
+    def _publish(self, topic: str, payload: bytes, qos: int, retain: bool) -> None:
+        with self._lock:
+            if retain:
+                if payload:
+                    self._retained[topic] = payload
+                else:
+                    self._retained.pop(topic, None)
+            for session in self._sessions.values():
+                # One copy per matching subscription, as Mosquitto does.
+                for topic_filter, granted_qos in session.subscriptions.items():
+                    if not topic_matches(topic_filter, topic):
+                        continue
+                    delivered_qos = min(qos, granted_qos)
+                    stored = _Stored(
+                        next(self._ids), topic, payload, delivered_qos, topic_filter=topic_filter
+                    )
+                    if session.transport is not None:
+                        if delivered_qos > 0:
+                            session.inflight[stored.message_id] = stored
+                        session.transport._enqueue(stored, duplicate=False)
+                    elif delivered_qos > 0 and session.persistent:
+                        session.pending.append(stored)
+
+    def _ack(self, client_id: str, message_id: int) -> None:
+        with self._lock:
+            session = self._sessions.get(client_id)
+            if session is not None:
+                session.inflight.pop(message_id, None)
+
+
+_STOP = object()
+
+
+class InProcessTransport:
+    """A client of an :class:`InProcessBroker`.
+
+    Args:
+        broker: the broker shared by all clients of the process.
+        client_id: session id; a persistent session is resumed by a new transport with the
+            same id.
+        persistent: keep the session (subscriptions, queued QoS 1 messages) after close.
+        will: published on close (by the broker when ``unclean``).
+    """
+
+    def __init__(
+        self,
+        broker: InProcessBroker,
+        client_id: str,
+        *,
+        persistent: bool = True,
+        will: Will | None = None,
+    ):
+        self.broker = broker
+        self.client_id = client_id
+        self.persistent = persistent
+        self.will = will
+        self._handlers = _HandlerTable()
+        self._subscribed: set[str] = set()
+        self._qos: dict[str, int] = {}
+        self._queue: queue.Queue = queue.Queue()
+        self._thread: threading.Thread | None = None
+        self._connected = False
+
+    def connect(self) -> None:
+        if self._connected:
+            return
+        self._thread = threading.Thread(
+            target=self._run, name=f"cblrs-inprocess-{self.client_id}", daemon=True
+        )
+        self._thread.start()
+        self._connected = True
+        present = self.broker._attach(self)
+        if not present:
+            self._subscribed.clear()
+        for topic_filter in self._handlers.filters():
+            if topic_filter not in self._subscribed:
+                self.broker._subscribe(self, topic_filter, self._qos[topic_filter])
+                self._subscribed.add(topic_filter)
+
+    def publish(self, topic: str, payload: bytes, qos: int = 1, retain: bool = False) -> None:
+        validate_topic(topic)
+        if qos not in (0, 1):
+            raise TransportError(f"QoS must be 0 or 1, got {qos}.")
+        if not self._connected:
+            raise TransportError(f"{self.client_id}: publish before connect().")
+        self.broker._publish(topic, bytes(payload), qos, retain)
+
+    def subscribe(self, topic_filter: str, handler: Handler, qos: int = 1) -> None:
+        validate_filter(topic_filter)
+        if qos not in (0, 1):
+            raise TransportError(f"QoS must be 0 or 1, got {qos}.")
+        self._qos[topic_filter] = max(qos, self._qos.get(topic_filter, 0))
+        adopted = self._handlers.add(topic_filter, handler)
+        for item in adopted:
+            self._queue.put(("orphan", item))
+        if self._connected and topic_filter not in self._subscribed:
+            self.broker._subscribe(self, topic_filter, self._qos[topic_filter])
+            self._subscribed.add(topic_filter)
+
+    def flush(self, timeout: float) -> bool:
+        # Publishing hands the message to the broker synchronously: nothing is ever pending.
+        return True
+
+    def close(self, unclean: bool = False, timeout: float = 5.0) -> None:
+        if not self._connected:
+            return
+        self._connected = False
+        self.broker._detach(self, publish_will=True)
+        self._queue.put(_STOP)
+        if self._thread is not None and self._thread is not threading.current_thread():
+            self._thread.join(timeout)
+
+    # Called by the broker --------------------------------------------------------------
+
+    def _enqueue(self, stored: _Stored, duplicate: bool) -> None:
+        self._queue.put(("message", stored, duplicate))
+
+    def _taken_over(self) -> None:
+        self._connected = False
+        self._queue.put(_STOP)
+
+    def _run(self) -> None:
+        while True:
+            item = self._queue.get()
+            if item is _STOP:
+                return
+            if item[0] == "orphan":
+                self._handlers.dispatch(item[1])
+                continue
+            _, stored, duplicate = item
+
+            def send_ack(message_id: int = stored.message_id) -> None:
+                self.broker._ack(self.client_id, message_id)
+
+            self._handlers.dispatch(
+                _Incoming(
+                    stored.topic,
+                    stored.payload,
+                    duplicate,
+                    stored.retain,
+                    stored.qos,
+                    send_ack if stored.qos > 0 else _no_ack,
+                    None if stored.topic_filter is None else (stored.topic_filter,),
+                )
+            )
+
+
+def _no_ack() -> None:
+    pass
+
+
+# --------------------------------------------------------------------------- MQTT
+
+
+@dataclass(frozen=True)
+class MqttSettings:
+    """How to reach and log into a broker.
+
+    Attributes:
+        host: broker address.
+        port: broker port (1883 plain, 8883 usual for TLS).
+        username: user name (None: anonymous).
+        password: password; pass it from the environment or a 0600 file, never the repo.
+        ca_file: CA certificate that signed the broker's certificate; enables TLS.
+        cert_file: client certificate (PEM), when the broker requires one.
+        key_file: the client certificate's private key (PEM).
+        keepalive_s: MQTT keepalive, seconds.
+        session_expiry_s: how long the broker keeps a disconnected persistent session.
+        reconnect_min_s: first reconnection delay; doubles up to ``reconnect_max_s``.
+        reconnect_max_s: longest reconnection delay.
+        connect_timeout_s: how long ``connect()`` waits for the broker's answer.
+        max_inflight: QoS 1 publishes sent but not yet acknowledged, at most.
+    """
+
+    host: str = "127.0.0.1"
+    port: int = 1883
+    username: str | None = None
+    password: str | None = field(default=None, repr=False)
+    ca_file: Path | None = None
+    cert_file: Path | None = None
+    key_file: Path | None = None
+    keepalive_s: int = 30
+    session_expiry_s: int = 24 * 3600
+    reconnect_min_s: float = 0.1
+    reconnect_max_s: float = 5.0
+    connect_timeout_s: float = 5.0
+    max_inflight: int = 100
+
+    @property
+    def tls(self) -> bool:
+        return self.ca_file is not None
+
+
+class MqttTransport:
+    """A client of an MQTT 5 broker (paho-mqtt >= 2.1), with the :class:`Transport` behaviour.
+
+    Args:
+        client_id: MQTT client id; a persistent session is resumed by a new transport with
+            the same id.
+        settings: broker address, credentials, TLS files, timeouts.
+        persistent: ``clean_start=False`` with a session expiry, so the broker keeps QoS 1
+            messages for this client while it is away.
+        will: last will (e.g. retained "offline" on the client's status topic).
+
+    Publishes made while disconnected are kept in memory (unbounded queue) and sent when the
+    connection returns; they are lost if the process exits first (use ``flush``).
+    """
+
+    def __init__(
+        self,
+        client_id: str,
+        settings: MqttSettings | None = None,
+        *,
+        persistent: bool = True,
+        will: Will | None = None,
+    ):
+        self.client_id = client_id
+        self.settings = settings or MqttSettings()
+        self.persistent = persistent
+        self.will = will
+        self.refused_publishes = 0
+        """QoS 1 publishes the broker acknowledged with a failure code (e.g. not authorised)."""
+        self._handlers = _HandlerTable()
+        self._qos: dict[str, int] = {}
+        self._subscribed: set[str] = set()
+        self._client = None
+        self._connected = threading.Event()
+        self._disconnected = threading.Event()
+        self._answered = threading.Event()
+        self._refusal: str | None = None
+        self._condition = threading.Condition()
+        self._unacknowledged: set[int] = set()
+        self._early: set[int] = set()
+        self._suback: dict[int, list] = {}
+        self._background_subscribes: set[int] = set()
+        self._filter_ids: dict[int, str] = {}
+
+    # Public API ------------------------------------------------------------------------
+
+    @property
+    def connected(self) -> bool:
+        return self._connected.is_set()
+
+    def connect(self, wait: bool = True) -> None:
+        """Start the network thread and connect.
+
+        Args:
+            wait: wait for the broker's answer (up to ``settings.connect_timeout_s``) and raise
+                if it refuses or does not answer; with False, return at once and keep trying
+                in the background (publishes are queued meanwhile).
+
+        Raises:
+            TransportError: refused (bad credentials, not authorised) or no answer in time.
+        """
+        if self._client is not None:
+            return
+        import paho.mqtt.client as mqtt
+        from paho.mqtt.enums import CallbackAPIVersion
+        from paho.mqtt.packettypes import PacketTypes
+        from paho.mqtt.properties import Properties
+
+        settings = self.settings
+        client = mqtt.Client(
+            callback_api_version=CallbackAPIVersion.VERSION2,
+            client_id=self.client_id,
+            protocol=mqtt.MQTTv5,
+        )
+        client.enable_logger(logging.getLogger("cblrs.runtime.paho"))
+        client.manual_ack_set(True)
+        client.max_queued_messages_set(0)  # unbounded: nothing is dropped while away
+        client.max_inflight_messages_set(settings.max_inflight)
+        client.reconnect_delay_set(settings.reconnect_min_s, settings.reconnect_max_s)  # type: ignore[arg-type]
+        if settings.username is not None:
+            client.username_pw_set(settings.username, settings.password)
+        if settings.ca_file is not None:
+            client.tls_set(
+                ca_certs=str(settings.ca_file),
+                certfile=str(settings.cert_file) if settings.cert_file else None,
+                keyfile=str(settings.key_file) if settings.key_file else None,
+                cert_reqs=ssl.CERT_REQUIRED,
+                tls_version=ssl.PROTOCOL_TLS_CLIENT,
+            )
+        if self.will is not None:
+            client.will_set(self.will.topic, self.will.payload, self.will.qos, self.will.retain)
+        client.on_connect = self._on_connect
+        client.on_disconnect = self._on_disconnect
+        client.on_message = self._on_message
+        client.on_publish = self._on_publish
+        client.on_subscribe = self._on_subscribe
+        properties = Properties(PacketTypes.CONNECT)
+        properties.SessionExpiryInterval = settings.session_expiry_s if self.persistent else 0
+        self._client = client
+        client.connect_async(
+            settings.host,
+            settings.port,
+            keepalive=settings.keepalive_s,
+            clean_start=not self.persistent,
+            properties=properties,
+        )
+        client.loop_start()
+        if not wait:
+            return
+        if not self._answered.wait(settings.connect_timeout_s):
+            self._abandon()
+            raise TransportError(
+                f"{self.client_id}: no answer from the MQTT broker at {settings.host}:"
+                f"{settings.port} within {settings.connect_timeout_s:g} s"
+                + (" (is it a TLS port? check the CA file)" if settings.tls else "")
+                + "."
+            )
+        if self._refusal is not None:
+            refusal = self._refusal
+            self._abandon()
+            raise TransportError(
+                f"{self.client_id}: the MQTT broker at {settings.host}:{settings.port} "
+                f"refused the connection: {refusal}."
+            )
+
+    def publish(self, topic: str, payload: bytes, qos: int = 1, retain: bool = False) -> None:
+        validate_topic(topic)
+        if qos not in (0, 1):
+            raise TransportError(f"QoS must be 0 or 1, got {qos}.")
+        client = self._require_client()
+        info = client.publish(topic, bytes(payload), qos=qos, retain=retain)
+        import paho.mqtt.client as mqtt
+
+        if info.rc not in (mqtt.MQTT_ERR_SUCCESS, mqtt.MQTT_ERR_NO_CONN):
+            raise TransportError(f"{self.client_id}: publish on {topic} failed: {info.rc!s}.")
+        with self._condition:
+            if info.mid in self._early:
+                self._early.discard(info.mid)
+            else:
+                self._unacknowledged.add(info.mid)
+
+    def subscribe(self, topic_filter: str, handler: Handler, qos: int = 1) -> None:
+        """Register ``handler``; when connected, wait for the broker's grant.
+
+        Raises:
+            TransportError: the broker refused the subscription (e.g. not authorised by the ACL).
+        """
+        validate_filter(topic_filter)
+        if qos not in (0, 1):
+            raise TransportError(f"QoS must be 0 or 1, got {qos}.")
+        self._qos[topic_filter] = max(qos, self._qos.get(topic_filter, 0))
+        self._filter_ids[_subscription_id(topic_filter)] = topic_filter
+        adopted = self._handlers.add(topic_filter, handler)
+        for item in adopted:
+            self._handlers.dispatch(item)
+        if self._client is not None and self._connected.is_set():
+            if topic_filter in self._subscribed:
+                return
+            self._subscribed.add(topic_filter)
+            codes = self._subscribe_and_wait(topic_filter, self._qos[topic_filter])
+            failures = [code for code in codes if code.is_failure]
+            if failures:
+                self._subscribed.discard(topic_filter)
+                raise TransportError(
+                    f"{self.client_id}: the broker refused the subscription to "
+                    f"{topic_filter}: {failures[0]}."
+                )
+
+    def flush(self, timeout: float) -> bool:
+        deadline = time.monotonic() + timeout
+        with self._condition:
+            while self._unacknowledged:
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    return False
+                self._condition.wait(remaining)
+            return True
+
+    def pending(self) -> int:
+        """Publishes not yet acknowledged by the broker."""
+        with self._condition:
+            return len(self._unacknowledged)
+
+    def close(self, unclean: bool = False, timeout: float = 5.0) -> None:
+        client = self._client
+        if client is None:
+            return
+        from paho.mqtt.packettypes import PacketTypes
+        from paho.mqtt.reasoncodes import ReasonCode
+
+        was_connected = self._connected.is_set()
+        if was_connected:
+            # Closing a socket with unread data (a SUBACK on its way) makes TCP send a reset,
+            # and the broker may then drop our last PUBACKs: read the answers first.
+            self._wait_for_subscriptions(timeout)
+        if unclean:
+            # MQTT 5 "Disconnect with Will Message": the broker publishes the will, as on a crash.
+            self._disconnected.clear()
+            client.disconnect(reasoncode=ReasonCode(PacketTypes.DISCONNECT, identifier=4))
+        else:
+            if self.will is not None and was_connected:
+                self.publish(self.will.topic, self.will.payload, self.will.qos, self.will.retain)
+            if not self.flush(timeout):
+                logger.warning(
+                    "%s: closing with %d publishes not acknowledged", self.client_id, self.pending()
+                )
+            self._disconnected.clear()
+            client.disconnect()
+        # loop_stop() ends the network thread at once, dropping packets still queued (PUBACKs
+        # of messages just handled, the DISCONNECT itself): wait until they are written.
+        if was_connected and not self._disconnected.wait(timeout):
+            logger.warning("%s: no clean disconnection within %g s", self.client_id, timeout)
+        client.loop_stop()
+        self._client = None
+        self._connected.clear()
+
+    # Internals -------------------------------------------------------------------------
+
+    def _wait_for_subscriptions(self, timeout: float) -> None:
+        deadline = time.monotonic() + timeout
+        with self._condition:
+            while self._background_subscribes:
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    return
+                self._condition.wait(remaining)
+
+    def _require_client(self):
+        if self._client is None:
+            raise TransportError(f"{self.client_id}: publish before connect().")
+        return self._client
+
+    def _abandon(self) -> None:
+        client = self._client
+        if client is not None:
+            client.disconnect()
+            client.loop_stop()
+        self._client = None
+
+    def _subscribe_and_wait(self, topic_filter: str, qos: int) -> list:
+        from paho.mqtt.subscribeoptions import SubscribeOptions
+
+        client = self._require_client()
+        result, mid = client.subscribe(
+            topic_filter,
+            options=SubscribeOptions(qos=qos),
+            properties=_subscribe_properties(topic_filter),
+        )
+        if mid is None:
+            raise TransportError(
+                f"{self.client_id}: subscribe to {topic_filter} failed ({result})."
+            )
+        deadline = time.monotonic() + self.settings.connect_timeout_s
+        with self._condition:
+            while mid not in self._suback:
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    raise TransportError(
+                        f"{self.client_id}: no answer to the subscription to {topic_filter}."
+                    )
+                self._condition.wait(remaining)
+            return self._suback.pop(mid)
+
+    def _on_connect(self, client, userdata, flags, reason_code, properties) -> None:
+        if reason_code.is_failure:
+            self._refusal = str(reason_code)
+            logger.warning("%s: connection refused: %s", self.client_id, reason_code)
+            self._answered.set()
+            return
+        self._refusal = None
+        if not flags.session_present:
+            self._subscribed.clear()
+        from paho.mqtt.subscribeoptions import SubscribeOptions
+
+        for topic_filter in self._handlers.filters():
+            if topic_filter not in self._subscribed:
+                _, mid = client.subscribe(
+                    topic_filter,
+                    options=SubscribeOptions(qos=self._qos[topic_filter]),
+                    properties=_subscribe_properties(topic_filter),
+                )
+                if mid is not None:
+                    with self._condition:
+                        self._background_subscribes.add(mid)
+                self._subscribed.add(topic_filter)
+        logger.info(
+            "%s: connected (session present: %s)", self.client_id, bool(flags.session_present)
+        )
+        self._connected.set()
+        self._answered.set()
+
+    def _on_disconnect(self, client, userdata, flags, reason_code, properties) -> None:
+        self._connected.clear()
+        self._disconnected.set()
+        logger.info("%s: disconnected: %s", self.client_id, reason_code)
+
+    def _on_publish(self, client, userdata, mid, reason_code, properties) -> None:
+        if reason_code.is_failure:
+            self.refused_publishes += 1
+            logger.warning("%s: broker refused publish %d: %s", self.client_id, mid, reason_code)
+        with self._condition:
+            if mid in self._unacknowledged:
+                self._unacknowledged.discard(mid)
+            else:
+                self._early.add(mid)
+            self._condition.notify_all()
+
+    def _on_subscribe(self, client, userdata, mid, reason_codes, properties) -> None:
+        with self._condition:
+            if mid in self._background_subscribes:
+                self._background_subscribes.discard(mid)
+            else:
+                self._suback[mid] = list(reason_codes)
+            self._condition.notify_all()
+        failures = [code for code in reason_codes if code.is_failure]
+        if failures:
+            logger.warning("%s: subscription %d refused: %s", self.client_id, mid, failures[0])
+
+    def _on_message(self, client, userdata, message) -> None:
+        mid, qos = message.mid, message.qos
+
+        def send_ack() -> None:
+            if qos > 0 and self._client is client:
+                client.ack(mid, qos)
+
+        identifiers = getattr(message.properties, "SubscriptionIdentifier", None)
+        filters = None
+        if identifiers:
+            if isinstance(identifiers, int):
+                identifiers = [identifiers]
+            known = [self._filter_ids[i] for i in identifiers if i in self._filter_ids]
+            filters = tuple(known) if known else None
+        self._handlers.dispatch(
+            _Incoming(
+                message.topic,
+                message.payload,
+                bool(message.dup),
+                bool(message.retain),
+                qos,
+                send_ack,
+                filters,
+            )
+        )
+
+
+def _subscription_id(topic_filter: str) -> int:
+    """A stable MQTT 5 subscription identifier for a filter (1 .. 2**28 - 1).
+
+    Stable across processes, so a resumed persistent session's messages still name the
+    filter they were delivered for.
+    """
+    return zlib.crc32(topic_filter.encode()) % (2**28 - 2) + 1
+
+
+def _subscribe_properties(topic_filter: str):
+    from paho.mqtt.packettypes import PacketTypes
+    from paho.mqtt.properties import Properties
+
+    properties = Properties(PacketTypes.SUBSCRIBE)
+    properties.SubscriptionIdentifier = _subscription_id(topic_filter)
+    return properties

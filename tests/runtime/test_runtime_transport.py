@@ -1,0 +1,346 @@
+"""Transport behaviour, the same tests on the in-process broker and on a real Mosquitto."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import pytest
+
+from cblrs.runtime.topics import TopicError, topic_matches
+from cblrs.runtime.transport import (
+    Delivery,
+    InProcessBroker,
+    InProcessTransport,
+    MqttTransport,
+    Transport,
+    TransportError,
+    Will,
+)
+
+WAIT = 5.0
+"""Upper bound for anything to arrive; tests finish as soon as it does."""
+
+
+class Collector:
+    """A handler that records deliveries and optionally acknowledges them."""
+
+    def __init__(self, acknowledge: bool = True):
+        self.acknowledge = acknowledge
+        self.deliveries: list[Delivery] = []
+        self._condition = threading.Condition()
+
+    def __call__(self, delivery: Delivery) -> None:
+        if self.acknowledge:
+            delivery.ack()
+        with self._condition:
+            self.deliveries.append(delivery)
+            self._condition.notify_all()
+
+    def wait_for(self, count: int, timeout: float = WAIT) -> list[Delivery]:
+        deadline = time.monotonic() + timeout
+        with self._condition:
+            while len(self.deliveries) < count:
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    break
+                self._condition.wait(remaining)
+            return list(self.deliveries)
+
+    def settle(self, quiet: float = 0.2) -> list[Delivery]:
+        """Wait until nothing new arrives for ``quiet`` seconds (for "never arrives" checks)."""
+        seen = -1
+        while seen != len(self.deliveries):
+            seen = len(self.deliveries)
+            time.sleep(quiet)
+        return list(self.deliveries)
+
+    @property
+    def payloads(self) -> list[bytes]:
+        return [delivery.payload for delivery in self.deliveries]
+
+
+def connected(transport: Transport) -> Transport:
+    transport.connect()
+    return transport
+
+
+def test_both_implement_the_protocol(inprocess_broker):
+    assert isinstance(InProcessTransport(inprocess_broker, "x"), Transport)
+    assert isinstance(MqttTransport("x"), Transport)
+
+
+def test_publish_subscribe_in_order(make_transport):
+    subscriber = connected(make_transport("subscriber"))
+    collector = Collector()
+    subscriber.subscribe("cblrs/1/+/detections", collector)
+    publisher = connected(make_transport("publisher"))
+    payloads = [f"message {index}".encode() for index in range(50)]
+    for payload in payloads:
+        publisher.publish("cblrs/1/CVLab1/detections", payload)
+    assert publisher.flush(WAIT)
+    collector.wait_for(len(payloads))
+    assert collector.payloads == payloads
+    assert all(not delivery.duplicate and delivery.qos == 1 for delivery in collector.deliveries)
+    assert {delivery.topic for delivery in collector.deliveries} == {"cblrs/1/CVLab1/detections"}
+
+
+def test_empty_payload_and_binary_bytes_arrive_unchanged(make_transport):
+    subscriber = connected(make_transport("subscriber"))
+    collector = Collector()
+    subscriber.subscribe("a/b", collector)
+    publisher = connected(make_transport("publisher"))
+    payloads = [b"", bytes(range(256)), b"\x00" * 10]
+    for payload in payloads:
+        publisher.publish("a/b", payload)
+    assert collector.wait_for(3) and collector.payloads == payloads
+
+
+WILDCARD_CASES = [
+    # filter, topic, matches
+    ("cblrs/1/+/detections", "cblrs/1/CVLab1/detections", True),
+    ("cblrs/1/+/detections", "cblrs/2/CVLab1/detections", False),
+    ("cblrs/1/+/detections", "cblrs/1/CVLab1/status", False),
+    ("cblrs/+/+/detections", "cblrs/2/CVLab1/detections", True),
+    ("cblrs/#", "cblrs/1/tracks", True),
+    ("cblrs/#", "cblrs", True),
+    ("cblrs/1/#", "cblrs/2/tracks", False),
+    ("#", "cblrs/1/tracks", True),
+    ("+/+", "a/b", True),
+    ("+/+", "a/b/c", False),
+    ("+", "a", True),
+    ("a/+", "a/", True),
+    ("cblrs/1/tracks", "cblrs/1/tracks", True),
+    ("cblrs/1/tracks", "cblrs/1/tracks/x", False),
+]
+
+
+@pytest.mark.parametrize(("topic_filter", "topic", "expected"), WILDCARD_CASES)
+def test_topic_matches_table(topic_filter, topic, expected):
+    assert topic_matches(topic_filter, topic) is expected
+
+
+def test_system_topics_are_not_matched_by_leading_wildcards():
+    assert not topic_matches("#", "$SYS/broker/uptime")
+    assert not topic_matches("+/broker/uptime", "$SYS/broker/uptime")
+    assert topic_matches("$SYS/#", "$SYS/broker/uptime")
+
+
+def test_wildcards_through_the_transport(make_transport):
+    subscriber = connected(make_transport("subscriber"))
+    collectors = {}
+    filters = sorted({topic_filter for topic_filter, _, _ in WILDCARD_CASES})
+    for topic_filter in filters:
+        collectors[topic_filter] = Collector()
+        subscriber.subscribe(topic_filter, collectors[topic_filter])
+    publisher = connected(make_transport("publisher"))
+    topics = sorted({topic for _, topic, _ in WILDCARD_CASES})
+    for topic in topics:
+        publisher.publish(topic, topic.encode())
+    publisher.publish("end", b"end")  # matched by "#" and "+" only: marks the end
+    assert publisher.flush(WAIT)
+    collectors["#"].wait_for(len(topics) + 1)
+    for topic_filter in filters:
+        collector = collectors[topic_filter]
+        expected = [topic for topic in topics if topic_matches(topic_filter, topic)]
+        if topic_filter in ("#", "+"):
+            expected.append("end")
+        collector.wait_for(len(expected))
+        assert sorted(delivery.topic for delivery in collector.deliveries) == sorted(expected), (
+            topic_filter
+        )
+
+
+def test_overlapping_filters_ack_once_after_every_handler(make_transport):
+    subscriber = connected(make_transport("subscriber", persistent=True))
+    first, second = Collector(), Collector(acknowledge=False)
+    subscriber.subscribe("cblrs/1/+/detections", first)
+    subscriber.subscribe("cblrs/#", second)
+    publisher = connected(make_transport("publisher"))
+    publisher.publish("cblrs/1/CVLab1/detections", b"one")
+    assert first.wait_for(1) and second.wait_for(1)
+    assert first.payloads == second.payloads == [b"one"]
+    subscriber.close()
+    # The second handler never acknowledged: the message comes back to the session.
+    again = make_transport("subscriber", persistent=True)
+    redelivered = Collector()
+    again.subscribe("cblrs/#", redelivered)
+    again.connect()
+    assert [delivery.payload for delivery in redelivered.wait_for(1)] == [b"one"]
+    assert redelivered.deliveries[0].duplicate
+
+
+@pytest.mark.parametrize("bad_filter", ["a/#/b", "a+/b", "", "a/b#"])
+def test_invalid_filters_are_refused(make_transport, bad_filter):
+    transport = make_transport("subscriber")
+    with pytest.raises(TopicError, match="filter"):
+        transport.subscribe(bad_filter, Collector())
+
+
+@pytest.mark.parametrize("bad_topic", ["a/+/b", "a/#", ""])
+def test_invalid_publish_topics_are_refused(make_transport, bad_topic):
+    transport = connected(make_transport("publisher"))
+    with pytest.raises(TopicError, match="invalid topic"):
+        transport.publish(bad_topic, b"x")
+
+
+def test_publish_before_connect_is_refused(make_transport):
+    transport = make_transport("publisher")
+    with pytest.raises(TransportError, match="before connect"):
+        transport.publish("a/b", b"x")
+
+
+def test_qos_2_is_refused(make_transport):
+    transport = connected(make_transport("publisher"))
+    with pytest.raises(TransportError, match="QoS must be 0 or 1"):
+        transport.publish("a/b", b"x", qos=2)
+
+
+def test_retained_status_and_last_will(make_transport):
+    status = "cblrs/1/CVLab1/status"
+    camera = connected(
+        make_transport("camera", will=Will(status, b"offline", qos=1, retain=True))
+    )
+    camera.publish(status, b"online", retain=True)
+    assert camera.flush(WAIT)
+    watcher = connected(make_transport("watcher", persistent=False))
+    collector = Collector()
+    watcher.subscribe("cblrs/1/+/status", collector)
+    first = collector.wait_for(1)
+    assert [(delivery.payload, delivery.retain) for delivery in first] == [(b"online", True)]
+    camera.close(unclean=True)  # like a crash: the broker publishes the will
+    assert collector.wait_for(2)[1].payload == b"offline"
+    late = connected(make_transport("late", persistent=False))
+    late_collector = Collector()
+    late.subscribe(status, late_collector)
+    assert [delivery.payload for delivery in late_collector.wait_for(1)] == [b"offline"]
+    assert late_collector.deliveries[0].retain
+
+
+def test_clean_close_also_publishes_the_will(make_transport):
+    status = "cblrs/1/CVLab2/status"
+    watcher = connected(make_transport("watcher", persistent=False))
+    collector = Collector()
+    watcher.subscribe(status, collector)
+    camera = connected(make_transport("camera", will=Will(status, b"offline")))
+    camera.publish(status, b"online", retain=True)
+    camera.close()
+    assert [delivery.payload for delivery in collector.wait_for(2)] == [b"online", b"offline"]
+
+
+def test_empty_retained_payload_clears_the_retained_message(make_transport):
+    publisher = connected(make_transport("publisher"))
+    publisher.publish("x/status", b"online", retain=True)
+    publisher.publish("x/status", b"", retain=True)
+    publisher.publish("x/other", b"kept", retain=True)
+    assert publisher.flush(WAIT)
+    watcher = connected(make_transport("watcher", persistent=False))
+    collector = Collector()
+    watcher.subscribe("x/+", collector)
+    assert [delivery.payload for delivery in collector.settle()] == [b"kept"]
+
+
+def test_unacknowledged_messages_are_redelivered_to_a_reconnecting_session(make_transport):
+    topic = "cblrs/1/CVLab1/detections"
+    subscriber = connected(make_transport("matcher"))
+    lazy = Collector(acknowledge=False)
+    subscriber.subscribe("cblrs/1/+/detections", lazy)
+    publisher = connected(make_transport("camera"))
+    publisher.publish(topic, b"first")
+    assert lazy.wait_for(1)[0].payload == b"first"
+    subscriber.close()
+    # Published while the subscriber is away: kept for its persistent session.
+    publisher.publish(topic, b"second")
+    publisher.publish(topic, b"third")
+    assert publisher.flush(WAIT)
+
+    resumed = make_transport("matcher")
+    collector = Collector()
+    resumed.subscribe("cblrs/1/+/detections", collector)
+    resumed.connect()
+    deliveries = collector.wait_for(3)
+    assert [delivery.payload for delivery in deliveries] == [b"first", b"second", b"third"]
+    assert [delivery.duplicate for delivery in deliveries] == [True, False, False]
+    resumed.close()
+
+    # All acknowledged now: a further reconnection gets nothing again.
+    once_more = make_transport("matcher")
+    quiet = Collector()
+    once_more.subscribe("cblrs/1/+/detections", quiet)
+    once_more.connect()
+    publisher.publish(topic, b"fourth")
+    assert [delivery.payload for delivery in quiet.wait_for(1)] == [b"fourth"]
+    assert quiet.settle(0.1) and quiet.payloads == [b"fourth"]
+
+
+def test_session_resumes_without_subscribing_again(make_transport):
+    # The broker keeps the subscription: messages arrive as soon as a handler is registered.
+    subscriber = connected(make_transport("matcher"))
+    subscriber.subscribe("cblrs/1/+/detections", Collector())
+    subscriber.close()
+    publisher = connected(make_transport("camera"))
+    publisher.publish("cblrs/1/CVLab1/detections", b"while away")
+    assert publisher.flush(WAIT)
+    resumed = connected(make_transport("matcher"))
+    collector = Collector()
+    resumed.subscribe("cblrs/1/+/detections", collector)
+    assert [delivery.payload for delivery in collector.wait_for(1)] == [b"while away"]
+
+
+def test_non_persistent_session_keeps_nothing(make_transport):
+    subscriber = connected(make_transport("viewer", persistent=False))
+    subscriber.subscribe("cblrs/1/tracks", Collector())
+    subscriber.close()
+    publisher = connected(make_transport("matcher"))
+    publisher.publish("cblrs/1/tracks", b"missed")
+    assert publisher.flush(WAIT)
+    again = connected(make_transport("viewer", persistent=False))
+    collector = Collector()
+    again.subscribe("cblrs/1/tracks", collector)
+    publisher.publish("cblrs/1/tracks", b"seen")
+    assert [delivery.payload for delivery in collector.wait_for(1)] == [b"seen"]
+    assert collector.settle(0.1) and collector.payloads == [b"seen"]
+
+
+def test_qos_0_is_delivered_without_acknowledgement(make_transport):
+    subscriber = connected(make_transport("subscriber"))
+    collector = Collector(acknowledge=False)
+    subscriber.subscribe("a/b", collector, qos=0)
+    publisher = connected(make_transport("publisher"))
+    publisher.publish("a/b", b"fire and forget", qos=0)
+    assert [(delivery.payload, delivery.qos) for delivery in collector.wait_for(1)] == [
+        (b"fire and forget", 0)
+    ]
+
+
+def test_a_failing_handler_does_not_stop_the_transport(make_transport):
+    subscriber = connected(make_transport("subscriber"))
+    collector = Collector()
+
+    def failing(delivery: Delivery) -> None:
+        if delivery.payload == b"boom":
+            raise RuntimeError("handler bug")
+        collector(delivery)
+
+    subscriber.subscribe("a/b", failing)
+    publisher = connected(make_transport("publisher"))
+    publisher.publish("a/b", b"boom")
+    publisher.publish("a/b", b"after")
+    assert [delivery.payload for delivery in collector.wait_for(1)] == [b"after"]
+
+
+def test_inprocess_session_takeover_detaches_the_old_client():
+    broker = InProcessBroker()
+    first = InProcessTransport(broker, "same")
+    first.connect()
+    old, new = Collector(), Collector()
+    first.subscribe("a", old)
+    second = InProcessTransport(broker, "same")
+    second.subscribe("a", new)
+    second.connect()
+    publisher = InProcessTransport(broker, "publisher")
+    publisher.connect()
+    publisher.publish("a", b"x")
+    assert new.wait_for(1) and new.payloads == [b"x"]
+    assert old.settle(0.05) == []
+    assert broker.session_count() == 2  # "same" and "publisher"
