@@ -177,7 +177,9 @@ class MatcherService:
         self._latest: dict[str, float] = {}
         self._last_heard: dict[str, float] = {}
         self._offline: dict[str, bool] = dict.fromkeys(self.camera_ids, False)
+        self._final_offline: dict[str, bool] = dict.fromkeys(self.camera_ids, False)
         self._offline_at: dict[str, float | None] = dict.fromkeys(self.camera_ids, None)
+        self._started_at = wall_clock()
         self._active_this_run: set[str] = set()
         self._last_delivery = 0.0
         self._silence_origin: float | None = None
@@ -201,6 +203,7 @@ class MatcherService:
         if self._started:
             return
         self.store.bind(self._settings)
+        self._started_at = self._wall_clock()
         self._recover()
         self._last_delivery = self.clock()
         self._worker = threading.Thread(
@@ -343,14 +346,29 @@ class MatcherService:
             return
         if camera not in self._offline or plane_id != self.plane_id:
             return
-        offline = status.state == "offline"
-        self._offline[camera] = offline
-        self._offline_at[camera] = status.timestamp if offline else None
-        if not offline:
+        if status.state == "online":
+            self._offline[camera] = self._final_offline[camera] = False
+            self._offline_at[camera] = None
             self._active_this_run.add(camera)
             self._last_heard[camera] = now
             if self._silence_origin is None:
                 self._silence_origin = now
+        elif status.timestamp is None:
+            # A last will (no timestamp): the connection dropped — a crash, or a broker
+            # restart. It does not say the stream ended, so ordering keeps waiting for the
+            # camera's messages (bounded by the silence window).
+            pass
+        else:
+            # The camera's own "offline" at the end of its stream: nothing more will come.
+            self._final_offline[camera] = True
+            self._offline_at[camera] = status.timestamp
+            # A retained one older than this service is history (the end of an earlier
+            # replay): the camera may be about to start again, so ordering still waits.
+            stale = bool(getattr(delivery, "retain", False)) and (
+                status.timestamp < self._started_at
+            )
+            if not stale:
+                self._offline[camera] = True
         logger.info("plane %d: camera %s is %s", self.plane_id, camera, status.state)
 
     def _buffer(self, message: CameraMessage, now: float) -> None:
@@ -424,15 +442,16 @@ class MatcherService:
         return sum(len(group.messages) for group in list(self._groups.values()))
 
     def cameras_done(self) -> bool:
-        """Whether every camera has said "offline" after taking part in this run.
+        """Whether every camera has ended its stream with its own "offline" status.
 
         A camera counts when it went offline after being online or sending during this
         run, or when its "offline" is newer than everything the store holds from it (a
-        replay that finished while this service was down).
+        replay that finished while this service was down). A last will (a dropped
+        connection) does not count.
         """
         summary = None
         for camera in self.camera_ids:
-            if not self._offline[camera]:
+            if not self._final_offline[camera]:
                 return False
             if camera in self._active_this_run:
                 continue

@@ -1,0 +1,328 @@
+"""Reliability of the runtime: nothing lost, nothing counted twice, bad input survived.
+
+* the broker is restarted mid-stream (with persistence): every message arrives, is tracked
+  once, and the tracks equal an uninterrupted run;
+* the matcher process is killed (SIGKILL) mid-stream and restarted on the same database:
+  every (camera, sequence) is processed exactly once and the tracks equal an uninterrupted
+  run;
+* duplicate deliveries are ignored;
+* each kind of bad input is rejected, counted by reason, and the matcher keeps going.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from cblrs.datasets import load_scene
+from cblrs.detections import CameraMessage
+from cblrs.matching import make_matcher
+from cblrs.pipeline import render_scene_references, scene_planes, track_scene
+from cblrs.reference import ReferenceImage
+from cblrs.runtime.camera_node import CameraNode, camera_last_will
+from cblrs.runtime.matcher_service import MatcherService
+from cblrs.runtime.sources import scene_source
+from cblrs.runtime.store import RuntimeStore
+from cblrs.runtime.topics import detections_topic, matcher_status_topic
+from cblrs.runtime.transport import MqttTransport, Will
+from cblrs.runtime.wire import ValidationPolicy, decode_status, encode_message
+
+PLANE = 1
+FRAMES = (0, 595)  # 120 annotated frames: long enough to interrupt, short enough to be quick
+
+
+def wait_until(predicate, timeout: float, what: str) -> None:
+    deadline = time.monotonic() + timeout
+    while not predicate():
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out after {timeout} s waiting for {what}")
+        time.sleep(0.02)
+
+
+@pytest.fixture(scope="module")
+def case(wildtrack_root, tmp_path_factory):
+    """A WILDTRACK subset, its reference PNGs, an epoch and the uninterrupted tracks."""
+    scene = load_scene(wildtrack_root).select_frames(*FRAMES)
+    folder = tmp_path_factory.mktemp("references")
+    references = []
+    for camera, reference in zip(scene.cameras, render_scene_references(scene), strict=True):
+        path = reference.save(folder / f"{camera.name}.png")
+        references.append(ReferenceImage.load(path, expected_size=camera.image_size))
+    epoch = float(int(time.time()) - 3600)
+    expected = track_scene(
+        replace(scene, timestamps=scene.timestamps + epoch),
+        matcher=make_matcher("fusion", scene_planes(scene), scene.camera_names),
+        references=references,
+    ).tracks
+    return {
+        "scene": scene, "references": references, "folder": folder, "epoch": epoch,
+        "expected": expected,
+    }
+
+
+def start_cameras(case, settings, speed: float, prefix: str) -> list[threading.Thread]:
+    """One paced camera node per scene camera, each on its own MQTT connection (threads)."""
+    scene = case["scene"]
+    threads = []
+    for index, name in enumerate(scene.camera_names):
+
+        def run(index=index, name=name) -> None:
+            transport = MqttTransport(
+                f"{prefix}-{name}", settings, persistent=False,
+                will=Will(*camera_last_will(PLANE, name)),
+            )
+            transport.connect()
+            node = CameraNode(
+                transport, PLANE, name, case["references"][index], realtime=True,
+                speed=speed, epoch=case["epoch"], flush_timeout_s=30.0,
+            )
+            node.run(scene_source(scene, index), connect=False)
+            transport.close()
+
+        thread = threading.Thread(target=run, daemon=True)
+        thread.start()
+        threads.append(thread)
+    return threads
+
+
+def assert_exactly_once(store: RuntimeStore, case) -> None:
+    scene = case["scene"]
+    messages = len(scene.frames) * len(scene.cameras)
+    stored = store.messages()
+    keys = {(item.message.camera_id, item.message.sequence) for item in stored}
+    expected_keys = {
+        (name, sequence) for name in scene.camera_names for sequence in range(len(scene.frames))
+    }
+    assert keys == expected_keys, "messages lost"
+    assert store.status_counts() == {"processed": messages}
+    counters = store.counters()
+    assert counters["processed"] == messages, "a message was tracked twice"
+    assert counters["groups"] == len(scene.frames)
+    assert counters.get("late", 0) == 0
+    tracks = store.tracks()
+    expected = case["expected"]
+    np.testing.assert_array_equal(tracks.frame, expected.frame)
+    np.testing.assert_array_equal(tracks.track_id, expected.track_id)
+    np.testing.assert_array_equal(tracks.world_xy, expected.world_xy)
+
+
+def test_broker_restart_mid_stream_loses_nothing(case, start_mosquitto, tmp_path):
+    broker = start_mosquitto()
+    scene = case["scene"]
+    names = scene.camera_names
+    store = RuntimeStore(tmp_path / "matcher.db")
+    service = MatcherService(
+        MqttTransport("restart-matcher", broker.settings()), store,
+        make_matcher("fusion", scene_planes(scene), names), PLANE, names, window_s=5.0,
+    )
+    service.start()
+    threads = start_cameras(case, broker.settings(), speed=25.0, prefix="restart")
+    total = len(scene.frames) * len(names)
+    wait_until(lambda: store.counters().get("accepted", 0) >= total // 4, 30, "a quarter")
+    broker.restart()
+    restarted_at = store.counters().get("accepted", 0)
+    for thread in threads:
+        thread.join(60)
+    wait_until(
+        lambda: service.cameras_done() and service.drained(), 60, "the matcher to catch up"
+    )
+    service.close(flush=True)
+    assert restarted_at < total, "the broker restart was not mid-stream"
+    assert_exactly_once(store, case)
+    store.close()
+
+
+def _matcher_command(case, broker, database) -> list[str]:
+    return [
+        sys.executable, "-m", "cblrs.cli.main", "matcher",
+        "--references", str(case["folder"]), "--db", str(database),
+        "--broker", f"127.0.0.1:{broker.port}", "--client-id", "killed-matcher",
+        "--window", "5", "--until-cameras-offline", "--idle-exit", "30", "--json",
+    ]
+
+
+def test_matcher_killed_mid_stream_resumes_exactly_once(case, start_mosquitto, tmp_path):
+    broker = start_mosquitto()
+    database = tmp_path / "matcher.db"
+    scene = case["scene"]
+    total = len(scene.frames) * len(scene.cameras)
+    environment = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    matcher_online = threading.Event()
+    watcher = MqttTransport("killed-watcher", broker.settings(), persistent=False)
+
+    def on_status(delivery) -> None:
+        if decode_status(delivery.payload).state == "online":
+            matcher_online.set()
+        delivery.ack()
+
+    watcher.subscribe(matcher_status_topic(PLANE, "killed-matcher"), on_status)
+    watcher.connect()
+    first = subprocess.Popen(
+        _matcher_command(case, broker, database), stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE, env=environment,
+    )
+    try:
+        # Its session exists once it has subscribed, which precedes its "online" status.
+        wait_until(lambda: matcher_online.is_set(), 60, "the matcher to come online")
+        threads = start_cameras(case, broker.settings(), speed=10.0, prefix="killed")
+
+        def processed() -> int:
+            with RuntimeStore(database, read_only=True) as store:
+                return store.counters().get("processed", 0)
+
+        wait_until(lambda: processed() >= total // 4, 60, "a quarter to be processed")
+        first.send_signal(signal.SIGKILL)
+        first.wait(10)
+        killed_at = processed()
+    finally:
+        if first.poll() is None:
+            first.kill()
+            first.wait()
+    second = subprocess.run(
+        _matcher_command(case, broker, database), capture_output=True, text=True,
+        env=environment, timeout=80,
+    )
+    for thread in threads:
+        thread.join(30)
+    watcher.close()
+    assert second.returncode == 0, second.stderr
+    summary = json.loads(second.stdout)
+    assert killed_at < total, "the kill was not mid-stream"
+    assert summary["processed"] == total
+    with RuntimeStore(database, read_only=True) as store:
+        assert_exactly_once(store, case)
+
+
+# -- duplicates and bad input (both transports) -----------------------------------------
+
+
+def _service(make_transport, tmp_path, cameras=("CVLab1", "CVLab2"), **policy):
+    planes = scene_planes_small()
+    store = RuntimeStore(tmp_path / "matcher.db")
+    service = MatcherService(
+        make_transport("matcher"), store, make_matcher("fusion", planes, list(cameras)), PLANE,
+        list(cameras), policy=ValidationPolicy(**policy), window_s=0.2,
+    )
+    service.start()
+    return service, store
+
+
+def scene_planes_small():
+    from cblrs.plane import PlaneSet, PlaneSpec
+
+    return PlaneSet([PlaneSpec(PLANE, (0.0, 0.0), 20.0, 20.0)])
+
+
+def good_message(camera: str, sequence: int, timestamp: float) -> CameraMessage:
+    return CameraMessage(
+        camera, sequence, timestamp, sequence,
+        xyxy=np.array([[10.0, 20.0, 50.0, 120.0]]), confidence=np.array([0.9]),
+        class_id=np.array([0]), colour=np.array([[1000, 2000, PLANE]]),
+    )
+
+
+def test_duplicate_deliveries_are_ignored(make_transport, tmp_path):
+    service, store = _service(make_transport, tmp_path)
+    camera = make_transport("camera", persistent=False)
+    camera.connect()
+    now = time.time()
+    payloads = [encode_message(good_message("CVLab1", sequence, now + sequence), PLANE)
+                for sequence in range(3)]
+    topic = detections_topic(PLANE, "CVLab1")
+    for payload in [*payloads, payloads[1], payloads[1], payloads[0]]:
+        camera.publish(topic, payload)
+    camera.flush(5)
+    wait_until(lambda: store.counters().get("received", 0) == 6, 20, "six deliveries")
+    service.close(flush=True)
+    counters = store.counters()
+    assert counters["accepted"] == 3
+    assert counters["duplicates"] == 3
+    assert counters["processed"] == 3
+    assert len(store.messages()) == 3
+    store.close()
+
+
+def _document(camera="CVLab1", sequence=0, timestamp=None, **changes) -> dict:
+    timestamp = time.time() if timestamp is None else timestamp
+    document = json.loads(encode_message(good_message(camera, sequence, timestamp), PLANE))
+    document.update(changes)
+    return document
+
+
+def _bytes(document: dict) -> bytes:
+    return json.dumps(document).encode()
+
+
+def _without(key: str) -> bytes:
+    document = _document(sequence=3)
+    del document[key]
+    return _bytes(document)
+
+
+def _with_detection(sequence: int, **changes) -> bytes:
+    document = _document(sequence=sequence)
+    document["detections"][0].update(changes)
+    return _bytes(document)
+
+
+BAD_INPUT = [
+    # (label, topic camera, payload builder, expected reason)
+    ("malformed json", "CVLab1", lambda: b'{"schema": "cblrs.detections/1", "camera": ',
+     "malformed_json"),
+    ("not an object", "CVLab1", lambda: b"[1, 2, 3]", "malformed_json"),
+    ("wrong schema version", "CVLab1",
+     lambda: _bytes(_document(sequence=1, schema="cblrs.detections/2")), "wrong_schema"),
+    ("missing timestamp", "CVLab1", lambda: _without("timestamp"), "missing_field"),
+    ("missing detections", "CVLab1", lambda: _without("detections"), "missing_field"),
+    ("NaN timestamp", "CVLab1", lambda: _bytes(_document(sequence=4) | {"timestamp": math.nan}),
+     "invalid_value"),
+    ("infinite box", "CVLab1", lambda: _with_detection(5, box=[math.inf, 20.0, 50.0, 120.0]),
+     "invalid_value"),
+    ("oversized", "CVLab1",
+     lambda: _bytes(_document(sequence=6, padding="x" * 5000)), "oversized"),
+    ("colour out of range", "CVLab1",
+     lambda: _with_detection(7, colour=[70000, 10, PLANE]), "colour_out_of_range"),
+    ("unknown camera", "Stranger", lambda: _bytes(_document("Stranger", 8)), "unknown_camera"),
+    ("camera differs from topic", "CVLab1",
+     lambda: _bytes(_document("CVLab2", 9)), "topic_mismatch"),
+    ("far in the past", "CVLab1",
+     lambda: _bytes(_document(sequence=10, timestamp=time.time() - 3 * 86400)), "too_old"),
+    ("far in the future", "CVLab1",
+     lambda: _bytes(_document(sequence=11, timestamp=time.time() + 3600)), "in_future"),
+]
+
+
+def test_bad_input_is_rejected_counted_and_survived(make_transport, tmp_path):
+    service, store = _service(make_transport, tmp_path, max_bytes=4096)
+    sender = make_transport("sender", persistent=False)
+    sender.connect()
+    now = time.time()
+    good = [encode_message(good_message("CVLab1", 100 + index, now + index), PLANE)
+            for index in range(2)]
+    sender.publish(detections_topic(PLANE, "CVLab1"), good[0])
+    expected: dict[str, int] = {}
+    for _, camera, build, reason in BAD_INPUT:
+        sender.publish(detections_topic(PLANE, camera), build())
+        expected[reason] = expected.get(reason, 0) + 1
+    sender.publish(detections_topic(PLANE, "CVLab1"), good[1])
+    sender.flush(5)
+    total = len(BAD_INPUT) + 2
+    wait_until(lambda: store.counters().get("received", 0) == total, 20, "every delivery")
+    service.close(flush=True)
+    stats = service.stats()
+    assert stats["rejected_by_reason"] == expected
+    assert stats["rejected"] == len(BAD_INPUT)
+    assert stats["accepted"] == 2
+    assert stats["processed"] == 2, "the matcher stopped tracking after bad input"
+    assert not service.failed()
+    store.close()
