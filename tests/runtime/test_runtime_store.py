@@ -1,0 +1,170 @@
+"""The matcher's SQLite store: inbox de-duplication, atomic groups, restart state, errors."""
+
+from __future__ import annotations
+
+import sqlite3
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from cblrs.detections import CameraMessage, Tracks
+from cblrs.runtime.store import LATE, PENDING, PROCESSED, RuntimeStore, StoreError
+
+
+def message(camera: str = "CVLab1", sequence: int = 0, timestamp: float = 10.0, count: int = 2):
+    return CameraMessage(
+        camera, sequence, timestamp, sequence * 5,
+        xyxy=np.arange(4 * count, dtype=float).reshape(count, 4) + np.array([0, 0, 10, 10]),
+        confidence=np.linspace(0.5, 1.0, count),
+        class_id=np.zeros(count, np.int64),
+        colour=np.arange(3 * count, dtype=np.int64).reshape(count, 3) + 1,
+    )
+
+
+def tracks(count: int, frame: int = 5) -> Tracks:
+    return Tracks(
+        frame=np.full(count, frame),
+        timestamp=np.full(count, 10.0),
+        track_id=np.arange(1, count + 1),
+        world_xy=np.arange(2 * count, dtype=float).reshape(count, 2) / 3,
+        camera_id=np.arange(count) % 2 - 1,
+        xyxy=np.where(np.arange(count)[:, None] % 2 == 0, np.nan, 1.5 * np.ones((count, 4))),
+    )
+
+
+@pytest.fixture
+def store(tmp_path):
+    with RuntimeStore(tmp_path / "runtime.db") as opened:
+        yield opened
+
+
+def test_new_database_is_in_wal_mode(tmp_path):
+    RuntimeStore(tmp_path / "a.db").close()
+    connection = sqlite3.connect(tmp_path / "a.db")
+    assert connection.execute("PRAGMA journal_mode").fetchone()[0] == "wal"
+    connection.close()
+
+
+def test_insert_deduplicates_by_camera_and_sequence_and_counts(store):
+    first = store.insert_messages(
+        [(message("CVLab1", 0), PENDING, 1.0), (message("CVLab2", 0), PENDING, 1.0),
+         (message("CVLab1", 0), PENDING, 1.0)],
+        {"received": 3},
+    )
+    second = store.insert_messages(
+        [(message("CVLab1", 0), PENDING, 2.0), (message("CVLab1", 1, 5.0), LATE, 2.0)],
+        {"received": 2},
+    )
+    assert first == [True, True, False]
+    assert second == [False, True]
+    assert store.counters() == {"accepted": 3, "duplicates": 2, "late": 1, "received": 5}
+    assert store.status_counts() == {PENDING: 2, LATE: 1}
+
+
+def test_empty_insert_is_a_no_op(store):
+    assert store.insert_messages([], {}) == []
+    assert store.counters() == {}
+    assert store.messages() == []
+    assert len(store.tracks()) == 0
+
+
+@pytest.mark.parametrize("count", [0, 1, 3])
+def test_stored_messages_read_back_exactly(store, count):
+    original = message("IDIAP1", 7, 1700000000.123456789, count)
+    store.insert_messages([(original, PENDING, 5.0)])
+    (stored,) = store.messages(PENDING)
+    back = stored.message
+    assert (back.camera_id, back.sequence, back.timestamp, back.frame) == (
+        "IDIAP1", 7, original.timestamp, original.frame
+    )
+    for name in ("xyxy", "confidence", "class_id", "colour"):
+        np.testing.assert_array_equal(getattr(back, name), getattr(original, name))
+        assert getattr(back, name).dtype == getattr(original, name).dtype
+
+
+def test_commit_group_is_one_transaction_and_survives_reopening(tmp_path):
+    path = tmp_path / "runtime.db"
+    with RuntimeStore(path) as store:
+        store.insert_messages([(message("CVLab1", 0), PENDING, 1.0),
+                               (message("CVLab2", 0), PENDING, 1.0),
+                               (message("CVLab1", 1, 11.0), PENDING, 1.0)])
+        store.commit_group(
+            [("CVLab1", 0), ("CVLab2", 0)], tracks(3), {"next_id": 4, "x": [1.5, np.nan]}, 10.0,
+            {"processed": 2, "groups": 1},
+        )
+    with RuntimeStore(path) as store:
+        assert store.status_counts() == {PROCESSED: 2, PENDING: 1}
+        assert store.released_timestamp() == 10.0
+        state = store.matcher_state()
+        assert state["next_id"] == 4 and np.isnan(state["x"][1])
+        assert store.counters()["processed"] == 2
+        back = store.tracks()
+        expected = tracks(3)
+        for name in ("frame", "timestamp", "track_id", "world_xy", "camera_id", "xyxy"):
+            np.testing.assert_array_equal(getattr(back, name), getattr(expected, name))
+        (pending,) = store.messages(PENDING)
+        assert (pending.message.camera_id, pending.message.sequence) == ("CVLab1", 1)
+
+
+def test_failed_group_commit_leaves_nothing_behind(store):
+    store.insert_messages([(message("CVLab1", 0), PENDING, 1.0)])
+    with pytest.raises(TypeError, match="cannot store object"):
+        store.commit_group([("CVLab1", 0)], tracks(2), {"bad": object()}, 10.0, {"processed": 1})
+    assert store.status_counts() == {PENDING: 1}
+    assert len(store.tracks()) == 0
+    assert store.released_timestamp() is None
+    assert "processed" not in store.counters()
+
+
+def test_bind_refuses_a_database_of_another_matcher(store):
+    store.bind({"plane_id": 1, "camera_ids": ["a", "b"]})
+    store.bind({"plane_id": 1, "camera_ids": ["a", "b"]})
+    with pytest.raises(StoreError, match=r"plane_id=1, not 2; use another --db"):
+        store.bind({"plane_id": 2, "camera_ids": ["a", "b"]})
+
+
+@pytest.mark.parametrize(
+    ("content", "read_only", "expected"),
+    [
+        (None, True, "does not exist"),
+        (b"this is not a database, just some text" * 20, False, "is not a usable SQLite database"),
+    ],
+)
+def test_unusable_files_are_reported(tmp_path, content, read_only, expected):
+    path = tmp_path / "runtime.db"
+    if content is not None:
+        path.write_bytes(content)
+    with pytest.raises(StoreError, match=expected):
+        RuntimeStore(path, read_only=read_only)
+
+
+def test_read_only_reader_sees_a_writer_commits(tmp_path):
+    path = tmp_path / "runtime.db"
+    with RuntimeStore(path) as writer:
+        writer.add_counters({"received": 2})
+        with RuntimeStore(path, read_only=True) as reader:
+            assert reader.counters() == {"received": 2}
+            writer.add_counters({"received": 3})
+            assert reader.summary()["counters"] == {"received": 5}
+
+
+@settings(max_examples=15, deadline=None)
+@given(
+    timestamp=st.floats(allow_nan=False, allow_infinity=False, width=64),
+    sequence=st.integers(0, 2**53),
+    colours=st.lists(st.tuples(*[st.integers(0, 65535)] * 3), max_size=5),
+)
+def test_message_round_trip_property(tmp_path_factory, timestamp, sequence, colours):
+    count = len(colours)
+    original = CameraMessage(
+        "cam", sequence, timestamp, 0, np.zeros((count, 4)), np.ones(count),
+        np.zeros(count, np.int64), np.array(colours, dtype=np.int64).reshape(count, 3),
+    )
+    with RuntimeStore(tmp_path_factory.mktemp("db") / "r.db") as store:
+        store.insert_messages([(original, PENDING, 0.0)])
+        (back,) = store.messages()
+    assert back.message.timestamp == timestamp
+    assert back.message.sequence == sequence
+    np.testing.assert_array_equal(back.message.colour, original.colour)
