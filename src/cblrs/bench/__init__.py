@@ -4,8 +4,9 @@ Every benchmark returns a JSON-ready dict with a ``machine`` entry and medians o
 :mod:`cblrs.bench.report` turns them into markdown tables.
 """
 
+from cblrs.bench.claims import benchmark_claims
 from cblrs.bench.lookup import benchmark_lookup
 from cblrs.bench.machine import machine_info
 from cblrs.bench.render import benchmark_render
 
-__all__ = ["benchmark_lookup", "benchmark_render", "machine_info"]
+__all__ = ["benchmark_claims", "benchmark_lookup", "benchmark_render", "machine_info"]

@@ -1,0 +1,67 @@
+"""`cblrs bench claims`: each claim of the reference image, measured on small inputs."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from cblrs.cli.main import main
+
+
+@pytest.fixture(scope="module")
+def claims():
+    from cblrs.bench.claims import benchmark_claims
+
+    return benchmark_claims(count=3000, repeats=1, seed=1)
+
+
+def test_distortion_colour_is_exact_homography_is_not(claims):
+    errors = claims["distortion"]["errors"]
+    homography = errors["homography (ignores the lens)"]
+    colour_16 = errors["colour, 16 bit"]
+    colour_8 = errors["colour, 8 bit"]
+    assert homography["p95_cm"] > 10.0
+    assert colour_16["max_cm"] < 1.0
+    step_x, step_y = claims["distortion"]["steps_m"]["8"]
+    # 8 bit: within half a cell diagonal (plus a little for nearest-pixel reading).
+    assert colour_8["max_cm"] <= 100 * 0.5 * (step_x**2 + step_y**2) ** 0.5 + 1.0
+
+
+def test_non_planar_ground(claims):
+    terraces = claims["non_planar"]["terraces"]
+    assert terraces["0 m"]["homography_z0"]["max_cm"] < 0.01
+    assert terraces["1 m"]["homography_z0"]["median_cm"] > 100.0
+    assert terraces["1 m"]["colour_16bit"]["max_cm"] < 0.1
+    ramp = claims["non_planar"]["ramp"]["errors"]
+    medians = [ramp[f"colour_16bit_{strips}_strips"]["median_cm"] for strips in (1, 5, 20, 80)]
+    assert medians == sorted(medians, reverse=True)
+    assert medians[-1] < ramp["homography_z0"]["median_cm"] / 20
+
+
+def test_several_planes(claims):
+    bridge = claims["several_planes"]["bridge"]
+    assert bridge["pixels_on_bridge"] > 0
+    assert bridge["plane_id_correct_fraction"] > 0.999
+    assert bridge["colour_16bit"]["max_cm"] < 0.1
+    assert bridge["homography_z0"]["median_cm"] > 500.0
+    distant = claims["several_planes"]["distant_areas"]["8 bit"]
+    assert distant["two_planes"]["max_cm"] < distant["one_plane"]["median_cm"]
+
+
+def test_camera_side(claims):
+    rows = {
+        row["method"].split(",")[0].split(" (")[0]: row for row in claims["camera_side"]["rows"]
+    }
+    colour = rows["colour reference"]
+    assert not colour["needs_calibration"] and not colour["knows_world_coordinates"]
+    assert rows["homography"]["needs_calibration"]
+    assert colour["stored_bytes"] < rows["LUT"]["stored_bytes"] / 10
+
+
+def test_claims_cli(tmp_path, capsys):
+    argv = ["bench", "claims", "--n", "500", "--repeats", "1", "--out", str(tmp_path)]
+    assert main(argv) == 0
+    assert "Lens distortion" in capsys.readouterr().out
+    saved = json.loads((tmp_path / "bench_claims.json").read_text())
+    assert saved["n"] == 500
