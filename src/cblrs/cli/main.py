@@ -31,6 +31,7 @@ SUBCOMMANDS = [
     "eval",
     "camera",
     "matcher",
+    "demo",
 ]
 
 

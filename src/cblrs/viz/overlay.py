@@ -90,8 +90,8 @@ def camera_overlay(
     for row in range(len(detections)):
         colour = id_colour(int(ids[row]))
         x0, y0, x1, y1 = (round(value) for value in detections.xyxy[row])
-        cv2.rectangle(image, (x0, y0), (x1, y1), (0, 0, 0), thickness + 2, cv2.LINE_AA)
-        cv2.rectangle(image, (x0, y0), (x1, y1), colour, thickness, cv2.LINE_AA)
+        cv2.rectangle(image, (x0, y0), (x1, y1), (0, 0, 0), thickness + 2, cv2.LINE_8)
+        cv2.rectangle(image, (x0, y0), (x1, y1), colour, thickness, cv2.LINE_8)
         class_id = int(detections.class_id[row])
         name = CLASS_NAMES[class_id] if 0 <= class_id < len(CLASS_NAMES) else str(class_id)
         if ids[row] < 0:

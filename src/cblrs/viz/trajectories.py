@@ -115,8 +115,8 @@ def _draw_cameras(
                 seen.astype(float),
                 levels=[0.5],
                 colors=[colour_float],
-                linewidths=0.9,
-                alpha=0.6,
+                linewidths=0.9 if len(cameras) <= 2 else 0.7,
+                alpha=0.6 if len(cameras) <= 2 else 0.45,
                 zorder=0,
             )
         elif seen.all() and len(cameras) <= 2:
@@ -205,35 +205,13 @@ def _draw_tracks(ax: Axes, tracks: Tracks, coloured: bool, line_width: float) ->
             )
 
 
-def _legend(ax: Axes, show_ground_truth: bool, show_cameras: bool) -> None:
+def _legend_handles(show_ground_truth: bool, show_cameras: bool) -> list:
     from matplotlib.lines import Line2D
 
-    handles = [
-        Line2D([], [], color="tab:blue", linewidth=1.8, label="track (colour = id)"),
-        Line2D(
-            [],
-            [],
-            marker="o",
-            color="0.3",
-            markeredgecolor="k",
-            linestyle="none",
-            markersize=5,
-            label="start",
-        ),
-        Line2D(
-            [],
-            [],
-            marker="s",
-            color="0.3",
-            markeredgecolor="k",
-            linestyle="none",
-            markersize=5,
-            label="end",
-        ),
-    ]
+    marker = {"color": "0.3", "markeredgecolor": "k", "linestyle": "none", "markersize": 5}
+    handles = []
     if show_ground_truth:
-        handles.insert(
-            0,
+        handles.append(
             Line2D(
                 [],
                 [],
@@ -241,8 +219,13 @@ def _legend(ax: Axes, show_ground_truth: bool, show_cameras: bool) -> None:
                 linestyle="--",
                 linewidth=1.2,
                 label="ground truth",
-            ),
+            )
         )
+    handles += [
+        Line2D([], [], color="tab:blue", linewidth=1.8, label="track (colour = id)"),
+        Line2D([], [], marker="o", label="start", **marker),
+        Line2D([], [], marker="s", label="end", **marker),
+    ]
     if show_cameras:
         handles.append(
             Line2D(
@@ -253,17 +236,10 @@ def _legend(ax: Axes, show_ground_truth: bool, show_cameras: bool) -> None:
                 markeredgecolor=CAMERA_COLOUR,
                 linestyle="none",
                 markersize=8,
-                label="camera + view",
+                label="camera, its view outlined",
             )
         )
-    ax.legend(
-        handles=handles,
-        loc="upper center",
-        bbox_to_anchor=(0.5, -0.12),
-        ncol=3,
-        fontsize=7.5,
-        frameon=False,
-    )
+    return handles
 
 
 def _panel(
@@ -287,7 +263,6 @@ def _panel(
     ax.set_xlabel("x [m]")
     ax.set_ylabel("y [m]")
     ax.grid(True, linewidth=0.4, alpha=0.4)
-    _legend(ax, ground_truth is not None and len(ground_truth) > 0, bool(cameras))
 
 
 def plot_trajectories(
@@ -348,8 +323,18 @@ def plot_trajectories(
         _draw_markings(axis, markings)
     for axis, (name, tracks) in zip(axes, named.items(), strict=False):
         _panel(axis, name, tracks, ground_truth, cameras, area)
-    if not single:
+    handles = _legend_handles(len(ground_truth) > 0, bool(cameras))
+    if single:
+        axes[0].legend(handles=handles, loc="best", fontsize=7.5, framealpha=0.85)
+    else:
         _panel(axes[-1], "ground truth", ground_truth, None, cameras, area)
+        figure.legend(
+            handles=handles,
+            loc="outside lower center",
+            ncol=len(handles),
+            fontsize=8.5,
+            frameon=False,
+        )
         if title:
             figure.suptitle(title, fontsize=13)
     return figure
