@@ -70,6 +70,20 @@ def render_scene_references(scene: Scene, bits: int = 16) -> list[ReferenceImage
     return [render_reference(camera, planes) for camera in scene.cameras]
 
 
+def camera_positions(scene: Scene) -> dict[str, tuple[float, float]]:
+    """Ground positions ``{name: (x, y)}`` metres of the scene's cameras that have a pose.
+
+    The matcher uses them to let measurement noise grow with distance from the camera.
+    Camera placement is configuration the central node has anyway (it is needed to render
+    the reference images); no per-frame data beyond colours is involved.
+    """
+    return {
+        camera.name: (float(camera.centre[0]), float(camera.centre[1]))
+        for camera in scene.cameras
+        if camera.has_pose
+    }
+
+
 def scene_messages(
     scene: Scene, references: Sequence[ReferenceImage]
 ) -> Iterator[tuple[float, list[CameraMessage]]]:
@@ -149,6 +163,8 @@ def track_scene(
         render_seconds = time.perf_counter() - start
     references = list(references)
     if isinstance(matcher, str):
+        if matcher == "fusion" and "camera_positions" not in matcher_options:
+            matcher_options["camera_positions"] = camera_positions(scene)
         matcher = make_matcher(
             matcher, references[0].planes if references else scene_planes(scene, bits),
             scene.camera_names, **matcher_options,

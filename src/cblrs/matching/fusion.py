@@ -12,7 +12,8 @@ observation of one point. Per instant:
    detection from each camera, a detection feeds at most one track);
 4. fuse each track's detections (inverse-variance weighted mean) and update the filter once;
 5. cluster the leftover detections across cameras (at most one per camera per cluster,
-   complete linkage within ``cluster_radius_m``) and start a tentative track per cluster;
+   complete linkage within ``cluster_sigmas`` standard deviations of the difference) and
+   start a tentative track per cluster;
 6. confirm tracks with enough evidence (camera detections), merge duplicates (two tracks
    that stay close without any camera seeing both), delete tracks unseen for too long.
 
@@ -68,22 +69,30 @@ class FusionConfig:
     """Options of the fusion tracker, all in physical units.
 
     Attributes:
-        measurement_sigma_m: standard deviation of one camera's ground position of a person
-            (target pixel error seen on the ground), metres, close to the camera.
-        class_measurement_sigma_m: the same for other classes, ``{class name: metres}``;
-            distances that decide whether two detections can be one object (gate cap,
-            cluster and join radii) grow in proportion.
-        sigma_per_distance: added standard deviation per metre of distance between camera
-            and object (needs ``camera_positions``); a pixel error covers more ground far
-            away. Dimensionless (metres per metre).
+        measurement_sigma_m: initial standard deviation of one camera's ground position of
+            an object, metres, independent of distance (the prior of the noise model).
+        sigma_per_distance: initial standard deviation per metre of distance between camera
+            and object (needs ``camera_positions``): a pixel error covers more ground far
+            away. Dimensionless. The noise model is ``sigma**2 = a**2 + (b * distance)**2``.
+        adapt_noise: re-estimate ``a`` and ``b`` online from the disagreement of the cameras
+            that see the same object at the same instant (so the same defaults serve exact
+            boxes and a noisy detector); False keeps the initial values.
+        class_measurement_sigma_m: extra standard deviation (added in quadrature) for classes
+            whose footprint is large (vehicles: the box bottom only bounds it), metres;
+            the gate cap and the cluster radius grow with it.
         camera_positions: optional ``{camera_id: (x, y)}`` ground positions of the cameras,
-            metres; without them the measurement noise is constant.
+            metres; without them the measurement noise does not depend on distance.
         acceleration_sigma: white-noise acceleration of a person's motion model, m/s^2.
         class_acceleration_sigma: the same for other classes, ``{class name: m/s^2}``.
         initial_velocity_sigma: velocity uncertainty of a new track, m/s.
         gate_sigmas: Mahalanobis gate on the innovation (standard deviations).
         max_gate_m: hard cap on the distance between a track and a detection it takes, metres.
-        cluster_radius_m: largest distance between two cameras' detections of one new object.
+        cluster_sigmas: two cameras' detections can be one object when their distance is
+            within this many standard deviations of their difference,
+            ``sqrt(sigma_1**2 + sigma_2**2)``, or within ``cluster_radius_m``.
+        cluster_radius_m: smallest such radius for people (two views of one person land
+            apart by body size and calibration error however precise the boxes); grows with
+            the class's size for vehicles.
         merge_radius_m: two confirmed tracks closer than this, observed at the same instant
             by disjoint sets of cameras, are one object seen twice; the younger one is dropped.
         confirm_evidence: camera detections (summed over instants) a track needs before it
@@ -95,10 +104,11 @@ class FusionConfig:
     """
 
     measurement_sigma_m: float = 0.2
+    sigma_per_distance: float = 0.01
+    adapt_noise: bool = True
     class_measurement_sigma_m: Mapping[str, float] = field(
         default_factory=lambda: dict(DEFAULT_CLASS_MEASUREMENT_SIGMA_M)
     )
-    sigma_per_distance: float = 0.0
     camera_positions: Mapping[str, Sequence[float]] | None = None
     acceleration_sigma: float = 1.0
     class_acceleration_sigma: Mapping[str, float] = field(
@@ -107,6 +117,7 @@ class FusionConfig:
     initial_velocity_sigma: float = 1.5
     gate_sigmas: float = 4.0
     max_gate_m: float = 2.0
+    cluster_sigmas: float = 3.5
     cluster_radius_m: float = 1.0
     merge_radius_m: float = 0.4
     confirm_evidence: int = 2
@@ -117,7 +128,8 @@ class FusionConfig:
     def __post_init__(self) -> None:
         for name in (
             "measurement_sigma_m", "acceleration_sigma", "initial_velocity_sigma",
-            "gate_sigmas", "max_gate_m", "cluster_radius_m", "tentative_max_age_s", "max_age_s",
+            "gate_sigmas", "max_gate_m", "cluster_sigmas", "cluster_radius_m",
+            "tentative_max_age_s", "max_age_s",
         ):
             value = getattr(self, name)
             require(_positive(value), f"{name} must be a positive number, got {value!r}.")
@@ -127,6 +139,10 @@ class FusionConfig:
                 _positive(value) or value == 0,
                 f"{name} must be zero or a positive number, got {value!r}.",
             )
+        require(
+            isinstance(self.adapt_noise, bool),
+            f"adapt_noise must be true or false, got {self.adapt_noise!r}.",
+        )
         require(
             isinstance(self.confirm_evidence, int) and not isinstance(self.confirm_evidence, bool)
             and self.confirm_evidence >= 1,
@@ -191,15 +207,17 @@ class FusionTracker:
                 self._camera_xy[self._cameras[name]] = position
         config = self.config
         # Per class id (index into CLASS_NAMES; one extra slot for unknown ids).
-        self._class_sigma = np.array(
-            [config.class_measurement_sigma_m.get(name, config.measurement_sigma_m)
-             for name in CLASS_NAMES] + [config.measurement_sigma_m]
+        self._class_extra = np.array(
+            [config.class_measurement_sigma_m.get(name, 0.0) for name in CLASS_NAMES] + [0.0]
+        )
+        # Gate caps and cluster radii scale with the class's size relative to a person.
+        self._class_scale = np.hypot(self._class_extra, config.measurement_sigma_m) / (
+            config.measurement_sigma_m
         )
         self._class_acceleration = np.array(
             [config.class_acceleration_sigma.get(name, config.acceleration_sigma)
              for name in CLASS_NAMES] + [config.acceleration_sigma]
         )
-        self._class_scale = self._class_sigma / config.measurement_sigma_m
         self.reset()
 
     def _class_slot(self, class_id: np.ndarray) -> np.ndarray:
@@ -213,6 +231,9 @@ class FusionTracker:
         self._next_id = 1
         self._ids = np.zeros(0, np.int64)  # -1 while tentative
         self._class = np.zeros(0, np.int64)
+        self._noise = NoiseModel(
+            self.config.measurement_sigma_m, self.config.sigma_per_distance
+        )
         self._state = np.zeros((0, 4))
         self._covariance = np.zeros((0, 4, 4))
         self._evidence = np.zeros(0, np.int64)
@@ -229,6 +250,7 @@ class FusionTracker:
             "camera_ids": list(self.camera_ids),
             "time": self._time,
             "next_id": self._next_id,
+            "noise": self._noise.get_state(),
             "ids": self._ids.tolist(),
             "class_id": self._class.tolist(),
             "state": self._state.tolist(),
@@ -249,13 +271,14 @@ class FusionTracker:
             time = state["time"]
             self._time = None if time is None else float(time)
             self._next_id = int(state["next_id"])
+            self._noise.set_state(state["noise"])
             self._ids = np.asarray(state["ids"], np.int64).reshape(-1)
             self._class = np.asarray(state["class_id"], np.int64).reshape(-1)
             self._state = np.asarray(state["state"], np.float64).reshape(-1, 4)
             self._covariance = np.asarray(state["covariance"], np.float64).reshape(-1, 4, 4)
             self._evidence = np.asarray(state["evidence"], np.int64).reshape(-1)
             self._last_seen = np.asarray(state["last_seen"], np.float64).reshape(-1)
-        except (KeyError, TypeError, ValueError) as error:
+        except (KeyError, TypeError, ValueError, IndexError) as error:
             raise MatcherError(f"the saved fusion-tracker state is incomplete: {error}.") from None
         columns = (self._ids, self._class, self._state, self._covariance, self._evidence,
                    self._last_seen)
@@ -272,6 +295,9 @@ class FusionTracker:
 
         assigned = self._associate(observed, variance)
         assigned = self._join_observed(observed, variance, assigned)
+        if self.config.adapt_noise:
+            plain = self._class_extra[self._class_slot(observed.class_id)] == 0
+            self._noise.learn(observed.world_xy, self._distance, np.where(plain, assigned, -1))
         track_count = len(self._ids)
         seen_now = np.zeros(track_count, dtype=bool)
         report_camera = np.full(track_count, -1, np.int64)
@@ -342,14 +368,18 @@ class FusionTracker:
         else:
             self._time = timestamp
 
+    def _camera_distance(self, observed: Observations) -> np.ndarray:
+        """(N,) metres from each detection's camera (0 where the camera is not placed)."""
+        distance = np.linalg.norm(observed.world_xy - self._camera_xy[observed.camera], axis=1)
+        return np.where(np.isfinite(distance), distance, 0.0)
+
     def _measurement_variance(self, observed: Observations) -> np.ndarray:
-        sigma = self._class_sigma[self._class_slot(observed.class_id)]
-        if self.config.sigma_per_distance > 0 and len(observed):
-            camera_xy = self._camera_xy[observed.camera]
-            distance = np.linalg.norm(observed.world_xy - camera_xy, axis=1)
-            known = np.isfinite(distance)
-            sigma[known] += self.config.sigma_per_distance * distance[known]
-        return sigma**2
+        self._distance = self._camera_distance(observed)
+        extra = self._class_extra[self._class_slot(observed.class_id)]
+        # The model may learn that cameras agree closely, but a person is not a point:
+        # below measurement_sigma_m the filter would chase annotation jitter.
+        floor = self.config.measurement_sigma_m**2
+        return np.maximum(self._noise.variance(self._distance), floor) + extra**2
 
     def _associate(self, observed: Observations, variance: np.ndarray) -> np.ndarray:
         """Track row of each detection (-1: none); one detection per camera per track."""
@@ -365,10 +395,12 @@ class FusionTracker:
         dx = observed.world_xy[:, 0, None] - self._state[None, :, 0]
         dy = observed.world_xy[:, 1, None] - self._state[None, :, 1]
         mahalanobis = (d * dx * dx - 2.0 * b * dx * dy + a * dy * dy) / determinant
-        cap = self.config.max_gate_m * self._class_scale[self._class_slot(self._class)]
+        # The metric cap grows with the class's noise (vehicles), not with distance: far
+        # detections are weighted down, but must not reach across a crowd.
+        cap = self.config.max_gate_m * self._class_scale[self._class_slot(observed.class_id)]
         gated = (
             (mahalanobis <= self.config.gate_sigmas**2)
-            & (dx * dx + dy * dy <= cap[None, :] ** 2)
+            & (dx * dx + dy * dy <= cap[:, None] ** 2)
             & (observed.class_id[:, None] == self._class[None, :])
         )
         if not gated.any():
@@ -385,8 +417,8 @@ class FusionTracker:
 
         The gate is a boundary in the prediction's frame; when it cuts through the views of
         one object (a sudden turn), some cameras take the track and the rest would start a
-        duplicate. Leftovers within ``cluster_radius_m`` of a track's fused position this
-        instant, from a camera that gave the track nothing, join it instead.
+        duplicate. Leftovers within ``cluster_sigmas`` of a track's fused position this instant,
+        from a camera that gave the track nothing, join it instead.
         """
         matched = assigned >= 0
         leftover = np.flatnonzero(~matched)
@@ -406,10 +438,15 @@ class FusionTracker:
         distance = np.linalg.norm(
             observed.world_xy[leftover, None, :] - fused[None, :, :], axis=2
         )
-        radius = self.config.cluster_radius_m * self._class_scale[
-            self._class_slot(observed.class_id[leftover])]
+        radius = np.maximum(
+            self.config.cluster_sigmas * np.sqrt(
+                variance[leftover, None] + 1.0 / weight_sum[seen][None, :]
+            ),
+            self.config.cluster_radius_m
+            * self._class_scale[self._class_slot(observed.class_id[leftover])][:, None],
+        )
         gated = (
-            (distance <= radius[:, None])
+            (distance <= radius)
             & ~taken[seen][:, observed.camera[leftover]].T
             & (observed.class_id[leftover, None] == self._class[seen][None, :])
         )
@@ -441,10 +478,10 @@ class FusionTracker:
     def _birth(self, leftovers: Observations, variance: np.ndarray, timestamp: float) -> int:
         """Start a tentative track per cross-camera cluster of unassigned detections."""
         labels = cluster_detections(
-            leftovers.world_xy, leftovers.camera,
-            self.config.cluster_radius_m * self._class_scale[
-                self._class_slot(leftovers.class_id)],
-            leftovers.class_id,
+            leftovers.world_xy, leftovers.camera, np.sqrt(variance),
+            self.config.cluster_sigmas, leftovers.class_id,
+            self.config.cluster_radius_m
+            * self._class_scale[self._class_slot(leftovers.class_id)],
         )
         count = int(labels.max()) + 1 if len(labels) else 0
         camera_count = len(self.camera_ids)
@@ -519,6 +556,92 @@ def _subset(observed: Observations, mask: np.ndarray) -> Observations:
     )
 
 
+class NoiseModel:
+    """Online estimate of the detector's ground-position noise, ``a**2 + (b * distance)**2``.
+
+    Two cameras' detections of one object at one instant differ by the sum of two
+    independent errors, so ``|z_1 - z_2|**2 / 2 = 2 a**2 + b**2 (d_1**2 + d_2**2)`` on
+    average (per axis variance, 2-D). The model is the least-squares fit of that line over
+    recent pairs (exponentially forgotten), anchored by a prior worth a few dozen pairs at
+    5 and 25 m. Squared differences are clipped at nine times the current prediction so one
+    wrong association cannot inflate the noise.
+    """
+
+    prior_pairs = 40.0
+    forget_per_pair = 0.9995  # memory of a few thousand pairs
+    minimum_sigma_m = 0.02
+    prior_distances_m = (5.0, 25.0)
+
+    def __init__(self, sigma_m: float, sigma_per_distance: float):
+        self.prior = np.array([sigma_m**2, sigma_per_distance**2])
+        self.reset()
+
+    def reset(self) -> None:
+        self.normal = np.zeros((2, 2))
+        self.moment = np.zeros(2)
+        for distance in self.prior_distances_m:
+            feature = np.array([2.0, 2.0 * distance**2])
+            weight = self.prior_pairs / len(self.prior_distances_m)
+            self.normal += weight * np.outer(feature, feature)
+            self.moment += weight * feature * (feature @ self.prior)
+        self.coefficients = self.prior.copy()
+
+    def variance(self, distance: np.ndarray) -> np.ndarray:
+        """(N,) per-axis variance, square metres, at distances (N,) metres."""
+        return self.coefficients[0] + self.coefficients[1] * distance**2
+
+    def learn(self, world_xy: np.ndarray, distance: np.ndarray, track: np.ndarray) -> None:
+        """Update from detections assigned to tracks (``track`` (N,), -1 to ignore)."""
+        rows = np.flatnonzero(track >= 0)
+        if len(rows) < 2:
+            return
+        rows = rows[np.argsort(track[rows], kind="stable")]
+        same = track[rows[1:]] == track[rows[:-1]]
+        first, second = rows[:-1][same], rows[1:][same]
+        if len(first) == 0:
+            return
+        features = np.column_stack(
+            [np.full(len(first), 2.0), distance[first] ** 2 + distance[second] ** 2]
+        )
+        target = 0.5 * np.sum((world_xy[first] - world_xy[second]) ** 2, axis=1)
+        target = np.minimum(target, 9.0 * features @ self.coefficients)
+        decay = self.forget_per_pair ** len(first)
+        self.normal = decay * self.normal + features.T @ features
+        self.moment = decay * self.moment + features.T @ target
+        self._solve()
+
+    def _solve(self) -> None:
+        floor = self.minimum_sigma_m**2
+        try:
+            a, b = np.linalg.solve(self.normal, self.moment)
+        except np.linalg.LinAlgError:
+            return
+        if b < 0:  # no distance dependence: fit the constant alone
+            b = 0.0
+            a = self.moment[0] / self.normal[0, 0]
+        self.coefficients = np.array([max(a, floor), b])
+
+    @property
+    def sigma_m(self) -> float:
+        return float(np.sqrt(self.coefficients[0]))
+
+    @property
+    def sigma_per_distance(self) -> float:
+        return float(np.sqrt(self.coefficients[1]))
+
+    def get_state(self) -> dict:
+        return {
+            "normal": self.normal.tolist(),
+            "moment": self.moment.tolist(),
+            "coefficients": self.coefficients.tolist(),
+        }
+
+    def set_state(self, state: dict) -> None:
+        self.normal = np.asarray(state["normal"], np.float64).reshape(2, 2)
+        self.moment = np.asarray(state["moment"], np.float64).reshape(2)
+        self.coefficients = np.asarray(state["coefficients"], np.float64).reshape(2)
+
+
 def assign_per_camera(
     cost: np.ndarray, gated: np.ndarray, camera: np.ndarray, camera_count: int
 ) -> np.ndarray:
@@ -567,21 +690,26 @@ def assign_per_camera(
 def cluster_detections(
     world_xy: np.ndarray,
     camera: np.ndarray,
-    radius_m: float | np.ndarray,
+    sigma_m: float | np.ndarray,
+    sigmas: float,
     class_id: np.ndarray | None = None,
+    minimum_radius_m: float | np.ndarray = 0.0,
 ) -> np.ndarray:
     """Group same-instant detections of several cameras into objects.
 
-    Complete-linkage agglomeration over pairs closer than their radius (closest first), with
+    Complete-linkage agglomeration over pairs closer than ``sigmas`` standard deviations of
+    their difference (closest first), with
     at most one detection per camera and one class in a cluster (a camera sees an object
     once).
 
     Args:
         world_xy: (N, 2) float64 metres.
         camera: (N,) int64 camera index of each detection.
-        radius_m: largest distance between two members of a cluster, metres; scalar or (N,)
-            per detection (a pair uses the larger of its two).
+        sigma_m: position noise of each detection, metres, scalar or (N,).
+        sigmas: a pair is compatible within ``sigmas * sqrt(sigma_1**2 + sigma_2**2)``.
         class_id: (N,) int64 classes; None treats all detections as one class.
+        minimum_radius_m: a pair is always compatible within this distance, metres, scalar
+            or (N,) (a pair uses the larger of its two).
 
     Returns:
         (N,) int64 cluster labels 0..K-1, numbered by first member.
@@ -590,8 +718,12 @@ def cluster_detections(
     if count == 0:
         return np.zeros(0, np.int64)
     distance = np.linalg.norm(world_xy[:, None] - world_xy[None], axis=2)
-    radius = np.broadcast_to(np.asarray(radius_m, np.float64), (count,))
-    pair_radius = np.maximum(radius[:, None], radius[None, :])
+    variance = np.broadcast_to(np.asarray(sigma_m, np.float64) ** 2, (count,))
+    minimum = np.broadcast_to(np.asarray(minimum_radius_m, np.float64), (count,))
+    pair_radius = np.maximum(
+        sigmas * np.sqrt(variance[:, None] + variance[None, :]),
+        np.maximum(minimum[:, None], minimum[None, :]),
+    )
     candidate = (distance <= pair_radius) & (camera[:, None] != camera[None, :])
     if class_id is not None:
         candidate &= class_id[:, None] == class_id[None, :]
