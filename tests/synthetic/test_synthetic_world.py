@@ -14,6 +14,7 @@ from cblrs.datasets.synthetic import (
     LoopPath,
     MovingObject,
     RandomWalkPath,
+    Structure,
     SyntheticWorld,
     WaypointPath,
     WorldSpec,
@@ -280,3 +281,34 @@ def test_empty_world_gives_an_empty_scene():
     scene = SyntheticWorld(WorldSpec("w", (camera,), (), area=(0, 0, 1, 1), duration_s=1)).scene()
     assert len(scene.ground_truth) == 0
     assert all(len(d) == 0 for row in scene.detections for d in row)
+
+
+def test_structure_hides_a_person_behind_it_but_not_one_beside_it():
+    wall = Structure((2.0, 0.0), (0.5, 4.0, 3.0), 0.0, "wall")
+    objects = [standing(1, 5.0, 0.0), standing(2, 5.0, 6.0)]
+    scene = SyntheticWorld(single_camera_world(objects, structures=(wall,))).scene()
+    assert scene.detections[0][0].object_id.tolist() == [2]
+    assert sorted(scene.ground_truth.track_id.tolist()) == [1, 2]
+
+
+@pytest.mark.parametrize(
+    ("end", "blocked"),
+    [
+        ((5.0, 0.0, 1.0), True),  # straight through the block
+        ((5.0, 0.0, 10.0), False),  # over it
+        ((5.0, 5.0, 1.0), False),  # beside it
+        ((0.5, 0.0, 1.0), False),  # stops before it
+        ((1.6, 0.0, 1.0), True),  # ends inside it
+    ],
+)
+def test_structure_blocks_table(end, blocked):
+    block = Structure((2.0, 0.0), (1.0, 2.0, 3.0), 0.0)
+    result = block.blocks(np.array([0.0, 0.0, 1.0]), np.array([end]))
+    assert result.tolist() == [blocked]
+
+
+def test_rotated_structure_blocks_along_its_length():
+    beam = Structure((0.0, 0.0), (10.0, 0.4, 2.0), 90.0)  # a thin wall along world y
+    origin = np.array([-3.0, 0.0, 1.0])
+    assert beam.blocks(origin, np.array([[3.0, 4.0, 1.0]])).tolist() == [True]
+    assert beam.blocks(origin, np.array([[-1.0, 4.0, 1.0]])).tolist() == [False]
