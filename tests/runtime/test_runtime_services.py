@@ -1,0 +1,611 @@
+"""Camera node, detection sources, matcher-service ordering, two planes, and the CLIs."""
+
+from __future__ import annotations
+
+import json
+import re
+import threading
+import time
+from dataclasses import replace
+from types import SimpleNamespace
+
+import cv2
+import numpy as np
+import pytest
+
+from cblrs.camera import Camera
+from cblrs.cli.main import main
+from cblrs.datasets import load_scene
+from cblrs.detections import CameraMessage, Detections
+from cblrs.edge import make_message
+from cblrs.errors import CblrsError, DatasetError
+from cblrs.matching import make_matcher
+from cblrs.pipeline import scene_planes
+from cblrs.plane import PlaneSet, PlaneSpec
+from cblrs.reference import render_reference
+from cblrs.runtime.camera_node import CameraNode, camera_last_will
+from cblrs.runtime.matcher_service import MatcherService, ServiceClock
+from cblrs.runtime.sources import (
+    ColourBlobDetector,
+    Detector,
+    SourceFrame,
+    YoloDetector,
+    aicity_source,
+    detections_from_ultralytics,
+    image_folder_source,
+    mot_source,
+    scene_source,
+    video_source,
+)
+from cblrs.runtime.store import LATE, RuntimeStore
+from cblrs.runtime.topics import detections_topic, status_topic
+from cblrs.runtime.transport import InProcessBroker, InProcessTransport, MqttTransport, Will
+from cblrs.runtime.wire import decode_message, decode_status, encode_message, encode_status
+
+PLANE = 1
+
+
+def wait_until(predicate, timeout: float, what: str) -> None:
+    deadline = time.monotonic() + timeout
+    while not predicate():
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out after {timeout} s waiting for {what}")
+        time.sleep(0.01)
+
+
+@pytest.fixture(scope="module")
+def small_world():
+    """A 320x240 camera looking at a 40 m x 40 m plane, and its reference image."""
+    camera = Camera.from_pose("cam1", (0, -10, 8), 90, 35, 450, (320, 240))
+    plane = PlaneSpec(PLANE, (-20, -5), 40, 40)
+    return camera, render_reference(camera, plane)
+
+
+# -- detection sources ----------------------------------------------------------------
+
+
+def test_mot_source_fills_frames_without_detections(tmp_path):
+    path = tmp_path / "det.txt"
+    path.write_text(
+        "# frame,id,x,y,w,h,conf\n5,1,10,20,30,40,0.5\n5,2,0,0,1,1,-1\n"
+        "15,1,11,21,30,40,0.9\n20,1,12,21,30,40,0.9\n"
+    )
+    frames = list(mot_source(path, fps=10))
+    assert [frame.frame for frame in frames] == [5, 10, 15, 20]
+    assert [frame.timestamp for frame in frames] == [0.5, 1.0, 1.5, 2.0]
+    assert [len(frame.detections) for frame in frames] == [2, 0, 1, 1]
+    np.testing.assert_array_equal(frames[0].detections.xyxy[0], [10, 20, 40, 60])
+    np.testing.assert_array_equal(frames[0].detections.confidence, [0.5, 1.0])
+    np.testing.assert_array_equal(frames[0].detections.object_id, [1, 2])
+
+
+@pytest.mark.parametrize(
+    ("text", "step", "expected"),
+    [
+        ("", None, []),
+        ("3,1,0,0,1,1\n", None, [3]),
+        ("1,1,0,0,1,1\n4,1,0,0,1,1\n", 1, [1, 2, 3, 4]),
+        ("0,1,0,0,1,1\n10,1,0,0,1,1\n4,1,0,0,1,1\n", None, [0, 2, 4, 6, 8, 10]),
+    ],
+)
+def test_mot_source_frame_steps(tmp_path, text, step, expected):
+    path = tmp_path / "det.txt"
+    path.write_text(text)
+    assert [frame.frame for frame in mot_source(path, fps=1, frame_step=step)] == expected
+
+
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        ("1,2,3\n", "data line 1 has 3 fields; a MOT"),
+        ("1,2,3,4,5,x\n", "data line 1 is not numeric"),
+        ("1,2,3,4,5,nan\n", "contains NaN or infinite values"),
+    ],
+)
+def test_mot_source_errors(tmp_path, text, message):
+    path = tmp_path / "det.txt"
+    path.write_text(text)
+    with pytest.raises(DatasetError, match=message):
+        list(mot_source(path, fps=10))
+
+
+def test_missing_detections_file(tmp_path):
+    with pytest.raises(DatasetError, match="does not exist"):
+        list(mot_source(tmp_path / "none.txt", fps=10))
+
+
+def test_aicity_source_keeps_one_camera(tmp_path):
+    path = tmp_path / "aicity.txt"
+    path.write_text("1 7 0 10 20 30 40 1.0 2.0\n2 8 0 0 0 5 5 0 0\n1 7 1 12 20 30 40 1.1 2.0\n")
+    frames = list(aicity_source(path, fps=30, camera_number=1))
+    assert [frame.frame for frame in frames] == [0, 1]
+    np.testing.assert_array_equal(frames[1].detections.xyxy, [[12, 20, 42, 60]])
+    with pytest.raises(DatasetError, match=r"no rows of camera 3; it has \[1, 2\]"):
+        list(aicity_source(path, fps=30, camera_number=3))
+
+
+def _draw_frames(folder, count: int) -> list[list[tuple[int, int, int, int]]]:
+    """PNG frames with red rectangles; returns the expected boxes (x0, y0, x1, y1) per frame."""
+    folder.mkdir(parents=True, exist_ok=True)
+    expected = []
+    for index in range(count):
+        image = np.full((240, 320, 3), 40, np.uint8)
+        boxes = [(60 + 10 * index, 100, 80 + 10 * index, 160), (200, 120 - index, 230, 200)]
+        if index == count - 1:
+            boxes = []  # a frame where nothing is seen
+        for x0, y0, x1, y1 in boxes:
+            image[y0:y1, x0:x1] = (0, 0, 255)  # BGR red
+        cv2.imwrite(str(folder / f"{index:04d}.png"), image)
+        expected.append(boxes)
+    return expected
+
+
+def test_image_folder_with_blob_detector(tmp_path):
+    expected = _draw_frames(tmp_path / "frames", 4)
+    detector = ColourBlobDetector((255, 0, 0), tolerance=10, min_area=10)
+    assert isinstance(detector, Detector)
+    frames = list(image_folder_source(tmp_path / "frames", detector, fps=5))
+    assert [frame.timestamp for frame in frames] == [0.0, 0.2, 0.4, 0.6]
+    for frame, boxes in zip(frames, expected, strict=True):
+        np.testing.assert_array_equal(frame.detections.xyxy, np.array(boxes, float).reshape(-1, 4))
+
+
+def test_video_source_with_blob_detector(tmp_path):
+    path = tmp_path / "clip.avi"
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 10, (320, 240))
+    for index in range(5):
+        image = np.zeros((240, 320, 3), np.uint8)
+        image[100:140, 50 + 10 * index:70 + 10 * index] = (0, 0, 255)
+        writer.write(image)
+    writer.release()
+    detector = ColourBlobDetector((255, 0, 0), tolerance=60, min_area=50)
+    frames = list(video_source(path, detector))
+    assert [frame.frame for frame in frames] == [0, 1, 2, 3, 4]
+    assert [frame.timestamp for frame in frames] == pytest.approx([0, 0.1, 0.2, 0.3, 0.4])
+    centres = [frame.detections.xyxy[:, [0, 2]].mean() for frame in frames]
+    assert [len(frame.detections) for frame in frames] == [1] * 5
+    assert np.diff(centres) == pytest.approx([10] * 4, abs=2)
+
+
+@pytest.mark.parametrize(
+    ("call", "message"),
+    [
+        (lambda p: list(image_folder_source(p / "none", ColourBlobDetector((1, 2, 3)), 5)),
+         "does not exist"),
+        (lambda p: list(image_folder_source(p, ColourBlobDetector((1, 2, 3)), 5)),
+         "holds no images"),
+        (lambda p: list(video_source(p / "none.avi", ColourBlobDetector((1, 2, 3)))),
+         "video file .* does not exist"),
+        (lambda p: ColourBlobDetector((300, 0, 0)), "three values 0..255"),
+        (lambda p: YoloDetector(p / "yolo.pt"), "nothing is downloaded at run time"),
+    ],
+)
+def test_source_and_detector_errors(tmp_path, call, message):
+    with pytest.raises(CblrsError, match=message):
+        call(tmp_path)
+
+
+class _FakeTensor:
+    """What ultralytics gives: a tensor with ``.cpu().numpy()``."""
+
+    def __init__(self, values):
+        self._values = np.asarray(values)
+
+    def cpu(self):
+        return self
+
+    def numpy(self):
+        return self._values
+
+
+def test_ultralytics_results_map_to_detections():
+    result = SimpleNamespace(
+        names={0: "person", 2: "car", 15: "cat", 7: "truck"},
+        boxes=SimpleNamespace(
+            xyxy=_FakeTensor([[1, 2, 3, 4], [5, 6, 7, 8], [0, 0, 1, 1], [9, 9, 19, 19]]),
+            conf=_FakeTensor([0.9, 0.8, 0.7, 0.6]),
+            cls=_FakeTensor([0.0, 2.0, 15.0, 7.0]),
+        ),
+    )
+    detections = detections_from_ultralytics(result)
+    np.testing.assert_array_equal(detections.xyxy, [[1, 2, 3, 4], [5, 6, 7, 8], [9, 9, 19, 19]])
+    np.testing.assert_array_equal(detections.confidence, [0.9, 0.8, 0.6])
+    np.testing.assert_array_equal(detections.class_id, [0, 1, 5])  # person, car, truck
+    empty = SimpleNamespace(names={0: "person"}, boxes=SimpleNamespace(
+        xyxy=_FakeTensor(np.zeros((0, 4))), conf=_FakeTensor([]), cls=_FakeTensor([])))
+    assert len(detections_from_ultralytics(empty)) == 0
+    assert len(detections_from_ultralytics(SimpleNamespace(names={}, boxes=None))) == 0
+
+
+def test_scene_source_is_one_camera_of_a_dataset(wildtrack_root):
+    scene = load_scene(wildtrack_root).select_frames(0, 20)
+    frames = list(scene_source(scene, "CVLab3"))
+    assert [frame.frame for frame in frames] == scene.frames.tolist()
+    assert frames[2].detections is scene.detections[2][2]
+    with pytest.raises(DatasetError, match="no camera 'CVLab9'"):
+        list(scene_source(scene, "CVLab9"))
+
+
+# -- camera node -------------------------------------------------------------------------
+
+
+def _collector(broker: InProcessBroker):
+    received: list[tuple[str, bytes, bool]] = []
+    subscriber = InProcessTransport(broker, "collector")
+    subscriber.subscribe(
+        "cblrs/#", lambda d: (received.append((d.topic, d.payload, d.retain)), d.ack())
+    )
+    subscriber.connect()
+    return received
+
+
+def _frames(count: int, detections: Detections | None = None) -> list[SourceFrame]:
+    if detections is None:
+        detections = Detections(np.array([[150.0, 100, 170, 200]]))
+    return [SourceFrame(10 + index, 1.0 + 0.5 * index, detections) for index in range(count)]
+
+
+def test_camera_node_publishes_status_and_messages(small_world):
+    _, reference = small_world
+    broker = InProcessBroker()
+    received = _collector(broker)
+    will = Will(*camera_last_will(PLANE, "cam1"))
+    transport = InProcessTransport(broker, "cam1", persistent=False, will=will)
+    node = CameraNode(transport, PLANE, "cam1", reference, epoch=1000.0, first_sequence=7)
+    report = node.run(_frames(3))
+    transport.close()
+    wait_until(lambda: len(received) >= 6, 5, "all messages")
+    topics = [topic for topic, _, _ in received]
+    assert topics[0] == status_topic(PLANE, "cam1")
+    assert topics[1:4] == [detections_topic(PLANE, "cam1")] * 3
+    assert decode_status(received[0][1]).state == "online"
+    assert [decode_status(payload).state for _, payload, _ in received[4:]] == ["offline"] * 2
+    messages = [decode_message(payload, now=1002.0) for _, payload, _ in received[1:4]]
+    assert [message.sequence for message in messages] == [7, 8, 9]
+    assert [message.timestamp for message in messages] == [1001.0, 1001.5, 1002.0]
+    expected = make_message("cam1", 7, 1001.0, 10, _frames(1)[0].detections, reference)
+    np.testing.assert_array_equal(messages[0].colour, expected.colour)
+    assert messages[0].colour[0, 2] == PLANE  # the box's foot sees the plane
+    assert (report.messages, report.detections, report.located) == (3, 3, 3)
+    assert (report.first_sequence, report.next_sequence, report.flushed) == (7, 10, True)
+
+
+@pytest.mark.parametrize(
+    ("realtime", "epoch", "timestamps", "expected"),
+    [
+        (False, None, [1.0, 2.0, 4.0], [997.0, 998.0, 1000.0]),  # the replay ends "now"
+        (False, 500.0, [1.0, 2.0], [501.0, 502.0]),
+        (True, None, [1.0, 1.001], [1000.0, 1000.001]),  # the first frame is "now"
+        (False, None, [None, None], [1000.0, 1000.0]),  # live frames: stamped on capture
+        (False, None, [], []),
+    ],
+)
+def test_capture_time_mapping(small_world, realtime, epoch, timestamps, expected):
+    _, reference = small_world
+    broker = InProcessBroker()
+    received = _collector(broker)
+    transport = InProcessTransport(broker, "cam1", persistent=False)
+    node = CameraNode(
+        transport, PLANE, "cam1", reference, realtime=realtime, epoch=epoch,
+        clock=lambda: 1000.0,
+    )
+    frames = [SourceFrame(index, ts, Detections.empty()) for index, ts in enumerate(timestamps)]
+    node.run(frames)
+    wait_until(lambda: len(received) >= len(timestamps) + 2, 5, "all messages")
+    times = [
+        decode_message(payload, now=1000.0).timestamp
+        for topic, payload, _ in received if topic.endswith("/detections")
+    ]
+    assert times == pytest.approx(expected, abs=1e-9)
+
+
+def test_camera_node_stop_ends_cleanly(small_world):
+    _, reference = small_world
+    broker = InProcessBroker()
+    received = _collector(broker)
+    transport = InProcessTransport(broker, "cam1", persistent=False)
+    node = CameraNode(transport, PLANE, "cam1", reference, epoch=1000.0)
+
+    def frames():
+        for index, frame in enumerate(_frames(100)):
+            if index == 5:
+                node.stop()
+            yield frame
+
+    report = node.run(frames())
+    wait_until(lambda: len(received) >= 7, 5, "the final status")
+    assert report.messages == 5
+    assert decode_status(received[-1][1]).state == "offline"
+
+
+def test_camera_queues_while_the_broker_is_away(small_world, start_mosquitto):
+    _, reference = small_world
+    broker = start_mosquitto()
+    got: list[int] = []
+    subscriber = MqttTransport("queue-subscriber", broker.settings(), persistent=True)
+
+    def on_message(delivery) -> None:
+        got.append(decode_message(delivery.payload, now=time.time()).sequence)
+        delivery.ack()
+
+    subscriber.subscribe(detections_topic(PLANE, "cam1"), on_message)
+    subscriber.connect()
+    broker.stop()  # the persistent session of the subscriber is saved with the broker's state
+    camera = MqttTransport("queue-camera", broker.settings(), persistent=False)
+    camera.connect(wait=False)
+    node = CameraNode(camera, PLANE, "cam1", reference, epoch=time.time(), flush_timeout_s=20)
+    result = {}
+    thread = threading.Thread(target=lambda: result.setdefault("report", node.run(
+        _frames(20), connect=False)))
+    thread.start()
+    wait_until(lambda: camera.pending() >= 20, 10, "publishes queued while the broker is away")
+    broker.start()
+    thread.join(30)
+    camera.close()
+    wait_until(lambda: len(got) == 20, 20, "every queued message")
+    subscriber.close()
+    assert result["report"].flushed
+    assert sorted(got) == list(range(20))
+
+
+# -- matcher service: ordering window, late messages, restarts -----------------------------
+
+
+class _Groups:
+    """Observer recording each released group as (timestamp, camera ids)."""
+
+    def __init__(self):
+        self.groups: list[tuple[float, list[str]]] = []
+
+    def on_group(self, timestamp, messages, tracks, wall_time):
+        self.groups.append((timestamp, [message.camera_id for message in messages]))
+
+
+def _planes():
+    return PlaneSet([PlaneSpec(PLANE, (0.0, 0.0), 20.0, 20.0)])
+
+
+def _message(camera: str, sequence: int, timestamp: float) -> bytes:
+    message = CameraMessage(
+        camera, sequence, timestamp, sequence, np.array([[0.0, 0, 10, 10]]), np.array([0.9]),
+        np.array([0]), np.array([[1000 + 100 * sequence, 2000, PLANE]]),
+    )
+    return encode_message(message, PLANE)
+
+
+@pytest.fixture
+def ordering(tmp_path):
+    """Factory for an in-process service with cameras A and B plus a publisher."""
+    broker = InProcessBroker()
+    started = []
+
+    def start(window_s: float, database: str = "matcher.db"):
+        groups = _Groups()
+        store = RuntimeStore(tmp_path / database)
+        service = MatcherService(
+            InProcessTransport(broker, "matcher"), store,
+            make_matcher("fusion", _planes(), ["A", "B"]), PLANE, ["A", "B"],
+            window_s=window_s, observer=groups,
+        )
+        service.start()
+        started.append((service, store))
+        return service, store, groups
+
+    publisher = InProcessTransport(broker, "publisher", persistent=False)
+    publisher.connect()
+
+    def publish(camera: str, sequence: int, timestamp: float) -> None:
+        publisher.publish(detections_topic(PLANE, camera), _message(camera, sequence, timestamp))
+
+    def status(camera: str, state: str, timestamp: float | None, retain: bool = False) -> None:
+        payload = encode_status(camera, state, timestamp=timestamp)
+        publisher.publish(status_topic(PLANE, camera), payload, retain=retain)
+
+    yield SimpleNamespace(start=start, publish=publish, status=status, broker=broker)
+    for service, store in started:
+        try:
+            service.close()
+        finally:
+            store.close()
+
+
+def test_group_waits_for_every_camera(ordering):
+    _, store, groups = ordering.start(window_s=60)
+    now = time.time()
+    ordering.publish("A", 0, now)
+    ordering.publish("A", 1, now + 1)
+    wait_until(lambda: store.counters().get("accepted") == 2, 5, "two messages")
+    assert groups.groups == []
+    ordering.publish("B", 0, now)
+    wait_until(lambda: len(groups.groups) == 1, 5, "the first group")
+    ordering.publish("B", 1, now + 1)
+    wait_until(lambda: len(groups.groups) == 2, 5, "the second group")
+    assert groups.groups == [(now, ["A", "B"]), (now + 1, ["A", "B"])]
+
+
+def test_silent_camera_is_given_up_after_the_window_and_then_late(ordering):
+    service, store, groups = ordering.start(window_s=0.2)
+    now = time.time()
+    ordering.publish("A", 0, now)
+    ordering.publish("A", 1, now + 1)
+    wait_until(lambda: len(groups.groups) == 2, 5, "both groups after the window")
+    assert groups.groups == [(now, ["A"]), (now + 1, ["A"])]
+    ordering.publish("B", 0, now)  # too late: its timestamp was released
+    wait_until(lambda: store.counters().get("late") == 1, 5, "a late message")
+    assert [stored.status for stored in store.messages() if stored.message.camera_id == "B"] == [
+        LATE
+    ]
+    assert store.counters()["processed"] == 2
+    assert service.stats()["late"] == 1
+
+
+def test_clean_offline_camera_is_not_waited_for(ordering):
+    _, _, groups = ordering.start(window_s=60)
+    now = time.time()
+    ordering.status("B", "offline", now)
+    ordering.publish("A", 0, now)
+    wait_until(lambda: len(groups.groups) == 1, 5, "the group")
+    assert groups.groups == [(now, ["A"])]
+
+
+@pytest.mark.parametrize(
+    ("state", "timestamp_offset", "retain"),
+    [
+        ("offline", None, False),  # a last will: the connection dropped, the stream goes on
+        ("offline", -3600.0, True),  # a retained "offline" from an earlier run
+    ],
+)
+def test_wills_and_stale_offline_do_not_end_a_stream(ordering, state, timestamp_offset, retain):
+    now = time.time()
+    timestamp = None if timestamp_offset is None else now + timestamp_offset
+    ordering.status("B", state, timestamp, retain=retain)
+    _, store, groups = ordering.start(window_s=60)
+    ordering.publish("A", 0, now)
+    wait_until(lambda: store.counters().get("accepted") == 1, 5, "A's message")
+    time.sleep(0.2)
+    assert groups.groups == []
+    ordering.publish("B", 0, now)
+    wait_until(lambda: len(groups.groups) == 1, 5, "the group")
+    assert groups.groups == [(now, ["A", "B"])]
+
+
+def test_restart_resumes_pending_messages_and_state(ordering, tmp_path):
+    service, store, groups = ordering.start(window_s=60)
+    now = time.time()
+    for sequence in range(2):
+        ordering.publish("A", sequence, now + sequence)
+        ordering.publish("B", sequence, now + sequence)
+    ordering.publish("A", 2, now + 2)
+    wait_until(lambda: len(groups.groups) == 2 and store.counters()["accepted"] == 5, 5, "two")
+    service.stop()  # no flush: A's third message stays pending in the store
+    service.transport.close(unclean=True)
+    again, store_again, groups_again = ordering.start(window_s=60, database="matcher.db")
+    assert again.buffered() == 1
+    ordering.publish("B", 2, now + 2)
+    ordering.publish("A", 1, now + 1)  # a redelivery of something already processed
+    wait_until(lambda: len(groups_again.groups) == 1, 5, "the resumed group")
+    wait_until(lambda: store_again.counters().get("duplicates") == 1, 5, "the duplicate")
+    assert groups_again.groups == [(now + 2, ["A", "B"])]
+    counters = store_again.counters()
+    assert (counters["processed"], counters["groups"]) == (6, 3)
+    assert store_again.status_counts() == {"processed": 6}
+
+
+def test_service_clock_stands_still_while_disconnected():
+    state = {"now": 100.0, "connected": True}
+    clock = ServiceClock(lambda: state["connected"], lambda: state["now"])
+    assert clock() == 100.0
+    state["connected"] = False
+    assert clock() == 100.0
+    state["now"] = 160.0
+    assert clock() == 100.0
+    state["connected"] = True
+    assert clock() == 100.0
+    state["now"] = 161.0
+    assert clock() == 101.0
+
+
+# -- two planes, two matchers on one broker ------------------------------------------------
+
+
+def test_two_planes_two_matchers_one_broker(wildtrack_root, mosquitto, tmp_path):
+    scene = load_scene(wildtrack_root).select_frames(0, 45)
+    names = scene.camera_names
+    split = {1: names[:4], 2: names[4:]}
+    ground = scene_planes(scene)[0]
+    planes = {plane_id: PlaneSet([replace(ground, plane_id=plane_id)]) for plane_id in split}
+    services = {}
+    for plane_id, cameras in split.items():
+        store = RuntimeStore(tmp_path / f"plane{plane_id}.db")
+        service = MatcherService(
+            MqttTransport(f"two-planes-matcher-{plane_id}", mosquitto.settings()), store,
+            make_matcher("fusion", planes[plane_id], cameras), plane_id, cameras, window_s=5,
+        )
+        service.start()
+        services[plane_id] = (service, store)
+    epoch = float(int(time.time()) - 600)
+    for plane_id, cameras in split.items():
+        for name in cameras:
+            index = names.index(name)
+            reference = render_reference(scene.cameras[index], planes[plane_id])
+            transport = MqttTransport(
+                f"two-planes-{name}", mosquitto.settings(), persistent=False,
+                will=Will(*camera_last_will(plane_id, name)),
+            )
+            CameraNode(transport, plane_id, name, reference, epoch=epoch).run(
+                scene_source(scene, index)
+            )
+            transport.close()
+    for plane_id, (service, store) in services.items():
+        wait_until(lambda s=service: s.cameras_done() and s.drained(), 30, f"plane {plane_id}")
+        service.close(flush=True)
+        stored_cameras = {item.message.camera_id for item in store.messages()}
+        assert stored_cameras == set(split[plane_id])
+        counters = store.counters()
+        assert counters["processed"] == len(scene.frames) * len(split[plane_id])
+        assert counters.get("late", 0) == 0 and counters.get("rejected.unknown_camera", 0) == 0
+        assert len(store.tracks()) > 0
+        store.close()
+
+
+# -- command line ------------------------------------------------------------------------
+
+
+def test_camera_command_replays_a_mot_file(small_world, mosquitto, tmp_path, capsys):
+    _, reference = small_world
+    reference_path = reference.save(tmp_path / "cam1.png")
+    detections = tmp_path / "cam1.txt"
+    detections.write_text("1,1,150,100,20,100,0.9\n2,1,152,100,20,100,0.9\n4,1,156,100,20,100,0.9\n")
+    code = main([
+        "camera", "--camera", "cam1", "--reference", str(reference_path),
+        "--detections", str(detections), "--fps", "10", "--epoch", str(time.time()),
+        "--broker", f"127.0.0.1:{mosquitto.port}", "--json",
+    ])
+    report = json.loads(capsys.readouterr().out)
+    assert code == 0
+    assert (report["frames"], report["messages"], report["detections"]) == (4, 4, 3)
+    assert report["located"] == 3 and report["flushed"]
+
+
+@pytest.mark.parametrize(
+    ("arguments", "message"),
+    [
+        (["camera", "--camera", "cam1", "--reference", "REF"], "give exactly one source"),
+        (["camera", "--camera", "cam1", "--reference", "REF", "--detections", "x.txt"],
+         "--detections needs --fps"),
+        (["camera", "--camera", "cam/1", "--reference", "REF", "--detections", "x"],
+         "not usable in MQTT topics"),
+        (["camera", "--camera", "cam1", "--reference", "REF", "--images", "IMG", "--detector",
+          "yolo"], "needs --weights"),
+        (["matcher", "--db", "x.db"], "give --db FILE and --references DIR"),
+        (["matcher", "--stats", "missing.db"], "does not exist"),
+        (["matcher", "--db", "x.db", "--references", "REFS", "--option", "oops"],
+         "must be KEY=VALUE"),
+        (["matcher", "--db", "x.db", "--references", "REFS", "--plane", "3"],
+         r"--plane 3 is not in the references \(planes \[1\]\)"),
+    ],
+)
+def test_command_line_mistakes(small_world, tmp_path, capsys, monkeypatch, arguments, message):
+    _, reference = small_world
+    monkeypatch.chdir(tmp_path)
+    reference.save(tmp_path / "ref.png")
+    (tmp_path / "REFS").mkdir()
+    reference.save(tmp_path / "REFS" / "cam1.png")
+    (tmp_path / "IMG").mkdir()
+    arguments = [str(tmp_path / "ref.png") if item == "REF" else item for item in arguments]
+    code = main(arguments)
+    error = capsys.readouterr().err
+    assert code != 0
+    assert re.search(message, error), error
+
+
+def test_matcher_stats_reads_a_database(tmp_path, capsys):
+    with RuntimeStore(tmp_path / "m.db") as store:
+        store.bind({"plane_id": 1, "camera_ids": ["a"], "matcher": "fusion"})
+        store.add_counters({"received": 4, "rejected.too_old": 1, "processed": 3})
+    assert main(["matcher", "--stats", str(tmp_path / "m.db"), "--json"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["counters"] == {"processed": 3, "received": 4, "rejected.too_old": 1}
+    assert summary["settings"]["camera_ids"] == ["a"]
+    assert main(["matcher", "--stats", str(tmp_path / "m.db")]) == 0
+    assert "rejected.too_old" in capsys.readouterr().out
