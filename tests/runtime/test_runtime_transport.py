@@ -344,3 +344,111 @@ def test_inprocess_session_takeover_detaches_the_old_client():
     assert new.wait_for(1) and new.payloads == [b"x"]
     assert old.settle(0.05) == []
     assert broker.session_count() == 2  # "same" and "publisher"
+
+
+# --------------------------------------------------------------------------- MQTT only
+
+
+def wait_until(predicate, timeout: float = WAIT) -> bool:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        time.sleep(0.01)
+    return predicate()
+
+
+def test_publishes_while_the_broker_is_down_arrive_after_it_restarts(start_mosquitto):
+    broker = start_mosquitto(persistence=True)
+    subscriber = MqttTransport("matcher", broker.settings())
+    collector = Collector()
+    subscriber.subscribe("cblrs/1/+/detections", collector)
+    subscriber.connect()
+    publisher = MqttTransport("camera", broker.settings())
+    publisher.connect()
+    publisher.publish("cblrs/1/CVLab1/detections", b"before")
+    assert collector.wait_for(1)
+
+    broker.stop()
+    assert wait_until(lambda: not publisher.connected and not subscriber.connected)
+    payloads = [f"while down {index}".encode() for index in range(20)]
+    for payload in payloads:
+        publisher.publish("cblrs/1/CVLab1/detections", payload)
+    assert not publisher.flush(0.05)
+    assert publisher.pending() == len(payloads)
+
+    broker.start()
+    assert publisher.flush(WAIT)
+    deliveries = collector.wait_for(1 + len(payloads))
+    assert [delivery.payload for delivery in deliveries] == [b"before", *payloads]
+    subscriber.close()
+    publisher.close()
+
+
+def test_queued_messages_for_an_absent_subscriber_survive_a_broker_restart(start_mosquitto):
+    broker = start_mosquitto(persistence=True)
+    subscriber = MqttTransport("matcher", broker.settings())
+    subscriber.connect()
+    subscriber.subscribe("cblrs/1/+/detections", Collector())
+    subscriber.close()
+    publisher = MqttTransport("camera", broker.settings())
+    publisher.connect()
+    payloads = [f"queued {index}".encode() for index in range(10)]
+    for payload in payloads:
+        publisher.publish("cblrs/1/CVLab2/detections", payload)
+    assert publisher.flush(WAIT)
+    publisher.close()
+
+    broker.restart()
+    resumed = MqttTransport("matcher", broker.settings())
+    collector = Collector()
+    resumed.subscribe("cblrs/1/+/detections", collector)
+    resumed.connect()
+    assert [delivery.payload for delivery in collector.wait_for(len(payloads))] == payloads
+    resumed.close()
+
+
+def test_without_broker_persistence_a_restart_loses_the_queue(start_mosquitto):
+    # The counterpart of the test above: persistence is what keeps the queue.
+    broker = start_mosquitto(persistence=False)
+    subscriber = MqttTransport("matcher", broker.settings())
+    subscriber.connect()
+    subscriber.subscribe("a/b", Collector())
+    subscriber.close()
+    publisher = MqttTransport("camera", broker.settings())
+    publisher.connect()
+    publisher.publish("a/b", b"lost")
+    assert publisher.flush(WAIT)
+    publisher.close()
+    broker.restart()
+    resumed = MqttTransport("matcher", broker.settings())
+    collector = Collector()
+    resumed.subscribe("a/b", collector)
+    resumed.connect()
+    assert collector.settle(0.2) == []
+    resumed.close()
+
+
+def test_connect_to_a_closed_port_fails_within_the_timeout():
+    from cblrs.runtime.broker import free_port
+    from cblrs.runtime.transport import MqttSettings
+
+    transport = MqttTransport("lonely", MqttSettings(port=free_port(), connect_timeout_s=0.3))
+    with pytest.raises(TransportError, match=r"no answer from the MQTT broker at 127\.0\.0\.1:\d+"):
+        transport.connect()
+
+
+def test_connect_without_waiting_queues_until_the_broker_appears(start_mosquitto, tmp_path):
+    from cblrs.runtime.broker import MosquittoProcess, free_port, write_broker_config
+
+    files = write_broker_config(
+        tmp_path / "late", [], [], port=free_port(), allow_anonymous=True, viewer=False
+    )
+    settings = files.settings(None, reconnect_min_s=0.05, reconnect_max_s=0.2)
+    publisher = MqttTransport("camera", settings)
+    publisher.connect(wait=False)
+    publisher.publish("a/b", b"early")
+    assert not publisher.connected and publisher.pending() == 1
+    with MosquittoProcess.from_files(files):
+        assert publisher.flush(WAIT)
+        publisher.close()

@@ -44,8 +44,8 @@ MAX_DETECTIONS = 1000
 """Most detections one message may hold."""
 MAX_TRACK_ROWS = 10000
 """Most rows one track update may hold."""
-DEFAULT_MAX_BYTES = 128 * 1024
-"""Default payload limit: about 1000 detections at ~110 bytes each."""
+DEFAULT_MAX_BYTES = 256 * 1024
+"""Default payload limit: :data:`MAX_DETECTIONS` detections at up to ~200 bytes each."""
 DEFAULT_MAX_AGE_S = 24 * 3600.0
 """Default oldest accepted capture time: a day, so a matcher down for hours still catches up."""
 DEFAULT_MAX_FUTURE_S = 60.0
@@ -588,19 +588,19 @@ class Status(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     """A ``cblrs.status/1`` payload: availability of a camera or matcher.
 
     Attributes:
+        schema: the schema tag.
         client: the camera or matcher id.
         role: "camera", "matcher" or "viewer".
         state: "online" or "offline".
         timestamp: when it was published (seconds since the epoch); None in a last will,
             which is composed at connection time.
-        schema: the schema tag.
     """
 
+    schema: str
     client: CameraId
     role: Literal["camera", "matcher", "viewer"]
     state: StatusState
     timestamp: float | None = None
-    schema: str = STATUS_SCHEMA
 
 
 def encode_status(
