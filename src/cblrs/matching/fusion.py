@@ -30,6 +30,7 @@ from typing import Any
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
+from scipy.spatial import cKDTree
 
 from cblrs.detections import CLASS_NAMES, CameraMessage, Tracks
 from cblrs.matching import kalman
@@ -46,6 +47,7 @@ from cblrs.plane import PlaneSet
 
 STATE_VERSION = "cblrs.fusion-tracker/1"
 _UNASSIGNABLE = 1.0e9
+_DENSE_PAIRS = 20_000  # below this many N x T pairs a dense distance matrix is faster
 
 
 # Vehicles are located less precisely than people (their footprint is metres long and the
@@ -384,31 +386,28 @@ class FusionTracker:
     def _associate(self, observed: Observations, variance: np.ndarray) -> np.ndarray:
         """Track row of each detection (-1: none); one detection per camera per track."""
         count, track_count = len(observed), len(self._ids)
-        assigned = np.full(count, -1, np.int64)
         if count == 0 or track_count == 0:
-            return assigned
-        covariance = self._covariance
-        a = covariance[None, :, 0, 0] + variance[:, None]
-        b = np.broadcast_to(covariance[None, :, 0, 1], a.shape)
-        d = covariance[None, :, 1, 1] + variance[:, None]
-        determinant = a * d - b * b
-        dx = observed.world_xy[:, 0, None] - self._state[None, :, 0]
-        dy = observed.world_xy[:, 1, None] - self._state[None, :, 1]
-        mahalanobis = (d * dx * dx - 2.0 * b * dx * dy + a * dy * dy) / determinant
+            return np.full(count, -1, np.int64)
         # The metric cap grows with the class's noise (vehicles), not with distance: far
-        # detections are weighted down, but must not reach across a crowd.
+        # detections are weighted down, but must not reach across a crowd. Only pairs
+        # within it are evaluated further, so the cost grows with the pairs, not N x T.
         cap = self.config.max_gate_m * self._class_scale[self._class_slot(observed.class_id)]
-        gated = (
-            (mahalanobis <= self.config.gate_sigmas**2)
-            & (dx * dx + dy * dy <= cap[:, None] ** 2)
-            & (observed.class_id[:, None] == self._class[None, :])
-        )
-        if not gated.any():
-            return assigned
+        rows, columns = close_pairs(observed.world_xy, self._state[:, :2], cap)
+        rows, columns = _same_class(rows, columns, observed.class_id, self._class)
+        covariance = self._covariance[columns]
+        a = covariance[:, 0, 0] + variance[rows]
+        b = covariance[:, 0, 1]
+        d = covariance[:, 1, 1] + variance[rows]
+        determinant = a * d - b * b
+        dx = observed.world_xy[rows, 0] - self._state[columns, 0]
+        dy = observed.world_xy[rows, 1] - self._state[columns, 1]
+        mahalanobis = (d * dx * dx - 2.0 * b * dx * dy + a * dy * dy) / determinant
+        inside = mahalanobis <= self.config.gate_sigmas**2
         # Negative log-likelihood of the innovation (constant dropped).
-        cost = mahalanobis + np.log(determinant)
-
-        return assign_per_camera(cost, gated, observed.camera, len(self.camera_ids))
+        cost = mahalanobis[inside] + np.log(determinant[inside])
+        return assign_per_camera(
+            rows[inside], columns[inside], cost, observed.camera, len(self.camera_ids)
+        )
 
     def _join_observed(
         self, observed: Observations, variance: np.ndarray, assigned: np.ndarray
@@ -417,43 +416,46 @@ class FusionTracker:
 
         The gate is a boundary in the prediction's frame; when it cuts through the views of
         one object (a sudden turn), some cameras take the track and the rest would start a
-        duplicate. Leftovers within ``cluster_sigmas`` of a track's fused position this instant,
-        from a camera that gave the track nothing, join it instead.
+        duplicate. Leftovers within the cluster radius of a track's fused position this
+        instant, from a camera that gave the track nothing, join it instead.
         """
         matched = assigned >= 0
         leftover = np.flatnonzero(~matched)
         if len(leftover) == 0 or not matched.any():
             return assigned
         track_count = len(self._ids)
-        rows = assigned[matched]
+        tracks = assigned[matched]
         weight = 1.0 / variance[matched]
-        weight_sum = np.bincount(rows, weight, minlength=track_count)
+        weight_sum = np.bincount(tracks, weight, minlength=track_count)
         seen = np.flatnonzero(weight_sum > 0)
         fused = np.column_stack(
-            [np.bincount(rows, weight * observed.world_xy[matched, axis], track_count)[seen]
+            [np.bincount(tracks, weight * observed.world_xy[matched, axis], track_count)[seen]
              for axis in (0, 1)]
         ) / weight_sum[seen, None]
         taken = np.zeros((track_count, len(self.camera_ids)), dtype=bool)
-        taken[rows, observed.camera[matched]] = True
-        distance = np.linalg.norm(
-            observed.world_xy[leftover, None, :] - fused[None, :, :], axis=2
+        taken[tracks, observed.camera[matched]] = True
+
+        slots = self._class_slot(observed.class_id[leftover])
+        floor = self.config.cluster_radius_m * self._class_scale[slots]
+        largest = np.maximum(
+            floor,
+            self.config.cluster_sigmas * np.sqrt(variance[leftover] + 1.0 / weight_sum[seen].min()),
         )
+        rows, columns = close_pairs(observed.world_xy[leftover], fused, largest)
+        rows, columns = _same_class(rows, columns, observed.class_id[leftover],
+                                    self._class[seen])
+        distance = np.linalg.norm(observed.world_xy[leftover[rows]] - fused[columns], axis=1)
         radius = np.maximum(
+            floor[rows],
             self.config.cluster_sigmas * np.sqrt(
-                variance[leftover, None] + 1.0 / weight_sum[seen][None, :]
+                variance[leftover[rows]] + 1.0 / weight_sum[seen[columns]]
             ),
-            self.config.cluster_radius_m
-            * self._class_scale[self._class_slot(observed.class_id[leftover])][:, None],
         )
-        gated = (
-            (distance <= radius)
-            & ~taken[seen][:, observed.camera[leftover]].T
-            & (observed.class_id[leftover, None] == self._class[seen][None, :])
+        allowed = (distance <= radius) & ~taken[seen[columns], observed.camera[leftover[rows]]]
+        joined = assign_per_camera(
+            rows[allowed], columns[allowed], distance[allowed], observed.camera[leftover],
+            len(self.camera_ids),
         )
-        if not gated.any():
-            return assigned
-        joined = assign_per_camera(distance, gated, observed.camera[leftover],
-                                   len(self.camera_ids))
         assigned = assigned.copy()
         ok = joined >= 0
         assigned[leftover[ok]] = seen[joined[ok]]
@@ -523,12 +525,14 @@ class FusionTracker:
         if len(candidates) < 2:
             return keep
         position = self._state[candidates, :2]
-        distance = np.linalg.norm(position[:, None] - position[None], axis=2)
-        shared_camera = (cameras_of_track[candidates].astype(np.int64)
-                         @ cameras_of_track[candidates].T.astype(np.int64)) > 0
-        close = np.triu((distance < self.config.merge_radius_m) & ~shared_camera, k=1)
-        for first, second in zip(*np.nonzero(close), strict=True):
-            one, other = candidates[first], candidates[second]
+        first, second = close_pairs(
+            position, position, np.full(len(candidates), self.config.merge_radius_m),
+            strict=True,
+        )
+        upper = first < second
+        first, second = candidates[first[upper]], candidates[second[upper]]
+        disjoint = ~(cameras_of_track[first] & cameras_of_track[second]).any(axis=1)
+        for one, other in zip(first[disjoint].tolist(), second[disjoint].tolist(), strict=True):
             if keep[one] and keep[other]:
                 younger = one if self._ids[one] > self._ids[other] else other
                 keep[younger] = False
@@ -642,19 +646,69 @@ class NoiseModel:
         self.coefficients = np.asarray(state["coefficients"], np.float64).reshape(2)
 
 
-def assign_per_camera(
-    cost: np.ndarray, gated: np.ndarray, camera: np.ndarray, camera_count: int
-) -> np.ndarray:
-    """Hungarian assignment of detections to tracks, solved per camera.
-
-    Each camera assigns its detections independently: a track takes at most one detection
-    of each camera, a detection goes to at most one track, only gated pairs are allowed and
-    the sum of costs is minimal among assignments with the most pairs.
+def close_pairs(
+    points_xy: np.ndarray, targets_xy: np.ndarray, radius_m: np.ndarray, strict: bool = False
+) -> tuple[np.ndarray, np.ndarray]:
+    """Index pairs ``(i, j)`` with ``|points[i] - targets[j]| <= radius[i]``.
 
     Args:
-        cost: (N, T) float64 cost of detection n on track t (only read where gated).
-        gated: (N, T) bool allowed pairs.
-        camera: (N,) int64 camera index of each detection.
+        points_xy: (N, 2) metres.
+        targets_xy: (T, 2) metres.
+        radius_m: (N,) metres per point.
+        strict: use ``<`` instead of ``<=``.
+
+    Returns:
+        ``(rows, columns)``, two (K,) int64 arrays in row-major order.
+    """
+    if len(points_xy) == 0 or len(targets_xy) == 0:
+        empty = np.zeros(0, np.int64)
+        return empty, empty
+    if len(points_xy) * len(targets_xy) <= _DENSE_PAIRS:
+        dx = points_xy[:, 0, None] - targets_xy[None, :, 0]
+        dy = points_xy[:, 1, None] - targets_xy[None, :, 1]
+        squared = dx * dx + dy * dy
+        limit = (radius_m * radius_m)[:, None]
+        rows, columns = np.nonzero(squared < limit if strict else squared <= limit)
+        return rows.astype(np.int64), columns.astype(np.int64)
+    # Many tracks: a k-d tree finds the few neighbours without touching all N x T pairs.
+    finite_points = np.isfinite(points_xy).all(axis=1)
+    finite_targets = np.isfinite(targets_xy).all(axis=1)
+    point_index = np.flatnonzero(finite_points)
+    target_index = np.flatnonzero(finite_targets)
+    pairs = cKDTree(points_xy[point_index]).sparse_distance_matrix(
+        cKDTree(targets_xy[target_index]), float(np.max(radius_m)), output_type="ndarray"
+    )
+    rows = point_index[pairs["i"]]
+    columns = target_index[pairs["j"]]
+    distance = pairs["v"]
+    keep = distance < radius_m[rows] if strict else distance <= radius_m[rows]
+    rows, columns = rows[keep], columns[keep]
+    order = np.lexsort((columns, rows))
+    return rows[order].astype(np.int64), columns[order].astype(np.int64)
+
+
+def _same_class(
+    rows: np.ndarray, columns: np.ndarray, row_class: np.ndarray, column_class: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    keep = row_class[rows] == column_class[columns]
+    return rows[keep], columns[keep]
+
+
+def assign_per_camera(
+    rows: np.ndarray, columns: np.ndarray, cost: np.ndarray, camera: np.ndarray,
+    camera_count: int,
+) -> np.ndarray:
+    """Hungarian assignment of detections to tracks, solved per camera, on allowed pairs.
+
+    Each camera assigns its detections independently: a track takes at most one detection
+    of each camera, a detection goes to at most one track, only the given pairs are allowed
+    and the sum of costs is minimal among assignments with the most pairs.
+
+    Args:
+        rows: (K,) int64 detection index of each allowed pair.
+        columns: (K,) int64 track index of each allowed pair.
+        cost: (K,) float64 cost of each pair.
+        camera: (N,) int64 camera index of every detection (N detections).
         camera_count: number of cameras C.
 
     Returns:
@@ -662,28 +716,30 @@ def assign_per_camera(
     """
     count = len(camera)
     assigned = np.full(count, -1, np.int64)
-    if count == 0 or not gated.any():
+    if len(rows) == 0:
         return assigned
-    # An edge alone in its row and alone in its (track, camera) column is its own component
-    # of the assignment graph: taking it is what the Hungarian would do. Only the rest, the
-    # contested pairs, go to the solver, camera by camera.
-    one_hot = np.zeros((count, camera_count), dtype=np.int64)
-    one_hot[np.arange(count), camera] = 1
-    per_row = gated.sum(axis=1)
-    per_column = gated.T.astype(np.int64) @ one_hot  # (tracks, cameras)
-    only_track = np.argmax(gated, axis=1)
-    trivial = (per_row == 1) & (per_column[only_track, camera] == 1)
-    assigned[trivial] = only_track[trivial]
-    ambiguous = np.flatnonzero((per_row > 0) & ~trivial)
-    for one_camera in np.unique(camera[ambiguous]).tolist():
-        rows = ambiguous[camera[ambiguous] == one_camera]
-        columns = np.flatnonzero(gated[rows].any(axis=0))
-        block = np.where(
-            gated[np.ix_(rows, columns)], cost[np.ix_(rows, columns)], _UNASSIGNABLE
-        )
+    # A pair alone in its row and alone in its (track, camera) column is its own component
+    # of the assignment graph: taking it is what the Hungarian would do. Only the contested
+    # pairs go to the solver, camera by camera.
+    column_key = columns * camera_count + camera[rows]
+    per_row = np.bincount(rows, minlength=count)
+    _, key_index, per_key = np.unique(column_key, return_inverse=True, return_counts=True)
+    trivial = (per_row[rows] == 1) & (per_key[key_index] == 1)
+    assigned[rows[trivial]] = columns[trivial]
+    contested = ~trivial & (per_row[rows] > 0)
+    if not contested.any():
+        return assigned
+    rows, columns, cost = rows[contested], columns[contested], cost[contested]
+    pair_camera = camera[rows]
+    for one_camera in np.unique(pair_camera).tolist():
+        mine = pair_camera == one_camera
+        block_rows, row_index = np.unique(rows[mine], return_inverse=True)
+        block_columns, column_index = np.unique(columns[mine], return_inverse=True)
+        block = np.full((len(block_rows), len(block_columns)), _UNASSIGNABLE)
+        block[row_index, column_index] = cost[mine]
         chosen_rows, chosen_columns = linear_sum_assignment(block)
         valid = block[chosen_rows, chosen_columns] < _UNASSIGNABLE
-        assigned[rows[chosen_rows[valid]]] = columns[chosen_columns[valid]]
+        assigned[block_rows[chosen_rows[valid]]] = block_columns[chosen_columns[valid]]
     return assigned
 
 
