@@ -368,7 +368,7 @@ def draw_overlays(
             targets[valid], _ = camera.world_to_pixel(located[valid], reference.planes[0].height)
         background = None
         highlight = None
-        if world is not None and camera.has_pose:
+        if world is not None and camera.has_pose and corners is not None:
             background = draw_boxes_3d(
                 world_frame(camera, world.markings), camera, corners, colours=colours
             )

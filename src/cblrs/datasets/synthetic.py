@@ -15,6 +15,7 @@ a box entirely behind the near plane is invisible.
 from __future__ import annotations
 
 import logging
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -153,25 +154,13 @@ def project_boxes_3d_unclipped(
         world = (camera_xyz - translation) @ rotation
         projected, _ = camera.project_points(world)
         pixels[keep] = projected
-    in_front = keep.any(axis=1)
-    with np.errstate(invalid="ignore"), _ignore_all_nan():
+    in_front: BoolArray = np.asarray(keep.any(axis=1), dtype=bool)
+    with np.errstate(invalid="ignore"), warnings.catch_warnings():
+        # Rows with nothing in front are all-NaN; they are excluded by `in_front` anyway.
+        warnings.simplefilter("ignore", category=RuntimeWarning)
         xyxy[in_front, 0:2] = np.nanmin(pixels[in_front], axis=1)
         xyxy[in_front, 2:4] = np.nanmax(pixels[in_front], axis=1)
     return xyxy, in_front
-
-
-class _ignore_all_nan:
-    """Silence numpy's 'All-NaN slice' warning (rows are filtered by ``in_front`` anyway)."""
-
-    def __enter__(self) -> None:
-        import warnings
-
-        self._context = warnings.catch_warnings()
-        self._context.__enter__()
-        warnings.simplefilter("ignore", category=RuntimeWarning)
-
-    def __exit__(self, *exc: object) -> None:
-        self._context.__exit__(*exc)
 
 
 def clip_boxes(xyxy: NDArray, image_size: tuple[int, int]) -> tuple[FloatArray, BoolArray]:
@@ -540,7 +529,9 @@ class Structure:
 
     def corners(self) -> FloatArray:
         """(8, 3) corners in world metres (see :func:`box_corners_3d`)."""
-        return box_corners_3d(np.array([self.centre], float), self.size_lwh, self.yaw_deg)[0]
+        return box_corners_3d(
+            np.array([self.centre], float), np.asarray(self.size_lwh, float), self.yaw_deg
+        )[0]
 
     def blocks(self, origin: NDArray, points: NDArray) -> BoolArray:
         """Whether the segments from ``origin`` (3,) to ``points`` (M, 3) pass through it."""
@@ -999,17 +990,17 @@ def plaza_world(
         ((15.0, -7.0), (-15.0, 6.0)),
     ]
     for index, (start, end) in enumerate(crossings):
-        path = LanePath(
+        lane: Path = LanePath(
             start, end, float(rng.uniform(1.1, 1.6)), start_s=float(index * duration / 7)
         )
-        objects.append(MovingObject(21 + index, "person", class_size("person", rng), path))
+        objects.append(MovingObject(21 + index, "person", class_size("person", rng), lane))
     roads = [
         ((-40.0, -11.0), (40.0, -11.0), 0.1 * duration),
         ((40.0, -13.0), (-40.0, -13.0), 0.4 * duration),
     ]
     for index, (start, end, start_s) in enumerate(roads):
-        path = LanePath(start, end, float(rng.uniform(5.0, 7.0)), start_s=float(start_s))
-        objects.append(MovingObject(101 + index, "car", class_size("car", rng), path))
+        road: Path = LanePath(start, end, float(rng.uniform(5.0, 7.0)), start_s=float(start_s))
+        objects.append(MovingObject(101 + index, "car", class_size("car", rng), road))
     return WorldSpec(
         name="plaza",
         cameras=cameras,

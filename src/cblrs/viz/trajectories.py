@@ -166,11 +166,11 @@ def _draw_tracks(ax: Axes, tracks: Tracks, coloured: bool, line_width: float) ->
     max_gap = _max_gap(tracks)
     for identity in np.unique(tracks.track_id):
         pieces = _segments(tracks, int(identity), max_gap)
+        colour: tuple[float, ...] | str = GROUND_TRUTH_COLOUR
+        style = "--"
         if coloured:
             colour = tuple(channel / 255 for channel in id_colour(int(identity)))
             style = "-"
-        else:
-            colour, style = GROUND_TRUTH_COLOUR, "--"
         for piece in pieces:
             ax.plot(
                 piece[:, 0],
@@ -208,7 +208,6 @@ def _draw_tracks(ax: Axes, tracks: Tracks, coloured: bool, line_width: float) ->
 def _legend_handles(show_ground_truth: bool, show_cameras: bool) -> list:
     from matplotlib.lines import Line2D
 
-    marker = {"color": "0.3", "markeredgecolor": "k", "linestyle": "none", "markersize": 5}
     handles = []
     if show_ground_truth:
         handles.append(
@@ -223,8 +222,26 @@ def _legend_handles(show_ground_truth: bool, show_cameras: bool) -> list:
         )
     handles += [
         Line2D([], [], color="tab:blue", linewidth=1.8, label="track (colour = id)"),
-        Line2D([], [], marker="o", label="start", **marker),
-        Line2D([], [], marker="s", label="end", **marker),
+        Line2D(
+            [],
+            [],
+            marker="o",
+            color="0.3",
+            markeredgecolor="k",
+            linestyle="none",
+            markersize=5,
+            label="start",
+        ),
+        Line2D(
+            [],
+            [],
+            marker="s",
+            color="0.3",
+            markeredgecolor="k",
+            linestyle="none",
+            markersize=5,
+            label="end",
+        ),
     ]
     if show_cameras:
         handles.append(
@@ -318,7 +335,7 @@ def plot_trajectories(
         axes = [ax] if not isinstance(ax, Sequence) else list(ax)
         if len(axes) != panels:
             raise ValueError(f"{panels} panel(s) to draw but {len(axes)} Axes given")
-        figure = axes[0].figure
+        figure = axes[0].figure  # type: ignore[assignment]
     for axis in axes:
         _draw_markings(axis, markings)
     for axis, (name, tracks) in zip(axes, named.items(), strict=False):
