@@ -182,7 +182,7 @@ def write_broker_config(
     users = list(cameras) + list(matchers) + ([VIEWER] if viewer else [])
     if len(set(users)) != len(users):
         raise BrokerError(f"camera, matcher and viewer names must be distinct, got {users}.")
-    if not allow_anonymous and not users:
+    if not allow_anonymous and not (cameras or matchers):
         raise BrokerError("give at least one camera or matcher (or allow anonymous access).")
     planes = [int(plane) for plane in plane_ids]
     if not planes or any(not 1 <= plane <= 65535 for plane in planes):
@@ -224,7 +224,10 @@ def write_broker_config(
             json.dumps({"passwords": credentials, "roles": roles}, indent=2) + "\n",
         )
         acl_file.write_text(_acl(cameras, matchers, planes, viewer))
-        lines += [f"password_file {password_file}", f"acl_file {acl_file}"]
+        lines += [
+            f"password_file {password_file}",
+            f"acl_file {acl_file}",
+        ]
     persistence_directory = None
     if persistence:
         persistence_directory = directory / "data"
@@ -239,6 +242,10 @@ def write_broker_config(
     lines.append("")
     lines.append(f"listener {port} {bind}")
     lines.append("protocol mqtt")
+    if not allow_anonymous:
+        # A listener option (outside a listener block it would open a default one on 1883):
+        # the session is the user's, so nobody takes over a matcher's queue with its client id.
+        lines.append("use_username_as_clientid true")
     ca_file = None
     client_certificates: dict[str, tuple[Path, Path]] = {}
     if tls:

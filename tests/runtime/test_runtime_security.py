@@ -1,0 +1,210 @@
+"""Broker security with the configuration of ``cblrs broker-config``, on a real Mosquitto."""
+
+from __future__ import annotations
+
+import json
+import os
+import stat
+import time
+from dataclasses import replace
+
+import pytest
+from test_runtime_transport import Collector  # tests/runtime is on sys.path (rootdir-relative)
+
+from cblrs.runtime.broker import BrokerError, write_broker_config
+from cblrs.runtime.topics import detections_topic, status_topic, tracks_topic
+from cblrs.runtime.transport import MqttTransport, TransportError
+
+pytestmark = pytest.mark.mqtt
+
+WAIT = 5.0
+
+
+def connect(broker, user, client_id=None, **options) -> MqttTransport:
+    # Clean sessions: the broker keys sessions by user name, and tests must not inherit
+    # messages queued for a user by an earlier test.
+    transport = MqttTransport(client_id or user, broker.settings(user, **options), persistent=False)
+    transport.connect()
+    return transport
+
+
+@pytest.fixture
+def matcher(mosquitto_auth):
+    transport = connect(mosquitto_auth, "matcher1")
+    collector = Collector()
+    transport.subscribe("cblrs/1/+/detections", collector)
+    yield collector
+    transport.close(timeout=1)
+
+
+def test_anonymous_client_is_refused(mosquitto_auth):
+    transport = MqttTransport("anonymous", mosquitto_auth.settings(None))
+    with pytest.raises(TransportError, match="refused the connection: Not authorized"):
+        transport.connect()
+
+
+def test_wrong_password_is_refused(mosquitto_auth):
+    settings = replace(mosquitto_auth.settings("CVLab1"), password="not the password")
+    transport = MqttTransport("CVLab1", settings)
+    # Mosquitto 2.0 answers "Not authorized" rather than "Bad user name or password".
+    with pytest.raises(
+        TransportError, match=r"refused the connection: (Bad user name or password|Not authorized)"
+    ):
+        transport.connect()
+
+
+def test_unknown_user_is_refused(mosquitto_auth):
+    settings = replace(mosquitto_auth.settings("CVLab1"), username="CVLab9")
+    with pytest.raises(TransportError, match="refused the connection"):
+        MqttTransport("CVLab9", settings).connect()
+
+
+def test_camera_publishes_only_on_its_own_topics(mosquitto_auth, matcher):
+    camera = connect(mosquitto_auth, "CVLab1")
+    camera.publish(detections_topic(1, "CVLab2"), b"spoofed")  # another camera's topic
+    camera.publish(tracks_topic(1), b"fake tracks")
+    camera.publish(detections_topic(1, "CVLab1"), b"genuine")  # its own: allowed
+    assert camera.flush(WAIT)
+    assert [delivery.payload for delivery in matcher.wait_for(1)] == [b"genuine"]
+    assert matcher.settle(0.2) and matcher.payloads == [b"genuine"]
+    assert camera.refused_publishes == 2  # Mosquitto answers "Not authorized" under MQTT 5
+    camera.close()
+
+
+def test_camera_cannot_read_detections_or_tracks(mosquitto_auth):
+    spy = connect(mosquitto_auth, "CVLab1")
+    collector = Collector()
+    for topic_filter in ("cblrs/1/+/detections", "cblrs/#", "#", tracks_topic(1)):
+        try:
+            spy.subscribe(topic_filter, collector)
+        except TransportError as error:  # refused outright is fine too
+            assert "refused the subscription" in str(error)
+    other = connect(mosquitto_auth, "CVLab2")
+    other.publish(detections_topic(1, "CVLab2"), b"secret")
+    other.publish(status_topic(1, "CVLab2"), b"online", retain=True)
+    assert other.flush(WAIT)
+    publisher = connect(mosquitto_auth, "matcher1")
+    publisher.publish(tracks_topic(1), b"tracks")
+    assert publisher.flush(WAIT)
+    assert collector.settle(0.3) == []
+    for transport in (spy, other, publisher):
+        transport.close()
+
+
+def test_matcher_cannot_inject_detections(mosquitto_auth, matcher):
+    rogue = connect(mosquitto_auth, "matcher2")
+    rogue.publish(detections_topic(1, "CVLab1"), b"injected")
+    assert rogue.flush(WAIT)
+    assert matcher.settle(0.2) == []
+    assert rogue.refused_publishes == 1
+    rogue.close()
+
+
+def test_viewer_reads_tracks_but_not_detections(mosquitto_auth):
+    viewer = connect(mosquitto_auth, "viewer")
+    tracks, detections = Collector(), Collector()
+    viewer.subscribe(tracks_topic(1), tracks)
+    try:
+        viewer.subscribe("cblrs/1/+/detections", detections)
+    except TransportError:
+        pass
+    camera = connect(mosquitto_auth, "CVLab1")
+    camera.publish(detections_topic(1, "CVLab1"), b"detections")
+    matcher = connect(mosquitto_auth, "matcher1")
+    matcher.publish(tracks_topic(1), b"tracks")
+    assert tracks.wait_for(1) and tracks.payloads == [b"tracks"]
+    assert detections.settle(0.2) == []
+    for transport in (viewer, camera, matcher):
+        transport.close()
+
+
+def test_another_user_cannot_take_over_a_matchers_session(mosquitto_auth, matcher):
+    # The camera claims the matcher's client id; the broker uses the user name instead.
+    impostor = connect(mosquitto_auth, "CVLab1", client_id="matcher1")
+    camera = connect(mosquitto_auth, "CVLab2")
+    camera.publish(detections_topic(1, "CVLab2"), b"still delivered")
+    assert [delivery.payload for delivery in matcher.wait_for(1)] == [b"still delivered"]
+    impostor.close()
+    camera.close()
+
+
+def test_tls_round_trip_with_client_certificates(mosquitto_tls):
+    matcher = connect(mosquitto_tls, "matcher1")
+    collector = Collector()
+    matcher.subscribe("cblrs/2/+/detections", collector)
+    camera = connect(mosquitto_tls, "CVLab2")
+    camera.publish(detections_topic(2, "CVLab2"), b"over TLS")
+    assert [delivery.payload for delivery in collector.wait_for(1)] == [b"over TLS"]
+    camera.close()
+    matcher.close()
+
+
+def test_plain_tcp_client_to_the_tls_port_fails(mosquitto_tls):
+    settings = replace(
+        mosquitto_tls.settings("CVLab1", connect_timeout_s=1.0),
+        ca_file=None,
+        cert_file=None,
+        key_file=None,
+    )
+    with pytest.raises(TransportError, match="no answer from the MQTT broker"):
+        MqttTransport("CVLab1", settings).connect()
+
+
+def test_tls_client_without_a_certificate_fails(mosquitto_tls):
+    settings = replace(
+        mosquitto_tls.settings("CVLab1", connect_timeout_s=1.0), cert_file=None, key_file=None
+    )
+    with pytest.raises(TransportError, match="no answer from the MQTT broker"):
+        MqttTransport("CVLab1", settings).connect()
+
+
+def test_acl_and_credentials_files(mosquitto_auth):
+    files = mosquitto_auth.files
+    acl = files.acl_file.read_text()
+    assert (
+        "user CVLab1\ntopic write cblrs/+/CVLab1/detections\ntopic write cblrs/+/CVLab1/status\n"
+        in acl
+    )
+    assert "topic read cblrs/1/+/detections" in acl and "topic read cblrs/2/+/detections" in acl
+    assert "topic write cblrs/1/tracks" in acl
+    credentials = json.loads(files.credentials_file.read_text())
+    assert set(credentials["passwords"]) == {"CVLab1", "CVLab2", "matcher1", "matcher2", "viewer"}
+    assert credentials["roles"]["CVLab1"] == "camera" and credentials["roles"]["viewer"] == "viewer"
+    assert len(set(credentials["passwords"].values())) == 5
+    for path in (files.credentials_file, files.password_file):
+        assert stat.S_IMODE(os.stat(path).st_mode) == 0o600
+    hashed = files.password_file.read_text()
+    for password in credentials["passwords"].values():
+        assert password not in hashed and password not in files.config.read_text()
+    config = files.config.read_text()
+    assert "allow_anonymous false" in config and "persistence_location" in config
+
+
+@pytest.mark.parametrize(
+    ("cameras", "matchers", "options", "message"),
+    [
+        (["bad/name"], ["m"], {}, "camera id 'bad/name' is not usable"),
+        (["c"], ["c"], {}, "must be distinct"),
+        ([], [], {}, "at least one camera or matcher"),
+        (["c"], ["m"], {"plane_ids": [0]}, "plane ids must be 1..65535"),
+        (["c"], ["m"], {"port": 0}, "port must be 1..65535"),
+    ],
+)
+def test_write_broker_config_refuses(tmp_path, cameras, matchers, options, message):
+    options = {"port": 1883, **options}
+    with pytest.raises(Exception, match=message) as caught:
+        write_broker_config(tmp_path, cameras, matchers, **options)
+    assert isinstance(caught.value, BrokerError) or "not usable" in message
+
+
+def test_certificates_are_valid_for_a_year(mosquitto_tls):
+    from cryptography import x509
+
+    server = x509.load_pem_x509_certificate(
+        (mosquitto_tls.files.ca_file.parent / "server.crt").read_bytes()
+    )
+    lifetime = server.not_valid_after_utc - server.not_valid_before_utc
+    assert 364 <= lifetime.days <= 366
+    names = server.extensions.get_extension_for_class(x509.SubjectAlternativeName).value
+    assert "localhost" in names.get_values_for_type(x509.DNSName)
+    assert time.time() < server.not_valid_after_utc.timestamp()
