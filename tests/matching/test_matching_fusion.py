@@ -1,0 +1,219 @@
+"""The fusion tracker on synthetic messages: fusion across cameras, gaps, timing, state."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from cblrs.detections import CameraMessage, Tracks
+from cblrs.matching import FusionTracker, MatcherError, make_matcher
+from cblrs.matching.fusion import NoiseModel, assign_per_camera, cluster_detections
+from cblrs.plane import PlaneSet, PlaneSpec
+
+PLANES = PlaneSet([PlaneSpec(1, (-10.0, -10.0), 40.0, 40.0)])
+CAMERAS = ["north", "east", "south"]
+CAMERA_XY = {"north": (5.0, 22.0), "east": (22.0, 5.0), "south": (5.0, -12.0)}
+
+
+def walkers(times: np.ndarray) -> np.ndarray:
+    """(F, 3, 2) positions of three people walking straight lines, 2 m apart or more."""
+    start = np.array([[0.0, 0.0], [4.0, 6.0], [10.0, 2.0]])
+    velocity = np.array([[1.2, 0.3], [-0.8, 0.9], [0.2, -1.1]])
+    return start[None] + times[:, None, None] * velocity[None]
+
+
+def camera_message(camera: str, frame: int, timestamp: float, points: np.ndarray,
+                   rng: np.random.Generator, noise_m: float = 0.05) -> CameraMessage:
+    noisy = points + rng.normal(0.0, noise_m, size=points.shape)
+    colour, valid = PLANES[0].encode(noisy.reshape(-1, 2))
+    assert valid.all()
+    count = len(colour)
+    boxes = np.column_stack([np.arange(count) * 50.0, np.zeros(count),
+                             np.arange(count) * 50.0 + 30.0, np.full(count, 80.0 + frame)])
+    return CameraMessage(camera, frame, timestamp, frame, boxes, np.ones(count),
+                         np.zeros(count, np.int64), colour.astype(np.int64))
+
+
+def sequence(fps: float = 2.0, seconds: float = 10.0, seed: int = 0, offsets=(0.0, 0.0, 0.0),
+             missing: dict | None = None):
+    """Per frame: list of (timestamp, [messages]) instants; cameras may be offset in time."""
+    rng = np.random.default_rng(seed)
+    frames = np.arange(int(seconds * fps))
+    instants = []
+    for frame in frames:
+        per_time: dict[float, list[CameraMessage]] = {}
+        for camera, offset in zip(CAMERAS, offsets, strict=True):
+            timestamp = frame / fps + offset
+            points = walkers(np.array([timestamp]))[0]
+            keep = [index for index in range(3)
+                    if (missing or {}).get((int(frame), index)) is None]
+            per_time.setdefault(timestamp, []).append(
+                camera_message(camera, int(frame), timestamp, points[keep], rng))
+        instants.extend(sorted(per_time.items()))
+    return instants
+
+
+def run(tracker, instants) -> Tracks:
+    return Tracks.concatenate([tracker.update(timestamp, messages)
+                               for timestamp, messages in instants])
+
+
+def identities(tracks: Tracks, times: np.ndarray) -> dict[int, set[int]]:
+    """For each true walker, the set of track ids reported on it."""
+    truth = walkers(tracks.timestamp)
+    nearest = np.argmin(np.linalg.norm(truth - tracks.world_xy[:, None], axis=2), axis=1)
+    return {walker: set(tracks.track_id[nearest == walker].tolist()) for walker in range(3)}
+
+
+@pytest.mark.parametrize("fps", [2.0, 10.0])
+def test_three_cameras_fuse_into_one_track_per_person(fps):
+    tracker = FusionTracker(PLANES, CAMERAS, camera_positions=CAMERA_XY)
+    tracks = run(tracker, sequence(fps=fps))
+    assert identities(tracks, tracks.timestamp) == {0: {1}, 1: {2}, 2: {3}}
+    # One row per person and frame, not one per camera.
+    assert len(tracks) == 3 * int(10 * fps)
+    error = np.linalg.norm(tracks.world_xy - walkers(tracks.timestamp)[
+        np.arange(len(tracks)), tracks.track_id - 1], axis=1)
+    assert np.median(error) < 0.05
+
+
+def test_a_missed_frame_keeps_the_identity():
+    missing = {(frame, 1): True for frame in (6, 7)}  # walker 1 unseen by all for 1 s
+    tracks = run(FusionTracker(PLANES, CAMERAS), sequence(missing=missing))
+    assert identities(tracks, tracks.timestamp)[1] == {2}
+    assert 6 not in tracks.frame[tracks.track_id == 2].tolist()
+
+
+def test_cameras_with_offset_timestamps():
+    instants = sequence(fps=2.0, offsets=(0.0, 0.04, 0.09))
+    assert len(instants) == 3 * 20  # every camera's messages arrive at their own instant
+    tracks = run(FusionTracker(PLANES, CAMERAS), instants)
+    assert identities(tracks, tracks.timestamp) == {0: {1}, 1: {2}, 2: {3}}
+    assert tracks.track_id.max() == 3
+
+
+def test_state_round_trip_gives_the_same_output():
+    instants = sequence(fps=5.0, seed=3, missing={(12, 0): True})
+    uninterrupted = run(FusionTracker(PLANES, CAMERAS, camera_positions=CAMERA_XY), instants)
+    first = FusionTracker(PLANES, CAMERAS, camera_positions=CAMERA_XY)
+    head = run(first, instants[:17])
+    resumed = FusionTracker(PLANES, CAMERAS, camera_positions=CAMERA_XY)
+    resumed.set_state(json.loads(json.dumps(first.get_state())))
+    tail = run(resumed, instants[17:])
+    joined = Tracks.concatenate([head, tail])
+    np.testing.assert_array_equal(joined.track_id, uninterrupted.track_id)
+    np.testing.assert_array_equal(joined.world_xy, uninterrupted.world_xy)
+    np.testing.assert_array_equal(joined.frame, uninterrupted.frame)
+
+
+def test_reset_restarts_identities():
+    tracker = FusionTracker(PLANES, CAMERAS)
+    instants = sequence(seconds=3.0)
+    before = run(tracker, instants)
+    tracker.reset()
+    assert tracker.track_count == 0
+    after = run(tracker, instants)
+    np.testing.assert_array_equal(before.track_id, after.track_id)
+    np.testing.assert_array_equal(before.world_xy, after.world_xy)
+
+
+@pytest.mark.parametrize(
+    "messages", [[], [CameraMessage.empty("north", 0, 0.0, 0)]], ids=["none", "empty"]
+)
+def test_empty_input(messages):
+    tracker = FusionTracker(PLANES, CAMERAS)
+    assert len(tracker.update(0.0, messages)) == 0
+    assert tracker.track_count == 0
+
+
+def test_a_single_camera_detection_is_not_reported_until_confirmed():
+    rng = np.random.default_rng(0)
+    tracker = FusionTracker(PLANES, CAMERAS)
+    point = np.array([[1.0, 1.0]])
+    first = tracker.update(0.0, [camera_message("north", 0, 0.0, point, rng)])
+    second = tracker.update(0.5, [camera_message("north", 1, 0.5, point, rng)])
+    assert len(first) == 0 and second.track_id.tolist() == [1]
+    assert second.camera_id.tolist() == [0]
+
+
+@pytest.mark.parametrize(
+    ("options", "expected"),
+    [
+        ({"measurement_sigma_m": 0}, "measurement_sigma_m must be a positive number"),
+        ({"gate_sigmas": -2}, "gate_sigmas must be a positive number"),
+        ({"max_age_s": float("inf")}, "max_age_s must be a positive number"),
+        ({"report_coasting_s": -1}, "report_coasting_s must be zero or a positive number"),
+        ({"confirm_evidence": 0}, "confirm_evidence must be a whole number >= 1"),
+        ({"confirm_evidence": 1.5}, "confirm_evidence must be a whole number >= 1"),
+        ({"adapt_noise": "yes"}, "adapt_noise must be true or false"),
+        ({"class_acceleration_sigma": {"tank": 2.0}}, "unknown class 'tank'"),
+        ({"class_measurement_sigma_m": {"car": 0}}, "must be a positive number"),
+        ({"camera_positions": {"west": (0, 0)}}, "camera_positions names unknown camera"),
+        ({"camera_positions": {"north": (0, float("nan"))}}, "must be finite (x, y) metres"),
+        ({"kalman": True}, "unknown option(s) for the fusion matcher: kalman"),
+    ],
+)
+def test_bad_options(options, expected):
+    with pytest.raises(MatcherError) as error:
+        make_matcher("fusion", PLANES, CAMERAS, **options)
+    assert expected in str(error.value)
+
+
+def test_bad_state_and_unknown_camera():
+    tracker = FusionTracker(PLANES, CAMERAS)
+    with pytest.raises(MatcherError, match="not a saved fusion-tracker state"):
+        tracker.set_state({})
+    other = FusionTracker(PLANES, ["x"])
+    with pytest.raises(MatcherError, match="saved state is for cameras"):
+        tracker.set_state(other.get_state())
+    with pytest.raises(MatcherError, match="unknown camera 'x'"):
+        tracker.update(0.0, [CameraMessage.empty("x", 0, 0.0, 0)])
+
+
+@pytest.mark.parametrize(
+    ("points", "cameras", "expected"),
+    [
+        ([], [], []),
+        ([(0, 0)], [0], [0]),
+        ([(0, 0), (0.3, 0)], [0, 1], [0, 0]),  # two cameras, close: one object
+        ([(0, 0), (0.3, 0)], [0, 0], [0, 1]),  # one camera sees two objects
+        ([(0, 0), (3, 0)], [0, 1], [0, 1]),  # too far apart
+        # complete linkage: a chain 0 -- 0.8 -- 1.6 is not one object within 1 m
+        ([(0, 0), (0.8, 0), (1.6, 0)], [0, 1, 2], [0, 0, 1]),
+    ],
+)
+def test_cluster_detections(points, cameras, expected):
+    labels = cluster_detections(np.asarray(points, float).reshape(-1, 2),
+                                np.asarray(cameras, np.int64), 0.2, 3.5)
+    assert labels.tolist() == expected
+
+
+def test_assignment_is_per_camera_and_optimal():
+    # Detections 0, 1 from camera 0 and detection 2 from camera 1; two tracks.
+    rows = np.array([0, 0, 1, 2])
+    columns = np.array([0, 1, 0, 0])
+    cost = np.array([1.0, 1.5, 0.2, 0.1])
+    assigned = assign_per_camera(rows, columns, cost, np.array([0, 0, 1]), 2)
+    # Camera 0: detection 1 takes track 0 (0.2), so detection 0 gets track 1 (total 1.7 <
+    # 1.0 + nothing); camera 1's detection also takes track 0 (a different camera).
+    assert assigned.tolist() == [1, 0, 0]
+    empty = assign_per_camera(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0),
+                              np.array([0]), 1)
+    assert empty.tolist() == [-1]
+
+
+def test_noise_model_learns_the_disagreement_between_cameras():
+    rng = np.random.default_rng(1)
+    model = NoiseModel(0.2, 0.0)
+    for _ in range(200):
+        distance = rng.uniform(5, 30, size=(50, 2))
+        sigma = 0.03 * distance  # 3 cm per metre
+        truth = rng.uniform(0, 20, size=(50, 2))
+        first = truth + rng.normal(size=(50, 2)) * sigma[:, :1]
+        second = truth + rng.normal(size=(50, 2)) * sigma[:, 1:]
+        model.learn(np.concatenate([first, second]), distance.T.reshape(-1),
+                    np.tile(np.arange(50), 2))
+    assert model.sigma_per_distance == pytest.approx(0.03, rel=0.15)
+    assert model.sigma_m < 0.15  # from its prior of 0.2 m towards the true 0
