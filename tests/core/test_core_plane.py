@@ -35,6 +35,9 @@ def test_round_trip_error_at_most_half_a_step(bits, data):
     assert colours.max() <= plane.max_value
     decoded, decoded_valid = plane.decode(colours)
     assert decoded_valid.all()
+    # decode . encode is idempotent: a decoded point encodes to the same colour.
+    again, _ = plane.encode(decoded)
+    np.testing.assert_array_equal(again, colours)
     step_x, step_y = plane.step
     error = np.abs(decoded - point)[0]
     # Half a step, plus float rounding of the multiply-add.
