@@ -1,0 +1,113 @@
+"""The in-process pipeline and `cblrs track`: synthetic scenes and WILDTRACK."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from cblrs.cli.main import main
+from cblrs.datasets import load_scene, read_tracks
+from cblrs.datasets.synthetic import make_scene
+from cblrs.evaluation import evaluate
+from cblrs.pipeline import render_scene_references, scene_messages, track_scene
+
+
+@pytest.fixture(scope="module")
+def roundabout():
+    return make_scene("roundabout")
+
+
+@pytest.fixture(scope="module")
+def wildtrack(wildtrack_root):
+    scene = load_scene(wildtrack_root)
+    return scene, render_scene_references(scene)
+
+
+def test_messages_carry_colours_for_every_camera_and_frame(roundabout):
+    references = render_scene_references(roundabout, bits=8)
+    instants = list(scene_messages(roundabout, references))
+    assert len(instants) == len(roundabout.frames)
+    timestamp, messages = instants[3]
+    assert timestamp == pytest.approx(roundabout.timestamps[3])
+    assert [message.camera_id for message in messages] == ["A", "B"]
+    assert all(message.frame == roundabout.frames[3] for message in messages)
+    assert all(message.colour.shape == (len(message), 3) for message in messages)
+
+
+def test_roundabout_car_keeps_one_identity_through_both_hand_overs(roundabout):
+    result = track_scene(roundabout)
+    assert set(result.tracks.track_id.tolist()) == {1}
+    assert set(result.tracks.frame.tolist()) <= set(roundabout.frames.tolist())
+    # Reported from both cameras at some point: the identity was handed over.
+    assert set(result.tracks.camera_id.tolist()) == {0, 1}
+    assert result.message_count == 2 * len(roundabout.frames)
+    assert result.matcher_seconds <= result.total_seconds
+
+
+@pytest.mark.parametrize("matcher", ["fusion", "paper"])
+def test_plaza_through_both_matchers(matcher):
+    scene = make_scene("plaza", duration_s=8.0)
+    result = track_scene(scene, matcher, bits=8)
+    metrics = evaluate(scene.ground_truth, result.tracks)
+    assert len(result.references) == len(scene.cameras)
+    assert metrics.DetA > 50.0  # both localise people through the colour path
+    assert result.detection_count == sum(
+        len(boxes) for per_camera in scene.detections for boxes in per_camera)
+
+
+def test_track_scene_rejects_options_with_an_instance(roundabout):
+    from cblrs.matching import make_matcher
+    from cblrs.pipeline import scene_planes
+
+    matcher = make_matcher("paper", scene_planes(roundabout), roundabout.camera_names)
+    with pytest.raises(ValueError, match="only accepted with a matcher name"):
+        track_scene(roundabout, matcher, threshold_m=2.0)
+
+
+def test_wildtrack_fusion_scores(wildtrack):
+    """Exact annotated boxes, all frames, through the colour path."""
+    scene, references = wildtrack
+    result = track_scene(scene, references=references)
+    metrics = evaluate(scene.ground_truth, result.tracks)
+    assert metrics.HOTA >= 90.0
+    assert metrics.IDF1 >= 93.5
+
+
+def test_cli_track_writes_valid_tracks(wildtrack_root, tmp_path, capsys):
+    out = tmp_path / "tracks.txt"
+    code = main(["track", str(wildtrack_root), "--out", str(out), "--frames", "0:100",
+                 "--quiet"])
+    assert code == 0
+    tracks = read_tracks(out)
+    assert set(tracks.frame.tolist()) <= set(range(0, 101, 5))
+    assert len(tracks) > 100 and np.isfinite(tracks.world_xy).all()
+    assert "fusion: 21 frames x 7 cameras" in capsys.readouterr().out
+
+
+def test_cli_track_with_a_noisy_detector_and_json(wildtrack_root, tmp_path, capsys):
+    out = tmp_path / "noisy.txt"
+    code = main(["track", str(wildtrack_root), "--out", str(out), "--frames", "0:50",
+                 "--drop", "0.2", "--jitter", "0.05", "--false-positives", "1", "--seed", "3",
+                 "--matcher", "paper", "--bits", "8", "--json", "--quiet"])
+    assert code == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["matcher"] == "paper" and summary["frames"] == 11
+    assert summary["rows"] == len(read_tracks(out))
+
+
+@pytest.mark.parametrize(
+    ("arguments", "message"),
+    [
+        (["--drop", "1.5"], "--drop is a probability and must be at most 1"),
+        (["--jitter", "-0.1"], "--jitter must be >= 0"),
+        (["--frames", "9000:9100"], "no frames in 9000:9100"),
+        (["--frames", "50"], "must be FIRST:LAST"),
+    ],
+)
+def test_cli_track_errors(wildtrack_root, tmp_path, capsys, arguments, message):
+    code = main(["track", str(wildtrack_root), "--out", str(tmp_path / "t.txt"), *arguments])
+    assert code != 0
+    error = capsys.readouterr().err
+    assert message in error and "Traceback" not in error
