@@ -25,7 +25,7 @@ Per delivery:
 4. **track**: the group goes to the matcher (``update(timestamp, messages)``, messages in
    camera order) and one transaction stores its track rows, marks its inbox rows processed
    and saves the matcher state (``get_state()``); the rows are published on
-   ``cblrs/<plane>/tracks``.
+   ``cblrs/<plane>/tracks``. Groups released together (a backlog) share one transaction.
 
 A restarted service resumes from what SQLite holds: the matcher state and the last released
 timestamp of the last committed group, the unprocessed inbox rows (back into the buffer) and
@@ -35,6 +35,7 @@ acknowledged, so the broker delivers them again.
 
 from __future__ import annotations
 
+import functools
 import logging
 import math
 import queue
@@ -119,6 +120,7 @@ class MatcherService:
         publish_tracks: publish each group's rows on ``cblrs/<plane>/tracks``.
         max_buffered_groups: release the oldest group regardless once more are waiting.
         batch_size: deliveries stored per inbox transaction, at most.
+        groups_per_commit: released groups tracked per store transaction, at most.
         settings: extra identity stored with the database (matcher name and options); a
             reopened database must have been written with the same.
         observer: optional object with ``on_stored(messages, wall_time)`` and/or
@@ -139,6 +141,7 @@ class MatcherService:
         publish_tracks: bool = True,
         max_buffered_groups: int = 10_000,
         batch_size: int = 500,
+        groups_per_commit: int = 50,
         settings: dict[str, Any] | None = None,
         observer: Any = None,
         wall_clock: Callable[[], float] = time.time,
@@ -164,6 +167,7 @@ class MatcherService:
         self.publish_tracks = publish_tracks
         self.max_buffered_groups = int(max_buffered_groups)
         self.batch_size = int(batch_size)
+        self.groups_per_commit = max(1, int(groups_per_commit))
         self.observer = observer
         self._wall_clock = wall_clock
         self.clock = ServiceClock(lambda: bool(getattr(transport, "connected", True)))
@@ -302,7 +306,7 @@ class MatcherService:
             self._last_delivery = now
             counters["received"] += 1
             try:
-                plane_id, camera = parse_detections_topic(delivery.topic)
+                plane_id, camera = _parse_topic(delivery.topic)
                 message, _ = self.policy.decode_with_plane(
                     delivery.payload, topic_camera=camera, now=received_at, topic_plane=plane_id
                 )
@@ -394,42 +398,51 @@ class MatcherService:
 
     def _release_ready(self, force: bool = False) -> None:
         while self._groups:
-            now = self.clock()
-            timestamp = min(self._groups)
-            group = self._groups[timestamp]
-            if not (
-                force
-                or len(self._groups) > self.max_buffered_groups
-                or self._ready(timestamp, group, now)
-            ):
+            batch = []
+            while self._groups and len(batch) < self.groups_per_commit:
+                now = self.clock()
+                timestamp = min(self._groups)
+                group = self._groups[timestamp]
+                if not (
+                    force
+                    or len(self._groups) > self.max_buffered_groups
+                    or self._ready(timestamp, group, now)
+                ):
+                    break
+                del self._groups[timestamp]
+                batch.append((timestamp, group))
+            if not batch:
                 return
-            del self._groups[timestamp]
-            self._process(timestamp, group)
+            self._process(batch)
 
-    def _process(self, timestamp: float, group: _Group) -> None:
-        messages = sorted(group.messages.values(), key=lambda m: self._camera_order[m.camera_id])
-        tracks = self.matcher.update(timestamp, messages)
-        counters = {"processed": len(messages), "groups": 1, "tracks": len(tracks)}
-        self.store.commit_group(
-            [(message.camera_id, message.sequence) for message in messages],
-            tracks,
-            self.matcher.get_state(),
-            timestamp,
-            counters,
-        )
-        self._released = timestamp
+    def _process(self, batch: list[tuple[float, _Group]]) -> None:
+        """Track released groups in time order and commit them in one transaction."""
+        results = []
+        for timestamp, group in batch:
+            messages = sorted(
+                group.messages.values(), key=lambda m: self._camera_order[m.camera_id]
+            )
+            results.append((timestamp, messages, self.matcher.update(timestamp, messages)))
+        keys = [(m.camera_id, m.sequence) for _, messages, _ in results for m in messages]
+        tracks = Tracks.concatenate([tracks for _, _, tracks in results])
+        counters = {"processed": len(keys), "groups": len(results), "tracks": len(tracks)}
+        # One snapshot after the last group: the file holds all of these groups or none.
+        self.store.commit_group(keys, tracks, self.matcher.get_state(), batch[-1][0], counters)
+        self._released = batch[-1][0]
         self._run_counters.update(counters)
-        self._updates += 1
-        if self.publish_tracks:
-            try:
-                payload = encode_tracks(
-                    tracks, self.plane_id, sequence=self._updates, cameras=self.camera_ids
-                )
-                self.transport.publish(tracks_topic(self.plane_id), payload, qos=1)
-            except Exception:  # a viewer feed must never stop the matcher
-                logger.exception("could not publish tracks of %s", timestamp)
-        if self.observer is not None and hasattr(self.observer, "on_group"):
-            self.observer.on_group(timestamp, messages, tracks, self._wall_clock())
+        for timestamp, messages, group_tracks in results:
+            self._updates += 1
+            if self.publish_tracks:
+                try:
+                    payload = encode_tracks(
+                        group_tracks, self.plane_id, sequence=self._updates,
+                        cameras=self.camera_ids,
+                    )
+                    self.transport.publish(tracks_topic(self.plane_id), payload, qos=1)
+                except Exception:  # a viewer feed must never stop the matcher
+                    logger.exception("could not publish tracks of %s", timestamp)
+            if self.observer is not None and hasattr(self.observer, "on_group"):
+                self.observer.on_group(timestamp, messages, group_tracks, self._wall_clock())
 
     # -- queries (any thread) --------------------------------------------------------------
 
@@ -494,6 +507,12 @@ class MatcherService:
             "released_timestamp": self._released,
             "offline_cameras": sorted(c for c, off in self._offline.items() if off),
         }
+
+
+@functools.lru_cache(maxsize=4096)
+def _parse_topic(topic: str) -> tuple[int, str]:
+    """:func:`parse_detections_topic`, cached: a plane has few cameras, hence few topics."""
+    return parse_detections_topic(topic)
 
 
 def stored_tracks(store: RuntimeStore) -> Tracks:
