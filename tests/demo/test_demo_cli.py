@@ -120,6 +120,13 @@ def test_demo_on_real_data(wildtrack_root, tmp_path, capsys):
     assert (tmp_path / name / "trajectories.png").is_file()
 
 
+def test_demo_output_folder_that_is_a_file(tmp_path, capsys):
+    target = tmp_path / "taken"
+    target.write_text("not a folder")
+    assert main(["demo", "--out", str(target), "--quiet"]) == 2
+    assert f"cannot create the output folder {target}" in capsys.readouterr().err
+
+
 @pytest.mark.parametrize(
     ("arguments", "message"),
     [

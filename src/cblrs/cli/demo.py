@@ -132,6 +132,10 @@ def run(args: Any) -> int:
         raise UsageError(f"--duration must be a positive number of seconds, got {args.duration}.")
     frame_range = parse_frame_range(args.frames) if args.frames else None
     out = Path(args.out)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as error:
+        raise UsageError(f"cannot create the output folder {out}: {error.strerror}.") from None
     start = time.perf_counter()
     reports = []
     if args.dataset:
