@@ -25,6 +25,8 @@ higher in the box. For people the offset is zero (their feet are the footprint).
 
 from __future__ import annotations
 
+from typing import Protocol
+
 import numpy as np
 
 from cblrs.detections import CLASS_NAMES, CameraMessage, Detections
@@ -40,6 +42,16 @@ GROUND_DEPTH_OFFSET_M: dict[str, float] = {
     "bicycle": 0.4,
     "motorcycle": 0.5,
 }
+
+
+class Targeter(Protocol):
+    """Chooses target pixels for a frame's detections (see :mod:`cblrs.geometric_targeting`)."""
+
+    def target_pixels(self, detections: Detections) -> tuple[np.ndarray, np.ndarray]:
+        """(N, 2) target pixels and (N,) bool, True where the target lies in the image."""
+        ...
+
+
 # Targeting used together with the offsets: the bottom edge of the box.
 OFFSET_TARGETING = TargetingPosition(0.5, 1.0)
 # How far above the target (fraction of the box height, at least 2 px) the second pixel is
@@ -71,6 +83,7 @@ def make_message(
     detections: Detections,
     reference: ReferenceImage,
     targeting: dict[str, TargetingPosition] | None = None,
+    targeter: Targeter | None = None,
 ) -> CameraMessage:
     """Localise one frame's detections through the reference image and build the message.
 
@@ -82,6 +95,10 @@ def make_message(
         detections: the frame's boxes.
         reference: the camera's reference image.
         targeting: per-class targeting overrides (defaults: :data:`DEFAULT_TARGETING`).
+        targeter: optional object choosing the target pixels itself (for example a
+            :class:`cblrs.geometric_targeting.GeometricTargeter`, which aims at the
+            footprint centre); then no depth offset is applied. The border policy is the
+            same as for the default targeting.
 
     Returns:
         The message; a detection whose target pixel sees no plane (or lies outside the
@@ -89,13 +106,17 @@ def make_message(
     """
     horizontal, vertical = targeting_columns(detections.class_id, targeting)
     offset = depth_offsets(detections.class_id, targeting)
+    horizontal_matters = offset > 0
     vertical = np.where(offset > 0, OFFSET_TARGETING.vertical, vertical)
     horizontal = np.where(offset > 0, OFFSET_TARGETING.horizontal, horizontal)
     pixels, inside = target_pixels(
         detections.xyxy, horizontal, vertical, image_size=reference.image_size
     )
+    if targeter is not None:
+        pixels, inside = targeter.target_pixels(detections)
+        offset = np.zeros(len(detections))
     colours, valid = reference.colours_at(pixels)
-    cut = cut_by_border(detections.xyxy, vertical, offset > 0, reference.image_size)
+    cut = cut_by_border(detections.xyxy, vertical, horizontal_matters, reference.image_size)
     colours[~(valid & inside) | cut] = 0
     shift = (offset > 0) & ~cut
     if shift.any():

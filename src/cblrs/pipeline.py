@@ -19,7 +19,7 @@ import numpy as np
 
 from cblrs.datasets.scene import Scene
 from cblrs.detections import CameraMessage, Tracks
-from cblrs.edge import make_message
+from cblrs.edge import Targeter, make_message
 from cblrs.errors import DatasetError
 from cblrs.matching import DEFAULT_MATCHER, Matcher, make_matcher
 from cblrs.plane import PlaneSet
@@ -84,14 +84,38 @@ def camera_positions(scene: Scene) -> dict[str, tuple[float, float]]:
     }
 
 
+def scene_targeters(
+    scene: Scene, targeting: str | Sequence[Targeter]
+) -> list[Targeter] | None:
+    """Per-camera targeters for ``targeting`` (None for the fixed box targeting)."""
+    if isinstance(targeting, str):
+        if targeting == "box":
+            return None
+        if targeting == "geometric":
+            from cblrs.geometric_targeting import GeometricTargeter
+
+            return [GeometricTargeter(camera) for camera in scene.cameras]
+        raise ValueError(f"targeting must be 'box' or 'geometric', got {targeting!r}")
+    targeters = list(targeting)
+    if len(targeters) != len(scene.cameras):
+        raise ValueError(
+            f"need one targeter per camera ({len(scene.cameras)}), got {len(targeters)}"
+        )
+    return targeters
+
+
 def scene_messages(
-    scene: Scene, references: Sequence[ReferenceImage]
+    scene: Scene,
+    references: Sequence[ReferenceImage],
+    targeters: Sequence[Targeter] | None = None,
 ) -> Iterator[tuple[float, list[CameraMessage]]]:
     """The camera messages of each frame, as ``(timestamp, messages)`` in time order.
 
     Every camera sends a message per frame, empty or not (an empty message says "I looked
-    and saw nothing").
+    and saw nothing"). ``targeters`` (one per camera) replace the fixed box targeting.
     """
+    if targeters is None:
+        targeters = [None] * len(scene.cameras)
     if len(references) != len(scene.cameras):
         raise DatasetError(
             f"need one reference image per camera ({len(scene.cameras)}), got {len(references)}."
@@ -102,9 +126,11 @@ def scene_messages(
         timestamp = float(scene.timestamps[index])
         frame = int(scene.frames[index])
         messages = [
-            make_message(name, sequence, timestamp, frame, detections, reference)
-            for name, detections, reference in zip(
-                names, scene.detections[index], references, strict=True
+            make_message(
+                name, sequence, timestamp, frame, detections, reference, targeter=targeter
+            )
+            for name, detections, reference, targeter in zip(
+                names, scene.detections[index], references, targeters, strict=True
             )
         ]
         yield timestamp, messages
@@ -136,6 +162,7 @@ def track_scene(
     references: Sequence[ReferenceImage] | None = None,
     bits: int = 16,
     progress: bool = False,
+    targeting: str | Sequence[Targeter] = "box",
     **matcher_options: Any,
 ) -> TrackingResult:
     """Track a scene end to end through the colour path.
@@ -146,6 +173,10 @@ def track_scene(
         references: reference images per camera; rendered when None.
         bits: bit depth for rendering (ignored when ``references`` are given).
         progress: show a progress bar on stderr (terminals only).
+        targeting: ``"box"`` (fixed per-class targeting positions, the default),
+            ``"geometric"`` (a :class:`cblrs.geometric_targeting.GeometricTargeter` per
+            camera: calibration and class size priors choose the footprint centre; needs
+            posed cameras), or one targeter object per camera.
         **matcher_options: options for :func:`make_matcher`.
 
     Returns:
@@ -171,7 +202,9 @@ def track_scene(
         )
     elif matcher_options:
         raise ValueError("matcher options are only accepted with a matcher name.")
-    instants: Iterable[tuple[float, list[CameraMessage]]] = scene_messages(scene, references)
+    instants: Iterable[tuple[float, list[CameraMessage]]] = scene_messages(
+        scene, references, scene_targeters(scene, targeting)
+    )
     if progress:
         from tqdm import tqdm
 
