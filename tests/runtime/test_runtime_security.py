@@ -208,3 +208,56 @@ def test_certificates_are_valid_for_a_year(mosquitto_tls):
     names = server.extensions.get_extension_for_class(x509.SubjectAlternativeName).value
     assert "localhost" in names.get_values_for_type(x509.DNSName)
     assert time.time() < server.not_valid_after_utc.timestamp()
+
+
+def test_broker_config_command_writes_a_working_configuration(tmp_path, capsys):
+    from cblrs.cli.main import main
+    from cblrs.runtime.broker import MosquittoProcess, free_port
+    from cblrs.runtime.transport import MqttSettings
+
+    port = free_port()
+    out = tmp_path / "broker"
+    arguments = ["broker-config", "--out", str(out), "--cameras", "CVLab1,CVLab2"]
+    assert main([*arguments, "--matchers", "matcher1", "--planes", "1,2", "--port", str(port)]) == 0
+    printed = capsys.readouterr().out
+    assert f"mosquitto -c {out / 'mosquitto.conf'}" in printed
+    assert f"--password-file {out / 'secrets' / 'CVLab1.password'}" in printed
+    # Running it again would silently replace every password: refused without --force.
+    assert main([*arguments, "--port", str(port)]) == 2
+    assert "use --force" in capsys.readouterr().err
+
+    password = (out / "secrets" / "matcher1.password").read_text().strip()
+    assert stat.S_IMODE(os.stat(out / "secrets" / "matcher1.password").st_mode) == 0o600
+    with MosquittoProcess(out / "mosquitto.conf", port):
+        settings = MqttSettings(port=port, username="matcher1", password=password)
+        matcher = MqttTransport("matcher1", settings, persistent=False)
+        matcher.connect()
+        collector = Collector()
+        matcher.subscribe("cblrs/2/+/detections", collector)
+        camera_password = (out / "secrets" / "CVLab2.password").read_text().strip()
+        camera = MqttTransport(
+            "CVLab2", replace(settings, username="CVLab2", password=camera_password)
+        )
+        camera.connect()
+        camera.publish(detections_topic(2, "CVLab2"), b"hello")
+        assert [delivery.payload for delivery in collector.wait_for(1)] == [b"hello"]
+        camera.close()
+        matcher.close()
+
+
+@pytest.mark.parametrize(
+    ("arguments", "message"),
+    [
+        (["--cameras", ""], "--cameras needs at least one camera id"),
+        (["--cameras", "a,a"], "--cameras lists a name twice"),
+        (["--cameras", "a", "--planes", "one"], "--planes 'one' must be integers"),
+        (["--cameras", "a", "--planes", "0"], "plane ids must be 1..65535"),
+        (["--cameras", "a/b"], "camera id 'a/b' is not usable in MQTT topics"),
+    ],
+)
+def test_broker_config_command_errors(tmp_path, capsys, arguments, message):
+    from cblrs.cli.main import main
+
+    assert main(["broker-config", "--out", str(tmp_path), *arguments]) != 0
+    error = capsys.readouterr().err
+    assert message in error and "Traceback" not in error

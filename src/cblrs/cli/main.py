@@ -32,6 +32,7 @@ SUBCOMMANDS = [
     "camera",
     "matcher",
     "demo",
+    "broker_config",
 ]
 
 

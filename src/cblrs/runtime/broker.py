@@ -6,7 +6,8 @@
     passwords          hashed with mosquitto_passwd
     acl                a camera publishes only its own topics and reads nothing; matchers read
                        detections and publish tracks; the viewer reads tracks and status
-    credentials.json   the generated passwords (mode 0600) — give each client its own
+    credentials.json   the generated passwords (mode 0600)
+    secrets/<user>.password   one user's password (mode 0600): copy it to that client only
     data/              persistence (queued QoS 1 messages survive a broker restart)
     tls/               CA, server and client certificates (with ``tls=True``)
 
@@ -64,6 +65,8 @@ class BrokerFiles:
         ca_file: CA certificate clients use to verify the broker (TLS only).
         client_certificates: user -> (certificate, key) paths (TLS only).
         roles: user -> "camera" | "matcher" | "viewer".
+        password_files: user -> a 0600 file holding only that user's password (for
+            ``cblrs camera/matcher --password-file``; copy it to that client's machine).
     """
 
     directory: Path
@@ -78,6 +81,7 @@ class BrokerFiles:
     ca_file: Path | None = None
     client_certificates: dict[str, tuple[Path, Path]] = field(default_factory=dict)
     roles: dict[str, str] = field(default_factory=dict)
+    password_files: dict[str, Path] = field(default_factory=dict)
 
     def credentials(self) -> dict[str, str]:
         """user -> password, read from the 0600 credentials file."""
@@ -128,6 +132,7 @@ class BrokerFiles:
                 for user, (cert, key) in self.client_certificates.items()
             },
             "roles": dict(self.roles),
+            "password_files": {user: str(path) for user, path in self.password_files.items()},
         }
 
 
@@ -212,6 +217,7 @@ def write_broker_config(
         # As root mosquitto drops to the "mosquitto" user, which could not read these files.
         lines.append("user root")
     password_file = acl_file = credentials_file = None
+    password_files: dict[str, Path] = {}
     if not allow_anonymous:
         password_file = directory / "passwords"
         acl_file = directory / "acl"
@@ -223,6 +229,12 @@ def write_broker_config(
             credentials_file,
             json.dumps({"passwords": credentials, "roles": roles}, indent=2) + "\n",
         )
+        secrets_directory = directory / "secrets"
+        secrets_directory.mkdir(exist_ok=True)
+        os.chmod(secrets_directory, 0o700)
+        for user, password in credentials.items():
+            password_files[user] = secrets_directory / f"{user}.password"
+            _write_private(password_files[user], password + "\n")
         acl_file.write_text(_acl(cameras, matchers, planes, viewer))
         lines += [
             f"password_file {password_file}",
@@ -276,6 +288,7 @@ def write_broker_config(
         ca_file=ca_file,
         client_certificates=client_certificates,
         roles=roles,
+        password_files=password_files,
     )
 
 

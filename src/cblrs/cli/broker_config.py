@@ -1,0 +1,143 @@
+"""``cblrs broker-config``: a Mosquitto configuration with users, ACL and optional TLS."""
+
+from __future__ import annotations
+
+import argparse
+import shlex
+from pathlib import Path
+
+from cblrs.cli.common import UsageError, add_output_options, print_json
+from cblrs.runtime.broker import write_broker_config
+
+
+def register(subparsers) -> None:
+    parser = subparsers.add_parser(
+        "broker-config",
+        help="write a Mosquitto configuration (users, ACL, optional TLS) for cameras and matchers",
+        description=(
+            "Write mosquitto.conf, a hashed password file, an ACL and generated credentials for "
+            "a set of cameras and matchers. A camera may publish only its own topics and read "
+            "nothing; matchers read the detections of their planes and publish tracks; an "
+            "optional read-only 'viewer' user sees tracks. No anonymous access."
+        ),
+    )
+    parser.add_argument("--out", required=True, type=Path, help="output folder")
+    parser.add_argument(
+        "--cameras", required=True, metavar="ID,ID,...", help="camera ids, comma-separated"
+    )
+    parser.add_argument(
+        "--matchers", default="matcher1", metavar="ID,ID,...", help="matcher ids (default matcher1)"
+    )
+    parser.add_argument(
+        "--planes",
+        default="1",
+        metavar="ID,ID,...",
+        help="plane ids the matchers serve (default 1)",
+    )
+    parser.add_argument("--port", type=int, help="listener port (default 1883, or 8883 with --tls)")
+    parser.add_argument(
+        "--bind", default="127.0.0.1", help="listener address (0.0.0.0 for other machines)"
+    )
+    parser.add_argument(
+        "--tls",
+        action="store_true",
+        help="TLS-only listener; generates a CA, a server and one client certificate per user",
+    )
+    parser.add_argument(
+        "--no-persistence",
+        action="store_true",
+        help="do not keep queued messages across broker restarts",
+    )
+    parser.add_argument("--no-viewer", action="store_true", help="no read-only viewer user")
+    parser.add_argument(
+        "--force", action="store_true", help="overwrite an existing configuration (new passwords)"
+    )
+    add_output_options(parser)
+    parser.set_defaults(handler=run)
+
+
+def _names(text: str, option: str) -> list[str]:
+    names = [name.strip() for name in text.split(",") if name.strip()]
+    if len(names) != len(set(names)):
+        raise UsageError(f"{option} lists a name twice: {text!r}.")
+    return names
+
+
+def _planes(text: str) -> list[int]:
+    try:
+        return [int(value) for value in text.split(",") if value.strip()]
+    except ValueError:
+        raise UsageError(f"--planes {text!r} must be integers, e.g. 1 or 1,2.") from None
+
+
+def run(args: argparse.Namespace) -> int:
+    cameras = _names(args.cameras, "--cameras")
+    matchers = _names(args.matchers, "--matchers")
+    if not cameras:
+        raise UsageError("--cameras needs at least one camera id.")
+    planes = _planes(args.planes)
+    port = args.port if args.port is not None else (8883 if args.tls else 1883)
+    if (args.out / "mosquitto.conf").exists() and not args.force:
+        raise UsageError(
+            f"{args.out / 'mosquitto.conf'} exists; use --force to overwrite it "
+            "(this generates new passwords)."
+        )
+    files = write_broker_config(
+        args.out,
+        cameras,
+        matchers,
+        port=port,
+        plane_ids=planes,
+        tls=args.tls,
+        persistence=not args.no_persistence,
+        bind=args.bind,
+        viewer=not args.no_viewer,
+    )
+    if args.json:
+        print_json({**files.to_dict(), "start": ["mosquitto", "-c", str(files.config)]})
+        return 0
+    host = "127.0.0.1" if files.bind in ("0.0.0.0", "::") else files.bind
+
+    def client_options(user: str) -> str:
+        options = [
+            "--broker",
+            f"{host}:{files.port}",
+            "--username",
+            user,
+            "--password-file",
+            str(files.password_files[user]),
+        ]
+        if files.tls:
+            cert, key = files.client_certificates[user]
+            options += ["--ca-file", str(files.ca_file), "--cert-file", str(cert)]
+            options += ["--key-file", str(key)]
+        return " ".join(shlex.quote(option) for option in options)
+
+    lines = [
+        f"Wrote a Mosquitto configuration to {files.directory}",
+        f"  config        {files.config}",
+        f"  passwords     {files.password_file} (hashed)",
+        f"  acl           {files.acl_file}",
+        f"  credentials   {files.credentials_file} (mode 0600, clear text: keep it private)",
+        f"  per user      {files.directory / 'secrets'}/<user>.password (mode 0600)",
+    ]
+    if files.persistence_directory is not None:
+        lines.append(f"  persistence   {files.persistence_directory}")
+    if files.tls:
+        lines.append(
+            f"  TLS           {files.ca_file.parent} (CA, server and client certificates, "
+            "valid 365 days)"
+        )
+    lines += [
+        "",
+        "Start the broker:",
+        f"  mosquitto -c {shlex.quote(str(files.config))}",
+        "",
+        "Users: " + ", ".join(f"{user} ({role})" for user, role in files.roles.items()),
+        "Connect a camera / matcher with (copy only that user's files to its machine):",
+        f"  cblrs camera ... --camera {cameras[0]} {client_options(cameras[0])}",
+    ]
+    if matchers:
+        lines.append(f"  cblrs matcher ... {client_options(matchers[0])}")
+    print("\n".join(lines))
+    return 0
