@@ -289,9 +289,10 @@ def camera_from_dict(data: dict, source: str = "<dict>") -> Camera:
                 distortion=np.asarray(data.get("distortion", []), float),
             )
         if "position" in data:
+            x, y, z = (float(value) for value in data["position"])
             return Camera.from_pose(
                 name,
-                tuple(float(v) for v in data["position"]),
+                (x, y, z),
                 float(data.get("pan_deg", 0.0)),
                 float(data.get("tilt_deg", 0.0)),
                 float(data["focal_px"]),

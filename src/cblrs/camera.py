@@ -16,6 +16,7 @@ has no lens model.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 import cv2
 import numpy as np
@@ -41,7 +42,7 @@ def _as_points(points: NDArray[np.floating] | list, name: str) -> FloatArray:
     return array
 
 
-def _check_matrix(matrix: NDArray, shape: tuple[int, ...], name: str) -> FloatArray:
+def _check_matrix(matrix: Any, shape: tuple[int, ...], name: str) -> FloatArray:
     array = np.asarray(matrix, dtype=np.float64)
     if array.shape != shape:
         raise CalibrationError(f"{name} must have shape {shape}, got {array.shape}.")

@@ -73,9 +73,9 @@ class Detections(_Columns):
     """
 
     xyxy: NDArray[np.float64]
-    confidence: NDArray[np.float64] = field(default=None)  # type: ignore[assignment]
-    class_id: NDArray[np.int64] = field(default=None)  # type: ignore[assignment]
-    object_id: NDArray[np.int64] = field(default=None)  # type: ignore[assignment]
+    confidence: NDArray[np.float64] = field(default=None)  # type: ignore[arg-type]
+    class_id: NDArray[np.int64] = field(default=None)  # type: ignore[arg-type]
+    object_id: NDArray[np.int64] = field(default=None)  # type: ignore[arg-type]
 
     _row_columns = ("xyxy", "confidence", "class_id", "object_id")
 
@@ -179,8 +179,8 @@ class Tracks(_Columns):
     timestamp: NDArray[np.float64]
     track_id: NDArray[np.int64]
     world_xy: NDArray[np.float64]
-    camera_id: NDArray[np.int64] = field(default=None)  # type: ignore[assignment]
-    xyxy: NDArray[np.float64] = field(default=None)  # type: ignore[assignment]
+    camera_id: NDArray[np.int64] = field(default=None)  # type: ignore[arg-type]
+    xyxy: NDArray[np.float64] = field(default=None)  # type: ignore[arg-type]
 
     _row_columns = ("frame", "timestamp", "track_id", "world_xy", "camera_id", "xyxy")
 

@@ -195,7 +195,7 @@ class PlaneSet(Sequence[PlaneSpec]):
     def __len__(self) -> int:
         return len(self._planes)
 
-    def __getitem__(self, index):  # type: ignore[override]
+    def __getitem__(self, index):
         return self._planes[index]
 
     def __iter__(self) -> Iterator[PlaneSpec]:

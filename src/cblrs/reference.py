@@ -16,6 +16,7 @@ import zlib
 from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
+from typing import Any, cast
 
 import cv2
 import numpy as np
@@ -78,7 +79,8 @@ class ReferenceImage:
         One integer gather per point replaces three channel reads.
         """
         pixels = self.pixels.astype(np.uint64)
-        return (pixels[..., 0] | (pixels[..., 1] << 16) | (pixels[..., 2] << 32)).ravel()
+        packed = pixels[..., 0] | (pixels[..., 1] << 16) | (pixels[..., 2] << 32)
+        return np.asarray(packed.ravel(), dtype=np.uint64)
 
     def coverage(self) -> float:
         """Fraction of pixels that see a plane."""
@@ -191,7 +193,8 @@ class ReferenceImage:
         if bits not in (8, 16):
             raise ReferenceImageError(f"{source}: unknown bit depth {bits!r}; expected 8 or 16.")
         try:
-            planes = PlaneSet.from_list(metadata.get("planes"))
+            plane_list: Any = metadata.get("planes")
+            planes = PlaneSet.from_list(plane_list)
         except PlaneError as error:
             raise ReferenceImageError(f"{source}: {error}") from None
         if planes.bits != bits:
@@ -223,7 +226,7 @@ class ReferenceImage:
                 f"{source}: image is {width}x{height} but the camera frame is "
                 f"{expected_size[0]}x{expected_size[1]}."
             )
-        pixels = np.ascontiguousarray(decoded[..., ::-1])
+        pixels = cast(NDArray[np.unsignedinteger], np.ascontiguousarray(decoded[..., ::-1]))
         return cls(pixels=pixels, planes=planes, camera_name=str(metadata.get("camera", "")))
 
 
@@ -289,7 +292,7 @@ def render_reference(
         np.copyto(channels[0], np.rint(code_x), where=hit, casting="unsafe")
         np.copyto(channels[1], np.rint(code_y), where=hit, casting="unsafe")
         channels[2][hit] = plane.plane_id
-    pixels = cv2.merge(channels)
+    pixels = cast(NDArray[np.unsignedinteger], cv2.merge(channels))
     return ReferenceImage(pixels=pixels, planes=planes, camera_name=camera.name)
 
 

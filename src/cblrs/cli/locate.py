@@ -184,7 +184,7 @@ def run(args: argparse.Namespace) -> int:
     rows = []
     for index in range(len(pixels)):
         row: dict = {"index": index}
-        if boxes is not None:
+        if boxes is not None and inside is not None:
             row["box"] = boxes[index].tolist()
             row["target_inside"] = bool(inside[index])
         if classes:

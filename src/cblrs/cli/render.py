@@ -8,6 +8,7 @@ import re
 import time
 from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
 import cv2
 
@@ -131,7 +132,7 @@ def run(args: argparse.Namespace) -> int:
         milliseconds = (time.perf_counter() - start) * 1000.0
         stem = file_name(camera.name, index)
         path = reference.save(args.out / f"{stem}.png")
-        row = {
+        row: dict[str, Any] = {
             "camera": camera.name,
             "path": str(path),
             "coverage": reference.coverage(),
