@@ -251,3 +251,24 @@ def test_show_errors(wildtrack_render, tmp_path, capsys, extra, message):
         argv += ["--out", tmp_path / "o.png"]
     code, _, err = run(capsys, *argv, *extra)
     assert_one_line_error(code, err, message)
+
+
+def test_render_distorted_wildtrack(wildtrack_root, wildtrack_render, tmp_path, capsys):
+    code, stdout, _ = run(
+        capsys,
+        "render",
+        wildtrack_root,
+        "--out",
+        tmp_path,
+        "--bits",
+        "8",
+        "--distorted",
+        "--json",
+    )
+    assert code == 0
+    result = json.loads(stdout)
+    assert result["distorted"] is True and len(result["cameras"]) == 7
+    raw = ReferenceImage.load(tmp_path / "CVLab1.png")
+    undistorted = ReferenceImage.load(wildtrack_render / "CVLab1.png")
+    # The lens moves the picture by many pixels: the two references differ widely.
+    assert (raw.pixels != undistorted.pixels).any(axis=2).mean() > 0.3
