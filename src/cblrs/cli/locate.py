@@ -222,6 +222,9 @@ def run(args: argparse.Namespace) -> int:
             _metres(row["y"]),
             "yes" if row["valid"] else "no",
         ]
+        if "target_inside" in row:
+            # A target clamped to the image border (the box is cut off) is only a bound.
+            cells.append("yes" if row["target_inside"] else "clamped")
         if classes:
             cells.insert(1, row["class"] or "-")
         if summary is not None:
@@ -232,6 +235,8 @@ def run(args: argparse.Namespace) -> int:
                 _metres(row["error_m"]),
             ]
         table.append(cells)
+    if boxes is not None:
+        headers.append("in image")
     if classes:
         headers.insert(1, "class")
     if summary is not None:
