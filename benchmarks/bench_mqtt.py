@@ -88,16 +88,22 @@ def publisher(port: int, cameras: int, frames: int, fps: float, paced: bool, peo
     if not paced:  # as fast as possible: encode up front, measure the transport + matcher
         payloads = [[frame_message(name, index, frame, epoch + frame / fps, people)
                      for index, name in enumerate(names)] for frame in range(frames)]
-    start = time.time()
+    start = time.time() + 0.5
+    upcoming = None
     for frame in range(frames):
         if paced:
-            scheduled = start + frame / fps
-            delay = scheduled - time.time()
+            # Encode the frame ahead of its capture time, as each real camera would do in
+            # parallel on its own device; the publish loop then only sends.
+            upcoming = [frame_message(name, index, frame, start + frame / fps, people)
+                        for index, name in enumerate(names)]
+            delay = start + frame / fps - time.time()
             if delay > 0:
                 time.sleep(delay)
-        for index, (name, transport) in enumerate(zip(names, transports, strict=True)):
-            payload = (payloads[frame][index] if payloads is not None
-                       else frame_message(name, index, frame, start + frame / fps, people))
+        elif frame == 0:
+            start = time.time()
+        assert payloads is not None or upcoming is not None
+        batch = payloads[frame] if payloads is not None else upcoming
+        for name, transport, payload in zip(names, transports, batch, strict=True):
             transport.publish(detections_topic(PLANE_ID, name), payload)
     published = time.time()
     for name, transport in zip(names, transports, strict=True):

@@ -4,6 +4,9 @@ from __future__ import annotations
 
 import json
 import re
+import signal
+import subprocess
+import sys
 import threading
 import time
 from dataclasses import replace
@@ -38,7 +41,7 @@ from cblrs.runtime.sources import (
     video_source,
 )
 from cblrs.runtime.store import LATE, RuntimeStore
-from cblrs.runtime.topics import detections_topic, status_topic
+from cblrs.runtime.topics import detections_topic, matcher_status_topic, status_topic
 from cblrs.runtime.transport import InProcessBroker, InProcessTransport, MqttTransport, Will
 from cblrs.runtime.wire import decode_message, decode_status, encode_message, encode_status
 
@@ -609,3 +612,36 @@ def test_matcher_stats_reads_a_database(tmp_path, capsys):
     assert summary["settings"]["camera_ids"] == ["a"]
     assert main(["matcher", "--stats", str(tmp_path / "m.db")]) == 0
     assert "rejected.too_old" in capsys.readouterr().out
+
+
+def test_matcher_command_stops_cleanly_on_sigterm(small_world, mosquitto, tmp_path):
+    _, reference = small_world
+    (tmp_path / "refs").mkdir()
+    reference.save(tmp_path / "refs" / "cam1.png")
+    online = threading.Event()
+    watcher = MqttTransport("sigterm-watcher", mosquitto.settings(), persistent=False)
+
+    def on_status(delivery) -> None:
+        if decode_status(delivery.payload).state == "online":
+            online.set()
+        delivery.ack()
+
+    watcher.subscribe(matcher_status_topic(PLANE, "sigterm-matcher"), on_status)
+    watcher.connect()
+    process = subprocess.Popen(
+        [sys.executable, "-m", "cblrs.cli.main", "matcher", "--references",
+         str(tmp_path / "refs"), "--db", str(tmp_path / "m.db"), "--client-id",
+         "sigterm-matcher", "--broker", f"127.0.0.1:{mosquitto.port}", "--json"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )
+    try:
+        wait_until(online.is_set, 60, "the matcher to come online")
+        process.send_signal(signal.SIGTERM)
+        out, err = process.communicate(timeout=30)
+    finally:
+        if process.poll() is None:
+            process.kill()
+        watcher.close()
+    assert process.returncode == 0, err
+    summary = json.loads(out)
+    assert (summary["plane_id"], summary["cameras"], summary["received"]) == (PLANE, 1, 0)

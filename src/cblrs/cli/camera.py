@@ -22,12 +22,15 @@ def add_mqtt_options(parser: argparse.ArgumentParser) -> None:
     """Broker address, login and TLS options shared by ``camera`` and ``matcher``."""
     group = parser.add_argument_group("broker")
     group.add_argument(
-        "--broker", default="127.0.0.1:1883", metavar="HOST[:PORT]",
+        "--broker",
+        default="127.0.0.1:1883",
+        metavar="HOST[:PORT]",
         help="MQTT broker (default 127.0.0.1:1883)",
     )
     group.add_argument("--username", help="MQTT user name (default: anonymous)")
     group.add_argument(
-        "--password-file", type=Path,
+        "--password-file",
+        type=Path,
         help=f"file holding the MQTT password (default: ${PASSWORD_ENVIRONMENT})",
     )
     group.add_argument("--ca-file", type=Path, help="CA certificate of the broker; enables TLS")
@@ -40,8 +43,8 @@ def mqtt_settings(args: argparse.Namespace) -> Any:
     """:class:`MqttSettings` from the broker options; the password never comes from argv."""
     from cblrs.runtime.transport import MqttSettings
 
-    host, _, port_text = args.broker.rpartition(":") if ":" in args.broker else (
-        args.broker, "", "1883"
+    host, _, port_text = (
+        args.broker.rpartition(":") if ":" in args.broker else (args.broker, "", "1883")
     )
     try:
         port = int(port_text)
@@ -153,19 +156,23 @@ def register(subparsers) -> None:
     detector.add_argument("--blob-min-area", type=int, default=20)
     timing = parser.add_argument_group("timing")
     timing.add_argument(
-        "--realtime", action="store_true",
+        "--realtime",
+        action="store_true",
         help="pace by the recorded timestamps (default for files: as fast as possible)",
     )
     timing.add_argument("--speed", type=float, default=1.0, help="with --realtime: speed-up")
     timing.add_argument(
-        "--epoch", type=float,
+        "--epoch",
+        type=float,
         help="seconds since 1970 added to recorded timestamps (same for every camera of a replay)",
     )
     timing.add_argument(
         "--first-sequence", type=int, default=0, help="sequence number of the first message"
     )
     parser.add_argument(
-        "--flush-timeout", type=float, default=60.0,
+        "--flush-timeout",
+        type=float,
+        default=60.0,
         help="seconds to wait at the end for the broker to acknowledge everything",
     )
     add_mqtt_options(parser)
@@ -201,7 +208,8 @@ def build_source(args: argparse.Namespace):
     from cblrs.runtime import sources
 
     chosen = [
-        name for name in ("detections", "dataset", "video", "images")
+        name
+        for name in ("detections", "dataset", "video", "images")
         if getattr(args, name) is not None
     ]
     if len(chosen) != 1:
@@ -254,7 +262,10 @@ def build_detector(args: argparse.Namespace, class_id: int):
         if len(colour) != 3:
             raise UsageError(f"--blob-colour {args.blob_colour!r} must be R,G,B.")
         return sources.ColourBlobDetector(
-            colour, args.blob_tolerance, args.blob_min_area, class_id  # type: ignore[arg-type]
+            colour,
+            args.blob_tolerance,
+            args.blob_min_area,
+            class_id,
         )
     if args.weights is None:
         raise UsageError("--detector yolo needs --weights MODEL.pt (a local file).")
@@ -291,9 +302,15 @@ def run(args: argparse.Namespace) -> int:
         will=Will(topic, payload),
     )
     node = CameraNode(
-        transport, plane_id, args.camera, reference,
-        realtime=args.realtime, speed=args.speed, epoch=args.epoch,
-        first_sequence=args.first_sequence, flush_timeout_s=args.flush_timeout,
+        transport,
+        plane_id,
+        args.camera,
+        reference,
+        realtime=args.realtime,
+        speed=args.speed,
+        epoch=args.epoch,
+        first_sequence=args.first_sequence,
+        flush_timeout_s=args.flush_timeout,
     )
     install_stop_handlers(node.stop)
     connect_or_queue(transport)

@@ -36,7 +36,8 @@ def register(subparsers) -> None:
     parser.add_argument("--stats", type=Path, metavar="DB", help="print a database's counters")
     parser.add_argument("--db", type=Path, help="SQLite file of this matcher (created if missing)")
     parser.add_argument(
-        "--references", type=Path,
+        "--references",
+        type=Path,
         help="folder of the cameras' reference PNGs (gives camera ids and planes)",
     )
     parser.add_argument(
@@ -45,11 +46,16 @@ def register(subparsers) -> None:
     parser.add_argument("--plane", type=int, help="plane id (default: the references' only plane)")
     parser.add_argument("--matcher", default="fusion", help="fusion (default) or paper")
     parser.add_argument(
-        "--option", action="append", default=[], metavar="KEY=VALUE",
+        "--option",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
         help="matcher option (repeatable); VALUE is JSON or a string",
     )
     parser.add_argument(
-        "--window", type=float, default=2.0,
+        "--window",
+        type=float,
+        default=2.0,
         help="ordering window, seconds: how long a timestamp waits for a silent camera",
     )
     parser.add_argument("--out-tracks", type=Path, help="also write tracks (AI City format)")
@@ -58,7 +64,8 @@ def register(subparsers) -> None:
     )
     validation = parser.add_argument_group("validation")
     validation.add_argument(
-        "--max-age", type=float,
+        "--max-age",
+        type=float,
         help="reject capture times older than this, seconds (default 1 day)",
     )
     validation.add_argument(
@@ -67,11 +74,14 @@ def register(subparsers) -> None:
     validation.add_argument("--max-bytes", type=int, help="largest accepted payload, bytes")
     stopping = parser.add_argument_group("stopping (default: run until SIGINT / SIGTERM)")
     stopping.add_argument(
-        "--idle-exit", type=float, metavar="SECONDS",
+        "--idle-exit",
+        type=float,
+        metavar="SECONDS",
         help="stop after this long without detections (replays, tests)",
     )
     stopping.add_argument(
-        "--until-cameras-offline", action="store_true",
+        "--until-cameras-offline",
+        action="store_true",
         help="stop once every camera has published its final 'offline' status",
     )
     parser.add_argument(
@@ -146,7 +156,8 @@ def run(args: argparse.Namespace) -> int:
     matcher = make_matcher(args.matcher, planes, names, **options)
     limits: dict[str, Any] = {"bits": planes.bits}
     for name, value in (
-        ("max_age_s", args.max_age), ("max_future_s", args.max_future),
+        ("max_age_s", args.max_age),
+        ("max_future_s", args.max_future),
         ("max_bytes", args.max_bytes),
     ):
         if value is not None:
@@ -162,8 +173,14 @@ def run(args: argparse.Namespace) -> int:
     )
     store = RuntimeStore(args.db)
     service = MatcherService(
-        transport, store, matcher, plane_id, names,
-        policy=policy, window_s=args.window, publish_tracks=not args.no_publish_tracks,
+        transport,
+        store,
+        matcher,
+        plane_id,
+        names,
+        policy=policy,
+        window_s=args.window,
+        publish_tracks=not args.no_publish_tracks,
         settings={"matcher": args.matcher, "options": options},
     )
     stop = threading.Event()
@@ -174,7 +191,8 @@ def run(args: argparse.Namespace) -> int:
     transport.publish(
         status_topic,
         encode_status(matcher_id, "online", role="matcher", timestamp=time.time()),
-        qos=1, retain=True,
+        qos=1,
+        retain=True,
     )
     if not args.quiet:
         print(

@@ -207,7 +207,7 @@ class CameraNode:
             if recorded:
                 epoch = self._clock() - max(recorded)
         wall_start: float | None = None
-        first_recorded: float | None = None
+        first_recorded = 0.0
         for frame in _chain(pending, iterator):
             report.frames += 1
             if frame.timestamp is None:

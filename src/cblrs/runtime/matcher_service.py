@@ -398,7 +398,7 @@ class MatcherService:
 
     def _release_ready(self, force: bool = False) -> None:
         while self._groups:
-            batch = []
+            batch: list[tuple[float, _Group]] = []
             while self._groups and len(batch) < self.groups_per_commit:
                 now = self.clock()
                 timestamp = min(self._groups)

@@ -276,7 +276,8 @@ def video_source(
             ok, image = capture.read()
             if not ok:
                 break
-            yield SourceFrame(number, None if live else number / rate, detector.detect(image))
+            detections = detector.detect(np.asarray(image, np.uint8))
+            yield SourceFrame(number, None if live else number / rate, detections)
             number += 1
     finally:
         capture.release()
@@ -304,7 +305,7 @@ def image_folder_source(
         image = cv2.imread(str(path), cv2.IMREAD_COLOR)
         if image is None:
             raise DatasetError(f"cannot read image {path}.")
-        yield SourceFrame(number, number / fps, detector.detect(image))
+        yield SourceFrame(number, number / fps, detector.detect(np.asarray(image, np.uint8)))
 
 
 class ColourBlobDetector:
