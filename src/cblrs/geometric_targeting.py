@@ -24,7 +24,11 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cblrs.camera import Camera
-from cblrs.datasets.synthetic import clip_boxes, project_boxes_3d_unclipped
+from cblrs.datasets.synthetic import (
+    CLASS_SIZE_PRIORS,
+    clip_boxes,
+    project_boxes_3d_unclipped,
+)
 from cblrs.detections import CLASS_NAMES, Detections
 from cblrs.errors import CalibrationError
 from cblrs.targeting import target_pixels, targeting_for
@@ -34,15 +38,8 @@ logger = logging.getLogger(__name__)
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
 
-DEFAULT_CLASS_SIZES: dict[str, tuple[float, float, float]] = {
-    # length (along the heading), width, height in metres
-    "person": (0.5, 0.5, 1.75),
-    "car": (4.5, 1.8, 1.5),
-    "bicycle": (1.8, 0.6, 1.6),
-    "motorcycle": (2.1, 0.8, 1.5),
-    "bus": (12.0, 2.55, 3.2),
-    "truck": (8.0, 2.5, 3.2),
-}
+DEFAULT_CLASS_SIZES: dict[str, tuple[float, float, float]] = dict(CLASS_SIZE_PRIORS)
+"""Length (along the heading), width, height in metres per class: the synthetic world's priors."""
 
 _BORDER_PX = 1.0  # box edges this close to the image border are treated as cut by it
 _STEP_M = 1e-3  # finite-difference steps

@@ -49,7 +49,9 @@ def register(subparsers) -> None:
         "resolution", help="plane size x bits -> raster step, and its effect on LocA / HOTA"
     )
     resolution.add_argument(
-        "--sizes", default="12,30,50,100,200", help="plane sizes (metres, longer side)"
+        "--sizes",
+        default="50,100,200,500",
+        help="square plane sides in metres (besides the scene plane)",
     )
     resolution.add_argument("--bits", default="8,16", help="bit depths")
     resolution.add_argument(
