@@ -121,7 +121,7 @@ class FusionConfig:
     max_gate_m: float = 2.0
     cluster_sigmas: float = 3.5
     cluster_radius_m: float = 1.0
-    merge_radius_m: float = 0.4
+    merge_radius_m: float = 0.0
     confirm_evidence: int = 2
     tentative_max_age_s: float = 1.0
     max_age_s: float = 2.0
