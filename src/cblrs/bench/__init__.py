@@ -10,3 +10,6 @@ from cblrs.bench.machine import machine_info
 from cblrs.bench.render import benchmark_render
 
 __all__ = ["benchmark_claims", "benchmark_lookup", "benchmark_render", "machine_info"]
+
+# benchmark_tracker (cblrs.bench.tracker) and benchmark_pipeline (cblrs.bench.pipeline) import
+# the matcher and the evaluation; import them from their modules.

@@ -46,6 +46,25 @@ def register(subparsers) -> None:
     _common(claims)
     claims.set_defaults(handler=run, benchmark="claims")
 
+    tracker = kinds.add_parser("tracker", help="tracker detections/s against tracks and cameras")
+    tracker.add_argument("--tracks", default="25,50,100,200,400", help="live tracks")
+    tracker.add_argument("--cameras", default="1,4,8", help="camera counts")
+    tracker.add_argument("--matchers", default="fusion,paper", help="matchers")
+    tracker.add_argument("--frames", type=int, default=30, help="timed frames per run")
+    tracker.add_argument("--repeats", type=int, default=3, help="timed runs (default 3)")
+    _common(tracker)
+    tracker.set_defaults(handler=run, benchmark="tracker")
+
+    pipeline = kinds.add_parser(
+        "pipeline", help="end-to-end WILDTRACK: load, render, track, evaluate, memory"
+    )
+    pipeline.add_argument("--repeats", type=int, default=3, help="timed runs (default 3)")
+    pipeline.add_argument(
+        "--targeting", default="box,geometric", help="targeting modes to time (box, geometric)"
+    )
+    _common(pipeline)
+    pipeline.set_defaults(handler=run, benchmark="pipeline")
+
     every = kinds.add_parser("all", help="every benchmark; writes JSON and markdown to --out")
     every.add_argument("--repeats", type=int, default=5, help="timed runs (default 5)")
     every.add_argument("--n", type=int, default=100_000, help="pixels for lookup (default 100000)")
@@ -112,7 +131,57 @@ def _run_one(name: str, args: argparse.Namespace) -> tuple[dict[str, Any], str]:
             calibration=args.calibration,
         )
         return result, claims_report(result)
+    if name == "tracker":
+        from cblrs.bench.tracker import benchmark_tracker, plot_tracker, tracker_report
+
+        frames = _positive(getattr(args, "frames", 30), "--frames")
+        matchers = tuple(_words(getattr(args, "matchers", "fusion,paper"), "--matchers"))
+        result = benchmark_tracker(
+            tracks=_integers(getattr(args, "tracks", "25,50,100,200,400"), "--tracks"),
+            cameras=_integers(getattr(args, "cameras", "1,4,8"), "--cameras"),
+            matchers=matchers,
+            frames=frames,
+            repeats=min(repeats, 3) if args.benchmark == "all" else repeats,
+        )
+        if args.out is not None:
+            result["figures"] = [str(plot_tracker(result, args.out))]
+        return result, tracker_report(result)
+    if name == "pipeline":
+        from cblrs.bench.cameras import find_wildtrack
+        from cblrs.bench.pipeline import benchmark_pipeline, pipeline_report
+
+        root = find_wildtrack(args.calibration)
+        if root is None:
+            raise UsageError(
+                "the pipeline benchmark needs WILDTRACK; pass --calibration or set CBLRS_WILDTRACK."
+            )
+        targetings = tuple(_words(getattr(args, "targeting", "box,geometric"), "--targeting"))
+        if any(mode not in ("box", "geometric") for mode in targetings):
+            raise UsageError(f"--targeting must list box and/or geometric, got {targetings}.")
+        result = benchmark_pipeline(
+            root,
+            repeats=min(repeats, 3) if args.benchmark == "all" else repeats,
+            targetings=targetings,
+        )
+        return result, pipeline_report(result)
     raise UsageError(f"unknown benchmark {name!r}.")
+
+
+def _words(text: str, option: str) -> list[str]:
+    words = [word.strip() for word in text.split(",") if word.strip()]
+    if not words:
+        raise UsageError(f"{option} needs at least one value.")
+    return words
+
+
+def _integers(text: str, option: str) -> tuple[int, ...]:
+    try:
+        values = tuple(int(word) for word in _words(text, option))
+    except ValueError:
+        raise UsageError(f"{option} {text!r} must be comma-separated integers.") from None
+    if any(value <= 0 for value in values):
+        raise UsageError(f"{option} values must be positive, got {text!r}.")
+    return values
 
 
 def write_outputs(out: Path, name: str, result: dict[str, Any], text: str) -> list[Path]:
@@ -127,7 +196,11 @@ def write_outputs(out: Path, name: str, result: dict[str, Any], text: str) -> li
 
 def run(args: argparse.Namespace) -> int:
     if args.benchmark == "all":
-        names = ["lookup", "render", "claims"]
+        from cblrs.bench.cameras import find_wildtrack
+
+        names = ["lookup", "render", "claims", "tracker"]
+        if find_wildtrack(args.calibration) is not None:
+            names.append("pipeline")
         defaults = {"seed": 0, "bits": 8, "claims_n": 20_000}
         for key, value in defaults.items():
             if not hasattr(args, key):
