@@ -452,3 +452,25 @@ def test_connect_without_waiting_queues_until_the_broker_appears(start_mosquitto
     with MosquittoProcess.from_files(files):
         assert publisher.flush(WAIT)
         publisher.close()
+
+
+def test_subscriptions_are_restored_after_a_broker_restart_without_persistence(start_mosquitto):
+    # The broker forgets the session; the client notices "session present: False" and
+    # subscribes again by itself.
+    broker = start_mosquitto(persistence=False)
+    subscriber = MqttTransport("matcher", broker.settings())
+    collector = Collector()
+    subscriber.subscribe("a/+", collector)
+    subscriber.connect()
+    broker.restart()
+    publisher = MqttTransport("camera", broker.settings())
+    publisher.connect()
+    assert wait_until(lambda: subscriber.connected)
+    # The SUBSCRIBE follows the CONNACK: publish until the first message gets through.
+    deadline = time.monotonic() + WAIT
+    while not collector.deliveries and time.monotonic() < deadline:
+        publisher.publish("a/b", b"after restart")
+        collector.wait_for(1, timeout=0.05)
+    assert collector.deliveries and collector.deliveries[0].payload == b"after restart"
+    publisher.close()
+    subscriber.close()

@@ -123,7 +123,7 @@ def run(args: argparse.Namespace) -> int:
     ]
     if files.persistence_directory is not None:
         lines.append(f"  persistence   {files.persistence_directory}")
-    if files.tls:
+    if files.tls and files.ca_file is not None:
         lines.append(
             f"  TLS           {files.ca_file.parent} (CA, server and client certificates, "
             "valid 365 days)"

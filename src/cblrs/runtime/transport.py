@@ -38,12 +38,13 @@ from collections import OrderedDict, deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Protocol, runtime_checkable
+from typing import Any, Protocol, runtime_checkable
 
 from cblrs.errors import CblrsError
 from cblrs.runtime.topics import topic_matches, validate_filter, validate_topic
 
 logger = logging.getLogger(__name__)
+_paho_logger = logging.getLogger(__name__ + ".paho")
 
 
 class TransportError(CblrsError):
@@ -529,7 +530,7 @@ class MqttTransport:
         self._handlers = _HandlerTable()
         self._qos: dict[str, int] = {}
         self._subscribed: set[str] = set()
-        self._client = None
+        self._client: Any = None  # paho.mqtt.client.Client, imported lazily
         self._connected = threading.Event()
         self._disconnected = threading.Event()
         self._answered = threading.Event()
@@ -571,7 +572,9 @@ class MqttTransport:
             client_id=self.client_id,
             protocol=mqtt.MQTTv5,
         )
-        client.enable_logger(logging.getLogger("cblrs.runtime.paho"))
+        if _paho_logger.isEnabledFor(logging.DEBUG):
+            # paho formats a log line for every packet once a log callback is set: debug only.
+            client.on_log = self._on_log
         client.manual_ack_set(True)
         client.max_queued_messages_set(0)  # unbounded: nothing is dropped while away
         client.max_inflight_messages_set(settings.max_inflight)
@@ -759,6 +762,16 @@ class MqttTransport:
                     )
                 self._condition.wait(remaining)
             return self._suback.pop(mid)
+
+    def _on_log(self, client, userdata, level, text) -> None:
+        import paho.mqtt.client as mqtt
+
+        # After a wanted disconnection paho's loop runs once more and reports "Client is not
+        # connected" as an error: expected, so debug only.
+        if level == mqtt.MQTT_LOG_ERR and not text.startswith("Client is not connected"):
+            _paho_logger.warning("%s: %s", self.client_id, text)
+        elif _paho_logger.isEnabledFor(logging.DEBUG):
+            _paho_logger.debug("%s: %s", self.client_id, text)
 
     def _on_connect(self, client, userdata, flags, reason_code, properties) -> None:
         if reason_code.is_failure:
