@@ -23,24 +23,60 @@ def register(subparsers) -> None:
             "detector (--drop, --jitter, --false-positives)."
         ),
     )
-    parser.add_argument("dataset", type=Path, metavar="DATASET_DIR",
-                        help="WILDTRACK or MultiviewX folder")
-    parser.add_argument("--out", type=Path, required=True, metavar="TRACKS.txt",
-                        help="output tracks file (overwritten)")
-    parser.add_argument("--matcher", choices=sorted(MATCHERS), default=DEFAULT_MATCHER,
-                        help=f"matcher (default: {DEFAULT_MATCHER})")
-    parser.add_argument("--frames", metavar="FIRST:LAST",
-                        help="only these native frame numbers (inclusive)")
-    parser.add_argument("--drop", type=float, default=0.0, metavar="P",
-                        help="probability a box is missed (default 0)")
-    parser.add_argument("--jitter", type=float, default=0.0, metavar="F",
-                        help="box edge noise as a fraction of the box size (default 0)")
-    parser.add_argument("--false-positives", type=float, default=0.0, metavar="N",
-                        help="mean spurious boxes per frame and camera (default 0)")
-    parser.add_argument("--seed", type=int, default=0, metavar="S",
-                        help="seed of the simulated detector (default 0)")
-    parser.add_argument("--bits", type=int, choices=(8, 16), default=16,
-                        help="bits per colour channel of the reference images (default 16)")
+    parser.add_argument(
+        "dataset", type=Path, metavar="DATASET_DIR", help="WILDTRACK or MultiviewX folder"
+    )
+    parser.add_argument(
+        "--out",
+        type=Path,
+        required=True,
+        metavar="TRACKS.txt",
+        help="output tracks file (overwritten)",
+    )
+    parser.add_argument(
+        "--matcher",
+        choices=sorted(MATCHERS),
+        default=DEFAULT_MATCHER,
+        help=f"matcher (default: {DEFAULT_MATCHER})",
+    )
+    parser.add_argument(
+        "--frames", metavar="FIRST:LAST", help="only these native frame numbers (inclusive)"
+    )
+    parser.add_argument(
+        "--drop",
+        type=float,
+        default=0.0,
+        metavar="P",
+        help="probability a box is missed (default 0)",
+    )
+    parser.add_argument(
+        "--jitter",
+        type=float,
+        default=0.0,
+        metavar="F",
+        help="box edge noise as a fraction of the box size (default 0)",
+    )
+    parser.add_argument(
+        "--false-positives",
+        type=float,
+        default=0.0,
+        metavar="N",
+        help="mean spurious boxes per frame and camera (default 0)",
+    )
+    parser.add_argument(
+        "--seed",
+        type=int,
+        default=0,
+        metavar="S",
+        help="seed of the simulated detector (default 0)",
+    )
+    parser.add_argument(
+        "--bits",
+        type=int,
+        choices=(8, 16),
+        default=16,
+        help="bits per colour channel of the reference images (default 16)",
+    )
     add_output_options(parser)
     parser.set_defaults(handler=run)
 
@@ -59,8 +95,11 @@ def run(args: argparse.Namespace) -> int:
         scene = scene.select_frames(*parse_frame_range(args.frames))
     if args.drop or args.jitter or args.false_positives:
         scene = simulate_detections(
-            scene, drop=args.drop, jitter=args.jitter,
-            false_positives=args.false_positives, seed=args.seed,
+            scene,
+            drop=args.drop,
+            jitter=args.jitter,
+            false_positives=args.false_positives,
+            seed=args.seed,
         )
     result = track_scene(scene, args.matcher, bits=args.bits, progress=not args.quiet)
     write_tracks(args.out, result.tracks)

@@ -6,21 +6,25 @@ the same metric ground frame, so the views of one person at one instant are one 
 observation of one point. Per instant:
 
 1. decode all colours to world positions (metres);
-2. predict every track to the instant with a constant-velocity Kalman filter;
+2. predict every track to the instant with a constant-velocity Kalman filter (per-class
+   white-noise acceleration: people turn gently, cars harder);
 3. associate, per camera, detections to tracks with the Hungarian algorithm on the negative
-   log-likelihood, gated by Mahalanobis and metric distance (a track takes at most one
-   detection from each camera, a detection feeds at most one track);
-4. fuse each track's detections (inverse-variance weighted mean) and update the filter once;
-5. cluster the leftover detections across cameras (at most one per camera per cluster,
-   complete linkage within ``cluster_sigmas`` standard deviations of the difference) and
-   start a tentative track per cluster;
-6. confirm tracks with enough evidence (camera detections), merge duplicates (two tracks
-   that stay close without any camera seeing both), delete tracks unseen for too long.
+   log-likelihood, gated by Mahalanobis and metric distance and by class (a track takes at
+   most one detection from each camera, a detection feeds at most one track);
+4. let leftovers join a track other cameras saw at this instant when they lie within the
+   cluster radius of its fused position (the gate must not split one object's views);
+5. fuse each track's detections (inverse-variance weighted mean) and update the filter once;
+6. cluster the remaining detections across cameras (at most one per camera per cluster,
+   complete linkage) and start a tentative track per cluster;
+7. confirm tracks with enough evidence (camera detections), optionally merge duplicates,
+   delete tracks unseen for too long.
 
-All parameters are physical (metres, seconds, m/s, m/s^2) so the same defaults serve 2 fps
+Measurement noise is ``a**2 + (b * distance)**2`` from the camera (when camera positions are
+known), and :class:`NoiseModel` re-estimates ``a`` and ``b`` online from how much the cameras
+that see one object disagree, so the same defaults serve exact boxes and a noisy detector.
+All parameters are physical (metres, seconds, m/s, m/s^2): the same defaults serve 2 fps
 datasets and 10 or 20 fps video. Everything is online; there is no look-ahead.
 """
-
 from __future__ import annotations
 
 import math
