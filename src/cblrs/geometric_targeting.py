@@ -303,21 +303,30 @@ class GeometricTargeter:
         # The size prior enters as a fifth residual, in the units of the (normalised) edges.
         prior_weight = self.edge_sigma / self.size_sigma if self.size_sigma > 0 else 0.0
 
-        def residuals(values: FloatArray) -> FloatArray:
-            edges = np.einsum("mk,mkj->mj", self._predict(values, sizes) - boxes, mix)
-            return np.column_stack([edges, prior_weight * values[:, 3]])
+        count = len(parameters)
+        blocks = free + 1
+        tiled_sizes = np.tile(sizes, (blocks, 1))
+        tiled_boxes = np.tile(boxes, (blocks, 1))
+        tiled_mix = np.tile(mix, (blocks, 1, 1))
 
-        current = residuals(parameters)
-        cost = np.nansum(current**2, axis=1)
-        cost[~np.isfinite(current).all(axis=1)] = np.inf
-        damping = np.full(len(parameters), 1e-3)
-        for _ in range(iterations):
-            jacobian = np.empty((len(parameters), 5, free))
+        def evaluate(values: FloatArray) -> tuple[FloatArray, FloatArray]:
+            """Residuals (M, 5) and forward-difference Jacobian (M, 5, free) in one projection."""
+            stacked = np.tile(values, (blocks, 1))
             for column in range(free):
-                shifted = parameters.copy()
-                shifted[:, column] += steps[column]
-                jacobian[:, :, column] = (residuals(shifted) - current) / steps[column]
-            jacobian = np.nan_to_num(jacobian, nan=0.0, posinf=0.0, neginf=0.0)
+                stacked[(column + 1) * count : (column + 2) * count, column] += steps[column]
+            predicted = self._predict(stacked, tiled_sizes)
+            edges = np.einsum("mk,mkj->mj", predicted - tiled_boxes, tiled_mix)
+            residual = np.column_stack([edges, prior_weight * stacked[:, 3]])
+            base = residual[:count]
+            shifted = residual[count:].reshape(free, count, 5)
+            jacobian = np.moveaxis((shifted - base) / steps[:, None, None], 0, 2)
+            return base, np.nan_to_num(jacobian, nan=0.0, posinf=0.0, neginf=0.0)
+
+        current, jacobian = evaluate(parameters)
+        cost = np.sum(current**2, axis=1)
+        cost[~np.isfinite(cost)] = np.inf
+        damping = np.full(count, 1e-3)
+        for _ in range(iterations):
             normal = np.einsum("mki,mkj->mij", jacobian, jacobian)
             gradient = np.einsum("mki,mk->mi", jacobian, np.nan_to_num(current))
             diagonal = np.einsum("mii->mi", normal)
@@ -332,12 +341,13 @@ class GeometricTargeter:
             delta[:, 2:] = np.clip(delta[:, 2:], -0.5, 0.5)
             candidate = parameters.copy()
             candidate[:, :free] += delta
-            candidate_residuals = residuals(candidate)
+            candidate_residuals, candidate_jacobian = evaluate(candidate)
             candidate_cost = np.sum(candidate_residuals**2, axis=1)
             candidate_cost[~np.isfinite(candidate_cost)] = np.inf
             better = candidate_cost < cost
             parameters = np.where(better[:, None], candidate, parameters)
             current = np.where(better[:, None], candidate_residuals, current)
+            jacobian = np.where(better[:, None, None], candidate_jacobian, jacobian)
             cost = np.where(better, candidate_cost, cost)
             damping = np.where(better, damping * 0.3, damping * 10.0)
         return parameters, cost
