@@ -141,7 +141,7 @@ def test_tls_round_trip_with_client_certificates(mosquitto_tls):
 
 def test_plain_tcp_client_to_the_tls_port_fails(mosquitto_tls):
     settings = replace(
-        mosquitto_tls.settings("CVLab1", connect_timeout_s=1.0),
+        mosquitto_tls.settings("CVLab1", connect_timeout_s=0.5),
         ca_file=None,
         cert_file=None,
         key_file=None,
@@ -152,7 +152,7 @@ def test_plain_tcp_client_to_the_tls_port_fails(mosquitto_tls):
 
 def test_tls_client_without_a_certificate_fails(mosquitto_tls):
     settings = replace(
-        mosquitto_tls.settings("CVLab1", connect_timeout_s=1.0), cert_file=None, key_file=None
+        mosquitto_tls.settings("CVLab1", connect_timeout_s=0.5), cert_file=None, key_file=None
     )
     with pytest.raises(TransportError, match="no answer from the MQTT broker"):
         MqttTransport("CVLab1", settings).connect()
