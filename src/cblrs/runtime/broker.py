@@ -215,7 +215,11 @@ def write_broker_config(
     ]
     if os.geteuid() == 0:
         # As root mosquitto drops to the "mosquitto" user, which could not read these files.
-        lines.append("user root")
+        lines += [
+            "# Generated as root: keep root so mosquitto can read the 0600 files here.",
+            "# Better: chown this folder to a service user and run mosquitto as that user.",
+            "user root",
+        ]
     password_file = acl_file = credentials_file = None
     password_files: dict[str, Path] = {}
     if not allow_anonymous:
@@ -247,6 +251,7 @@ def write_broker_config(
         lines += [
             "persistence true",
             f"persistence_location {persistence_directory}/",
+            # Saved on a clean stop (SIGTERM) and every 60 s; a crash loses newer messages.
             "autosave_interval 60",
         ]
     else:
