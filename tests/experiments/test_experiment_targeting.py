@@ -127,6 +127,7 @@ def test_cli_writes_figures(tmp_path, capsys):
         (["--tilts", "abc"], "must be comma-separated numbers"),
         (["--tilts", "0"], "must lie in (0, 90]"),
         (["--draws", "0"], "--draws must be a positive integer"),
+        (["--tracking", "mars"], "--tracking scenes must be wildtrack, plaza or roundabout"),
     ],
 )
 def test_cli_errors(capsys, argv, message):

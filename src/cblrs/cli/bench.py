@@ -84,6 +84,7 @@ def _common(parser: argparse.ArgumentParser, out_required: bool = False) -> None
     parser.add_argument(
         "--out", type=Path, required=out_required, help="also write bench_<name>.json/.md here"
     )
+    parser.add_argument("--figures", type=Path, help="write PNG figures here (default: --out)")
     add_output_options(parser)
 
 
@@ -144,7 +145,7 @@ def _run_one(name: str, args: argparse.Namespace) -> tuple[dict[str, Any], str]:
             repeats=min(repeats, 3) if args.benchmark == "all" else repeats,
         )
         if args.out is not None:
-            result["figures"] = [str(plot_tracker(result, args.out))]
+            result["figures"] = [str(plot_tracker(result, args.figures or args.out))]
         return result, tracker_report(result)
     if name == "pipeline":
         from cblrs.bench.cameras import find_wildtrack

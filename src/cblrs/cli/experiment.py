@@ -41,7 +41,14 @@ def register(subparsers) -> None:
     targeting.add_argument(
         "--no-wildtrack", action="store_true", help="skip the WILDTRACK annotated-box check"
     )
+    targeting.add_argument(
+        "--tracking",
+        default="",
+        help="also track these scenes with box and geometric targeting and score them "
+        "(comma-separated: wildtrack, plaza, roundabout)",
+    )
     targeting.add_argument("--out", type=Path, help="write JSON, markdown and heat maps here")
+    targeting.add_argument("--figures", type=Path, help="write the PNGs here (default: --out)")
     add_output_options(targeting)
     targeting.set_defaults(handler=run, experiment="targeting")
 
@@ -62,6 +69,7 @@ def register(subparsers) -> None:
     )
     resolution.add_argument("--wildtrack", type=Path, default=None, help="WILDTRACK folder")
     resolution.add_argument("--out", type=Path, help="write JSON, markdown and the plot here")
+    resolution.add_argument("--figures", type=Path, help="write the PNG here (default: --out)")
     add_output_options(resolution)
     resolution.set_defaults(handler=run, experiment="resolution")
 
@@ -118,9 +126,21 @@ def run_targeting_command(args: argparse.Namespace) -> tuple[dict[str, Any], str
             raise UsageError(f"{args.wildtrack} is not a WILDTRACK folder (no calibrations/).")
         if root is not None:
             result["wildtrack"] = wildtrack_targeting(root)
+    if args.tracking:
+        from cblrs.experiments.resolution import load_named_scene
+        from cblrs.experiments.targeting import tracking_effect
+
+        names = [name.strip() for name in args.tracking.split(",") if name.strip()]
+        unknown = [name for name in names if name not in ("wildtrack", "plaza", "roundabout")]
+        if unknown:
+            raise UsageError(
+                f"--tracking scenes must be wildtrack, plaza or roundabout; got {unknown}."
+            )
+        scenes = {name: load_named_scene(name, args.wildtrack, None) for name in names}
+        result["tracking"] = tracking_effect(scenes)
     text = targeting_report(result)
     if args.out is not None:
-        figures = plot_targeting(result, args.out)
+        figures = plot_targeting(result, args.figures or args.out)
         result["figures"] = [str(path) for path in figures]
         _write(args.out, "targeting", result, text)
     return result, text

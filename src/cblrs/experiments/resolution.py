@@ -306,6 +306,6 @@ def run_resolution_command(args: Any) -> tuple[dict[str, Any], str]:
     result = run_resolution(scenes, sizes, bits)
     text = resolution_report(result)
     if args.out is not None:
-        result["figures"] = [str(plot_resolution(result, args.out))]
+        result["figures"] = [str(plot_resolution(result, args.figures or args.out))]
         _write(args.out, "resolution", result, text)
     return result, text

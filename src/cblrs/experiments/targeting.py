@@ -386,6 +386,31 @@ def targeting_report(result: dict[str, Any]) -> str:
                 f"{tilt}deg {value:+.2f} m" for tilt, value in along.items() if value is not None
             ),
         ]
+    tracking = result.get("tracking")
+    if tracking:
+        lines += [
+            "",
+            "#### Effect on tracking (default pipeline, box vs geometric targeting)",
+            "",
+            markdown_table(
+                ["scene", "targeting", "HOTA", "DetA", "AssA", "LocA", "MOTA", "IDF1", "seconds"],
+                [
+                    [
+                        scene,
+                        mode,
+                        values["HOTA"],
+                        values["DetA"],
+                        values["AssA"],
+                        values["LocA"],
+                        values["MOTA"],
+                        values["IDF1"],
+                        values["seconds"],
+                    ]
+                    for scene, modes in tracking.items()
+                    for mode, values in modes.items()
+                ],
+            ),
+        ]
     wildtrack = result.get("wildtrack")
     if wildtrack:
         lines += [
@@ -579,3 +604,30 @@ def wildtrack_targeting(
             "overall": overall,
         }
     )
+
+
+def tracking_effect(scenes: dict[str, Any]) -> dict[str, Any]:
+    """HOTA & co of the default pipeline with box targeting against geometric targeting.
+
+    Args:
+        scenes: name -> :class:`cblrs.datasets.scene.Scene` (posed cameras).
+
+    Returns:
+        JSON-ready dict: per scene, per targeting mode, the metrics and tracking seconds.
+    """
+    import time
+
+    from cblrs.evaluation import evaluate
+    from cblrs.pipeline import render_scene_references, track_scene
+
+    output: dict[str, Any] = {}
+    for name, scene in scenes.items():
+        references = render_scene_references(scene)
+        output[name] = {}
+        for targeting in ("box", "geometric"):
+            start = time.perf_counter()
+            result = track_scene(scene, references=references, targeting=targeting)
+            seconds = time.perf_counter() - start
+            metrics = evaluate(scene.ground_truth, result.tracks).to_dict()
+            output[name][targeting] = {**metrics, "seconds": seconds}
+    return _json_ready(output)
