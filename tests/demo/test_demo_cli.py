@@ -97,15 +97,24 @@ def test_demo_json_on_a_short_plaza(tmp_path, capsys):
     ]
 
 
-def test_demo_prints_a_table_and_the_files(tmp_path, capsys):
-    code = main(["demo", "--out", str(tmp_path), "--preset", "roundabout", "--frames", "0:30",
-                 "--quiet"])
+def test_demo_prints_a_table_and_the_files_with_geometric_targeting(tmp_path, capsys):
+    code = main(["demo", "--out", str(tmp_path), "--preset", "roundabout", "--frames", "0:20",
+                 "--targeting", "geometric", "--quiet"])
     assert code == 0
     printed = capsys.readouterr().out
     header = printed.splitlines()[0].split()
     assert header[:8] == ["scene", "matcher", "HOTA", "DetA", "AssA", "LocA", "MOTA", "IDF1"]
     assert "roundabout    paper" in printed and "roundabout   fusion" in printed
     assert str(tmp_path / "roundabout" / "trajectories.png") in printed
+    scene = json.loads((tmp_path / "roundabout" / "metrics.json").read_text())
+    assert scene["targeting"] == "geometric" and scene["frames"] == 21
+    # The fitted targets sit near the car's footprint centre (box targeting: about 0.9 m off).
+    tracks = read_tracks(tmp_path / "roundabout" / "tracks_paper.txt")
+    truth = make_scene("roundabout").ground_truth
+    truth_xy = {int(f): xy for f, xy in zip(truth.frame, truth.world_xy, strict=True)}
+    error = [np.hypot(*(xy - truth_xy[int(f)])) for f, xy in
+             zip(tracks.frame, tracks.world_xy, strict=True)]
+    assert np.median(error) < 0.5
 
 
 def test_demo_on_real_data(wildtrack_root, tmp_path, capsys):

@@ -60,6 +60,7 @@ class SceneReport:
     frames: int
     detections: int
     ground_truth_ids: int
+    targeting: str = "box"
     scores: dict[str, dict[str, float]] = field(default_factory=dict)
     predicted_ids: dict[str, int] = field(default_factory=dict)
     seconds: dict[str, float] = field(default_factory=dict)
@@ -73,6 +74,7 @@ class SceneReport:
             "frames": self.frames,
             "detections": self.detections,
             "ground_truth_ids": self.ground_truth_ids,
+            "targeting": self.targeting,
             "metrics": self.scores,
             "predicted_ids": self.predicted_ids,
             "seconds": {key: round(value, 3) for key, value in self.seconds.items()},
@@ -123,6 +125,13 @@ def register(subparsers: Any) -> None:
         help="length of the synthetic scenes (default: each preset's own)",
     )
     parser.add_argument("--seed", type=int, default=0, help="seed of the synthetic world")
+    parser.add_argument(
+        "--targeting",
+        choices=("box", "geometric"),
+        default="box",
+        help="where in each box the camera looks: fixed per-class position (box, default) "
+        "or fitted from the calibration and a class size prior (geometric)",
+    )
     add_output_options(parser)
     parser.set_defaults(handler=run)
 
@@ -144,14 +153,20 @@ def run(args: Any) -> int:
         scene = load_scene(args.dataset)
         if frame_range:
             scene = scene.select_frames(*frame_range)
-        reports.append(run_scene(scene, out / scene.name, quiet=args.quiet))
+        reports.append(
+            run_scene(scene, out / scene.name, quiet=args.quiet, targeting=args.targeting)
+        )
     else:
         presets = ["roundabout", "plaza"] if args.preset == "all" else [args.preset]
         for preset in presets:
             scene, world = synthetic_scene(preset, args.seed, args.duration)
             if frame_range:
                 scene = scene.select_frames(*frame_range)
-            reports.append(run_scene(scene, out / preset, world=world, quiet=args.quiet))
+            reports.append(
+                run_scene(
+                    scene, out / preset, world=world, quiet=args.quiet, targeting=args.targeting
+                )
+            )
     summary = {report.name: report.to_dict() for report in reports}
     metrics_path = out / "metrics.json"
     metrics_path.write_text(
@@ -211,7 +226,13 @@ def synthetic_scene(preset: str, seed: int = 0, duration_s: float | None = None)
     return SyntheticWorld(world).scene(), world
 
 
-def run_scene(scene: Scene, directory: Path, world: Any = None, quiet: bool = False) -> SceneReport:
+def run_scene(
+    scene: Scene,
+    directory: Path,
+    world: Any = None,
+    quiet: bool = False,
+    targeting: str = "box",
+) -> SceneReport:
     """Render, track with both matchers, evaluate and draw one scene into ``directory``.
 
     Args:
@@ -220,10 +241,11 @@ def run_scene(scene: Scene, directory: Path, world: Any = None, quiet: bool = Fa
         world: the :class:`cblrs.datasets.synthetic.WorldSpec` of a synthetic scene, used to
             draw its 3D boxes in the overlays; None for real data (reference colours only).
         quiet: no progress bars.
+        targeting: ``"box"`` or ``"geometric"`` (see :func:`cblrs.pipeline.track_scene`).
     """
     from cblrs.datasets.aicity import write_tracks
     from cblrs.evaluation.metrics import evaluate
-    from cblrs.pipeline import render_scene_references, track_scene
+    from cblrs.pipeline import render_scene_references, scene_targeters, track_scene
 
     directory.mkdir(parents=True, exist_ok=True)
     (directory / "references").mkdir(exist_ok=True)
@@ -235,6 +257,7 @@ def run_scene(scene: Scene, directory: Path, world: Any = None, quiet: bool = Fa
         frames=len(scene.frames),
         detections=sum(len(d) for row in scene.detections for d in row),
         ground_truth_ids=len(np.unique(truth.track_id)),
+        targeting=targeting,
     )
     started = time.perf_counter()
     references = render_scene_references(scene)
@@ -242,10 +265,18 @@ def run_scene(scene: Scene, directory: Path, world: Any = None, quiet: bool = Fa
     for reference, camera in zip(references, scene.cameras, strict=True):
         report.files.append(reference.save(directory / "references" / f"{camera.name}.png"))
 
+    targeters = scene_targeters(scene, targeting)
     tracks: dict[str, Tracks] = {}
     for matcher in progress(MATCHERS, f"{scene.name}: matchers", quiet):
         started = time.perf_counter()
-        result = track_scene(scene, matcher, references=references, progress=not quiet)
+        result = track_scene(
+            scene,
+            matcher,
+            references=references,
+            progress=not quiet,
+            # Targeters are built once and shared by both matchers (geometric ones cost).
+            targeting="box" if targeters is None else targeters,
+        )
         report.seconds[matcher] = time.perf_counter() - started
         tracks[matcher] = result.tracks
         metrics = evaluate(truth, result.tracks)
@@ -259,7 +290,9 @@ def run_scene(scene: Scene, directory: Path, world: Any = None, quiet: bool = Fa
 
     started = time.perf_counter()
     report.files.append(draw_trajectories(scene, tracks, directory, world))
-    report.files.extend(draw_overlays(scene, references, tracks["fusion"], directory, world))
+    report.files.extend(
+        draw_overlays(scene, references, tracks["fusion"], directory, world, targeters)
+    )
     report.seconds["pictures"] = time.perf_counter() - started
 
     path = directory / "metrics.json"
@@ -329,6 +362,7 @@ def draw_overlays(
     fusion_tracks: Tracks,
     directory: Path,
     world: Any = None,
+    targeters: Any = None,
 ) -> list[Path]:
     """``overlay_<camera>.png`` for one frame: reference colours, boxes labelled with the
     fusion track they fed, and each box's target (its reported location seen in the image);
@@ -356,10 +390,12 @@ def draw_overlays(
         solid_colours += [(205, 200, 190)] * len(fixed)
         colours = np.array(solid_colours, dtype=np.float64).reshape(-1, 3)
     paths = []
-    for camera, reference, detections in zip(
-        scene.cameras, references, scene.detections[index], strict=True
+    if targeters is None:
+        targeters = [None] * len(scene.cameras)
+    for camera, reference, detections, targeter in zip(
+        scene.cameras, references, scene.detections[index], targeters, strict=True
     ):
-        message = make_message(camera.name, 0, 0.0, frame, detections, reference)
+        message = make_message(camera.name, 0, 0.0, frame, detections, reference, targeter=targeter)
         located, valid, _ = reference.planes.decode(message.colour)
         labels = np.full(len(detections), -1, dtype=np.int64)
         if len(track_xy) and valid.any():
