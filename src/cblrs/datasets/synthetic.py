@@ -10,6 +10,18 @@ Projection of boxes partly behind a camera: the box (a convex polyhedron) is cli
 against the camera's near plane (:data:`NEAR_PLANE_M` in front of the camera centre) before
 projecting, so the 2D box is the exact bounding box of the visible part of the solid;
 a box entirely behind the near plane is invisible.
+
+What a camera reports (:meth:`SyntheticWorld.camera_boxes`): a box is kept when at least
+``min_visible_fraction`` of its unclipped image box lies inside the image and it is at least
+``min_box_height_px`` tall; with ``occlusion`` it is dropped when more than
+``max_occluded_fraction`` of it is covered by the image boxes of nearer objects (depth of
+the box centre along the optical axis; a box-level approximation) or when that fraction of
+15 points on its surface is hidden behind a :class:`Structure` (exact ray test). Ground
+truth keeps every object in view of some camera, occluded or not, on the ground plane.
+
+Build a world with :class:`WorldSpec` (cameras from :meth:`Camera.from_pose`, objects with
+:class:`LoopPath`, :func:`LanePath`, :class:`WaypointPath` or :class:`RandomWalkPath`), or
+take a preset with :func:`make_scene` (``roundabout``, ``plaza``).
 """
 
 from __future__ import annotations
