@@ -211,7 +211,8 @@ def scene_notes(report: SceneReport) -> str:
     """One line per scene saying what it shows."""
     return (
         f"{report.name}: {report.cameras} cameras, {report.frames} frames, "
-        f"{report.detections} detections, {report.ground_truth_ids} true identities."
+        f"{report.detections} detections, {report.ground_truth_ids} true "
+        + ("identity." if report.ground_truth_ids == 1 else "identities.")
     )
 
 
