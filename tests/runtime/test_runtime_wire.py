@@ -622,3 +622,24 @@ def test_parse_detections_topic_refuses(topic):
 @given(camera_ids, st.integers(1, 65535))
 def test_topic_round_trip(camera_id, plane_id):
     assert parse_detections_topic(detections_topic(plane_id, camera_id)) == (plane_id, camera_id)
+
+
+@pytest.mark.parametrize(
+    ("first", "second", "expected"),
+    [
+        ("cblrs/1/+/detections", "cblrs/1/+/status", False),
+        ("cblrs/1/+/detections", "cblrs/+/CVLab1/detections", True),
+        ("cblrs/1/+/detections", "cblrs/#", True),
+        ("cblrs/1/tracks", "cblrs/2/tracks", False),
+        ("a", "a/#", True),
+        ("a/b", "a", False),
+        ("+/+", "a/b/c", False),
+        ("#", "anything/at/all", True),
+        ("a/b", "a/b", True),
+    ],
+)
+def test_filters_overlap(first, second, expected):
+    from cblrs.runtime.topics import filters_overlap
+
+    assert filters_overlap(first, second) is expected
+    assert filters_overlap(second, first) is expected

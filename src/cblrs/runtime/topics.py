@@ -12,6 +12,7 @@ Layout (one subtree per plane, so a broker cluster can be split by plane id)::
 
 from __future__ import annotations
 
+import functools
 import re
 
 from cblrs.errors import CblrsError
@@ -118,6 +119,7 @@ def parse_status_topic(topic: str) -> tuple[int, str]:
     return parse_detections_topic(f"{ROOT}/{parts[1]}/{parts[2]}/detections")
 
 
+@functools.lru_cache(maxsize=4096)
 def topic_matches(topic_filter: str, topic: str) -> bool:
     """MQTT filter matching with ``+`` (one level) and ``#`` (the rest, incl. the parent).
 
@@ -135,6 +137,21 @@ def topic_matches(topic_filter: str, topic: str) -> bool:
         if level != "+" and level != topic_levels[index]:
             return False
     return len(filter_levels) == len(topic_levels)
+
+
+def filters_overlap(first: str, second: str) -> bool:
+    """Whether some topic matches both subscription filters."""
+    first_levels, second_levels = first.split("/"), second.split("/")
+    for index in range(max(len(first_levels), len(second_levels))):
+        a = first_levels[index] if index < len(first_levels) else None
+        b = second_levels[index] if index < len(second_levels) else None
+        if a == "#" or b == "#":
+            return True  # "x/#" also matches "x" itself
+        if a is None or b is None:
+            return False
+        if a != b and a != "+" and b != "+":
+            return False
+    return True
 
 
 def validate_filter(topic_filter: str) -> str:

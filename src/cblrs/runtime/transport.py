@@ -41,7 +41,7 @@ from pathlib import Path
 from typing import Any, Protocol, runtime_checkable
 
 from cblrs.errors import CblrsError
-from cblrs.runtime.topics import topic_matches, validate_filter, validate_topic
+from cblrs.runtime.topics import filters_overlap, topic_matches, validate_filter, validate_topic
 
 logger = logging.getLogger(__name__)
 _paho_logger = logging.getLogger(__name__ + ".paho")
@@ -113,6 +113,21 @@ class Transport(Protocol):
         With ``unclean=True`` nothing is flushed and the broker publishes the will, as
         after a crash.
         """
+
+
+def _once(send: Callable[[], None]) -> Callable[[], None]:
+    """``send`` made idempotent (a handler may call ``ack`` more than once)."""
+    sent = [False]
+    lock = threading.Lock()
+
+    def ack() -> None:
+        with lock:
+            if sent[0]:
+                return
+            sent[0] = True
+        send()
+
+    return ack
 
 
 class _AckCounter:
@@ -196,10 +211,14 @@ class _HandlerTable:
             if not handlers:
                 self._orphans.append(item)
                 return
-        counter = _AckCounter(len(handlers), item.send_ack)
-        for handler in handlers:
+        if len(handlers) == 1:
+            acks = [_once(item.send_ack)]
+        else:
+            counter = _AckCounter(len(handlers), item.send_ack)
+            acks = [counter.part() for _ in handlers]
+        for handler, ack in zip(handlers, acks, strict=True):
             delivery = Delivery(
-                item.topic, item.payload, counter.part(), item.duplicate, item.retain, item.qos
+                item.topic, item.payload, ack, item.duplicate, item.retain, item.qos
             )
             try:
                 handler(delivery)
@@ -541,6 +560,10 @@ class MqttTransport:
         self._suback: dict[int, list] = {}
         self._background_subscribes: set[int] = set()
         self._filter_ids: dict[int, str] = {}
+        self._identified: set[str] = set()
+        """Filters overlapping another one: subscribed with a subscription identifier so each
+        copy the broker sends (one per matching subscription) reaches its own handlers only.
+        Identifiers cost paho ~tens of µs per message to parse, so other filters go without."""
 
     # Public API ------------------------------------------------------------------------
 
@@ -652,10 +675,23 @@ class MqttTransport:
             raise TransportError(f"QoS must be 0 or 1, got {qos}.")
         self._qos[topic_filter] = max(qos, self._qos.get(topic_filter, 0))
         self._filter_ids[_subscription_id(topic_filter)] = topic_filter
+        overlapping = [
+            other
+            for other in self._handlers.filters()
+            if other != topic_filter and filters_overlap(other, topic_filter)
+        ]
+        newly_identified = [other for other in overlapping if other not in self._identified]
+        if overlapping:
+            self._identified.add(topic_filter)
+            self._identified.update(overlapping)
         adopted = self._handlers.add(topic_filter, handler)
         for item in adopted:
             self._handlers.dispatch(item)
         if self._client is not None and self._connected.is_set():
+            # Earlier filters now overlapping get their identifier by subscribing again.
+            for other in newly_identified:
+                if other in self._subscribed:
+                    self._subscribe_and_wait(other, self._qos[other])
             if topic_filter in self._subscribed:
                 return
             self._subscribed.add(topic_filter)
@@ -746,7 +782,7 @@ class MqttTransport:
         result, mid = client.subscribe(
             topic_filter,
             options=SubscribeOptions(qos=qos),
-            properties=_subscribe_properties(topic_filter),
+            properties=self._subscribe_properties(topic_filter),
         )
         if mid is None:
             raise TransportError(
@@ -762,6 +798,9 @@ class MqttTransport:
                     )
                 self._condition.wait(remaining)
             return self._suback.pop(mid)
+
+    def _subscribe_properties(self, topic_filter: str):
+        return _identifier_properties(topic_filter) if topic_filter in self._identified else None
 
     def _on_log(self, client, userdata, level, text) -> None:
         import paho.mqtt.client as mqtt
@@ -789,7 +828,7 @@ class MqttTransport:
                 _, mid = client.subscribe(
                     topic_filter,
                     options=SubscribeOptions(qos=self._qos[topic_filter]),
-                    properties=_subscribe_properties(topic_filter),
+                    properties=self._subscribe_properties(topic_filter),
                 )
                 if mid is not None:
                     with self._condition:
@@ -842,6 +881,14 @@ class MqttTransport:
                 identifiers = [identifiers]
             known = [self._filter_ids[i] for i in identifiers if i in self._filter_ids]
             filters = tuple(known) if known else None
+        elif self._identified:
+            # A copy for a subscription without identifier: not for the identified filters.
+            filters = tuple(
+                topic_filter
+                for topic_filter in self._handlers.filters()
+                if topic_filter not in self._identified
+                and topic_matches(topic_filter, message.topic)
+            )
         self._handlers.dispatch(
             _Incoming(
                 message.topic,
@@ -864,7 +911,7 @@ def _subscription_id(topic_filter: str) -> int:
     return zlib.crc32(topic_filter.encode()) % (2**28 - 2) + 1
 
 
-def _subscribe_properties(topic_filter: str):
+def _identifier_properties(topic_filter: str):
     from paho.mqtt.packettypes import PacketTypes
     from paho.mqtt.properties import Properties
 
