@@ -9,6 +9,10 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
+# One thread per library, so that numpy's BLAS does not fight the other jobs for the cores
+# (the timings then compare the methods, not the thread scheduler).
+export OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1
+
 results=docs/results
 figures=docs/figures
 mkdir -p "$results" "$figures"

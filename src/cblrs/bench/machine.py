@@ -38,15 +38,25 @@ def machine_info() -> dict[str, Any]:
         "python": sys.version.split()[0],
         "numpy": np.__version__,
         "opencv": cv2.__version__,
+        "opencv_threads": cv2.getNumThreads(),
+        # numpy's BLAS may use several threads for the homography's matrix products
+        "thread_environment": {
+            name: os.environ[name]
+            for name in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+            if name in os.environ
+        },
     }
 
 
 def describe_machine(info: dict[str, Any]) -> str:
     """One line for the text output of a benchmark."""
+    threads = ", ".join(
+        f"{key}={value}" for key, value in info.get("thread_environment", {}).items()
+    )
     return (
         f"machine: {info['cpu']}, {info['cores']} cores (load {info['load_average_1min']}), "
         f"{info['system']}, Python {info['python']}, numpy {info['numpy']}, "
-        f"OpenCV {info['opencv']}"
+        f"OpenCV {info['opencv']}" + (f", {threads}" if threads else "")
     )
 
 

@@ -112,10 +112,13 @@ def plot_tracker(result: dict[str, Any], out: str | Path) -> Path:
             axes[1].plot(tracks, [row["milliseconds_per_frame"] for row in rows], **style)
     axes[0].set_ylabel("detections per second")
     axes[1].set_ylabel("milliseconds per frame")
+    ticks = sorted({row["live_tracks"] for row in result["rows"]})
     for axis in axes:
         axis.set_xlabel("live tracks")
         axis.set_xscale("log")
         axis.set_yscale("log")
+        axis.set_xticks(ticks, [str(tick) for tick in ticks])
+        axis.minorticks_off()
         axis.grid(alpha=0.3, which="both")
     axes[1].legend(fontsize=7)
     figure.suptitle("Tracker cost against live tracks and cameras (one core)")
