@@ -128,8 +128,11 @@ def test_cli_writes_figures(tmp_path, capsys):
         (["--tilts", "0"], "must lie in (0, 90]"),
         (["--draws", "0"], "--draws must be a positive integer"),
         (["--tracking", "mars"], "--tracking scenes must be wildtrack, plaza or roundabout"),
+        (["--wildtrack", "/nonexistent"], "is not a WILDTRACK folder"),
     ],
 )
 def test_cli_errors(capsys, argv, message):
-    assert main(["experiment", "targeting", "--no-wildtrack", *argv]) == 2
+    if "--wildtrack" not in argv:
+        argv = ["--no-wildtrack", *argv]
+    assert main(["experiment", "targeting", *argv]) == 2
     assert message in capsys.readouterr().err

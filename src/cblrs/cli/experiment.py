@@ -113,30 +113,29 @@ def run_targeting_command(args: argparse.Namespace) -> tuple[dict[str, Any], str
         raise UsageError(f"--tilts must lie in (0, 90] degrees, got {args.tilts!r}.")
     if args.draws <= 0:
         raise UsageError(f"--draws must be a positive integer, got {args.draws}.")
+    tracking_scenes = [name.strip() for name in args.tracking.split(",") if name.strip()]
+    unknown = [name for name in tracking_scenes if name not in ("wildtrack", "plaza", "roundabout")]
+    if unknown:
+        raise UsageError(
+            f"--tracking scenes must be wildtrack, plaza or roundabout; got {unknown}."
+        )
     setup = TargetingSetup(
         tilts_deg=tilts,
         yaws_deg=parse_numbers(args.yaws, "--yaws"),
         noise_draws=args.draws,
         seed=args.seed,
     )
+    root = None if args.no_wildtrack else find_wildtrack(args.wildtrack)
+    if root is None and args.wildtrack is not None and not args.no_wildtrack:
+        raise UsageError(f"{args.wildtrack} is not a WILDTRACK folder (no calibrations/).")
     result = run_targeting(setup)
-    if not args.no_wildtrack:
-        root = find_wildtrack(args.wildtrack)
-        if root is None and args.wildtrack is not None:
-            raise UsageError(f"{args.wildtrack} is not a WILDTRACK folder (no calibrations/).")
-        if root is not None:
-            result["wildtrack"] = wildtrack_targeting(root)
-    if args.tracking:
+    if root is not None:
+        result["wildtrack"] = wildtrack_targeting(root)
+    if tracking_scenes:
         from cblrs.experiments.resolution import load_named_scene
         from cblrs.experiments.targeting import tracking_effect
 
-        names = [name.strip() for name in args.tracking.split(",") if name.strip()]
-        unknown = [name for name in names if name not in ("wildtrack", "plaza", "roundabout")]
-        if unknown:
-            raise UsageError(
-                f"--tracking scenes must be wildtrack, plaza or roundabout; got {unknown}."
-            )
-        scenes = {name: load_named_scene(name, args.wildtrack, None) for name in names}
+        scenes = {name: load_named_scene(name, args.wildtrack, None) for name in tracking_scenes}
         result["tracking"] = tracking_effect(scenes)
     text = targeting_report(result)
     if args.out is not None:
