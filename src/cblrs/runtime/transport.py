@@ -15,14 +15,17 @@ per in-process client), one delivery at a time, in arrival order. A handler must
 for long; it may call ``publish`` and ``ack`` but should not call ``subscribe``.
 
 Example:
-    >>> broker = InProcessBroker()
-    >>> camera, matcher = InProcessTransport(broker, "cam"), InProcessTransport(broker, "m")
-    >>> camera.connect(); matcher.connect()
-    >>> seen = []
-    >>> matcher.subscribe("cblrs/1/+/detections", lambda d: (seen.append(d.payload), d.ack()))
-    >>> camera.publish("cblrs/1/cam/detections", b"{}")
-    >>> matcher.flush(1.0) and camera.close() is None
-    True
+    >>> broker = InProcessBroker()  # or: MqttTransport("matcher1", MqttSettings(port=1883))
+    >>> matcher = InProcessTransport(broker, "matcher1")
+    >>> matcher.connect()
+    >>> def store(delivery: Delivery) -> None:
+    ...     print(delivery.topic, delivery.payload)
+    ...     delivery.ack()  # after storing durably
+    >>> matcher.subscribe("cblrs/1/+/detections", store)
+    >>> camera = InProcessTransport(broker, "CVLab1")
+    >>> camera.connect()
+    >>> camera.publish("cblrs/1/CVLab1/detections", b"{}")
+    >>> camera.close(); matcher.close()  # doctest: +SKIP
 """
 
 from __future__ import annotations
