@@ -1,9 +1,10 @@
 """Reference rendering time for a 1080p camera: 8 and 16 bit, with and without lens distortion.
 
-"Cold" is the first render of a configuration in the process (it includes first-touch page
-faults of fresh arrays and, for a distorted camera, the same inverse lens map as every call);
-"warm" is the median of the following calls. Saving (PNG encode) and loading (PNG decode and
-validation) are timed as well, and building the LUT, the alternative the paper compares with.
+"Cold" is the first render of a configuration with a freshly read camera (it includes
+first-touch page faults of fresh arrays and, for a distorted camera, computing the inverse
+lens map, which the camera then caches); "warm" is the median of the following calls.
+Saving (PNG encode) and loading (PNG decode and validation) are timed as well, and building
+the LUT, the alternative the paper compares with.
 """
 
 from __future__ import annotations
