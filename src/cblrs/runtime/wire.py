@@ -117,10 +117,6 @@ class WireMessage(msgspec.Struct, forbid_unknown_fields=True):
     detections: Annotated[list[WireDetection], msgspec.Meta(max_length=MAX_DETECTIONS)]
 
 
-class _SchemaOnly(msgspec.Struct):
-    schema: str
-
-
 @dataclass(frozen=True)
 class ValidationPolicy:
     """What a receiver accepts; the matcher service holds one.
