@@ -34,6 +34,8 @@ from typing import Any
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from cblrs.detections import CLASS_NAMES, CameraMessage, Tracks
@@ -99,6 +101,9 @@ class FusionConfig:
         cluster_radius_m: smallest such radius for people (two views of one person land
             apart by body size and calibration error however precise the boxes); grows with
             the class's size for vehicles.
+        group_radius_m: detections precise enough that their cluster radius under the
+            learned noise is within this are first grouped across cameras and assigned as
+            one observation per object, metres (0: always assign camera by camera).
         merge_radius_m: two confirmed tracks closer than this, observed at the same instant
             by disjoint sets of cameras, are one object seen twice; the younger one is dropped.
         confirm_evidence: camera detections (summed over instants) a track needs before it
@@ -125,6 +130,7 @@ class FusionConfig:
     max_gate_m: float = 2.0
     cluster_sigmas: float = 3.5
     cluster_radius_m: float = 1.0
+    group_radius_m: float = 0.7
     merge_radius_m: float = 0.0
     confirm_evidence: int = 2
     tentative_max_age_s: float = 1.0
@@ -139,7 +145,8 @@ class FusionConfig:
         ):
             value = getattr(self, name)
             require(_positive(value), f"{name} must be a positive number, got {value!r}.")
-        for name in ("sigma_per_distance", "merge_radius_m", "report_coasting_s"):
+        for name in ("sigma_per_distance", "merge_radius_m", "report_coasting_s",
+                     "group_radius_m"):
             value = getattr(self, name)
             require(
                 _positive(value) or value == 0,
@@ -388,30 +395,101 @@ class FusionTracker:
         return np.maximum(self._noise.variance(self._distance), floor) + extra**2
 
     def _associate(self, observed: Observations, variance: np.ndarray) -> np.ndarray:
-        """Track row of each detection (-1: none); one detection per camera per track."""
+        """Track row of each detection (-1: none); one detection per camera per track.
+
+        Precise detections are first grouped across cameras and each group is assigned to a
+        track as a whole (:meth:`_associate_groups`): when two people walk side by side,
+        cameras deciding one by one could each pick differently and blend them. The rest
+        is assigned camera by camera.
+        """
         count, track_count = len(observed), len(self._ids)
         if count == 0 or track_count == 0:
             return np.full(count, -1, np.int64)
-        # The metric cap grows with the class's noise (vehicles), not with distance: far
-        # detections are weighted down, but must not reach across a crowd. Only pairs
-        # within it are evaluated further, so the cost grows with the pairs, not N x T.
-        cap = self.config.max_gate_m * self._class_scale[self._class_slot(observed.class_id)]
-        rows, columns = close_pairs(observed.world_xy, self._state[:, :2], cap)
-        rows, columns = _same_class(rows, columns, observed.class_id, self._class)
+        assigned = self._associate_groups(observed, variance)
+        rest = np.flatnonzero(assigned < 0)
+        if len(rest) == 0:
+            return assigned
+        taken = np.zeros((track_count, len(self.camera_ids)), dtype=bool)
+        taken[assigned[assigned >= 0], observed.camera[assigned >= 0]] = True
+        part = _subset(observed, rest)
+        rows, columns, cost = self._gated_pairs(
+            part.world_xy, variance[rest], part.class_id
+        )
+        free = ~taken[columns, part.camera[rows]]
+        assigned[rest] = assign_per_camera(
+            rows[free], columns[free], cost[free], part.camera, len(self.camera_ids)
+        )
+        return assigned
+
+    def _gated_pairs(
+        self, world_xy: np.ndarray, variance: np.ndarray, class_id: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Gated (measurement, track) pairs and their negative log-likelihood costs.
+
+        The metric cap grows with the class's size (vehicles), not with distance: far
+        detections are weighted down, but must not reach across a crowd. Only pairs within
+        it are evaluated further, so the cost grows with the pairs, not N x T.
+        """
+        cap = self.config.max_gate_m * self._class_scale[self._class_slot(class_id)]
+        rows, columns = close_pairs(world_xy, self._state[:, :2], cap)
+        rows, columns = _same_class(rows, columns, class_id, self._class)
         covariance = self._covariance[columns]
         a = covariance[:, 0, 0] + variance[rows]
         b = covariance[:, 0, 1]
         d = covariance[:, 1, 1] + variance[rows]
         determinant = a * d - b * b
-        dx = observed.world_xy[rows, 0] - self._state[columns, 0]
-        dy = observed.world_xy[rows, 1] - self._state[columns, 1]
+        dx = world_xy[rows, 0] - self._state[columns, 0]
+        dy = world_xy[rows, 1] - self._state[columns, 1]
         mahalanobis = (d * dx * dx - 2.0 * b * dx * dy + a * dy * dy) / determinant
         inside = mahalanobis <= self.config.gate_sigmas**2
         # Negative log-likelihood of the innovation (constant dropped).
         cost = mahalanobis[inside] + np.log(determinant[inside])
-        return assign_per_camera(
-            rows[inside], columns[inside], cost, observed.camera, len(self.camera_ids)
+        return rows[inside], columns[inside], cost
+
+    def _associate_groups(self, observed: Observations, variance: np.ndarray) -> np.ndarray:
+        """Assign cross-camera groups of precise detections to tracks, one group per track.
+
+        A detection is precise when its cluster radius under the learned noise model
+        (``cluster_sigmas * sqrt(2) * sigma``) is within ``group_radius_m``. Groups of two
+        or more such detections (one per camera, complete linkage) are fused and assigned
+        to tracks with one Hungarian assignment.
+        """
+        assigned = np.full(len(observed), -1, np.int64)
+        if self.config.group_radius_m <= 0:
+            return assigned
+        slot = self._class_slot(observed.class_id)
+        sigma = np.sqrt(self._noise.variance(self._distance) + self._class_extra[slot] ** 2)
+        limit = self.config.group_radius_m * self._class_scale[slot]
+        precise = np.flatnonzero(self.config.cluster_sigmas * np.sqrt(2.0) * sigma <= limit)
+        if len(precise) < 2:
+            return assigned
+        labels = cluster_detections(
+            observed.world_xy[precise], observed.camera[precise], sigma[precise],
+            self.config.cluster_sigmas, observed.class_id[precise],
         )
+        size = np.bincount(labels)
+        grouped = size[labels] >= 2
+        if not grouped.any():
+            return assigned
+        members, labels = precise[grouped], labels[grouped]
+        _, labels = np.unique(labels, return_inverse=True)
+        labels = labels.reshape(-1)
+        group_count = int(labels.max()) + 1
+        weight = 1.0 / variance[members]
+        weight_sum = np.bincount(labels, weight, group_count)
+        position = np.column_stack(
+            [np.bincount(labels, weight * observed.world_xy[members, axis], group_count)
+             for axis in (0, 1)]
+        ) / weight_sum[:, None]
+        group_class = np.zeros(group_count, np.int64)
+        group_class[labels] = observed.class_id[members]
+        rows, columns, cost = self._gated_pairs(position, 1.0 / weight_sum, group_class)
+        # Groups compete for tracks as if they all came from one camera: one-to-one.
+        group_track = assign_per_camera(
+            rows, columns, cost, np.zeros(group_count, np.int64), 1
+        )
+        assigned[members] = group_track[labels]
+        return assigned
 
     def _join_observed(
         self, observed: Observations, variance: np.ndarray, assigned: np.ndarray
@@ -777,37 +855,95 @@ def cluster_detections(
     count = len(world_xy)
     if count == 0:
         return np.zeros(0, np.int64)
-    distance = np.linalg.norm(world_xy[:, None] - world_xy[None], axis=2)
     variance = np.broadcast_to(np.asarray(sigma_m, np.float64) ** 2, (count,))
     minimum = np.broadcast_to(np.asarray(minimum_radius_m, np.float64), (count,))
-    pair_radius = np.maximum(
-        sigmas * np.sqrt(variance[:, None] + variance[None, :]),
-        np.maximum(minimum[:, None], minimum[None, :]),
+    # Candidate pairs: a sparse neighbour search with the largest radius, then each pair's own.
+    largest = np.maximum(sigmas * np.sqrt(variance + variance.max()), minimum.max())
+    first, second = close_pairs(world_xy, world_xy, largest)
+    upper = first < second
+    first, second = first[upper], second[upper]
+    radius = np.maximum(
+        sigmas * np.sqrt(variance[first] + variance[second]),
+        np.maximum(minimum[first], minimum[second]),
     )
-    candidate = (distance <= pair_radius) & (camera[:, None] != camera[None, :])
+    distance = np.linalg.norm(world_xy[first] - world_xy[second], axis=1)
+    keep = (distance <= radius) & (camera[first] != camera[second])
     if class_id is not None:
-        candidate &= class_id[:, None] == class_id[None, :]
-    first, second = np.nonzero(np.triu(candidate, k=1))
-    members: list[list[int]] = [[index] for index in range(count)]
-    label = list(range(count))
-    camera_list = camera.tolist()
-    cameras: list[set[int]] = [{camera_list[index]} for index in range(count)]
-    for pair in np.argsort(distance[first, second], kind="stable").tolist():
-        left, right = label[first[pair]], label[second[pair]]
+        keep &= class_id[first] == class_id[second]
+    first, second, distance = first[keep], second[keep], distance[keep]
+
+    # Components of the compatibility graph. A component that is a clique with one
+    # detection per camera is one cluster (the greedy merge below would join it whole);
+    # only the other components need the greedy complete-linkage merge.
+    graph = coo_matrix((np.ones(len(first)), (first, second)), shape=(count, count))
+    _, component = connected_components(graph, directed=False)
+    size = np.bincount(component)
+    edges = np.bincount(component[first], minlength=len(size))
+    cameras_in = np.bincount(
+        np.unique(component * (int(camera.max()) + 1) + camera) // (int(camera.max()) + 1),
+        minlength=len(size),
+    )
+    clean = (edges == size * (size - 1) // 2) & (cameras_in == size)
+    label = component.copy()
+    bad = np.flatnonzero(~clean)
+    if len(bad):
+        by_detection = np.argsort(component, kind="stable")
+        detection_start = np.searchsorted(component[by_detection], bad)
+        pair_component = component[first]
+        by_pair = np.argsort(pair_component, kind="stable")
+        pair_start = np.searchsorted(pair_component[by_pair], bad)
+        next_label = count
+        for index, one in enumerate(bad.tolist()):
+            members = by_detection[detection_start[index]:detection_start[index] + size[one]]
+            pairs = by_pair[pair_start[index]:pair_start[index] + edges[one]]
+            local = _greedy_complete_linkage(
+                members, first[pairs], second[pairs], distance[pairs], camera
+            )
+            label[members] = next_label + local
+            next_label += len(members)
+    # Renumber by first appearance so labels are stable and deterministic.
+    _, first_index, inverse = np.unique(label, return_index=True, return_inverse=True)
+    rank = np.empty(len(first_index), np.int64)
+    rank[np.argsort(first_index, kind="stable")] = np.arange(len(first_index))
+    return rank[inverse.reshape(-1)]
+
+
+def _greedy_complete_linkage(
+    members: np.ndarray, first: np.ndarray, second: np.ndarray, distance: np.ndarray,
+    camera: np.ndarray,
+) -> np.ndarray:
+    """Closest-first merging of one component's detections; complete linkage, one per camera.
+
+    Args:
+        members: (M,) detection indices of the component.
+        first, second, distance: its compatible pairs (global indices) and their distances.
+        camera: (N,) camera of every detection.
+
+    Returns:
+        (M,) local cluster labels in 0..M-1 (not necessarily consecutive), in the order of
+        ``np.sort(members)``.
+    """
+    members = np.sort(members)
+    left_local = np.searchsorted(members, first)
+    right_local = np.searchsorted(members, second)
+    compatible = np.zeros((len(members), len(members)), dtype=bool)
+    compatible[left_local, right_local] = compatible[right_local, left_local] = True
+    groups: list[list[int]] = [[local] for local in range(len(members))]
+    label = list(range(len(members)))
+    camera_list = camera[members].tolist()
+    cameras: list[set[int]] = [{camera_list[local]} for local in range(len(members))]
+    left_list, right_list = left_local.tolist(), right_local.tolist()
+    for pair in np.argsort(distance, kind="stable").tolist():
+        left, right = label[left_list[pair]], label[right_list[pair]]
         if left == right or cameras[left] & cameras[right]:
             continue
-        block = np.ix_(members[left], members[right])
-        if (distance[block] > pair_radius[block]).any():
+        if len(groups[left]) + len(groups[right]) > 2 and not all(
+            compatible[one, other] for one in groups[left] for other in groups[right]
+        ):
             continue
-        for index in members[right]:
-            label[index] = left
-        members[left].extend(members[right])
+        for local in groups[right]:
+            label[local] = left
+        groups[left].extend(groups[right])
         cameras[left] |= cameras[right]
-        members[right] = []
-    _, labels = np.unique(np.asarray(label), return_inverse=True)
-    # Renumber by first appearance so labels are stable and deterministic.
-    order = {}
-    result = np.empty(count, np.int64)
-    for index, value in enumerate(labels.tolist()):
-        result[index] = order.setdefault(value, len(order))
-    return result
+        groups[right] = []
+    return np.asarray(label, dtype=np.int64)
