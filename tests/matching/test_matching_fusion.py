@@ -217,3 +217,24 @@ def test_noise_model_learns_the_disagreement_between_cameras():
                     np.tile(np.arange(50), 2))
     assert model.sigma_per_distance == pytest.approx(0.03, rel=0.15)
     assert model.sigma_m < 0.15  # from its prior of 0.2 m towards the true 0
+
+
+@pytest.mark.parametrize("group_radius_m", [0.7, 0.0])
+def test_side_by_side_walkers_are_not_blended(group_radius_m):
+    """Two people 0.5 m apart, each camera missing one of them now and then."""
+    rng = np.random.default_rng(7)
+    tracker = FusionTracker(PLANES, CAMERAS, camera_positions=CAMERA_XY,
+                            group_radius_m=group_radius_m)
+    outputs = []
+    for frame in range(40):
+        timestamp = frame * 0.5
+        truth = np.array([[1.0 + 1.2 * timestamp, 2.0], [1.0 + 1.2 * timestamp, 2.5]])
+        messages = []
+        for camera in CAMERAS:
+            seen = rng.random(2) > 0.25
+            messages.append(camera_message(camera, frame, timestamp, truth[seen], rng, 0.03))
+        output = tracker.update(timestamp, messages)
+        for track_id, position in zip(output.track_id.tolist(), output.world_xy, strict=True):
+            outputs.append((track_id, np.abs(position[1] - truth[:, 1]).min()))
+    assert {track_id for track_id, _ in outputs} == {1, 2}
+    assert max(error for _, error in outputs) < 0.15
