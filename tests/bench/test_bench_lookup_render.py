@@ -75,3 +75,14 @@ def test_render_rows(capsys):
 def test_bench_errors(capsys, argv, message):
     assert main(["bench", *argv]) != 0
     assert message in capsys.readouterr().err
+
+
+def test_built_in_camera_without_wildtrack(monkeypatch):
+    from cblrs.bench import cameras
+
+    monkeypatch.setattr(cameras, "find_wildtrack", lambda explicit=None: None)
+    result = benchmark_lookup(count=200, repeats=1)
+    assert result["camera"]["source"] == "built-in synthetic"
+    assert result["agreement"]["valid_fraction"]["colour"] > 0.3
+    distorted = cameras.benchmark_camera(distorted=True).camera
+    assert distorted.has_distortion and distorted.image_size == (1920, 1080)
