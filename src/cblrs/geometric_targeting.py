@@ -183,7 +183,9 @@ class GeometricTargeter:
             raise ValueError(f"xyxy must have shape (N, 4), got {boxes.shape}")
         count = len(boxes)
         sizes = np.broadcast_to(np.asarray(size_lwh, dtype=np.float64), (count, 3)).copy()
-        free_width = np.broadcast_to(np.asarray(width_free, dtype=bool), (count,))
+        free_width: NDArray[np.bool_] = np.broadcast_to(
+            np.asarray(width_free, dtype=bool), (count,)
+        ).copy()
         world_xy = np.full((count, 2), np.nan)
         yaw_deg = np.full(count, np.nan)
         with np.errstate(invalid="ignore"):
@@ -252,7 +254,7 @@ class GeometricTargeter:
         mix[centre_only, 2, 2] = 0.0
 
         guess = self._initial_positions(boxes, sizes)
-        square = np.isclose(sizes[:, 0], sizes[:, 1], rtol=0.15)
+        square: NDArray[np.bool_] = np.isclose(sizes[:, 0], sizes[:, 1], rtol=0.15)
         starts = np.linspace(0.0, np.pi, self.yaw_starts, endpoint=False)
         # Every detection tries every start; square footprints need only two of them, but a
         # uniform layout keeps the arrays rectangular (their extra starts are cheap).
@@ -282,10 +284,10 @@ class GeometricTargeter:
                 )
             flat_parameters[selected] = fitted
             cost[selected] = fitted_cost
-        cost = cost.reshape(count, hypotheses)
-        best = np.argmin(cost, axis=1)
+        costs = cost.reshape(count, hypotheses)
+        best = np.argmin(costs, axis=1)
         chosen = flat_parameters.reshape(count, hypotheses, 4)[np.arange(count), best]
-        best_cost = cost[np.arange(count), best]
+        best_cost = costs[np.arange(count), best]
         chosen[~np.isfinite(best_cost)] = np.nan
         return chosen[:, :2], chosen[:, 2], best_cost
 

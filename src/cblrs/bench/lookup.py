@@ -15,6 +15,7 @@ import json
 import logging
 import tempfile
 import time
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -157,7 +158,7 @@ def benchmark_lookup(
     for _ in range(repeats):
         for method in METHODS:
             one_samples[method].append(_time_one_point(locators[method], points))
-            batch_samples[method] += time_call(lambda m=method: locators[m].locate(pixels_float), 1)
+            batch_samples[method] += time_call(partial(locators[method].locate, pixels_float), 1)
         colour_read_samples += time_call(lambda: reference.colours_at(pixels_float), 1)
         one_samples[EXTRA_ONE_POINT].append(_time_one_point(numpy_homography, points))
     for method in (*METHODS, EXTRA_ONE_POINT):

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import tempfile
 import time
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -46,13 +47,13 @@ def benchmark_render(repeats: int = 5, calibration: str | Path | None = None) ->
             start = time.perf_counter()
             reference = render_reference(bench.camera, plane)
             cold = time.perf_counter() - start
-            warm = time_call(lambda c=bench.camera, p=plane: render_reference(c, p), repeats)
+            warm = time_call(partial(render_reference, bench.camera, plane), repeats)
             with tempfile.TemporaryDirectory() as folder:
                 path = Path(folder) / "reference.png"
-                save = time_call(lambda r=reference, p=path: r.save(p), repeats)
-                load = time_call(lambda p=path: ReferenceImage.load(p), repeats)
+                save = time_call(partial(reference.save, path), repeats)
+                load = time_call(partial(ReferenceImage.load, path), repeats)
                 png_bytes = path.stat().st_size
-            lut = time_call(lambda c=bench.camera: LUTLocator.from_camera(c), max(1, repeats // 2))
+            lut = time_call(partial(LUTLocator.from_camera, bench.camera), max(1, repeats // 2))
             rows.append(
                 {
                     "bits": bits,

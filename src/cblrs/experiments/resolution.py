@@ -122,7 +122,7 @@ def run_resolution(
             height=scene.plane.height,
         )
         baseline = track_with_plane(scene, baseline_plane)
-        rows = []
+        rows: list[dict[str, Any]] = []
         candidates = [("scene plane", None)] + [(f"{size:g} m", size) for size in sizes_m]
         for label, size in candidates:
             for depth in bits:

@@ -135,7 +135,7 @@ def offsets(
     norm = np.linalg.norm(sight, axis=1, keepdims=True)
     # Straight below the camera there is no line of sight on the ground; use the view axis.
     forward = camera.rotation[2, :2] if camera.rotation is not None else np.array([1.0, 0.0])
-    forward = forward / max(np.linalg.norm(forward), 1e-12)
+    forward = forward / max(float(np.linalg.norm(forward)), 1e-12)
     direction = np.where(norm > 1e-6, sight / np.maximum(norm, 1e-12), forward)
     along = np.where(valid, np.sum(difference * direction, axis=1), np.nan)
     return distance, along
