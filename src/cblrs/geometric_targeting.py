@@ -262,7 +262,7 @@ class GeometricTargeter:
         parameters = np.zeros((count, hypotheses, 4))
         parameters[:, :, :2] = guess[:, None, :]
         parameters[:, :, 2] = starts[None, :]
-        active = np.isfinite(guess).all(axis=1)
+        active: NDArray[np.bool_] = np.isfinite(guess).all(axis=1)
         active_hypotheses = np.repeat(active[:, None], hypotheses, axis=1)
         active_hypotheses[square, 2:] = False
         flat_parameters = parameters.reshape(-1, 4)
