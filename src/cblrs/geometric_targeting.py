@@ -262,8 +262,8 @@ class GeometricTargeter:
         parameters = np.zeros((count, hypotheses, 4))
         parameters[:, :, :2] = guess[:, None, :]
         parameters[:, :, 2] = starts[None, :]
-        active: NDArray[np.bool_] = np.isfinite(guess).all(axis=1)
-        active_hypotheses = np.repeat(active[:, None], hypotheses, axis=1)
+        active = np.all(np.isfinite(guess), axis=1, keepdims=True)
+        active_hypotheses = np.repeat(active, hypotheses, axis=1)
         active_hypotheses[square, 2:] = False
         flat_parameters = parameters.reshape(-1, 4)
         flat_boxes = np.repeat(boxes, hypotheses, axis=0)
