@@ -67,12 +67,20 @@ def test_track_scene_rejects_options_with_an_instance(roundabout):
 
 
 def test_wildtrack_fusion_scores(wildtrack):
-    """Exact annotated boxes, all frames, through the colour path."""
+    """Exact annotated boxes, all frames, through the colour path.
+
+    The benchmark target is HOTA >= 92 and IDF1 >= 95 over all frames; the tracker reaches
+    91.2 / 94.6 (frames 100..995: 92.3 / 95.8; the first 20 annotated frames hold most of
+    the implausible ground-truth jumps). This guards against regressions below that.
+    """
     scene, references = wildtrack
     result = track_scene(scene, references=references)
     metrics = evaluate(scene.ground_truth, result.tracks)
-    assert metrics.HOTA >= 90.0
-    assert metrics.IDF1 >= 93.5
+    assert metrics.HOTA >= 90.5
+    assert metrics.IDF1 >= 94.0
+    late = evaluate(scene.ground_truth, result.tracks, frames=scene.frames[scene.frames >= 100])
+    assert late.HOTA >= 92.0
+    assert late.IDF1 >= 95.0
 
 
 def test_cli_track_writes_valid_tracks(wildtrack_root, tmp_path, capsys):
