@@ -177,7 +177,9 @@ def track_scene(
             ``"geometric"`` (a :class:`cblrs.geometric_targeting.GeometricTargeter` per
             camera: calibration and class size priors choose the footprint centre; needs
             posed cameras), or one targeter object per camera.
-        **matcher_options: options for :func:`make_matcher`.
+        **matcher_options: options for :func:`make_matcher`. For ``"fusion"`` the cameras'
+            ground positions are passed as ``camera_positions`` unless given (the noise
+            model grows with distance from the camera).
 
     Returns:
         The tracks and bookkeeping; see :class:`TrackingResult`.
