@@ -114,8 +114,9 @@ def scene_messages(
     Every camera sends a message per frame, empty or not (an empty message says "I looked
     and saw nothing"). ``targeters`` (one per camera) replace the fixed box targeting.
     """
-    if targeters is None:
-        targeters = [None] * len(scene.cameras)
+    chosen: list[Targeter | None] = (
+        [None] * len(scene.cameras) if targeters is None else list(targeters)
+    )
     if len(references) != len(scene.cameras):
         raise DatasetError(
             f"need one reference image per camera ({len(scene.cameras)}), got {len(references)}."
@@ -130,7 +131,7 @@ def scene_messages(
                 name, sequence, timestamp, frame, detections, reference, targeter=targeter
             )
             for name, detections, reference, targeter in zip(
-                names, scene.detections[index], references, targeters, strict=True
+                names, scene.detections[index], references, chosen, strict=True
             )
         ]
         yield timestamp, messages
