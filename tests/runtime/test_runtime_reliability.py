@@ -51,28 +51,33 @@ def wait_until(predicate, timeout: float, what: str) -> None:
 
 @pytest.fixture(scope="module")
 def case(wildtrack_root, tmp_path_factory):
-    """A WILDTRACK subset, its reference PNGs, an epoch and the uninterrupted tracks."""
+    """A WILDTRACK subset and its reference PNGs (saved, then read back)."""
     scene = load_scene(wildtrack_root).select_frames(*FRAMES)
     folder = tmp_path_factory.mktemp("references")
     references = []
     for camera, reference in zip(scene.cameras, render_scene_references(scene), strict=True):
         path = reference.save(folder / f"{camera.name}.png")
         references.append(ReferenceImage.load(path, expected_size=camera.image_size))
-    epoch = float(int(time.time()) - 3600)
-    expected = track_scene(
-        replace(scene, timestamps=scene.timestamps + epoch),
-        matcher=make_matcher("fusion", scene_planes(scene), scene.camera_names),
-        references=references,
-    ).tracks
-    return {
-        "scene": scene, "references": references, "folder": folder, "epoch": epoch,
-        "expected": expected,
-    }
+    return {"scene": scene, "references": references, "folder": folder}
 
 
-def start_cameras(case, settings, speed: float, prefix: str) -> list[threading.Thread]:
-    """One paced camera node per scene camera, each on its own MQTT connection (threads)."""
+def expected_tracks(case, epoch: float, speed: float):
+    """The uninterrupted in-process run on the same capture times as the paced replay."""
     scene = case["scene"]
+    return track_scene(
+        replace(scene, timestamps=epoch + scene.timestamps * (1.0 / speed)),
+        matcher=make_matcher("fusion", scene_planes(scene), scene.camera_names),
+        references=case["references"],
+    ).tracks
+
+
+def start_cameras(case, settings, speed: float, prefix: str) -> tuple[list, float]:
+    """One paced camera node per scene camera, each on its own MQTT connection (threads).
+
+    Returns the threads and the shared epoch (the first frame's capture time).
+    """
+    scene = case["scene"]
+    epoch = time.time() + 0.5
     threads = []
     for index, name in enumerate(scene.camera_names):
 
@@ -84,7 +89,7 @@ def start_cameras(case, settings, speed: float, prefix: str) -> list[threading.T
             transport.connect()
             node = CameraNode(
                 transport, PLANE, name, case["references"][index], realtime=True,
-                speed=speed, epoch=case["epoch"], flush_timeout_s=30.0,
+                speed=speed, epoch=epoch, flush_timeout_s=30.0,
             )
             node.run(scene_source(scene, index), connect=False)
             transport.close()
@@ -92,10 +97,10 @@ def start_cameras(case, settings, speed: float, prefix: str) -> list[threading.T
         thread = threading.Thread(target=run, daemon=True)
         thread.start()
         threads.append(thread)
-    return threads
+    return threads, epoch
 
 
-def assert_exactly_once(store: RuntimeStore, case) -> None:
+def assert_exactly_once(store: RuntimeStore, case, expected) -> None:
     scene = case["scene"]
     messages = len(scene.frames) * len(scene.cameras)
     stored = store.messages()
@@ -110,7 +115,6 @@ def assert_exactly_once(store: RuntimeStore, case) -> None:
     assert counters["groups"] == len(scene.frames)
     assert counters.get("late", 0) == 0
     tracks = store.tracks()
-    expected = case["expected"]
     np.testing.assert_array_equal(tracks.frame, expected.frame)
     np.testing.assert_array_equal(tracks.track_id, expected.track_id)
     np.testing.assert_array_equal(tracks.world_xy, expected.world_xy)
@@ -126,7 +130,7 @@ def test_broker_restart_mid_stream_loses_nothing(case, start_mosquitto, tmp_path
         make_matcher("fusion", scene_planes(scene), names), PLANE, names, window_s=5.0,
     )
     service.start()
-    threads = start_cameras(case, broker.settings(), speed=25.0, prefix="restart")
+    threads, epoch = start_cameras(case, broker.settings(), speed=25.0, prefix="restart")
     total = len(scene.frames) * len(names)
     wait_until(lambda: store.counters().get("accepted", 0) >= total // 4, 30, "a quarter")
     broker.restart()
@@ -138,7 +142,7 @@ def test_broker_restart_mid_stream_loses_nothing(case, start_mosquitto, tmp_path
     )
     service.close(flush=True)
     assert restarted_at < total, "the broker restart was not mid-stream"
-    assert_exactly_once(store, case)
+    assert_exactly_once(store, case, expected_tracks(case, epoch, 25.0))
     store.close()
 
 
@@ -174,7 +178,7 @@ def test_matcher_killed_mid_stream_resumes_exactly_once(case, start_mosquitto, t
     try:
         # Its session exists once it has subscribed, which precedes its "online" status.
         wait_until(lambda: matcher_online.is_set(), 60, "the matcher to come online")
-        threads = start_cameras(case, broker.settings(), speed=10.0, prefix="killed")
+        threads, epoch = start_cameras(case, broker.settings(), speed=10.0, prefix="killed")
 
         def processed() -> int:
             with RuntimeStore(database, read_only=True) as store:
@@ -200,7 +204,7 @@ def test_matcher_killed_mid_stream_resumes_exactly_once(case, start_mosquitto, t
     assert killed_at < total, "the kill was not mid-stream"
     assert summary["processed"] == total
     with RuntimeStore(database, read_only=True) as store:
-        assert_exactly_once(store, case)
+        assert_exactly_once(store, case, expected_tracks(case, epoch, 10.0))
 
 
 # -- duplicates and bad input (both transports) -----------------------------------------

@@ -36,7 +36,11 @@ def add_mqtt_options(parser: argparse.ArgumentParser) -> None:
     group.add_argument("--ca-file", type=Path, help="CA certificate of the broker; enables TLS")
     group.add_argument("--cert-file", type=Path, help="client certificate (PEM) for TLS")
     group.add_argument("--key-file", type=Path, help="client certificate key (PEM) for TLS")
-    group.add_argument("--client-id", help="MQTT client id (default derived from the role)")
+    group.add_argument(
+        "--client-id",
+        help="MQTT client id (cameras: cblrs-camera-PLANE-CAMERA; matchers: the user name or "
+        "matcherPLANE); a restarted matcher resumes its session under the same id",
+    )
 
 
 def mqtt_settings(args: argparse.Namespace) -> Any:

@@ -163,7 +163,11 @@ def run(args: argparse.Namespace) -> int:
         if value is not None:
             limits[name] = value
     policy = ValidationPolicy(**limits)
-    matcher_id = validate_client_id(args.client_id or f"cblrs-matcher-{plane_id}", "client id")
+    # The matcher id is its MQTT client id (the persistent session) and names its status
+    # topic; the broker's ACL grants that topic to the user of the same name.
+    matcher_id = validate_client_id(
+        args.client_id or args.username or f"matcher{plane_id}", "client id"
+    )
     status_topic = matcher_status_topic(plane_id, matcher_id)
     transport = MqttTransport(
         matcher_id,

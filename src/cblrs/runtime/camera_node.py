@@ -7,13 +7,15 @@ camera. While the broker is away, the transport queues publishes and sends them 
 reconnection; the node keeps going.
 
 Capture timestamps. A recorded source gives times relative to its start (``scene_timestamp``);
-the node maps them to wall time as ``epoch + scene_timestamp`` so that a matcher's staleness
-checks (``max_age_s`` / ``max_future_s``) make sense. Every camera of one replay must use the
-same ``epoch`` (``--epoch``), or timestamps of the same frame would differ between cameras and
-never be grouped. Without one, the node picks ``now - first_timestamp`` when pacing in real
-time (the first frame is "now") and ``now - last_timestamp`` when replaying as fast as
-possible (the whole recording lies in the recent past, never in the future). Live sources
-(``timestamp=None``) are stamped with the wall clock at capture.
+the node maps them to wall time as ``epoch + scene_timestamp`` (``epoch + scene_timestamp /
+speed`` with ``--realtime --speed``) so that a matcher's staleness checks (``max_age_s`` /
+``max_future_s``) make sense; with ``--realtime`` each frame is published at that time.
+Every camera of one replay must use the same ``epoch`` (``--epoch``), or timestamps of the
+same frame would differ between cameras and never be grouped. Without one, the node picks
+``now - first_timestamp`` when pacing in real time (the first frame is "now") and
+``now - last_timestamp`` when replaying as fast as possible (the whole recording lies in the
+recent past, never in the future). Live sources (``timestamp=None``) are stamped with the
+wall clock at capture.
 """
 
 from __future__ import annotations
@@ -92,7 +94,8 @@ class CameraNode:
         camera_id: this camera's id (a topic level).
         reference: the camera's reference image.
         realtime: pace publishing by the recorded timestamps; else as fast as possible.
-        speed: with ``realtime``, play this many times faster than recorded.
+        speed: with ``realtime``, play this many times faster than recorded (recorded
+            times are divided by ``speed`` before the epoch is added).
         epoch: seconds added to recorded timestamps (see the module docstring).
         first_sequence: sequence number of the first message; replays restart at the same
             number, so a matcher ignores frames it already has.
@@ -203,31 +206,27 @@ class CameraNode:
             # its last timestamp, so read the (finite) recorded source up front.
             pending = list(iterator)
             iterator = iter(())
-            recorded = [frame.timestamp for frame in pending if frame.timestamp is not None]
-            if recorded:
-                epoch = self._clock() - max(recorded)
-        wall_start: float | None = None
-        first_recorded = 0.0
+            times = [frame.timestamp for frame in pending if frame.timestamp is not None]
+            if times:
+                epoch = self._clock() - max(times)
+        scale = 1.0 / self.speed if self.realtime else 1.0
         for frame in _chain(pending, iterator):
             report.frames += 1
             if frame.timestamp is None:
                 yield frame, self._clock()
                 continue
+            recorded = frame.timestamp * scale
             if epoch is None:
-                epoch = self._clock() - frame.timestamp
+                epoch = self._clock() - recorded
             report.epoch = epoch
+            capture_time = epoch + recorded
             if self.realtime:
-                if self.epoch is not None and self.speed == 1.0:
-                    # A shared epoch paces every camera of a replay on the same wall schedule.
-                    target = self.epoch + frame.timestamp
-                else:
-                    if wall_start is None:
-                        wall_start, first_recorded = self._clock(), frame.timestamp
-                    target = wall_start + (frame.timestamp - first_recorded) / self.speed
-                delay = target - self._clock()
+                # Publish each frame at its capture time: cameras sharing an epoch follow
+                # one wall-clock schedule.
+                delay = capture_time - self._clock()
                 if delay > 0 and self._stop.wait(delay):
                     return
-            yield frame, epoch + frame.timestamp
+            yield frame, capture_time
 
 
 def _chain(first: list[SourceFrame], rest: Iterator[SourceFrame]) -> Iterator[SourceFrame]:
