@@ -274,24 +274,24 @@ def test_camera_node_publishes_status_and_messages(small_world):
 
 
 @pytest.mark.parametrize(
-    ("realtime", "epoch", "timestamps", "expected"),
+    ("realtime", "speed", "epoch", "timestamps", "expected"),
     [
-        (True, 500.0, [1.0, 2.0], [500.5, 501.0]),  # --speed 2 halves recorded times
-        (False, None, [1.0, 2.0, 4.0], [997.0, 998.0, 1000.0]),  # the replay ends "now"
-        (False, 500.0, [1.0, 2.0], [501.0, 502.0]),
-        (True, None, [1.0, 1.001], [1000.0, 1000.001]),  # the first frame is "now"
-        (False, None, [None, None], [1000.0, 1000.0]),  # live frames: stamped on capture
-        (False, None, [], []),
+        (True, 2.0, 500.0, [1.0, 2.0], [500.5, 501.0]),  # --speed 2 halves recorded times
+        (False, 1.0, None, [1.0, 2.0, 4.0], [997.0, 998.0, 1000.0]),  # the replay ends "now"
+        (False, 1.0, 500.0, [1.0, 2.0], [501.0, 502.0]),
+        (True, 1.0, None, [1.0, 1.001], [1000.0, 1000.001]),  # the first frame is "now"
+        (False, 1.0, None, [None, None], [1000.0, 1000.0]),  # live frames: stamped on capture
+        (False, 1.0, None, [], []),
     ],
 )
-def test_capture_time_mapping(small_world, realtime, epoch, timestamps, expected):
+def test_capture_time_mapping(small_world, realtime, speed, epoch, timestamps, expected):
     _, reference = small_world
     broker = InProcessBroker()
     received = _collector(broker)
     transport = InProcessTransport(broker, "cam1", persistent=False)
     node = CameraNode(
         transport, PLANE, "cam1", reference, realtime=realtime, epoch=epoch,
-        speed=2.0 if epoch == 500.0 and realtime else 1.0, clock=lambda: 1000.0,
+        speed=speed, clock=lambda: 1000.0,
     )
     frames = [SourceFrame(index, ts, Detections.empty()) for index, ts in enumerate(timestamps)]
     node.run(frames)
