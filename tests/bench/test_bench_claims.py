@@ -65,3 +65,5 @@ def test_claims_cli(tmp_path, capsys):
     assert "Lens distortion" in capsys.readouterr().out
     saved = json.loads((tmp_path / "bench_claims.json").read_text())
     assert saved["n"] == 500
+    figure = (tmp_path / "claims_distortion.png").read_bytes()
+    assert figure.startswith(b"\x89PNG") and len(figure) < 300_000

@@ -46,6 +46,8 @@ def test_lookup_text_and_files(capsys, tmp_path):
     saved = json.loads((tmp_path / "bench_lookup.json").read_text())
     assert saved["n"] == 100
     assert (tmp_path / "bench_lookup.md").read_text().startswith("### Table I")
+    figure = (tmp_path / "lookup_table_i.png").read_bytes()
+    assert figure.startswith(b"\x89PNG") and len(figure) < 300_000
 
 
 def test_lookup_is_reproducible_in_its_pixels():

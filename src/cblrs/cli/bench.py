@@ -116,6 +116,10 @@ def _run_one(name: str, args: argparse.Namespace) -> tuple[dict[str, Any], str]:
             bits=args.bits,
             calibration=args.calibration,
         )
+        if args.out is not None:
+            from cblrs.bench.figures import plot_lookup
+
+            result["figures"] = [str(plot_lookup(result, args.figures or args.out))]
         return result, report.lookup_report(result)
     if name == "render":
         from cblrs.bench.render import benchmark_render
@@ -131,6 +135,11 @@ def _run_one(name: str, args: argparse.Namespace) -> tuple[dict[str, Any], str]:
             seed=getattr(args, "seed", 0),
             calibration=args.calibration,
         )
+        if args.out is not None:
+            from cblrs.bench.figures import plot_distortion_error
+
+            path = plot_distortion_error(args.calibration, args.figures or args.out)
+            result["figures"] = [str(path)]
         return result, claims_report(result)
     if name == "tracker":
         from cblrs.bench.tracker import benchmark_tracker, plot_tracker, tracker_report
