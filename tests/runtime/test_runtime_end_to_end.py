@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 
 from cblrs.datasets import load_scene
+from cblrs.detections import Tracks
 from cblrs.evaluation import evaluate
 from cblrs.matching import make_matcher
 from cblrs.pipeline import render_scene_references, scene_planes, track_scene
@@ -23,7 +24,9 @@ from cblrs.runtime.camera_node import CameraNode, camera_last_will
 from cblrs.runtime.matcher_service import MatcherService
 from cblrs.runtime.sources import scene_source
 from cblrs.runtime.store import RuntimeStore
-from cblrs.runtime.transport import Will
+from cblrs.runtime.topics import tracks_topic
+from cblrs.runtime.transport import InProcessBroker, InProcessTransport, Will
+from cblrs.runtime.wire import decode_tracks
 
 PLANE = 1
 MATCHER = "fusion"
@@ -56,10 +59,20 @@ def replay_case(wildtrack_root, tmp_path_factory):
     return scene, references, epoch, expected.tracks
 
 
-def replay(scene, references, epoch, make_transport, store, window_s=5.0, timeout=60.0):
-    """Run the service and one camera node per scene camera (threads); returns the stats."""
+def replay(scene, references, epoch, make_transport, store, window_s=5.0, timeout=60.0,
+           matcher_name=MATCHER):
+    """Run the service and one camera node per scene camera (threads).
+
+    Returns the service stats, the camera reports and the track updates a viewer received.
+    """
     names = scene.camera_names
-    matcher = make_matcher(MATCHER, scene_planes(scene), names)
+    updates = []
+    viewer = make_transport("viewer")
+    viewer.subscribe(
+        tracks_topic(PLANE), lambda delivery: (updates.append(delivery.payload), delivery.ack())
+    )
+    viewer.connect()
+    matcher = make_matcher(matcher_name, scene_planes(scene), names)
     service = MatcherService(
         make_transport("matcher"), store, matcher, PLANE, names, window_s=window_s
     )
@@ -84,13 +97,15 @@ def replay(scene, references, epoch, make_transport, store, window_s=5.0, timeou
         lambda: service.cameras_done() and service.drained(), timeout, "the matcher to finish"
     )
     service.close(flush=True)
-    return service.stats(), reports
+    stats = service.stats()
+    wait_until(lambda: len(updates) == stats["groups"], timeout, "every track update")
+    return stats, reports, [decode_tracks(payload) for payload in updates]
 
 
 def test_replay_through_broker_equals_in_process_run(replay_case, make_transport, tmp_path):
     scene, references, epoch, expected = replay_case
     with RuntimeStore(tmp_path / "matcher.db") as store:
-        stats, reports = replay(scene, references, epoch, make_transport, store)
+        stats, reports, updates = replay(scene, references, epoch, make_transport, store)
         tracks = store.tracks()
         inbox = store.status_counts()
     messages = len(scene.frames) * len(scene.cameras)
@@ -106,7 +121,34 @@ def test_replay_through_broker_equals_in_process_run(replay_case, make_transport
     np.testing.assert_array_equal(tracks.world_xy, expected.world_xy)
     np.testing.assert_array_equal(tracks.camera_id, expected.camera_id)
     assert stats["tracks"] == len(expected) > 0
+    assert [update.sequence for update in updates] == list(range(1, len(scene.frames) + 1))
+    published = Tracks.concatenate([update.tracks for update in updates])
+    np.testing.assert_array_equal(published.track_id, expected.track_id)
+    assert updates[0].cameras == tuple(scene.camera_names)
     got = evaluate(scene.ground_truth, tracks)
     want = evaluate(scene.ground_truth, expected)
     assert got.HOTA == pytest.approx(want.HOTA, abs=1e-9)
     assert got.HOTA > 50.0
+
+
+def test_paper_matcher_runs_as_a_service(replay_case, tmp_path):
+    """The paper's matcher behind the same service gives its in-process tracks too."""
+    scene, references, epoch, _ = replay_case
+    broker = InProcessBroker()
+
+    def make_transport(name, persistent=True, will=None):
+        return InProcessTransport(broker, name, persistent=persistent, will=will)
+
+    shifted = replace(scene, timestamps=scene.timestamps + epoch)
+    expected = track_scene(
+        shifted, matcher=make_matcher("paper", scene_planes(scene), scene.camera_names),
+        references=references,
+    ).tracks
+    with RuntimeStore(tmp_path / "paper.db") as store:
+        stats, _, _ = replay(
+            scene, references, epoch, make_transport, store, matcher_name="paper"
+        )
+        tracks = store.tracks()
+    assert stats["late"] == 0
+    np.testing.assert_array_equal(tracks.track_id, expected.track_id)
+    np.testing.assert_array_equal(tracks.world_xy, expected.world_xy)
