@@ -171,7 +171,11 @@ def register(subparsers) -> None:
         help="seconds since 1970 added to recorded timestamps (same for every camera of a replay)",
     )
     timing.add_argument(
-        "--first-sequence", type=int, default=0, help="sequence number of the first message"
+        "--first-sequence",
+        type=int,
+        help="sequence number of the first message (default 0, so a repeated replay is "
+        "recognised as duplicates; --live: the clock in milliseconds, so a restarted live "
+        "camera is not)",
     )
     parser.add_argument(
         "--flush-timeout",
@@ -279,6 +283,14 @@ def build_detector(args: argparse.Namespace, class_id: int):
         raise UsageError(str(error)) from None
 
 
+def first_sequence(args: argparse.Namespace) -> int:
+    if args.first_sequence is not None:
+        if args.first_sequence < 0:
+            raise UsageError("--first-sequence must be >= 0.")
+        return args.first_sequence
+    return int(time.time() * 1000) if args.live else 0
+
+
 def run(args: argparse.Namespace) -> int:
     from cblrs.runtime.camera_node import CameraNode, camera_last_will
     from cblrs.runtime.topics import validate_camera_id
@@ -313,7 +325,7 @@ def run(args: argparse.Namespace) -> int:
         realtime=args.realtime,
         speed=args.speed,
         epoch=args.epoch,
-        first_sequence=args.first_sequence,
+        first_sequence=first_sequence(args),
         flush_timeout_s=args.flush_timeout,
     )
     install_stop_handlers(node.stop)
