@@ -285,7 +285,11 @@ class MatcherService:
                 if batch:
                     self._handle(batch)
                 self._release_ready()
-                if self._stop.is_set() and self._inbox.empty():
+                # Stopping: finish the current batch; with a flush, also what is queued.
+                # Anything left is unacknowledged, so the broker delivers it again later.
+                if self._stop.is_set() and (
+                    self._inbox.empty() or not self._flush_requested.is_set()
+                ):
                     break
             if self._flush_requested.is_set():
                 self._release_ready(force=True)
