@@ -33,7 +33,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from scipy.optimize import linear_sum_assignment
+from scipy.optimize import linear_sum_assignment, nnls
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
@@ -51,7 +51,7 @@ from cblrs.matching.base import (
 )
 from cblrs.plane import PlaneSet
 
-STATE_VERSION = "cblrs.fusion-tracker/1"
+STATE_VERSION = "cblrs.fusion-tracker/2"
 _UNASSIGNABLE = 1.0e9
 _DENSE_PAIRS = 20_000  # below this many N x T pairs a dense distance matrix is faster
 
@@ -304,13 +304,14 @@ class FusionTracker:
         timestamp = float(timestamp)
         observed = decode_messages(self.planes, self._cameras, messages)
         self._predict(timestamp)
-        variance = self._measurement_variance(observed)
+        covariance = self._measurement_covariance(observed)
 
-        assigned = self._associate(observed, variance)
-        assigned = self._join_observed(observed, variance, assigned)
+        assigned = self._associate(observed, covariance)
+        assigned = self._join_observed(observed, covariance, assigned)
         if self.config.adapt_noise:
             plain = self._class_extra[self._class_slot(observed.class_id)] == 0
-            self._noise.learn(observed.world_xy, self._distance, np.where(plain, assigned, -1))
+            self._noise.learn(observed.world_xy, self._distance, np.where(plain, assigned, -1),
+                              self._direction)
         track_count = len(self._ids)
         seen_now = np.zeros(track_count, dtype=bool)
         report_camera = np.full(track_count, -1, np.int64)
@@ -319,24 +320,19 @@ class FusionTracker:
         matched = assigned >= 0
         if matched.any():
             rows = assigned[matched]
-            weight = 1.0 / variance[matched]
-            weight_sum = np.bincount(rows, weight, minlength=track_count)
-            fused = np.column_stack(
-                [np.bincount(rows, weight * observed.world_xy[matched, axis], track_count)
-                 for axis in (0, 1)]
+            fused_xy, fused_covariance, seen_now = fuse(
+                rows, track_count, observed.world_xy[matched], covariance[matched]
             )
-            seen_now = weight_sum > 0
-            fused_xy = fused[seen_now] / weight_sum[seen_now, None]
             self._state[seen_now], self._covariance[seen_now] = kalman.update(
-                self._state[seen_now], self._covariance[seen_now], fused_xy,
-                1.0 / weight_sum[seen_now],
+                self._state[seen_now], self._covariance[seen_now], fused_xy[seen_now],
+                fused_covariance[seen_now],
             )
             self._evidence += np.bincount(rows, minlength=track_count)
             self._last_seen[seen_now] = timestamp
             cameras_of_track[rows, observed.camera[matched]] = True
             report_camera, report_box = self._largest_boxes(observed, matched, rows, track_count)
 
-        births = self._birth(_subset(observed, ~matched), variance[~matched], timestamp)
+        births = self._birth(_subset(observed, ~matched), covariance[~matched], timestamp)
         seen_now = np.concatenate([seen_now, np.ones(births, dtype=bool)])
         report_camera = np.concatenate([report_camera, self._birth_camera])
         report_box = np.concatenate([report_box, self._birth_box])
@@ -381,20 +377,35 @@ class FusionTracker:
         else:
             self._time = timestamp
 
-    def _camera_distance(self, observed: Observations) -> np.ndarray:
-        """(N,) metres from each detection's camera (0 where the camera is not placed)."""
-        distance = np.linalg.norm(observed.world_xy - self._camera_xy[observed.camera], axis=1)
-        return np.where(np.isfinite(distance), distance, 0.0)
+    def _camera_rays(self, observed: Observations) -> tuple[np.ndarray, np.ndarray]:
+        """(N,) metres from each detection's camera (0 where the camera is not placed) and
+        (N, 2) unit vectors from the camera to the detection ((1, 0) where unknown)."""
+        offset = observed.world_xy - self._camera_xy[observed.camera]
+        distance = np.linalg.norm(offset, axis=1)
+        known = np.isfinite(distance) & (distance > 0)
+        direction = np.zeros_like(offset)
+        direction[:, 0] = 1.0
+        direction[known] = offset[known] / distance[known, None]
+        return np.where(known, distance, 0.0), direction
 
-    def _measurement_variance(self, observed: Observations) -> np.ndarray:
-        self._distance = self._camera_distance(observed)
-        extra = self._class_extra[self._class_slot(observed.class_id)]
+    def _measurement_covariance(self, observed: Observations) -> np.ndarray:
+        """(N, 2, 2) ground covariance of each detection, elongated along its camera's ray.
+
+        Also sets ``_distance``, ``_direction`` and ``_sigma`` (the largest standard
+        deviation of each detection, for neighbour searches).
+        """
+        self._distance, self._direction = self._camera_rays(observed)
+        extra = self._class_extra[self._class_slot(observed.class_id)] ** 2
+        along, lateral = self._noise.variances(self._distance)
         # The model may learn that cameras agree closely, but a person is not a point:
         # below measurement_sigma_m the filter would chase annotation jitter.
         floor = self.config.measurement_sigma_m**2
-        return np.maximum(self._noise.variance(self._distance), floor) + extra**2
+        along = np.maximum(along, floor) + extra
+        lateral = np.maximum(lateral, floor) + extra
+        self._sigma = np.sqrt(np.maximum(along, lateral))
+        return ray_covariance(self._direction, along, lateral)
 
-    def _associate(self, observed: Observations, variance: np.ndarray) -> np.ndarray:
+    def _associate(self, observed: Observations, covariance: np.ndarray) -> np.ndarray:
         """Track row of each detection (-1: none); one detection per camera per track.
 
         Precise detections are first grouped across cameras and each group is assigned to a
@@ -405,7 +416,7 @@ class FusionTracker:
         count, track_count = len(observed), len(self._ids)
         if count == 0 or track_count == 0:
             return np.full(count, -1, np.int64)
-        assigned = self._associate_groups(observed, variance)
+        assigned = self._associate_groups(observed, covariance)
         rest = np.flatnonzero(assigned < 0)
         if len(rest) == 0:
             return assigned
@@ -413,7 +424,7 @@ class FusionTracker:
         taken[assigned[assigned >= 0], observed.camera[assigned >= 0]] = True
         part = _subset(observed, rest)
         rows, columns, cost = self._gated_pairs(
-            part.world_xy, variance[rest], part.class_id
+            part.world_xy, covariance[rest], part.class_id
         )
         free = ~taken[columns, part.camera[rows]]
         assigned[rest] = assign_per_camera(
@@ -422,7 +433,7 @@ class FusionTracker:
         return assigned
 
     def _gated_pairs(
-        self, world_xy: np.ndarray, variance: np.ndarray, class_id: np.ndarray
+        self, world_xy: np.ndarray, covariance: np.ndarray, class_id: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Gated (measurement, track) pairs and their negative log-likelihood costs.
 
@@ -433,20 +444,18 @@ class FusionTracker:
         cap = self.config.max_gate_m * self._class_scale[self._class_slot(class_id)]
         rows, columns = close_pairs(world_xy, self._state[:, :2], cap)
         rows, columns = _same_class(rows, columns, class_id, self._class)
-        covariance = self._covariance[columns]
-        a = covariance[:, 0, 0] + variance[rows]
-        b = covariance[:, 0, 1]
-        d = covariance[:, 1, 1] + variance[rows]
-        determinant = a * d - b * b
-        dx = world_xy[rows, 0] - self._state[columns, 0]
-        dy = world_xy[rows, 1] - self._state[columns, 1]
-        mahalanobis = (d * dx * dx - 2.0 * b * dx * dy + a * dy * dy) / determinant
+        innovation = self._covariance[columns, :2, :2] + covariance[rows]
+        determinant = (innovation[:, 0, 0] * innovation[:, 1, 1]
+                       - innovation[:, 0, 1] * innovation[:, 1, 0])
+        mahalanobis = mahalanobis_squared(
+            world_xy[rows] - self._state[columns, :2], innovation
+        )
         inside = mahalanobis <= self.config.gate_sigmas**2
         # Negative log-likelihood of the innovation (constant dropped).
         cost = mahalanobis[inside] + np.log(determinant[inside])
         return rows[inside], columns[inside], cost
 
-    def _associate_groups(self, observed: Observations, variance: np.ndarray) -> np.ndarray:
+    def _associate_groups(self, observed: Observations, covariance: np.ndarray) -> np.ndarray:
         """Assign cross-camera groups of precise detections to tracks, one group per track.
 
         A detection is precise when its cluster radius under the learned noise model
@@ -464,8 +473,9 @@ class FusionTracker:
         if len(precise) < 2:
             return assigned
         labels = cluster_detections(
-            observed.world_xy[precise], observed.camera[precise], sigma[precise],
+            observed.world_xy[precise], observed.camera[precise], self._sigma[precise],
             self.config.cluster_sigmas, observed.class_id[precise],
+            covariance=covariance[precise],
         )
         size = np.bincount(labels)
         grouped = size[labels] >= 2
@@ -475,15 +485,12 @@ class FusionTracker:
         _, labels = np.unique(labels, return_inverse=True)
         labels = labels.reshape(-1)
         group_count = int(labels.max()) + 1
-        weight = 1.0 / variance[members]
-        weight_sum = np.bincount(labels, weight, group_count)
-        position = np.column_stack(
-            [np.bincount(labels, weight * observed.world_xy[members, axis], group_count)
-             for axis in (0, 1)]
-        ) / weight_sum[:, None]
+        position, group_covariance, _ = fuse(
+            labels, group_count, observed.world_xy[members], covariance[members]
+        )
         group_class = np.zeros(group_count, np.int64)
         group_class[labels] = observed.class_id[members]
-        rows, columns, cost = self._gated_pairs(position, 1.0 / weight_sum, group_class)
+        rows, columns, cost = self._gated_pairs(position, group_covariance, group_class)
         # Groups compete for tracks as if they all came from one camera: one-to-one.
         group_track = assign_per_camera(
             rows, columns, cost, np.zeros(group_count, np.int64), 1
@@ -492,7 +499,7 @@ class FusionTracker:
         return assigned
 
     def _join_observed(
-        self, observed: Observations, variance: np.ndarray, assigned: np.ndarray
+        self, observed: Observations, covariance: np.ndarray, assigned: np.ndarray
     ) -> np.ndarray:
         """Let detections the gate missed join a track other cameras saw at this instant.
 
@@ -507,35 +514,34 @@ class FusionTracker:
             return assigned
         track_count = len(self._ids)
         tracks = assigned[matched]
-        weight = 1.0 / variance[matched]
-        weight_sum = np.bincount(tracks, weight, minlength=track_count)
-        seen = np.flatnonzero(weight_sum > 0)
-        fused = np.column_stack(
-            [np.bincount(tracks, weight * observed.world_xy[matched, axis], track_count)[seen]
-             for axis in (0, 1)]
-        ) / weight_sum[seen, None]
+        fused, fused_covariance, present = fuse(
+            tracks, track_count, observed.world_xy[matched], covariance[matched]
+        )
+        seen = np.flatnonzero(present)
+        fused, fused_covariance = fused[seen], fused_covariance[seen]
         taken = np.zeros((track_count, len(self.camera_ids)), dtype=bool)
         taken[tracks, observed.camera[matched]] = True
 
         slots = self._class_slot(observed.class_id[leftover])
         floor = self.config.cluster_radius_m * self._class_scale[slots]
+        fused_largest = float(np.max(fused_covariance[:, 0, 0] + fused_covariance[:, 1, 1]))
         largest = np.maximum(
             floor,
-            self.config.cluster_sigmas * np.sqrt(variance[leftover] + 1.0 / weight_sum[seen].min()),
+            self.config.cluster_sigmas * np.sqrt(self._sigma[leftover] ** 2 + fused_largest),
         )
         rows, columns = close_pairs(observed.world_xy[leftover], fused, largest)
         rows, columns = _same_class(rows, columns, observed.class_id[leftover],
                                     self._class[seen])
-        distance = np.linalg.norm(observed.world_xy[leftover[rows]] - fused[columns], axis=1)
-        radius = np.maximum(
-            floor[rows],
-            self.config.cluster_sigmas * np.sqrt(
-                variance[leftover[rows]] + 1.0 / weight_sum[seen[columns]]
-            ),
-        )
-        allowed = (distance <= radius) & ~taken[seen[columns], observed.camera[leftover[rows]]]
+        difference = observed.world_xy[leftover[rows]] - fused[columns]
+        distance = np.linalg.norm(difference, axis=1)
+        normalised = np.sqrt(mahalanobis_squared(
+            difference, covariance[leftover[rows]] + fused_covariance[columns]
+        ))
+        allowed = (
+            (normalised <= self.config.cluster_sigmas) | (distance <= floor[rows])
+        ) & ~taken[seen[columns], observed.camera[leftover[rows]]]
         joined = assign_per_camera(
-            rows[allowed], columns[allowed], distance[allowed], observed.camera[leftover],
+            rows[allowed], columns[allowed], normalised[allowed], observed.camera[leftover],
             len(self.camera_ids),
         )
         assigned = assigned.copy()
@@ -559,13 +565,15 @@ class FusionTracker:
         box[rows[best]] = boxes[best]
         return camera, box
 
-    def _birth(self, leftovers: Observations, variance: np.ndarray, timestamp: float) -> int:
+    def _birth(self, leftovers: Observations, covariance: np.ndarray, timestamp: float) -> int:
         """Start a tentative track per cross-camera cluster of unassigned detections."""
+        sigma = largest_sigma(covariance)
         labels = cluster_detections(
-            leftovers.world_xy, leftovers.camera, np.sqrt(variance),
+            leftovers.world_xy, leftovers.camera, sigma,
             self.config.cluster_sigmas, leftovers.class_id,
             self.config.cluster_radius_m
             * self._class_scale[self._class_slot(leftovers.class_id)],
+            covariance=covariance,
         )
         count = int(labels.max()) + 1 if len(labels) else 0
         camera_count = len(self.camera_ids)
@@ -574,15 +582,13 @@ class FusionTracker:
         self._birth_box = np.full((count, 4), np.nan)
         if count == 0:
             return 0
-        weight = 1.0 / variance
-        weight_sum = np.bincount(labels, weight, count)
-        position = np.column_stack(
-            [np.bincount(labels, weight * leftovers.world_xy[:, axis], count) for axis in (0, 1)]
-        ) / weight_sum[:, None]
+        position, position_covariance, _ = fuse(
+            labels, count, leftovers.world_xy, covariance
+        )
         state = np.zeros((count, 4))
         state[:, :2] = position
         covariance = kalman.initial_covariance(
-            count, 1.0 / weight_sum, self.config.initial_velocity_sigma
+            count, position_covariance, self.config.initial_velocity_sigma
         )
         self._birth_cameras[labels, leftovers.camera] = True
         self._birth_camera, self._birth_box = self._largest_boxes(
@@ -643,41 +649,82 @@ def _subset(observed: Observations, mask: np.ndarray) -> Observations:
 
 
 class NoiseModel:
-    """Online estimate of the detector's ground-position noise, ``a**2 + (b * distance)**2``.
+    """Online estimate of the detector's ground-position noise, along and across the ray.
+
+    A camera locates a foot point by the ray through its pixel; a pixel error along the
+    image's vertical moves the point along the viewing direction by far more than the same
+    error across it (the ray grazes the ground), so one camera's error is an ellipse
+    elongated along the direction from the camera to the point. Per axis of that frame:
+
+    * along the ray: ``a**2 + (b * distance)**2``;
+    * across it: ``e**2 + (c * distance)**2``.
 
     Two cameras' detections of one object at one instant differ by the sum of two
-    independent errors, so ``|z_1 - z_2|**2 / 2 = 2 a**2 + b**2 (d_1**2 + d_2**2)`` on
-    average (per axis variance, 2-D). The model is the least-squares fit of that line over
-    recent pairs (exponentially forgotten), anchored by a prior worth a few dozen pairs at
-    5 and 25 m. Squared differences are clipped at nine times the current prediction so one
-    wrong association cannot inflate the noise.
+    independent errors, so the expected outer product of the difference is the sum of the
+    two covariances, which is linear in ``(a**2, b**2, e**2, c**2)``. The model is the
+    non-negative least-squares fit of those three equations per pair over recent pairs
+    (exponentially forgotten), anchored by a prior worth a few dozen pairs at 5 and 25 m.
+    A difference is shrunk to at most three standard deviations (in the current model's
+    metric) so one wrong association cannot inflate the noise. Without camera positions,
+    distances are zero and the model is isotropic.
     """
 
     prior_pairs = 40.0
     forget_per_pair = 0.9995  # memory of a few thousand pairs
     minimum_sigma_m = 0.02
     prior_distances_m = (5.0, 25.0)
+    clip_sigmas = 3.0
 
-    def __init__(self, sigma_m: float, sigma_per_distance: float):
-        self.prior = np.array([sigma_m**2, sigma_per_distance**2])
+    def __init__(
+        self, sigma_m: float, sigma_per_distance: float,
+        lateral_per_distance: float | None = None,
+    ):
+        lateral = sigma_per_distance if lateral_per_distance is None else lateral_per_distance
+        self.prior = np.array([sigma_m**2, sigma_per_distance**2, sigma_m**2, lateral**2])
         self.reset()
 
     def reset(self) -> None:
-        self.normal = np.zeros((2, 2))
-        self.moment = np.zeros(2)
+        self.normal = np.zeros((4, 4))
+        self.moment = np.zeros(4)
+        weight = self.prior_pairs / len(self.prior_distances_m)
         for distance in self.prior_distances_m:
-            feature = np.array([2.0, 2.0 * distance**2])
-            weight = self.prior_pairs / len(self.prior_distances_m)
-            self.normal += weight * np.outer(feature, feature)
-            self.moment += weight * feature * (feature @ self.prior)
+            # A pseudo pair of two cameras looking along x: x holds the along-ray
+            # variances, y the across-ray ones.
+            features = np.array([[2.0, 2.0 * distance**2, 0.0, 0.0],
+                                 [0.0, 0.0, 2.0, 2.0 * distance**2]])
+            self.normal += weight * features.T @ features
+            self.moment += weight * features.T @ (features @ self.prior)
         self.coefficients = self.prior.copy()
 
-    def variance(self, distance: np.ndarray) -> np.ndarray:
-        """(N,) per-axis variance, square metres, at distances (N,) metres."""
-        return self.coefficients[0] + self.coefficients[1] * distance**2
+    def variances(self, distance: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(N,) along-ray and (N,) across-ray variances, square metres, at (N,) metres."""
+        squared = distance**2
+        along = self.coefficients[0] + self.coefficients[1] * squared
+        return along, self.coefficients[2] + self.coefficients[3] * squared
 
-    def learn(self, world_xy: np.ndarray, distance: np.ndarray, track: np.ndarray) -> None:
-        """Update from detections assigned to tracks (``track`` (N,), -1 to ignore)."""
+    def variance(self, distance: np.ndarray) -> np.ndarray:
+        """(N,) the larger (along-ray) variance, square metres, at distances (N,) metres."""
+        along, lateral = self.variances(distance)
+        return np.maximum(along, lateral)
+
+    def covariance(self, distance: np.ndarray, direction: np.ndarray) -> np.ndarray:
+        """(N, 2, 2) covariances, square metres, for (N,) distances and (N, 2) unit rays."""
+        along, lateral = self.variances(distance)
+        return ray_covariance(direction, along, lateral)
+
+    def learn(
+        self, world_xy: np.ndarray, distance: np.ndarray, track: np.ndarray,
+        direction: np.ndarray | None = None,
+    ) -> None:
+        """Update from detections assigned to tracks.
+
+        Args:
+            world_xy: (N, 2) metres.
+            distance: (N,) metres from each detection's camera (0: unknown).
+            track: (N,) int64 track of each detection, -1 to ignore.
+            direction: (N, 2) unit vectors from the camera to each detection; None treats
+                the noise as isotropic (along and across share their distance terms).
+        """
         rows = np.flatnonzero(track >= 0)
         if len(rows) < 2:
             return
@@ -686,34 +733,78 @@ class NoiseModel:
         first, second = rows[:-1][same], rows[1:][same]
         if len(first) == 0:
             return
-        features = np.column_stack(
-            [np.full(len(first), 2.0), distance[first] ** 2 + distance[second] ** 2]
+        if direction is None:
+            direction = np.zeros((len(world_xy), 2))
+            direction[:, 0] = 1.0
+            isotropic = True
+        else:
+            isotropic = False
+        # Per pair and coefficient, the (2, 2) matrix it multiplies in the sum of the two
+        # covariances: along-ray constant and distance terms, across-ray ones.
+        identity = np.eye(2)[None]
+        parts = np.zeros((len(first), 4, 2, 2))
+        for one in (first, second):
+            outer = direction[one][:, :, None] * direction[one][:, None, :]
+            squared = (distance[one] ** 2)[:, None, None]
+            if isotropic:
+                outer = 0.5 * np.broadcast_to(identity, outer.shape)
+            parts[:, 0] += outer
+            parts[:, 1] += squared * outer
+            parts[:, 2] += identity - outer
+            parts[:, 3] += squared * (identity - outer)
+        root_two = np.sqrt(2.0)
+        features = np.stack(
+            [parts[:, :, 0, 0], parts[:, :, 1, 1], root_two * parts[:, :, 0, 1]], axis=1
+        )  # (K, 3 equations, 4 coefficients)
+        difference = world_xy[first] - world_xy[second]
+        predicted = features @ self.coefficients  # (K, 3): xx, yy, sqrt(2) xy
+        covariance = np.empty((len(first), 2, 2))
+        covariance[:, 0, 0], covariance[:, 1, 1] = predicted[:, 0], predicted[:, 1]
+        covariance[:, 0, 1] = covariance[:, 1, 0] = predicted[:, 2] / root_two
+        squared = mahalanobis_squared(difference, covariance)
+        limit = 2.0 * self.clip_sigmas**2
+        with np.errstate(divide="ignore", invalid="ignore"):
+            shrink = np.where(squared > limit, np.sqrt(limit / squared), 1.0)
+        difference = difference * shrink[:, None]
+        target = np.column_stack(
+            [difference[:, 0] ** 2, difference[:, 1] ** 2,
+             root_two * difference[:, 0] * difference[:, 1]]
         )
-        target = 0.5 * np.sum((world_xy[first] - world_xy[second]) ** 2, axis=1)
-        target = np.minimum(target, 9.0 * features @ self.coefficients)
         decay = self.forget_per_pair ** len(first)
-        self.normal = decay * self.normal + features.T @ features
-        self.moment = decay * self.moment + features.T @ target
+        flat_features = features.reshape(-1, 4)
+        self.normal = decay * self.normal + flat_features.T @ flat_features
+        self.moment = decay * self.moment + flat_features.T @ target.reshape(-1)
         self._solve()
 
     def _solve(self) -> None:
-        floor = self.minimum_sigma_m**2
         try:
-            a, b = np.linalg.solve(self.normal, self.moment)
-        except np.linalg.LinAlgError:
+            root = np.linalg.cholesky(self.normal)
+            coefficients, _ = nnls(root.T, np.linalg.solve(root, self.moment))
+        except (np.linalg.LinAlgError, RuntimeError):
             return
-        if b < 0:  # no distance dependence: fit the constant alone
-            b = 0.0
-            a = self.moment[0] / self.normal[0, 0]
-        self.coefficients = np.array([max(a, floor), b])
+        coefficients[0] = max(coefficients[0], self.minimum_sigma_m**2)
+        coefficients[2] = max(coefficients[2], self.minimum_sigma_m**2)
+        self.coefficients = coefficients
 
     @property
     def sigma_m(self) -> float:
+        """Along-ray standard deviation at the camera, metres."""
         return float(np.sqrt(self.coefficients[0]))
 
     @property
+    def lateral_sigma_m(self) -> float:
+        """Across-ray standard deviation at the camera, metres."""
+        return float(np.sqrt(self.coefficients[2]))
+
+    @property
     def sigma_per_distance(self) -> float:
+        """Along-ray standard deviation per metre of distance."""
         return float(np.sqrt(self.coefficients[1]))
+
+    @property
+    def lateral_per_distance(self) -> float:
+        """Across-ray standard deviation per metre of distance."""
+        return float(np.sqrt(self.coefficients[3]))
 
     def get_state(self) -> dict:
         return {
@@ -723,9 +814,69 @@ class NoiseModel:
         }
 
     def set_state(self, state: dict) -> None:
-        self.normal = np.asarray(state["normal"], np.float64).reshape(2, 2)
-        self.moment = np.asarray(state["moment"], np.float64).reshape(2)
-        self.coefficients = np.asarray(state["coefficients"], np.float64).reshape(2)
+        self.normal = np.asarray(state["normal"], np.float64).reshape(4, 4)
+        self.moment = np.asarray(state["moment"], np.float64).reshape(4)
+        self.coefficients = np.asarray(state["coefficients"], np.float64).reshape(4)
+
+
+def ray_covariance(
+    direction: np.ndarray, along_variance: np.ndarray, lateral_variance: np.ndarray
+) -> np.ndarray:
+    """(N, 2, 2) covariances elongated along unit ``direction`` (N, 2).
+
+    ``along_variance`` and ``lateral_variance`` are (N,) square metres along and across it.
+    """
+    outer = direction[:, :, None] * direction[:, None, :]
+    return (lateral_variance[:, None, None] * np.eye(2)[None]
+            + (along_variance - lateral_variance)[:, None, None] * outer)
+
+
+def largest_sigma(covariance: np.ndarray) -> np.ndarray:
+    """(N,) square root of the largest eigenvalue of (N, 2, 2) covariances, metres."""
+    half_trace = 0.5 * (covariance[:, 0, 0] + covariance[:, 1, 1])
+    spread = np.hypot(0.5 * (covariance[:, 0, 0] - covariance[:, 1, 1]), covariance[:, 0, 1])
+    return np.sqrt(half_trace + spread)
+
+
+def mahalanobis_squared(difference: np.ndarray, covariance: np.ndarray) -> np.ndarray:
+    """(K,) ``d^T C^-1 d`` for (K, 2) differences and (K, 2, 2) covariances."""
+    a, b, d = covariance[:, 0, 0], covariance[:, 0, 1], covariance[:, 1, 1]
+    dx, dy = difference[:, 0], difference[:, 1]
+    return (d * dx * dx - 2.0 * b * dx * dy + a * dy * dy) / (a * d - b * b)
+
+
+def fuse(
+    labels: np.ndarray, count: int, world_xy: np.ndarray, covariance: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Information-weighted fusion of detections per label.
+
+    Args:
+        labels: (N,) int64 in 0..count-1.
+        count: number of labels K.
+        world_xy: (N, 2) metres.
+        covariance: (N, 2, 2) square metres.
+
+    Returns:
+        ``(position (K, 2), covariance (K, 2, 2), present (K,) bool)``; rows of absent labels
+        are NaN.
+    """
+    information, _ = kalman.inverse_2x2(covariance)
+    weighted = np.einsum("nij,nj->ni", information, world_xy)
+    total = np.zeros((count, 2, 2))
+    vector = np.zeros((count, 2))
+    for row in range(2):
+        vector[:, row] = np.bincount(labels, weighted[:, row], count)
+        for column in range(2):
+            total[:, row, column] = np.bincount(labels, information[:, row, column], count)
+    present = np.bincount(labels, minlength=count) > 0
+    fused_covariance = np.full((count, 2, 2), np.nan)
+    position = np.full((count, 2), np.nan)
+    if present.any():
+        fused_covariance[present], _ = kalman.inverse_2x2(total[present])
+        position[present] = np.einsum(
+            "nij,nj->ni", fused_covariance[present], vector[present]
+        )
+    return position, fused_covariance, present
 
 
 def close_pairs(
@@ -832,6 +983,7 @@ def cluster_detections(
     sigmas: float,
     class_id: np.ndarray | None = None,
     minimum_radius_m: float | np.ndarray = 0.0,
+    covariance: np.ndarray | None = None,
 ) -> np.ndarray:
     """Group same-instant detections of several cameras into objects.
 
@@ -848,6 +1000,10 @@ def cluster_detections(
         class_id: (N,) int64 classes; None treats all detections as one class.
         minimum_radius_m: a pair is always compatible within this distance, metres, scalar
             or (N,) (a pair uses the larger of its two).
+        covariance: optional (N, 2, 2) position covariances, square metres; then a pair is
+            compatible within ``sigmas`` in the Mahalanobis metric of the sum of its two
+            covariances (``sigma_m`` should then be the largest standard deviation of each,
+            for the neighbour search), and pairs merge in order of that metric.
 
     Returns:
         (N,) int64 cluster labels 0..K-1, numbered by first member.
@@ -862,12 +1018,20 @@ def cluster_detections(
     first, second = close_pairs(world_xy, world_xy, largest)
     upper = first < second
     first, second = first[upper], second[upper]
-    radius = np.maximum(
-        sigmas * np.sqrt(variance[first] + variance[second]),
-        np.maximum(minimum[first], minimum[second]),
-    )
-    distance = np.linalg.norm(world_xy[first] - world_xy[second], axis=1)
-    keep = (distance <= radius) & (camera[first] != camera[second])
+    difference = world_xy[first] - world_xy[second]
+    distance = np.linalg.norm(difference, axis=1)
+    pair_minimum = np.maximum(minimum[first], minimum[second])
+    if covariance is None:
+        radius = np.maximum(sigmas * np.sqrt(variance[first] + variance[second]), pair_minimum)
+        keep = distance <= radius
+    else:
+        normalised = np.sqrt(
+            mahalanobis_squared(difference, covariance[first] + covariance[second])
+        )
+        keep = (normalised <= sigmas) | (distance <= pair_minimum)
+        # Merge order: the most likely pairs first.
+        distance = np.minimum(normalised, sigmas * distance / np.maximum(pair_minimum, 1e-9))
+    keep &= camera[first] != camera[second]
     if class_id is not None:
         keep &= class_id[first] == class_id[second]
     first, second, distance = first[keep], second[keep], distance[keep]

@@ -2,8 +2,9 @@
 
 State per track: ``(x, y, vx, vy)`` in metres and metres per second; covariance (4, 4).
 Process noise is white acceleration with standard deviation ``acceleration_sigma`` (m/s^2),
-the usual continuous-time discretisation. Measurements are positions ``(x, y)`` with an
-isotropic standard deviation per measurement (metres). Everything takes arrays over T
+the usual continuous-time discretisation. Measurements are positions ``(x, y)`` with either
+an isotropic variance per measurement (square metres) or a full (2, 2) covariance (a
+camera's ground error is elongated along its viewing ray). Everything takes arrays over T
 tracks, so a frame costs a handful of numpy calls whatever the number of tracks.
 """
 
@@ -43,18 +44,30 @@ def predict(
     return state, covariance
 
 
-def innovation_covariance(covariance: FloatArray, measurement_variance: FloatArray) -> FloatArray:
-    """(T, 2, 2) covariance of the position innovation, ``P_xy + r I``.
+def measurement_matrices(measurement_variance: FloatArray | float, count: int) -> FloatArray:
+    """(count, 2, 2) measurement covariances from a scalar, (count,) or (count, 2, 2) input.
+
+    Scalars and (count,) arrays are isotropic variances, square metres.
+    """
+    variance = np.asarray(measurement_variance, np.float64)
+    if variance.ndim == 3:
+        return variance
+    matrices = np.zeros((count, 2, 2))
+    matrices[:, 0, 0] = matrices[:, 1, 1] = np.broadcast_to(variance, (count,))
+    return matrices
+
+
+def innovation_covariance(
+    covariance: FloatArray, measurement_variance: FloatArray | float
+) -> FloatArray:
+    """(T, 2, 2) covariance of the position innovation, ``P_xy + R``.
 
     Args:
         covariance: (T, 4, 4) state covariances.
-        measurement_variance: (T,) or scalar, square metres.
+        measurement_variance: scalar or (T,) isotropic variances (square metres), or (T, 2, 2)
+            measurement covariances.
     """
-    innovation = covariance[:, :2, :2].copy()
-    variance = np.broadcast_to(np.asarray(measurement_variance, np.float64), (len(covariance),))
-    innovation[:, 0, 0] += variance
-    innovation[:, 1, 1] += variance
-    return innovation
+    return covariance[:, :2, :2] + measurement_matrices(measurement_variance, len(covariance))
 
 
 def inverse_2x2(matrices: FloatArray) -> tuple[FloatArray, FloatArray]:
@@ -81,7 +94,8 @@ def update(
     Args:
         state: (T, 4); covariance: (T, 4, 4).
         measurement_xy: (T, 2) metres.
-        measurement_variance: (T,) square metres (isotropic).
+        measurement_variance: (T,) isotropic variances, square metres, or (T, 2, 2)
+            covariances.
 
     Returns:
         The updated ``(state, covariance)``, new arrays.
@@ -101,9 +115,11 @@ def update(
 def initial_covariance(
     count: int, position_variance: FloatArray | float, velocity_sigma: float
 ) -> FloatArray:
-    """(count, 4, 4) covariance of newly born tracks: measured position, unknown velocity."""
+    """(count, 4, 4) covariance of newly born tracks: measured position, unknown velocity.
+
+    ``position_variance`` is a scalar or (count,) isotropic variance, or (count, 2, 2).
+    """
     covariance = np.zeros((count, 4, 4))
-    variance = np.broadcast_to(np.asarray(position_variance, np.float64), (count,))
-    covariance[:, 0, 0] = covariance[:, 1, 1] = variance
+    covariance[:, :2, :2] = measurement_matrices(position_variance, count)
     covariance[:, 2, 2] = covariance[:, 3, 3] = velocity_sigma**2
     return covariance
