@@ -171,16 +171,21 @@ def oracle_tracks(
     sigma_m: float = 0.03,
     sigma_per_distance: float = 0.03,
     acceleration_sigma: float = 1.0,
+    lateral_sigma_m: float | None = None,
+    lateral_per_distance: float | None = None,
 ):
     """An upper bound for any location-only tracker: identities taken from the ground truth.
 
     Each detection is located through the colour path exactly as the matchers see it; the
-    detections of one ground-truth object at one instant are fused with inverse-variance
-    weights (``sigma_m**2 + (sigma_per_distance * distance)**2``), and each object's fused
-    positions are smoothed by the same constant-velocity Kalman filter the fusion tracker
-    uses. No tracker that only sees these colours can associate better; its localisation
-    can only be better by smoothing with look-ahead. False-positive detections (object id
-    -1) are ignored.
+    detections of one ground-truth object at one instant are fused with inverse-covariance
+    weights, and each object's fused positions are smoothed by the same constant-velocity
+    Kalman filter the fusion tracker uses. A detection's variance is
+    ``sigma_m**2 + (sigma_per_distance * distance)**2`` in every direction, or, when
+    ``lateral_sigma_m`` or ``lateral_per_distance`` is given, that along the ray from its
+    camera and ``lateral_sigma_m**2 + (lateral_per_distance * distance)**2`` across it (the
+    fusion tracker's noise model). No tracker that only sees these colours can associate
+    better; its localisation can only be better by smoothing with look-ahead.
+    False-positive detections (object id -1) are ignored.
 
     Returns:
         :class:`Tracks` with the ground-truth identities.
@@ -188,8 +193,12 @@ def oracle_tracks(
     from cblrs.detections import Tracks
     from cblrs.edge import make_message
     from cblrs.matching import kalman
+    from cblrs.matching.fusion import fuse, ray_covariance
 
-    frames, identities, positions, variances = [], [], [], []
+    anisotropic = lateral_sigma_m is not None or lateral_per_distance is not None
+    lateral_base = sigma_m if lateral_sigma_m is None else lateral_sigma_m
+    lateral_slope = sigma_per_distance if lateral_per_distance is None else lateral_per_distance
+    frames, identities, positions, covariances = [], [], [], []
     for index, frame in enumerate(scene.frames.tolist()):
         for camera, detections, reference in zip(
             scene.cameras, scene.detections[index], references, strict=True
@@ -197,34 +206,36 @@ def oracle_tracks(
             message = make_message(camera.name, index, 0.0, frame, detections, reference)
             world_xy, valid, _ = reference.planes.decode(message.colour)
             valid &= detections.object_id >= 0
-            distance = np.linalg.norm(world_xy[valid] - camera.centre[:2], axis=1)
+            offset = world_xy[valid] - camera.centre[:2]
+            distance = np.linalg.norm(offset, axis=1)
+            direction = offset / np.maximum(distance, 1e-9)[:, None]
+            along = sigma_m**2 + (sigma_per_distance * distance) ** 2
+            lateral = (
+                lateral_base**2 + (lateral_slope * distance) ** 2 if anisotropic else along
+            )
             frames.append(np.full(int(valid.sum()), frame))
             identities.append(detections.object_id[valid])
             positions.append(world_xy[valid])
-            variances.append(sigma_m**2 + (sigma_per_distance * distance) ** 2)
+            covariances.append(ray_covariance(direction, along, lateral))
     frame = np.concatenate(frames)
     identity = np.concatenate(identities)
     position = np.concatenate(positions)
-    weight = 1.0 / np.concatenate(variances)
     keys, inverse = np.unique(np.column_stack([identity, frame]), axis=0, return_inverse=True)
     inverse = inverse.reshape(-1)
-    weight_sum = np.bincount(inverse, weight)
-    fused = np.column_stack(
-        [np.bincount(inverse, weight * position[:, axis]) for axis in (0, 1)]
-    ) / weight_sum[:, None]
+    fused, fused_covariance, _ = fuse(inverse, len(keys), position, np.concatenate(covariances))
     seconds = dict(zip(scene.frames.tolist(), scene.timestamps.tolist(), strict=True))
     rows = []
     for object_id in np.unique(keys[:, 0]).tolist():
         mine = np.flatnonzero(keys[:, 0] == object_id)  # sorted by frame
         state = np.array([[*fused[mine[0]], 0.0, 0.0]])
-        covariance = kalman.initial_covariance(1, 1.0 / weight_sum[mine[0]], 1.5)
+        covariance = kalman.initial_covariance(1, fused_covariance[mine[:1]], 1.5)
         previous = seconds[int(keys[mine[0], 1])]
         for row in mine.tolist():
             now = seconds[int(keys[row, 1])]
             state, covariance = kalman.predict(state, covariance, now - previous,
                                                acceleration_sigma)
             state, covariance = kalman.update(state, covariance, fused[row:row + 1],
-                                              np.array([1.0 / weight_sum[row]]))
+                                              fused_covariance[row:row + 1])
             previous = now
             rows.append((int(keys[row, 1]), now, object_id, state[0, 0], state[0, 1]))
     table = np.array(rows, dtype=np.float64).reshape(-1, 5)

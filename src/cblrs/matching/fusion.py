@@ -62,7 +62,7 @@ DEFAULT_CLASS_MEASUREMENT_SIGMA_M: dict[str, float] = {
     "car": 0.7, "truck": 1.0, "bus": 1.2, "bicycle": 0.3, "motorcycle": 0.4,
 }
 DEFAULT_CLASS_ACCELERATION_SIGMA: dict[str, float] = {
-    "car": 3.0, "truck": 2.0, "bus": 2.0, "bicycle": 1.5, "motorcycle": 3.0,
+    "car": 5.0, "truck": 2.0, "bus": 2.0, "bicycle": 1.5, "motorcycle": 3.0,
 }
 
 
