@@ -70,15 +70,16 @@ def render_scene_references(scene: Scene, bits: int = 16) -> list[ReferenceImage
     return [render_reference(camera, planes) for camera in scene.cameras]
 
 
-def camera_positions(scene: Scene) -> dict[str, tuple[float, float]]:
-    """Ground positions ``{name: (x, y)}`` metres of the scene's cameras that have a pose.
+def camera_positions(scene: Scene) -> dict[str, tuple[float, float, float]]:
+    """Positions ``{name: (x, y, height)}`` metres of the scene's cameras that have a pose.
 
-    The matcher uses them to let measurement noise grow with distance from the camera.
+    The matcher uses them to let measurement noise grow with distance from the camera,
+    elongated along the viewing ray, and more so for low cameras.
     Camera placement is configuration the central node has anyway (it is needed to render
     the reference images); no per-frame data beyond colours is involved.
     """
     return {
-        camera.name: (float(camera.centre[0]), float(camera.centre[1]))
+        camera.name: (float(camera.centre[0]), float(camera.centre[1]), float(camera.centre[2]))
         for camera in scene.cameras
         if camera.has_pose
     }

@@ -88,8 +88,12 @@ class FusionConfig:
         class_measurement_sigma_m: extra standard deviation (added in quadrature) for classes
             whose footprint is large (vehicles: the box bottom only bounds it), metres;
             the gate cap and the cluster radius grow with it.
-        camera_positions: optional ``{camera_id: (x, y)}`` ground positions of the cameras,
-            metres; without them the measurement noise does not depend on distance.
+        camera_positions: optional ``{camera_id: (x, y)}`` or ``{camera_id: (x, y, height)}``
+            positions of the cameras, metres; without them the measurement noise does not
+            depend on distance nor direction. With heights for every camera, the along-ray
+            noise grows with ``distance / height`` (a box edge's pixel error moves the foot
+            point along the ground by ``~ object height x distance / camera height`` per
+            unit of relative box error), scaled to the cameras' mean height.
         acceleration_sigma: white-noise acceleration of a person's motion model, m/s^2.
         class_acceleration_sigma: the same for other classes, ``{class name: m/s^2}``.
         initial_velocity_sigma: velocity uncertainty of a new track, m/s.
@@ -179,14 +183,19 @@ class FusionConfig:
                 isinstance(self.camera_positions, Mapping),
                 "camera_positions must map camera ids to (x, y) metres.",
             )
-            positions = {}
+            positions: dict[str, tuple[float, ...]] = {}
             for name, position in self.camera_positions.items():
                 point = np.asarray(position, dtype=np.float64).reshape(-1)
                 require(
-                    len(point) >= 2 and bool(np.isfinite(point[:2]).all()),
-                    f"camera position of {name!r} must be finite (x, y) metres, got {position!r}.",
+                    len(point) in (2, 3) and bool(np.isfinite(point).all()),
+                    f"camera position of {name!r} must be finite (x, y) or (x, y, height) "
+                    f"metres, got {position!r}.",
                 )
-                positions[str(name)] = (float(point[0]), float(point[1]))
+                require(
+                    len(point) == 2 or point[2] > 0,
+                    f"camera height of {name!r} must be above the ground, got {point[2]!r} m.",
+                )
+                positions[str(name)] = tuple(float(value) for value in point)
             object.__setattr__(self, "camera_positions", positions)
 
 
@@ -213,11 +222,21 @@ class FusionTracker:
         self.camera_ids = [str(name) for name in camera_ids]
         self._cameras = camera_index(self.camera_ids)
         self._camera_xy = np.full((len(self.camera_ids), 2), np.nan)
+        # Along-ray distances are scaled by mean height / camera height when all placed
+        # cameras have a height (1 otherwise).
+        self._along_scale = np.ones(len(self.camera_ids))
         if self.config.camera_positions is not None:
             unknown = sorted(set(self.config.camera_positions) - set(self.camera_ids))
             require(not unknown, f"camera_positions names unknown camera(s): {unknown}.")
+            heights = {}
             for name, position in self.config.camera_positions.items():
-                self._camera_xy[self._cameras[name]] = position
+                self._camera_xy[self._cameras[name]] = position[:2]
+                if len(position) == 3:
+                    heights[self._cameras[name]] = position[2]
+            if heights and len(heights) == len(self.config.camera_positions):
+                index = np.array(list(heights))
+                height = np.array(list(heights.values()))
+                self._along_scale[index] = np.exp(np.mean(np.log(height))) / height
         config = self.config
         # Per class id (index into CLASS_NAMES; one extra slot for unknown ids).
         self._class_extra = np.array(
@@ -311,7 +330,7 @@ class FusionTracker:
         if self.config.adapt_noise:
             plain = self._class_extra[self._class_slot(observed.class_id)] == 0
             self._noise.learn(observed.world_xy, self._distance, np.where(plain, assigned, -1),
-                              self._direction)
+                              self._direction, self._along_distance)
         track_count = len(self._ids)
         seen_now = np.zeros(track_count, dtype=bool)
         report_camera = np.full(track_count, -1, np.int64)
@@ -395,8 +414,9 @@ class FusionTracker:
         deviation of each detection, for neighbour searches).
         """
         self._distance, self._direction = self._camera_rays(observed)
+        self._along_distance = self._distance * self._along_scale[observed.camera]
         extra = self._class_extra[self._class_slot(observed.class_id)] ** 2
-        along, lateral = self._noise.variances(self._distance)
+        along, lateral = self._noise.variances(self._distance, self._along_distance)
         # The model may learn that cameras agree closely, but a person is not a point:
         # below measurement_sigma_m the filter would chase annotation jitter.
         floor = self.config.measurement_sigma_m**2
@@ -467,7 +487,8 @@ class FusionTracker:
         if self.config.group_radius_m <= 0:
             return assigned
         slot = self._class_slot(observed.class_id)
-        sigma = np.sqrt(self._noise.variance(self._distance) + self._class_extra[slot] ** 2)
+        sigma = np.sqrt(self._noise.variance(self._distance, self._along_distance)
+                        + self._class_extra[slot] ** 2)
         limit = self.config.group_radius_m * self._class_scale[slot]
         precise = np.flatnonzero(self.config.cluster_sigmas * np.sqrt(2.0) * sigma <= limit)
         if len(precise) < 2:
@@ -696,25 +717,38 @@ class NoiseModel:
             self.moment += weight * features.T @ (features @ self.prior)
         self.coefficients = self.prior.copy()
 
-    def variances(self, distance: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(N,) along-ray and (N,) across-ray variances, square metres, at (N,) metres."""
-        squared = distance**2
-        along = self.coefficients[0] + self.coefficients[1] * squared
-        return along, self.coefficients[2] + self.coefficients[3] * squared
+    def variances(
+        self, distance: np.ndarray, along_distance: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """(N,) along-ray and (N,) across-ray variances, square metres.
 
-    def variance(self, distance: np.ndarray) -> np.ndarray:
-        """(N,) the larger (along-ray) variance, square metres, at distances (N,) metres."""
-        along, lateral = self.variances(distance)
+        Args:
+            distance: (N,) metres from the camera.
+            along_distance: (N,) the distance the along-ray term grows with (for example
+                scaled by the camera's height); ``distance`` when None.
+        """
+        along_distance = distance if along_distance is None else along_distance
+        along = self.coefficients[0] + self.coefficients[1] * along_distance**2
+        return along, self.coefficients[2] + self.coefficients[3] * distance**2
+
+    def variance(
+        self, distance: np.ndarray, along_distance: np.ndarray | None = None
+    ) -> np.ndarray:
+        """(N,) the larger of the two variances, square metres (see :meth:`variances`)."""
+        along, lateral = self.variances(distance, along_distance)
         return np.maximum(along, lateral)
 
-    def covariance(self, distance: np.ndarray, direction: np.ndarray) -> np.ndarray:
+    def covariance(
+        self, distance: np.ndarray, direction: np.ndarray,
+        along_distance: np.ndarray | None = None,
+    ) -> np.ndarray:
         """(N, 2, 2) covariances, square metres, for (N,) distances and (N, 2) unit rays."""
-        along, lateral = self.variances(distance)
+        along, lateral = self.variances(distance, along_distance)
         return ray_covariance(direction, along, lateral)
 
     def learn(
         self, world_xy: np.ndarray, distance: np.ndarray, track: np.ndarray,
-        direction: np.ndarray | None = None,
+        direction: np.ndarray | None = None, along_distance: np.ndarray | None = None,
     ) -> None:
         """Update from detections assigned to tracks.
 
@@ -724,6 +758,7 @@ class NoiseModel:
             track: (N,) int64 track of each detection, -1 to ignore.
             direction: (N, 2) unit vectors from the camera to each detection; None treats
                 the noise as isotropic (along and across share their distance terms).
+            along_distance: (N,) what the along-ray term grows with (default ``distance``).
         """
         rows = np.flatnonzero(track >= 0)
         if len(rows) < 2:
@@ -733,6 +768,7 @@ class NoiseModel:
         first, second = rows[:-1][same], rows[1:][same]
         if len(first) == 0:
             return
+        along_distance = distance if along_distance is None else along_distance
         if direction is None:
             direction = np.zeros((len(world_xy), 2))
             direction[:, 0] = 1.0
@@ -746,10 +782,11 @@ class NoiseModel:
         for one in (first, second):
             outer = direction[one][:, :, None] * direction[one][:, None, :]
             squared = (distance[one] ** 2)[:, None, None]
+            along_squared = (along_distance[one] ** 2)[:, None, None]
             if isotropic:
                 outer = 0.5 * np.broadcast_to(identity, outer.shape)
             parts[:, 0] += outer
-            parts[:, 1] += squared * outer
+            parts[:, 1] += along_squared * outer
             parts[:, 2] += identity - outer
             parts[:, 3] += squared * (identity - outer)
         root_two = np.sqrt(2.0)
