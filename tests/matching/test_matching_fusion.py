@@ -151,7 +151,11 @@ def test_a_single_camera_detection_is_not_reported_until_confirmed():
         ({"class_acceleration_sigma": {"tank": 2.0}}, "unknown class 'tank'"),
         ({"class_measurement_sigma_m": {"car": 0}}, "must be a positive number"),
         ({"camera_positions": {"west": (0, 0)}}, "camera_positions names unknown camera"),
-        ({"camera_positions": {"north": (0, float("nan"))}}, "must be finite (x, y) metres"),
+        ({"camera_positions": {"north": (0, float("nan"))}},
+         "must be finite (x, y) or (x, y, height) metres"),
+        ({"camera_positions": {"north": (0, 1, 2, 3)}}, "must be finite (x, y) or (x, y, height)"),
+        ({"camera_positions": {"north": (0, 1, -2)}},
+         "camera height of 'north' must be above the ground, got -2 m"),
         ({"kalman": True}, "unknown option(s) for the fusion matcher: kalman"),
     ],
 )

@@ -191,10 +191,12 @@ class FusionConfig:
                     f"camera position of {name!r} must be finite (x, y) or (x, y, height) "
                     f"metres, got {position!r}.",
                 )
-                require(
-                    len(point) == 2 or point[2] > 0,
-                    f"camera height of {name!r} must be above the ground, got {point[2]!r} m.",
-                )
+                if len(point) == 3:
+                    require(
+                        point[2] > 0,
+                        f"camera height of {name!r} must be above the ground, "
+                        f"got {point[2]:g} m.",
+                    )
                 positions[str(name)] = tuple(float(value) for value in point)
             object.__setattr__(self, "camera_positions", positions)
 
@@ -442,34 +444,71 @@ class FusionTracker:
             return assigned
         taken = np.zeros((track_count, len(self.camera_ids)), dtype=bool)
         taken[assigned[assigned >= 0], observed.camera[assigned >= 0]] = True
-        part = _subset(observed, rest)
-        rows, columns, cost = self._gated_pairs(
-            part.world_xy, covariance[rest], part.class_id
-        )
-        free = ~taken[columns, part.camera[rows]]
-        assigned[rest] = assign_per_camera(
-            rows[free], columns[free], cost[free], part.camera, len(self.camera_ids)
-        )
+        # Cameras are processed one after the other, as a Kalman filter processes
+        # independent sensors: each camera's detections are assigned against the tracks
+        # as already corrected by the cameras before it, most precise camera first. A
+        # camera that sees two people side by side along its ray cannot tell them apart,
+        # but one looking across that ray can, and its correction is then used.
+        state, state_covariance = self._state, self._covariance
+        grouped = assigned >= 0
+        if grouped.any():
+            state, state_covariance = state.copy(), state_covariance.copy()
+            position, fused_covariance, present = fuse(
+                assigned[grouped], track_count, observed.world_xy[grouped],
+                covariance[grouped],
+            )
+            state[present], state_covariance[present] = kalman.update(
+                state[present], state_covariance[present], position[present],
+                fused_covariance[present],
+            )
+        rest_camera = observed.camera[rest]
+        cameras = np.unique(rest_camera)
+        precision = np.array([np.median(self._sigma[rest[rest_camera == one]])
+                              for one in cameras.tolist()])
+        for one in cameras[np.argsort(precision, kind="stable")].tolist():
+            mine = rest[rest_camera == one]
+            rows, columns, cost = self._gated_pairs(
+                observed.world_xy[mine], covariance[mine], observed.class_id[mine],
+                state, state_covariance,
+            )
+            free = ~taken[columns, one]
+            chosen = assign_per_camera(
+                rows[free], columns[free], cost[free], np.zeros(len(mine), np.int64), 1
+            )
+            assigned[mine] = chosen
+            ok = chosen >= 0
+            if ok.any():
+                if state is self._state:
+                    state, state_covariance = state.copy(), state_covariance.copy()
+                tracks = chosen[ok]
+                state[tracks], state_covariance[tracks] = kalman.update(
+                    state[tracks], state_covariance[tracks], observed.world_xy[mine[ok]],
+                    covariance[mine[ok]],
+                )
         return assigned
 
     def _gated_pairs(
-        self, world_xy: np.ndarray, covariance: np.ndarray, class_id: np.ndarray
+        self, world_xy: np.ndarray, covariance: np.ndarray, class_id: np.ndarray,
+        state: np.ndarray | None = None, state_covariance: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Gated (measurement, track) pairs and their negative log-likelihood costs.
+
+        ``state`` and ``state_covariance`` ((T, 4), (T, 4, 4)) default to the tracks'
+        predictions.
 
         The metric cap grows with the class's size (vehicles), not with distance: far
         detections are weighted down, but must not reach across a crowd. Only pairs within
         it are evaluated further, so the cost grows with the pairs, not N x T.
         """
         cap = self.config.max_gate_m * self._class_scale[self._class_slot(class_id)]
-        rows, columns = close_pairs(world_xy, self._state[:, :2], cap)
+        state = self._state if state is None else state
+        state_covariance = self._covariance if state_covariance is None else state_covariance
+        rows, columns = close_pairs(world_xy, state[:, :2], cap)
         rows, columns = _same_class(rows, columns, class_id, self._class)
-        innovation = self._covariance[columns, :2, :2] + covariance[rows]
+        innovation = state_covariance[columns, :2, :2] + covariance[rows]
         determinant = (innovation[:, 0, 0] * innovation[:, 1, 1]
                        - innovation[:, 0, 1] * innovation[:, 1, 0])
-        mahalanobis = mahalanobis_squared(
-            world_xy[rows] - self._state[columns, :2], innovation
-        )
+        mahalanobis = mahalanobis_squared(world_xy[rows] - state[columns, :2], innovation)
         inside = mahalanobis <= self.config.gate_sigmas**2
         # Negative log-likelihood of the innovation (constant dropped).
         cost = mahalanobis[inside] + np.log(determinant[inside])
