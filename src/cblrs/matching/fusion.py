@@ -108,6 +108,9 @@ class FusionConfig:
         group_radius_m: detections precise enough that their cluster radius under the
             learned noise is within this are first grouped across cameras and assigned as
             one observation per object, metres (0: always assign camera by camera).
+        refine_passes: after the cameras are assigned one after the other, each camera's
+            detections are assigned again this many times against the tracks as corrected
+            by all the other cameras (0: one sequential pass only).
         merge_radius_m: two confirmed tracks closer than this, observed at the same instant
             by disjoint sets of cameras, are one object seen twice; the younger one is dropped.
         confirm_evidence: camera detections (summed over instants) a track needs before it
@@ -135,6 +138,7 @@ class FusionConfig:
     cluster_sigmas: float = 3.5
     cluster_radius_m: float = 1.0
     group_radius_m: float = 0.7
+    refine_passes: int = 1
     merge_radius_m: float = 0.0
     confirm_evidence: int = 2
     tentative_max_age_s: float = 1.0
@@ -159,6 +163,11 @@ class FusionConfig:
         require(
             isinstance(self.adapt_noise, bool),
             f"adapt_noise must be true or false, got {self.adapt_noise!r}.",
+        )
+        require(
+            isinstance(self.refine_passes, int) and not isinstance(self.refine_passes, bool)
+            and self.refine_passes >= 0,
+            f"refine_passes must be a whole number >= 0, got {self.refine_passes!r}.",
         )
         require(
             isinstance(self.confirm_evidence, int) and not isinstance(self.confirm_evidence, bool)
@@ -484,6 +493,28 @@ class FusionTracker:
                 state[tracks], state_covariance[tracks] = kalman.update(
                     state[tracks], state_covariance[tracks], observed.world_xy[mine[ok]],
                     covariance[mine[ok]],
+                )
+        order = cameras[np.argsort(precision, kind="stable")].tolist()
+        for _ in range(self.config.refine_passes if len(order) > 1 else 0):
+            for one in order:
+                # Revisit each camera against the tracks corrected by all other cameras.
+                others = (assigned >= 0) & (observed.camera != one)
+                position, fused_covariance, present = fuse(
+                    assigned[others], track_count, observed.world_xy[others], covariance[others]
+                )
+                state, state_covariance = self._state.copy(), self._covariance.copy()
+                state[present], state_covariance[present] = kalman.update(
+                    state[present], state_covariance[present], position[present],
+                    fused_covariance[present],
+                )
+                mine = rest[rest_camera == one]
+                rows, columns, cost = self._gated_pairs(
+                    observed.world_xy[mine], covariance[mine], observed.class_id[mine],
+                    state, state_covariance,
+                )
+                free = ~taken[columns, one]
+                assigned[mine] = assign_per_camera(
+                    rows[free], columns[free], cost[free], np.zeros(len(mine), np.int64), 1
                 )
         return assigned
 
