@@ -82,6 +82,13 @@ class FusionConfig:
         sigma_per_distance: initial standard deviation per metre of distance between camera
             and object (needs ``camera_positions``): a pixel error covers more ground far
             away. Dimensionless. The noise model is ``sigma**2 = a**2 + (b * distance)**2``.
+        minimum_sigma_m: smallest standard deviation of one camera's ground position, however
+            closely the cameras agree, metres.
+        object_sigma_m: standard deviation of an object's position common to all the views
+            of one instant, metres: a person is not a point (where the views' foot points
+            fall on the body, where the ground truth marks it) and does not move at exactly
+            constant velocity. Cameras' disagreement cannot reveal it, so it is added once to
+            each instant's fused observation rather than to every camera's.
         adapt_noise: re-estimate ``a`` and ``b`` online from the disagreement of the cameras
             that see the same object at the same instant (so the same defaults serve exact
             boxes and a noisy detector); False keeps the initial values.
@@ -123,6 +130,8 @@ class FusionConfig:
 
     measurement_sigma_m: float = 0.2
     sigma_per_distance: float = 0.01
+    minimum_sigma_m: float = 0.05
+    object_sigma_m: float = 0.1
     adapt_noise: bool = True
     class_measurement_sigma_m: Mapping[str, float] = field(
         default_factory=lambda: dict(DEFAULT_CLASS_MEASUREMENT_SIGMA_M)
@@ -147,13 +156,13 @@ class FusionConfig:
 
     def __post_init__(self) -> None:
         for name in (
-            "measurement_sigma_m", "acceleration_sigma", "initial_velocity_sigma",
-            "gate_sigmas", "max_gate_m", "cluster_sigmas", "cluster_radius_m",
-            "tentative_max_age_s", "max_age_s",
+            "measurement_sigma_m", "minimum_sigma_m", "acceleration_sigma",
+            "initial_velocity_sigma", "gate_sigmas", "max_gate_m", "cluster_sigmas",
+            "cluster_radius_m", "tentative_max_age_s", "max_age_s",
         ):
             value = getattr(self, name)
             require(_positive(value), f"{name} must be a positive number, got {value!r}.")
-        for name in ("sigma_per_distance", "merge_radius_m", "report_coasting_s",
+        for name in ("sigma_per_distance", "merge_radius_m", "report_coasting_s", "object_sigma_m",
                      "group_radius_m"):
             value = getattr(self, name)
             require(
@@ -270,6 +279,7 @@ class FusionTracker:
 
     # ------------------------------------------------------------------ state
     def reset(self) -> None:
+        self._object_covariance = self.config.object_sigma_m**2 * np.eye(2)
         self._time: float | None = None
         self._next_id = 1
         self._ids = np.zeros(0, np.int64)  # -1 while tentative
@@ -355,7 +365,7 @@ class FusionTracker:
             )
             self._state[seen_now], self._covariance[seen_now] = kalman.update(
                 self._state[seen_now], self._covariance[seen_now], fused_xy[seen_now],
-                fused_covariance[seen_now],
+                fused_covariance[seen_now] + self._object_covariance,
             )
             self._evidence += np.bincount(rows, minlength=track_count)
             self._last_seen[seen_now] = timestamp
@@ -428,9 +438,9 @@ class FusionTracker:
         self._along_distance = self._distance * self._along_scale[observed.camera]
         extra = self._class_extra[self._class_slot(observed.class_id)] ** 2
         along, lateral = self._noise.variances(self._distance, self._along_distance)
-        # The model may learn that cameras agree closely, but a person is not a point:
-        # below measurement_sigma_m the filter would chase annotation jitter.
-        floor = self.config.measurement_sigma_m**2
+        # The model may learn that cameras agree closely; the floor keeps one camera from
+        # being trusted without limit.
+        floor = self.config.minimum_sigma_m**2
         along = np.maximum(along, floor) + extra
         lateral = np.maximum(lateral, floor) + extra
         self._sigma = np.sqrt(np.maximum(along, lateral))
@@ -536,7 +546,8 @@ class FusionTracker:
         state_covariance = self._covariance if state_covariance is None else state_covariance
         rows, columns = close_pairs(world_xy, state[:, :2], cap)
         rows, columns = _same_class(rows, columns, class_id, self._class)
-        innovation = state_covariance[columns, :2, :2] + covariance[rows]
+        innovation = (state_covariance[columns, :2, :2] + covariance[rows]
+                      + self._object_covariance)
         determinant = (innovation[:, 0, 0] * innovation[:, 1, 1]
                        - innovation[:, 0, 1] * innovation[:, 1, 0])
         mahalanobis = mahalanobis_squared(world_xy[rows] - state[columns, :2], innovation)
@@ -679,7 +690,8 @@ class FusionTracker:
         state = np.zeros((count, 4))
         state[:, :2] = position
         covariance = kalman.initial_covariance(
-            count, position_covariance, self.config.initial_velocity_sigma
+            count, position_covariance + self._object_covariance,
+            self.config.initial_velocity_sigma,
         )
         self._birth_cameras[labels, leftovers.camera] = True
         self._birth_camera, self._birth_box = self._largest_boxes(
