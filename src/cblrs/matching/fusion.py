@@ -27,6 +27,7 @@ datasets and 10 or 20 fps video. Everything is online; there is no look-ahead.
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
@@ -342,15 +343,23 @@ class FusionTracker:
     # ------------------------------------------------------------------ update
     def update(self, timestamp: float, messages: Sequence[CameraMessage]) -> Tracks:
         timestamp = float(timestamp)
-        observed = decode_messages(self.planes, self._cameras, messages)
+        raw = decode_messages(self.planes, self._cameras, messages)
         self._predict(timestamp)
-        covariance = self._measurement_covariance(observed)
+        covariance = self._measurement_covariance(raw)
+        plain = self._class_extra[self._class_slot(raw.class_id)] == 0
+        observed = raw
+        if plain.any():
+            # Box bottoms are not exactly the feet: remove the learned along-ray bias.
+            shift = self._noise.bias(self._distance, self._along_distance)
+            observed = dataclasses.replace(
+                raw, world_xy=raw.world_xy - np.where(plain, shift, 0.0)[:, None]
+                * self._direction
+            )
 
         assigned = self._associate(observed, covariance)
         assigned = self._join_observed(observed, covariance, assigned)
         if self.config.adapt_noise:
-            plain = self._class_extra[self._class_slot(observed.class_id)] == 0
-            self._noise.learn(observed.world_xy, self._distance, np.where(plain, assigned, -1),
+            self._noise.learn(raw.world_xy, self._distance, np.where(plain, assigned, -1),
                               self._direction, self._along_distance)
         track_count = len(self._ids)
         seen_now = np.zeros(track_count, dtype=bool)
@@ -798,6 +807,41 @@ class NoiseModel:
             self.normal += weight * features.T @ features
             self.moment += weight * features.T @ (features @ self.prior)
         self.coefficients = self.prior.copy()
+        # Along-ray bias ``q * along_distance``, zero a priori (worth prior_pairs pairs).
+        self.bias_normal = self.prior_pairs * self.prior_distances_m[1] ** 2
+        self.bias_moment = 0.0
+        self.bias_per_distance = 0.0
+
+    def bias(self, distance: np.ndarray, along_distance: np.ndarray | None = None) -> np.ndarray:
+        """(N,) mean error along the ray (metres, positive: beyond the object) at (N,) metres.
+
+        A camera's foot points can all land a little too far or too near (box bottoms
+        drawn below or above the feet, a footprint whose near edge is the box bottom); a
+        box edge off by a fixed fraction of the box height moves the point along the ground
+        in proportion to ``along_distance`` (distance / camera height), as the noise does.
+        Cameras looking from different sides disagree by it, so it is learned like the noise.
+        """
+        along_distance = distance if along_distance is None else along_distance
+        return self.bias_per_distance * along_distance
+
+    def _learn_bias(
+        self, world_xy: np.ndarray, distance: np.ndarray, along_distance: np.ndarray,
+        direction: np.ndarray, first: np.ndarray, second: np.ndarray,
+    ) -> np.ndarray:
+        """Update the bias from pairs ``(first, second)``; return the corrected positions.
+
+        The difference of two views of one object is ``q (g_1 - g_2)`` on average (``g =
+        along_distance * u``, ``u`` the unit rays): a least-squares fit of ``q``.
+        """
+        del distance
+        reach = along_distance[:, None] * direction
+        feature = reach[first] - reach[second]
+        difference = world_xy[first] - world_xy[second]
+        decay = self.forget_per_pair ** len(first)
+        self.bias_normal = decay * self.bias_normal + float(np.sum(feature**2))
+        self.bias_moment = decay * self.bias_moment + float(np.sum(feature * difference))
+        self.bias_per_distance = self.bias_moment / self.bias_normal
+        return world_xy - self.bias_per_distance * reach
 
     def variances(
         self, distance: np.ndarray, along_distance: np.ndarray | None = None
@@ -857,6 +901,8 @@ class NoiseModel:
             isotropic = True
         else:
             isotropic = False
+            world_xy = self._learn_bias(world_xy, distance, along_distance, direction,
+                                        first, second)
         # Per pair and coefficient, the (2, 2) matrix it multiplies in the sum of the two
         # covariances: along-ray constant and distance terms, across-ray ones.
         identity = np.eye(2)[None]
@@ -930,12 +976,18 @@ class NoiseModel:
             "normal": self.normal.tolist(),
             "moment": self.moment.tolist(),
             "coefficients": self.coefficients.tolist(),
+            "bias_normal": self.bias_normal,
+            "bias_moment": self.bias_moment,
+            "bias_per_distance": self.bias_per_distance,
         }
 
     def set_state(self, state: dict) -> None:
         self.normal = np.asarray(state["normal"], np.float64).reshape(4, 4)
         self.moment = np.asarray(state["moment"], np.float64).reshape(4)
         self.coefficients = np.asarray(state["coefficients"], np.float64).reshape(4)
+        self.bias_normal = float(state["bias_normal"])
+        self.bias_moment = float(state["bias_moment"])
+        self.bias_per_distance = float(state["bias_per_distance"])
 
 
 def ray_covariance(
