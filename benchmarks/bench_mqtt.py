@@ -1,19 +1,35 @@
 """Throughput and latency of the MQTT runtime through Mosquitto on loopback (QoS 1).
 
-Simulated cameras (one MQTT connection each, in a separate process) publish
-``cblrs.detections/1`` messages to a local Mosquitto; one matcher service (this process:
-validation, SQLite inbox, ordering, fusion tracker, SQLite tracks, track publishing) receives
-them. Two runs per camera count:
+Simulated cameras publish ``cblrs.detections/1`` messages (``--people`` detections each) to a
+local Mosquitto, one MQTT connection per camera, from *other processes* than the receiver, so
+publishers never share the receiver's interpreter (GIL):
+
+* ``--publisher mosquitto_pub`` (default): one ``mosquitto_pub -l -q 1`` process (C) per
+  camera, fed its payload lines through a pipe by a feeder process;
+* ``--publisher paho``: one Python process holding one paho connection per camera.
+
+Receivers (one at a time, each in this process):
+
+* ``broker``: ``mosquitto_sub -q 1`` (C): the broker's own ceiling on this machine;
+* ``paho``: a bare paho-mqtt 2.x client (MQTT 5, manual acks) that only acknowledges: the
+  ceiling of any Python paho subscriber here;
+* ``transport``: :class:`~cblrs.runtime.transport.MqttTransport` with a handler that only
+  acknowledges (the runtime's transport wrapper);
+* ``matcher``: the full :class:`~cblrs.runtime.matcher_service.MatcherService`: validation,
+  SQLite inbox (ack after commit), ordering, fusion tracker, one transaction per group batch,
+  track rows in SQLite, track updates published.
+
+Rates:
 
 * ``max``: every camera publishes its frames as fast as it can; figure: messages/s from the
-  first publish to the last message stored (``received``) and tracked (``tracked``);
-* ``paced``: every camera publishes one message per frame at ``--fps``; figures: p50/p99
-  latency from the frame's capture time (its scheduled publish time, so publisher lag counts)
-  to the matcher's receipt (stored in the inbox) and to the track output (group committed);
-* ``transport``: as ``max`` but received by a bare subscriber that only acknowledges (the
-  MQTT path alone: paho -> Mosquitto -> paho, QoS 1 both ways, manual acks).
+  first publish to the last message received (matcher: stored, and tracked);
+* ``paced``: every camera publishes one message per frame at ``--fps`` (50 cameras x 30 fps
+  = 1500 messages/s); figures: p50/p99 latency from the frame's capture time (its scheduled
+  publish time, so publisher lag counts) to the receipt (paho: the callback; matcher: stored
+  in the inbox and acknowledged) and to the track output (matcher: group committed).
 
-Printed figures are medians over ``--repeats`` runs. Not a test: nothing is asserted.
+Printed figures are medians over ``--repeats`` runs, with the machine (CPU, cores, load
+average at start and end). Not a test: nothing is asserted.
 
 Usage::
 
@@ -27,13 +43,19 @@ import argparse
 import json
 import math
 import multiprocessing
+import os
+import platform
+import shutil
 import statistics
+import subprocess
 import sys
 import tempfile
 import threading
 import time
+from importlib import metadata
 from pathlib import Path
 
+import msgspec
 import numpy as np
 
 from cblrs.detections import CameraMessage
@@ -42,12 +64,15 @@ from cblrs.plane import PlaneSet, PlaneSpec
 from cblrs.runtime.broker import MosquittoProcess, free_port, write_broker_config
 from cblrs.runtime.matcher_service import MatcherService
 from cblrs.runtime.store import RuntimeStore
-from cblrs.runtime.topics import detections_topic, status_topic
+from cblrs.runtime.topics import detections_filter, detections_topic
 from cblrs.runtime.transport import MqttSettings, MqttTransport
-from cblrs.runtime.wire import ValidationPolicy, encode_message, encode_status
+from cblrs.runtime.wire import ValidationPolicy, encode_message
 
 PLANE_ID = 1
 PLANE = PlaneSpec(PLANE_ID, (0.0, 0.0), 40.0, 40.0)
+RECEIVERS = ("broker", "paho", "transport", "matcher")
+DEFAULT_RUNS = ("broker/max", "paho/max", "transport/max", "matcher/max", "paho/paced",
+                "matcher/paced")
 
 
 def camera_names(count: int) -> list[str]:
@@ -72,47 +97,119 @@ def frame_message(camera: str, index: int, frame: int, timestamp: float, people:
     return encode_message(message, PLANE_ID)
 
 
-def publisher(port: int, cameras: int, frames: int, fps: float, paced: bool, people: int,
-              results) -> None:
-    """Child process: one MQTT connection per camera, frame-major publishing."""
+# --------------------------------------------------------------------------- publishers
+
+
+def publisher(kind: str, port: int, cameras: int, frames: int, fps: float, paced: bool,
+              people: int, results) -> None:
+    """Child process: simulate ``cameras`` cameras; put timing facts on ``results``."""
+    try:
+        if kind == "mosquitto_pub":
+            report = _publish_with_mosquitto_pub(port, cameras, frames, fps, paced, people)
+        else:
+            report = _publish_with_paho(port, cameras, frames, fps, paced, people)
+    except BaseException as error:
+        results.put({"error": repr(error)})
+        raise
+    results.put(report)
+
+
+def _frames(names: list[str], frames: int, fps: float, epoch: float, people: int):
+    return [[frame_message(name, index, frame, epoch + frame / fps, people)
+             for index, name in enumerate(names)] for frame in range(frames)]
+
+
+def _publish_with_mosquitto_pub(port: int, cameras: int, frames: int, fps: float, paced: bool,
+                                people: int) -> dict:
+    names = camera_names(cameras)
+    processes = [
+        subprocess.Popen(
+            ["mosquitto_pub", "-h", "127.0.0.1", "-p", str(port), "-q", "1", "-M", "1000",
+             "-i", f"bench-{name}", "-t", detections_topic(PLANE_ID, name), "-l"],
+            stdin=subprocess.PIPE, bufsize=0,
+        )
+        for name in names
+    ]
+    if not paced:  # as fast as possible: encode up front, then measure transport + receiver
+        epoch = time.time() - frames / fps
+        streams = [b"".join(payload + b"\n" for payload in column)
+                   for column in zip(*_frames(names, frames, fps, epoch, people), strict=True)]
+    time.sleep(1.0 + 0.02 * cameras)  # every mosquitto_pub connected
+    start = time.time()
+    if paced:
+        start += 0.2
+        upcoming = [frame_message(name, index, 0, start, people)
+                    for index, name in enumerate(names)]
+        for frame in range(frames):
+            capture = start + frame / fps
+            delay = capture - time.time()
+            if delay > 0:
+                time.sleep(delay)
+            for process, payload in zip(processes, upcoming, strict=True):
+                assert process.stdin is not None
+                process.stdin.write(payload + b"\n")
+            # Encode the next frame ahead of its capture time, as each real camera would do
+            # on its own device; the loop above then only sends.
+            upcoming = [frame_message(name, index, frame + 1, start + (frame + 1) / fps, people)
+                        for index, name in enumerate(names)]
+    else:
+        def feed(process: subprocess.Popen, stream: bytes) -> None:
+            assert process.stdin is not None
+            process.stdin.write(stream)
+            process.stdin.close()
+
+        threads = [threading.Thread(target=feed, args=pair) for pair in
+                   zip(processes, streams, strict=True)]
+        for thread in threads:
+            thread.start()
+        for thread in threads:
+            thread.join()
+    published = time.time()
+    for process in processes:
+        if process.stdin is not None and not process.stdin.closed:
+            process.stdin.close()
+    flushed = all(process.wait(120) == 0 for process in processes)
+    return {"start": start, "published": published, "flushed": flushed}
+
+
+def _publish_with_paho(port: int, cameras: int, frames: int, fps: float, paced: bool,
+                       people: int) -> dict:
     settings = MqttSettings(port=port, max_inflight=1000)
     names = camera_names(cameras)
     transports = [MqttTransport(f"bench-{name}", settings, persistent=False) for name in names]
     for transport in transports:
         transport.connect()
-    for name, transport in zip(names, transports, strict=True):
-        transport.publish(status_topic(PLANE_ID, name), encode_status(name, "online",
-                          timestamp=time.time()), retain=True)
-    epoch = time.time() - (0 if paced else frames / fps)
     payloads = None
-    if not paced:  # as fast as possible: encode up front, measure the transport + matcher
-        payloads = [[frame_message(name, index, frame, epoch + frame / fps, people)
-                     for index, name in enumerate(names)] for frame in range(frames)]
-    start = time.time() + 0.5
+    if not paced:
+        payloads = _frames(names, frames, fps, time.time() - frames / fps, people)
+    start = time.time() + (0.2 if paced else 0.0)
     upcoming = None
     for frame in range(frames):
         if paced:
-            # Encode the frame ahead of its capture time, as each real camera would do in
-            # parallel on its own device; the publish loop then only sends.
             upcoming = [frame_message(name, index, frame, start + frame / fps, people)
                         for index, name in enumerate(names)]
             delay = start + frame / fps - time.time()
             if delay > 0:
                 time.sleep(delay)
-        elif frame == 0:
-            start = time.time()
-        assert payloads is not None or upcoming is not None
         batch = payloads[frame] if payloads is not None else upcoming
+        assert batch is not None
         for name, transport, payload in zip(names, transports, batch, strict=True):
             transport.publish(detections_topic(PLANE_ID, name), payload)
     published = time.time()
-    for name, transport in zip(names, transports, strict=True):
-        transport.publish(status_topic(PLANE_ID, name), encode_status(name, "offline",
-                          timestamp=time.time()), retain=True)
-    flushed = all(transport.flush(60) for transport in transports)
+    flushed = all(transport.flush(120) for transport in transports)
     for transport in transports:
         transport.close(timeout=5)
-    results.put({"start": start, "published": published, "flushed": flushed})
+    return {"start": start, "published": published, "flushed": flushed}
+
+
+# --------------------------------------------------------------------------- receivers
+
+
+class _Timestamp(msgspec.Struct):
+    timestamp: float
+
+
+_timestamp_decoder = msgspec.json.Decoder(_Timestamp)
 
 
 class Probe:
@@ -135,107 +232,145 @@ class Probe:
         self.last_group = wall_time
 
 
-class Counter:
-    """A bare subscriber: acknowledge and count."""
+class _Receiver:
+    """Counts deliveries (and, paced, the capture-to-callback latency)."""
 
-    def __init__(self) -> None:
+    def __init__(self, total: int, paced: bool) -> None:
+        self.total = total
+        self.paced = paced
         self.count = 0
         self.last = 0.0
+        self.receipt: list[float] = []
+        self.done = threading.Event()
 
-    def __call__(self, delivery) -> None:
-        delivery.ack()
+    def received(self, payload: bytes) -> None:
+        now = time.time()
+        if self.paced:
+            self.receipt.append(now - _timestamp_decoder.decode(payload).timestamp)
         self.count += 1
-        self.last = time.time()
+        self.last = now
+        if self.count >= self.total:
+            self.done.set()
 
 
-def run_transport_only(cameras: int, frames: int, fps: float, people: int) -> dict:
+def _start_paho(port: int, receiver: _Receiver):
+    import paho.mqtt.client as mqtt
+    from paho.mqtt.enums import CallbackAPIVersion
+
+    client = mqtt.Client(callback_api_version=CallbackAPIVersion.VERSION2,
+                         client_id="bench-paho", protocol=mqtt.MQTTv5)
+    client.manual_ack_set(True)
+    subscribed = threading.Event()
+
+    def on_message(client, userdata, message) -> None:
+        client.ack(message.mid, message.qos)
+        receiver.received(message.payload)
+
+    client.on_message = on_message
+    client.on_subscribe = lambda *args: subscribed.set()
+    client.connect("127.0.0.1", port)
+    client.subscribe(detections_filter(PLANE_ID), qos=1)
+    client.loop_start()
+    if not subscribed.wait(10):
+        raise RuntimeError("bare paho subscriber got no SUBACK")
+    return client
+
+
+def run_once(receiver_kind: str, publisher_kind: str, cameras: int, frames: int, fps: float,
+             paced: bool, people: int, matcher_name: str) -> dict:
+    total = cameras * frames
     with tempfile.TemporaryDirectory(prefix="cblrs-bench-") as folder:
         port = free_port()
         files = write_broker_config(Path(folder) / "broker", [], [], port=port,
-                                    allow_anonymous=True, viewer=False)
+                                    allow_anonymous=True, viewer=False, persistence=False)
         broker = MosquittoProcess.from_files(files).start()
+        receiver = _Receiver(total, paced)
+        probe = Probe()
+        service = store = client = transport = subscriber = None
         try:
-            counter = Counter()
-            subscriber = MqttTransport("bench-subscriber", MqttSettings(port=port))
-            subscriber.subscribe(f"cblrs/{PLANE_ID}/+/detections", counter)
-            subscriber.connect()
+            if receiver_kind == "broker":
+                subscriber = subprocess.Popen(
+                    ["mosquitto_sub", "-h", "127.0.0.1", "-p", str(port), "-q", "1",
+                     "-i", "bench-sub", "-t", detections_filter(PLANE_ID), "-C", str(total)],
+                    stdout=subprocess.DEVNULL,
+                )
+                time.sleep(0.5)
+            elif receiver_kind == "paho":
+                client = _start_paho(port, receiver)
+            elif receiver_kind == "transport":
+                transport = MqttTransport("bench-transport", MqttSettings(port=port),
+                                          persistent=False)
+
+                def handler(delivery) -> None:
+                    delivery.ack()
+                    receiver.received(delivery.payload)
+
+                transport.subscribe(detections_filter(PLANE_ID), handler)
+                transport.connect()
+            else:
+                names = camera_names(cameras)
+                store = RuntimeStore(Path(folder) / "matcher.db")
+                service = MatcherService(
+                    MqttTransport("bench-matcher", MqttSettings(port=port), persistent=True),
+                    store, make_matcher(matcher_name, PlaneSet([PLANE]), names), PLANE_ID,
+                    names, policy=ValidationPolicy(max_future_s=3600.0), window_s=2.0,
+                    observer=probe,
+                )
+                service.start()
             results: multiprocessing.Queue = multiprocessing.Queue()
             process = multiprocessing.Process(
-                target=publisher, args=(port, cameras, frames, fps, False, people, results)
+                target=publisher,
+                args=(publisher_kind, port, cameras, frames, fps, paced, people, results),
             )
             process.start()
-            report = results.get(timeout=600)
+            report = results.get(timeout=900)
             process.join(60)
-            total = cameras * frames
-            deadline = time.time() + 60
-            while counter.count < total and time.time() < deadline:
-                time.sleep(0.01)
-            subscriber.close()
+            if "error" in report:
+                raise RuntimeError(f"publisher failed: {report['error']}")
+            deadline = time.time() + 120
+            if subscriber is not None:
+                subscriber.wait(120)
+                receiver.count, receiver.last = total, time.time()
+            elif service is not None:
+                while (probe.stored < total or not service.drained()) and time.time() < deadline:
+                    time.sleep(0.005)
+                receiver.count, receiver.last = probe.stored, probe.last_stored
+                service.close(flush=True)
+                stats = service.stats()
+            else:
+                receiver.done.wait(max(0.0, deadline - time.time()))
         finally:
+            if subscriber is not None and subscriber.poll() is None:
+                subscriber.kill()
+            if client is not None:
+                client.disconnect()
+                client.loop_stop()
+            if transport is not None:
+                transport.close()
+            if store is not None:
+                store.close()
             broker.stop()
-    return {
-        "cameras": cameras, "mode": "transport", "messages": total, "stored": counter.count,
-        "late": 0, "rejected": 0,
+    row = {
+        "receiver": receiver_kind, "rate": "paced" if paced else "max", "cameras": cameras,
+        "messages": total, "received": receiver.count, "flushed": report["flushed"],
         "publish_per_s": total / max(report["published"] - report["start"], 1e-9),
-        "received_per_s": total / (counter.last - report["start"]),
-        "tracked_per_s": math.nan,
+        "received_per_s": receiver.count / max(receiver.last - report["start"], 1e-9),
+        "tracked_per_s": math.nan, "late": 0, "rejected": 0,
         "receipt_p50_ms": math.nan, "receipt_p99_ms": math.nan,
         "track_p50_ms": math.nan, "track_p99_ms": math.nan,
     }
-
-
-def run_once(cameras: int, frames: int, fps: float, paced: bool, people: int,
-             matcher_name: str) -> dict:
-    with tempfile.TemporaryDirectory(prefix="cblrs-bench-") as folder:
-        port = free_port()
-        files = write_broker_config(Path(folder) / "broker", [], [], port=port,
-                                    allow_anonymous=True, viewer=False)
-        broker = MosquittoProcess.from_files(files).start()
-        try:
-            names = camera_names(cameras)
-            store = RuntimeStore(Path(folder) / "matcher.db")
-            probe = Probe()
-            service = MatcherService(
-                MqttTransport("bench-matcher", MqttSettings(port=port), persistent=True),
-                store, make_matcher(matcher_name, PlaneSet([PLANE]), names), PLANE_ID, names,
-                policy=ValidationPolicy(max_future_s=3600.0), window_s=2.0, observer=probe,
-            )
-            service.start()
-            results: multiprocessing.Queue = multiprocessing.Queue()
-            process = multiprocessing.Process(
-                target=publisher, args=(port, cameras, frames, fps, paced, people, results)
-            )
-            process.start()
-            report = results.get(timeout=600)
-            process.join(60)
-            total = cameras * frames
-            deadline = time.time() + 120
-            while (probe.stored < total or not service.drained()) and time.time() < deadline:
-                time.sleep(0.01)
-            service.close(flush=True)
-            stats = service.stats()
-            store.close()
-        finally:
-            broker.stop()
-    span_received = probe.last_stored - report["start"]
-    span_tracked = probe.last_group - report["start"]
-    if not paced:  # capture times are synthetic here: latencies would mean nothing
-        probe.receipt = probe.tracked = [math.nan]
-    return {
-        "cameras": cameras,
-        "mode": "paced" if paced else "max",
-        "messages": total,
-        "stored": probe.stored,
-        "late": stats["late"],
-        "rejected": stats["rejected"],
-        "publish_per_s": total / max(report["published"] - report["start"], 1e-9),
-        "received_per_s": total / span_received,
-        "tracked_per_s": total / span_tracked,
-        "receipt_p50_ms": 1000 * float(np.percentile(probe.receipt, 50)),
-        "receipt_p99_ms": 1000 * float(np.percentile(probe.receipt, 99)),
-        "track_p50_ms": 1000 * float(np.percentile(probe.tracked, 50)),
-        "track_p99_ms": 1000 * float(np.percentile(probe.tracked, 99)),
-    }
+    if paced and receiver.receipt:
+        row["receipt_p50_ms"] = 1000 * float(np.percentile(receiver.receipt, 50))
+        row["receipt_p99_ms"] = 1000 * float(np.percentile(receiver.receipt, 99))
+    if service is not None:
+        row["tracked_per_s"] = total / max(probe.last_group - report["start"], 1e-9)
+        row["late"], row["rejected"] = stats["late"], stats["rejected"]
+        if paced:  # in max runs capture times are synthetic: latencies would mean nothing
+            row["receipt_p50_ms"] = 1000 * float(np.percentile(probe.receipt, 50))
+            row["receipt_p99_ms"] = 1000 * float(np.percentile(probe.receipt, 99))
+            row["track_p50_ms"] = 1000 * float(np.percentile(probe.tracked, 50))
+            row["track_p99_ms"] = 1000 * float(np.percentile(probe.tracked, 99))
+    return row
 
 
 def median_of(runs: list[dict]) -> dict:
@@ -243,13 +378,51 @@ def median_of(runs: list[dict]) -> dict:
     for key, value in runs[0].items():
         if isinstance(value, float):
             merged[key] = statistics.median(run[key] for run in runs)
+    merged["received"] = min(run["received"] for run in runs)
+    merged["flushed"] = all(run["flushed"] for run in runs)
     merged["repeats"] = len(runs)
     return merged
+
+
+# --------------------------------------------------------------------------- machine
+
+
+def machine() -> dict:
+    model = platform.processor() or platform.machine()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                model = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    versions = {}
+    for package in ("paho-mqtt", "msgspec", "numpy"):
+        try:
+            versions[package] = metadata.version(package)
+        except metadata.PackageNotFoundError:
+            versions[package] = None
+    try:
+        mosquitto = subprocess.run(["mosquitto", "-h"], capture_output=True, text=True,
+                                   timeout=10).stdout.splitlines()[0]
+    except (OSError, IndexError, subprocess.SubprocessError):
+        mosquitto = None
+    return {"cpu": model, "cores": os.cpu_count(), "python": platform.python_version(),
+            "mosquitto": mosquitto, **versions}
+
+
+def _format(value: float, width: int = 7, digits: int = 1) -> str:
+    return " " * (width - 1) + "-" if math.isnan(value) else f"{value:{width}.{digits}f}"
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--cameras", type=int, nargs="+", default=[1, 10, 50])
+    parser.add_argument("--runs", nargs="+", default=list(DEFAULT_RUNS),
+                        help="receiver/rate pairs, receiver in broker, paho, transport, "
+                        "matcher and rate in max, paced")
+    parser.add_argument("--publisher", choices=("mosquitto_pub", "paho"),
+                        default="mosquitto_pub" if shutil.which("mosquitto_pub") else "paho")
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--max-messages", type=int, default=20000,
                         help="messages per max-throughput run (split over the cameras)")
@@ -259,33 +432,51 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--matcher", default="fusion")
     parser.add_argument("--json", action="store_true")
     args = parser.parse_args(argv)
+    for run in args.runs:
+        receiver, _, rate = run.partition("/")
+        if receiver not in RECEIVERS or rate not in ("max", "paced"):
+            parser.error(f"bad run {run!r}: expected <{'|'.join(RECEIVERS)}>/<max|paced>")
+        if receiver == "broker" and rate == "paced":
+            parser.error("the broker receiver (mosquitto_sub) measures max throughput only")
+    info = machine()
+    info["load_start"] = list(os.getloadavg())
+    if not args.json:
+        print(f"{info['cpu']}, {info['cores']} cores, Python {info['python']}, "
+              f"{info['mosquitto']}, paho-mqtt {info['paho-mqtt']}; publisher: "
+              f"{args.publisher}; load average {info['load_start'][0]:.2f}", flush=True)
+        print(f"{'cams':>4s} {'receiver':9s} {'rate':5s} {'msgs':>6s} {'recv/s':>8s} "
+              f"{'track/s':>8s} | {'receipt p50':>11s} {'p99 ms':>7s} | {'track p50':>9s} "
+              f"{'p99 ms':>7s} | lost late", flush=True)
     rows = []
     for cameras in args.cameras:
-        for mode in ("transport", "max", "paced"):
-            paced = mode == "paced"
+        for run in args.runs:
+            receiver, _, rate = run.partition("/")
+            paced = rate == "paced"
             frames = (int(args.paced_seconds * args.fps) if paced
                       else max(1, args.max_messages // cameras))
-            if mode == "transport":
-                runs = [run_transport_only(cameras, frames, args.fps, args.people)
-                        for _ in range(args.repeats)]
-            else:
-                runs = [run_once(cameras, frames, args.fps, paced, args.people, args.matcher)
-                        for _ in range(args.repeats)]
+            runs = [run_once(receiver, args.publisher, cameras, frames, args.fps, paced,
+                             args.people, args.matcher) for _ in range(args.repeats)]
             row = median_of(runs)
+            row["runs"] = runs
             rows.append(row)
             if not args.json:
                 print(
-                    f"{cameras:3d} cameras {row['mode']:9s} {row['messages']:6d} msgs: "
-                    f"received {row['received_per_s']:8.0f}/s tracked {row['tracked_per_s']:8.0f}/s"
-                    f" | receipt p50 {row['receipt_p50_ms']:7.2f} p99 {row['receipt_p99_ms']:7.2f}"
-                    f" ms | track p50 {row['track_p50_ms']:7.2f} p99 {row['track_p99_ms']:7.2f} ms"
-                    f" | late {row['late']} rejected {row['rejected']}",
+                    f"{cameras:4d} {receiver:9s} {rate:5s} {row['messages']:6d} "
+                    f"{row['received_per_s']:8.0f} {_format(row['tracked_per_s'], 8, 0)} | "
+                    f"{_format(row['receipt_p50_ms'], 11)} {_format(row['receipt_p99_ms'])} | "
+                    f"{_format(row['track_p50_ms'], 9)} {_format(row['track_p99_ms'])} | "
+                    f"{row['messages'] - row['received']:4d} {row['late']:4d}",
                     flush=True,
                 )
+    info["load_end"] = list(os.getloadavg())
     if args.json:
-        document = {"python": sys.version.split()[0], "cpus": multiprocessing.cpu_count(),
+        document = {"machine": info, "publisher": args.publisher, "repeats": args.repeats,
+                    "fps": args.fps, "people": args.people, "matcher": args.matcher,
                     "results": rows}
-        print(json.dumps(document, indent=2, default=lambda value: None).replace("NaN", "null"))
+        print(json.dumps(document, indent=2).replace("NaN", "null"))
+    else:
+        print(f"load average at end {info['load_end'][0]:.2f} (1 min), "
+              f"{info['load_end'][1]:.2f} (5 min); medians over {args.repeats} runs")
     return 0
 
 
