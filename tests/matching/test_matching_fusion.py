@@ -8,8 +8,14 @@ import numpy as np
 import pytest
 
 from cblrs.detections import CameraMessage, Tracks
-from cblrs.matching import FusionTracker, MatcherError, make_matcher
-from cblrs.matching.fusion import NoiseModel, assign_per_camera, cluster_detections
+from cblrs.matching import FusionTracker, MatcherError, kalman, make_matcher
+from cblrs.matching.fusion import (
+    NoiseModel,
+    assign_per_camera,
+    cluster_detections,
+    fuse,
+    ray_covariance,
+)
 from cblrs.plane import PlaneSet, PlaneSpec
 
 PLANES = PlaneSet([PlaneSpec(1, (-10.0, -10.0), 40.0, 40.0)])
@@ -242,3 +248,92 @@ def test_side_by_side_walkers_are_not_blended(group_radius_m):
             outputs.append((track_id, np.abs(position[1] - truth[:, 1]).min()))
     assert {track_id for track_id, _ in outputs} == {1, 2}
     assert max(error for _, error in outputs) < 0.15
+
+
+def ray_pairs(rng, count, along_per_metre, lateral_m, bias_per_metre=0.0):
+    """Two cameras' views of ``count`` objects: errors elongated along each camera's ray."""
+    truth = rng.uniform(0, 20, size=(count, 2))
+    cameras = rng.uniform(-20, 40, size=(2, count, 2))
+    views, distances, directions = [], [], []
+    for camera in cameras:
+        offset = truth - camera
+        distance = np.linalg.norm(offset, axis=1)
+        direction = offset / distance[:, None]
+        across = np.column_stack([-direction[:, 1], direction[:, 0]])
+        along_error = rng.normal(size=count) * along_per_metre * distance
+        along_error += bias_per_metre * distance
+        lateral_error = rng.normal(size=count) * lateral_m
+        views.append(truth + along_error[:, None] * direction + lateral_error[:, None] * across)
+        distances.append(distance)
+        directions.append(direction)
+    return np.concatenate(views), np.concatenate(distances), np.concatenate(directions)
+
+
+def test_noise_model_learns_the_error_along_and_across_the_ray():
+    rng = np.random.default_rng(2)
+    model = NoiseModel(0.2, 0.01)
+    for _ in range(200):
+        world_xy, distance, direction = ray_pairs(rng, 50, 0.04, 0.07)
+        model.learn(world_xy, distance, np.tile(np.arange(50), 2), direction)
+    assert model.sigma_per_distance == pytest.approx(0.04, rel=0.15)
+    assert model.lateral_per_distance < 0.005
+    along, lateral = model.variances(np.array([20.0]))
+    assert np.sqrt(along[0]) == pytest.approx(0.8, rel=0.15)
+    assert 0.05 < np.sqrt(lateral[0]) < 0.12  # truth 0.07, the prior (0.2 m) still pulls
+    isotropic = NoiseModel(0.2, 0.01)  # the same pairs without their rays
+    rng = np.random.default_rng(2)
+    for _ in range(200):
+        world_xy, distance, _ = ray_pairs(rng, 50, 0.04, 0.07)
+        isotropic.learn(world_xy, distance, np.tile(np.arange(50), 2))
+    assert isotropic.sigma_per_distance == pytest.approx(0.04 / np.sqrt(2), rel=0.2)
+    assert model.bias(np.array([20.0]))[0] == pytest.approx(0.0, abs=0.02)
+
+
+def test_noise_model_learns_a_bias_along_the_ray():
+    rng = np.random.default_rng(3)
+    model = NoiseModel(0.2, 0.01)
+    for _ in range(100):
+        world_xy, distance, direction = ray_pairs(rng, 50, 0.01, 0.05, bias_per_metre=0.01)
+        model.learn(world_xy, distance, np.tile(np.arange(50), 2), direction)
+    assert model.bias_per_distance == pytest.approx(0.01, rel=0.1)
+    # The bias is removed before the noise is fitted: it does not inflate the noise.
+    assert model.sigma_per_distance == pytest.approx(0.01, rel=0.2)
+
+
+@pytest.mark.parametrize("along, lateral", [(1.0, 0.01), (0.04, 0.04)])
+def test_fusing_two_crossing_rays(along, lateral):
+    """Two views along x and along y: each pins the other's long axis."""
+    direction = np.array([[1.0, 0.0], [0.0, 1.0]])
+    covariance = ray_covariance(direction, np.full(2, along), np.full(2, lateral))
+    world_xy = np.array([[1.0, 0.0], [0.0, 1.0]])
+    position, fused, present = fuse(np.array([0, 0]), 2, world_xy, covariance)
+    weight_x = (1 / along) / (1 / along + 1 / lateral)  # view 0 is long along x
+    assert position[0] == pytest.approx([weight_x, weight_x])  # each axis trusts its precise view
+    expected = 1.0 / (1 / along + 1 / lateral)
+    assert fused[0] == pytest.approx(np.diag([expected, expected]))
+    assert present.tolist() == [True, False] and np.isnan(position[1]).all()
+
+
+def test_kalman_update_with_isotropic_matrices_matches_variances():
+    state = np.array([[0.0, 0.0, 1.0, 0.0], [2.0, 1.0, 0.0, -1.0]])
+    covariance = kalman.initial_covariance(2, np.array([0.3, 0.5]), 1.5)
+    measured = np.array([[0.2, -0.1], [2.5, 0.8]])
+    variance = np.array([0.04, 0.09])
+    by_variance = kalman.update(state, covariance, measured, variance)
+    by_matrix = kalman.update(state, covariance, measured, variance[:, None, None] * np.eye(2))
+    for one, other in zip(by_variance, by_matrix, strict=True):
+        assert one == pytest.approx(other)
+    # Covariance (2, 2) at birth: kept as given.
+    matrix = np.array([[[0.5, 0.1], [0.1, 0.2]]])
+    assert kalman.initial_covariance(1, matrix, 1.0)[0, :2, :2] == pytest.approx(matrix[0])
+
+
+def test_low_cameras_see_more_along_ray_noise():
+    """With heights, the along-ray distance scales by mean height / camera height."""
+    positions = {"north": (5.0, 22.0, 2.0), "east": (22.0, 5.0, 8.0), "south": (5.0, -12.0, 4.0)}
+    tracker = FusionTracker(PLANES, CAMERAS, camera_positions=positions)
+    assert tracker._along_scale == pytest.approx([2.0, 0.5, 1.0])
+    flat = FusionTracker(PLANES, CAMERAS, camera_positions=CAMERA_XY)
+    assert flat._along_scale == pytest.approx([1.0, 1.0, 1.0])
+    tracks = run(tracker, sequence())
+    assert identities(tracks, tracks.timestamp) == {0: {1}, 1: {2}, 2: {3}}

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from cblrs.cli.main import main
-from cblrs.datasets import load_scene, read_tracks
+from cblrs.datasets import load_scene, read_tracks, simulate_detections
 from cblrs.datasets.synthetic import make_scene
 from cblrs.evaluation import evaluate
 from cblrs.pipeline import render_scene_references, scene_messages, track_scene
@@ -70,17 +70,31 @@ def test_wildtrack_fusion_scores(wildtrack):
     """Exact annotated boxes, all frames, through the colour path.
 
     The benchmark target is HOTA >= 92 and IDF1 >= 95 over all frames; the tracker reaches
-    91.2 / 94.6 (frames 100..995: 92.3 / 95.8; the first 20 annotated frames hold most of
-    the implausible ground-truth jumps). This guards against regressions below that.
+    HOTA 93.1 and IDF1 94.5 (frames 100..995: 94.2 / 95.7; the first 20 annotated frames
+    hold most of the implausible ground-truth jumps). The pipeline is deterministic; these
+    guard against regressions with a small margin below the measured figures.
     """
     scene, references = wildtrack
     result = track_scene(scene, references=references)
     metrics = evaluate(scene.ground_truth, result.tracks)
-    assert metrics.HOTA >= 90.5
+    assert metrics.HOTA >= 92.5
     assert metrics.IDF1 >= 94.0
     late = evaluate(scene.ground_truth, result.tracks, frames=scene.frames[scene.frames >= 100])
-    assert late.HOTA >= 92.0
+    assert late.HOTA >= 93.5
     assert late.IDF1 >= 95.0
+
+
+def test_wildtrack_fusion_with_a_noisy_detector(wildtrack):
+    """20 % of boxes dropped and every edge jittered by 5 % of the box size (seed 1).
+
+    The target is HOTA >= 85; the tracker reaches 76.0 (the oracle with ground-truth
+    identities and the same noise model: 92.3). A regression guard, not the target.
+    """
+    scene, references = wildtrack
+    noisy = simulate_detections(scene, drop=0.2, jitter=0.05, seed=1)
+    metrics = evaluate(scene.ground_truth, track_scene(noisy, references=references).tracks)
+    assert metrics.HOTA >= 74.5
+    assert metrics.IDF1 >= 83.5
 
 
 def test_cli_track_writes_valid_tracks(wildtrack_root, tmp_path, capsys):
