@@ -106,7 +106,9 @@ class FusionConfig:
         class_acceleration_sigma: the same for other classes, ``{class name: m/s^2}``.
         initial_velocity_sigma: velocity uncertainty of a new track, m/s.
         gate_sigmas: Mahalanobis gate on the innovation (standard deviations).
-        max_gate_m: hard cap on the distance between a track and a detection it takes, metres.
+        max_gate_m: cap on the distance between a track and a detection it takes, metres
+            (larger for a detection whose own noise is larger: ``gate_sigmas`` times its
+            largest standard deviation).
         cluster_sigmas: two cameras' detections can be one object when their distance is
             within this many standard deviations of their difference,
             ``sqrt(sigma_1**2 + sigma_2**2)``, or within ``cluster_radius_m``.
@@ -546,11 +548,15 @@ class FusionTracker:
         ``state`` and ``state_covariance`` ((T, 4), (T, 4, 4)) default to the tracks'
         predictions.
 
-        The metric cap grows with the class's size (vehicles), not with distance: far
-        detections are weighted down, but must not reach across a crowd. Only pairs within
-        it are evaluated further, so the cost grows with the pairs, not N x T.
+        The metric cap grows with the class's size (vehicles) and with the detection's own
+        noise (``gate_sigmas`` of its largest standard deviation), not with the track's: an
+        uncertain (coasting) track must not reach across a crowd. Only pairs within it are
+        evaluated further, so the cost grows with the pairs, not N x T.
         """
         cap = self.config.max_gate_m * self._class_scale[self._class_slot(class_id)]
+        # A detection reaches as far as its own noise along its ray allows (a far view is
+        # metres uncertain along the ray); the Mahalanobis gate still bounds it across.
+        cap = np.maximum(cap, self.config.gate_sigmas * largest_sigma(covariance))
         state = self._state if state is None else state
         state_covariance = self._covariance if state_covariance is None else state_covariance
         rows, columns = close_pairs(world_xy, state[:, :2], cap)
