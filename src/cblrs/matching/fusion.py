@@ -2,28 +2,37 @@
 
 Where the paper's matcher compares every detection with every object, camera by camera,
 this tracker uses what the colour code makes possible: every camera's detections land in
-the same metric ground frame, so the views of one person at one instant are one noisy
-observation of one point. Per instant:
+the same metric ground frame, so the views of one person at one instant are noisy
+observations of one point. Per instant:
 
-1. decode all colours to world positions (metres);
+1. decode all colours to world positions (metres); give each detection a covariance
+   elongated along the ray from its camera (a box edge's pixel error moves a foot point
+   along the viewing direction far more than across it) and remove the learned along-ray
+   bias;
 2. predict every track to the instant with a constant-velocity Kalman filter (per-class
    white-noise acceleration: people turn gently, cars harder);
-3. associate, per camera, detections to tracks with the Hungarian algorithm on the negative
-   log-likelihood, gated by Mahalanobis and metric distance and by class (a track takes at
-   most one detection from each camera, a detection feeds at most one track);
-4. let leftovers join a track other cameras saw at this instant when they lie within the
-   cluster radius of its fused position (the gate must not split one object's views);
-5. fuse each track's detections (inverse-variance weighted mean) and update the filter once;
+3. associate: groups of precise detections are assigned across cameras as one observation;
+   the rest camera by camera, most precise camera first, each against the tracks as
+   corrected by the cameras before it (as a Kalman filter processes independent sensors),
+   then once more against the tracks corrected by all other cameras. Each step is a
+   Hungarian assignment on the negative log-likelihood, gated by Mahalanobis distance,
+   a metric cap and class (a track takes at most one detection from each camera);
+4. let leftovers join a track other cameras saw at this instant when they are consistent
+   with its fused position (the gate must not split one object's views);
+5. fuse each track's detections in information form (inverse covariances) and update the
+   filter once, adding an object-level noise common to all views;
 6. cluster the remaining detections across cameras (at most one per camera per cluster,
-   complete linkage) and start a tentative track per cluster;
+   complete linkage on the Mahalanobis distance) and start a tentative track per cluster;
 7. confirm tracks with enough evidence (camera detections), optionally merge duplicates,
    delete tracks unseen for too long.
 
-Measurement noise is ``a**2 + (b * distance)**2`` from the camera (when camera positions are
-known), and :class:`NoiseModel` re-estimates ``a`` and ``b`` online from how much the cameras
-that see one object disagree, so the same defaults serve exact boxes and a noisy detector.
-All parameters are physical (metres, seconds, m/s, m/s^2): the same defaults serve 2 fps
-datasets and 10 or 20 fps video. Everything is online; there is no look-ahead.
+Measurement noise is ``a**2 + (b * d)**2`` along the ray and ``e**2 + (c * d)**2`` across
+it (``d`` the distance from the camera, along the ray scaled by the camera's height when
+known), and :class:`NoiseModel` re-estimates the four coefficients and a bias online from
+how much the cameras that see one object disagree, so the same defaults serve exact boxes
+and a noisy detector. All parameters are physical (metres, seconds, m/s, m/s^2): the same
+defaults serve 2 fps datasets and 10 or 20 fps video. Everything is online; there is no
+look-ahead.
 """
 from __future__ import annotations
 
@@ -82,7 +91,8 @@ class FusionConfig:
             an object, metres, independent of distance (the prior of the noise model).
         sigma_per_distance: initial standard deviation per metre of distance between camera
             and object (needs ``camera_positions``): a pixel error covers more ground far
-            away. Dimensionless. The noise model is ``sigma**2 = a**2 + (b * distance)**2``.
+            away. Dimensionless. The prior of both the along-ray and the across-ray terms
+            (see :class:`NoiseModel`); learned apart when ``adapt_noise``.
         minimum_sigma_m: smallest standard deviation of one camera's ground position, however
             closely the cameras agree, metres.
         object_sigma_m: standard deviation of an object's position common to all the views
@@ -90,9 +100,10 @@ class FusionConfig:
             fall on the body, where the ground truth marks it) and does not move at exactly
             constant velocity. Cameras' disagreement cannot reveal it, so it is added once to
             each instant's fused observation rather than to every camera's.
-        adapt_noise: re-estimate ``a`` and ``b`` online from the disagreement of the cameras
-            that see the same object at the same instant (so the same defaults serve exact
-            boxes and a noisy detector); False keeps the initial values.
+        adapt_noise: re-estimate the noise model and the along-ray bias online from the
+            disagreement of the cameras that see the same object at the same instant (so the
+            same defaults serve exact boxes and a noisy detector); False keeps the initial
+            values.
         class_measurement_sigma_m: extra standard deviation (added in quadrature) for classes
             whose footprint is large (vehicles: the box bottom only bounds it), metres;
             the gate cap and the cluster radius grow with it.
