@@ -29,6 +29,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import msgspec
 import numpy as np
 
 from cblrs.detections import CameraMessage, Tracks
@@ -81,17 +82,25 @@ class StoredMessage:
 
 
 def message_body(message: CameraMessage) -> str:
-    """The detection columns of a message as compact JSON (the inbox ``body``)."""
-    return json.dumps(
+    """The detection columns of a message as compact JSON (the inbox ``body``).
+
+    Raises:
+        ValueError: a value is NaN or infinite (JSON has no such numbers).
+    """
+    body = _encoder.encode(
         {
             "xyxy": message.xyxy.tolist(),
             "confidence": message.confidence.tolist(),
             "class_id": message.class_id.tolist(),
             "colour": message.colour.tolist(),
-        },
-        separators=(",", ":"),
-        allow_nan=False,
+        }
     )
+    if b"null" in body:  # msgspec writes NaN and infinities as null
+        raise ValueError("Out of range float values are not JSON compliant")
+    return body.decode()
+
+
+_encoder = msgspec.json.Encoder()
 
 
 def message_from_row(camera_id: str, sequence: int, timestamp: float, frame: int, body: str):

@@ -119,16 +119,16 @@ class Transport(Protocol):
 
 
 def _once(send: Callable[[], None]) -> Callable[[], None]:
-    """``send`` made idempotent (a handler may call ``ack`` more than once)."""
-    sent = [False]
-    lock = threading.Lock()
+    """``send`` made idempotent (a handler may call ``ack`` more than once, from any thread).
+
+    ``next()`` on an ``itertools.count`` is atomic, so exactly one call sends, without
+    allocating a lock per delivery.
+    """
+    calls = itertools.count()
 
     def ack() -> None:
-        with lock:
-            if sent[0]:
-                return
-            sent[0] = True
-        send()
+        if next(calls) == 0:
+            send()
 
     return ack
 
@@ -173,6 +173,10 @@ class _Incoming:
     filters: tuple[str, ...] | None = None
 
 
+_MAX_ROUTES = 4096
+"""Routing cache size of a :class:`_HandlerTable` (topics seen), cleared when full."""
+
+
 class _HandlerTable:
     """Handlers by filter, plus deliveries that arrived before a matching handler existed.
 
@@ -183,12 +187,15 @@ class _HandlerTable:
     def __init__(self) -> None:
         self._handlers: dict[str, list[Handler]] = {}
         self._orphans: list[_Incoming] = []
+        self._routes: dict[tuple[str, tuple[str, ...] | None], list[Handler]] = {}
+        """Handlers by (topic, filters): a plane has few topics, so routing is a lookup."""
         self._lock = threading.Lock()
 
     def add(self, topic_filter: str, handler: Handler) -> list[_Incoming]:
         """Register ``handler``; return the waiting deliveries it should now receive."""
         with self._lock:
             self._handlers.setdefault(topic_filter, []).append(handler)
+            self._routes.clear()
             adopted = [item for item in self._orphans if self._wants(topic_filter, item)]
             self._orphans = [item for item in self._orphans if item not in adopted]
         return adopted
@@ -205,12 +212,19 @@ class _HandlerTable:
 
     def dispatch(self, item: _Incoming) -> None:
         with self._lock:
-            handlers = [
-                handler
-                for topic_filter, registered in self._handlers.items()
-                if self._wants(topic_filter, item) and topic_matches(topic_filter, item.topic)
-                for handler in registered
-            ]
+            key = (item.topic, item.filters)
+            handlers = self._routes.get(key)
+            if handlers is None:
+                handlers = [
+                    handler
+                    for topic_filter, registered in self._handlers.items()
+                    if self._wants(topic_filter, item) and topic_matches(topic_filter, item.topic)
+                    for handler in registered
+                ]
+                if handlers:
+                    if len(self._routes) >= _MAX_ROUTES:
+                        self._routes.clear()
+                    self._routes[key] = handlers
             if not handlers:
                 self._orphans.append(item)
                 return

@@ -322,23 +322,7 @@ def decode_message_with_plane(
             RejectReason.IN_FUTURE,
             f"captured {wire.timestamp - current:.3f} s in the future, more than {max_future_s} s",
         )
-    detections = wire.detections
-    try:
-        class_id = np.array([_CLASS_IDS[item.class_name] for item in detections], dtype=np.int64)
-    except KeyError as error:
-        raise RejectedMessage(
-            RejectReason.INVALID_VALUE,
-            f"unknown class {error.args[0]!r}; known: {', '.join(CLASS_NAMES)}",
-        ) from None
-    xyxy = np.array([item.box for item in detections], dtype=np.float64).reshape(-1, 4)
-    confidence = np.array([item.confidence for item in detections], dtype=np.float64)
-    try:
-        colour = np.array([item.colour for item in detections], dtype=np.int64).reshape(-1, 3)
-    except OverflowError:
-        raise RejectedMessage(
-            RejectReason.COLOUR_OUT_OF_RANGE, f"colour outside 0..{(1 << bits) - 1}"
-        ) from None
-    _check_columns(xyxy, confidence, colour, bits)
+    xyxy, confidence, class_id, colour = _columns(wire.detections, bits)
     message = CameraMessage(
         camera_id=wire.camera,
         sequence=wire.sequence,
@@ -369,6 +353,65 @@ class _Header(msgspec.Struct, forbid_unknown_fields=True):
     sequence: Count
     frame: Count
     plane: PlaneId
+
+
+def _columns(
+    detections: list[WireDetection], bits: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Decoded detections as validated columns, built and checked all at once.
+
+    Returns:
+        ``xyxy`` (N, 4) float64 pixels, ``confidence`` (N,) float64, ``class_id`` (N,) int64
+        and ``colour`` (N, 3) int64.
+
+    Raises:
+        RejectedMessage: unknown class, non-finite or inverted box, confidence outside 0..1,
+            colour outside ``0 .. 2**bits - 1``.
+    """
+    if not detections:
+        return _EMPTY_XYXY, _EMPTY_FLOAT, _EMPTY_INT, _EMPTY_COLOUR
+    try:
+        class_id = np.fromiter(
+            [_CLASS_IDS[item.class_name] for item in detections], np.int64, len(detections)
+        )
+    except KeyError as error:
+        raise RejectedMessage(
+            RejectReason.INVALID_VALUE,
+            f"unknown class {error.args[0]!r}; known: {', '.join(CLASS_NAMES)}",
+        ) from None
+    # One table, one conversion, one bounds test for every value (NaN and infinities fail
+    # it too), whatever the number of detections; the detailed checks only name the fault.
+    table = np.array(
+        [(*item.box, item.confidence, *item.colour) for item in detections], np.float64
+    )
+    if not (
+        ((_LOWER <= table) & (table <= _UPPER[bits])).all()
+        and (table[:, 2:4] >= table[:, 0:2]).all()
+    ):
+        try:
+            colour = np.array([item.colour for item in detections], np.int64)
+        except OverflowError:
+            raise RejectedMessage(
+                RejectReason.COLOUR_OUT_OF_RANGE, f"colour outside 0..{(1 << bits) - 1}"
+            ) from None
+        _check_columns(table[:, :4], table[:, 4], colour, bits)
+        raise AssertionError("unreachable: the bounds test and the checks disagree")
+    return table[:, :4], table[:, 4], class_id, table[:, 5:].astype(np.int64)
+
+
+_LOWER = np.array([-np.finfo(np.float64).max] * 4 + [0.0] * 4)
+"""Lowest allowed value per column of the (box, confidence, colour) table."""
+_UPPER = {
+    bits: np.array([np.finfo(np.float64).max] * 4 + [1.0] + [float((1 << bits) - 1)] * 3)
+    for bits in (8, 16)
+}
+"""Highest allowed value per column, by bits per colour channel."""
+_EMPTY_XYXY = np.zeros((0, 4))
+_EMPTY_FLOAT = np.zeros(0)
+_EMPTY_INT = np.zeros(0, np.int64)
+_EMPTY_COLOUR = np.zeros((0, 3), np.int64)
+for _empty in (_EMPTY_XYXY, _EMPTY_FLOAT, _EMPTY_INT, _EMPTY_COLOUR):
+    _empty.setflags(write=False)
 
 
 def _check_columns(
