@@ -337,3 +337,50 @@ def test_low_cameras_see_more_along_ray_noise():
     assert flat._along_scale == pytest.approx([1.0, 1.0, 1.0])
     tracks = run(tracker, sequence())
     assert identities(tracks, tracks.timestamp) == {0: {1}, 1: {2}, 2: {3}}
+
+
+def test_one_motion_model_is_a_plain_kalman_filter():
+    rng = np.random.default_rng(4)
+    state = rng.normal(size=(3, 4))
+    covariance = kalman.initial_covariance(3, np.array([0.1, 0.2, 0.3]), 1.0)
+    sigma = np.array([0.5, 1.0, 2.0])
+    plain = kalman.predict(state, covariance, 0.5, sigma)
+    models = kalman.predict_models(state[:, None], covariance[:, None], np.ones((3, 1)), 0.5,
+                                   sigma[:, None], np.array([3.0]))
+    assert models[0][:, 0] == pytest.approx(plain[0])
+    assert models[1][:, 0] == pytest.approx(plain[1])
+    measured = rng.normal(size=(3, 2))
+    plain = kalman.update(*plain, measured, np.full(3, 0.04))
+    updated = kalman.update_models(*models, measured, np.full(3, 0.04))
+    assert updated[0][:, 0] == pytest.approx(plain[0])
+    assert updated[2] == pytest.approx(np.ones((3, 1)))
+
+
+def test_a_turn_shifts_weight_to_the_manoeuvring_model():
+    """Walk straight, then turn 90 degrees: the agile model gains, then the steady one."""
+    sojourn = np.array([10.0, 2.0])
+    probability = kalman.stationary_probability(sojourn)[None]
+    assert probability[0] == pytest.approx([10 / 12, 2 / 12])
+    state = np.zeros((1, 2, 4))
+    covariance = np.repeat(kalman.initial_covariance(1, 0.01, 1.5)[:, None], 2, axis=1)
+    sigma = np.array([[0.5, 2.0]])
+    history = []
+    for step in range(1, 41):
+        time = 0.5 * step
+        truth = (1.3 * time, 0.0) if time <= 10 else (13.0, 1.3 * (time - 10))
+        state, covariance, probability = kalman.predict_models(
+            state, covariance, probability, 0.5, sigma, sojourn)
+        state, covariance, probability = kalman.update_models(
+            state, covariance, probability, np.array([truth]), np.array([0.01]))
+        history.append(probability[0, 1])
+    before, turn, after = history[15], max(history[19:24]), history[-1]
+    assert before < 0.2 and turn > 0.5 and after < 0.2
+    combined_state, _ = kalman.combine(state, covariance, probability)
+    assert combined_state[0, 2:] == pytest.approx([0.0, 1.3], abs=0.1)
+
+
+def test_motion_model_options_are_checked():
+    with pytest.raises(MatcherError, match="one entry per model, got 2 and 1"):
+        FusionTracker(PLANES, CAMERAS, model_sojourn_s=(5.0,))
+    with pytest.raises(MatcherError, match="model_acceleration_factors must be a non-empty"):
+        FusionTracker(PLANES, CAMERAS, model_acceleration_factors=())

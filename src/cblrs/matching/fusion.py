@@ -9,8 +9,10 @@ observations of one point. Per instant:
    elongated along the ray from its camera (a box edge's pixel error moves a foot point
    along the viewing direction far more than across it) and remove the learned along-ray
    bias;
-2. predict every track to the instant with a constant-velocity Kalman filter (per-class
-   white-noise acceleration: people turn gently, cars harder);
+2. predict every track to the instant with an interacting multiple-model filter: two
+   constant-velocity Kalman filters, one steady and one manoeuvring (white-noise
+   accelerations of half and twice the class's: people turn gently, cars harder), weighed
+   by how well each has been predicting;
 3. associate: groups of precise detections are assigned across cameras as one observation;
    the rest camera by camera, most precise camera first, each against the tracks as
    corrected by the cameras before it (as a Kalman filter processes independent sensors),
@@ -61,7 +63,7 @@ from cblrs.matching.base import (
 )
 from cblrs.plane import PlaneSet
 
-STATE_VERSION = "cblrs.fusion-tracker/2"
+STATE_VERSION = "cblrs.fusion-tracker/3"
 _UNASSIGNABLE = 1.0e9
 _DENSE_PAIRS = 20_000  # below this many N x T pairs a dense distance matrix is faster
 
@@ -115,6 +117,11 @@ class FusionConfig:
             unit of relative box error), scaled to the cameras' mean height.
         acceleration_sigma: white-noise acceleration of a person's motion model, m/s^2.
         class_acceleration_sigma: the same for other classes, ``{class name: m/s^2}``.
+        model_acceleration_factors: the motion model is an interacting multiple-model
+            filter: constant-velocity models whose white-noise accelerations are these
+            multiples of the class's (people mostly walk steadily, sometimes turn or stop);
+            ``(1.0,)`` is a single constant-velocity filter.
+        model_sojourn_s: mean time spent in each of those models, seconds (one per model).
         initial_velocity_sigma: velocity uncertainty of a new track, m/s.
         gate_sigmas: Mahalanobis gate on the innovation (standard deviations).
         max_gate_m: cap on the distance between a track and a detection it takes, metres
@@ -155,6 +162,8 @@ class FusionConfig:
     class_acceleration_sigma: Mapping[str, float] = field(
         default_factory=lambda: dict(DEFAULT_CLASS_ACCELERATION_SIGMA)
     )
+    model_acceleration_factors: tuple[float, ...] = (0.5, 2.0)
+    model_sojourn_s: tuple[float, ...] = (10.0, 2.0)
     initial_velocity_sigma: float = 1.5
     gate_sigmas: float = 4.0
     max_gate_m: float = 2.0
@@ -183,6 +192,19 @@ class FusionConfig:
                 _positive(value) or value == 0,
                 f"{name} must be zero or a positive number, got {value!r}.",
             )
+        for name in ("model_acceleration_factors", "model_sojourn_s"):
+            values = getattr(self, name)
+            require(
+                isinstance(values, Sequence) and not isinstance(values, str) and len(values) > 0
+                and all(_positive(value) for value in values),
+                f"{name} must be a non-empty list of positive numbers, got {values!r}.",
+            )
+            object.__setattr__(self, name, tuple(float(value) for value in values))
+        require(
+            len(self.model_acceleration_factors) == len(self.model_sojourn_s),
+            "model_acceleration_factors and model_sojourn_s need one entry per model, got "
+            f"{len(self.model_acceleration_factors)} and {len(self.model_sojourn_s)}.",
+        )
         require(
             isinstance(self.adapt_noise, bool),
             f"adapt_noise must be true or false, got {self.adapt_noise!r}.",
@@ -303,6 +325,10 @@ class FusionTracker:
         )
         self._state = np.zeros((0, 4))
         self._covariance = np.zeros((0, 4, 4))
+        models = len(self.config.model_sojourn_s)
+        self._mode_state = np.zeros((0, models, 4))
+        self._mode_covariance = np.zeros((0, models, 4, 4))
+        self._mode_probability = np.zeros((0, models))
         self._evidence = np.zeros(0, np.int64)
         self._last_seen = np.zeros(0)
 
@@ -324,6 +350,9 @@ class FusionTracker:
             "covariance": self._covariance.tolist(),
             "evidence": self._evidence.tolist(),
             "last_seen": self._last_seen.tolist(),
+            "mode_state": self._mode_state.tolist(),
+            "mode_covariance": self._mode_covariance.tolist(),
+            "mode_probability": self._mode_probability.tolist(),
         }
 
     def set_state(self, state: dict) -> None:
@@ -345,10 +374,18 @@ class FusionTracker:
             self._covariance = np.asarray(state["covariance"], np.float64).reshape(-1, 4, 4)
             self._evidence = np.asarray(state["evidence"], np.int64).reshape(-1)
             self._last_seen = np.asarray(state["last_seen"], np.float64).reshape(-1)
+            models = len(self.config.model_sojourn_s)
+            self._mode_state = np.asarray(state["mode_state"], np.float64).reshape(
+                -1, models, 4)
+            self._mode_covariance = np.asarray(state["mode_covariance"], np.float64).reshape(
+                -1, models, 4, 4)
+            self._mode_probability = np.asarray(
+                state["mode_probability"], np.float64).reshape(-1, models)
         except (KeyError, TypeError, ValueError, IndexError) as error:
             raise MatcherError(f"the saved fusion-tracker state is incomplete: {error}.") from None
         columns = (self._ids, self._class, self._state, self._covariance, self._evidence,
-                   self._last_seen)
+                   self._last_seen, self._mode_state, self._mode_covariance,
+                   self._mode_probability)
         lengths = {len(column) for column in columns}
         if len(lengths) != 1:
             raise MatcherError("the saved fusion-tracker state has columns of different lengths.")
@@ -385,9 +422,15 @@ class FusionTracker:
             fused_xy, fused_covariance, seen_now = fuse(
                 rows, track_count, observed.world_xy[matched], covariance[matched]
             )
-            self._state[seen_now], self._covariance[seen_now] = kalman.update(
-                self._state[seen_now], self._covariance[seen_now], fused_xy[seen_now],
+            (self._mode_state[seen_now], self._mode_covariance[seen_now],
+             self._mode_probability[seen_now]) = kalman.update_models(
+                self._mode_state[seen_now], self._mode_covariance[seen_now],
+                self._mode_probability[seen_now], fused_xy[seen_now],
                 fused_covariance[seen_now] + self._object_covariance,
+            )
+            self._state[seen_now], self._covariance[seen_now] = kalman.combine(
+                self._mode_state[seen_now], self._mode_covariance[seen_now],
+                self._mode_probability[seen_now],
             )
             self._evidence += np.bincount(rows, minlength=track_count)
             self._last_seen[seen_now] = timestamp
@@ -431,10 +474,19 @@ class FusionTracker:
             # Messages of slightly different timestamps can arrive out of order; a late
             # one is treated as simultaneous rather than rewinding the filter.
             dt = max(0.0, timestamp - self._time)
-            self._state, self._covariance = kalman.predict(
-                self._state, self._covariance, dt,
-                self._class_acceleration[self._class_slot(self._class)],
-            )
+            if dt > 0 and len(self._ids):
+                acceleration = self._class_acceleration[self._class_slot(self._class)]
+                self._mode_state, self._mode_covariance, self._mode_probability = (
+                    kalman.predict_models(
+                        self._mode_state, self._mode_covariance, self._mode_probability, dt,
+                        acceleration[:, None]
+                        * np.asarray(self.config.model_acceleration_factors)[None],
+                        np.asarray(self.config.model_sojourn_s),
+                    )
+                )
+                self._state, self._covariance = kalman.combine(
+                    self._mode_state, self._mode_covariance, self._mode_probability
+                )
             self._time = max(self._time, timestamp)
         else:
             self._time = timestamp
@@ -729,6 +781,16 @@ class FusionTracker:
         self._class = np.concatenate([self._class, cluster_class])
         self._state = np.concatenate([self._state, state])
         self._covariance = np.concatenate([self._covariance, covariance])
+        models = len(self.config.model_sojourn_s)
+        self._mode_state = np.concatenate(
+            [self._mode_state, np.repeat(state[:, None], models, axis=1)])
+        self._mode_covariance = np.concatenate(
+            [self._mode_covariance, np.repeat(covariance[:, None], models, axis=1)])
+        self._mode_probability = np.concatenate([
+            self._mode_probability,
+            np.tile(kalman.stationary_probability(np.asarray(self.config.model_sojourn_s)),
+                    (count, 1)),
+        ])
         self._evidence = np.concatenate([self._evidence, np.bincount(labels, minlength=count)])
         self._last_seen = np.concatenate([self._last_seen, np.full(count, timestamp)])
         return count
@@ -765,6 +827,9 @@ class FusionTracker:
         self._class = self._class[keep]
         self._state = self._state[keep]
         self._covariance = self._covariance[keep]
+        self._mode_state = self._mode_state[keep]
+        self._mode_covariance = self._mode_covariance[keep]
+        self._mode_probability = self._mode_probability[keep]
         self._evidence = self._evidence[keep]
         self._last_seen = self._last_seen[keep]
 

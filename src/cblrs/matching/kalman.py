@@ -6,6 +6,10 @@ the usual continuous-time discretisation. Measurements are positions ``(x, y)`` 
 an isotropic variance per measurement (square metres) or a full (2, 2) covariance (a
 camera's ground error is elongated along its viewing ray). Everything takes arrays over T
 tracks, so a frame costs a handful of numpy calls whatever the number of tracks.
+
+For targets that mostly move steadily but sometimes turn or stop, the interacting
+multiple-model (IMM) functions run several such filters per track with different
+accelerations and weigh them by how well each predicted the measurements.
 """
 
 from __future__ import annotations
@@ -123,3 +127,128 @@ def initial_covariance(
     covariance[:, :2, :2] = measurement_matrices(position_variance, count)
     covariance[:, 2, 2] = covariance[:, 3, 3] = velocity_sigma**2
     return covariance
+
+
+# ---------------------------------------------------------------- interacting multiple models
+# M constant-velocity models that differ only in their white-noise acceleration (a person
+# walking steadily, the same person turning or stopping), switching as a Markov chain whose
+# mean time in each model is its sojourn time. States are (T, M, 4), covariances
+# (T, M, 4, 4), model probabilities (T, M).
+
+
+def transition_matrix(dt: float, sojourn_s: FloatArray) -> FloatArray:
+    """(M, M) probabilities of switching from model i (row) to j (column) within ``dt``.
+
+    A model is left with rate ``1 / sojourn``, for the others in proportion to their own
+    sojourn times (with two models: for the other one).
+    """
+    sojourn = np.asarray(sojourn_s, np.float64)
+    count = len(sojourn)
+    stay = np.exp(-dt / sojourn)
+    if count == 1:
+        return np.ones((1, 1))
+    share = sojourn[None, :] * (1.0 - np.eye(count))
+    share /= share.sum(axis=1, keepdims=True)
+    return np.diag(stay) + (1.0 - stay)[:, None] * share
+
+
+def stationary_probability(sojourn_s: FloatArray) -> FloatArray:
+    """(M,) long-run share of time in each model (proportional to its sojourn time)."""
+    sojourn = np.asarray(sojourn_s, np.float64)
+    return sojourn / sojourn.sum()
+
+
+def combine(
+    mode_state: FloatArray, mode_covariance: FloatArray, probability: FloatArray
+) -> tuple[FloatArray, FloatArray]:
+    """Moment-matched (T, 4) state and (T, 4, 4) covariance of the model mixture."""
+    state = np.einsum("tm,tmi->ti", probability, mode_state)
+    spread = mode_state - state[:, None, :]
+    covariance = np.einsum(
+        "tm,tmij->tij", probability,
+        mode_covariance + spread[:, :, :, None] * spread[:, :, None, :],
+    )
+    return state, covariance
+
+
+def predict_models(
+    mode_state: FloatArray,
+    mode_covariance: FloatArray,
+    probability: FloatArray,
+    dt: float,
+    acceleration_sigma: FloatArray,
+    sojourn_s: FloatArray,
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Interaction (mixing) and prediction of every model by ``dt`` seconds.
+
+    Args:
+        mode_state: (T, M, 4); mode_covariance: (T, M, 4, 4); probability: (T, M).
+        dt: seconds (>= 0).
+        acceleration_sigma: (T, M) white-noise acceleration of each track's models, m/s^2.
+        sojourn_s: (M,) mean time spent in each model, seconds.
+
+    Returns:
+        The predicted ``(mode_state, mode_covariance, probability)``, new arrays.
+    """
+    if dt <= 0.0 or len(mode_state) == 0:
+        return mode_state.copy(), mode_covariance.copy(), probability.copy()
+    transition = transition_matrix(dt, sojourn_s)
+    predicted = probability @ transition  # (T, M)
+    weight = transition[None] * probability[:, :, None] / np.maximum(
+        predicted[:, None, :], 1e-300
+    )  # (T, from i, to j)
+    mixed = np.einsum("tij,tik->tjk", weight, mode_state)
+    spread = mode_state[:, :, None, :] - mixed[:, None, :, :]  # (T, i, j, 4)
+    mixed_covariance = np.einsum(
+        "tij,tijkl->tjkl", weight,
+        mode_covariance[:, :, None] + spread[..., :, None] * spread[..., None, :],
+    )
+    new_state = np.empty_like(mode_state)
+    new_covariance = np.empty_like(mode_covariance)
+    for mode in range(mode_state.shape[1]):
+        new_state[:, mode], new_covariance[:, mode] = predict(
+            mixed[:, mode], mixed_covariance[:, mode], dt, acceleration_sigma[:, mode]
+        )
+    return new_state, new_covariance, predicted
+
+
+def update_models(
+    mode_state: FloatArray,
+    mode_covariance: FloatArray,
+    probability: FloatArray,
+    measurement_xy: FloatArray,
+    measurement_variance: FloatArray,
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Update every model with one position per track and re-weigh the models.
+
+    Args:
+        mode_state: (T, M, 4); mode_covariance: (T, M, 4, 4); probability: (T, M).
+        measurement_xy: (T, 2) metres.
+        measurement_variance: (T,) isotropic variances or (T, 2, 2) covariances.
+
+    Returns:
+        The updated ``(mode_state, mode_covariance, probability)``, new arrays. Each model's
+        probability is multiplied by the likelihood of the measurement under it.
+    """
+    count, models = mode_state.shape[:2]
+    if count == 0:
+        return mode_state.copy(), mode_covariance.copy(), probability.copy()
+    measurement = measurement_matrices(measurement_variance, count)
+    new_state = np.empty_like(mode_state)
+    new_covariance = np.empty_like(mode_covariance)
+    log_likelihood = np.empty((count, models))
+    for mode in range(models):
+        state, covariance = mode_state[:, mode], mode_covariance[:, mode]
+        inverse, determinant = inverse_2x2(innovation_covariance(covariance, measurement))
+        residual = measurement_xy - state[:, :2]
+        squared = np.einsum("ti,tij,tj->t", residual, inverse, residual)
+        log_likelihood[:, mode] = -0.5 * (squared + np.log(determinant))
+        new_state[:, mode], new_covariance[:, mode] = update(
+            state, covariance, measurement_xy, measurement
+        )
+    log_likelihood -= log_likelihood.max(axis=1, keepdims=True)
+    weighted = probability * np.exp(log_likelihood)
+    total = weighted.sum(axis=1, keepdims=True)
+    new_probability = np.where(total > 0, weighted / np.where(total > 0, total, 1.0),
+                               probability)
+    return new_state, new_covariance, new_probability
