@@ -173,6 +173,8 @@ def oracle_tracks(
     acceleration_sigma: float = 1.0,
     lateral_sigma_m: float | None = None,
     lateral_per_distance: float | None = None,
+    model_acceleration_factors: tuple[float, ...] = (0.5, 2.0),
+    model_sojourn_s: tuple[float, ...] = (10.0, 2.0),
 ):
     """An upper bound for any location-only tracker: identities taken from the ground truth.
 
@@ -183,8 +185,11 @@ def oracle_tracks(
     ``sigma_m**2 + (sigma_per_distance * distance)**2`` in every direction, or, when
     ``lateral_sigma_m`` or ``lateral_per_distance`` is given, that along the ray from its
     camera and ``lateral_sigma_m**2 + (lateral_per_distance * distance)**2`` across it (the
-    fusion tracker's noise model). No tracker that only sees these colours can associate
-    better; its localisation can only be better by smoothing with look-ahead.
+    fusion tracker's noise model). The motion model is the tracker's interacting multiple
+    models (``model_acceleration_factors`` times ``acceleration_sigma``, ``model_sojourn_s``;
+    ``(1.0,)`` for a single constant-velocity filter). No tracker that only sees these
+    colours can associate better; its localisation can only be better by smoothing with
+    look-ahead.
     False-positive detections (object id -1) are ignored.
 
     Returns:
@@ -227,17 +232,27 @@ def oracle_tracks(
     rows = []
     for object_id in np.unique(keys[:, 0]).tolist():
         mine = np.flatnonzero(keys[:, 0] == object_id)  # sorted by frame
-        state = np.array([[*fused[mine[0]], 0.0, 0.0]])
-        covariance = kalman.initial_covariance(1, fused_covariance[mine[:1]], 1.5)
+        models = len(model_sojourn_s)
+        sojourn = np.asarray(model_sojourn_s, np.float64)
+        sigma = acceleration_sigma * np.asarray(model_acceleration_factors, np.float64)[None]
+        state = np.repeat(np.array([[*fused[mine[0]], 0.0, 0.0]])[:, None], models, axis=1)
+        covariance = np.repeat(
+            kalman.initial_covariance(1, fused_covariance[mine[:1]], 1.5)[:, None], models, 1
+        )
+        probability = kalman.stationary_probability(sojourn)[None]
         previous = seconds[int(keys[mine[0], 1])]
         for row in mine.tolist():
             now = seconds[int(keys[row, 1])]
-            state, covariance = kalman.predict(state, covariance, now - previous,
-                                               acceleration_sigma)
-            state, covariance = kalman.update(state, covariance, fused[row:row + 1],
-                                              fused_covariance[row:row + 1])
+            state, covariance, probability = kalman.predict_models(
+                state, covariance, probability, now - previous, sigma, sojourn
+            )
+            state, covariance, probability = kalman.update_models(
+                state, covariance, probability, fused[row:row + 1],
+                fused_covariance[row:row + 1],
+            )
             previous = now
-            rows.append((int(keys[row, 1]), now, object_id, state[0, 0], state[0, 1]))
+            combined, _ = kalman.combine(state, covariance, probability)
+            rows.append((int(keys[row, 1]), now, object_id, combined[0, 0], combined[0, 1]))
     table = np.array(rows, dtype=np.float64).reshape(-1, 5)
     return Tracks(
         frame=table[:, 0].astype(np.int64), timestamp=table[:, 1],
