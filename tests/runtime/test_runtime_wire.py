@@ -318,6 +318,62 @@ def test_every_rejection_reason(payload, options, reason, detail):
     assert str(caught.value).startswith(reason.value + ": ")
 
 
+def _plain_verdict(detections: list[dict], bits: int) -> RejectReason | None:
+    """The receiver's value rules, one detection and one value at a time (the reference)."""
+    if any(not -(2**63) <= value < 2**63 for item in detections for value in item["colour"]):
+        return RejectReason.COLOUR_OUT_OF_RANGE  # not even a 64-bit integer: refused first
+    for item in detections:
+        x_min, y_min, x_max, y_max = item["box"]
+        if x_max < x_min or y_max < y_min:
+            return RejectReason.INVALID_VALUE
+        if not 0 <= item["confidence"] <= 1:
+            return RejectReason.INVALID_VALUE
+    for item in detections:
+        if any(not 0 <= value < 1 << bits for value in item["colour"]):
+            return RejectReason.COLOUR_OUT_OF_RANGE
+    return None
+
+
+_edge_floats = st.one_of(
+    st.floats(allow_nan=False, allow_infinity=False, width=64),
+    st.sampled_from([0.0, -0.0, 1.0, 1.0000000000000002, -1e-300, 1.7976931348623157e308]),
+)
+_edge_colours = st.one_of(
+    st.integers(-(2**63), 2**64 - 1),
+    st.sampled_from([0, 255, 256, 65535, 65536, -1, 2**53 + 1, 2**63 - 1, 2**63]),
+)
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    st.lists(
+        st.fixed_dictionaries(
+            {
+                "box": st.lists(_edge_floats, min_size=4, max_size=4),
+                "confidence": _edge_floats,
+                "colour": st.lists(_edge_colours, min_size=3, max_size=3),
+            }
+        ),
+        max_size=4,
+    ),
+    st.sampled_from([8, 16]),
+)
+def test_vectorised_checks_agree_with_the_plain_rules(values, bits):
+    detections = [{"class": "person", **item} for item in values]
+    payload = raw(document(detections=detections))
+    expected = _plain_verdict(detections, bits)
+    try:
+        message = decode_message(payload, now=NOW, bits=bits)
+    except RejectedMessage as error:
+        assert error.reason == expected, error
+    else:
+        assert expected is None
+        assert message.xyxy.tolist() == [item["box"] for item in values]
+        assert message.confidence.tolist() == [item["confidence"] for item in values]
+        assert message.colour.tolist() == [item["colour"] for item in values]
+        assert message.colour.dtype == np.int64 and message.xyxy.shape == (len(values), 4)
+
+
 def test_every_reason_is_covered_by_the_table():
     assert {reason for _, _, reason, _ in REJECTIONS} == set(RejectReason)
 

@@ -27,6 +27,12 @@ Per delivery:
    and saves the matcher state (``get_state()``); the rows are published on
    ``cblrs/<plane>/tracks``. Groups released together (a backlog) share one transaction.
 
+Two threads share the work: a *receiver* (steps 1-3: validate, store, acknowledge, buffer)
+and a *tracker* (step 4), so an acknowledgement never waits for the tracker and a burst of
+messages is stored while the previous group is being tracked. A group leaves the buffer and
+the "last released timestamp" advances in one step under a lock, so a message is either in
+its group or counted late, never both.
+
 A restarted service resumes from what SQLite holds: the matcher state and the last released
 timestamp of the last committed group, the unprocessed inbox rows (back into the buffer) and
 the de-duplication set. Messages that were received but not yet stored were never
@@ -191,7 +197,12 @@ class MatcherService:
         self._run_counters: Counter[str] = Counter()
         self._stop = threading.Event()
         self._flush_requested = threading.Event()
+        self._wake = threading.Event()
+        self._received_all = threading.Event()
+        self._state_lock = threading.RLock()
+        self._processing = 0
         self._worker: threading.Thread | None = None
+        self._tracker: threading.Thread | None = None
         self._failure: BaseException | None = None
         self._lock = threading.Lock()
         self._started = False
@@ -213,7 +224,11 @@ class MatcherService:
         self._worker = threading.Thread(
             target=self._work, name=f"cblrs-matcher-{self.plane_id}", daemon=True
         )
+        self._tracker = threading.Thread(
+            target=self._track, name=f"cblrs-tracker-{self.plane_id}", daemon=True
+        )
         self._worker.start()
+        self._tracker.start()
         self.transport.subscribe(status_filter(self.plane_id), self._on_status, qos=1)
         self.transport.subscribe(detections_filter(self.plane_id), self._on_detections, qos=1)
         if connect:
@@ -229,10 +244,13 @@ class MatcherService:
         if flush:
             self._flush_requested.set()
         self._stop.set()
-        if self._worker is not None:
-            self._worker.join(timeout)
-            if self._worker.is_alive():
-                logger.warning("matcher worker did not stop within %.0f s", timeout)
+        deadline = time.monotonic() + timeout
+        for thread in (self._worker, self._tracker):
+            if thread is not None:
+                thread.join(max(0.0, deadline - time.monotonic()))
+                if thread.is_alive():
+                    logger.warning("matcher thread %s did not stop within %.0f s",
+                                   thread.name, timeout)
         if self._failure is not None:
             raise RuntimeError("the matcher service worker failed") from self._failure
 
@@ -272,32 +290,55 @@ class MatcherService:
     # -- worker thread -------------------------------------------------------------------
 
     def _work(self) -> None:
+        """Receiver thread: store and acknowledge deliveries, buffer them for the tracker."""
         try:
             while True:
-                timeout = 0.05 if self._groups else 0.2
                 batch = []
                 try:
-                    batch.append(self._inbox.get(timeout=timeout))
+                    batch.append(self._inbox.get(timeout=0.2))
                     while len(batch) < self.batch_size:
                         batch.append(self._inbox.get_nowait())
                 except queue.Empty:
                     pass
                 if batch:
                     self._handle(batch)
-                self._release_ready()
+                    self._wake.set()
                 # Stopping: finish the current batch; with a flush, also what is queued.
                 # Anything left is unacknowledged, so the broker delivers it again later.
                 if self._stop.is_set() and (
                     self._inbox.empty() or not self._flush_requested.is_set()
                 ):
                     break
-            if self._flush_requested.is_set():
-                self._release_ready(force=True)
         except BaseException as error:  # surfaced by stop()
-            logger.exception("matcher service worker failed")
+            logger.exception("matcher service receiver failed")
             self._failure = error
+        finally:
+            self._received_all.set()
+            self._wake.set()
+
+    def _track(self) -> None:
+        """Tracker thread: release ready groups, track them, commit, publish."""
+        try:
+            while not self._received_all.is_set():
+                self._wake.wait(0.05 if self._groups else 0.2)
+                self._wake.clear()
+                self._release_ready()
+            if self._failure is None:
+                self._release_ready()
+                if self._flush_requested.is_set():
+                    self._release_ready(force=True)
+        except BaseException as error:  # surfaced by stop()
+            logger.exception("matcher service tracker failed")
+            self._failure = error
+            self._stop.set()
 
     def _handle(self, batch: list[tuple[str, Any, float]]) -> None:
+        # Late marking, storing and buffering happen as one step against the tracker's
+        # release of groups (see the module docstring).
+        with self._state_lock:
+            self._handle_locked(batch)
+
+    def _handle_locked(self, batch: list[tuple[str, Any, float]]) -> None:
         now = self.clock()
         counters: Counter[str] = Counter()
         accepted: list[tuple[CameraMessage, str, float]] = []
@@ -401,23 +442,32 @@ class MatcherService:
         )
 
     def _release_ready(self, force: bool = False) -> None:
-        while self._groups:
-            batch: list[tuple[float, _Group]] = []
-            while self._groups and len(batch) < self.groups_per_commit:
-                now = self.clock()
-                timestamp = min(self._groups)
-                group = self._groups[timestamp]
-                if not (
-                    force
-                    or len(self._groups) > self.max_buffered_groups
-                    or self._ready(timestamp, group, now)
-                ):
-                    break
-                del self._groups[timestamp]
-                batch.append((timestamp, group))
-            if not batch:
-                return
-            self._process(batch)
+        while True:
+            with self._state_lock:
+                batch: list[tuple[float, _Group]] = []
+                while self._groups and len(batch) < self.groups_per_commit:
+                    now = self.clock()
+                    timestamp = min(self._groups)
+                    group = self._groups[timestamp]
+                    if not (
+                        force
+                        or len(self._groups) > self.max_buffered_groups
+                        or self._ready(timestamp, group, now)
+                    ):
+                        break
+                    del self._groups[timestamp]
+                    batch.append((timestamp, group))
+                if not batch:
+                    return
+                # From now on a message at or before these timestamps is late; the store
+                # records the same timestamp when the groups are committed.
+                self._released = batch[-1][0]
+                self._processing += 1
+            try:
+                self._process(batch)
+            finally:
+                with self._state_lock:
+                    self._processing -= 1
 
     def _process(self, batch: list[tuple[float, _Group]]) -> None:
         """Track released groups in time order and commit them in one transaction."""
@@ -432,8 +482,8 @@ class MatcherService:
         counters = {"processed": len(keys), "groups": len(results), "tracks": len(tracks)}
         # One snapshot after the last group: the file holds all of these groups or none.
         self.store.commit_group(keys, tracks, self.matcher.get_state(), batch[-1][0], counters)
-        self._released = batch[-1][0]
-        self._run_counters.update(counters)
+        with self._state_lock:
+            self._run_counters.update(counters)
         for timestamp, messages, group_tracks in results:
             self._updates += 1
             if self.publish_tracks:
@@ -456,7 +506,8 @@ class MatcherService:
 
     def buffered(self) -> int:
         """Messages waiting in the ordering buffer."""
-        return sum(len(group.messages) for group in list(self._groups.values()))
+        with self._state_lock:
+            return sum(len(group.messages) for group in self._groups.values())
 
     def cameras_done(self) -> bool:
         """Whether every camera has ended its stream with its own "offline" status.
@@ -482,8 +533,9 @@ class MatcherService:
         return True
 
     def drained(self) -> bool:
-        """Nothing waiting: no undelivered batch and no buffered group."""
-        return self._inbox.empty() and not self._groups
+        """Nothing waiting: no undelivered batch, no buffered group, no group being tracked."""
+        with self._state_lock:
+            return self._inbox.empty() and not self._groups and not self._processing
 
     def failed(self) -> bool:
         return self._failure is not None

@@ -395,7 +395,7 @@ def _columns(
                 RejectReason.COLOUR_OUT_OF_RANGE, f"colour outside 0..{(1 << bits) - 1}"
             ) from None
         _check_columns(table[:, :4], table[:, 4], colour, bits)
-        raise AssertionError("unreachable: the bounds test and the checks disagree")
+        raise RejectedMessage(RejectReason.INVALID_VALUE, "detection values out of range")
     return table[:, :4], table[:, 4], class_id, table[:, 5:].astype(np.int64)
 
 
