@@ -9,8 +9,9 @@ import cv2
 import numpy as np
 import pytest
 
+from cblrs.calibration import WILDTRACK_GROUND
 from cblrs.datasets import Scene, load_scene
-from cblrs.datasets.multiview import detect_layout, position_to_world
+from cblrs.datasets.multiview import GROUND_MARGIN_M, detect_layout, position_to_world
 from cblrs.errors import CblrsError, DatasetError
 
 CAMERA_COUNT = 3
@@ -85,8 +86,14 @@ def test_multiviewx_frames_timestamps_and_positions(multiviewx_root: Path) -> No
     np.testing.assert_array_equal(truth.camera_id, [-1, -1, -1])
     # positionID 123456: x = 456 / 40 = 11.4 m, y = 123 / 40 = 3.075 m.
     np.testing.assert_allclose(truth.world_xy, [[11.4, 3.075], [11.425, 3.075], [0.0, 0.0]])
-    assert scene.plane.origin == (0.0, 0.0)
-    assert (scene.plane.width, scene.plane.length, scene.plane.bits) == (25.0, 16.0, 16)
+    # The annotated area (0, 0, 25 x 16 m) grown by the margin on every side.
+    margin = GROUND_MARGIN_M
+    assert margin > 0
+    assert scene.plane.origin == (-margin, -margin)
+    assert (scene.plane.width, scene.plane.length, scene.plane.bits) == (
+        25.0 + 2 * margin, 16.0 + 2 * margin, 16,
+    )
+    assert scene.plane.step[0] < 1e-3  # still sub-millimetre at 16 bits
 
 
 def test_multiviewx_detections_per_camera(multiviewx_root: Path) -> None:
@@ -187,6 +194,12 @@ def test_wildtrack(wildtrack_root: Path) -> None:
     first = truth[(truth.frame == 0) & (truth.track_id == 122)]
     expected = [-3.0 + 0.025 * (456826 % 480), -9.0 + 0.025 * (456826 // 480)]
     np.testing.assert_allclose(first.world_xy, [expected])
+    # The plane is the annotated area grown by the margin on every side.
+    x0, y0, width, length = WILDTRACK_GROUND
+    assert scene.plane.origin == (x0 - GROUND_MARGIN_M, y0 - GROUND_MARGIN_M)
+    assert scene.plane.width == pytest.approx(width + 2 * GROUND_MARGIN_M)
+    assert scene.plane.length == pytest.approx(length + 2 * GROUND_MARGIN_M)
+    assert scene.plane.contains(truth.world_xy).all()
     boxes = scene.detections[0][0]
     np.testing.assert_allclose(boxes.xyxy[boxes.object_id == 122], [[1510, 139, 1561, 299]])
     # Frame 85, view 3, person 4 has xmin = -1 (partly outside): kept, not skipped.

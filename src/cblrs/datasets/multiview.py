@@ -27,7 +27,8 @@ positionID grid   480 x 1440 cells of 2.5 cm from      1000 x 640 cells of 2.5 c
 
 :func:`load_scene` turns either into a :class:`cblrs.datasets.scene.Scene` with the annotated
 boxes as detections (``object_id`` = personID) and the positions as ground-truth tracks, all
-in metres and seconds.
+in metres and seconds. Its ground plane is the annotated area grown by ``GROUND_MARGIN_M`` on
+every side, so that foot points of people at the border still decode.
 """
 
 from __future__ import annotations
@@ -54,6 +55,10 @@ logger = logging.getLogger(__name__)
 
 ANNOTATION_FOLDER = "annotations_positions"
 LAYOUTS = ("wildtrack", "multiviewx")
+# The scene plane is the annotated area grown by this much on every side, metres: people
+# standing at the border of the annotated area have foot points that land just outside it
+# (box bottoms are not exactly the feet), and a point off the plane has no location (B = 0).
+GROUND_MARGIN_M = 2.0
 
 
 @dataclass(frozen=True)
@@ -200,7 +205,11 @@ def load_scene(path: str | Path, layout: str | None = None, distorted: bool | No
         world_xy=np.concatenate(truth_position),
     )
     x0, y0, width, length = spec.ground
-    plane = PlaneSpec(1, (x0, y0), width, length, bits=16, name=f"{spec.name} ground")
+    margin = GROUND_MARGIN_M
+    plane = PlaneSpec(
+        1, (x0 - margin, y0 - margin), width + 2 * margin, length + 2 * margin, bits=16,
+        name=f"{spec.name} ground",
+    )
     logger.debug(
         "loaded %s: %d cameras, %d frames, %d ground-truth rows",
         path, len(cameras), len(frame_array), len(ground_truth),
