@@ -35,6 +35,7 @@ Usage::
 
     python benchmarks/bench_mqtt.py                 # 1, 10, 50 cameras, 3 repeats
     python benchmarks/bench_mqtt.py --cameras 50 --repeats 5 --json
+    python benchmarks/bench_mqtt.py --stages        # per-step costs in-process, no broker
 """
 
 from __future__ import annotations
@@ -384,6 +385,63 @@ def median_of(runs: list[dict]) -> dict:
     return merged
 
 
+# --------------------------------------------------------------------------- stages
+
+
+def _best_seconds(function, number: int, repeats: int = 5) -> float:
+    """Best mean time of ``function`` over ``repeats`` rounds of ``number`` calls, seconds."""
+    best = math.inf
+    for _ in range(repeats):
+        started = time.perf_counter()
+        for _ in range(number):
+            function()
+        best = min(best, (time.perf_counter() - started) / number)
+    return best
+
+
+def measure_stages(cameras: int, people: int, matcher_name: str, frames: int = 90) -> dict:
+    """In-process cost of each step a message or group takes in the matcher, no MQTT."""
+    names = camera_names(cameras)
+    policy = ValidationPolicy(known_cameras=frozenset(names), max_future_s=3600.0)
+    epoch = time.time()
+    payloads = _frames(names, frames, 30.0, epoch, people)
+    topic_camera = names[-1]
+    payload = payloads[0][-1]
+    decode = _best_seconds(
+        lambda: policy.decode_with_plane(payload, topic_camera=topic_camera, now=epoch,
+                                         topic_plane=PLANE_ID), 2000)
+    groups = [[policy.decode(item, now=epoch) for item in group] for group in payloads]
+    matcher = make_matcher(matcher_name, PlaneSet([PLANE]), names)
+    updates = []
+    outputs = []
+    for frame, group in enumerate(groups):
+        started = time.perf_counter()
+        outputs.append(matcher.update(epoch + frame / 30.0, group))
+        updates.append(time.perf_counter() - started)
+    steady = updates[frames // 3:]  # after the tracks are born
+    with tempfile.TemporaryDirectory(prefix="cblrs-bench-") as folder:
+        store = RuntimeStore(Path(folder) / "stages.db")
+        rows = [(message, "pending", epoch) for group in groups for message in group]
+        started = time.perf_counter()
+        for start in range(0, len(rows), cameras):
+            store.insert_messages(rows[start:start + cameras])
+        insert = (time.perf_counter() - started) / len(rows)
+        started = time.perf_counter()
+        for frame, group in enumerate(groups):
+            store.commit_group([(m.camera_id, m.sequence) for m in group], outputs[frame],
+                               matcher.get_state(), epoch + frame / 30.0, {"groups": 1})
+        commit = (time.perf_counter() - started) / frames
+        store.close()
+    return {
+        "cameras": cameras, "people": people, "matcher": matcher_name,
+        "decode_us_per_message": 1e6 * decode,
+        "insert_us_per_message": 1e6 * insert,
+        "update_ms_per_group": 1e3 * statistics.median(steady),
+        "update_us_per_message": 1e6 * statistics.median(steady) / cameras,
+        "commit_ms_per_group": 1e3 * commit,
+    }
+
+
 # --------------------------------------------------------------------------- machine
 
 
@@ -430,8 +488,22 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--fps", type=float, default=30.0)
     parser.add_argument("--people", type=int, default=2, help="detections per message")
     parser.add_argument("--matcher", default="fusion")
+    parser.add_argument("--stages", action="store_true",
+                        help="only time each matcher step in-process (no broker) and exit")
     parser.add_argument("--json", action="store_true")
     args = parser.parse_args(argv)
+    if args.stages:
+        stage_rows = [measure_stages(cameras, args.people, args.matcher)
+                      for cameras in args.cameras]
+        if args.json:
+            print(json.dumps({"machine": machine(), "stages": stage_rows}, indent=2))
+        for row in stage_rows if not args.json else []:
+            print(f"{row['cameras']:3d} cameras: decode {row['decode_us_per_message']:5.1f} us/msg"
+                  f", inbox insert {row['insert_us_per_message']:5.1f} us/msg, {args.matcher} "
+                  f"update {row['update_ms_per_group']:5.2f} ms/group "
+                  f"({row['update_us_per_message']:5.0f} us/msg), commit "
+                  f"{row['commit_ms_per_group']:5.2f} ms/group")
+        return 0
     for run in args.runs:
         receiver, _, rate = run.partition("/")
         if receiver not in RECEIVERS or rate not in ("max", "paced"):

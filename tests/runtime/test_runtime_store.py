@@ -168,3 +168,34 @@ def test_message_round_trip_property(tmp_path_factory, timestamp, sequence, colo
     assert back.message.timestamp == timestamp
     assert back.message.sequence == sequence
     np.testing.assert_array_equal(back.message.colour, original.colour)
+
+
+_EARLIER_INBOX = """
+CREATE TABLE inbox (
+    camera_id TEXT NOT NULL, sequence INTEGER NOT NULL, timestamp REAL NOT NULL,
+    frame INTEGER NOT NULL, received_at REAL NOT NULL, status TEXT NOT NULL,
+    body TEXT NOT NULL, PRIMARY KEY (camera_id, sequence)
+) WITHOUT ROWID;
+"""
+
+
+@pytest.mark.parametrize("earlier", [False, True], ids=["rowid inbox", "WITHOUT ROWID inbox"])
+def test_inbox_layouts_deduplicate_and_process_alike(tmp_path, earlier):
+    path = tmp_path / "runtime.db"
+    if earlier:  # a file written before the inbox became a rowid table
+        with sqlite3.connect(path) as connection:
+            connection.executescript(_EARLIER_INBOX)
+    with RuntimeStore(path) as opened:
+        first = [(message("A", 0), PENDING, 1.0), (message("B", 0), PENDING, 1.0)]
+        assert opened.insert_messages(first) == [True, True]
+        again = [(message("A", 0), PENDING, 2.0), (message("A", 1, 11.0), LATE, 2.0)]
+        assert opened.insert_messages(again) == [False, True]
+        opened.commit_group([("A", 0), ("B", 0)], tracks(2), {"n": 1}, 10.0, {"groups": 1})
+    with sqlite3.connect(path) as connection:
+        (sql,) = connection.execute("SELECT sql FROM sqlite_master WHERE name = 'inbox'").fetchone()
+    assert ("WITHOUT ROWID" in sql) == earlier
+    with RuntimeStore(path) as reopened:
+        assert reopened.status_counts() == {PROCESSED: 2, LATE: 1}
+        assert reopened.counters()["duplicates"] == 1
+        assert [stored.received_at for stored in reopened.messages(PROCESSED)] == [1.0, 1.0]
+        assert reopened.insert_messages([(message("B", 0), PENDING, 3.0)]) == [False]

