@@ -25,6 +25,7 @@ from cblrs.errors import (
     ReferenceImageError,
 )
 from cblrs.evaluation import Metrics, evaluate
+from cblrs.geometric_targeting import GeometricTargeter
 from cblrs.locate import ColorLocator, HomographyLocator, Locator, LUTLocator
 from cblrs.matching import make_matcher
 from cblrs.pipeline import TrackingResult, render_scene_references, track_scene
@@ -46,6 +47,7 @@ __all__ = [
     "ColorLocator",
     "DatasetError",
     "Detections",
+    "GeometricTargeter",
     "HomographyLocator",
     "LUTLocator",
     "Locator",

@@ -22,17 +22,17 @@ from cblrs.errors import CblrsError
 
 # Subcommand modules, in the order `cblrs --help` lists them.
 SUBCOMMANDS = [
+    "demo",
     "render",
     "locate",
     "show",
-    "bench",
-    "experiment",
     "track",
     "eval",
+    "broker_config",
     "camera",
     "matcher",
-    "demo",
-    "broker_config",
+    "bench",
+    "experiment",
 ]
 
 
