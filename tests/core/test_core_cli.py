@@ -43,7 +43,9 @@ def test_render_wildtrack_writes_seven_references(wildtrack_render):
     )
     reference = ReferenceImage.load(paths[0], expected_size=(1920, 1080))
     assert reference.bits == 8
-    assert reference.planes[0].origin == (-3.0, -9.0)
+    # The annotated area (-3, -9, 12 x 36 m) grown by the loader's 2 m margin, as `cblrs track`.
+    assert reference.planes[0].origin == (-5.0, -11.0)
+    assert (reference.planes[0].width, reference.planes[0].length) == (16.0, 40.0)
     assert 0.5 < reference.coverage() < 0.95
 
 

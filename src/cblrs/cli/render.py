@@ -110,8 +110,17 @@ def build_planes(args: argparse.Namespace) -> PlaneSet:
                 f"{args.calibration} is not a WILDTRACK or MultiviewX folder, so give the "
                 "plane extent with --plane X0,Y0,WIDTH,LENGTH or --planes-file."
             )
+        # The same plane as `cblrs track` and the demo use (`load_scene`): the annotated area
+        # grown by a margin, so that foot points of people at its border still decode.
+        from cblrs.datasets.multiview import GROUND_MARGIN_M as margin
+
         x0, y0, width, length = ground
-        planes = [PlaneSpec(1, (x0, y0), width, length, bits, name="ground")]
+        planes = [
+            PlaneSpec(
+                1, (x0 - margin, y0 - margin), width + 2 * margin, length + 2 * margin, bits,
+                name="ground",
+            )
+        ]
     return PlaneSet(planes)
 
 
