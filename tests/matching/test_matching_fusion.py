@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import numpy as np
@@ -9,8 +10,10 @@ import pytest
 
 from cblrs.detections import CameraMessage, Tracks
 from cblrs.matching import FusionTracker, MatcherError, kalman, make_matcher
+from cblrs.matching.base import decode_messages
 from cblrs.matching.fusion import (
     NoiseModel,
+    _merge_assignments,
     assign_per_camera,
     cluster_detections,
     fuse,
@@ -163,6 +166,8 @@ def test_a_single_camera_detection_is_not_reported_until_confirmed():
         ({"camera_positions": {"north": (0, 1, -2)}},
          "camera height of 'north' must be above the ground, got -2 m"),
         ({"kalman": True}, "unknown option(s) for the fusion matcher: kalman"),
+        ({"association_orders": 0}, "association_orders must be a whole number >= 1, got 0"),
+        ({"association_orders": 2.5}, "association_orders must be a whole number >= 1"),
     ],
 )
 def test_bad_options(options, expected):
@@ -384,3 +389,67 @@ def test_motion_model_options_are_checked():
         FusionTracker(PLANES, CAMERAS, model_sojourn_s=(5.0,))
     with pytest.raises(MatcherError, match="model_acceleration_factors must be a non-empty"):
         FusionTracker(PLANES, CAMERAS, model_acceleration_factors=())
+
+
+@pytest.mark.parametrize(
+    ("best", "candidate", "best_track", "candidate_track", "detection_cost", "expected"),
+    [
+        # Detections 0, 1 swap tracks 0, 1 (one group); the candidate is cheaper there.
+        ([0, 1, 2], [1, 0, 2], [5.0, 5.0, 1.0], [2.0, 2.0, 1.0], [9.0] * 3, [1, 0, 2]),
+        # ... and dearer: the best one stays.
+        ([0, 1, 2], [1, 0, 2], [2.0, 2.0, 1.0], [5.0, 5.0, 1.0], [9.0] * 3, [0, 1, 2]),
+        # Two independent groups: each takes its own cheaper assignment.
+        ([0, 1, 2, 3], [1, 0, 3, 2], [5.0, 5.0, 1.0, 1.0], [2.0, 2.0, 3.0, 3.0], [9.0] * 4,
+         [1, 0, 2, 3]),
+        # The candidate leaves detection 1 out (its cost 9 counts against it).
+        ([0, 1], [0, -1], [1.0, 4.0], [1.0, 0.0], [9.0, 9.0], [0, 1]),
+        ([0, 1], [0, -1], [1.0, 12.0], [1.0, 0.0], [9.0, 9.0], [0, -1]),
+        # Nothing to merge.
+        ([], [], [], [], [], []),
+    ],
+)
+def test_merge_assignments_keeps_the_cheaper_one_per_group(
+    best, candidate, best_track, candidate_track, detection_cost, expected
+):
+    best, candidate = np.array(best, np.int64), np.array(candidate, np.int64)
+    detection_cost = np.array(detection_cost)
+    best_detection = np.where(best < 0, detection_cost, 0.0)
+    candidate_detection = np.where(candidate < 0, detection_cost, 0.0)
+    merged = _merge_assignments(
+        best, candidate, np.flatnonzero(best != candidate), np.array(best_track),
+        best_detection, np.array(candidate_track), candidate_detection,
+    )
+    np.testing.assert_array_equal(merged, expected)
+
+
+def test_more_camera_orders_never_explain_an_instant_less_likely():
+    """The assignment kept from several camera orders is at least as likely as the first's."""
+    rng = np.random.default_rng(3)
+    tracker = FusionTracker(PLANES, CAMERAS, camera_positions=CAMERA_XY, group_radius_m=0.0,
+                            association_orders=3)
+    start = rng.uniform(2, 8, size=(12, 2))
+    velocity = rng.uniform(-1.0, 1.0, size=(12, 2))  # m/s: everyone stays on the plane
+    improved = 0
+    for frame in range(16):
+        timestamp = frame * 0.5
+        truth = start + velocity * timestamp
+        messages = [
+            camera_message(camera, frame, timestamp, truth[rng.random(len(truth)) > 0.2], rng,
+                           0.25)
+            for camera in CAMERAS
+        ]
+        tracker._predict(timestamp)  # update() below predicts by 0 s again: no change
+        observed = decode_messages(tracker.planes, tracker._cameras, messages)
+        covariance = tracker._measurement_covariance(observed)
+        costs = {}
+        for orders in (1, 3):
+            tracker.config = dataclasses.replace(tracker.config, association_orders=orders)
+            assigned = tracker._associate(observed, covariance)
+            track_cost, detection_cost = tracker._joint_cost(
+                observed, covariance, assigned, list(range(len(CAMERAS)))
+            )
+            costs[orders] = track_cost.sum() + detection_cost.sum()
+        assert costs[3] <= costs[1] + 1e-6
+        improved += costs[3] < costs[1] - 1e-6
+        tracker.update(timestamp, messages)
+    assert improved > 0  # the scene is crowded enough for the orders to disagree

@@ -139,6 +139,10 @@ class FusionConfig:
         refine_passes: after the cameras are assigned one after the other, each camera's
             detections are assigned again this many times against the tracks as corrected
             by all the other cameras (0: one sequential pass only).
+        association_orders: camera orders the sequential assignment is run in (the most
+            precise camera first, then the reverse, then rotations); where the assignments
+            differ, each connected group of tracks and detections keeps the one with the
+            smaller negative log-likelihood (1: the most-precise-first order only).
         merge_radius_m: two confirmed tracks closer than this, observed at the same instant
             by disjoint sets of cameras, are one object seen twice; the younger one is dropped.
         confirm_evidence: camera detections (summed over instants) a track needs before it
@@ -171,6 +175,7 @@ class FusionConfig:
     cluster_radius_m: float = 1.0
     group_radius_m: float = 0.7
     refine_passes: int = 1
+    association_orders: int = 2
     merge_radius_m: float = 0.0
     confirm_evidence: int = 2
     tentative_max_age_s: float = 1.0
@@ -213,6 +218,11 @@ class FusionConfig:
             isinstance(self.refine_passes, int) and not isinstance(self.refine_passes, bool)
             and self.refine_passes >= 0,
             f"refine_passes must be a whole number >= 0, got {self.refine_passes!r}.",
+        )
+        require(
+            isinstance(self.association_orders, int)
+            and not isinstance(self.association_orders, bool) and self.association_orders >= 1,
+            f"association_orders must be a whole number >= 1, got {self.association_orders!r}.",
         )
         require(
             isinstance(self.confirm_evidence, int) and not isinstance(self.confirm_evidence, bool)
@@ -537,6 +547,126 @@ class FusionTracker:
             return assigned
         taken = np.zeros((track_count, len(self.camera_ids)), dtype=bool)
         taken[assigned[assigned >= 0], observed.camera[assigned >= 0]] = True
+        rest_camera = observed.camera[rest]
+        cameras = np.unique(rest_camera)
+        precision = np.array([np.median(self._sigma[rest[rest_camera == one]])
+                              for one in cameras.tolist()])
+        order = cameras[np.argsort(precision, kind="stable")].tolist()
+        best = self._associate_in_order(observed, covariance, assigned, rest, taken, order)
+        if self.config.association_orders > 1 and len(order) > 1:
+            # The camera order is a heuristic and an early wrong choice propagates to the
+            # cameras after it. Assign again in other orders (the reverse first, then
+            # rotations) and keep, in each group of tracks and detections where the
+            # assignments differ, the one that explains them more likely.
+            contested = self._contested(observed, covariance, rest)
+            orders = [order[::-1]] + [order[k:] + order[:k] for k in range(1, len(order))]
+            orders = orders[: self.config.association_orders - 1] if contested.any() else []
+            if orders:
+                # Uncontested detections keep their track; only the others are reassigned.
+                settled = rest[~contested & (best[rest] >= 0)]
+                others_taken = taken.copy()
+                others_taken[best[settled], observed.camera[settled]] = True
+                start = assigned.copy()
+                start[settled] = best[settled]
+                best_track, best_detection = self._joint_cost(observed, covariance, best, order)
+            for index, other_order in enumerate(orders):
+                candidate = self._associate_in_order(
+                    observed, covariance, start, rest[contested], others_taken, other_order
+                )
+                differ = np.flatnonzero(candidate != best)
+                if len(differ) == 0:
+                    continue
+                track_cost, detection_cost = self._joint_cost(
+                    observed, covariance, candidate, order
+                )
+                best = _merge_assignments(
+                    best, candidate, differ, best_track, best_detection, track_cost,
+                    detection_cost,
+                )
+                if index + 1 < len(orders):
+                    best_track, best_detection = self._joint_cost(
+                        observed, covariance, best, order
+                    )
+        return best
+
+    def _contested(
+        self, observed: Observations, covariance: np.ndarray, rest: np.ndarray
+    ) -> np.ndarray:
+        """(R,) bool: detections ``rest`` whose assignment could depend on the camera order.
+
+        Connected components of the gate graph (detections and tracks linked by the pairs
+        within the gate of the prediction) with one track and at most one detection per
+        camera are settled; every other component is contested.
+        """
+        rows, columns, _ = self._gated_pairs(
+            observed.world_xy[rest], covariance[rest], observed.class_id[rest]
+        )
+        contested = np.zeros(len(rest), dtype=bool)
+        if len(rows) == 0:
+            return contested
+        track_count = len(self._ids)
+        node_count = len(rest) + track_count
+        graph = coo_matrix(
+            (np.ones(len(rows)), (rows, len(rest) + columns)), shape=(node_count, node_count)
+        )
+        _, label = connected_components(graph, directed=False)
+        size = int(label.max()) + 1
+        tracks_in = np.bincount(label[len(rest):], minlength=size)
+        detection_label = label[: len(rest)]
+        camera_count = len(self.camera_ids)
+        per_camera = np.bincount(
+            detection_label * camera_count + observed.camera[rest],
+            minlength=size * camera_count,
+        ).reshape(size, camera_count)
+        busy = (tracks_in > 1) | (per_camera.max(axis=1) > 1)
+        return busy[detection_label]
+
+    def _joint_cost(
+        self, observed: Observations, covariance: np.ndarray, assigned: np.ndarray,
+        order: list[int],
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Negative log-likelihood of an assignment, split into (T,) per track (its cameras'
+        innovations in turn) and (N,) per unassigned detection (as if at the gate)."""
+        state, state_covariance = self._state.copy(), self._covariance.copy()
+        track_count = len(self._ids)
+        unassigned = assigned < 0
+        spare = covariance + self._object_covariance
+        detection_cost = np.where(
+            unassigned,
+            self.config.gate_sigmas**2
+            + np.log(spare[:, 0, 0] * spare[:, 1, 1] - spare[:, 0, 1] * spare[:, 1, 0]),
+            0.0,
+        )
+        track_cost = np.zeros(track_count)
+        for one in order:
+            mine = np.flatnonzero((observed.camera == one) & ~unassigned)
+            if len(mine) == 0:
+                continue
+            tracks = assigned[mine]
+            innovation = (state_covariance[tracks, :2, :2] + covariance[mine]
+                          + self._object_covariance)
+            determinant = (innovation[:, 0, 0] * innovation[:, 1, 1]
+                           - innovation[:, 0, 1] * innovation[:, 1, 0])
+            track_cost += np.bincount(
+                tracks,
+                mahalanobis_squared(observed.world_xy[mine] - state[tracks, :2], innovation)
+                + np.log(determinant),
+                minlength=track_count,
+            )
+            state[tracks], state_covariance[tracks] = kalman.update(
+                state[tracks], state_covariance[tracks], observed.world_xy[mine],
+                covariance[mine],
+            )
+        return track_cost, detection_cost
+
+    def _associate_in_order(
+        self, observed: Observations, covariance: np.ndarray, assigned: np.ndarray,
+        rest: np.ndarray, taken: np.ndarray, order: list[int],
+    ) -> np.ndarray:
+        """Camera-by-camera assignment of the detections ``rest`` in the given camera order."""
+        assigned = assigned.copy()
+        track_count = len(self._ids)
+        rest_camera = observed.camera[rest]
         # Cameras are processed one after the other, as a Kalman filter processes
         # independent sensors: each camera's detections are assigned against the tracks
         # as already corrected by the cameras before it, most precise camera first. A
@@ -554,11 +684,7 @@ class FusionTracker:
                 state[present], state_covariance[present], position[present],
                 fused_covariance[present],
             )
-        rest_camera = observed.camera[rest]
-        cameras = np.unique(rest_camera)
-        precision = np.array([np.median(self._sigma[rest[rest_camera == one]])
-                              for one in cameras.tolist()])
-        for one in cameras[np.argsort(precision, kind="stable")].tolist():
+        for one in order:
             mine = rest[rest_camera == one]
             rows, columns, cost = self._gated_pairs(
                 observed.world_xy[mine], covariance[mine], observed.class_id[mine],
@@ -578,7 +704,6 @@ class FusionTracker:
                     state[tracks], state_covariance[tracks], observed.world_xy[mine[ok]],
                     covariance[mine[ok]],
                 )
-        order = cameras[np.argsort(precision, kind="stable")].tolist()
         for _ in range(self.config.refine_passes if len(order) > 1 else 0):
             for one in order:
                 # Revisit each camera against the tracks corrected by all other cameras.
@@ -1227,6 +1352,51 @@ def assign_per_camera(
         valid = block[chosen_rows, chosen_columns] < _UNASSIGNABLE
         assigned[block_rows[chosen_rows[valid]]] = block_columns[chosen_columns[valid]]
     return assigned
+
+
+def _merge_assignments(
+    best: np.ndarray, candidate: np.ndarray, differ: np.ndarray, best_track: np.ndarray,
+    best_detection: np.ndarray, candidate_track: np.ndarray, candidate_detection: np.ndarray,
+) -> np.ndarray:
+    """Combine two assignments, taking the cheaper one in each group where they differ.
+
+    A group is a connected set of tracks and detections linked by the detections assigned
+    differently (a detection links the track it has in either assignment); groups share no
+    track and no detection, so any choice per group is a valid assignment.
+
+    Args:
+        best, candidate: (N,) int64 track of each detection (-1: none).
+        differ: (D,) indices of the detections where they differ.
+        best_track, candidate_track: (T,) cost of each track under either assignment.
+        best_detection, candidate_detection: (N,) cost of each detection left unassigned.
+
+    Returns:
+        (N,) int64 the combined assignment.
+    """
+    if len(differ) == 0:
+        return best.copy()
+    track_count = len(best_track)
+    node_count = track_count + len(best)
+    source = np.concatenate([differ + track_count, differ + track_count])
+    target = np.concatenate([best[differ], candidate[differ]])
+    keep = target >= 0
+    graph = coo_matrix(
+        (np.ones(int(keep.sum())), (source[keep], target[keep])), shape=(node_count, node_count)
+    )
+    _, label = connected_components(graph, directed=False)
+    track_label, detection_label = label[:track_count], label[track_count:]
+    involved = np.unique(detection_label[differ])
+    size = int(label.max()) + 1
+    track_gain = np.bincount(track_label, best_track - candidate_track, minlength=size)
+    detection_gain = np.bincount(
+        detection_label, best_detection - candidate_detection, minlength=size
+    )
+    better = np.zeros(size, dtype=bool)
+    better[involved] = (track_gain + detection_gain)[involved] > 1e-9
+    merged = best.copy()
+    take = differ[better[detection_label[differ]]]
+    merged[take] = candidate[take]
+    return merged
 
 
 def cluster_detections(
