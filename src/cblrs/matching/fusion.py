@@ -18,7 +18,12 @@ observations of one point. Per instant:
    corrected by the cameras before it (as a Kalman filter processes independent sensors),
    then once more against the tracks corrected by all other cameras. Each step is a
    Hungarian assignment on the negative log-likelihood, gated by Mahalanobis distance,
-   a metric cap and class (a track takes at most one detection from each camera);
+   a metric cap and class (a track takes at most one detection from each camera). An
+   early wrong choice propagates to the cameras after it, so where tracks compete the
+   cameras are assigned again in the reverse order, and each connected group of tracks
+   and detections where the two assignments differ keeps the more likely one (the sum of
+   the cameras' innovation costs, an unassigned detection costing as much as one at the
+   gate);
 4. let leftovers join a track other cameras saw at this instant when they are consistent
    with its fused position (the gate must not split one object's views);
 5. fuse each track's detections in information form (inverse covariances) and update the
