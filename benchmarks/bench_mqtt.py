@@ -473,6 +473,38 @@ def _format(value: float, width: int = 7, digits: int = 1) -> str:
     return " " * (width - 1) + "-" if math.isnan(value) else f"{value:{width}.{digits}f}"
 
 
+def markdown_table(info: dict, rows: list[dict], args: argparse.Namespace) -> str:
+    """The results as a markdown table with the machine and settings above it."""
+
+    def cell(value: float, digits: int = 1) -> str:
+        return "–" if math.isnan(value) else f"{value:.{digits}f}"
+
+    def pair(first: float, second: float) -> str:
+        return "–" if math.isnan(first) else f"{cell(first)} / {cell(second)}"
+
+    lines = [
+        f"QoS 1 on loopback, {args.people} detections per message, {args.fps:g} fps when paced, "
+        f"{args.matcher} matcher; publishers: {args.publisher} (one connection per camera, "
+        f"other processes). {info['cpu']}, {info['cores']} cores, Python {info['python']}, "
+        f"{info['mosquitto']}, paho-mqtt {info['paho-mqtt']}; load average "
+        f"{info['load_start'][0]:.2f} at start, {info['load_end'][0]:.2f} at end (a shared "
+        f"machine); medians of {args.repeats} runs.",
+        "",
+        "| cameras | receiver | rate | received msg/s | tracked msg/s "
+        "| receipt p50 / p99 ms | track output p50 / p99 ms | lost |",
+        "|---:|---|---|---:|---:|---:|---:|---:|",
+    ]
+    for row in rows:
+        lines.append(
+            f"| {row['cameras']} | {row['receiver']} | {row['rate']} "
+            f"| {row['received_per_s']:.0f} | {cell(row['tracked_per_s'], 0)} "
+            f"| {pair(row['receipt_p50_ms'], row['receipt_p99_ms'])} "
+            f"| {pair(row['track_p50_ms'], row['track_p99_ms'])} "
+            f"| {row['messages'] - row['received']} |"
+        )
+    return "\n".join(lines)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--cameras", type=int, nargs="+", default=[1, 10, 50])
@@ -491,6 +523,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--stages", action="store_true",
                         help="only time each matcher step in-process (no broker) and exit")
     parser.add_argument("--json", action="store_true")
+    parser.add_argument("--markdown", action="store_true",
+                        help="print a markdown table (for docs/results/bench_mqtt.md)")
     args = parser.parse_args(argv)
     if args.stages:
         stage_rows = [measure_stages(cameras, args.people, args.matcher)
@@ -512,7 +546,7 @@ def main(argv: list[str] | None = None) -> int:
             parser.error("the broker receiver (mosquitto_sub) measures max throughput only")
     info = machine()
     info["load_start"] = list(os.getloadavg())
-    if not args.json:
+    if not (args.json or args.markdown):
         print(f"{info['cpu']}, {info['cores']} cores, Python {info['python']}, "
               f"{info['mosquitto']}, paho-mqtt {info['paho-mqtt']}; publisher: "
               f"{args.publisher}; load average {info['load_start'][0]:.2f}", flush=True)
@@ -531,7 +565,7 @@ def main(argv: list[str] | None = None) -> int:
             row = median_of(runs)
             row["runs"] = runs
             rows.append(row)
-            if not args.json:
+            if not (args.json or args.markdown):
                 print(
                     f"{cameras:4d} {receiver:9s} {rate:5s} {row['messages']:6d} "
                     f"{row['received_per_s']:8.0f} {_format(row['tracked_per_s'], 8, 0)} | "
@@ -541,7 +575,9 @@ def main(argv: list[str] | None = None) -> int:
                     flush=True,
                 )
     info["load_end"] = list(os.getloadavg())
-    if args.json:
+    if args.markdown:
+        print(markdown_table(info, rows, args))
+    elif args.json:
         document = {"machine": info, "publisher": args.publisher, "repeats": args.repeats,
                     "fps": args.fps, "people": args.people, "matcher": args.matcher,
                     "results": rows}
