@@ -19,7 +19,7 @@ from numpy.typing import NDArray
 
 from cblrs.camera import MAX_WORLD_DISTANCE_M, Camera, homography_pixel_to_world
 from cblrs.errors import ReferenceImageError
-from cblrs.reference import ReferenceImage
+from cblrs.reference import ReferenceImage, nearest_pixel_indices
 
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
@@ -200,15 +200,8 @@ class LUTLocator:
             raise ReferenceImageError(f"cannot read LUT {path}: {error}.") from None
 
     def locate(self, pixels: NDArray) -> tuple[FloatArray, BoolArray]:
-        pixels = np.asarray(pixels, dtype=np.float64)
-        if pixels.ndim != 2 or pixels.shape[1] != 2:
-            raise ValueError(f"pixels must have shape (N, 2), got {pixels.shape}")
-        width, height = self.image_size
-        finite = np.isfinite(pixels).all(axis=1)
-        columns = np.floor(np.where(finite, pixels[:, 0], -1) + 0.5).astype(np.int64)
-        rows = np.floor(np.where(finite, pixels[:, 1], -1) + 0.5).astype(np.int64)
-        inside = finite & (columns >= 0) & (columns < width) & (rows >= 0) & (rows < height)
-        world_xy = self._flat[np.where(inside, rows * width + columns, 0)].astype(np.float64)
+        indices, inside = nearest_pixel_indices(pixels, self.image_size)
+        world_xy = self._flat[indices].astype(np.float64)
         valid = inside & np.isfinite(world_xy[:, 0])
         world_xy[~valid] = np.nan
         return world_xy, valid

@@ -88,15 +88,7 @@ class ReferenceImage:
 
     def pixel_indices(self, pixels: NDArray) -> tuple[NDArray[np.int64], BoolArray]:
         """Flat indices of the nearest pixel centres and an inside-the-image mask."""
-        pixels = np.asarray(pixels, dtype=np.float64)
-        if pixels.ndim != 2 or pixels.shape[1] != 2:
-            raise ValueError(f"pixels must have shape (N, 2), got {pixels.shape}")
-        width, height = self.image_size
-        finite = np.isfinite(pixels).all(axis=1)
-        columns = np.floor(np.where(finite, pixels[:, 0], -1) + 0.5).astype(np.int64)
-        rows = np.floor(np.where(finite, pixels[:, 1], -1) + 0.5).astype(np.int64)
-        inside = finite & (columns >= 0) & (columns < width) & (rows >= 0) & (rows < height)
-        return np.where(inside, rows * width + columns, 0), inside
+        return nearest_pixel_indices(pixels, self.image_size)
 
     def colours_at(self, pixels: NDArray) -> tuple[NDArray[np.int64], BoolArray]:
         """Colours (N, 3) at pixel positions (N, 2); pixels outside the image read (0, 0, 0).
@@ -228,6 +220,30 @@ class ReferenceImage:
             )
         pixels = cast(NDArray[np.unsignedinteger], np.ascontiguousarray(decoded[..., ::-1]))
         return cls(pixels=pixels, planes=planes, camera_name=str(metadata.get("camera", "")))
+
+
+def nearest_pixel_indices(
+    pixels: NDArray, image_size: tuple[int, int]
+) -> tuple[NDArray[np.int64], BoolArray]:
+    """Flat row-major indices of the pixel centres nearest to ``pixels``.
+
+    Args:
+        pixels: (N, 2) float pixel coordinates (x, y).
+        image_size: (width, height).
+
+    Returns:
+        ``(indices, inside)``: (N,) int64 indices into an (H*W,) array (0 where outside) and
+        (N,) bool, False for pixels outside the image or not finite.
+    """
+    pixels = np.asarray(pixels, dtype=np.float64)
+    if pixels.ndim != 2 or pixels.shape[1] != 2:
+        raise ValueError(f"pixels must have shape (N, 2), got {pixels.shape}")
+    width, height = image_size
+    finite = np.isfinite(pixels).all(axis=1)
+    columns = np.floor(np.where(finite, pixels[:, 0], -1) + 0.5).astype(np.int64)
+    rows = np.floor(np.where(finite, pixels[:, 1], -1) + 0.5).astype(np.int64)
+    inside = finite & (columns >= 0) & (columns < width) & (rows >= 0) & (rows < height)
+    return np.where(inside, rows * width + columns, 0), inside
 
 
 def render_reference(
