@@ -72,6 +72,9 @@ from cblrs.runtime.wire import (
 
 logger = logging.getLogger(__name__)
 
+_BACKLOG_GROUPS = 3
+"""Buffered groups beyond which the receiver lets the tracker catch up before storing more."""
+
 COUNTER_NAMES = ("received", "accepted", "duplicates", "late", "processed", "groups", "tracks")
 """Counters every summary shows (rejections add ``rejected.<reason>``)."""
 
@@ -198,6 +201,7 @@ class MatcherService:
         self._stop = threading.Event()
         self._flush_requested = threading.Event()
         self._wake = threading.Event()
+        self._tracked = threading.Event()
         self._received_all = threading.Event()
         self._state_lock = threading.RLock()
         self._processing = 0
@@ -293,6 +297,12 @@ class MatcherService:
         """Receiver thread: store and acknowledge deliveries, buffer them for the tracker."""
         try:
             while True:
+                if len(self._groups) > _BACKLOG_GROUPS and not self._stop.is_set():
+                    # The tracker is behind: let deliveries pile up while it works, so they
+                    # are stored in one large transaction rather than many small ones and
+                    # the tracker gets the interpreter (a steady stream never waits here).
+                    self._tracked.wait(0.05)
+                    self._tracked.clear()
                 batch = []
                 try:
                     batch.append(self._inbox.get(timeout=0.2))
@@ -468,6 +478,7 @@ class MatcherService:
             finally:
                 with self._state_lock:
                     self._processing -= 1
+                self._tracked.set()
 
     def _process(self, batch: list[tuple[float, _Group]]) -> None:
         """Track released groups in time order and commit them in one transaction."""
