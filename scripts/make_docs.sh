@@ -87,6 +87,13 @@ print('| fusion | $frames | ' + ' | '.join(f'{m[k]:.2f}' for k in
     rm -rf "$scratch"
 fi
 
+echo "== MQTT runtime: throughput and latency through Mosquitto (about 6 minutes)" >&2
+if command -v mosquitto > /dev/null; then
+    mqtt_repeats=3
+    [[ "${QUICK:-0}" == "1" ]] && mqtt_repeats=1
+    python benchmarks/bench_mqtt.py --repeats "$mqtt_repeats" --markdown > "$results/bench_mqtt.md"
+fi
+
 echo "== demo pictures" >&2
 demo=$(mktemp -d)
 cblrs demo --out "$demo" --quiet --json > "$results/demo_metrics.json"
