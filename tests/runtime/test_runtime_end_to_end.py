@@ -13,6 +13,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from waiting import wait_until
 
 from cblrs.datasets import load_scene
 from cblrs.detections import Tracks
@@ -30,14 +31,6 @@ from cblrs.runtime.wire import decode_tracks
 
 PLANE = 1
 MATCHER = "fusion"
-
-
-def wait_until(predicate, timeout: float, what: str) -> None:
-    deadline = time.monotonic() + timeout
-    while not predicate():
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out after {timeout} s waiting for {what}")
-        time.sleep(0.02)
 
 
 @pytest.fixture(scope="module")

@@ -23,6 +23,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from waiting import wait_until
 
 from cblrs.datasets import load_scene
 from cblrs.detections import CameraMessage
@@ -39,14 +40,6 @@ from cblrs.runtime.wire import ValidationPolicy, decode_status, encode_message
 
 PLANE = 1
 FRAMES = (0, 595)  # 120 annotated frames: long enough to interrupt, short enough to be quick
-
-
-def wait_until(predicate, timeout: float, what: str) -> None:
-    deadline = time.monotonic() + timeout
-    while not predicate():
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out after {timeout} s waiting for {what}")
-        time.sleep(0.02)
 
 
 @pytest.fixture(scope="module")

@@ -15,6 +15,7 @@ from types import SimpleNamespace
 import cv2
 import numpy as np
 import pytest
+from waiting import wait_until
 
 from cblrs.camera import Camera
 from cblrs.cli.main import main
@@ -46,14 +47,6 @@ from cblrs.runtime.transport import InProcessBroker, InProcessTransport, MqttTra
 from cblrs.runtime.wire import decode_message, decode_status, encode_message, encode_status
 
 PLANE = 1
-
-
-def wait_until(predicate, timeout: float, what: str) -> None:
-    deadline = time.monotonic() + timeout
-    while not predicate():
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out after {timeout} s waiting for {what}")
-        time.sleep(0.01)
 
 
 @pytest.fixture(scope="module")
