@@ -27,7 +27,7 @@ import math
 import time
 from dataclasses import dataclass, field
 from enum import Enum
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any, Literal, TypeVar
 
 import msgspec
 import numpy as np
@@ -35,6 +35,8 @@ import numpy as np
 from cblrs.detections import CLASS_NAMES, CameraMessage, Tracks
 from cblrs.errors import CblrsError
 from cblrs.runtime.topics import ID_PATTERN, MAX_ID_LENGTH, MAX_PLANE_ID
+
+_T = TypeVar("_T")
 
 DETECTIONS_SCHEMA = "cblrs.detections/1"
 TRACKS_SCHEMA = "cblrs.tracks/1"
@@ -288,15 +290,7 @@ def decode_message_with_plane(
         raise RejectedMessage(
             RejectReason.OVERSIZED, f"payload of {len(payload)} bytes exceeds {max_bytes}"
         )
-    try:
-        wire = msgspec.json.decode(payload, type=WireMessage)
-    except (msgspec.DecodeError, msgspec.ValidationError, RecursionError, ValueError):
-        _classify_failure(payload, DETECTIONS_SCHEMA, WireMessage)
-        raise AssertionError("unreachable") from None  # _classify_failure always raises
-    if wire.schema != DETECTIONS_SCHEMA:
-        raise RejectedMessage(
-            RejectReason.WRONG_SCHEMA, f"schema {wire.schema!r}, expected {DETECTIONS_SCHEMA!r}"
-        )
+    wire = _decode_typed(payload, WireMessage, DETECTIONS_SCHEMA)
     if known_cameras is not None and wire.camera not in known_cameras:
         raise RejectedMessage(RejectReason.UNKNOWN_CAMERA, f"camera {wire.camera!r} is not known")
     if topic_camera is not None and wire.camera != topic_camera:
@@ -431,6 +425,21 @@ def _check_columns(
         raise RejectedMessage(
             RejectReason.COLOUR_OUT_OF_RANGE, f"colour outside 0..{maximum} ({bits}-bit channels)"
         )
+
+
+def _decode_typed(payload: bytes, struct_type: type[_T], schema: str) -> _T:
+    """Decode JSON into ``struct_type`` and check its schema tag, or raise RejectedMessage."""
+    try:
+        decoded = msgspec.json.decode(payload, type=struct_type)
+    except (msgspec.DecodeError, msgspec.ValidationError, RecursionError, ValueError):
+        _classify_failure(payload, schema, struct_type)
+        raise AssertionError("unreachable") from None  # _classify_failure always raises
+    found = decoded.schema  # type: ignore[attr-defined]
+    if found != schema:
+        raise RejectedMessage(
+            RejectReason.WRONG_SCHEMA, f"schema {found!r}, expected {schema!r}"
+        )
+    return decoded
 
 
 def _classify_failure(payload: bytes, schema: str, struct_type: type) -> None:
@@ -592,15 +601,7 @@ def decode_tracks(payload: bytes, *, max_bytes: int = 8 * 1024 * 1024) -> Tracks
         raise RejectedMessage(
             RejectReason.OVERSIZED, f"payload of {len(payload)} bytes exceeds {max_bytes}"
         )
-    try:
-        wire = msgspec.json.decode(payload, type=WireTracks)
-    except (msgspec.DecodeError, msgspec.ValidationError, RecursionError, ValueError):
-        _classify_failure(payload, TRACKS_SCHEMA, WireTracks)
-        raise AssertionError("unreachable") from None
-    if wire.schema != TRACKS_SCHEMA:
-        raise RejectedMessage(
-            RejectReason.WRONG_SCHEMA, f"schema {wire.schema!r}, expected {TRACKS_SCHEMA!r}"
-        )
+    wire = _decode_typed(payload, WireTracks, TRACKS_SCHEMA)
     rows = wire.tracks
     tracks = Tracks(
         frame=np.array([row.frame for row in rows], dtype=np.int64),
@@ -670,13 +671,4 @@ def decode_status(payload: bytes) -> Status:
     """
     if len(payload) > 4096:
         raise RejectedMessage(RejectReason.OVERSIZED, f"status of {len(payload)} bytes")
-    try:
-        status = msgspec.json.decode(payload, type=Status)
-    except (msgspec.DecodeError, msgspec.ValidationError, RecursionError, ValueError):
-        _classify_failure(payload, STATUS_SCHEMA, Status)
-        raise AssertionError("unreachable") from None
-    if status.schema != STATUS_SCHEMA:
-        raise RejectedMessage(
-            RejectReason.WRONG_SCHEMA, f"schema {status.schema!r}, expected {STATUS_SCHEMA!r}"
-        )
-    return status
+    return _decode_typed(payload, Status, STATUS_SCHEMA)
