@@ -219,6 +219,23 @@ def test_assignment_is_per_camera_and_optimal():
     assert empty.tolist() == [-1]
 
 
+def test_assignment_may_leave_a_detection_unassigned_when_that_is_more_likely():
+    """Detection 0 fits track 0 well and track 1 badly; detection 1 only fits track 0.
+
+    The most pairs (0 -> 1, 1 -> 0) cost 15 + 3 = 18; detection 0 -> track 0 with
+    detection 1 left unassigned (at cost 10) costs 11: the most likely assignment.
+    """
+    rows, columns, cost = np.array([0, 0, 1]), np.array([0, 1, 0]), np.array([1.0, 15.0, 3.0])
+    camera = np.zeros(2, np.int64)
+    assert assign_per_camera(rows, columns, cost, camera, 1).tolist() == [1, 0]
+    unassigned = np.array([10.0, 10.0])
+    assert assign_per_camera(rows, columns, cost, camera, 1, unassigned).tolist() == [0, -1]
+    # A lone pair dearer than leaving its detection alone is not taken either.
+    lone = assign_per_camera(np.array([0]), np.array([0]), np.array([12.0]), camera[:1], 1,
+                             unassigned[:1])
+    assert lone.tolist() == [-1]
+
+
 def test_noise_model_learns_the_disagreement_between_cameras():
     rng = np.random.default_rng(1)
     model = NoiseModel(0.2, 0.0)
@@ -292,6 +309,27 @@ def test_noise_model_learns_the_error_along_and_across_the_ray():
         isotropic.learn(world_xy, distance, np.tile(np.arange(50), 2))
     assert isotropic.sigma_per_distance == pytest.approx(0.04 / np.sqrt(2), rel=0.2)
     assert model.bias(np.array([20.0]))[0] == pytest.approx(0.0, abs=0.02)
+
+
+def test_noise_model_does_not_trust_the_small_axis_before_it_has_the_data():
+    """Along-ray noise ten times the across-ray noise, learned from a prior 20x too small.
+
+    Each pair is weighed by its own predicted covariance, so the large along-ray residuals
+    do not leak into the small across-ray coefficients: the across-ray estimate comes down
+    to the truth from above instead of collapsing below it (an over-confident camera would
+    pull tracks hard across its ray on a wrong association).
+    """
+    rng = np.random.default_rng(5)
+    model = NoiseModel(0.2, 0.01, 0.01)
+    lateral_history = []
+    for _ in range(30):  # 30 instants of 100 objects seen by two cameras
+        world_xy, distance, direction = ray_pairs(rng, 100, 0.04, 0.07)
+        model.learn(world_xy, distance, np.tile(np.arange(100), 2), direction)
+        along, lateral = model.variances(np.array([20.0]))
+        lateral_history.append(float(np.sqrt(lateral[0])))
+    assert min(lateral_history) > 0.06  # truth 0.07 m at every distance
+    assert lateral_history[-1] == pytest.approx(0.07, rel=0.2)
+    assert np.sqrt(along[0]) == pytest.approx(0.8, rel=0.1)  # truth 0.04 x 20 m
 
 
 def test_noise_model_learns_a_bias_along_the_ray():

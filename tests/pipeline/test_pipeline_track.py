@@ -70,33 +70,34 @@ def test_wildtrack_fusion_scores(wildtrack):
     """Exact annotated boxes, all frames, through the colour path.
 
     The benchmark target is HOTA >= 92 and IDF1 >= 95 over all frames; the tracker reaches
-    HOTA 93.97 and IDF1 95.13 (frames 100..995: 95.5 / 96.9; the first 20 annotated frames
+    HOTA 93.88 and IDF1 95.67 (frames 100..995: 95.2 / 97.1; the first 20 annotated frames
     hold most of the implausible ground-truth jumps). The pipeline is deterministic; these
-    guard against regressions with a small margin below the measured figures (IDF1 over
-    all frames is guarded at 94.5: it clears the target by only 0.13).
+    guard against regressions with a small margin below the measured figures.
     """
     scene, references = wildtrack
     result = track_scene(scene, references=references)
     metrics = evaluate(scene.ground_truth, result.tracks)
     assert metrics.HOTA >= 93.5
-    assert metrics.IDF1 >= 94.5
+    assert metrics.IDF1 >= 95.2
     late = evaluate(scene.ground_truth, result.tracks, frames=scene.frames[scene.frames >= 100])
     assert late.HOTA >= 95.0
     assert late.IDF1 >= 96.5
 
 
-def test_wildtrack_fusion_with_a_noisy_detector(wildtrack):
-    """20 % of boxes dropped and every edge jittered by 5 % of the box size (seed 1).
+@pytest.mark.parametrize(("seed", "measured"), [(0, 87.12), (1, 86.72), (2, 84.82)])
+def test_wildtrack_fusion_with_a_noisy_detector(wildtrack, seed, measured):
+    """20 % of boxes dropped and every edge jittered by 5 % of the box size.
 
-    The target is HOTA >= 85; the tracker reaches 81.9 (seeds 2 and 3: 82.3, 81.8; IDF1
-    89.2, 89.0, 88.5; the oracle with ground-truth identities and the same noise model:
-    93.4-93.8 with its hand-set ray noise). A regression guard, not the target.
+    The target is HOTA >= 85. Seeds 0..6 measure 87.12, 86.72, 84.82, 87.45, 84.90, 85.94,
+    86.03 (mean 86.14; IDF1 mean 92.5); seed 2 is the lowest of them. The oracle with
+    ground-truth identities and the same filter reaches about 93.5. Each seed is guarded
+    half a point below its measured figure (the pipeline is deterministic).
     """
     scene, references = wildtrack
-    noisy = simulate_detections(scene, drop=0.2, jitter=0.05, seed=1)
+    noisy = simulate_detections(scene, drop=0.2, jitter=0.05, seed=seed)
     metrics = evaluate(scene.ground_truth, track_scene(noisy, references=references).tracks)
-    assert metrics.HOTA >= 81.0
-    assert metrics.IDF1 >= 88.5
+    assert metrics.HOTA >= measured - 0.5
+    assert metrics.IDF1 >= 90.0
 
 
 def test_cli_track_writes_valid_tracks(wildtrack_root, tmp_path, capsys):

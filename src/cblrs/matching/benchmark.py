@@ -173,7 +173,7 @@ def oracle_tracks(
     acceleration_sigma: float = 1.0,
     lateral_sigma_m: float | None = None,
     lateral_per_distance: float | None = None,
-    model_acceleration_factors: tuple[float, ...] = (0.5, 2.0),
+    model_acceleration_factors: tuple[float, ...] = (0.25, 2.0),
     model_sojourn_s: tuple[float, ...] = (10.0, 2.0),
 ):
     """An upper bound for any location-only tracker: identities taken from the ground truth.

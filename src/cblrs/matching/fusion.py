@@ -11,7 +11,8 @@ observations of one point. Per instant:
    bias;
 2. predict every track to the instant with an interacting multiple-model filter: two
    constant-velocity Kalman filters, one steady and one manoeuvring (white-noise
-   accelerations of half and twice the class's: people turn gently, cars harder), weighed
+   accelerations of a quarter of and twice the class's: a person walking straight
+   hardly accelerates, one turning or stopping does), weighed
    by how well each has been predicting;
 3. associate: groups of precise detections are assigned across cameras as one observation;
    the rest camera by camera, most precise camera first, each against the tracks as
@@ -68,7 +69,7 @@ from cblrs.matching.base import (
 )
 from cblrs.plane import PlaneSet
 
-STATE_VERSION = "cblrs.fusion-tracker/3"
+STATE_VERSION = "cblrs.fusion-tracker/4"
 _UNASSIGNABLE = 1.0e9
 _DENSE_PAIRS = 20_000  # below this many N x T pairs a dense distance matrix is faster
 
@@ -96,10 +97,18 @@ class FusionConfig:
     Attributes:
         measurement_sigma_m: initial standard deviation of one camera's ground position of
             an object, metres, independent of distance (the prior of the noise model).
-        sigma_per_distance: initial standard deviation per metre of distance between camera
-            and object (needs ``camera_positions``): a pixel error covers more ground far
-            away. Dimensionless. The prior of both the along-ray and the across-ray terms
-            (see :class:`NoiseModel`); learned apart when ``adapt_noise``.
+        sigma_per_distance: initial standard deviation across the ray per metre of distance
+            between camera and object (needs ``camera_positions``): a pixel error covers
+            more ground far away. Dimensionless; learned when ``adapt_noise`` (see
+            :class:`NoiseModel`).
+        along_sigma_per_distance: the same along the ray, per metre of distance scaled by
+            the camera's height (a box bottom off by ``e`` of the box height moves a
+            person's foot point by about ``e x 1.75 m x distance / camera height``).
+            The default, about 4 % of the box height, is on the loose side on purpose:
+            the online model shrinks a too-large noise to the cameras' agreement within a
+            few instants, but grows a too-small one only slowly (residuals beyond three
+            standard deviations of the current model are clipped), and meanwhile it
+            splits one person's views into several tracks.
         minimum_sigma_m: smallest standard deviation of one camera's ground position, however
             closely the cameras agree, metres.
         object_sigma_m: standard deviation of an object's position common to all the views
@@ -124,8 +133,9 @@ class FusionConfig:
         class_acceleration_sigma: the same for other classes, ``{class name: m/s^2}``.
         model_acceleration_factors: the motion model is an interacting multiple-model
             filter: constant-velocity models whose white-noise accelerations are these
-            multiples of the class's (people mostly walk steadily, sometimes turn or stop);
-            ``(1.0,)`` is a single constant-velocity filter.
+            multiples of the class's (people mostly walk steadily, sometimes turn or stop:
+            0.25 m/s^2 and 2 m/s^2 for a person); ``(1.0,)`` is a single constant-velocity
+            filter.
         model_sojourn_s: mean time spent in each of those models, seconds (one per model).
         initial_velocity_sigma: velocity uncertainty of a new track, m/s.
         gate_sigmas: Mahalanobis gate on the innovation (standard deviations).
@@ -160,6 +170,7 @@ class FusionConfig:
 
     measurement_sigma_m: float = 0.2
     sigma_per_distance: float = 0.01
+    along_sigma_per_distance: float = 0.03
     minimum_sigma_m: float = 0.05
     object_sigma_m: float = 0.1
     adapt_noise: bool = True
@@ -171,7 +182,7 @@ class FusionConfig:
     class_acceleration_sigma: Mapping[str, float] = field(
         default_factory=lambda: dict(DEFAULT_CLASS_ACCELERATION_SIGMA)
     )
-    model_acceleration_factors: tuple[float, ...] = (0.5, 2.0)
+    model_acceleration_factors: tuple[float, ...] = (0.25, 2.0)
     model_sojourn_s: tuple[float, ...] = (10.0, 2.0)
     initial_velocity_sigma: float = 1.5
     gate_sigmas: float = 4.0
@@ -195,8 +206,8 @@ class FusionConfig:
         ):
             value = getattr(self, name)
             require(_positive(value), f"{name} must be a positive number, got {value!r}.")
-        for name in ("sigma_per_distance", "merge_radius_m", "report_coasting_s", "object_sigma_m",
-                     "group_radius_m"):
+        for name in ("sigma_per_distance", "along_sigma_per_distance", "merge_radius_m",
+                     "report_coasting_s", "object_sigma_m", "group_radius_m"):
             value = getattr(self, name)
             require(
                 _positive(value) or value == 0,
@@ -336,7 +347,8 @@ class FusionTracker:
         self._ids = np.zeros(0, np.int64)  # -1 while tentative
         self._class = np.zeros(0, np.int64)
         self._noise = NoiseModel(
-            self.config.measurement_sigma_m, self.config.sigma_per_distance
+            self.config.measurement_sigma_m, self.config.along_sigma_per_distance,
+            self.config.sigma_per_distance,
         )
         self._state = np.zeros((0, 4))
         self._covariance = np.zeros((0, 4, 4))
@@ -697,7 +709,8 @@ class FusionTracker:
             )
             free = ~taken[columns, one]
             chosen = assign_per_camera(
-                rows[free], columns[free], cost[free], np.zeros(len(mine), np.int64), 1
+                rows[free], columns[free], cost[free], np.zeros(len(mine), np.int64), 1,
+                self._unassigned_cost(covariance[mine]),
             )
             assigned[mine] = chosen
             ok = chosen >= 0
@@ -728,9 +741,23 @@ class FusionTracker:
                 )
                 free = ~taken[columns, one]
                 assigned[mine] = assign_per_camera(
-                    rows[free], columns[free], cost[free], np.zeros(len(mine), np.int64), 1
+                    rows[free], columns[free], cost[free], np.zeros(len(mine), np.int64), 1,
+                    self._unassigned_cost(covariance[mine]),
                 )
         return assigned
+
+    def _unassigned_cost(self, covariance: np.ndarray) -> np.ndarray:
+        """(N,) cost of leaving each detection unassigned: that of one at the gate.
+
+        With it the camera's assignment is the most likely one rather than the one with
+        the most pairs: when a track's own detection was missed, a neighbour's detection
+        near the edge of its gate is left to its own object instead of being forced onto
+        the track. It is the cost :meth:`_joint_cost` charges an unassigned detection.
+        """
+        spare = covariance + self._object_covariance
+        return self.config.gate_sigmas**2 + np.log(
+            spare[:, 0, 0] * spare[:, 1, 1] - spare[:, 0, 1] * spare[:, 1, 0]
+        )
 
     def _gated_pairs(
         self, world_xy: np.ndarray, covariance: np.ndarray, class_id: np.ndarray,
@@ -986,8 +1013,10 @@ class NoiseModel:
     Two cameras' detections of one object at one instant differ by the sum of two
     independent errors, so the expected outer product of the difference is the sum of the
     two covariances, which is linear in ``(a**2, b**2, e**2, c**2)``. The model is the
-    non-negative least-squares fit of those three equations per pair over recent pairs
-    (exponentially forgotten), anchored by a prior worth a few dozen pairs at 5 and 25 m.
+    non-negative least-squares fit of those three equations per pair, each pair whitened
+    by its covariance under the current model (Fisher scoring for variance components),
+    over recent pairs (exponentially forgotten), anchored by a prior worth a few dozen
+    pairs at 5 and 25 m.
     A difference is shrunk to at most three standard deviations (in the current model's
     metric) so one wrong association cannot inflate the noise. Without camera positions,
     distances are zero and the model is isotropic.
@@ -1013,11 +1042,14 @@ class NoiseModel:
         weight = self.prior_pairs / len(self.prior_distances_m)
         for distance in self.prior_distances_m:
             # A pseudo pair of two cameras looking along x: x holds the along-ray
-            # variances, y the across-ray ones.
+            # variances, y the across-ray ones. Like every pair it is whitened by its own
+            # predicted covariance (see :meth:`learn`), so it weighs as much as
+            # ``weight`` real pairs whatever the size of the noise.
             features = np.array([[2.0, 2.0 * distance**2, 0.0, 0.0],
                                  [0.0, 0.0, 2.0, 2.0 * distance**2]])
+            features = features / (features @ self.prior)[:, None]
             self.normal += weight * features.T @ features
-            self.moment += weight * features.T @ (features @ self.prior)
+            self.moment += weight * features.T @ np.ones(2)
         self.coefficients = self.prior.copy()
         # Along-ray bias ``q * along_distance``, zero a priori (worth prior_pairs pairs).
         self.bias_normal = self.prior_pairs * self.prior_distances_m[1] ** 2
@@ -1129,20 +1161,29 @@ class NoiseModel:
             parts[:, 1] += along_squared * outer
             parts[:, 2] += identity - outer
             parts[:, 3] += squared * (identity - outer)
-        root_two = np.sqrt(2.0)
-        features = np.stack(
-            [parts[:, :, 0, 0], parts[:, :, 1, 1], root_two * parts[:, :, 0, 1]], axis=1
-        )  # (K, 3 equations, 4 coefficients)
-        difference = world_xy[first] - world_xy[second]
-        predicted = features @ self.coefficients  # (K, 3): xx, yy, sqrt(2) xy
-        covariance = np.empty((len(first), 2, 2))
-        covariance[:, 0, 0], covariance[:, 1, 1] = predicted[:, 0], predicted[:, 1]
-        covariance[:, 0, 1] = covariance[:, 1, 0] = predicted[:, 2] / root_two
-        squared = mahalanobis_squared(difference, covariance)
+        # Whiten each pair by its covariance under the current model (``L^-1`` of its
+        # Cholesky factor): the fit is then Fisher scoring for the variance components,
+        # where every pair carries about the same information. Unweighted, the large
+        # along-ray variances of far views would drown the small across-ray ones, and
+        # the model would take minutes of data to learn how precise the cameras are
+        # across their rays.
+        covariance = np.einsum("kcij,c->kij", parts, self.coefficients)
+        whitening = np.linalg.inv(np.linalg.cholesky(covariance))
+        parts = whitening[:, None] @ parts @ np.swapaxes(whitening, 1, 2)[:, None]
+        difference = np.einsum(
+            "kij,kj->ki", whitening, world_xy[first] - world_xy[second]
+        )
+        # Whitened, the difference of a right association is about unit normal; one far
+        # beyond is shrunk so a wrong association cannot inflate the noise.
+        squared = np.sum(difference**2, axis=1)
         limit = 2.0 * self.clip_sigmas**2
         with np.errstate(divide="ignore", invalid="ignore"):
             shrink = np.where(squared > limit, np.sqrt(limit / squared), 1.0)
         difference = difference * shrink[:, None]
+        root_two = np.sqrt(2.0)
+        features = np.stack(
+            [parts[:, :, 0, 0], parts[:, :, 1, 1], root_two * parts[:, :, 0, 1]], axis=1
+        )  # (K, 3 equations, 4 coefficients)
         target = np.column_stack(
             [difference[:, 0] ** 2, difference[:, 1] ** 2,
              root_two * difference[:, 0] * difference[:, 1]]
@@ -1312,7 +1353,7 @@ def _same_class(
 
 def assign_per_camera(
     rows: np.ndarray, columns: np.ndarray, cost: np.ndarray, camera: np.ndarray,
-    camera_count: int,
+    camera_count: int, unassigned_cost: np.ndarray | None = None,
 ) -> np.ndarray:
     """Hungarian assignment of detections to tracks, solved per camera, on allowed pairs.
 
@@ -1341,7 +1382,11 @@ def assign_per_camera(
     per_row = np.bincount(rows, minlength=count)
     _, key_index, per_key = np.unique(column_key, return_inverse=True, return_counts=True)
     trivial = (per_row[rows] == 1) & (per_key[key_index] == 1)
-    assigned[rows[trivial]] = columns[trivial]
+    if unassigned_cost is not None:
+        taken = trivial & (cost <= unassigned_cost[rows])
+    else:
+        taken = trivial
+    assigned[rows[taken]] = columns[taken]
     contested = ~trivial & (per_row[rows] > 0)
     if not contested.any():
         return assigned
@@ -1351,10 +1396,17 @@ def assign_per_camera(
         mine = pair_camera == one_camera
         block_rows, row_index = np.unique(rows[mine], return_inverse=True)
         block_columns, column_index = np.unique(columns[mine], return_inverse=True)
-        block = np.full((len(block_rows), len(block_columns)), _UNASSIGNABLE)
+        width = len(block_columns)
+        if unassigned_cost is not None:
+            width += len(block_rows)
+        block = np.full((len(block_rows), width), _UNASSIGNABLE)
         block[row_index, column_index] = cost[mine]
+        if unassigned_cost is not None:
+            spare = np.arange(len(block_rows))
+            block[spare, len(block_columns) + spare] = unassigned_cost[block_rows]
         chosen_rows, chosen_columns = linear_sum_assignment(block)
-        valid = block[chosen_rows, chosen_columns] < _UNASSIGNABLE
+        valid = (block[chosen_rows, chosen_columns] < _UNASSIGNABLE) & (
+            chosen_columns < len(block_columns))
         assigned[block_rows[chosen_rows[valid]]] = block_columns[chosen_columns[valid]]
     return assigned
 
