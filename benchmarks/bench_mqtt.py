@@ -64,7 +64,7 @@ from cblrs.matching import make_matcher
 from cblrs.plane import PlaneSet, PlaneSpec
 from cblrs.runtime.broker import MosquittoProcess, free_port, write_broker_config
 from cblrs.runtime.matcher_service import MatcherService
-from cblrs.runtime.store import RuntimeStore
+from cblrs.runtime.store import InboxEntry, RuntimeStore
 from cblrs.runtime.topics import detections_filter, detections_topic
 from cblrs.runtime.transport import MqttSettings, MqttTransport
 from cblrs.runtime.wire import ValidationPolicy, encode_message
@@ -400,7 +400,12 @@ def _best_seconds(function, number: int, repeats: int = 5) -> float:
 
 
 def measure_stages(cameras: int, people: int, matcher_name: str, frames: int = 90) -> dict:
-    """In-process cost of each step a message or group takes in the matcher, no MQTT."""
+    """In-process cost of each step a message or group takes in the matcher, no MQTT.
+
+    Receiver (service process): decode and validate a payload into its inbox entry, insert
+    entries (one transaction per frame of all cameras). Tracker process: rebuild the
+    messages of a group from their entries and update the matcher; commit a group.
+    """
     names = camera_names(cameras)
     policy = ValidationPolicy(known_cameras=frozenset(names), max_future_s=3600.0)
     epoch = time.time()
@@ -408,20 +413,21 @@ def measure_stages(cameras: int, people: int, matcher_name: str, frames: int = 9
     topic_camera = names[-1]
     payload = payloads[0][-1]
     decode = _best_seconds(
-        lambda: policy.decode_with_plane(payload, topic_camera=topic_camera, now=epoch,
-                                         topic_plane=PLANE_ID), 2000)
-    groups = [[policy.decode(item, now=epoch) for item in group] for group in payloads]
+        lambda: InboxEntry.from_wire(policy.decode_wire(
+            payload, topic_camera=topic_camera, now=epoch, topic_plane=PLANE_ID)), 2000)
+    groups = [[InboxEntry.from_wire(policy.decode_wire(item, now=epoch)) for item in group]
+              for group in payloads]
     matcher = make_matcher(matcher_name, PlaneSet([PLANE]), names)
     updates = []
     outputs = []
     for frame, group in enumerate(groups):
         started = time.perf_counter()
-        outputs.append(matcher.update(epoch + frame / 30.0, group))
+        outputs.append(matcher.update(epoch + frame / 30.0, [entry.message() for entry in group]))
         updates.append(time.perf_counter() - started)
     steady = updates[frames // 3:]  # after the tracks are born
     with tempfile.TemporaryDirectory(prefix="cblrs-bench-") as folder:
         store = RuntimeStore(Path(folder) / "stages.db")
-        rows = [(message, "pending", epoch) for group in groups for message in group]
+        rows = [(entry, "pending", epoch) for group in groups for entry in group]
         started = time.perf_counter()
         for start in range(0, len(rows), cameras):
             store.insert_messages(rows[start:start + cameras])

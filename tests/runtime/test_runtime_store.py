@@ -10,7 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from cblrs.detections import CameraMessage, Tracks
-from cblrs.runtime.store import LATE, PENDING, PROCESSED, RuntimeStore, StoreError
+from cblrs.runtime.store import LATE, PENDING, PROCESSED, InboxEntry, RuntimeStore, StoreError
 
 
 def message(camera: str = "CVLab1", sequence: int = 0, timestamp: float = 10.0, count: int = 2):
@@ -21,6 +21,10 @@ def message(camera: str = "CVLab1", sequence: int = 0, timestamp: float = 10.0, 
         class_id=np.zeros(count, np.int64),
         colour=np.arange(3 * count, dtype=np.int64).reshape(count, 3) + 1,
     )
+
+
+def entry(*args, **kwargs) -> InboxEntry:
+    return InboxEntry.from_message(message(*args, **kwargs))
 
 
 def tracks(count: int, frame: int = 5) -> Tracks:
@@ -49,12 +53,12 @@ def test_new_database_is_in_wal_mode(tmp_path):
 
 def test_insert_deduplicates_by_camera_and_sequence_and_counts(store):
     first = store.insert_messages(
-        [(message("CVLab1", 0), PENDING, 1.0), (message("CVLab2", 0), PENDING, 1.0),
-         (message("CVLab1", 0), PENDING, 1.0)],
+        [(entry("CVLab1", 0), PENDING, 1.0), (entry("CVLab2", 0), PENDING, 1.0),
+         (entry("CVLab1", 0), PENDING, 1.0)],
         {"received": 3},
     )
     second = store.insert_messages(
-        [(message("CVLab1", 0), PENDING, 2.0), (message("CVLab1", 1, 5.0), LATE, 2.0)],
+        [(entry("CVLab1", 0), PENDING, 2.0), (entry("CVLab1", 1, 5.0), LATE, 2.0)],
         {"received": 2},
     )
     assert first == [True, True, False]
@@ -73,7 +77,7 @@ def test_empty_insert_is_a_no_op(store):
 @pytest.mark.parametrize("count", [0, 1, 3])
 def test_stored_messages_read_back_exactly(store, count):
     original = message("IDIAP1", 7, 1700000000.123456789, count)
-    store.insert_messages([(original, PENDING, 5.0)])
+    store.insert_messages([(InboxEntry.from_message(original), PENDING, 5.0)])
     (stored,) = store.messages(PENDING)
     back = stored.message
     assert (back.camera_id, back.sequence, back.timestamp, back.frame) == (
@@ -87,9 +91,9 @@ def test_stored_messages_read_back_exactly(store, count):
 def test_commit_group_is_one_transaction_and_survives_reopening(tmp_path):
     path = tmp_path / "runtime.db"
     with RuntimeStore(path) as store:
-        store.insert_messages([(message("CVLab1", 0), PENDING, 1.0),
-                               (message("CVLab2", 0), PENDING, 1.0),
-                               (message("CVLab1", 1, 11.0), PENDING, 1.0)])
+        store.insert_messages([(entry("CVLab1", 0), PENDING, 1.0),
+                               (entry("CVLab2", 0), PENDING, 1.0),
+                               (entry("CVLab1", 1, 11.0), PENDING, 1.0)])
         store.commit_group(
             [("CVLab1", 0), ("CVLab2", 0)], tracks(3), {"next_id": 4, "x": [1.5, np.nan]}, 10.0,
             {"processed": 2, "groups": 1},
@@ -109,7 +113,7 @@ def test_commit_group_is_one_transaction_and_survives_reopening(tmp_path):
 
 
 def test_failed_group_commit_leaves_nothing_behind(store):
-    store.insert_messages([(message("CVLab1", 0), PENDING, 1.0)])
+    store.insert_messages([(entry("CVLab1", 0), PENDING, 1.0)])
     with pytest.raises(TypeError, match="cannot store object"):
         store.commit_group([("CVLab1", 0)], tracks(2), {"bad": object()}, 10.0, {"processed": 1})
     assert store.status_counts() == {PENDING: 1}
@@ -163,7 +167,7 @@ def test_message_round_trip_property(tmp_path_factory, timestamp, sequence, colo
         np.zeros(count, np.int64), np.array(colours, dtype=np.int64).reshape(count, 3),
     )
     with RuntimeStore(tmp_path_factory.mktemp("db") / "r.db") as store:
-        store.insert_messages([(original, PENDING, 0.0)])
+        store.insert_messages([(InboxEntry.from_message(original), PENDING, 0.0)])
         (back,) = store.messages()
     assert back.message.timestamp == timestamp
     assert back.message.sequence == sequence
@@ -186,9 +190,9 @@ def test_inbox_layouts_deduplicate_and_process_alike(tmp_path, earlier):
         with sqlite3.connect(path) as connection:
             connection.executescript(_EARLIER_INBOX)
     with RuntimeStore(path) as opened:
-        first = [(message("A", 0), PENDING, 1.0), (message("B", 0), PENDING, 1.0)]
+        first = [(entry("A", 0), PENDING, 1.0), (entry("B", 0), PENDING, 1.0)]
         assert opened.insert_messages(first) == [True, True]
-        again = [(message("A", 0), PENDING, 2.0), (message("A", 1, 11.0), LATE, 2.0)]
+        again = [(entry("A", 0), PENDING, 2.0), (entry("A", 1, 11.0), LATE, 2.0)]
         assert opened.insert_messages(again) == [False, True]
         opened.commit_group([("A", 0), ("B", 0)], tracks(2), {"n": 1}, 10.0, {"groups": 1})
     with sqlite3.connect(path) as connection:
@@ -198,4 +202,4 @@ def test_inbox_layouts_deduplicate_and_process_alike(tmp_path, earlier):
         assert reopened.status_counts() == {PROCESSED: 2, LATE: 1}
         assert reopened.counters()["duplicates"] == 1
         assert [stored.received_at for stored in reopened.messages(PROCESSED)] == [1.0, 1.0]
-        assert reopened.insert_messages([(message("B", 0), PENDING, 3.0)]) == [False]
+        assert reopened.insert_messages([(entry("B", 0), PENDING, 3.0)]) == [False]

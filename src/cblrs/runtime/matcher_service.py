@@ -27,11 +27,17 @@ Per delivery:
    and saves the matcher state (``get_state()``); the rows are published on
    ``cblrs/<plane>/tracks``. Groups released together (a backlog) share one transaction.
 
-Two threads share the work: a *receiver* (steps 1-3: validate, store, acknowledge, buffer)
-and a *tracker* (step 4), so an acknowledgement never waits for the tracker and a burst of
-messages is stored while the previous group is being tracked. A group leaves the buffer and
-the "last released timestamp" advances in one step under a lock, so a message is either in
-its group or counted late, never both.
+Steps 1-3 run in the service's process: a *receiver* thread validates, stores, acknowledges
+and buffers the deliveries the transport's thread queues, in batches of what has arrived (one
+inbox transaction each), and a *releaser* thread sends released groups to step 4. Step 4 runs
+in a separate *tracker process* (:mod:`cblrs.runtime.tracker_process`), which writes to the
+same SQLite file (the two take turns through a shared lock); a *collector* thread publishes
+its track updates. So receiving and tracking use two cores, an acknowledgement never waits
+for the tracker, and messages are stored while earlier groups are being tracked. A group
+leaves the buffer and the "last released timestamp" advances in one step under a lock, so a
+message is either in its group or counted late, never both. If the tracker process fails or
+dies, the service stops (:meth:`MatcherService.failed`; ``stop`` raises); a restarted
+service resumes from the store.
 
 A restarted service resumes from what SQLite holds: the matcher state and the last released
 timestamp of the last committed group, the unprocessed inbox rows (back into the buffer) and
@@ -42,18 +48,19 @@ acknowledged, so the broker delivers them again.
 from __future__ import annotations
 
 import functools
+import heapq
 import logging
 import math
-import queue
+import multiprocessing
 import threading
 import time
-from collections import Counter, defaultdict
+from collections import Counter, defaultdict, deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from cblrs.detections import CameraMessage, Tracks
-from cblrs.runtime.store import LATE, PENDING, RuntimeStore
+from cblrs.detections import Tracks
+from cblrs.runtime.store import LATE, PENDING, InboxEntry, RuntimeStore
 from cblrs.runtime.topics import (
     TopicError,
     detections_filter,
@@ -63,17 +70,10 @@ from cblrs.runtime.topics import (
     tracks_topic,
     validate_camera_id,
 )
-from cblrs.runtime.wire import (
-    RejectedMessage,
-    ValidationPolicy,
-    decode_status,
-    encode_tracks,
-)
+from cblrs.runtime.tracker_process import Batch, TrackerProcess, TrackerProcessError
+from cblrs.runtime.wire import RejectedMessage, ValidationPolicy, decode_status
 
 logger = logging.getLogger(__name__)
-
-_BACKLOG_GROUPS = 3
-"""Buffered groups beyond which the receiver lets the tracker catch up before storing more."""
 
 COUNTER_NAMES = ("received", "accepted", "duplicates", "late", "processed", "groups", "tracks")
 """Counters every summary shows (rejections add ``rejected.<reason>``)."""
@@ -81,7 +81,7 @@ COUNTER_NAMES = ("received", "accepted", "duplicates", "late", "processed", "gro
 
 @dataclass
 class _Group:
-    messages: dict[str, CameraMessage]
+    messages: dict[str, InboxEntry]
     first_arrival: float  # service clock
 
 
@@ -120,8 +120,10 @@ class MatcherService:
 
     Args:
         transport: the :class:`~cblrs.runtime.transport.Transport` (persistent session).
-        store: the SQLite store of this plane's matcher.
-        matcher: a :class:`~cblrs.matching.Matcher` built for ``camera_ids``.
+        store: the SQLite store of this plane's matcher (the tracker process opens it too).
+        matcher: a :class:`~cblrs.matching.Matcher` built for ``camera_ids``; it is pickled
+            into the tracker process, which resumes it from the store's state (this object
+            itself is not updated).
         plane_id: the plane served.
         camera_ids: the plane's cameras; ``Tracks.camera_id`` indexes this list.
         policy: validation limits (its ``known_cameras`` is set to ``camera_ids``).
@@ -132,8 +134,11 @@ class MatcherService:
         groups_per_commit: released groups tracked per store transaction, at most.
         settings: extra identity stored with the database (matcher name and options); a
             reopened database must have been written with the same.
-        observer: optional object with ``on_stored(messages, wall_time)`` and/or
-            ``on_group(timestamp, messages, tracks, wall_time)`` (benchmarks, viewers).
+        observer: optional object with ``on_stored(entries, wall_time)`` and/or
+            ``on_group(timestamp, entries, tracks, wall_time)`` (benchmarks, viewers), called
+            once the entries (:class:`~cblrs.runtime.store.InboxEntry`) are stored and
+            acknowledged, and once a group's tracks are committed and handed to the
+            transport; ``wall_time`` is the wall clock then.
         wall_clock: seconds since the Unix epoch (for staleness checks and receipt times).
     """
 
@@ -184,8 +189,10 @@ class MatcherService:
         self._settings = {"plane_id": self.plane_id, "camera_ids": self.camera_ids}
         self._settings.update(settings or {})
 
-        self._inbox: queue.Queue = queue.Queue()
+        self._inbox: deque[tuple[str, Any, float]] = deque()
+        self._arrived = threading.Event()
         self._groups: dict[float, _Group] = {}
+        self._timestamps: list[float] = []  # heap of the buffered groups' timestamps
         self._released: float | None = None
         self._latest: dict[str, float] = {}
         self._last_heard: dict[str, float] = {}
@@ -196,25 +203,21 @@ class MatcherService:
         self._active_this_run: set[str] = set()
         self._last_delivery = 0.0
         self._silence_origin: float | None = None
-        self._updates = 0
-        self._run_counters: Counter[str] = Counter()
         self._stop = threading.Event()
         self._flush_requested = threading.Event()
         self._wake = threading.Event()
-        self._tracked = threading.Event()
         self._received_all = threading.Event()
         self._state_lock = threading.RLock()
-        self._processing = 0
-        self._worker: threading.Thread | None = None
-        self._tracker: threading.Thread | None = None
+        self._inflight: deque[Batch] = deque()  # sent to the tracker process, not answered
+        self._tracker: TrackerProcess | None = None
+        self._threads: list[threading.Thread] = []
         self._failure: BaseException | None = None
-        self._lock = threading.Lock()
         self._started = False
 
     # -- lifecycle -------------------------------------------------------------------------
 
     def start(self, connect: bool = True) -> None:
-        """Resume from the store, subscribe and start the worker thread.
+        """Resume from the store, start the tracker process and the threads, subscribe.
 
         Args:
             connect: also connect the transport (else the caller connects it afterwards).
@@ -222,17 +225,22 @@ class MatcherService:
         if self._started:
             return
         self.store.bind(self._settings)
+        tracker = self.store.claim()  # before reading where to resume
         self._started_at = self._wall_clock()
         self._recover()
         self._last_delivery = self.clock()
-        self._worker = threading.Thread(
-            target=self._work, name=f"cblrs-matcher-{self.plane_id}", daemon=True
+        context = _process_context()
+        self._tracker = TrackerProcess(
+            context, self.matcher, self.store.share(context), tracker, self.plane_id,
+            self.camera_ids, self.publish_tracks,
         )
-        self._tracker = threading.Thread(
-            target=self._track, name=f"cblrs-tracker-{self.plane_id}", daemon=True
-        )
-        self._worker.start()
-        self._tracker.start()
+        self._threads = [
+            threading.Thread(target=target, name=f"cblrs-{role}-{self.plane_id}", daemon=True)
+            for role, target in (("receiver", self._work), ("releaser", self._release),
+                                 ("collector", self._collect))
+        ]
+        for thread in self._threads:
+            thread.start()
         self.transport.subscribe(status_filter(self.plane_id), self._on_status, qos=1)
         self.transport.subscribe(detections_filter(self.plane_id), self._on_detections, qos=1)
         if connect:
@@ -240,23 +248,29 @@ class MatcherService:
         self._started = True
 
     def stop(self, flush: bool = False, timeout: float = 30.0) -> None:
-        """Stop the worker; with ``flush``, first store and track everything received.
+        """Stop the threads and the tracker process; with ``flush``, first store and track
+        everything received.
 
         Without ``flush`` waiting groups stay pending in the store and a restarted service
-        processes them.
+        processes them (groups already sent to the tracker process are still committed).
+
+        Raises:
+            RuntimeError: a thread or the tracker process failed (the cause is chained).
         """
         if flush:
             self._flush_requested.set()
         self._stop.set()
+        self._arrived.set()
         deadline = time.monotonic() + timeout
-        for thread in (self._worker, self._tracker):
-            if thread is not None:
-                thread.join(max(0.0, deadline - time.monotonic()))
-                if thread.is_alive():
-                    logger.warning("matcher thread %s did not stop within %.0f s",
-                                   thread.name, timeout)
+        for thread in self._threads:
+            thread.join(max(0.0, deadline - time.monotonic()))
+            if thread.is_alive():
+                logger.warning("matcher thread %s did not stop within %.0f s",
+                               thread.name, timeout)
+        if self._tracker is not None:
+            self._tracker.close(max(0.0, deadline - time.monotonic()))
         if self._failure is not None:
-            raise RuntimeError("the matcher service worker failed") from self._failure
+            raise RuntimeError("the matcher service failed") from self._failure
 
     def close(self, flush: bool = False) -> None:
         """:meth:`stop`, then close the transport (the store stays open for the caller)."""
@@ -266,92 +280,76 @@ class MatcherService:
             self.transport.close()
 
     def _recover(self) -> None:
-        state = self.store.matcher_state()
-        if state is not None:
-            self.matcher.set_state(state)
         self._released = self.store.released_timestamp()
         for camera, summary in self.store.inbox_summary().items():
             if camera in self._offline:
                 self._latest[camera] = summary["max_timestamp"]
         now = self.clock()
-        pending = self.store.messages(PENDING)
-        for stored in pending:
-            self._buffer(stored.message, now)
-        if state is not None or pending:
+        pending = self.store.pending_entries()
+        for entry in pending:
+            self._buffer(entry, now)
+        if self._released is not None or pending:
             logger.info(
                 "plane %d: resumed at %s with %d pending messages",
                 self.plane_id, self._released, len(pending),
             )
 
+    def _fail(self, error: BaseException, role: str) -> None:
+        """Record the first failure and stop the service (``stop`` raises it)."""
+        logger.error("matcher service %s failed: %s", role, error, exc_info=error)
+        if self._failure is None:
+            self._failure = error
+        self._stop.set()
+        self._arrived.set()
+        self._wake.set()
+
     # -- transport callbacks (transport thread) -----------------------------------------
 
     def _on_detections(self, delivery: Any) -> None:
-        self._inbox.put(("detections", delivery, self._wall_clock()))
+        self._inbox.append(("detections", delivery, self._wall_clock()))
+        self._arrived.set()
 
     def _on_status(self, delivery: Any) -> None:
-        self._inbox.put(("status", delivery, self._wall_clock()))
+        self._inbox.append(("status", delivery, self._wall_clock()))
+        self._arrived.set()
 
-    # -- worker thread -------------------------------------------------------------------
+    # -- receiver thread -----------------------------------------------------------------
 
     def _work(self) -> None:
         """Receiver thread: store and acknowledge deliveries, buffer them for the tracker."""
         try:
-            while True:
-                if len(self._groups) > _BACKLOG_GROUPS and not self._stop.is_set():
-                    # The tracker is behind: let deliveries pile up while it works, so they
-                    # are stored in one large transaction rather than many small ones and
-                    # the tracker gets the interpreter (a steady stream never waits here).
-                    self._tracked.wait(0.05)
-                    self._tracked.clear()
-                batch = []
-                try:
-                    batch.append(self._inbox.get(timeout=0.2))
-                    while len(batch) < self.batch_size:
-                        batch.append(self._inbox.get_nowait())
-                except queue.Empty:
-                    pass
-                if batch:
-                    self._handle(batch)
+            while not self._stop.is_set():
+                self._arrived.wait(0.2)
+                self._arrived.clear()  # before emptying the inbox, so no arrival is missed
+                while self._handle():
                     self._wake.set()
-                # Stopping: finish the current batch; with a flush, also what is queued.
-                # Anything left is unacknowledged, so the broker delivers it again later.
-                if self._stop.is_set() and (
-                    self._inbox.empty() or not self._flush_requested.is_set()
-                ):
-                    break
+                    if self._stop.is_set():
+                        break
+            # Stopping: with a flush, also store what is queued. Anything left is
+            # unacknowledged, so the broker delivers it again later.
+            while self._flush_requested.is_set() and self._failure is None and self._handle():
+                pass
         except BaseException as error:  # surfaced by stop()
-            logger.exception("matcher service receiver failed")
-            self._failure = error
+            self._fail(error, "receiver")
         finally:
             self._received_all.set()
             self._wake.set()
 
-    def _track(self) -> None:
-        """Tracker thread: release ready groups, track them, commit, publish."""
-        try:
-            while not self._received_all.is_set():
-                self._wake.wait(0.05 if self._groups else 0.2)
-                self._wake.clear()
-                self._release_ready()
-            if self._failure is None:
-                self._release_ready()
-                if self._flush_requested.is_set():
-                    self._release_ready(force=True)
-        except BaseException as error:  # surfaced by stop()
-            logger.exception("matcher service tracker failed")
-            self._failure = error
-            self._stop.set()
-
-    def _handle(self, batch: list[tuple[str, Any, float]]) -> None:
-        # Late marking, storing and buffering happen as one step against the tracker's
-        # release of groups (see the module docstring).
+    def _handle(self) -> bool:
+        """Store, acknowledge and buffer the next batch of deliveries; False if none."""
+        # Taking the batch, late marking, storing and buffering happen as one step against
+        # the release of groups (see the module docstring) and ``drained``.
         with self._state_lock:
-            self._handle_locked(batch)
+            count = min(len(self._inbox), self.batch_size)
+            if not count:
+                return False
+            self._handle_locked([self._inbox.popleft() for _ in range(count)])
+            return True
 
     def _handle_locked(self, batch: list[tuple[str, Any, float]]) -> None:
         now = self.clock()
         counters: Counter[str] = Counter()
-        accepted: list[tuple[CameraMessage, str, float]] = []
+        accepted: list[tuple[InboxEntry, str, float]] = []
         acknowledge = []
         for kind, delivery, received_at in batch:
             acknowledge.append(delivery)
@@ -362,7 +360,7 @@ class MatcherService:
             counters["received"] += 1
             try:
                 plane_id, camera = _parse_topic(delivery.topic)
-                message, _ = self.policy.decode_with_plane(
+                wire = self.policy.decode_wire(
                     delivery.payload, topic_camera=camera, now=received_at, topic_plane=plane_id
                 )
             except TopicError:
@@ -372,27 +370,25 @@ class MatcherService:
                 counters[f"rejected.{error.reason.value}"] += 1
                 logger.debug("rejected on %s: %s", delivery.topic, error)
                 continue
-            late = self._released is not None and message.timestamp <= self._released
-            accepted.append((message, LATE if late else PENDING, received_at))
+            late = self._released is not None and wire.timestamp <= self._released
+            accepted.append((InboxEntry.from_wire(wire), LATE if late else PENDING, received_at))
         inserted = self.store.insert_messages(accepted, counters)
         # Acknowledge only now: everything above is durably stored (or rejected on purpose).
         for delivery in acknowledge:
             delivery.ack()
         stored = []
-        for (message, status, _), new in zip(accepted, inserted, strict=True):
+        for (entry, status, _), new in zip(accepted, inserted, strict=True):
             if not new:
                 continue
-            stored.append(message)
-            self._active_this_run.add(message.camera_id)
-            self._last_heard[message.camera_id] = now
+            stored.append(entry)
+            camera = entry.camera_id
+            self._active_this_run.add(camera)
+            self._last_heard[camera] = now
             if self._silence_origin is None:
                 self._silence_origin = now
-            self._latest[message.camera_id] = max(
-                self._latest.get(message.camera_id, -math.inf), message.timestamp
-            )
+            self._latest[camera] = max(self._latest.get(camera, -math.inf), entry.timestamp)
             if status == PENDING:
-                self._buffer(message, now)
-        self._run_counters.update(counters)
+                self._buffer(entry, now)
         if self.observer is not None and hasattr(self.observer, "on_stored") and stored:
             self.observer.on_stored(stored, self._wall_clock())
 
@@ -430,11 +426,12 @@ class MatcherService:
                 self._offline[camera] = True
         logger.info("plane %d: camera %s is %s", self.plane_id, camera, status.state)
 
-    def _buffer(self, message: CameraMessage, now: float) -> None:
-        group = self._groups.get(message.timestamp)
+    def _buffer(self, entry: InboxEntry, now: float) -> None:
+        group = self._groups.get(entry.timestamp)
         if group is None:
-            group = self._groups[message.timestamp] = _Group({}, now)
-        group.messages[message.camera_id] = message
+            group = self._groups[entry.timestamp] = _Group({}, now)
+            heapq.heappush(self._timestamps, entry.timestamp)
+        group.messages[entry.camera_id] = entry
 
     def _ready(self, timestamp: float, group: _Group, now: float) -> bool:
         missing = [
@@ -451,13 +448,33 @@ class MatcherService:
             now - self._last_heard.get(camera, origin) >= self.window_s for camera in missing
         )
 
+    # -- releaser and collector threads ---------------------------------------------------
+
+    def _release(self) -> None:
+        """Releaser thread: send ready groups to the tracker process, then let it stop."""
+        assert self._tracker is not None
+        try:
+            while not self._received_all.is_set():
+                self._wake.wait(0.05 if self._groups else 0.2)
+                self._wake.clear()
+                self._release_ready()
+            if self._failure is None:
+                self._release_ready()
+                if self._flush_requested.is_set():
+                    self._release_ready(force=True)
+        except BaseException as error:  # surfaced by stop()
+            self._fail(error, "releaser")
+        finally:
+            self._tracker.finish()
+
     def _release_ready(self, force: bool = False) -> None:
-        while True:
+        assert self._tracker is not None
+        while self._failure is None:
             with self._state_lock:
-                batch: list[tuple[float, _Group]] = []
+                batch: Batch = []
                 while self._groups and len(batch) < self.groups_per_commit:
                     now = self.clock()
-                    timestamp = min(self._groups)
+                    timestamp = self._timestamps[0]
                     group = self._groups[timestamp]
                     if not (
                         force
@@ -465,49 +482,55 @@ class MatcherService:
                         or self._ready(timestamp, group, now)
                     ):
                         break
+                    heapq.heappop(self._timestamps)
                     del self._groups[timestamp]
-                    batch.append((timestamp, group))
+                    messages = sorted(
+                        group.messages.values(), key=lambda m: self._camera_order[m.camera_id]
+                    )
+                    batch.append((timestamp, messages))
                 if not batch:
                     return
                 # From now on a message at or before these timestamps is late; the store
                 # records the same timestamp when the groups are committed.
                 self._released = batch[-1][0]
-                self._processing += 1
-            try:
-                self._process(batch)
-            finally:
-                with self._state_lock:
-                    self._processing -= 1
-                self._tracked.set()
+                self._inflight.append(batch)
+            self._tracker.submit(batch)  # blocks while the tracker process is behind
 
-    def _process(self, batch: list[tuple[float, _Group]]) -> None:
-        """Track released groups in time order and commit them in one transaction."""
-        results = []
-        for timestamp, group in batch:
-            messages = sorted(
-                group.messages.values(), key=lambda m: self._camera_order[m.camera_id]
-            )
-            results.append((timestamp, messages, self.matcher.update(timestamp, messages)))
-        keys = [(m.camera_id, m.sequence) for _, messages, _ in results for m in messages]
-        tracks = Tracks.concatenate([tracks for _, _, tracks in results])
-        counters = {"processed": len(keys), "groups": len(results), "tracks": len(tracks)}
-        # One snapshot after the last group: the file holds all of these groups or none.
-        self.store.commit_group(keys, tracks, self.matcher.get_state(), batch[-1][0], counters)
-        with self._state_lock:
-            self._run_counters.update(counters)
-        for timestamp, messages, group_tracks in results:
-            self._updates += 1
-            if self.publish_tracks:
+    def _collect(self) -> None:
+        """Collector thread: publish what the tracker process committed, tell the observer."""
+        assert self._tracker is not None
+        try:
+            while True:
                 try:
-                    payload = encode_tracks(
-                        group_tracks, self.plane_id, sequence=self._updates,
-                        cameras=self.camera_ids,
-                    )
-                    self.transport.publish(tracks_topic(self.plane_id), payload, qos=1)
-                except Exception:  # a viewer feed must never stop the matcher
-                    logger.exception("could not publish tracks of %s", timestamp)
-            if self.observer is not None and hasattr(self.observer, "on_group"):
-                self.observer.on_group(timestamp, messages, group_tracks, self._wall_clock())
+                    answer = self._tracker.receive()
+                except EOFError:
+                    raise TrackerProcessError(
+                        f"the tracker process exited (code {self._tracker.process.exitcode})"
+                        " without answering"
+                    ) from None
+                if answer[0] == "stopped":
+                    return
+                if answer[0] == "failed":
+                    raise TrackerProcessError(f"the tracker process failed:\n{answer[1]}")
+                _, results, _ = answer
+                batch = self._inflight[0]
+                for (timestamp, tracks, payload), (_, entries) in zip(results, batch, strict=True):
+                    self._publish(timestamp, entries, tracks, payload)
+                with self._state_lock:
+                    self._inflight.popleft()
+        except BaseException as error:  # surfaced by stop()
+            self._fail(error, "tracker")
+
+    def _publish(
+        self, timestamp: float, entries: list[InboxEntry], tracks: Tracks, payload: bytes | None
+    ) -> None:
+        if payload is not None:
+            try:
+                self.transport.publish(tracks_topic(self.plane_id), payload, qos=1)
+            except Exception:  # a viewer feed must never stop the matcher
+                logger.exception("could not publish tracks of %s", timestamp)
+        if self.observer is not None and hasattr(self.observer, "on_group"):
+            self.observer.on_group(timestamp, entries, tracks, self._wall_clock())
 
     # -- queries (any thread) --------------------------------------------------------------
 
@@ -544,9 +567,9 @@ class MatcherService:
         return True
 
     def drained(self) -> bool:
-        """Nothing waiting: no undelivered batch, no buffered group, no group being tracked."""
+        """Nothing waiting: no delivery to store, no buffered group, no group being tracked."""
         with self._state_lock:
-            return self._inbox.empty() and not self._groups and not self._processing
+            return not self._inbox and not self._groups and not self._inflight
 
     def failed(self) -> bool:
         return self._failure is not None
@@ -574,6 +597,18 @@ class MatcherService:
             "released_timestamp": self._released,
             "offline_cameras": sorted(c for c, off in self._offline.items() if off),
         }
+
+
+@functools.cache
+def _process_context() -> Any:
+    """The ``multiprocessing`` context of tracker processes: a fork server.
+
+    Forking from a server that has already imported the tracker (and not from this process,
+    whose threads may hold locks) starts each tracker process quickly and safely.
+    """
+    context = multiprocessing.get_context("forkserver")
+    context.set_forkserver_preload(["cblrs.runtime.tracker_process", "cblrs.matching"])
+    return context
 
 
 @functools.lru_cache(maxsize=4096)

@@ -26,16 +26,18 @@ from __future__ import annotations
 import json
 import sqlite3
 import threading
-from collections.abc import Iterable, Mapping
+import uuid
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import msgspec
 import numpy as np
 
 from cblrs.detections import CameraMessage, Tracks
 from cblrs.errors import CblrsError
+from cblrs.runtime.wire import CLASS_IDS, WireMessage
 
 SCHEMA_VERSION = 1
 
@@ -83,6 +85,56 @@ class StoredMessage:
     received_at: float
 
 
+class InboxEntry(NamedTuple):
+    """An accepted message as the inbox holds it: its header and its detections as JSON.
+
+    What the receiver stores, orders and hands to the tracker: cheap to build from the
+    decoded wire struct and to send to another process; :meth:`message` builds the numpy
+    columns when they are needed.
+    """
+
+    camera_id: str
+    sequence: int
+    timestamp: float
+    frame: int
+    body: str
+    """The detection columns as compact JSON (see :func:`message_body`)."""
+
+    @classmethod
+    def from_wire(cls, wire: WireMessage) -> InboxEntry:
+        """The entry of a validated ``cblrs.detections/1`` payload."""
+        detections = wire.detections
+        body = _encoder.encode(
+            {
+                "xyxy": [item.box for item in detections],
+                "confidence": [item.confidence for item in detections],
+                "class_id": [CLASS_IDS[item.class_name] for item in detections],
+                "colour": [item.colour for item in detections],
+            }
+        )
+        return cls(wire.camera, wire.sequence, wire.timestamp, wire.frame, body.decode())
+
+    @classmethod
+    def from_message(cls, message: CameraMessage) -> InboxEntry:
+        """The entry of a camera message.
+
+        Raises:
+            ValueError: a value is NaN or infinite (JSON has no such numbers).
+        """
+        return cls(
+            message.camera_id,
+            int(message.sequence),
+            float(message.timestamp),
+            int(message.frame),
+            message_body(message),
+        )
+
+    def message(self) -> CameraMessage:
+        """The camera message, with its numpy columns."""
+        return message_from_row(self.camera_id, self.sequence, self.timestamp, self.frame,
+                                self.body)
+
+
 def message_body(message: CameraMessage) -> str:
     """The detection columns of a message as compact JSON (the inbox ``body``).
 
@@ -103,10 +155,11 @@ def message_body(message: CameraMessage) -> str:
 
 
 _encoder = msgspec.json.Encoder()
+_decoder = msgspec.json.Decoder()
 
 
 def message_from_row(camera_id: str, sequence: int, timestamp: float, frame: int, body: str):
-    data = json.loads(body)
+    data = _decoder.decode(body)
     return CameraMessage(
         camera_id=camera_id,
         sequence=int(sequence),
@@ -119,20 +172,36 @@ def message_from_row(camera_id: str, sequence: int, timestamp: float, frame: int
     )
 
 
+@dataclass(frozen=True)
+class SharedStore:
+    """What another process needs to write to the same store (see :meth:`RuntimeStore.share`).
+
+    Attributes:
+        path: the database file.
+        write_lock: a ``multiprocessing`` lock every writer holds for its transactions.
+    """
+
+    path: Path
+    write_lock: Any
+
+
 class RuntimeStore:
     """The SQLite file of one matcher (one plane).
 
     Args:
         path: the database file (created with its tables when missing).
         read_only: open for reading only (``--stats``); the file must exist.
+        write_lock: a ``multiprocessing`` lock shared with the other processes writing to
+            the file (see :meth:`share`); None while this is the only writer.
 
     Raises:
         StoreError: the file is not a cblrs runtime database or cannot be opened.
     """
 
-    def __init__(self, path: str | Path, read_only: bool = False):
+    def __init__(self, path: str | Path, read_only: bool = False, *, write_lock: Any = None):
         self.path = Path(path)
         self._lock = threading.RLock()
+        self._write_lock = write_lock
         try:
             if read_only:
                 if not self.path.is_file():
@@ -219,18 +288,43 @@ class RuntimeStore:
 
     # -- writes ----------------------------------------------------------------------------
 
+    def share(self, context: Any) -> SharedStore:
+        """Let another process write to this file too; returns what it opens the file with.
+
+        From now on every write transaction of this store holds a lock created in the
+        ``multiprocessing`` ``context``, and so does the other process's store (opened with
+        ``RuntimeStore(shared.path, write_lock=shared.write_lock)``): the writers take turns
+        without SQLite's busy-waiting, which sleeps for milliseconds.
+        """
+        with self._lock:
+            if self._write_lock is None:
+                self._write_lock = context.Lock()
+        return SharedStore(self.path, self._write_lock)
+
     def _transaction(self):
-        return _Transaction(self._connection)
+        return _Transaction(self._connection, self._write_lock)
+
+    def claim(self) -> str:
+        """Make a new matcher service the file's tracker: returns its token for
+        :meth:`commit_group`.
+
+        A tracker process outliving its killed service may still be committing a batch; once
+        a restarted service has claimed the file, such a commit fails instead of landing
+        after the new service has read where to resume.
+        """
+        token = uuid.uuid4().hex
+        self.set_meta("tracker", token)
+        return token
 
     def insert_messages(
         self,
-        messages: Iterable[tuple[CameraMessage, str, float]],
+        messages: Sequence[tuple[InboxEntry, str, float]],
         counters: Mapping[str, int] | None = None,
     ) -> list[bool]:
         """Insert accepted messages into the inbox in one transaction.
 
         Args:
-            messages: ``(message, status, received_at)`` with status ``pending`` or ``late``
+            messages: ``(entry, status, received_at)`` with status ``pending`` or ``late``
                 and ``received_at`` in wall-clock seconds.
             counters: counter increments committed in the same transaction.
 
@@ -239,30 +333,29 @@ class RuntimeStore:
             stored (a duplicate; its row is left as it was). The counters ``accepted``,
             ``duplicates`` and ``late`` are incremented accordingly in the same transaction.
         """
-        inserted = []
-        statuses = []
+        rows = [
+            (entry.camera_id, entry.sequence, entry.timestamp, entry.frame, received_at, status,
+             entry.body)
+            for entry, status, received_at in messages
+        ]
         with self._lock, self._transaction() as cursor:
-            for message, status, received_at in messages:
-                cursor.execute(
-                    "INSERT OR IGNORE INTO inbox "
-                    "(camera_id, sequence, timestamp, frame, received_at, status, body) "
-                    "VALUES (?, ?, ?, ?, ?, ?, ?)",
-                    (
-                        message.camera_id,
-                        int(message.sequence),
-                        float(message.timestamp),
-                        int(message.frame),
-                        float(received_at),
-                        status,
-                        message_body(message),
-                    ),
-                )
-                inserted.append(cursor.rowcount == 1)
-                statuses.append(status)
+            # All rows at once; only when some were stored already (redeliveries, rare), once
+            # more one at a time to learn which.
+            cursor.execute("SAVEPOINT batch")
+            cursor.executemany(_INSERT_INBOX, rows)
+            if cursor.rowcount == len(rows):
+                inserted = [True] * len(rows)
+            else:
+                cursor.execute("ROLLBACK TO batch")
+                inserted = []
+                for row in rows:
+                    cursor.execute(_INSERT_INBOX, row)
+                    inserted.append(cursor.rowcount == 1)
+            cursor.execute("RELEASE batch")
             totals = dict(counters or {})
             new = sum(inserted)
-            late = sum(1 for flag, status in zip(inserted, statuses, strict=True)
-                       if flag and status == LATE)
+            late = sum(1 for flag, row in zip(inserted, rows, strict=True)
+                       if flag and row[5] == LATE)
             for name, value in (("accepted", new), ("duplicates", len(inserted) - new),
                                 ("late", late)):
                 totals[name] = totals.get(name, 0) + value
@@ -276,6 +369,7 @@ class RuntimeStore:
         matcher_state: Mapping[str, Any] | None,
         released_timestamp: float,
         counters: Mapping[str, int] | None = None,
+        tracker: str | None = None,
     ) -> None:
         """Store one processed timestamp group atomically.
 
@@ -285,6 +379,10 @@ class RuntimeStore:
             matcher_state: the tracker's ``get_state()`` after the group (JSON-serialisable).
             released_timestamp: the group's capture timestamp, seconds.
             counters: counter increments.
+            tracker: the committing service's :meth:`claim` token, if it has one.
+
+        Raises:
+            StoreError: ``tracker`` is not the file's tracker any more (nothing is written).
         """
         rows = [
             (
@@ -299,6 +397,14 @@ class RuntimeStore:
             for index in range(len(tracks))
         ]
         with self._lock, self._transaction() as cursor:
+            if tracker is not None:
+                (claimed,) = cursor.execute(
+                    "SELECT value FROM meta WHERE key = 'tracker'"
+                ).fetchone() or (None,)
+                if claimed is None or json.loads(claimed) != tracker:
+                    raise StoreError(
+                        f"another matcher service has taken over {self.path}; not committing."
+                    )
             cursor.executemany(
                 "UPDATE inbox SET status = 'processed' WHERE camera_id = ? AND sequence = ?",
                 [(camera_id, int(sequence)) for camera_id, sequence in keys],
@@ -329,6 +435,16 @@ class RuntimeStore:
 
     def released_timestamp(self) -> float | None:
         return self.get_meta("released_timestamp")
+
+    def pending_entries(self) -> list[InboxEntry]:
+        """The ``pending`` inbox rows, ordered by timestamp and camera."""
+        with self._lock:
+            rows = self._connection.execute(
+                "SELECT camera_id, sequence, timestamp, frame, body FROM inbox "
+                "WHERE status = ? ORDER BY timestamp, camera_id, sequence",
+                (PENDING,),
+            ).fetchall()
+        return [InboxEntry(*row) for row in rows]
 
     def messages(self, status: str | None = None) -> list[StoredMessage]:
         """Inbox rows (all, or of one status) ordered by timestamp and camera."""
@@ -406,21 +522,40 @@ class RuntimeStore:
 
 
 class _Transaction:
-    """``BEGIN IMMEDIATE`` ... ``COMMIT`` (or ``ROLLBACK`` on an exception)."""
+    """``BEGIN IMMEDIATE`` ... ``COMMIT`` (or ``ROLLBACK`` on an exception), holding the
+    writers' lock when the store is shared."""
 
-    def __init__(self, connection: sqlite3.Connection):
+    def __init__(self, connection: sqlite3.Connection, write_lock: Any):
         self._connection = connection
+        self._write_lock = write_lock
 
     def __enter__(self) -> sqlite3.Cursor:
-        self._cursor = self._connection.cursor()
-        self._cursor.execute("BEGIN IMMEDIATE")
+        if self._write_lock is not None:
+            self._write_lock.acquire()
+        try:
+            self._cursor = self._connection.cursor()
+            self._cursor.execute("BEGIN IMMEDIATE")
+        except BaseException:
+            self._release()
+            raise
         return self._cursor
 
     def __exit__(self, kind, value, traceback) -> None:
-        if kind is None:
-            self._cursor.execute("COMMIT")
-        else:
-            self._cursor.execute("ROLLBACK")
+        try:
+            self._cursor.execute("COMMIT" if kind is None else "ROLLBACK")
+        finally:
+            self._release()
+
+    def _release(self) -> None:
+        if self._write_lock is not None:
+            self._write_lock.release()
+
+
+_INSERT_INBOX = (
+    "INSERT OR IGNORE INTO inbox "
+    "(camera_id, sequence, timestamp, frame, received_at, status, body) "
+    "VALUES (?, ?, ?, ?, ?, ?, ?)"
+)
 
 
 def _set_meta(cursor: sqlite3.Cursor, key: str, value: Any) -> None:

@@ -55,7 +55,8 @@ DEFAULT_MAX_FUTURE_S = 60.0
 MAX_INT = 2**53
 """Integers on the wire stay exactly representable in a double (JavaScript readers)."""
 
-_CLASS_IDS = {name: index for index, name in enumerate(CLASS_NAMES)}
+CLASS_IDS = {name: index for index, name in enumerate(CLASS_NAMES)}
+"""Class id of each class name on the wire."""
 
 CameraId = Annotated[
     str, msgspec.Meta(min_length=1, max_length=MAX_ID_LENGTH, pattern=ID_PATTERN)
@@ -150,6 +151,26 @@ class ValidationPolicy:
     ) -> CameraMessage:
         """:func:`decode_message` with this policy."""
         return self.decode_with_plane(payload, topic_camera, now)[0]
+
+    def decode_wire(
+        self,
+        payload: bytes,
+        topic_camera: str | None = None,
+        now: float | None = None,
+        topic_plane: int | None = None,
+    ) -> WireMessage:
+        """:func:`decode_wire` with this policy."""
+        return decode_wire(
+            payload,
+            topic_camera=topic_camera,
+            topic_plane=topic_plane,
+            known_cameras=self.known_cameras,
+            bits=self.bits,
+            now=now,
+            max_age_s=self.max_age_s,
+            max_future_s=self.max_future_s,
+            max_bytes=self.max_bytes,
+        )
 
     def decode_with_plane(
         self,
@@ -284,6 +305,51 @@ def decode_message_with_plane(
 
     ``topic_plane``, when given, must equal the payload's plane (else TOPIC_MISMATCH).
     """
+    wire = decode_wire(
+        payload,
+        topic_camera=topic_camera,
+        topic_plane=topic_plane,
+        known_cameras=known_cameras,
+        bits=bits,
+        now=now,
+        max_age_s=max_age_s,
+        max_future_s=max_future_s,
+        max_bytes=max_bytes,
+    )
+    xyxy, confidence, class_id, colour = _columns(wire.detections, bits)
+    message = CameraMessage(
+        camera_id=wire.camera,
+        sequence=wire.sequence,
+        timestamp=wire.timestamp,
+        frame=wire.frame,
+        xyxy=xyxy,
+        confidence=confidence,
+        class_id=class_id,
+        colour=colour,
+    )
+    return message, wire.plane
+
+
+def decode_wire(
+    payload: bytes,
+    *,
+    topic_camera: str | None = None,
+    topic_plane: int | None = None,
+    known_cameras: set[str] | frozenset[str] | None = None,
+    bits: int = 16,
+    now: float | None = None,
+    max_age_s: float = DEFAULT_MAX_AGE_S,
+    max_future_s: float = DEFAULT_MAX_FUTURE_S,
+    max_bytes: int = DEFAULT_MAX_BYTES,
+) -> WireMessage:
+    """Decode and validate a ``cblrs.detections/1`` payload into its wire struct.
+
+    The same checks as :func:`decode_message_with_plane` (same arguments), without building
+    numpy columns: what a receiver needs to store a message and acknowledge it.
+
+    Raises:
+        RejectedMessage: for every kind of bad input, and nothing else.
+    """
     if not isinstance(payload, bytes | bytearray | memoryview):
         raise RejectedMessage(RejectReason.MALFORMED_JSON, "payload is not bytes")
     if len(payload) > max_bytes:
@@ -316,18 +382,36 @@ def decode_message_with_plane(
             RejectReason.IN_FUTURE,
             f"captured {wire.timestamp - current:.3f} s in the future, more than {max_future_s} s",
         )
-    xyxy, confidence, class_id, colour = _columns(wire.detections, bits)
-    message = CameraMessage(
-        camera_id=wire.camera,
-        sequence=wire.sequence,
-        timestamp=wire.timestamp,
-        frame=wire.frame,
-        xyxy=xyxy,
-        confidence=confidence,
-        class_id=class_id,
-        colour=colour,
-    )
-    return message, wire.plane
+    _check_values(wire.detections, bits)
+    return wire
+
+
+def _check_values(detections: list[WireDetection], bits: int) -> None:
+    """Raise :class:`RejectedMessage` unless every detection's values are valid.
+
+    One chained comparison per detection (NaN and infinities fail it too), which for the
+    usual handful of detections costs less than building arrays; a failure is then named
+    by :func:`_columns`, so the reasons are the same as there.
+    """
+    top = (1 << bits) - 1
+    for item in detections:
+        x_min, y_min, x_max, y_max = item.box
+        red, green, blue = item.colour
+        if not (
+            _FLOAT_MIN <= x_min <= x_max <= _FLOAT_MAX
+            and _FLOAT_MIN <= y_min <= y_max <= _FLOAT_MAX
+            and 0.0 <= item.confidence <= 1.0
+            and 0 <= red <= top
+            and 0 <= green <= top
+            and 0 <= blue <= top
+            and item.class_name in CLASS_IDS
+        ):
+            _columns(detections, bits)  # raises, naming the fault
+            raise AssertionError("unreachable")  # _columns refuses what failed above
+
+
+_FLOAT_MAX = float(np.finfo(np.float64).max)
+_FLOAT_MIN = -_FLOAT_MAX
 
 
 def _check_header(camera_id: str, sequence: int, timestamp: float, frame: int, plane: int) -> None:
@@ -366,7 +450,7 @@ def _columns(
         return _EMPTY_XYXY, _EMPTY_FLOAT, _EMPTY_INT, _EMPTY_COLOUR
     try:
         class_id = np.fromiter(
-            [_CLASS_IDS[item.class_name] for item in detections], np.int64, len(detections)
+            [CLASS_IDS[item.class_name] for item in detections], np.int64, len(detections)
         )
     except KeyError as error:
         raise RejectedMessage(

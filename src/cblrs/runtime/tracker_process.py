@@ -1,0 +1,180 @@
+"""The matcher service's tracker process: track released groups, commit them, encode updates.
+
+The matcher service (:mod:`cblrs.runtime.matcher_service`) receives, stores, acknowledges
+and orders messages in its own process and sends each batch of released timestamp groups
+here through a pipe. This process runs the matcher on them, commits the batch to the shared
+SQLite store in one transaction (track rows, inbox rows marked processed, matcher state,
+last released timestamp, counters) and answers with the tracks and the encoded track
+updates, which the service publishes. Receiving and tracking thus run on two cores rather
+than taking turns on one interpreter lock.
+
+The process resumes the matcher from the state the store holds, so a service restarted on
+the same database (after a crash of either process) continues from the last committed batch.
+
+Messages (pickled) on the two pipes:
+
+* service -> tracker: a batch ``[(timestamp, [InboxEntry, ...]), ...]`` (groups in time
+  order, messages in camera order), or ``None``: commit nothing more and stop;
+* tracker -> service, in the order of the batches: ``("tracked", [(timestamp, tracks,
+  payload or None), ...], counters)`` once a batch is committed; ``("failed", traceback)``
+  when tracking or committing raised (the process then exits); ``("stopped",)`` after
+  ``None``.
+"""
+
+from __future__ import annotations
+
+import gc
+import logging
+import signal
+import traceback
+from collections.abc import Sequence
+from typing import Any
+
+from cblrs.detections import Tracks
+from cblrs.runtime.store import InboxEntry, RuntimeStore, SharedStore
+from cblrs.runtime.wire import encode_tracks
+
+logger = logging.getLogger(__name__)
+
+Batch = list[tuple[float, list[InboxEntry]]]
+"""Released groups sent to the tracker process: ``(timestamp, entries in camera order)``."""
+
+
+class TrackerProcessError(RuntimeError):
+    """The tracker process failed (its traceback is the message) or exited unexpectedly."""
+
+
+class TrackerProcess:
+    """The tracker process of one matcher service, and the service's ends of its pipes.
+
+    Args:
+        context: the ``multiprocessing`` context that starts the process.
+        matcher: the matcher (pickled into the process; it resumes from the store's state).
+        shared: the service's store, shared for writing (:meth:`RuntimeStore.share`).
+        tracker: the service's claim on the store (:meth:`RuntimeStore.claim`).
+        plane_id: the plane served (track updates name it).
+        camera_ids: the plane's cameras (track updates list them).
+        publish_tracks: encode a track update per group.
+    """
+
+    def __init__(
+        self,
+        context: Any,
+        matcher: Any,
+        shared: SharedStore,
+        tracker: str,
+        plane_id: int,
+        camera_ids: Sequence[str],
+        publish_tracks: bool,
+    ):
+        requests_reader, self._requests = context.Pipe(duplex=False)
+        self._results, results_writer = context.Pipe(duplex=False)
+        self.process = context.Process(
+            target=run,
+            args=(requests_reader, results_writer, matcher, shared, tracker, plane_id,
+                  list(camera_ids), publish_tracks),
+            name=f"cblrs-tracker-{plane_id}",
+            daemon=True,
+        )
+        self.process.start()
+        # Only the child holds these ends now, so a child that dies closes the pipes:
+        # ``receive`` then raises EOFError instead of waiting forever.
+        requests_reader.close()
+        results_writer.close()
+
+    def submit(self, batch: Batch) -> None:
+        """Send a batch of released groups (blocks while the pipe is full).
+
+        Raises:
+            OSError: the process has gone.
+        """
+        self._requests.send(batch)
+
+    def finish(self) -> None:
+        """Ask the process to stop after the batches already sent (a no-op once it has gone)."""
+        try:
+            self._requests.send(None)
+        except OSError:
+            pass
+
+    def receive(self) -> tuple:
+        """The next answer of the process (blocks).
+
+        Raises:
+            EOFError: the process has gone.
+        """
+        return self._results.recv()
+
+    def close(self, timeout: float) -> None:
+        """Wait for the process to exit (terminate it after ``timeout``); close the pipes."""
+        self.process.join(timeout)
+        if self.process.is_alive():
+            logger.warning("tracker process %s did not stop within %.0f s; terminating it",
+                           self.process.name, timeout)
+            self.process.terminate()
+            self.process.join(5)
+        self._requests.close()
+        self._results.close()
+
+
+def run(
+    requests: Any,
+    results: Any,
+    matcher: Any,
+    shared: SharedStore,
+    tracker: str,
+    plane_id: int,
+    camera_ids: list[str],
+    publish_tracks: bool,
+) -> None:
+    """The tracker process's main function (see the module docstring for the protocol)."""
+    # The service decides when this process stops (Ctrl-C in a terminal reaches both).
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    store = RuntimeStore(shared.path, write_lock=shared.write_lock)
+    try:
+        state = store.matcher_state()
+        if state is not None:
+            matcher.set_state(state)
+        # Everything alive now (modules, the matcher) lives as long as the process: keep it
+        # out of the garbage collector's full passes, which would otherwise walk it all.
+        gc.freeze()
+        updates = 0
+        while (batch := requests.recv()) is not None:
+            tracked = []
+            for timestamp, entries in batch:
+                messages = [entry.message() for entry in entries]
+                tracked.append((timestamp, matcher.update(timestamp, messages)))
+            keys = [(entry.camera_id, entry.sequence) for _, entries in batch for entry in entries]
+            tracks = Tracks.concatenate([group_tracks for _, group_tracks in tracked])
+            counters = {"processed": len(keys), "groups": len(batch), "tracks": len(tracks)}
+            # One snapshot after the last group: the file holds all of these groups or none.
+            store.commit_group(keys, tracks, matcher.get_state(), batch[-1][0], counters,
+                               tracker=tracker)
+            answers = []
+            for timestamp, group_tracks in tracked:
+                updates += 1
+                payload = None
+                if publish_tracks:
+                    payload = _encode(group_tracks, plane_id, updates, camera_ids, timestamp)
+                answers.append((timestamp, group_tracks, payload))
+            results.send(("tracked", answers, counters))
+        results.send(("stopped",))
+    except BaseException:
+        try:
+            results.send(("failed", traceback.format_exc()))
+        except OSError:  # the service has gone too
+            pass
+        raise SystemExit(1) from None
+    finally:
+        store.close()
+
+
+def _encode(
+    tracks: Tracks, plane_id: int, sequence: int, camera_ids: list[str], timestamp: float
+) -> bytes | None:
+    """The track update of one group; None (logged) if it cannot be encoded."""
+    try:
+        return encode_tracks(tracks, plane_id, sequence=sequence, cameras=camera_ids)
+    except Exception:  # a viewer feed must never stop the matcher
+        logger.exception("could not encode the tracks of %s", timestamp)
+        return None
