@@ -17,6 +17,7 @@ from cblrs.matching.fusion import (
     assign_per_camera,
     cluster_detections,
     fuse,
+    inverse_cholesky_2x2,
     ray_covariance,
 )
 from cblrs.plane import PlaneSet, PlaneSpec
@@ -330,6 +331,17 @@ def test_noise_model_does_not_trust_the_small_axis_before_it_has_the_data():
     assert min(lateral_history) > 0.06  # truth 0.07 m at every distance
     assert lateral_history[-1] == pytest.approx(0.07, rel=0.2)
     assert np.sqrt(along[0]) == pytest.approx(0.8, rel=0.1)  # truth 0.04 x 20 m
+
+
+def test_inverse_cholesky_whitens_like_numpy():
+    rng = np.random.default_rng(4)
+    factor = rng.normal(size=(50, 2, 2))
+    covariance = factor @ np.swapaxes(factor, 1, 2) + 0.01 * np.eye(2)
+    whitening = inverse_cholesky_2x2(covariance)
+    assert whitening == pytest.approx(np.linalg.inv(np.linalg.cholesky(covariance)))
+    # Whitened, each covariance is the identity.
+    identity = whitening @ covariance @ np.swapaxes(whitening, 1, 2)
+    assert identity == pytest.approx(np.broadcast_to(np.eye(2), identity.shape))
 
 
 def test_noise_model_learns_a_bias_along_the_ray():

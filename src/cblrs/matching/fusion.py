@@ -1168,7 +1168,7 @@ class NoiseModel:
         # the model would take minutes of data to learn how precise the cameras are
         # across their rays.
         covariance = np.einsum("kcij,c->kij", parts, self.coefficients)
-        whitening = np.linalg.inv(np.linalg.cholesky(covariance))
+        whitening = inverse_cholesky_2x2(covariance)
         parts = whitening[:, None] @ parts @ np.swapaxes(whitening, 1, 2)[:, None]
         difference = np.einsum(
             "kij,kj->ki", whitening, world_xy[first] - world_xy[second]
@@ -1260,6 +1260,22 @@ def largest_sigma(covariance: np.ndarray) -> np.ndarray:
     half_trace = 0.5 * (covariance[:, 0, 0] + covariance[:, 1, 1])
     spread = np.hypot(0.5 * (covariance[:, 0, 0] - covariance[:, 1, 1]), covariance[:, 0, 1])
     return np.sqrt(half_trace + spread)
+
+
+def inverse_cholesky_2x2(covariance: np.ndarray) -> np.ndarray:
+    """(K, 2, 2) ``L^-1`` of the Cholesky factors ``L L^T`` of (K, 2, 2) SPD matrices.
+
+    ``L^-1 d`` whitens a difference ``d`` of covariance ``L L^T``. Closed form: numpy's
+    batched LAPACK calls cost far more than the arithmetic for 2 x 2 matrices.
+    """
+    first = np.sqrt(covariance[:, 0, 0])
+    lower = covariance[:, 1, 0] / first
+    second = np.sqrt(covariance[:, 1, 1] - lower * lower)
+    inverse = np.zeros_like(covariance)
+    inverse[:, 0, 0] = 1.0 / first
+    inverse[:, 1, 0] = -lower / (first * second)
+    inverse[:, 1, 1] = 1.0 / second
+    return inverse
 
 
 def mahalanobis_squared(difference: np.ndarray, covariance: np.ndarray) -> np.ndarray:
