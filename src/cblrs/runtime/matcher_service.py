@@ -504,6 +504,7 @@ class MatcherService:
                 try:
                     answer = self._tracker.receive()
                 except EOFError:
+                    self._tracker.process.join(1.0)  # for its exit code
                     raise TrackerProcessError(
                         f"the tracker process exited (code {self._tracker.process.exitcode})"
                         " without answering"

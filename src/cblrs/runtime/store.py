@@ -220,6 +220,8 @@ class RuntimeStore:
                 self._connection.execute("PRAGMA synchronous=NORMAL")
                 self._connection.executescript(_SCHEMA)
                 self._check_version()
+                if write_lock is not None:
+                    self._leave_checkpoints()
             self._connection.execute("PRAGMA busy_timeout=5000")
         except sqlite3.DatabaseError as error:
             raise StoreError(f"{self.path} is not a usable SQLite database: {error}.") from None
@@ -299,7 +301,17 @@ class RuntimeStore:
         with self._lock:
             if self._write_lock is None:
                 self._write_lock = context.Lock()
+                self._leave_checkpoints()
         return SharedStore(self.path, self._write_lock)
+
+    def _leave_checkpoints(self) -> None:
+        """No checkpoints at commits of a shared store: :func:`checkpoint_regularly` does them.
+
+        A commit that reaches SQLite's automatic checkpoint (every 1000 pages of WAL) would
+        copy them into the database file and sync it while holding the writers' lock, so
+        the other writer would wait for the disk.
+        """
+        self._connection.execute("PRAGMA wal_autocheckpoint=0")
 
     def _transaction(self):
         return _Transaction(self._connection, self._write_lock)
@@ -519,6 +531,20 @@ class RuntimeStore:
             "track_ids": int(identities),
             "released_timestamp": self.released_timestamp(),
         }
+
+
+def checkpoint_regularly(path: Path, stop: threading.Event, interval_s: float = 1.0) -> None:
+    """Copy the WAL of a shared store into its database file every ``interval_s`` seconds
+    until ``stop`` is set (in a thread of one of its writers, on a connection of its own).
+
+    A passive checkpoint does not block the writers: they go on appending to the WAL.
+    """
+    connection = sqlite3.connect(str(path), check_same_thread=False)
+    try:
+        while not stop.wait(interval_s):
+            connection.execute("PRAGMA wal_checkpoint(PASSIVE)")
+    finally:
+        connection.close()
 
 
 class _Transaction:

@@ -4,7 +4,8 @@ The matcher service (:mod:`cblrs.runtime.matcher_service`) receives, stores, ack
 and orders messages in its own process and sends each batch of released timestamp groups
 here through a pipe. This process runs the matcher on them, commits the batch to the shared
 SQLite store in one transaction (track rows, inbox rows marked processed, matcher state,
-last released timestamp, counters) and answers with the tracks and the encoded track
+last released timestamp, counters; a thread copies the WAL into the database file, off the
+writers' path) and answers with the tracks and the encoded track
 updates, which the service publishes. Receiving and tracking thus run on two cores rather
 than taking turns on one interpreter lock.
 
@@ -26,12 +27,13 @@ from __future__ import annotations
 import gc
 import logging
 import signal
+import threading
 import traceback
 from collections.abc import Sequence
 from typing import Any
 
 from cblrs.detections import Tracks
-from cblrs.runtime.store import InboxEntry, RuntimeStore, SharedStore
+from cblrs.runtime.store import InboxEntry, RuntimeStore, SharedStore, checkpoint_regularly
 from cblrs.runtime.wire import encode_tracks
 
 logger = logging.getLogger(__name__)
@@ -131,6 +133,11 @@ def run(
     # The service decides when this process stops (Ctrl-C in a terminal reaches both).
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     store = RuntimeStore(shared.path, write_lock=shared.write_lock)
+    stop_checkpoints = threading.Event()
+    checkpoints = threading.Thread(
+        target=checkpoint_regularly, args=(shared.path, stop_checkpoints), daemon=True
+    )
+    checkpoints.start()
     try:
         state = store.matcher_state()
         if state is not None:
@@ -166,6 +173,8 @@ def run(
             pass
         raise SystemExit(1) from None
     finally:
+        stop_checkpoints.set()
+        checkpoints.join()
         store.close()
 
 
