@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import re
 import signal
 import subprocess
@@ -41,7 +42,8 @@ from cblrs.runtime.sources import (
     scene_source,
     video_source,
 )
-from cblrs.runtime.store import LATE, RuntimeStore
+from cblrs.runtime.store import LATE, PENDING, PROCESSED, RuntimeStore
+from cblrs.runtime.tracker_process import TrackerProcessError
 from cblrs.runtime.topics import detections_topic, matcher_status_topic, status_topic
 from cblrs.runtime.transport import InProcessBroker, InProcessTransport, MqttTransport, Will
 from cblrs.runtime.wire import decode_message, decode_status, encode_message, encode_status
@@ -486,6 +488,105 @@ def test_restart_resumes_pending_messages_and_state(ordering, tmp_path):
     counters = store_again.counters()
     assert (counters["processed"], counters["groups"]) == (6, 3)
     assert store_again.status_counts() == {"processed": 6}
+
+
+# -- matcher service: the tracker process ----------------------------------------------------
+
+
+class _FailingMatcher:
+    """A matcher whose update raises (module level, so it pickles into the tracker process)."""
+
+    def update(self, timestamp, messages):
+        raise ValueError("the update exploded")
+
+    def get_state(self):
+        return None
+
+    def set_state(self, state):
+        pass
+
+
+@pytest.fixture
+def tracker_service(tmp_path):
+    """Factory for an in-process service with cameras A and B; stops leftovers at the end."""
+    broker = InProcessBroker()
+    started = []
+
+    def start(matcher=None):
+        store = RuntimeStore(tmp_path / "matcher.db")
+        groups = _Groups()
+        service = MatcherService(
+            InProcessTransport(broker, "matcher"), store,
+            matcher or make_matcher("fusion", _planes(), ["A", "B"]), PLANE, ["A", "B"],
+            window_s=60, observer=groups,
+        )
+        service.start()
+        started.append((service, store))
+        return service, store, groups
+
+    publisher = InProcessTransport(broker, "publisher", persistent=False)
+    publisher.connect()
+
+    def publish(sequence: int, timestamp: float, cameras=("A", "B")) -> None:
+        for camera in cameras:
+            publisher.publish(
+                detections_topic(PLANE, camera), _message(camera, sequence, timestamp)
+            )
+
+    yield SimpleNamespace(start=start, publish=publish)
+    for service, store in started:
+        try:
+            service.close()
+        except RuntimeError:  # a test's failed service: already checked there
+            pass
+        finally:
+            store.close()
+
+
+def test_tracker_process_failure_stops_the_service_and_is_raised(tracker_service):
+    service, store, groups = tracker_service.start(_FailingMatcher())
+    tracker_service.publish(0, time.time())
+    wait_until(service.failed, 30, "the service to notice the failed update")
+    with pytest.raises(RuntimeError) as caught:
+        service.close()
+    cause = caught.value.__cause__
+    assert isinstance(cause, TrackerProcessError)
+    assert "ValueError: the update exploded" in str(cause)
+    assert groups.groups == []
+    assert store.status_counts() == {PENDING: 2}, "nothing may be committed for the group"
+    assert not service._tracker.process.is_alive()
+
+
+def test_killed_tracker_process_fails_the_service_and_a_restart_resumes(tracker_service):
+    service, store, groups = tracker_service.start()
+    now = time.time()
+    tracker_service.publish(0, now)
+    wait_until(lambda: len(groups.groups) == 1, 30, "the first group")
+    os.kill(service._tracker.process.pid, signal.SIGKILL)
+    wait_until(service.failed, 30, "the service to notice the dead tracker process")
+    tracker_service.publish(1, now + 1)  # queued for the service's session meanwhile
+    with pytest.raises(RuntimeError) as caught:
+        service.stop()
+    assert "exited (code -9)" in str(caught.value.__cause__)
+    service.transport.close(unclean=True)
+    again, store_again, groups_again = tracker_service.start()
+    wait_until(lambda: len(groups_again.groups) == 1, 30, "the group after the restart")
+    again.close(flush=True)
+    assert groups_again.groups == [(now + 1, ["A", "B"])]
+    counters = store_again.counters()
+    assert (counters["processed"], counters["groups"], counters.get("duplicates", 0)) == (4, 2, 0)
+    assert store_again.status_counts() == {PROCESSED: 4}
+
+
+def test_clean_stop_ends_the_tracker_process_after_committing(tracker_service):
+    service, store, groups = tracker_service.start()
+    tracker_service.publish(0, time.time(), cameras=("A",))  # waits for B: flushed at stop
+    wait_until(lambda: store.counters().get("accepted") == 1, 30, "the message")
+    service.close(flush=True)
+    assert service._tracker.process.exitcode == 0
+    assert len(groups.groups) == 1
+    assert store.status_counts() == {PROCESSED: 1}
+    assert store.counters()["groups"] == 1
 
 
 def test_service_clock_stands_still_while_disconnected():

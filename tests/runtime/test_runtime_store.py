@@ -112,6 +112,21 @@ def test_commit_group_is_one_transaction_and_survives_reopening(tmp_path):
         assert (pending.message.camera_id, pending.message.sequence) == ("CVLab1", 1)
 
 
+def test_commit_of_a_superseded_tracker_is_refused(store):
+    store.insert_messages([(entry("CVLab1", 0), PENDING, 1.0)])
+    first = store.claim()
+    store.commit_group([], tracks(1), {"n": 1}, 9.0, {"groups": 1}, tracker=first)
+    second = store.claim()  # a restarted service took over
+    with pytest.raises(StoreError, match="taken over"):
+        store.commit_group([("CVLab1", 0)], tracks(2), {"n": 2}, 10.0, {"groups": 1},
+                           tracker=first)
+    store.commit_group([("CVLab1", 0)], tracks(2), {"n": 2}, 10.0, {"groups": 1},
+                       tracker=second)
+    assert store.counters()["groups"] == 2
+    assert len(store.tracks()) == 3
+    assert store.matcher_state() == {"n": 2}
+
+
 def test_failed_group_commit_leaves_nothing_behind(store):
     store.insert_messages([(entry("CVLab1", 0), PENDING, 1.0)])
     with pytest.raises(TypeError, match="cannot store object"):
