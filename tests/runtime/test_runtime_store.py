@@ -2,15 +2,26 @@
 
 from __future__ import annotations
 
+import multiprocessing
 import sqlite3
+import threading
 
 import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from waiting import wait_until
 
 from cblrs.detections import CameraMessage, Tracks
-from cblrs.runtime.store import LATE, PENDING, PROCESSED, InboxEntry, RuntimeStore, StoreError
+from cblrs.runtime.store import (
+    LATE,
+    PENDING,
+    PROCESSED,
+    InboxEntry,
+    RuntimeStore,
+    StoreError,
+    checkpoint_regularly,
+)
 
 
 def message(camera: str = "CVLab1", sequence: int = 0, timestamp: float = 10.0, count: int = 2):
@@ -125,6 +136,27 @@ def test_commit_of_a_superseded_tracker_is_refused(store):
     assert store.counters()["groups"] == 2
     assert len(store.tracks()) == 3
     assert store.matcher_state() == {"n": 2}
+
+
+def test_shared_store_leaves_checkpoints_to_the_checkpoint_thread(tmp_path):
+    path = tmp_path / "runtime.db"
+    with RuntimeStore(path) as store:
+        shared = store.share(multiprocessing.get_context("spawn"))
+        with RuntimeStore(shared.path, write_lock=shared.write_lock) as other:
+            for connection in (store._connection, other._connection):
+                assert connection.execute("PRAGMA wal_autocheckpoint").fetchone() == (0,)
+            store.insert_messages([(entry("A", sequence), PENDING, 1.0) for sequence in range(500)])
+            other.commit_group([("A", 0)], tracks(2), {"n": 1}, 10.0, {"groups": 1})
+            before = path.stat().st_size  # the rows are still in the WAL only
+            stop = threading.Event()
+            thread = threading.Thread(target=checkpoint_regularly, args=(path, stop, 0.01))
+            thread.start()
+            try:
+                wait_until(lambda: path.stat().st_size > before, 10, "a checkpoint")
+            finally:
+                stop.set()
+                thread.join()
+            assert other.status_counts() == {PROCESSED: 1, PENDING: 499}
 
 
 def test_failed_group_commit_leaves_nothing_behind(store):

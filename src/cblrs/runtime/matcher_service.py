@@ -602,11 +602,14 @@ class MatcherService:
 
 @functools.cache
 def _process_context() -> Any:
-    """The ``multiprocessing`` context of tracker processes: a fork server.
+    """The ``multiprocessing`` context of tracker processes: a fork server where there is one.
 
     Forking from a server that has already imported the tracker (and not from this process,
-    whose threads may hold locks) starts each tracker process quickly and safely.
+    whose threads may hold locks) starts each tracker process quickly and safely; without
+    fork servers (Windows) each one is spawned.
     """
+    if "forkserver" not in multiprocessing.get_all_start_methods():
+        return multiprocessing.get_context("spawn")
     context = multiprocessing.get_context("forkserver")
     context.set_forkserver_preload(["cblrs.runtime.tracker_process", "cblrs.matching"])
     return context
