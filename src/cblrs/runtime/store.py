@@ -9,16 +9,17 @@ Tables:
   ``pending`` until its timestamp group has been tracked (then ``processed``), or ``late``
   when it arrived after its timestamp had already been released.
 * ``tracks`` — the tracker's output rows (frame, timestamp, track id, world x/y, camera, box).
-* ``meta`` — the matcher state snapshot (``get_state()`` JSON), the last released timestamp
-  and the service settings.
+* ``meta`` — the matcher state snapshot (``get_state()`` JSON), the last released timestamp,
+  the service settings and the token of the service currently tracking (:meth:`claim`).
 * ``counters`` — received, rejected by reason, duplicates, late, processed, ...
 
 Processing a timestamp group is one transaction (track rows + inbox rows marked processed +
 matcher state + counters), so after a crash the file holds either all of a group or none of
 it, and a restarted matcher resumes from exactly the last committed group.
 
-One writer (the matcher service) at a time; readers (``cblrs matcher --stats``) may open the
-file concurrently.
+One matcher service writes at a time, from two processes: its own (the inbox) and its tracker
+process (the groups), which take turns through a lock shared by :meth:`RuntimeStore.share`;
+readers (``cblrs matcher --stats``) may open the file concurrently.
 """
 
 from __future__ import annotations
