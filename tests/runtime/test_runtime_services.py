@@ -43,8 +43,8 @@ from cblrs.runtime.sources import (
     video_source,
 )
 from cblrs.runtime.store import LATE, PENDING, PROCESSED, RuntimeStore
-from cblrs.runtime.tracker_process import TrackerProcessError
 from cblrs.runtime.topics import detections_topic, matcher_status_topic, status_topic
+from cblrs.runtime.tracker_process import TrackerProcessError
 from cblrs.runtime.transport import InProcessBroker, InProcessTransport, MqttTransport, Will
 from cblrs.runtime.wire import decode_message, decode_status, encode_message, encode_status
 
@@ -558,7 +558,7 @@ def test_tracker_process_failure_stops_the_service_and_is_raised(tracker_service
 
 
 def test_killed_tracker_process_fails_the_service_and_a_restart_resumes(tracker_service):
-    service, store, groups = tracker_service.start()
+    service, _, groups = tracker_service.start()
     now = time.time()
     tracker_service.publish(0, now)
     wait_until(lambda: len(groups.groups) == 1, 30, "the first group")
