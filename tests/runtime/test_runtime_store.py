@@ -2,8 +2,9 @@
 
 from __future__ import annotations
 
-import multiprocessing
 import sqlite3
+import subprocess
+import sys
 import threading
 
 import numpy as np
@@ -20,6 +21,7 @@ from cblrs.runtime.store import (
     InboxEntry,
     RuntimeStore,
     StoreError,
+    WriterLock,
     checkpoint_regularly,
 )
 
@@ -141,7 +143,7 @@ def test_commit_of_a_superseded_tracker_is_refused(store):
 def test_shared_store_leaves_checkpoints_to_the_checkpoint_thread(tmp_path):
     path = tmp_path / "runtime.db"
     with RuntimeStore(path) as store:
-        shared = store.share(multiprocessing.get_context("spawn"))
+        shared = store.share()
         with RuntimeStore(shared.path, write_lock=shared.write_lock) as other:
             for connection in (store._connection, other._connection):
                 assert connection.execute("PRAGMA wal_autocheckpoint").fetchone() == (0,)
@@ -157,6 +159,31 @@ def test_shared_store_leaves_checkpoints_to_the_checkpoint_thread(tmp_path):
                 stop.set()
                 thread.join()
             assert other.status_counts() == {PROCESSED: 1, PENDING: 499}
+
+
+def test_writer_lock_is_freed_when_its_holder_is_killed(tmp_path):
+    path = tmp_path / "runtime.db-writers.lock"
+    holder = subprocess.Popen(
+        [sys.executable, "-c",
+         "import sys, time; from cblrs.runtime.store import WriterLock; "
+         "lock = WriterLock(sys.argv[1]); lock.acquire(); print('held', flush=True); "
+         "time.sleep(60)", str(path)],
+        stdout=subprocess.PIPE, text=True,
+    )
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        lock = WriterLock(path)
+        acquired = threading.Event()
+        waiter = threading.Thread(target=lambda: (lock.acquire(), acquired.set()), daemon=True)
+        waiter.start()
+        assert not acquired.wait(0.3), "the lock was not exclusive"
+        holder.kill()  # in the middle of its "transaction"
+        assert acquired.wait(10), "a dead holder kept the lock"
+        lock.release()
+        lock.close()
+    finally:
+        holder.kill()
+        holder.wait()
 
 
 def test_failed_group_commit_leaves_nothing_behind(store):

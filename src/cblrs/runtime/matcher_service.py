@@ -31,13 +31,13 @@ Steps 1-3 run in the service's process: a *receiver* thread validates, stores, a
 and buffers the deliveries the transport's thread queues, in batches of what has arrived (one
 inbox transaction each), and a *releaser* thread sends released groups to step 4. Step 4 runs
 in a separate *tracker process* (:mod:`cblrs.runtime.tracker_process`), which writes to the
-same SQLite file (the two take turns through a shared lock); a *collector* thread publishes
-its track updates. So receiving and tracking use two cores, an acknowledgement never waits
-for the tracker, and messages are stored while earlier groups are being tracked. A group
-leaves the buffer and the "last released timestamp" advances in one step under a lock, so a
-message is either in its group or counted late, never both. If the tracker process fails or
-dies, the service stops (:meth:`MatcherService.failed`; ``stop`` raises); a restarted
-service resumes from the store.
+same SQLite file (the two take turns through a lock on a file next to it); a *collector*
+thread publishes its track updates. So receiving and tracking use two cores, an
+acknowledgement never waits for the tracker, and messages are stored while earlier groups are
+being tracked. A group leaves the buffer and the "last released timestamp" advances in one
+step under a lock, so a message is either in its group or counted late, never both. If the
+tracker process fails or dies, the service stops (:meth:`MatcherService.failed`; ``stop``
+raises); a restarted service resumes from the store.
 
 A restarted service resumes from what SQLite holds: the matcher state and the last released
 timestamp of the last committed group, the unprocessed inbox rows (back into the buffer) and
@@ -231,7 +231,7 @@ class MatcherService:
         self._last_delivery = self.clock()
         context = _process_context()
         self._tracker = TrackerProcess(
-            context, self.matcher, self.store.share(context), tracker, self.plane_id,
+            context, self.matcher, self.store.share(), tracker, self.plane_id,
             self.camera_ids, self.publish_tracks,
         )
         self._threads = [
@@ -602,14 +602,11 @@ class MatcherService:
 
 @functools.cache
 def _process_context() -> Any:
-    """The ``multiprocessing`` context of tracker processes: a fork server where there is one.
+    """The ``multiprocessing`` context of tracker processes: a fork server.
 
     Forking from a server that has already imported the tracker (and not from this process,
-    whose threads may hold locks) starts each tracker process quickly and safely; without
-    fork servers (Windows) each one is spawned.
+    whose threads may hold locks) starts each tracker process quickly and safely.
     """
-    if "forkserver" not in multiprocessing.get_all_start_methods():
-        return multiprocessing.get_context("spawn")
     context = multiprocessing.get_context("forkserver")
     context.set_forkserver_preload(["cblrs.runtime.tracker_process", "cblrs.matching"])
     return context

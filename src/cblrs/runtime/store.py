@@ -24,6 +24,7 @@ readers (``cblrs matcher --stats``) may open the file concurrently.
 
 from __future__ import annotations
 
+import fcntl
 import json
 import sqlite3
 import threading
@@ -173,17 +174,50 @@ def message_from_row(camera_id: str, sequence: int, timestamp: float, frame: int
     )
 
 
+class WriterLock:
+    """The lock the writing processes of one database take turns with: ``flock`` on a file.
+
+    The kernel releases it when the process holding it ends, so a writer killed in the middle
+    of a transaction cannot leave the other one waiting forever. Each process opens the lock
+    file itself (a pickled lock is its path), and each open file is a lock of its own, so two
+    stores of one process exclude each other too.
+
+    Args:
+        path: the lock file (created when missing).
+    """
+
+    def __init__(self, path: Path):
+        self.path = Path(path)
+        self._file: Any = None
+
+    def __getstate__(self) -> dict[str, Any]:
+        return {"path": self.path, "_file": None}
+
+    def acquire(self) -> None:
+        if self._file is None:
+            self._file = open(self.path, "ab")  # kept open: the lock belongs to the open file
+        fcntl.flock(self._file.fileno(), fcntl.LOCK_EX)
+
+    def release(self) -> None:
+        fcntl.flock(self._file.fileno(), fcntl.LOCK_UN)
+
+    def close(self) -> None:
+        if self._file is not None:
+            self._file.close()
+            self._file = None
+
+
 @dataclass(frozen=True)
 class SharedStore:
     """What another process needs to write to the same store (see :meth:`RuntimeStore.share`).
 
     Attributes:
         path: the database file.
-        write_lock: a ``multiprocessing`` lock every writer holds for its transactions.
+        write_lock: the lock every writer holds for its transactions.
     """
 
     path: Path
-    write_lock: Any
+    write_lock: WriterLock
 
 
 class RuntimeStore:
@@ -192,14 +226,16 @@ class RuntimeStore:
     Args:
         path: the database file (created with its tables when missing).
         read_only: open for reading only (``--stats``); the file must exist.
-        write_lock: a ``multiprocessing`` lock shared with the other processes writing to
-            the file (see :meth:`share`); None while this is the only writer.
+        write_lock: the :class:`WriterLock` of the processes writing to the file (see
+            :meth:`share`); None while this is the only writer.
 
     Raises:
         StoreError: the file is not a cblrs runtime database or cannot be opened.
     """
 
-    def __init__(self, path: str | Path, read_only: bool = False, *, write_lock: Any = None):
+    def __init__(
+        self, path: str | Path, read_only: bool = False, *, write_lock: WriterLock | None = None
+    ):
         self.path = Path(path)
         self._lock = threading.RLock()
         self._write_lock = write_lock
@@ -232,6 +268,8 @@ class RuntimeStore:
     def close(self) -> None:
         with self._lock:
             self._connection.close()
+            if self._write_lock is not None:
+                self._write_lock.close()
 
     def __enter__(self) -> RuntimeStore:
         return self
@@ -291,17 +329,17 @@ class RuntimeStore:
 
     # -- writes ----------------------------------------------------------------------------
 
-    def share(self, context: Any) -> SharedStore:
+    def share(self) -> SharedStore:
         """Let another process write to this file too; returns what it opens the file with.
 
-        From now on every write transaction of this store holds a lock created in the
-        ``multiprocessing`` ``context``, and so does the other process's store (opened with
+        From now on every write transaction of this store holds a :class:`WriterLock` on
+        ``<file>-writers.lock``, and so does the other process's store (opened with
         ``RuntimeStore(shared.path, write_lock=shared.write_lock)``): the writers take turns
         without SQLite's busy-waiting, which sleeps for milliseconds.
         """
         with self._lock:
             if self._write_lock is None:
-                self._write_lock = context.Lock()
+                self._write_lock = WriterLock(self.path.with_name(self.path.name + "-writers.lock"))
                 self._leave_checkpoints()
         return SharedStore(self.path, self._write_lock)
 
@@ -552,7 +590,7 @@ class _Transaction:
     """``BEGIN IMMEDIATE`` ... ``COMMIT`` (or ``ROLLBACK`` on an exception), holding the
     writers' lock when the store is shared."""
 
-    def __init__(self, connection: sqlite3.Connection, write_lock: Any):
+    def __init__(self, connection: sqlite3.Connection, write_lock: WriterLock | None):
         self._connection = connection
         self._write_lock = write_lock
 
