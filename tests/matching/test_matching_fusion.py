@@ -206,6 +206,29 @@ def test_cluster_detections(points, cameras, expected):
     assert labels.tolist() == expected
 
 
+@pytest.mark.parametrize("seed", range(40))
+def test_clusters_are_complete_linkage_with_one_view_per_camera(seed):
+    """Random crowds (dense enough that the greedy merge runs): every cluster holds one
+    detection per camera and only compatible pairs, and no two clusters could still merge."""
+    rng = np.random.default_rng(seed)
+    count = int(rng.integers(10, 120))
+    world_xy = rng.uniform(0, rng.uniform(1.0, 5.0), size=(count, 2))
+    camera = rng.integers(0, int(rng.integers(2, 20)), count)
+    sigma = rng.uniform(0.05, 0.4, count)
+    labels = cluster_detections(world_xy, camera, sigma, 3.0)
+    distance = np.linalg.norm(world_xy[:, None] - world_xy[None], axis=2)
+    compatible = distance <= 3.0 * np.sqrt(sigma[:, None] ** 2 + sigma[None] ** 2)
+    clusters = [np.flatnonzero(labels == label) for label in np.unique(labels)]
+    for members in clusters:
+        assert len(set(camera[members].tolist())) == len(members)
+        assert compatible[np.ix_(members, members)].all()
+    for index, one in enumerate(clusters):
+        for other in clusters[index + 1:]:
+            mergeable = (not set(camera[one].tolist()) & set(camera[other].tolist())
+                         and compatible[np.ix_(one, other)].all())
+            assert not mergeable
+
+
 def test_assignment_is_per_camera_and_optimal():
     # Detections 0, 1 from camera 0 and detection 2 from camera 1; two tracks.
     rows = np.array([0, 0, 1, 2])

@@ -1584,26 +1584,31 @@ def _greedy_complete_linkage(
         ``np.sort(members)``.
     """
     members = np.sort(members)
-    left_local = np.searchsorted(members, first)
-    right_local = np.searchsorted(members, second)
-    compatible = np.zeros((len(members), len(members)), dtype=bool)
-    compatible[left_local, right_local] = compatible[right_local, left_local] = True
-    groups: list[list[int]] = [[local] for local in range(len(members))]
+    left_local = np.searchsorted(members, first).tolist()
+    right_local = np.searchsorted(members, second).tolist()
+    # Sets as Python integers, one bit per member (or per camera): a merge test is then a
+    # few integer operations however large the clusters grow.
+    compatible = [0] * len(members)  # bit j of member i: i and j may share a cluster
+    for left, right in zip(left_local, right_local, strict=True):
+        compatible[left] |= 1 << right
+        compatible[right] |= 1 << left
     label = list(range(len(members)))
-    camera_list = camera[members].tolist()
-    cameras: list[set[int]] = [{camera_list[local]} for local in range(len(members))]
-    left_list, right_list = left_local.tolist(), right_local.tolist()
+    groups: list[list[int]] = [[local] for local in range(len(members))]
+    member_bits = [1 << local for local in range(len(members))]
+    camera_bits = [1 << int(one) for one in camera[members].tolist()]
+    # Cluster g may take member j when bit j is set: j is compatible with all of g.
+    joinable = compatible.copy()
     for pair in np.argsort(distance, kind="stable").tolist():
-        left, right = label[left_list[pair]], label[right_list[pair]]
-        if left == right or cameras[left] & cameras[right]:
+        left, right = label[left_local[pair]], label[right_local[pair]]
+        if left == right or camera_bits[left] & camera_bits[right]:
             continue
-        if len(groups[left]) + len(groups[right]) > 2 and not all(
-            compatible[one, other] for one in groups[left] for other in groups[right]
-        ):
+        if member_bits[right] & ~joinable[left]:
             continue
         for local in groups[right]:
             label[local] = left
         groups[left].extend(groups[right])
-        cameras[left] |= cameras[right]
         groups[right] = []
+        member_bits[left] |= member_bits[right]
+        camera_bits[left] |= camera_bits[right]
+        joinable[left] &= joinable[right]
     return np.asarray(label, dtype=np.int64)
