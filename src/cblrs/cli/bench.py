@@ -160,14 +160,15 @@ def _run_one(name: str, args: argparse.Namespace) -> tuple[dict[str, Any], str]:
         from cblrs.bench.cameras import find_wildtrack
         from cblrs.bench.pipeline import benchmark_pipeline, pipeline_report
 
+        # Options first: a typo is reported whether or not the data is there.
+        targetings = tuple(_words(getattr(args, "targeting", "box,geometric"), "--targeting"))
+        if any(mode not in ("box", "geometric") for mode in targetings):
+            raise UsageError(f"--targeting must list box and/or geometric, got {targetings}.")
         root = find_wildtrack(args.calibration)
         if root is None:
             raise UsageError(
                 "the pipeline benchmark needs WILDTRACK; pass --calibration or set CBLRS_WILDTRACK."
             )
-        targetings = tuple(_words(getattr(args, "targeting", "box,geometric"), "--targeting"))
-        if any(mode not in ("box", "geometric") for mode in targetings):
-            raise UsageError(f"--targeting must list box and/or geometric, got {targetings}.")
         result = benchmark_pipeline(
             root,
             repeats=min(repeats, 3) if args.benchmark == "all" else repeats,
