@@ -70,7 +70,7 @@ def test_wildtrack_fusion_scores(wildtrack):
     """Exact annotated boxes, all frames, through the colour path.
 
     The benchmark target is HOTA >= 92 and IDF1 >= 95 over all frames; the tracker reaches
-    HOTA 93.88 and IDF1 95.67 (frames 100..995: 95.2 / 97.1; the first 20 annotated frames
+    HOTA 93.76 and IDF1 95.59 (frames 100..995: 95.1 / 97.1; the first 20 annotated frames
     hold most of the implausible ground-truth jumps). The pipeline is deterministic; these
     guard against regressions with a small margin below the measured figures.
     """
@@ -84,12 +84,12 @@ def test_wildtrack_fusion_scores(wildtrack):
     assert late.IDF1 >= 96.5
 
 
-@pytest.mark.parametrize(("seed", "measured"), [(0, 87.12), (1, 86.72), (2, 84.82)])
+@pytest.mark.parametrize(("seed", "measured"), [(0, 86.08), (1, 86.72), (2, 84.88)])
 def test_wildtrack_fusion_with_a_noisy_detector(wildtrack, seed, measured):
     """20 % of boxes dropped and every edge jittered by 5 % of the box size.
 
-    The target is HOTA >= 85. Seeds 0..6 measure 87.12, 86.72, 84.82, 87.45, 84.90, 85.94,
-    86.03 (mean 86.14; IDF1 mean 92.5); seed 2 is the lowest of them. The oracle with
+    The target is HOTA >= 85. Seeds 0..6 measure 86.08, 86.72, 84.88, 87.08, 86.02, 86.48,
+    86.16 (mean 86.20; IDF1 mean 92.6); seed 2 is the lowest of them. The oracle with
     ground-truth identities and the same filter reaches about 93.5. Each seed is guarded
     half a point below its measured figure (the pipeline is deterministic).
     """

@@ -564,6 +564,25 @@ class FusionTracker:
             return assigned
         taken = np.zeros((track_count, len(self.camera_ids)), dtype=bool)
         taken[assigned[assigned >= 0], observed.camera[assigned >= 0]] = True
+        # A detection whose gate component holds one track and at most one detection per
+        # camera is assigned alike in every camera order: it takes that track directly (if
+        # more likely than leaving it unassigned), and only contested detections go through
+        # the camera-by-camera assignment below.
+        contested = self._contested(observed, covariance, rest)
+        direct = rest[~contested]
+        if len(direct):
+            rows, columns, cost = self._gated_pairs(
+                observed.world_xy[direct], covariance[direct], observed.class_id[direct]
+            )
+            camera = observed.camera[direct[rows]]
+            ok = (cost <= self._unassigned_cost(covariance[direct])[rows]) & ~taken[
+                columns, camera]
+            assigned = assigned.copy()
+            assigned[direct[rows[ok]]] = columns[ok]
+            taken[columns[ok], camera[ok]] = True
+            rest = rest[contested]
+            if len(rest) == 0:
+                return assigned
         rest_camera = observed.camera[rest]
         cameras = np.unique(rest_camera)
         precision = np.array([np.median(self._sigma[rest[rest_camera == one]])
