@@ -567,9 +567,10 @@ class FusionTracker:
         # A detection whose gate component holds one track and at most one detection per
         # camera is assigned alike in every camera order: it takes that track directly (if
         # more likely than leaving it unassigned), and only contested detections go through
-        # the camera-by-camera assignment below.
-        contested = self._contested(observed, covariance, rest)
-        direct = rest[~contested]
+        # the camera-by-camera assignment below. (One camera has a single order anyway.)
+        several = len(np.unique(observed.camera[rest])) > 1
+        contested = self._contested(observed, covariance, rest) if several else None
+        direct = rest[~contested] if contested is not None else rest[:0]
         if len(direct):
             rows, columns, cost = self._gated_pairs(
                 observed.world_xy[direct], covariance[direct], observed.class_id[direct]
