@@ -568,20 +568,21 @@ class FusionTracker:
         # camera is assigned alike in every camera order: it takes that track directly (if
         # more likely than leaving it unassigned), and only contested detections go through
         # the camera-by-camera assignment below. (One camera has a single order anyway.)
-        several = len(np.unique(observed.camera[rest])) > 1
-        contested = self._contested(observed, covariance, rest) if several else None
-        direct = rest[~contested] if contested is not None else rest[:0]
-        if len(direct):
-            rows, columns, cost = self._gated_pairs(
-                observed.world_xy[direct], covariance[direct], observed.class_id[direct]
-            )
-            camera = observed.camera[direct[rows]]
-            ok = (cost <= self._unassigned_cost(covariance[direct])[rows]) & ~taken[
-                columns, camera]
-            assigned = assigned.copy()
-            assigned[direct[rows[ok]]] = columns[ok]
-            taken[columns[ok], camera[ok]] = True
+        contested = np.ones(len(rest), dtype=bool)
+        if len(np.unique(observed.camera[rest])) > 1:
+            contested, rows, columns, cost = self._contested(observed, covariance, rest)
+            direct = ~contested[rows]
+            if direct.any():
+                detection, columns, cost = rest[rows[direct]], columns[direct], cost[direct]
+                camera = observed.camera[detection]
+                ok = (cost <= self._unassigned_cost(covariance[detection])) & ~taken[
+                    columns, camera]
+                assigned = assigned.copy()
+                assigned[detection[ok]] = columns[ok]
+                taken[columns[ok], camera[ok]] = True
+            # Gate components leave whole, so every detection still to assign is contested.
             rest = rest[contested]
+            contested = contested[contested]
             if len(rest) == 0:
                 return assigned
         rest_camera = observed.camera[rest]
@@ -595,7 +596,6 @@ class FusionTracker:
             # cameras after it. Assign again in other orders (the reverse first, then
             # rotations) and keep, in each group of tracks and detections where the
             # assignments differ, the one that explains them more likely.
-            contested = self._contested(observed, covariance, rest)
             orders = [order[::-1]] + [order[k:] + order[:k] for k in range(1, len(order))]
             orders = orders[: self.config.association_orders - 1] if contested.any() else []
             if orders:
@@ -628,19 +628,23 @@ class FusionTracker:
 
     def _contested(
         self, observed: Observations, covariance: np.ndarray, rest: np.ndarray
-    ) -> np.ndarray:
-        """(R,) bool: detections ``rest`` whose assignment could depend on the camera order.
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Which detections ``rest`` could be assigned differently in another camera order.
 
         Connected components of the gate graph (detections and tracks linked by the pairs
         within the gate of the prediction) with one track and at most one detection per
         camera are settled; every other component is contested.
+
+        Returns:
+            ``(contested (R,) bool, rows, columns, cost)``: the mask and the gated pairs
+            (positions in ``rest``, track rows, costs) of :meth:`_gated_pairs`.
         """
-        rows, columns, _ = self._gated_pairs(
+        rows, columns, cost = self._gated_pairs(
             observed.world_xy[rest], covariance[rest], observed.class_id[rest]
         )
         contested = np.zeros(len(rest), dtype=bool)
         if len(rows) == 0:
-            return contested
+            return contested, rows, columns, cost
         track_count = len(self._ids)
         node_count = len(rest) + track_count
         graph = coo_matrix(
@@ -656,7 +660,7 @@ class FusionTracker:
             minlength=size * camera_count,
         ).reshape(size, camera_count)
         busy = (tracks_in > 1) | (per_camera.max(axis=1) > 1)
-        return busy[detection_label]
+        return busy[detection_label], rows, columns, cost
 
     def _joint_cost(
         self, observed: Observations, covariance: np.ndarray, assigned: np.ndarray,
