@@ -123,6 +123,12 @@ def register(subparsers) -> None:
     reference.add_argument(
         "--references", type=Path, help="folder of reference PNGs named <camera>.png"
     )
+    reference.add_argument(
+        "--site",
+        type=Path,
+        help="render this camera's own reference from a site file (uses only its entry and "
+        "the planes)",
+    )
     parser.add_argument(
         "--plane", type=int, help="plane id to publish for (default: the reference's only plane)"
     )
@@ -191,6 +197,17 @@ def register(subparsers) -> None:
 def load_reference(args: argparse.Namespace, expected_size: tuple[int, int] | None):
     from cblrs.reference import ReferenceImage
 
+    if getattr(args, "site", None) is not None:
+        from cblrs.site import load_site
+
+        reference = load_site(args.site).render_reference(args.camera)
+        if expected_size is not None and reference.image_size != tuple(expected_size):
+            raise UsageError(
+                f"{args.site.name}: camera {args.camera!r} is {reference.image_size[0]}x"
+                f"{reference.image_size[1]} but its frames are {expected_size[0]}x"
+                f"{expected_size[1]}."
+            )
+        return reference
     if args.reference is not None:
         path = args.reference
     else:

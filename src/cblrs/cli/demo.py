@@ -124,6 +124,11 @@ def register(subparsers: Any) -> None:
         metavar="SECONDS",
         help="length of the synthetic scenes (default: each preset's own)",
     )
+    parser.add_argument(
+        "--site",
+        metavar="SITE",
+        help="with --dataset: the cameras' geometry, positions and planes from a site file",
+    )
     parser.add_argument("--seed", type=int, default=0, help="seed of the synthetic world")
     parser.add_argument(
         "--targeting",
@@ -147,14 +152,32 @@ def run(args: Any) -> int:
         raise UsageError(f"cannot create the output folder {out}: {error.strerror}.") from None
     start = time.perf_counter()
     reports = []
+    if args.site and not args.dataset:
+        raise UsageError(
+            "--site needs --dataset (the synthetic scenes bring their own cameras)."
+        )
     if args.dataset:
         from cblrs.datasets import load_scene
 
         scene = load_scene(args.dataset)
         if frame_range:
             scene = scene.select_frames(*frame_range)
+        site_options: dict[str, Any] = {}
+        if args.site:
+            from cblrs.site import load_site
+
+            site = load_site(args.site)
+            scene = site.scene(scene)
+            site_options["references"] = [site.render_reference(n) for n in scene.camera_names]
+            positions = site.camera_positions()
+            site_options["camera_positions"] = {
+                name: positions[name] for name in scene.camera_names if name in positions
+            }
         reports.append(
-            run_scene(scene, out / scene.name, quiet=args.quiet, targeting=args.targeting)
+            run_scene(
+                scene, out / scene.name, quiet=args.quiet, targeting=args.targeting,
+                **site_options,
+            )
         )
     else:
         presets = ["roundabout", "plaza"] if args.preset == "all" else [args.preset]
@@ -233,6 +256,8 @@ def run_scene(
     world: Any = None,
     quiet: bool = False,
     targeting: str = "box",
+    references: list[ReferenceImage] | None = None,
+    camera_positions: dict[str, Any] | None = None,
 ) -> SceneReport:
     """Render, track with both matchers, evaluate and draw one scene into ``directory``.
 
@@ -243,6 +268,9 @@ def run_scene(
             draw its 3D boxes in the overlays; None for real data (reference colours only).
         quiet: no progress bars.
         targeting: ``"box"`` or ``"geometric"`` (see :func:`cblrs.pipeline.track_scene`).
+        references: the cameras' reference images (default: rendered for the scene's plane).
+        camera_positions: the fusion tracker's camera positions (default: the posed
+            cameras' centres).
     """
     from cblrs.datasets.aicity import write_tracks
     from cblrs.evaluation.metrics import evaluate
@@ -261,7 +289,8 @@ def run_scene(
         targeting=targeting,
     )
     started = time.perf_counter()
-    references = render_scene_references(scene)
+    if references is None:
+        references = render_scene_references(scene)
     report.seconds["render"] = time.perf_counter() - started
     for reference, camera in zip(references, scene.cameras, strict=True):
         report.files.append(reference.save(directory / "references" / f"{camera.name}.png"))
@@ -277,6 +306,11 @@ def run_scene(
             progress=not quiet,
             # Targeters are built once and shared by both matchers (geometric ones cost).
             targeting="box" if targeters is None else targeters,
+            **(
+                {"camera_positions": camera_positions}
+                if camera_positions is not None and matcher == "fusion"
+                else {}
+            ),
         )
         report.seconds[matcher] = time.perf_counter() - started
         tracks[matcher] = result.tracks

@@ -41,6 +41,11 @@ def register(subparsers) -> None:
         metavar="FIRST:LAST",
         help="only these native frame numbers (inclusive; either side may be empty)",
     )
+    parser.add_argument(
+        "--site",
+        type=Path,
+        help="score only inside the site file's planes (what its cameras can locate)",
+    )
     add_output_options(parser)
     parser.set_defaults(handler=run)
 
@@ -50,12 +55,39 @@ def run(args: argparse.Namespace) -> int:
     ground_truth = read_ground_truth(args.dataset)
     predictions = read_tracks(args.tracks)
     frames = select_frames(ground_truth, first, last, args.frames)
+    note = ""
+    if args.site is not None:
+        ground_truth, predictions, note = inside_site(args.site, ground_truth, predictions)
     metrics = evaluate(ground_truth, predictions, frames=frames)
     if args.json:
         print_json(metrics.to_dict())
     else:
         print(format_summary(metrics))
+        if note:
+            print(note)
     return 0
+
+
+def inside_site(site_path: Path, ground_truth: Tracks, predictions: Tracks):
+    """Ground truth and predictions restricted to the site's planes, and a sentence saying so."""
+    from cblrs.site import load_site
+
+    site = load_site(site_path)
+    planes = site.require_planes("eval --site")
+
+    def inside(tracks: Tracks) -> np.ndarray:
+        keep = np.zeros(len(tracks), dtype=bool)
+        for plane in planes:
+            keep |= plane.contains(tracks.world_xy)
+        return keep
+
+    truth_kept, predicted_kept = inside(ground_truth), inside(predictions)
+    note = (
+        f"scored inside {site_path.name}'s planes: {int(truth_kept.sum())} of "
+        f"{len(ground_truth)} ground-truth rows, {int(predicted_kept.sum())} of "
+        f"{len(predictions)} predicted rows"
+    )
+    return ground_truth[truth_kept], predictions[predicted_kept], note
 
 
 def read_ground_truth(path: Path) -> Tracks:

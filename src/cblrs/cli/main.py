@@ -23,6 +23,8 @@ from cblrs.errors import CblrsError
 # Subcommand modules, in the order `cblrs --help` lists them.
 SUBCOMMANDS = [
     "demo",
+    "site",
+    "calibrate",
     "render",
     "locate",
     "show",

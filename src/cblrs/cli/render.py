@@ -29,7 +29,12 @@ def register(subparsers) -> None:
             "camera JSON file."
         ),
     )
-    parser.add_argument("calibration", metavar="CALIBRATION", help="calibration file or folder")
+    parser.add_argument(
+        "calibration", metavar="CALIBRATION", nargs="?", help="calibration file or folder"
+    )
+    parser.add_argument(
+        "--site", type=Path, help="a site file: its cameras and planes (instead of CALIBRATION)"
+    )
     parser.add_argument("--out", required=True, type=Path, help="output folder")
     parser.add_argument(
         "--bits", type=int, choices=(8, 16), default=None, help="bits per channel (default 16)"
@@ -130,9 +135,32 @@ def file_name(camera_name: str, index: int) -> str:
     return stem or f"camera{index + 1}"
 
 
+def site_cameras_and_planes(args: argparse.Namespace) -> tuple[list, PlaneSet]:
+    """The cameras and planes of ``--site`` (with ``--bits`` applied)."""
+    from cblrs.site import load_site
+
+    if args.calibration is not None:
+        raise UsageError("give CALIBRATION or --site, not both.")
+    if args.plane or args.planes_file is not None or args.distorted:
+        raise UsageError(
+            "--plane, --planes-file and --distorted do not go with --site: the site file gives "
+            "the planes and each camera's calibration."
+        )
+    site = load_site(args.site)
+    planes = site.require_planes("render")
+    if args.bits is not None and args.bits != planes.bits:
+        planes = PlaneSet([replace(plane, bits=args.bits) for plane in planes])
+    return [camera.camera for camera in site.require_cameras("render")], planes
+
+
 def run(args: argparse.Namespace) -> int:
-    cameras = read_cameras(args.calibration, distorted=args.distorted)
-    planes = build_planes(args)
+    if args.site is not None:
+        cameras, planes = site_cameras_and_planes(args)
+    elif args.calibration is None:
+        raise UsageError("give a CALIBRATION file or folder, or --site SITE.")
+    else:
+        cameras = read_cameras(args.calibration, distorted=args.distorted)
+        planes = build_planes(args)
     args.out.mkdir(parents=True, exist_ok=True)
     rows = []
     for index, camera in enumerate(progress(cameras, "render", args.quiet)):

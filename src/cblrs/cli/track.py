@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import argparse
+import time
+from dataclasses import replace
 from pathlib import Path
 
 from cblrs.cli.common import UsageError, add_output_options, parse_frame_range, print_json
@@ -74,8 +76,14 @@ def register(subparsers) -> None:
         "--bits",
         type=int,
         choices=(8, 16),
-        default=16,
-        help="bits per colour channel of the reference images (default 16)",
+        default=None,
+        help="bits per colour channel of the reference images (default 16, or the site's)",
+    )
+    parser.add_argument(
+        "--site",
+        type=Path,
+        help="a site file giving the cameras' geometry, positions and planes instead of the "
+        "dataset's calibration (e.g. a calibration from clicked points)",
     )
     add_output_options(parser)
     parser.set_defaults(handler=run)
@@ -101,7 +109,31 @@ def run(args: argparse.Namespace) -> int:
             false_positives=args.false_positives,
             seed=args.seed,
         )
-    result = track_scene(scene, args.matcher, bits=args.bits, progress=not args.quiet)
+    options: dict = {}
+    references = None
+    if args.site is not None:
+        from cblrs.site import load_site
+
+        site = load_site(args.site)
+        scene = site.scene(scene)
+        started = time.perf_counter()
+        references = [site.render_reference(name, args.bits) for name in scene.camera_names]
+        render_seconds = time.perf_counter() - started
+        if args.matcher == "fusion":
+            positions = site.camera_positions()
+            options["camera_positions"] = {
+                name: positions[name] for name in scene.camera_names if name in positions
+            }
+    result = track_scene(
+        scene, args.matcher, references=references, bits=args.bits or 16,
+        progress=not args.quiet, **options,
+    )
+    if references is not None:
+        result = replace(
+            result,
+            render_seconds=render_seconds,
+            total_seconds=result.total_seconds + render_seconds,
+        )
     write_tracks(args.out, result.tracks)
     tracks = result.tracks
     summary = {
