@@ -1,0 +1,321 @@
+"""How good is a clicked calibration? (issue 11, item 4)
+
+On WILDTRACK, for each camera, ``N`` correspondences are taken the way a person would click
+them: box bottom centres of people in a few frames, paired with those people's annotated
+ground positions, spread over the image (farthest-point sampling from a seeded start, so
+neither the best-fitting points nor a cluster), each pixel moved by seeded Gaussian noise
+(2 px by default) to mimic clicking. The points go into a site file as ``points:`` (the path a
+user takes), which calibrates every camera on load (:func:`cblrs.calibrate.calibrate_camera`,
+model ``auto``: a homography from 4 points, pose + focal length from 6, + k1 from 8); then
+every camera's reference is rendered from it, all 200 frames are tracked with the default
+pipeline (fusion, the cameras' positions from the fits) and scored.
+
+Reported per ``N`` (over the seeds): the localisation error of every annotated box (its
+target pixel's colour decoded to metres, against its annotated position; median and p95,
+metres, all cameras and frames), the tracking scores, and their difference to the lab
+calibration run the same way.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from cblrs.calibrate import Correspondences, calibrate_camera
+from cblrs.datasets.scene import Scene
+from cblrs.errors import CalibrationError
+
+logger = logging.getLogger(__name__)
+
+# Sets of points a user would click before giving up on a camera.
+_ATTEMPTS = 10
+SCORES = ("HOTA", "DetA", "AssA", "LocA", "MOTA", "IDF1")
+
+
+@dataclass(frozen=True)
+class CalibrationSetup:
+    """Parameters of the experiment.
+
+    Attributes:
+        counts: correspondences per camera to try.
+        seeds: one run per seed (which points are picked first, and the click noise).
+        noise_px: standard deviation of the click noise, pixels (per coordinate).
+        point_frames: how many frames, spread over the sequence, the points come from.
+    """
+
+    counts: tuple[int, ...] = (4, 6, 10, 20)
+    seeds: tuple[int, ...] = (0, 1, 2)
+    noise_px: float = 2.0
+    point_frames: int = 5
+
+
+def candidate_points(scene: Scene, camera_index: int, frame_indices: list[int]) -> dict[str, Any]:
+    """Clickable points of one camera: bottom centres of whole boxes in the given frames.
+
+    Returns:
+        ``{"image_xy": (M, 2), "world_xy": (M, 2), "names": [...]}``: the box bottom centre
+        (pixels), the person's annotated ground position (metres) and ``"f<frame>-p<id>"``.
+    """
+    camera = scene.cameras[camera_index]
+    width, height = camera.image_size
+    truth = scene.ground_truth
+    image, world, names = [], [], []
+    for index in frame_indices:
+        frame = int(scene.frames[index])
+        detections = scene.detections[index][camera_index]
+        rows = truth.frame == frame
+        positions = dict(zip(truth.track_id[rows].tolist(), truth.world_xy[rows], strict=True))
+        for box, person in zip(detections.xyxy, detections.object_id.tolist(), strict=True):
+            x0, y0, x1, y1 = box
+            # Only whole boxes: a person cut by the image border has no visible feet.
+            if x0 < 0 or y0 < 0 or x1 > width - 1 or y1 > height - 1 or person not in positions:
+                continue
+            image.append([(x0 + x1) / 2.0, y1])
+            world.append(positions[person])
+            names.append(f"f{frame}-p{person}")
+    return {
+        "image_xy": np.array(image, dtype=np.float64).reshape(-1, 2),
+        "world_xy": np.array(world, dtype=np.float64).reshape(-1, 2),
+        "names": names,
+    }
+
+
+def spread_choice(image_xy: np.ndarray, count: int, rng: np.random.Generator) -> np.ndarray:
+    """Indices of ``count`` points spread over the image: a random first one, then each time
+    the point farthest from those chosen (as someone clicking "one here, one there" would)."""
+    if len(image_xy) < count:
+        raise ValueError(f"only {len(image_xy)} candidate points for {count}")
+    chosen = [int(rng.integers(len(image_xy)))]
+    distance = np.hypot(*(image_xy - image_xy[chosen[0]]).T)
+    while len(chosen) < count:
+        index = int(np.argmax(distance))
+        chosen.append(index)
+        distance = np.minimum(distance, np.hypot(*(image_xy - image_xy[index]).T))
+    return np.array(chosen)
+
+
+def clicked_site(scene: Scene, count: int, seed: int, setup: CalibrationSetup) -> dict[str, Any]:
+    """A site document whose cameras are given by ``count`` clicked points each."""
+    rng = np.random.default_rng(seed)
+    frame_indices = np.linspace(0, len(scene.frames) - 1, setup.point_frames).round()
+    frame_list = sorted({int(index) for index in frame_indices})
+    plane = scene.plane
+    cameras = []
+    refused = {}
+    for camera_index, camera in enumerate(scene.cameras):
+        candidates = candidate_points(scene, camera_index, frame_list)
+        # A set of points that cannot calibrate (e.g. 4 points with 3 nearly on one line) is
+        # refused by `calibrate_camera`, as it would be for a user, who would then click
+        # another set: so does the experiment (counted as `refused`).
+        for attempt in range(_ATTEMPTS):
+            chosen = spread_choice(candidates["image_xy"], count, rng)
+            clicks = candidates["image_xy"][chosen] + rng.normal(0.0, setup.noise_px, (count, 2))
+            points = [
+                [float(u), float(v), float(x), float(y), candidates["names"][index]]
+                for (u, v), (x, y), index in zip(
+                    clicks, candidates["world_xy"][chosen], chosen.tolist(), strict=True
+                )
+            ]
+            try:
+                calibrate_camera(
+                    Correspondences.from_rows(points), camera.image_size, camera.name
+                )
+                break
+            except CalibrationError:
+                if attempt == _ATTEMPTS - 1:
+                    raise
+        refused[camera.name] = attempt
+        cameras.append(
+            {"name": camera.name, "image_size": list(camera.image_size), "points": points}
+        )
+    return {
+        "refused": refused,
+        "version": 1,
+        "name": f"{scene.name} clicked {count}",
+        "planes": [
+            {
+                "id": plane.plane_id,
+                "origin": list(plane.origin),
+                "size": [plane.width, plane.length],
+                "bits": plane.bits,
+            }
+        ],
+        "cameras": cameras,
+    }
+
+
+def localisation_errors(scene: Scene, references: list) -> np.ndarray:
+    """Distance (metres) between each annotated box's located target and its annotated
+    position, over all frames and cameras; boxes whose target sees no plane are left out."""
+    from cblrs.pipeline import scene_messages
+
+    truth = scene.ground_truth
+    positions = {
+        (int(frame), int(person)): xy
+        for frame, person, xy in zip(truth.frame, truth.track_id, truth.world_xy, strict=True)
+    }
+    planes = references[0].planes
+    errors = []
+    for index, (_, messages) in enumerate(scene_messages(scene, references)):
+        frame = int(scene.frames[index])
+        for camera_index, message in enumerate(messages):
+            located, valid, _ = planes.decode(message.colour)
+            people = scene.detections[index][camera_index].object_id
+            for xy, ok, person in zip(located, valid, people.tolist(), strict=True):
+                key = (frame, int(person))
+                if ok and key in positions:
+                    errors.append(float(np.hypot(*(xy - positions[key]))))
+    return np.array(errors)
+
+
+def _run(scene: Scene, references: list, positions: dict[str, Any]) -> dict[str, Any]:
+    from cblrs.evaluation import evaluate
+    from cblrs.pipeline import track_scene
+
+    result = track_scene(scene, references=references, camera_positions=positions)
+    metrics = evaluate(scene.ground_truth, result.tracks).to_dict()
+    errors = localisation_errors(scene, references)
+    return {
+        "scores": {key: float(metrics[key]) for key in SCORES},
+        "median_error_m": float(np.median(errors)),
+        "p95_error_m": float(np.percentile(errors, 95)),
+        "located": int(len(errors)),
+    }
+
+
+def run_calibration(
+    scene: Scene, setup: CalibrationSetup = CalibrationSetup(), progress: bool = False
+) -> dict[str, Any]:
+    """Clicked calibrations vs the lab calibration on one scene.
+
+    Returns:
+        JSON-ready ``{"setup", "lab", "runs": [...], "rows": [...]}``: ``runs`` has one entry per
+        (N, seed) with every camera's fit; ``rows`` one per N (means over the seeds).
+    """
+    from cblrs.bench.machine import json_ready
+    from cblrs.pipeline import camera_positions, render_scene_references
+    from cblrs.site.core import site_from_document
+
+    started = time.perf_counter()
+    lab = _run(scene, render_scene_references(scene), camera_positions(scene))
+    runs = []
+    jobs = [(count, seed) for count in setup.counts for seed in setup.seeds]
+    iterator: Any = jobs
+    if progress:
+        from tqdm import tqdm
+
+        iterator = tqdm(jobs, desc="calibrations", leave=False)
+    for count, seed in iterator:
+        document = clicked_site(scene, count, seed, setup)
+        refused = document.pop("refused")
+        site = site_from_document(document, None)
+        site_scene = site.scene(scene)
+        references = [site.render_reference(name) for name in scene.camera_names]
+        cameras = site.cameras()
+        run = _run(site_scene, references, site.camera_positions())
+        run.update(
+            count=count,
+            seed=seed,
+            cameras=[
+                {
+                    "name": camera.name,
+                    "model": camera.fit.model.value,
+                    "inliers": int(camera.fit.inliers.sum()),
+                    "rms_px": camera.fit.rms_px,
+                    "focal_px": camera.fit.focal_px,
+                    "position": list(camera.position) if camera.position else None,
+                    "warnings": list(camera.fit.warnings),
+                    "refused_sets": refused[camera.name],
+                }
+                for camera in cameras
+            ],
+        )
+        runs.append(run)
+    rows = []
+    for count in setup.counts:
+        chosen = [run for run in runs if run["count"] == count]
+        hota = [run["scores"]["HOTA"] for run in chosen]
+        models: dict[str, int] = {}
+        for run in chosen:
+            for camera in run["cameras"]:
+                models[camera["model"]] = models.get(camera["model"], 0) + 1
+        rows.append(
+            {
+                "count": count,
+                "models": models,
+                "rms_px": float(np.median([c["rms_px"] for r in chosen for c in r["cameras"]])),
+                "median_error_m": float(np.mean([run["median_error_m"] for run in chosen])),
+                "p95_error_m": float(np.mean([run["p95_error_m"] for run in chosen])),
+                "scores": {
+                    key: float(np.mean([run["scores"][key] for run in chosen])) for key in SCORES
+                },
+                "hota_min": float(min(hota)),
+                "hota_max": float(max(hota)),
+                "hota_vs_lab": float(np.mean(hota)) - lab["scores"]["HOTA"],
+                "positions": float(
+                    np.mean([sum(c["position"] is not None for c in r["cameras"]) for r in chosen])
+                ),
+                "cameras": len(scene.cameras),
+                "refused_sets": int(sum(c["refused_sets"] for r in chosen for c in r["cameras"])),
+            }
+        )
+    return json_ready(
+        {
+            "scene": scene.name,
+            "frames": len(scene.frames),
+            "setup": {
+                "counts": list(setup.counts),
+                "seeds": list(setup.seeds),
+                "noise_px": setup.noise_px,
+                "point_frames": setup.point_frames,
+            },
+            "lab": lab,
+            "runs": runs,
+            "rows": rows,
+            "seconds": time.perf_counter() - started,
+        }
+    )
+
+
+def calibration_report(result: dict[str, Any]) -> str:
+    """The markdown table of :func:`run_calibration`."""
+    setup = result["setup"]
+    lab = result["lab"]
+    lines = [
+        f"### Clicked calibration vs lab calibration ({result['scene']}, {result['frames']} "
+        f"frames, {len(result['rows'][0]['models']) and result['rows'][0]['cameras']} cameras)",
+        "",
+        f"Per camera N points (box bottom centres <-> annotated positions from "
+        f"{setup['point_frames']} frames, spread over the image, + {setup['noise_px']:g} px "
+        f"click noise), seeds {', '.join(str(seed) for seed in setup['seeds'])}; "
+        "scores are means over the seeds. Command: `cblrs experiment calibration`.",
+        "",
+        "| points per camera | models fitted | RMS px | located error median m | p95 m "
+        "| HOTA (min..max) | HOTA - lab | AssA | LocA | IDF1 | cameras with position |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
+        f"| lab calibration | K, R, t | - | {lab['median_error_m']:.3f} | "
+        f"{lab['p95_error_m']:.3f} | {lab['scores']['HOTA']:.2f} | 0 | "
+        f"{lab['scores']['AssA']:.2f} | {lab['scores']['LocA']:.2f} | "
+        f"{lab['scores']['IDF1']:.2f} | {result['rows'][0]['cameras']} |",
+    ]
+    for row in result["rows"]:
+        models = ", ".join(f"{name} x{count}" for name, count in sorted(row["models"].items()))
+        scores = row["scores"]
+        lines.append(
+            f"| {row['count']} | {models} | {row['rms_px']:.1f} | {row['median_error_m']:.3f} | "
+            f"{row['p95_error_m']:.3f} | {scores['HOTA']:.2f} ({row['hota_min']:.2f}.."
+            f"{row['hota_max']:.2f}) | {row['hota_vs_lab']:+.2f} | {scores['AssA']:.2f} | "
+            f"{scores['LocA']:.2f} | {scores['IDF1']:.2f} | {row['positions']:.1f} |"
+        )
+    lines += [
+        "",
+        "Models fitted: counts of camera fits over all seeds (`auto`: homography from 4 points, "
+        "pose + focal length from 6, + k1 from 8). RMS px: median over the fits of each "
+        "fit's RMS error on its own points. Located error: every annotated box's target pixel "
+        "read through the rendered reference, against its annotated position.",
+    ]
+    return "\n".join(lines)
