@@ -442,10 +442,11 @@ def calibrate_camera(
         else:
             warnings.append(f"{points.source}: no camera position ({reason}).")
     error_px, error_m = point_errors(camera, points)
-    if count == MINIMUM_POINTS[chosen] and chosen in (Model.HOMOGRAPHY, Model.K1):
+    if used == 4 and chosen is Model.HOMOGRAPHY:
+        # 4 points give 8 equations for the homography's 8 unknowns: an exact fit.
         warnings.append(
-            f"{points.source}: {count} points determine model {chosen.value} exactly, so the errors "
-            "say nothing about its quality; click a few more points to check it."
+            f"{points.source}: 4 points determine a homography exactly, so the errors say "
+            "nothing about its quality; click a few more points to check it."
         )
     rms = float(np.sqrt(np.mean(error_px[inliers] ** 2)))
     if rms > warn_px:

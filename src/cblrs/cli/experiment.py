@@ -17,7 +17,7 @@ from cblrs.cli.common import UsageError, add_output_options, print_json
 def register(subparsers) -> None:
     parser = subparsers.add_parser(
         "experiment",
-        help="rerun the paper's experiments: targeting (IV-B), resolution",
+        help="rerun the paper's experiments: targeting (IV-B), resolution; clicked calibration",
         description="Rerun the paper's experiments on the synthetic world and WILDTRACK.",
     )
     kinds = parser.add_subparsers(dest="experiment", metavar="EXPERIMENT")
@@ -72,6 +72,28 @@ def register(subparsers) -> None:
     resolution.add_argument("--figures", type=Path, help="write the PNG here (default: --out)")
     add_output_options(resolution)
     resolution.set_defaults(handler=run, experiment="resolution")
+
+    calibration = kinds.add_parser(
+        "calibration",
+        help="clicked calibrations (N points per camera) vs the lab calibration on WILDTRACK",
+    )
+    calibration.add_argument(
+        "--counts", default="4,6,10,20", help="correspondences per camera (default 4,6,10,20)"
+    )
+    calibration.add_argument("--seeds", default="0,1,2,3,4", help="one run per seed")
+    calibration.add_argument(
+        "--noise-px", type=float, default=2.0, help="click noise, pixels (default 2)"
+    )
+    calibration.add_argument(
+        "--point-frames", type=int, default=5, help="frames the points come from (default 5)"
+    )
+    calibration.add_argument("--wildtrack", type=Path, default=None, help="WILDTRACK folder")
+    calibration.add_argument("--out", type=Path, help="write JSON and markdown here")
+    calibration.add_argument(
+        "--figures", type=Path, help="write a picture of one clicked calibration here"
+    )
+    add_output_options(calibration)
+    calibration.set_defaults(handler=run, experiment="calibration")
 
     def usage(args: argparse.Namespace) -> int:
         parser.print_help()
@@ -145,9 +167,47 @@ def run_targeting_command(args: argparse.Namespace) -> tuple[dict[str, Any], str
     return result, text
 
 
+def run_calibration_command(args: argparse.Namespace) -> tuple[dict[str, Any], str]:
+    from cblrs.experiments.calibration import (
+        CalibrationSetup,
+        calibration_figure,
+        calibration_report,
+        run_calibration,
+    )
+    from cblrs.experiments.resolution import load_named_scene
+
+    counts = parse_numbers(args.counts, "--counts")
+    seeds = parse_numbers(args.seeds, "--seeds")
+    if not all(isinstance(count, int) and count >= 4 for count in counts):
+        raise UsageError(f"--counts must be whole numbers >= 4 (a homography needs 4), got {args.counts!r}.")
+    if not all(isinstance(seed, int) and seed >= 0 for seed in seeds):
+        raise UsageError(f"--seeds must be whole numbers >= 0, got {args.seeds!r}.")
+    if not (args.noise_px >= 0):
+        raise UsageError(f"--noise-px must be >= 0, got {args.noise_px}.")
+    if args.point_frames < 1:
+        raise UsageError(f"--point-frames must be >= 1, got {args.point_frames}.")
+    scene = load_named_scene("wildtrack", args.wildtrack, None)
+    setup = CalibrationSetup(
+        counts=tuple(int(count) for count in counts),
+        seeds=tuple(int(seed) for seed in seeds),
+        noise_px=args.noise_px,
+        point_frames=args.point_frames,
+    )
+    result = run_calibration(scene, setup, progress=not args.quiet)
+    text = calibration_report(result)
+    if args.figures is not None or args.out is not None:
+        figure = calibration_figure(scene, setup, args.figures or args.out)
+        result["figures"] = [str(figure)]
+    if args.out is not None:
+        _write(args.out, "calibration", result, text)
+    return result, text
+
+
 def run(args: argparse.Namespace) -> int:
     if args.experiment == "targeting":
         result, text = run_targeting_command(args)
+    elif args.experiment == "calibration":
+        result, text = run_calibration_command(args)
     elif args.experiment == "resolution":
         from cblrs.experiments.resolution import run_resolution_command
 

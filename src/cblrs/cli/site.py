@@ -135,7 +135,7 @@ def run_check(args: argparse.Namespace) -> int:
         print_json(report)
     else:
         print(format_check(report))
-    if not report["valid"]:
+    if not report["valid"] or any(not camera["ok"] for camera in report["cameras"]):
         return 1
     return 1 if any(not report["ready"][name] for name in needed) else 0
 

@@ -319,3 +319,26 @@ def calibration_report(result: dict[str, Any]) -> str:
         "read through the rendered reference, against its annotated position.",
     ]
     return "\n".join(lines)
+
+
+def calibration_figure(scene: Scene, setup: CalibrationSetup, folder: Any) -> Any:
+    """``calibration_clicked.png``: one clicked calibration (the first camera, 10 points or the
+    largest count below it, first seed) drawn by :func:`cblrs.viz.calibration.calibration_picture`
+    on a grey canvas (WILDTRACK ships no frames)."""
+    from pathlib import Path
+
+    from cblrs.site.core import site_from_document
+    from cblrs.viz.calibration import calibration_picture
+    from cblrs.viz.overlay import save_image
+
+    count = max([n for n in setup.counts if n <= 10] or [min(setup.counts)])
+    document = clicked_site(scene, count, setup.seeds[0], setup)
+    document.pop("refused")
+    site = site_from_document(document, None)
+    fit = site.camera(scene.camera_names[0]).fit
+    path = Path(folder) / "calibration_clicked.png"
+    image = calibration_picture(fit, None)
+    import cv2
+
+    image = cv2.resize(image, (960, 540), interpolation=cv2.INTER_AREA)
+    return save_image(path, image)

@@ -11,7 +11,7 @@ Example:
     ... planes: [{id: 1, origin: [0, 0], size: [20, 10]}]
     ... cameras:
     ...   - {name: gate, image_size: [1280, 720],
-    ...      homography: [[60, -40, 640], [5, 10, 700], [0, -0.05, 1]]}
+    ...      homography: [[-27.66, 11.3, 654.0], [1.25, 0.87, 64.5], [-0.0207, -0.0145, 1]]}
     ... ''')
     >>> site.camera_names, site.camera("gate").camera.has_pose
     (['gate'], False)

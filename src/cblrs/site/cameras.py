@@ -182,7 +182,13 @@ def camera_entry(camera: Camera) -> dict[str, Any]:
 
 
 def inline_camera(site: Site, index: int, spec: CameraModel) -> dict[str, Any]:
-    """The camera's entry with its calibration file or points file inlined."""
+    """The camera's entry with its calibration file or points file inlined, keys in the
+    schema's order (so that exporting an export gives the same text)."""
+    data = _inline_camera(site, index, spec)
+    return {key: data[key] for key in CameraModel.model_fields if key in data}
+
+
+def _inline_camera(site: Site, index: int, spec: CameraModel) -> dict[str, Any]:
     data = spec.model_dump(mode="json", exclude_none=True, exclude_unset=True)
     where = _where(site, index, spec)
     if spec.geometry == "calibration":

@@ -152,6 +152,7 @@ def _missing(site: Site, cameras: list[dict[str, Any]]) -> dict[str, list[str]]:
         text = f"camera {camera['name']!r} has no usable geometry"
         missing["render"].append(text)
         missing["track"].append(text)
+        missing["matcher"].append(text)
     if broken and len(broken) == len(cameras):
         missing["camera"].append("no camera has a usable geometry")
     if not site.places.zones and not site.places.lines:
@@ -172,7 +173,7 @@ def format_check(report: dict[str, Any]) -> str:
     if planes:
         for plane in planes:
             lines.append(
-                f"  plane {plane['plane_id']} {plane['name'] or ''}: origin "
+                f"  plane {plane['plane_id']}{' ' + plane['name'] if plane['name'] else ''}: origin "
                 f"({plane['origin'][0]:g}, {plane['origin'][1]:g}) m, {plane['width']:g} x "
                 f"{plane['length']:g} m, height {plane['height']:g} m, {plane['bits']} bit"
             )

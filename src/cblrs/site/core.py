@@ -221,8 +221,14 @@ class Site:
                 raise SiteError(
                     f"{self.source}: map.image: cannot read {image}: {error.strerror}."
                 ) from None
-            data["map"].pop("image")
-            data["map"]["image_data"] = base64.b64encode(payload).decode("ascii")
+            site_map = data["map"]
+            site_map["image_data"] = base64.b64encode(payload).decode("ascii")
+            # The schema's key order, so that exporting an export gives the same text.
+            data["map"] = {
+                key: site_map[key]
+                for key in type(self.model.map).model_fields
+                if key in site_map and key != "image"
+            }
         return _ordered(data)
 
 

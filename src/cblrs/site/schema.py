@@ -28,6 +28,7 @@ from pathlib import Path
 from typing import Annotated, Any, Literal
 
 from pydantic import (
+    AfterValidator,
     BaseModel,
     BeforeValidator,
     ConfigDict,
@@ -191,6 +192,17 @@ def _points(value: Any) -> Any:
     return value
 
 
+def _camera_name_text(name: str) -> str:
+    if not name or any(character in name for character in "/+#") or name != name.strip() or (
+        any(character.isspace() for character in name)
+    ):
+        raise ValueError(
+            f"camera name {name!r} must be non-empty without '/', '+', '#' or spaces "
+            "(it is part of MQTT topics)"
+        )
+    return name
+
+
 MODELS = ("auto", "homography", "pose", "focal", "k1")
 GEOMETRY_KEYS = ("calibration", "intrinsics", "homography", "points")
 
@@ -198,7 +210,7 @@ GEOMETRY_KEYS = ("calibration", "intrinsics", "homography", "points")
 class CameraModel(_Strict):
     """One camera: a name, its image size and exactly one geometry."""
 
-    name: str = Field(min_length=1, pattern=r"^[^/+#\s]+$")
+    name: Annotated[str, AfterValidator(_camera_name_text)]
     image_size: ImageSize | None = None
     calibration: Annotated[CalibrationRefModel | None, BeforeValidator(_calibration_ref)] = None
     intrinsics: Matrix3 | None = None
