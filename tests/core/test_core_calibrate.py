@@ -115,33 +115,63 @@ def test_four_points_warn_that_the_fit_is_exact():
     assert any("determine a homography exactly" in warning for warning in fit.warnings)
 
 
-ROWS = [[1099.9, 288.4, 16, 0], [16.1, 271.4, 4, 18], [521.4, 599.9, 2, 2],
-        [608.1, 126.2, 26, 20], [343.0, 329.3, 6, 10], [807.5, 402.0, 8, 2],
-        [122.1, 554.6, 0, 6]]
+ROWS = [
+    [1099.9, 288.4, 16, 0],
+    [16.1, 271.4, 4, 18],
+    [521.4, 599.9, 2, 2],
+    [608.1, 126.2, 26, 20],
+    [343.0, 329.3, 6, 10],
+    [807.5, 402.0, 8, 2],
+    [122.1, 554.6, 0, 6],
+]
 
 
 @pytest.mark.parametrize(
     ("rows", "options", "message"),
     [
-        (ROWS[:3], {}, r"pts\.csv: 3 points cannot calibrate a camera; a ground homography needs "
-                       r"at least 4"),
-        ([[100 + 10 * i, 300 + 5 * i, 2 * i, 3 * i] for i in range(5)], {},
-         r"the 5 world points lie on one line"),
-        ([[100, 300, 0, 0], [200, 300, 10, 0], [300, 300, 10, 10], [400, 300, 0, 10]], {},
-         r"the 4 image points lie on one line"),
-        ([[100, 600, 0, 0], [600, 600, 5, 0], [1100, 600, 10, 0], [600, 200, 5, 10]], {},
-         r"do not pin down a homography \(three of four"),
-        ([[100, 600, 0, 0], [1100, 600, 10, 0], [1000, 200, 10, 20], [300, 200, 20, 10]], {},
-         r"row \d \(u, v = .*\) lies behind the camera under the fit of the other points"),
-        (ROWS[:7], {"model": "k1"}, r"7 points cannot fit the pose, focal length and k1 \(model "
-                                   r"k1 needs at least 8\)"),
+        (
+            ROWS[:3],
+            {},
+            r"pts\.csv: 3 points cannot calibrate a camera; a ground homography needs "
+            r"at least 4",
+        ),
+        (
+            [[100 + 10 * i, 300 + 5 * i, 2 * i, 3 * i] for i in range(5)],
+            {},
+            r"the 5 world points lie on one line",
+        ),
+        (
+            [[100, 300, 0, 0], [200, 300, 10, 0], [300, 300, 10, 10], [400, 300, 0, 10]],
+            {},
+            r"the 4 image points lie on one line",
+        ),
+        (
+            [[100, 600, 0, 0], [600, 600, 5, 0], [1100, 600, 10, 0], [600, 200, 5, 10]],
+            {},
+            r"do not pin down a homography \(three of four",
+        ),
+        (
+            [[100, 600, 0, 0], [1100, 600, 10, 0], [1000, 200, 10, 20], [300, 200, 20, 10]],
+            {},
+            r"row \d \(u, v = .*\) lies behind the camera under the fit of the other points",
+        ),
+        (
+            ROWS[:7],
+            {"model": "k1"},
+            r"7 points cannot fit the pose, focal length and k1 \(model "
+            r"k1 needs at least 8\)",
+        ),
         (ROWS[:5], {"model": "focal"}, r"model focal needs at least 6"),
         (ROWS[:6], {"model": "pose"}, r"model pose keeps the focal length fixed, so it needs one"),
         (ROWS[:6], {"model": "fish"}, r"unknown model 'fish'"),
         (ROWS[:6], {"focal_px": -3.0}, r"the focal length must be a positive number"),
         ([*ROWS[:5], [float("nan"), 1, 2, 3]], {}, r"row 6: u, v must be finite numbers"),
-        ([*ROWS[:5], [1, 2, float("inf"), 3]], {}, r"row 6: x, y must be finite numbers \(a point "
-                                                   r"at infinity cannot be clicked\)"),
+        (
+            [*ROWS[:5], [1, 2, float("inf"), 3]],
+            {},
+            r"row 6: x, y must be finite numbers \(a point "
+            r"at infinity cannot be clicked\)",
+        ),
     ],
 )
 def test_refused_fits_say_why_in_one_sentence(rows, options, message):
@@ -152,7 +182,9 @@ def test_refused_fits_say_why_in_one_sentence(rows, options, message):
 
 def test_csv_with_header_comments_and_names(tmp_path):
     path = tmp_path / "p.csv"
-    path.write_text("# clicked on frame 12\nname,x,y,u,v\nbench,16,0,1099.9,288.4\n,4,18,16.1,271.4\n")
+    path.write_text(
+        "# clicked on frame 12\nname,x,y,u,v\nbench,16,0,1099.9,288.4\n,4,18,16.1,271.4\n"
+    )
     points = Correspondences.from_csv(path)
     assert points.names == ("bench", "row 2")
     np.testing.assert_array_equal(points.image_xy, [[1099.9, 288.4], [16.1, 271.4]])
@@ -196,8 +228,12 @@ def test_pose_from_a_homography_of_any_scale_and_sign():
 
 @settings(max_examples=40, deadline=None)
 @given(
-    x=st.floats(-20, 20), y=st.floats(-20, 20), height=st.floats(1.5, 30),
-    pan=st.floats(-180, 180), tilt=st.floats(10, 70), roll=st.floats(-10, 10),
+    x=st.floats(-20, 20),
+    y=st.floats(-20, 20),
+    height=st.floats(1.5, 30),
+    pan=st.floats(-180, 180),
+    tilt=st.floats(10, 70),
+    roll=st.floats(-10, 10),
     focal=st.floats(400, 4000),
 )
 def test_estimated_focal_recovers_random_cameras(x, y, height, pan, tilt, roll, focal):
@@ -224,7 +260,9 @@ def test_a_left_handed_world_keeps_the_homography_and_says_why():
     mirrored = Correspondences(points.image_xy, points.world_xy * [1, -1])
     fit = calibrate_camera(mirrored, SIZE, "c")
     assert fit.model is Model.HOMOGRAPHY and fit.position is None
-    assert any("below the ground" in warning and "left-handed" in warning for warning in fit.warnings)
+    assert any(
+        "below the ground" in warning and "left-handed" in warning for warning in fit.warnings
+    )
     assert fit.rms_px < 1e-3
 
 
@@ -236,13 +274,27 @@ def test_calibrate_command_writes_the_camera_and_its_picture(tmp_path, capsys):
 
     points = clicked(TRUTH, 8, noise_px=1.0)
     csv = tmp_path / "gate.csv"
-    csv.write_text("u,v,x,y\n" + "".join(
-        f"{u},{v},{x},{y}\n" for (u, v), (x, y) in zip(points.image_xy, points.world_xy, strict=True)
-    ))
+    csv.write_text(
+        "u,v,x,y\n"
+        + "".join(
+            f"{u},{v},{x},{y}\n"
+            for (u, v), (x, y) in zip(points.image_xy, points.world_xy, strict=True)
+        )
+    )
     frame = tmp_path / "frame.png"
     cv2.imwrite(str(frame), np.full((720, 1280, 3), 140, np.uint8))
-    code = main(["calibrate", str(csv), "--image", str(frame), "--out", str(tmp_path / "gate.json"),
-                 "--picture", str(tmp_path / "gate.png")])
+    code = main(
+        [
+            "calibrate",
+            str(csv),
+            "--image",
+            str(frame),
+            "--out",
+            str(tmp_path / "gate.json"),
+            "--picture",
+            str(tmp_path / "gate.png"),
+        ]
+    )
     out = capsys.readouterr().out
     assert code == 0
     assert "gate: model k1, 8/8 points" in out and "m high [pose]" in out
@@ -275,12 +327,29 @@ def test_calibrate_command_mistakes(tmp_path, capsys, monkeypatch, arguments, me
 def test_calibrate_command_converts_map_pixels(tmp_path, capsys):
     points = clicked(TRUTH, 8)
     # world -> map pixels at 0.05 m per pixel, origin at map pixel (120, 880), y up
-    map_px = np.column_stack([120 + points.world_xy[:, 0] / 0.05, 880 - points.world_xy[:, 1] / 0.05])
-    (tmp_path / "p.csv").write_text("".join(
-        f"{u},{v},{x},{y}\n" for (u, v), (x, y) in zip(points.image_xy, map_px, strict=True)
-    ))
-    code = main(["calibrate", str(tmp_path / "p.csv"), "--image-size", "1280x720", "--world", "map",
-                 "--metres-per-pixel", "0.05", "--map-origin", "120,880", "--json"])
+    map_px = np.column_stack(
+        [120 + points.world_xy[:, 0] / 0.05, 880 - points.world_xy[:, 1] / 0.05]
+    )
+    (tmp_path / "p.csv").write_text(
+        "".join(
+            f"{u},{v},{x},{y}\n" for (u, v), (x, y) in zip(points.image_xy, map_px, strict=True)
+        )
+    )
+    code = main(
+        [
+            "calibrate",
+            str(tmp_path / "p.csv"),
+            "--image-size",
+            "1280x720",
+            "--world",
+            "map",
+            "--metres-per-pixel",
+            "0.05",
+            "--map-origin",
+            "120,880",
+            "--json",
+        ]
+    )
     assert code == 0
     import json
 

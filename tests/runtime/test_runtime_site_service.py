@@ -54,10 +54,25 @@ def test_service_with_site_scores_like_cblrs_track(wildtrack_root, mosquitto, tm
     # A long ordering window: cameras start seconds apart on a busy machine, and a group
     # must not be released before every camera has sent its frame.
     matcher = subprocess.Popen(
-        _command("matcher", "--site", str(site), "--db", str(tmp_path / "m.db"),
-                 "--client-id", "site-matcher", "--broker", broker, "--window", "120",
-                 "--until-cameras-offline", "--out-tracks", str(service_tracks)),
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        _command(
+            "matcher",
+            "--site",
+            str(site),
+            "--db",
+            str(tmp_path / "m.db"),
+            "--client-id",
+            "site-matcher",
+            "--broker",
+            broker,
+            "--window",
+            "120",
+            "--until-cameras-offline",
+            "--out-tracks",
+            str(service_tracks),
+        ),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
     )
     cameras: list[subprocess.Popen] = []
     try:
@@ -67,11 +82,27 @@ def test_service_with_site_scores_like_cblrs_track(wildtrack_root, mosquitto, tm
         assert matcher.poll() is None, matcher.communicate()[1]
         epoch = str(int(time.time()) - 300)
         for name in ("CVLab1", "CVLab2", "CVLab3", "CVLab4", "IDIAP1", "IDIAP2", "IDIAP3"):
-            cameras.append(subprocess.Popen(
-                _command("camera", "--dataset", str(wildtrack_root), "--camera", name,
-                         "--site", str(site), "--epoch", epoch, "--broker", broker, "--quiet"),
-                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-            ))
+            cameras.append(
+                subprocess.Popen(
+                    _command(
+                        "camera",
+                        "--dataset",
+                        str(wildtrack_root),
+                        "--camera",
+                        name,
+                        "--site",
+                        str(site),
+                        "--epoch",
+                        epoch,
+                        "--broker",
+                        broker,
+                        "--quiet",
+                    ),
+                    stdout=subprocess.PIPE,
+                    stderr=subprocess.PIPE,
+                    text=True,
+                )
+            )
         for camera in cameras:
             _, error = camera.communicate(timeout=180)
             assert camera.returncode == 0, error

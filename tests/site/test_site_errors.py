@@ -12,11 +12,18 @@ import yaml
 from cblrs.cli.main import main
 from cblrs.site import SiteError, check_site, load_site
 
-HOMOGRAPHY = [[-27.655779, 11.296923, 654.034389], [1.246776, 0.873002, 64.532068],
-              [-0.020719, -0.014507, 1.0]]
+HOMOGRAPHY = [
+    [-27.655779, 11.296923, 654.034389],
+    [1.246776, 0.873002, 64.532068],
+    [-0.020719, -0.014507, 1.0],
+]
 POINTS = [
-    [1099.9, 288.4, 16, 0], [16.1, 271.4, 4, 18], [521.4, 599.9, 2, 2], [608.1, 126.2, 26, 20],
-    [343.0, 329.3, 6, 10], [807.5, 402.0, 8, 2],
+    [1099.9, 288.4, 16, 0],
+    [16.1, 271.4, 4, 18],
+    [521.4, 599.9, 2, 2],
+    [608.1, 126.2, 26, 20],
+    [343.0, 329.3, 6, 10],
+    [807.5, 402.0, 8, 2],
 ]
 BASE: dict[str, Any] = {
     "version": 1,
@@ -66,55 +73,127 @@ def _delete(path: str, key: str):
 CASES = [
     # (what, change, expected message)
     ("valid", lambda document: None, None),
-    ("fewer than 4 points", _set("cameras[1].points", POINTS[:3]),
-     r"^site\.yaml: cameras\[1\] \(b\)\.points: 3 points cannot calibrate a camera; a ground "
-     r"homography needs at least 4"),
-    ("collinear points", _set("cameras[1].points", [[100 + 50 * i, 300 + 20 * i, i, 2 * i]
-                                                    for i in range(6)]),
-     r"^site\.yaml: cameras\[1\] \(b\)\.points: the 6 world points lie on one line"),
-    ("a point behind the camera", _set("cameras[1].points", [
-        [100, 600, 0, 0], [1100, 600, 10, 0], [1000, 200, 10, 20], [300, 200, 20, 10]]),
-     r"^site\.yaml: cameras\[1\] \(b\)\.points: row \d .*lies behind the camera"),
-    ("a map without a scale", _set("map", {"image": "plan.png"}),
-     r"^site\.yaml: map: a map needs a scale: give metres_per_pixel or scale"),
-    ("duplicate camera names", _set("cameras[2].name", "a"),
-     r"^site\.yaml: cameras\[2\]\.name: duplicate camera name 'a' \(cameras\[0\] has it too\)\.$"),
-    ("a self-intersecting zone", _set("places.zones[0].polygon", [[0, 0], [4, 4], [4, 0], [0, 4]]),
-     r"^site\.yaml: places: zone 'z': its polygon intersects itself"),
-    ("a zero-length line", _set("places.lines", [{"name": "l", "start": [1, 1], "end": [1, 1]}]),
-     r"^site\.yaml: places: line 'l' has zero length"),
-    ("a camera without geometry", _set("cameras[2]", {"name": "c", "image_size": [1280, 720]}),
-     r"^site\.yaml: cameras\[2\] \(c\): no geometry: give one of calibration"),
-    ("a wrong matrix", _set("cameras[2].homography", [[1, 2], [3, 4]]),
-     r"^site\.yaml: cameras\[2\]\.homography: expected a 3x3 matrix\.$"),
-    ("an unknown key", _set("cameras[0].fov", 60),
-     r"^site\.yaml: cameras\[0\]\.fov: unknown key \(allowed: name, image_size"),
-    ("an unknown top-level key", _set("camras", []),
-     r"^site\.yaml: camras: unknown key \(allowed: version, name, planes, cameras, map, places\)"),
-    ("two geometries", _set("cameras[0].points", POINTS),
-     r"^site\.yaml: cameras\[0\] \(a\): give one geometry, not homography and points\.$"),
-    ("no image size", _delete("cameras[0]", "image_size"),
-     r"^site\.yaml: cameras\[0\] \(a\): a camera given by homography needs image_size"),
-    ("intrinsics without tvec", _set("cameras[0]", {
-        "name": "a", "image_size": [10, 10], "intrinsics": [[1, 0, 5], [0, 1, 5], [0, 0, 1]],
-        "rvec": [0, 0, 0]}),
-     r"^site\.yaml: cameras\[0\] \(a\): intrinsics need tvec"),
+    (
+        "fewer than 4 points",
+        _set("cameras[1].points", POINTS[:3]),
+        r"^site\.yaml: cameras\[1\] \(b\)\.points: 3 points cannot calibrate a camera; a ground "
+        r"homography needs at least 4",
+    ),
+    (
+        "collinear points",
+        _set("cameras[1].points", [[100 + 50 * i, 300 + 20 * i, i, 2 * i] for i in range(6)]),
+        r"^site\.yaml: cameras\[1\] \(b\)\.points: the 6 world points lie on one line",
+    ),
+    (
+        "a point behind the camera",
+        _set(
+            "cameras[1].points",
+            [[100, 600, 0, 0], [1100, 600, 10, 0], [1000, 200, 10, 20], [300, 200, 20, 10]],
+        ),
+        r"^site\.yaml: cameras\[1\] \(b\)\.points: row \d .*lies behind the camera",
+    ),
+    (
+        "a map without a scale",
+        _set("map", {"image": "plan.png"}),
+        r"^site\.yaml: map: a map needs a scale: give metres_per_pixel or scale",
+    ),
+    (
+        "duplicate camera names",
+        _set("cameras[2].name", "a"),
+        r"^site\.yaml: cameras\[2\]\.name: duplicate camera name 'a' "
+        r"\(cameras\[0\] has it too\)\.$",
+    ),
+    (
+        "a self-intersecting zone",
+        _set("places.zones[0].polygon", [[0, 0], [4, 4], [4, 0], [0, 4]]),
+        r"^site\.yaml: places: zone 'z': its polygon intersects itself",
+    ),
+    (
+        "a zero-length line",
+        _set("places.lines", [{"name": "l", "start": [1, 1], "end": [1, 1]}]),
+        r"^site\.yaml: places: line 'l' has zero length",
+    ),
+    (
+        "a camera without geometry",
+        _set("cameras[2]", {"name": "c", "image_size": [1280, 720]}),
+        r"^site\.yaml: cameras\[2\] \(c\): no geometry: give one of calibration",
+    ),
+    (
+        "a wrong matrix",
+        _set("cameras[2].homography", [[1, 2], [3, 4]]),
+        r"^site\.yaml: cameras\[2\]\.homography: expected a 3x3 matrix\.$",
+    ),
+    (
+        "an unknown key",
+        _set("cameras[0].fov", 60),
+        r"^site\.yaml: cameras\[0\]\.fov: unknown key \(allowed: name, image_size",
+    ),
+    (
+        "an unknown top-level key",
+        _set("camras", []),
+        r"^site\.yaml: camras: unknown key "
+        r"\(allowed: version, name, planes, cameras, map, places\)",
+    ),
+    (
+        "two geometries",
+        _set("cameras[0].points", POINTS),
+        r"^site\.yaml: cameras\[0\] \(a\): give one geometry, not homography and points\.$",
+    ),
+    (
+        "no image size",
+        _delete("cameras[0]", "image_size"),
+        r"^site\.yaml: cameras\[0\] \(a\): a camera given by homography needs image_size",
+    ),
+    (
+        "intrinsics without tvec",
+        _set(
+            "cameras[0]",
+            {
+                "name": "a",
+                "image_size": [10, 10],
+                "intrinsics": [[1, 0, 5], [0, 1, 5], [0, 0, 1]],
+                "rvec": [0, 0, 0],
+            },
+        ),
+        r"^site\.yaml: cameras\[0\] \(a\): intrinsics need tvec",
+    ),
     ("no version", _delete("", "version"), r"^site\.yaml: version: required key is missing\.$"),
-    ("a later version", _set("version", 2),
-     r"^site\.yaml: version: this cblrs reads site files of version 1\.$"),
-    ("a plane of zero size", _set("planes[0].size", [0, 30]),
-     r"^site\.yaml: planes\[0\]: size must be positive"),
-    ("duplicate plane ids", _set("planes", [{"id": 1, "origin": [0, 0], "size": [1, 1]}] * 2),
-     r"^site\.yaml: planes\[1\]\.id: duplicate plane id 1"),
-    ("a bad camera name", _set("cameras[0].name", "cam/1"),
-     r"^site\.yaml: cameras\[0\]\.name: camera name 'cam/1' must be non-empty without '/'"),
-    ("map pixels without a map", _set("cameras[1].points_unit", "map"),
-     r"^site\.yaml: cameras\[1\] \(b\)\.points_unit: points in map pixels need a map with a "
-     r"scale"),
-    ("a missing calibration file", _set("cameras[0]", {"name": "a", "calibration": "none.json"}),
-     r"^site\.yaml: cameras\[0\] \(a\)\.calibration: none\.json does not exist"),
-    ("a missing points file", _set("cameras[1].points", "none.csv"),
-     r"^site\.yaml: cameras\[1\] \(b\)\.points: none\.csv does not exist"),
+    (
+        "a later version",
+        _set("version", 2),
+        r"^site\.yaml: version: this cblrs reads site files of version 1\.$",
+    ),
+    (
+        "a plane of zero size",
+        _set("planes[0].size", [0, 30]),
+        r"^site\.yaml: planes\[0\]: size must be positive",
+    ),
+    (
+        "duplicate plane ids",
+        _set("planes", [{"id": 1, "origin": [0, 0], "size": [1, 1]}] * 2),
+        r"^site\.yaml: planes\[1\]\.id: duplicate plane id 1",
+    ),
+    (
+        "a bad camera name",
+        _set("cameras[0].name", "cam/1"),
+        r"^site\.yaml: cameras\[0\]\.name: camera name 'cam/1' must be non-empty without '/'",
+    ),
+    (
+        "map pixels without a map",
+        _set("cameras[1].points_unit", "map"),
+        r"^site\.yaml: cameras\[1\] \(b\)\.points_unit: points in map pixels need a map with a "
+        r"scale",
+    ),
+    (
+        "a missing calibration file",
+        _set("cameras[0]", {"name": "a", "calibration": "none.json"}),
+        r"^site\.yaml: cameras\[0\] \(a\)\.calibration: none\.json does not exist",
+    ),
+    (
+        "a missing points file",
+        _set("cameras[1].points", "none.csv"),
+        r"^site\.yaml: cameras\[1\] \(b\)\.points: none\.csv does not exist",
+    ),
 ]
 
 

@@ -30,8 +30,9 @@ def _same_camera(first: Camera, second: Camera) -> None:
 
 
 def test_wildtrack_site_gives_the_datasets_cameras_and_plane(wildtrack_root, tmp_path):
-    path = save_document(site_from_dataset(wildtrack_root, tmp_path / "site.yaml"),
-                         tmp_path / "site.yaml")
+    path = save_document(
+        site_from_dataset(wildtrack_root, tmp_path / "site.yaml"), tmp_path / "site.yaml"
+    )
     site = load_site(path)
     scene = load_scene(wildtrack_root)
     assert site.camera_names == scene.camera_names
@@ -80,16 +81,18 @@ def test_export_inlines_everything_and_round_trips_exactly(wildtrack_root, readm
 def test_multiviewx_site_reads_through_the_dataset_reader(tmp_path):
     if not (MULTIVIEWX / "calibrations").is_dir():
         pytest.skip("MultiviewX data not found")
-    path = save_document(site_from_dataset(MULTIVIEWX, tmp_path / "site.yaml"),
-                         tmp_path / "site.yaml")
+    path = save_document(
+        site_from_dataset(MULTIVIEWX, tmp_path / "site.yaml"), tmp_path / "site.yaml"
+    )
     site = load_site(path)
     assert site.camera_names == [f"Camera{index}" for index in range(1, 7)]
     assert site.planes is not None and site.planes[0].width == 29.0
     report = check_site(path)
     assert report["valid"] and all(camera["ok"] for camera in report["cameras"])
     # Every camera is distorted (the reader's lens model) and sized like the frames.
-    assert all(camera["distorted"] and camera["image_size"] == [1920, 1080]
-               for camera in report["cameras"])
+    assert all(
+        camera["distorted"] and camera["image_size"] == [1920, 1080] for camera in report["cameras"]
+    )
 
 
 def test_aicity_site_estimates_the_plane_from_what_the_cameras_see(tmp_path):
@@ -158,11 +161,27 @@ def test_render_track_and_eval_with_a_site(wildtrack_root, tmp_path, capsys):
     reference = ReferenceImage.load(tmp_path / "refs" / "CVLab1.png")
     assert reference.bits == 8 and reference.camera_name == "CVLab1"
     tracks = tmp_path / "t.txt"
-    assert main(["track", str(wildtrack_root), "--site", str(site), "--out", str(tracks),
-                 "--frames", "0:200", "--json"]) == 0
+    assert (
+        main(
+            [
+                "track",
+                str(wildtrack_root),
+                "--site",
+                str(site),
+                "--out",
+                str(tracks),
+                "--frames",
+                "0:200",
+                "--json",
+            ]
+        )
+        == 0
+    )
     assert json.loads(capsys.readouterr().out)["render_seconds"] > 0
-    assert main(["eval", str(wildtrack_root), str(tracks), "--frames", "0:200",
-                 "--site", str(site)]) == 0
+    assert (
+        main(["eval", str(wildtrack_root), str(tracks), "--frames", "0:200", "--site", str(site)])
+        == 0
+    )
     assert "scored inside site.yaml's planes" in capsys.readouterr().out
     assert main(["render", str(wildtrack_root), "--site", str(site), "--out", "x"]) == 2
     assert "give CALIBRATION or --site, not both" in capsys.readouterr().err

@@ -12,10 +12,18 @@ def test_readme_example_validates_and_is_ready_for_everything(readme_site):
     report = check_site(readme_site)
     assert report["valid"], report["problems"]
     assert report["ready"] == {
-        "render": True, "camera": True, "matcher": True, "track": True, "analytics": True
+        "render": True,
+        "camera": True,
+        "matcher": True,
+        "track": True,
+        "analytics": True,
     }
     assert [camera["name"] for camera in report["cameras"]] == [
-        "gate", "east", "kiosk", "bridge", "north"
+        "gate",
+        "east",
+        "kiosk",
+        "bridge",
+        "north",
     ]
     for camera in report["cameras"]:
         assert camera["ok"], camera["error"]

@@ -40,7 +40,9 @@ def register(subparsers) -> None:
     )
     world = parser.add_argument_group("world coordinates")
     world.add_argument(
-        "--world", choices=("metres", "map"), default="metres",
+        "--world",
+        choices=("metres", "map"),
+        default="metres",
         help="x,y are metres (default) or pixels of the site map",
     )
     world.add_argument("--site", type=Path, help="site file whose map converts map pixels")

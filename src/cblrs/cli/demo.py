@@ -299,6 +299,9 @@ def run_scene(
     tracks: dict[str, Tracks] = {}
     for matcher in progress(MATCHERS, f"{scene.name}: matchers", quiet):
         started = time.perf_counter()
+        options: dict[str, Any] = {}
+        if camera_positions is not None and matcher == "fusion":
+            options["camera_positions"] = camera_positions
         result = track_scene(
             scene,
             matcher,
@@ -306,11 +309,7 @@ def run_scene(
             progress=not quiet,
             # Targeters are built once and shared by both matchers (geometric ones cost).
             targeting="box" if targeters is None else targeters,
-            **(
-                {"camera_positions": camera_positions}
-                if camera_positions is not None and matcher == "fusion"
-                else {}
-            ),
+            **options,
         )
         report.seconds[matcher] = time.perf_counter() - started
         tracks[matcher] = result.tracks

@@ -179,7 +179,9 @@ def run_calibration_command(args: argparse.Namespace) -> tuple[dict[str, Any], s
     counts = parse_numbers(args.counts, "--counts")
     seeds = parse_numbers(args.seeds, "--seeds")
     if not all(isinstance(count, int) and count >= 4 for count in counts):
-        raise UsageError(f"--counts must be whole numbers >= 4 (a homography needs 4), got {args.counts!r}.")
+        raise UsageError(
+            f"--counts must be whole numbers >= 4 (a homography needs 4), got {args.counts!r}."
+        )
     if not all(isinstance(seed, int) and seed >= 0 for seed in seeds):
         raise UsageError(f"--seeds must be whole numbers >= 0, got {args.seeds!r}.")
     if not (args.noise_px >= 0):

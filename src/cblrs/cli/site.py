@@ -26,11 +26,13 @@ def register(subparsers) -> None:
     init.add_argument("dataset", type=Path, metavar="DATASET_DIR")
     init.add_argument("--out", type=Path, required=True, help="site file to write (.yaml/.json)")
     init.add_argument(
-        "--inline", action="store_true",
+        "--inline",
+        action="store_true",
         help="write the cameras' parameters instead of referring to the dataset's files",
     )
     init.add_argument(
-        "--plane", metavar="X0,Y0,WIDTH,LENGTH",
+        "--plane",
+        metavar="X0,Y0,WIDTH,LENGTH",
         help="ground plane in metres (default: the dataset's annotated area + 2 m, or the "
         "ground the AI City cameras see)",
     )
@@ -43,7 +45,9 @@ def register(subparsers) -> None:
     check = actions.add_parser("check", help="validate a site file and say what it is ready for")
     check.add_argument("site", type=Path, metavar="SITE")
     check.add_argument(
-        "--for", dest="needed", metavar="COMMANDS",
+        "--for",
+        dest="needed",
+        metavar="COMMANDS",
         help="comma-separated commands (render, camera, matcher, track, analytics) the site "
         "must be ready for; exit 1 otherwise",
     )
@@ -93,7 +97,11 @@ def run_init(args: argparse.Namespace) -> int:
 
     _writable(args.out, args.force)
     document = site_from_dataset(
-        args.dataset, args.out, inline=args.inline, plane=_plane(args.plane), bits=args.bits,
+        args.dataset,
+        args.out,
+        inline=args.inline,
+        plane=_plane(args.plane),
+        bits=args.bits,
         name=args.name,
     )
     path = save_document(document, args.out)
@@ -114,8 +122,10 @@ def run_init(args: argparse.Namespace) -> int:
             if plane is not None
             else ""
         )
-        print(f"wrote {path}: {len(site.camera_names)} cameras{extent}; check it with "
-              f"`cblrs site check {path}`")
+        print(
+            f"wrote {path}: {len(site.camera_names)} cameras{extent}; check it with "
+            f"`cblrs site check {path}`"
+        )
     return 0
 
 
@@ -127,9 +137,7 @@ def run_check(args: argparse.Namespace) -> int:
         needed = [name.strip() for name in re.split(r"[,\s]+", args.needed) if name.strip()]
         unknown = [name for name in needed if name not in COMMANDS]
         if unknown:
-            raise UsageError(
-                f"--for {unknown[0]!r} is not one of {', '.join(COMMANDS)}."
-            )
+            raise UsageError(f"--for {unknown[0]!r} is not one of {', '.join(COMMANDS)}.")
     report = check_site(args.site)
     if args.json:
         print_json(report)

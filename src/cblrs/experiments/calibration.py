@@ -121,9 +121,7 @@ def clicked_site(scene: Scene, count: int, seed: int, setup: CalibrationSetup) -
                 )
             ]
             try:
-                calibrate_camera(
-                    Correspondences.from_rows(points), camera.image_size, camera.name
-                )
+                calibrate_camera(Correspondences.from_rows(points), camera.image_size, camera.name)
                 break
             except CalibrationError:
                 if attempt == _ATTEMPTS - 1:
@@ -183,7 +181,7 @@ def _run(scene: Scene, references: list, positions: dict[str, Any]) -> dict[str,
         "scores": {key: float(metrics[key]) for key in SCORES},
         "median_error_m": float(np.median(errors)),
         "p95_error_m": float(np.percentile(errors, 95)),
-        "located": int(len(errors)),
+        "located": len(errors),
     }
 
 
@@ -337,8 +335,7 @@ def calibration_figure(scene: Scene, setup: CalibrationSetup, folder: Any) -> An
     site = site_from_document(document, None)
     fit = site.camera(scene.camera_names[0]).fit
     path = Path(folder) / "calibration_clicked.png"
-    image = calibration_picture(fit, None)
     import cv2
 
-    image = cv2.resize(image, (960, 540), interpolation=cv2.INTER_AREA)
-    return save_image(path, image)
+    image = cv2.resize(calibration_picture(fit, None), (960, 540), interpolation=cv2.INTER_AREA)
+    return save_image(path, np.asarray(image, dtype=np.uint8))

@@ -97,7 +97,9 @@ def _from_file(site: Site, spec: CameraModel, where: str) -> Camera:
     return camera
 
 
-def read_points(site: Site, spec: CameraModel, where: str, in_metres: bool = True) -> Correspondences:
+def read_points(
+    site: Site, spec: CameraModel, where: str, in_metres: bool = True
+) -> Correspondences:
     """The camera's clicked points; map pixels become metres unless ``in_metres`` is False."""
     transform = None
     if spec.points_unit == "map" and in_metres:
@@ -110,7 +112,9 @@ def read_points(site: Site, spec: CameraModel, where: str, in_metres: bool = Tru
     if spec.points_file is not None:
         path = site.folder / spec.points_file
         if not path.is_file():
-            raise SiteError(f"{where}.points: {spec.points_file} does not exist (looked in {path}).")
+            raise SiteError(
+                f"{where}.points: {spec.points_file} does not exist (looked in {path})."
+            )
         return Correspondences.from_csv(path, transform)
     assert spec.points is not None
     rows = [point.model_dump() for point in spec.points]
@@ -164,7 +168,7 @@ def _position(
 
 
 def camera_entry(camera: Camera) -> dict[str, Any]:
-    """A camera's inline site entry: K, distortion, rotation matrix, t (exact), or its homography."""
+    """A camera's inline site entry: K, distortion, rotation matrix, t (exact) or a homography."""
     entry: dict[str, Any] = {"name": camera.name, "image_size": list(camera.image_size)}
     if camera.has_pose:
         assert camera.intrinsics is not None and camera.rotation is not None

@@ -173,7 +173,8 @@ def format_check(report: dict[str, Any]) -> str:
     if planes:
         for plane in planes:
             lines.append(
-                f"  plane {plane['plane_id']}{' ' + plane['name'] if plane['name'] else ''}: origin "
+                f"  plane {plane['plane_id']}{' ' + plane['name'] if plane['name'] else ''}: "
+                "origin "
                 f"({plane['origin'][0]:g}, {plane['origin'][1]:g}) m, {plane['width']:g} x "
                 f"{plane['length']:g} m, height {plane['height']:g} m, {plane['bits']} bit"
             )
@@ -209,9 +210,7 @@ def format_check(report: dict[str, Any]) -> str:
             if "coverage" in camera
             else ""
         )
-        lines.append(
-            f"    {camera['name']}: {camera['geometry']}{fitted}, {where}{coverage}"
-        )
+        lines.append(f"    {camera['name']}: {camera['geometry']}{fitted}, {where}{coverage}")
     places = report["places"]
     lines.append(f"  places: {places['zones']} zones, {places['lines']} lines")
     for warning in report["warnings"]:

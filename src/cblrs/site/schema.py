@@ -193,8 +193,11 @@ def _points(value: Any) -> Any:
 
 
 def _camera_name_text(name: str) -> str:
-    if not name or any(character in name for character in "/+#") or name != name.strip() or (
-        any(character.isspace() for character in name)
+    if (
+        not name
+        or any(character in name for character in "/+#")
+        or name != name.strip()
+        or (any(character.isspace() for character in name))
     ):
         raise ValueError(
             f"camera name {name!r} must be non-empty without '/', '+', '#' or spaces "
@@ -326,7 +329,11 @@ def error_sentences(error: ValidationError, source: str, data: Any = None) -> li
 def _camera_name(loc: tuple[int | str, ...], data: Any) -> str | None:
     if len(loc) >= 2 and loc[0] == "cameras" and isinstance(loc[1], int) and isinstance(data, dict):
         cameras = data.get("cameras")
-        if isinstance(cameras, list) and loc[1] < len(cameras) and isinstance(cameras[loc[1]], dict):
+        if (
+            isinstance(cameras, list)
+            and loc[1] < len(cameras)
+            and isinstance(cameras[loc[1]], dict)
+        ):
             name = cameras[loc[1]].get("name")
             return str(name) if name else None
     return None

@@ -64,8 +64,9 @@ def calibration_picture(
     step = grid_m or grid_step(world)
     low = world.min(axis=0) - max(3 * step, 0.5 * float(np.ptp(world, axis=0).max()))
     high = world.max(axis=0) + max(3 * step, 0.5 * float(np.ptp(world, axis=0).max()))
-    plane = PlaneSpec(1, (float(low[0]), float(low[1])), float(high[0] - low[0]),
-                      float(high[1] - low[1]), bits=16)
+    plane = PlaneSpec(
+        1, (float(low[0]), float(low[1])), float(high[0] - low[0]), float(high[1] - low[1]), bits=16
+    )
     reference = render_reference(camera, plane)
     image = draw_metric_grid(image, reference, grid_m=step)
     scale = max(width, height) / 1920
@@ -76,16 +77,28 @@ def calibration_picture(
     for index, name in enumerate(fit.points.names):
         click = fit.points.image_xy[index]
         colour = _CLICK if fit.inliers[index] else _OUTLIER
-        centre = (int(round(click[0])), int(round(click[1])))
+        centre = (round(click[0]), round(click[1]))
         if in_front[index] and np.all(np.isfinite(projected[index])):
-            target = (int(round(projected[index][0])), int(round(projected[index][1])))
+            target = (round(projected[index][0]), round(projected[index][1]))
             if abs(target[0]) < 10 * width and abs(target[1]) < 10 * height:
                 cv2.line(image, centre, target, _PROJECTED, thickness, cv2.LINE_AA)
                 size = radius
-                cv2.line(image, (target[0] - size, target[1] - size),
-                         (target[0] + size, target[1] + size), _PROJECTED, thickness, cv2.LINE_AA)
-                cv2.line(image, (target[0] - size, target[1] + size),
-                         (target[0] + size, target[1] - size), _PROJECTED, thickness, cv2.LINE_AA)
+                cv2.line(
+                    image,
+                    (target[0] - size, target[1] - size),
+                    (target[0] + size, target[1] + size),
+                    _PROJECTED,
+                    thickness,
+                    cv2.LINE_AA,
+                )
+                cv2.line(
+                    image,
+                    (target[0] - size, target[1] + size),
+                    (target[0] + size, target[1] - size),
+                    _PROJECTED,
+                    thickness,
+                    cv2.LINE_AA,
+                )
         cv2.circle(image, centre, radius, colour, thickness, cv2.LINE_AA)
         error_m = fit.error_m[index]
         label = f"{name}: {fit.error_px[index]:.1f} px" + (
@@ -95,13 +108,25 @@ def calibration_picture(
             label += " (outlier)"
         _text(image, label, (centre[0] + radius + 3, centre[1] - radius), colour, font_scale)
     for row, line in enumerate(summary_lines(fit)):
-        _text(image, line, (8, 8 + row * int(34 * font_scale + 10)), (255, 255, 255),
-              font_scale, background=True)
+        _text(
+            image,
+            line,
+            (8, 8 + row * int(34 * font_scale + 10)),
+            (255, 255, 255),
+            font_scale,
+            background=True,
+        )
     legend = "circle: clicked   x: world point projected by the fit   grid: fitted ground, " + (
         f"{step:g} m"
     )
-    _text(image, legend, (8, height - int(34 * font_scale + 12)), (255, 255, 255), font_scale,
-          background=True)
+    _text(
+        image,
+        legend,
+        (8, height - int(34 * font_scale + 12)),
+        (255, 255, 255),
+        font_scale,
+        background=True,
+    )
     return image
 
 
@@ -141,7 +166,9 @@ def _text(
     x = int(np.clip(origin[0], 0, max(width - text_width - 6, 0)))
     y = int(np.clip(origin[1], 0, max(height - text_height - baseline - 6, 0)))
     if background:
-        cv2.rectangle(image, (x, y), (x + text_width + 6, y + text_height + baseline + 6),
-                      (0, 0, 0), -1)
-    cv2.putText(image, text, (x + 3, y + text_height + 3), font, font_scale, colour, thickness,
-                cv2.LINE_AA)
+        cv2.rectangle(
+            image, (x, y), (x + text_width + 6, y + text_height + baseline + 6), (0, 0, 0), -1
+        )
+    cv2.putText(
+        image, text, (x + 3, y + text_height + 3), font, font_scale, colour, thickness, cv2.LINE_AA
+    )

@@ -1,56 +1,19 @@
-"""Calibration from clicked points: image <-> ground correspondences -> a camera.
-
-People who deploy cameras rarely have a lab calibration. They have a frame from each camera
-and a site plan, and can click points they find in both. From ``N`` such correspondences
-(pixel ``(u, v)`` <-> ground ``(x, y)`` metres on the plane z = 0) this module fits, unlocking
-parameters only as the points allow (the thresholds of the closest open-source peer, Intel
-SceneScape):
-
-============  ==========  ==================================================================
-model         points      what is fitted
-============  ==========  ==================================================================
-homography    >= 4        the ground homography (OpenCV ``findHomography``; RANSAC from 5)
-pose          >= 4        rotation and position with a given focal length (``solvePnP``)
-focal         >= 6        + the focal length (``calibrateCamera``, planar rig, fixed
-                          principal point, square pixels, no tangential distortion)
-k1            >= 8        + the first radial distortion coefficient
-============  ==========  ==================================================================
-
-``auto`` picks the richest model the points allow. A pose needs the camera above the ground
-and every point in front of it; a fit that fails that, or whose focal length is absurd,
-falls back to the homography with a warning. A homography alone still gives the camera's
-position when the focal length is known or can be estimated from it
-(:func:`pose_from_homography`, the issue's "camera without a full pose").
-
-Every fit reports each point's error both ways: the world point projected into the image
-(pixels) and the clicked pixel projected onto the ground (metres).
-
-Example:
-    >>> from cblrs.camera import Camera
-    >>> truth = Camera.from_pose("c", (0, -10, 6), 90, 30, 1000, (1280, 720))
-    >>> world = np.array([[x, y] for x in (-4, 0, 4) for y in (0, 5, 10)], float)
-    >>> pixels, _ = truth.world_to_pixel(world)
-    >>> fit = calibrate_camera(Correspondences(pixels, world), (1280, 720), "c")
-    >>> fit.model.value, round(float(fit.camera.centre[2]), 3)
-    ('k1', 6.0)
-"""
+"""Fitting a camera to clicked points: homography, pose, focal length, k1 (see the package)."""
 
 from __future__ import annotations
 
-import csv
-import io
 import logging
 import math
-from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from enum import Enum
-from pathlib import Path
+from enum import StrEnum
 from typing import Any
 
 import cv2
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import NDArray
 
+from cblrs.calibrate.points import Correspondences
+from cblrs.calibrate.pose import FOCAL_RANGE, estimate_focal, pose_from_homography
 from cblrs.camera import Camera
 from cblrs.errors import CalibrationError
 
@@ -60,7 +23,7 @@ FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
 
 
-class Model(str, Enum):
+class Model(StrEnum):
     """What a calibration from points fits (see the module docstring)."""
 
     AUTO = "auto"
@@ -72,183 +35,6 @@ class Model(str, Enum):
 
 MINIMUM_POINTS = {Model.HOMOGRAPHY: 4, Model.POSE: 4, Model.FOCAL: 6, Model.K1: 8}
 """Fewest correspondences each model accepts."""
-
-# A focal length outside [0.1, 20] x the image's larger side is no real lens: the fit is
-# degenerate (nearly fronto-parallel view, points bunched together).
-_FOCAL_RANGE = (0.1, 20.0)
-
-
-# ---------------------------------------------------------------------------- points
-
-
-@dataclass(frozen=True)
-class Correspondences:
-    """Clicked points: pixels and the ground positions they show.
-
-    Attributes:
-        image_xy: (N, 2) float64 pixel coordinates (raw frame, x right, y down).
-        world_xy: (N, 2) float64 ground positions, metres (plane z = 0).
-        names: (N,) labels used in messages ("row 3" when the file has none).
-        source: where they came from (a file name), for messages.
-    """
-
-    image_xy: FloatArray
-    world_xy: FloatArray
-    names: tuple[str, ...] = ()
-    source: str = "points"
-
-    def __post_init__(self) -> None:
-        image = np.asarray(self.image_xy, dtype=np.float64)
-        world = np.asarray(self.world_xy, dtype=np.float64)
-        for array, what in ((image, "image points"), (world, "world points")):
-            if array.ndim != 2 or array.shape[1] != 2:
-                raise CalibrationError(
-                    f"{self.source}: {what} must have shape (N, 2), got {array.shape}."
-                )
-        if len(image) != len(world):
-            raise CalibrationError(
-                f"{self.source}: {len(image)} image points but {len(world)} world points."
-            )
-        names = tuple(self.names) or tuple(f"row {index + 1}" for index in range(len(image)))
-        if len(names) != len(image):
-            raise CalibrationError(f"{self.source}: {len(names)} names for {len(image)} points.")
-        for array, what in ((image, "u, v"), (world, "x, y")):
-            bad = np.flatnonzero(~np.isfinite(array).all(axis=1))
-            if len(bad):
-                raise CalibrationError(
-                    f"{self.source}: {names[bad[0]]}: {what} must be finite numbers "
-                    "(a point at infinity cannot be clicked)."
-                )
-        image.setflags(write=False)
-        world.setflags(write=False)
-        object.__setattr__(self, "image_xy", image)
-        object.__setattr__(self, "world_xy", world)
-        object.__setattr__(self, "names", names)
-
-    def __len__(self) -> int:
-        return len(self.image_xy)
-
-    @classmethod
-    def from_rows(
-        cls,
-        rows: Sequence[Any],
-        source: str = "points",
-        world_transform: Callable[[FloatArray], FloatArray] | None = None,
-    ) -> Correspondences:
-        """From rows ``[u, v, x, y]`` or ``[u, v, x, y, name]`` or mappings with those keys.
-
-        Args:
-            rows: the rows.
-            source: name for messages.
-            world_transform: maps (N, 2) given world coordinates to metres (e.g. site-map
-                pixels to metres); None when they are metres already.
-        """
-        image, world, names = [], [], []
-        for index, row in enumerate(rows):
-            where = f"{source}: row {index + 1}"
-            if isinstance(row, dict):
-                unknown = sorted(set(row) - {"u", "v", "x", "y", "name"})
-                if unknown:
-                    raise CalibrationError(f"{where}: unknown key {unknown[0]!r} (u, v, x, y, name).")
-                missing = [key for key in ("u", "v", "x", "y") if key not in row]
-                if missing:
-                    raise CalibrationError(f"{where}: missing {', '.join(missing)}.")
-                values = [row["u"], row["v"], row["x"], row["y"]]
-                name = row.get("name")
-            else:
-                if isinstance(row, str) or not isinstance(row, Sequence) or len(row) not in (4, 5):
-                    raise CalibrationError(f"{where}: expected u, v, x, y[, name].")
-                values, name = list(row[:4]), (row[4] if len(row) == 5 else None)
-            try:
-                numbers = [float(value) for value in values]
-            except (TypeError, ValueError):
-                raise CalibrationError(f"{where}: u, v, x, y must be numbers, got {values}.") from None
-            image.append(numbers[:2])
-            world.append(numbers[2:])
-            names.append(str(name) if name not in (None, "") else f"row {index + 1}")
-        world_array = np.array(world, dtype=np.float64).reshape(-1, 2)
-        if world_transform is not None and len(world_array):
-            world_array = world_transform(world_array)
-        return cls(np.array(image, dtype=np.float64).reshape(-1, 2), world_array, tuple(names), source)
-
-    @classmethod
-    def from_csv(
-        cls,
-        path: str | Path,
-        world_transform: Callable[[FloatArray], FloatArray] | None = None,
-    ) -> Correspondences:
-        """Read a CSV of ``u,v,x,y[,name]`` rows (a header line naming the columns is optional).
-
-        With a header the columns may come in any order; lines starting with ``#`` are comments.
-        """
-        path = Path(path)
-        try:
-            text = path.read_text()
-        except FileNotFoundError:
-            raise CalibrationError(f"points file {path} does not exist.") from None
-        except (OSError, UnicodeDecodeError) as error:
-            raise CalibrationError(f"cannot read points file {path}: {error}.") from None
-        return cls.from_csv_text(text, str(path.name), world_transform)
-
-    @classmethod
-    def from_csv_text(
-        cls,
-        text: str,
-        source: str = "points.csv",
-        world_transform: Callable[[FloatArray], FloatArray] | None = None,
-    ) -> Correspondences:
-        lines = [line for line in text.splitlines() if line.strip() and not line.lstrip().startswith("#")]
-        records = list(csv.reader(io.StringIO("\n".join(lines))))
-        if not records:
-            return cls.from_rows([], source, world_transform)
-        header = [cell.strip().lower() for cell in records[0]]
-        if {"u", "v", "x", "y"} <= set(header):
-            unknown = sorted(set(header) - {"u", "v", "x", "y", "name"})
-            if unknown:
-                raise CalibrationError(
-                    f"{source}: unknown column {unknown[0]!r} (columns: u, v, x, y, name)."
-                )
-            rows: list[Any] = [
-                {key: cell.strip() for key, cell in zip(header, record, strict=False)}
-                for record in records[1:]
-            ]
-            for index, (row, record) in enumerate(zip(rows, records[1:], strict=True)):
-                if len(record) != len(header):
-                    raise CalibrationError(
-                        f"{source}: row {index + 1} has {len(record)} values for {len(header)} columns."
-                    )
-                if not row.get("name"):
-                    row.pop("name", None)
-        else:
-            rows = [[cell.strip() for cell in record] for record in records]
-        return cls.from_rows(rows, source, world_transform)
-
-    def to_rows(self) -> list[dict[str, Any]]:
-        """``[{"name", "u", "v", "x", "y"}, ...]`` (metres)."""
-        return [
-            {"name": name, "u": float(u), "v": float(v), "x": float(x), "y": float(y)}
-            for name, (u, v), (x, y) in zip(self.names, self.image_xy, self.world_xy, strict=True)
-        ]
-
-
-# ---------------------------------------------------------------------------- results
-
-
-@dataclass(frozen=True, eq=False)
-class RecoveredPose:
-    """A camera pose recovered from a ground homography (see :func:`pose_from_homography`).
-
-    Attributes:
-        camera: the posed camera (K, R, t) closest to the homography.
-        focal_px: its focal length, pixels.
-        focal_estimated: True when the focal length came from the homography itself.
-        orthogonality: how far the homography is from a rotation (0 = exactly one).
-    """
-
-    camera: Camera
-    focal_px: float
-    focal_estimated: bool
-    orthogonality: float
 
 
 @dataclass(frozen=True, eq=False)
@@ -383,10 +169,16 @@ def calibrate_camera(
             "a ground homography needs at least 4 (u, v, x, y) correspondences."
         )
     if focal_px is not None and not (math.isfinite(focal_px) and focal_px > 0):
-        raise CalibrationError(f"{points.source}: the focal length must be a positive number of pixels, got {focal_px}.")
+        raise CalibrationError(
+            f"{points.source}: the focal length must be a positive number of pixels, "
+            f"got {focal_px}."
+        )
     _check_spread(points)
     if model is not Model.AUTO and count < MINIMUM_POINTS[model]:
-        fitted = {Model.FOCAL: "the pose and the focal length", Model.K1: "the pose, focal length and k1"}
+        fitted = {
+            Model.FOCAL: "the pose and the focal length",
+            Model.K1: "the pose, focal length and k1",
+        }
         raise CalibrationError(
             f"{points.source}: {count} points cannot fit {fitted.get(model, model.value)} "
             f"(model {model.value} needs at least {MINIMUM_POINTS[model]}); add points or choose a "
@@ -394,8 +186,8 @@ def calibrate_camera(
         )
     if model is Model.POSE and focal_px is None:
         raise CalibrationError(
-            f"{points.source}: model pose keeps the focal length fixed, so it needs one (--focal PX); "
-            "with 6 or more points model focal fits it."
+            f"{points.source}: model pose keeps the focal length fixed, so it needs one "
+            "(--focal PX); with 6 or more points model focal fits it."
         )
     warnings: list[str] = []
     homography, inliers = _fit_homography(points, ransac_px, warnings)
@@ -436,7 +228,8 @@ def calibrate_camera(
             position = _position(recovered.camera)
             fitted_focal = recovered.focal_px
             position_source = (
-                "homography + estimated focal length" if recovered.focal_estimated
+                "homography + estimated focal length"
+                if recovered.focal_estimated
                 else "homography + given focal length"
             )
         else:
@@ -495,14 +288,18 @@ def _model(model: Model | str, source: str) -> Model:
         return Model(model)
     except ValueError:
         choices = ", ".join(item.value for item in Model)
-        raise CalibrationError(f"{source}: unknown model {model!r}; choose one of {choices}.") from None
+        raise CalibrationError(
+            f"{source}: unknown model {model!r}; choose one of {choices}."
+        ) from None
 
 
 def _image_size(image_size: tuple[int, int], source: str) -> tuple[int, int]:
     try:
         width, height = (int(value) for value in image_size)
     except (TypeError, ValueError):
-        raise CalibrationError(f"{source}: the image size must be (width, height) pixels.") from None
+        raise CalibrationError(
+            f"{source}: the image size must be (width, height) pixels."
+        ) from None
     if width <= 0 or height <= 0:
         raise CalibrationError(f"{source}: the image size must be positive, got {width}x{height}.")
     return width, height
@@ -559,9 +356,7 @@ def _fit_homography(
         homography, mask = cv2.findHomography(world, image, 0)
     if homography is None or not np.all(np.isfinite(homography)):
         raise CalibrationError(f"{points.source}: OpenCV found no homography through these points.")
-    inliers = (
-        np.ones(len(points), dtype=bool) if mask is None else mask.ravel().astype(bool)
-    )
+    inliers = np.ones(len(points), dtype=bool) if mask is None else mask.ravel().astype(bool)
     if len(points) >= 5:
         # RANSAC keeps the consensus of its best minimal sample, which with few points can
         # leave out a good one: refit on the inliers and re-admit every point within the
@@ -599,7 +394,7 @@ def _fit_homography(
         )
     projected = homogeneous[:, :2] / np.where(depth == 0, np.nan, depth)[:, None]
     error = np.hypot(*(projected - image).T)
-    for index in np.flatnonzero(~inliers):
+    for index in np.flatnonzero(~inliers).tolist():
         where = "behind the camera" if depth[index] <= 0 else f"{error[index]:.1f} px from the fit"
         warnings.append(
             f"{points.source}: {points.names[index]} is an outlier ({where}); left out of the fit."
@@ -646,16 +441,22 @@ def _fit_pose(
             flags |= cv2.CALIB_FIX_K1
         criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-12)
         try:
-            _, intrinsics, distortion, rvecs, tvecs = cv2.calibrateCamera(
-                [object_points], [image_points], (width, height), intrinsics.copy(),
-                distortion.copy(), flags=flags, criteria=criteria,
+            _, fitted_intrinsics, fitted_distortion, rvecs, tvecs = cv2.calibrateCamera(
+                [object_points],
+                [image_points],
+                (width, height),
+                intrinsics.copy(),
+                distortion.copy(),
+                flags=flags,
+                criteria=criteria,
             )
         except cv2.error as error:
             raise _PoseFailure(f"OpenCV could not fit a pose ({error.err})") from None
-        rvec, tvec = rvecs[0], tvecs[0]
-        distortion = np.asarray(distortion, dtype=np.float64).ravel()
+        rvec, tvec = np.asarray(rvecs[0], np.float64), np.asarray(tvecs[0], np.float64)
+        intrinsics = np.asarray(fitted_intrinsics, dtype=np.float64)
+        distortion = np.asarray(fitted_distortion, dtype=np.float64).ravel()
     fitted_focal = float(intrinsics[0, 0])
-    low, high = (bound * max(width, height) for bound in _FOCAL_RANGE)
+    low, high = (bound * max(width, height) for bound in FOCAL_RANGE)
     if not (low <= fitted_focal <= high):
         raise _PoseFailure(
             f"the fitted focal length ({fitted_focal:.0f} px) is not a real lens's; the points "
@@ -680,7 +481,7 @@ def _solve_pnp(
 ) -> tuple[FloatArray, FloatArray]:
     """Planar PnP: IPPE's two solutions, keep the one with the camera above the ground and the
     smaller error, then refine it (Levenberg-Marquardt)."""
-    count, rvecs, tvecs, errors = cv2.solvePnPGeneric(
+    _, rvecs, tvecs, errors = cv2.solvePnPGeneric(
         object_points, image_points, intrinsics, None, flags=cv2.SOLVEPNP_IPPE
     )
     best: tuple[float, FloatArray, FloatArray] | None = None
@@ -689,17 +490,23 @@ def _solve_pnp(
         height = float((-rotation.T @ tvec.ravel())[2])
         score = float(error) + (0.0 if height > 0 else 1e9)
         if best is None or score < best[0]:
-            best = (score, rvec, tvec)
+            best = (score, np.asarray(rvec, np.float64), np.asarray(tvec, np.float64))
     if best is None:
         raise _PoseFailure("OpenCV found no pose through these points")
     _, rvec, tvec = best
     ok, rvec, tvec = cv2.solvePnP(
-        object_points, image_points, intrinsics, None, rvec.copy(), tvec.copy(),
-        useExtrinsicGuess=True, flags=cv2.SOLVEPNP_ITERATIVE,
+        object_points,
+        image_points,
+        intrinsics,
+        None,
+        rvec.copy(),
+        tvec.copy(),
+        useExtrinsicGuess=True,
+        flags=cv2.SOLVEPNP_ITERATIVE,
     )
     if not ok:
         raise _PoseFailure("OpenCV could not refine the pose")
-    return rvec, tvec
+    return np.asarray(rvec, np.float64), np.asarray(tvec, np.float64)
 
 
 def _check_pose(camera: Camera, world_xy: FloatArray) -> None:
@@ -719,101 +526,3 @@ def _check_pose(camera: Camera, world_xy: FloatArray) -> None:
 def _position(camera: Camera) -> tuple[float, float, float]:
     centre = camera.centre
     return (float(centre[0]), float(centre[1]), float(centre[2]))
-
-
-# ---------------------------------------------------------------------------- homography -> pose
-
-
-def estimate_focal(homography: ArrayLike, image_size: tuple[int, int]) -> float | None:
-    """The focal length (pixels) that makes a ground homography a rotation, or None.
-
-    With square pixels and the principal point at the image centre, ``K^-1 H = [r1 r2 t]``
-    up to scale needs ``r1 . r2 = 0`` and ``|r1| = |r2|``: two equations in ``1 / f^2``
-    (Zhang's constraints for a single view), solved in the least-squares sense. A camera
-    looking straight down (no perspective) leaves ``f`` undetermined: None.
-    """
-    width, height = image_size
-    shift = np.array([[1, 0, -(width - 1) / 2.0], [0, 1, -(height - 1) / 2.0], [0, 0, 1]])
-    matrix = shift @ np.asarray(homography, dtype=np.float64)
-    matrix = matrix / np.abs(matrix).max()
-    (h11, h12, _), (h21, h22, _), (h31, h32, _) = matrix
-    # Each constraint reads a * w + b = 0 with w = 1 / f^2; rows are scaled by a typical f^2
-    # so that both weigh alike.
-    typical = float(max(width, height)) ** 2
-    a = np.array([h11 * h12 + h21 * h22, h11**2 + h21**2 - h12**2 - h22**2]) / typical
-    b = np.array([h31 * h32, h31**2 - h32**2])
-    denominator = float(a @ a)
-    if denominator == 0:
-        return None
-    inverse_square = -float(a @ b) / denominator * (1.0 / typical)
-    if not (np.isfinite(inverse_square) and inverse_square > 0):
-        return None
-    focal = 1.0 / math.sqrt(inverse_square)
-    low, high = (bound * max(width, height) for bound in _FOCAL_RANGE)
-    # A tiny |b| (camera looking nearly straight down) makes f arbitrary: check that the
-    # constraints really select it (the residual at f must be well below that at f / 2, 2 f).
-    residual = _orthogonality(matrix, focal)
-    if not (low <= focal <= high) or residual > 0.5 * min(
-        _orthogonality(matrix, focal / 2), _orthogonality(matrix, focal * 2)
-    ):
-        return None
-    return focal
-
-
-def _orthogonality(centred_homography: FloatArray, focal: float) -> float:
-    """How far ``diag(1/f, 1/f, 1) H`` is from two orthonormal columns (0 = exactly)."""
-    matrix = np.diag([1.0 / focal, 1.0 / focal, 1.0]) @ centred_homography
-    first, second = matrix[:, 0], matrix[:, 1]
-    norm1, norm2 = float(np.linalg.norm(first)), float(np.linalg.norm(second))
-    cosine = float(first @ second) / (norm1 * norm2)
-    return math.hypot(cosine, (norm1 - norm2) / (norm1 + norm2))
-
-
-def pose_from_homography(
-    homography: ArrayLike,
-    image_size: tuple[int, int],
-    focal_px: float | None = None,
-    name: str = "camera",
-) -> tuple[RecoveredPose | None, str]:
-    """Recover K, R, t from a ground homography and a known or estimated focal length.
-
-    ``K^-1 H = lambda [r1 r2 t]``: the scale comes from ``|r1| = |r2| = 1``, its sign from the
-    seen ground lying in front of the camera (the homography's sign, see
-    :meth:`Camera.from_homography`), ``r3 = r1 x r2`` and the nearest rotation (SVD). That
-    resolves the usual two-fold ambiguity with the camera above the plane; a camera that
-    comes out below it means left-handed world axes and is refused.
-
-    Args:
-        homography: (3, 3) world metres -> undistorted pixels.
-        image_size: (width, height) pixels; the principal point is its centre.
-        focal_px: the focal length in pixels, or None to estimate it (:func:`estimate_focal`).
-        name: name of the returned camera.
-
-    Returns:
-        ``(pose, "")`` or ``(None, reason)`` with a short reason when no pose can be had.
-    """
-    width, height = image_size
-    camera = Camera.from_homography(name, np.asarray(homography, dtype=np.float64), image_size)
-    estimated = focal_px is None
-    focal = estimate_focal(camera.homography, image_size) if estimated else float(focal_px)
-    if focal is None:
-        return None, "the focal length cannot be read from a homography without perspective; give focal_px"
-    intrinsics = np.array([[focal, 0, (width - 1) / 2.0], [0, focal, (height - 1) / 2.0], [0, 0, 1]])
-    matrix = np.linalg.solve(intrinsics, camera.homography)
-    norms = np.linalg.norm(matrix[:, :2], axis=0)
-    scale = 2.0 / float(norms.sum())
-    first, second, translation = (scale * matrix[:, index] for index in range(3))
-    approximate = np.column_stack([first, second, np.cross(first, second)])
-    left, _, right = np.linalg.svd(approximate)
-    rotation = left @ right
-    if np.linalg.det(rotation) < 0:
-        return None, "the homography is not the view of a plane by a camera"
-    posed = Camera.from_extrinsics(name, intrinsics, rotation, translation, image_size)
-    if not posed.centre[2] > 0:
-        return None, "the camera would be below the ground: the world axes look left-handed"
-    orthogonality = _orthogonality(
-        np.array([[1, 0, -(width - 1) / 2.0], [0, 1, -(height - 1) / 2.0], [0, 0, 1]])
-        @ camera.homography,
-        focal,
-    )
-    return RecoveredPose(posed, focal, estimated, orthogonality), ""
