@@ -160,6 +160,13 @@ def calibrate_camera(
     model = _model(model, points.source)
     width, height = _image_size(image_size, points.source)
     diagonal = math.hypot(width, height)
+    if ransac_px is not None and not (math.isfinite(ransac_px) and ransac_px > 0):
+        raise CalibrationError(
+            f"{points.source}: the RANSAC threshold must be a positive number of pixels, "
+            f"got {ransac_px}."
+        )
+    # An outlier is a gross mistake (a wrong or swapped point), far beyond clicking error:
+    # 11 px at 1080p by default.
     ransac_px = 0.005 * diagonal if ransac_px is None else float(ransac_px)
     warn_px = 0.0025 * diagonal if warn_px is None else float(warn_px)
     count = len(points)
