@@ -198,3 +198,57 @@ def test_camera_json_from_calibrate_is_a_site_calibration(tmp_path):
     resolved = load_site(tmp_path / "site.yaml").camera("renamed")
     assert resolved.camera.name == "renamed"
     np.testing.assert_allclose(resolved.position, (0.0, -10.0, 6.0), atol=1e-9)
+
+
+def test_matcher_start_up_line_says_which_cameras_have_positions(tmp_path):
+    from cblrs.cli.matcher import position_summary, site_positions
+
+    down = Camera.from_pose("down", (0.0, 0.0, 10.0), 0, 90, 1000, (1280, 720))
+    tilted = Camera.from_pose("tilted", (0.0, -10.0, 6.0), 90, 30, 1000, (1280, 720))
+    document = {
+        "version": 1,
+        "planes": [{"id": 1, "origin": [-10, -10], "size": [20, 30]}],
+        "cameras": [
+            {"name": "down", "image_size": [1280, 720], "homography": down.homography.tolist()},
+            {"name": "tilted", "image_size": [1280, 720], "homography": tilted.homography.tolist()},
+        ],
+    }
+    site = load_site(save_document(document, tmp_path / "site.yaml"))
+    positions = site_positions(site, site.camera_names)
+    assert list(positions) == ["tilted"]
+    text = position_summary(site, site.camera_names, {"camera_positions": positions}, "fusion")
+    assert "camera positions for 1 of 2 cameras: tilted (0.00, -10.00, 6.00 m high) " in text
+    assert "[homography + estimated focal length 1000 px]" in text
+    assert "without a position: down (homography only: the focal length cannot be read" in text
+    assert "none (give --site" in position_summary(None, ["a"], {}, "fusion")
+
+
+def test_matcher_site_mistakes(wildtrack_root, tmp_path, capsys):
+    places = tmp_path / "places.yaml"
+    places.write_text(
+        "version: 1\nplaces: {zones: [{name: z, polygon: [[0, 0], [1, 0], [0, 1]]}]}\n"
+    )
+    assert main(["matcher", "--site", str(places), "--db", str(tmp_path / "m.db")]) == 1
+    assert "places.yaml has no planes, which the matcher needs" in capsys.readouterr().err
+    site = tmp_path / "site.yaml"
+    assert main(["site", "init", str(wildtrack_root), "--out", str(site)]) == 0
+    other = tmp_path / "other.yaml"
+    assert (
+        main(["site", "init", str(wildtrack_root), "--out", str(other), "--plane", "0,0,10,10"])
+        == 0
+    )
+    assert main(["render", "--site", str(other), "--out", str(tmp_path / "refs"), "--quiet"]) == 0
+    capsys.readouterr()
+    code = main(
+        [
+            "matcher",
+            "--site",
+            str(site),
+            "--references",
+            str(tmp_path / "refs"),
+            "--db",
+            str(tmp_path / "m.db"),
+        ]
+    )
+    assert code == 2
+    assert "were rendered for other planes than site.yaml's" in capsys.readouterr().err
