@@ -1,4 +1,4 @@
-"""Shared fixtures: the WILDTRACK data folder and small synthetic cameras."""
+"""Shared fixtures: the WILDTRACK and MultiviewX data folders, the shipped ONNX detector."""
 
 from __future__ import annotations
 
@@ -25,3 +25,34 @@ def wildtrack_root() -> Path:
     if root is None:
         pytest.skip("WILDTRACK data not found (set CBLRS_WILDTRACK or put it in ../shared/data)")
     return root
+
+
+def find_multiviewx() -> Path | None:
+    """The real MultiviewX folder (images, annotations, left-handed calibrations) in ../shared."""
+    candidates = [os.environ.get("CBLRS_MULTIVIEWX"), REPO_ROOT.parent / "shared/data/multiviewx"]
+    for candidate in candidates:
+        if candidate and (Path(candidate) / "calibrations").is_dir():
+            return Path(candidate)
+    return None
+
+
+def find_yolox_model() -> Path | None:
+    """The shipped YOLOX-Nano ONNX model (../shared/models/yolox_nano.onnx)."""
+    path = REPO_ROOT.parent / "shared/models/yolox_nano.onnx"
+    return path if path.is_file() else None
+
+
+@pytest.fixture(scope="session")
+def multiviewx_real_root() -> Path:
+    root = find_multiviewx()
+    if root is None:
+        pytest.skip("MultiviewX data not found (set CBLRS_MULTIVIEWX or put it in ../shared/data)")
+    return root
+
+
+@pytest.fixture(scope="session")
+def yolox_model() -> Path:
+    path = find_yolox_model()
+    if path is None:
+        pytest.skip("the shipped detector ../shared/models/yolox_nano.onnx is missing")
+    return path

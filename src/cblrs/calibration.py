@@ -1,14 +1,16 @@
 """Calibration readers: WILDTRACK/MultiviewX XML, AI City 2024 JSON, and cblrs JSON.
 
 All readers return :class:`cblrs.camera.Camera` objects in metres, whatever unit the files
-use (WILDTRACK stores centimetres).
+use (WILDTRACK stores centimetres), described so that the ground each camera sees lies in
+front of it: a left-handed calibration (MultiviewX) is converted, with one warning
+(:func:`orient_cameras`).
 
 The cblrs JSON format (one camera per file, or ``{"cameras": [...]}``) takes one of three
 forms, all in metres::
 
     {"name": "cam1", "image_size": [1920, 1080], "homography": [[...], [...], [...]]}
     {"name": "cam1", "image_size": [1920, 1080], "intrinsics": [[...]], "distortion": [...],
-     "rvec": [...] | "rotation": [[...]], "tvec": [...]}
+     "rvec": [...] | "rotation": [[...]], "tvec": [...], "height_axis": 1 | -1}
     {"name": "cam1", "image_size": [1920, 1080], "position": [x, y, z],
      "pan_deg": 90, "tilt_deg": 30, "roll_deg": 0, "focal_px": 1200}
 """
@@ -16,16 +18,20 @@ forms, all in metres::
 from __future__ import annotations
 
 import json
+import logging
 import re
 import xml.etree.ElementTree as ElementTree
+from collections.abc import Sequence
 from pathlib import Path
 
 import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from cblrs.camera import Camera
+from cblrs.camera import Camera, orient_to_ground
 from cblrs.errors import CalibrationError
+
+logger = logging.getLogger(__name__)
 
 WILDTRACK_CAMERAS = ("CVLab1", "CVLab2", "CVLab3", "CVLab4", "IDIAP1", "IDIAP2", "IDIAP3")
 WILDTRACK_IMAGE_SIZE = (1920, 1080)
@@ -35,6 +41,42 @@ MULTIVIEWX_IMAGE_SIZE = (1920, 1080)
 # 2.5 cm cells starting at (-3 m, -9 m); MultiviewX's 1000 x 640 grid starting at the origin.
 WILDTRACK_GROUND = (-3.0, -9.0, 12.0, 36.0)
 MULTIVIEWX_GROUND = (0.0, 0.0, 25.0, 16.0)
+
+
+def orient_cameras(
+    cameras: Sequence[Camera],
+    source: str | Path,
+    area: tuple[float, float, float, float] | None = None,
+) -> list[Camera]:
+    """Cameras described so that the ground each one sees lies in front of it.
+
+    Left-handed calibrations (every MultiviewX camera) are converted to their equivalent
+    right-handed, proper-rotation form (:func:`cblrs.camera.orient_to_ground`), and one
+    warning names the converted cameras.
+
+    Args:
+        cameras: the cameras as read.
+        source: the file or folder they came from (for the warning).
+        area: the ground rectangle (x0, y0, width, length metres) they look at, if known.
+    """
+    oriented, converted = [], []
+    for camera in cameras:
+        camera, changed = orient_to_ground(camera, area)
+        oriented.append(camera)
+        if changed:
+            converted.append(camera.name)
+    if converted:
+        logger.warning(
+            "%s: camera%s %s %s calibrated in a left-handed world (the ground lies behind the "
+            "camera in the published extrinsics); using the equivalent right-handed "
+            "description with the height axis mirrored, which projects every point to the "
+            "same pixel.",
+            source,
+            "s" if len(converted) > 1 else "",
+            ", ".join(converted),
+            "are" if len(converted) > 1 else "is",
+        )
+    return oriented
 
 
 def read_opencv_matrices(path: str | Path, names: tuple[str, ...]) -> dict[str, NDArray]:
@@ -170,7 +212,7 @@ def read_wildtrack_cameras(root: str | Path, distorted: bool = False) -> list[Ca
     if not calibrations.is_dir():
         raise CalibrationError(f"{root} has no calibrations/ folder.")
     intrinsic_dir = calibrations / ("intrinsic_original" if distorted else "intrinsic_zero")
-    return [
+    cameras = [
         read_opencv_camera(
             name,
             intrinsic_dir / f"intr_{name}.xml",
@@ -181,10 +223,16 @@ def read_wildtrack_cameras(root: str | Path, distorted: bool = False) -> list[Ca
         )
         for name in WILDTRACK_CAMERAS
     ]
+    return orient_cameras(cameras, root, WILDTRACK_GROUND)
 
 
 def read_multiviewx_cameras(root: str | Path, use_distortion: bool = True) -> list[Camera]:
-    """MultiviewX's cameras ``Camera1..CameraN`` in view order; translations are metres."""
+    """MultiviewX's cameras ``Camera1..CameraN`` in view order; translations are metres.
+
+    MultiviewX's world comes from Unity and is left-handed: in the published extrinsics the
+    ground every camera sees lies behind it. The cameras are returned in the equivalent
+    right-handed form (see :func:`orient_cameras`), with a warning.
+    """
     root = Path(root)
     intrinsic_dir = root / "calibrations" / "intrinsic"
     paths = sorted(
@@ -206,7 +254,7 @@ def read_multiviewx_cameras(root: str | Path, use_distortion: bool = True) -> li
                 use_distortion=use_distortion,
             )
         )
-    return cameras
+    return orient_cameras(cameras, root, MULTIVIEWX_GROUND)
 
 
 def read_aicity_calibration(
@@ -231,9 +279,10 @@ def read_aicity_calibration(
         raise CalibrationError(f"{path}: image_size must be [width, height].") from None
     projection = data.get("camera projection matrix")
     if projection is not None:
-        return Camera.from_projection(
+        camera = Camera.from_projection(
             name, _matrix(projection, (3, 4), path, "camera projection matrix"), size
         )
+        return orient_cameras([camera], path)[0]
     homography = data.get("homography matrix")
     if homography is None:
         raise CalibrationError(
@@ -265,7 +314,7 @@ def read_camera_json(path: str | Path) -> list[Camera]:
     items = data.get("cameras", [data]) if isinstance(data, dict) else data
     if not isinstance(items, list) or not items:
         raise CalibrationError(f"{path}: expected a camera object or {{'cameras': [...]}}.")
-    return [camera_from_dict(item, source=str(path)) for item in items]
+    return orient_cameras([camera_from_dict(item, source=str(path)) for item in items], path)
 
 
 def camera_from_dict(data: dict, source: str = "<dict>") -> Camera:
@@ -287,6 +336,7 @@ def camera_from_dict(data: dict, source: str = "<dict>") -> Camera:
                 np.asarray(data["tvec"], float),
                 size,
                 distortion=np.asarray(data.get("distortion", []), float),
+                height_axis=int(data.get("height_axis", 1)),
             )
         if "position" in data:
             x, y, z = (float(value) for value in data["position"])
@@ -317,6 +367,8 @@ def camera_to_dict(camera: Camera) -> dict:
         data["distortion"] = camera.distortion.tolist()
         data["rvec"] = cv2.Rodrigues(camera.rotation)[0].ravel().tolist()
         data["tvec"] = camera.translation.tolist()
+        if camera.height_axis != 1:
+            data["height_axis"] = camera.height_axis
     else:
         data["homography"] = camera.homography.tolist()
     return data

@@ -2,6 +2,8 @@
 
 Conventions:
     * World coordinates are metres, right-handed, z up; the ground is the plane z = 0.
+      Heights (``height_m`` arguments, the third column of ``world_xyz``, ``centre[2]``)
+      are always metres above the ground, on the camera's side.
     * Pixel coordinates follow OpenCV: x to the right, y down, the centre of pixel (i, j)
       at (i, j).
     * ``rotation`` and ``translation`` map world to camera: ``X_cam = R @ X_world + t``.
@@ -11,11 +13,22 @@ Conventions:
 A camera is either fully calibrated (``K``, distortion, ``R``, ``t``) or known only by its
 ground homography (as in AI City 2024). The second kind can only map the plane z = 0 and
 has no lens model.
+
+Left-handed calibrations. Some published extrinsics (every MultiviewX camera: its world
+comes from Unity) describe a world whose (x, y, up) axes are left-handed as seen by the
+camera: ``K [R | t] X`` still gives the right pixel as a homogeneous point, but every ground
+point has *negative* depth, so any code that rejects points behind the camera sees nothing.
+``K [R | t] X`` and ``-K [R | t] X`` are the same pixel; ``-R`` is an improper rotation, but
+with the height axis mirrored, ``R' = -R diag(1, 1, -1)`` is a proper rotation and
+``t' = -t``: ``R' (x, y, -z) + t' = -(R (x, y, z) + t)``. :func:`orient_to_ground` detects
+such a camera (the ground it sees lies behind it) and returns this equivalent description:
+it reprojects every point identically, has positive depths, keeps ground x, y, and records
+``height_axis = -1`` so that heights stay heights (metres above the ground) in every method.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import cv2
@@ -90,6 +103,10 @@ class Camera:
         rotation: (3, 3) world-to-camera rotation, or None for a homography-only camera.
         translation: (3,) world-to-camera translation in metres, or None.
         homography: (3, 3) map from the ground plane z = 0 (metres) to undistorted pixels.
+        height_axis: +1 when ``rotation``/``translation`` act on (x, y, height); -1 when
+            they act on (x, y, -height), the proper-rotation form of a left-handed
+            calibration (see the module notes and :func:`orient_to_ground`). Methods take
+            and return heights either way.
     """
 
     name: str
@@ -99,6 +116,7 @@ class Camera:
     distortion: FloatArray = field(default_factory=lambda: np.zeros(0))
     rotation: FloatArray | None = None
     translation: FloatArray | None = None
+    height_axis: int = 1
 
     def __post_init__(self) -> None:
         width, height = self.image_size
@@ -132,6 +150,11 @@ class Camera:
                 f"camera {self.name!r}: lens distortion needs intrinsics; "
                 "a homography-only camera has none."
             )
+        if self.height_axis not in (1, -1):
+            raise CalibrationError(
+                f"camera {self.name!r}: height_axis must be 1 or -1, got {self.height_axis!r}."
+            )
+        object.__setattr__(self, "height_axis", int(self.height_axis))
 
     # ------------------------------------------------------------------ constructors
     @classmethod
@@ -143,8 +166,14 @@ class Camera:
         translation: NDArray,
         image_size: tuple[int, int],
         distortion: NDArray | None = None,
+        height_axis: int = 1,
     ) -> Camera:
-        """Camera from K, a world-to-camera rotation (matrix or Rodrigues vector) and t, metres."""
+        """Camera from K, a world-to-camera rotation (matrix or Rodrigues vector) and t, metres.
+
+        The extrinsics are taken as given, whatever side of the camera the ground lies on;
+        calibration readers pass the result through :func:`orient_to_ground`.
+        ``height_axis`` -1 says the world's third axis points down (see the class notes).
+        """
         rotation = np.asarray(rotation, dtype=np.float64)
         if rotation.shape in ((3,), (3, 1), (1, 3)):
             rotation = cv2.Rodrigues(rotation.reshape(3, 1))[0]
@@ -160,6 +189,7 @@ class Camera:
             distortion=np.zeros(0) if distortion is None else np.asarray(distortion).ravel(),
             rotation=rotation,
             translation=translation,
+            height_axis=height_axis,
         )
 
     @classmethod
@@ -258,9 +288,24 @@ class Camera:
 
     @property
     def centre(self) -> FloatArray:
-        """Camera centre in world metres (3,); needs a posed camera."""
+        """Camera centre (x, y, height) in world metres (3,); needs a posed camera."""
         rotation, translation = self._pose()
-        return -rotation.T @ translation
+        centre = -rotation.T @ translation
+        centre[2] *= self.height_axis
+        return centre
+
+    def to_camera_frame(self, world_xyz: NDArray) -> FloatArray:
+        """Camera coordinates (N, 3) of world points (N, 3) = (x, y, height) in metres.
+
+        The third column is the depth along the optical axis (positive in front).
+        """
+        rotation, translation = self._pose()
+        world_xyz = np.asarray(world_xyz, dtype=np.float64)
+        if world_xyz.ndim != 2 or world_xyz.shape[1] != 3:
+            raise ValueError(f"world_xyz must have shape (N, 3), got {world_xyz.shape}")
+        if self.height_axis != 1:
+            world_xyz = world_xyz * np.array([1.0, 1.0, self.height_axis])
+        return world_xyz @ rotation.T + translation
 
     def _pose(self) -> tuple[FloatArray, FloatArray]:
         if self.rotation is None or self.translation is None:
@@ -275,7 +320,9 @@ class Camera:
             return self.homography
         rotation, translation = self._pose()
         assert self.intrinsics is not None
-        return plane_homography(self.intrinsics, rotation, translation, height_m)
+        return plane_homography(
+            self.intrinsics, rotation, translation, self.height_axis * height_m
+        )
 
     # ------------------------------------------------------------------ distortion
     def undistort_pixels(self, pixels: NDArray) -> FloatArray:
@@ -368,13 +415,12 @@ class Camera:
         return pixels, valid
 
     def project_points(self, world_xyz: NDArray) -> tuple[FloatArray, BoolArray]:
-        """Project 3D world points (N, 3) in metres to raw pixels; needs a posed camera."""
-        rotation, translation = self._pose()
+        """Project 3D world points (N, 3) = (x, y, height) metres to raw pixels.
+
+        Needs a posed camera. Returns ``(pixels, valid)`` like :meth:`world_to_pixel`.
+        """
+        camera_xyz = self.to_camera_frame(world_xyz)
         assert self.intrinsics is not None
-        world_xyz = np.asarray(world_xyz, dtype=np.float64)
-        if world_xyz.ndim != 2 or world_xyz.shape[1] != 3:
-            raise ValueError(f"world_xyz must have shape (N, 3), got {world_xyz.shape}")
-        camera_xyz = world_xyz @ rotation.T + translation
         valid = camera_xyz[:, 2] > _MIN_DEPTH_M
         pixels = np.full((len(world_xyz), 2), np.nan)
         if valid.any():
@@ -504,7 +550,94 @@ class Camera:
     def __repr__(self) -> str:
         kind = "posed" if self.has_pose else "homography-only"
         lens = ", distorted" if self.has_distortion else ""
-        return f"Camera({self.name!r}, {self.image_size[0]}x{self.image_size[1]}, {kind}{lens})"
+        mirrored = ", height axis mirrored" if self.height_axis == -1 else ""
+        return (
+            f"Camera({self.name!r}, {self.image_size[0]}x{self.image_size[1]}, "
+            f"{kind}{lens}{mirrored})"
+        )
+
+
+def ground_depth_sign(
+    camera: Camera, area: tuple[float, float, float, float] | None = None
+) -> int:
+    """On which side of ``camera`` the ground it sees lies: +1 in front, -1 behind.
+
+    A homography maps a ground point to a pixel up to a scale of either sign; the sign of
+    that scale is the sign of the point's depth. Which ground points does the camera see?
+    With ``area`` (x0, y0, width, length metres, e.g. a data set's annotated area) they are
+    the area's points that land inside the image; without it, or when none does, those
+    seen by the image's bottom row (an upright camera sees the ground at the bottom of its
+    image, as :meth:`Camera.from_homography` assumes too). The majority decides.
+
+    Args:
+        camera: any camera.
+        area: optional ground rectangle the camera is known to look at.
+
+    Returns:
+        +1 or -1.
+    """
+    width, height = camera.image_size
+    depths = np.zeros(0)
+    if area is not None:
+        x0, y0, area_width, area_length = area
+        grid_x, grid_y = np.meshgrid(
+            np.linspace(x0, x0 + area_width, 41), np.linspace(y0, y0 + area_length, 41)
+        )
+        world = np.column_stack([grid_x.ravel(), grid_y.ravel(), np.ones(grid_x.size)])
+        homogeneous = world @ camera.homography.T
+        with np.errstate(divide="ignore", invalid="ignore"):
+            pixels = homogeneous[:, :2] / homogeneous[:, 2:3]
+        seen = camera.contains(pixels) & (np.abs(homogeneous[:, 2]) > 1e-12)
+        depths = homogeneous[seen, 2]
+    if len(depths) == 0:
+        bottom = camera.undistort_pixels(
+            np.column_stack([np.linspace(0, width - 1, 33), np.full(33, height - 1.0)])
+        )
+        bottom = bottom[np.isfinite(bottom).all(axis=1)]
+        homogeneous = np.column_stack([bottom, np.ones(len(bottom))]) @ np.linalg.inv(
+            camera.homography
+        ).T
+        depths = homogeneous[:, 2]
+    return 1 if np.count_nonzero(depths > 0) >= np.count_nonzero(depths < 0) else -1
+
+
+def orient_to_ground(
+    camera: Camera, area: tuple[float, float, float, float] | None = None
+) -> tuple[Camera, bool]:
+    """The camera described so that the ground it sees lies in front of it.
+
+    A posed camera whose visible ground has negative depth (a left-handed calibration, see
+    the module notes) becomes ``R' = -R diag(1, 1, -1)``, ``t' = -t`` with its height axis
+    mirrored: a proper rotation, positive depths, the same pixel for every world point, the
+    same ground x, y and the same heights. A homography-only camera gets the sign of its
+    homography fixed the same way. Other cameras are returned unchanged.
+
+    Args:
+        camera: the camera as read.
+        area: optional ground rectangle it looks at (see :func:`ground_depth_sign`).
+
+    Returns:
+        ``(camera, converted)``; ``converted`` is True when the description was changed.
+    """
+    if ground_depth_sign(camera, area) > 0:
+        return camera, False
+    if not camera.has_pose:
+        return replace(camera, homography=-camera.homography), True
+    rotation, translation = camera._pose()
+    assert camera.intrinsics is not None
+    mirror = np.diag([1.0, 1.0, -1.0])
+    return (
+        Camera.from_extrinsics(
+            camera.name,
+            camera.intrinsics,
+            -rotation @ mirror,
+            -translation,
+            camera.image_size,
+            distortion=camera.distortion,
+            height_axis=-camera.height_axis,
+        ),
+        True,
+    )
 
 
 def plane_homography(

@@ -154,6 +154,7 @@ def _ramp_truth(
     assert camera.intrinsics is not None and camera.rotation is not None
     rays = np.column_stack([undistorted, np.ones(len(pixels))]) @ np.linalg.inv(camera.intrinsics).T
     directions = rays @ camera.rotation  # camera -> world: R^T d, written row-wise
+    directions[:, 2] *= camera.height_axis  # (x, y, height), as camera.centre
     centre = camera.centre
     slope = rise_m / (end_y - start_y)
     candidates = []

@@ -231,9 +231,7 @@ def draw_boxes_3d(
         return output
     ids = np.full(len(corners), -1) if identities is None else np.asarray(identities)
     centre = camera.centre
-    rotation, translation = camera.rotation, camera.translation
-    assert rotation is not None and translation is not None
-    depth = corners @ rotation[2] + translation[2]  # (N, 8)
+    depth = camera.to_camera_frame(corners.reshape(-1, 3))[:, 2].reshape(-1, 8)
     light = np.array([0.35, -0.25, 0.9]) / np.linalg.norm([0.35, -0.25, 0.9])
     for index in np.argsort(-depth.mean(axis=1)):
         if (depth[index] <= 0.1).any():
