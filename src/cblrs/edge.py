@@ -13,7 +13,14 @@ Policy for locations a camera cannot vouch for (colour ``(0, 0, 0)``, "no locati
   image): a box ending at the bottom row hides where the feet are, so its bottom edge is
   not a ground contact. Vehicles, whose horizontal centre also matters, are dropped when
   cut at either side as well;
-* the target pixel sees no plane.
+* the target pixel sees no plane;
+* optionally (``drop_hidden_feet``, for a detector's boxes): the target lies inside the box
+  of a nearer object — one whose box reaches lower in the image, so it stands between
+  the camera and the target. A detector's box covers only what is visible: the box of a
+  person half hidden behind another ends where the visible part ends, not at the feet,
+  and its "foot point" would put the person metres too far. Annotated boxes (WILDTRACK,
+  MultiviewX) are drawn around the whole person, hidden parts included, so they keep
+  their location.
 
 Vehicles are seen from above and the side, so the bottom of their box is the footprint's
 edge nearest the camera, not its centre (the paper's Fig. 1). With the default targeting the
@@ -52,6 +59,10 @@ class Targeter(Protocol):
         ...
 
 
+# A box in front must reach lower than the target by more than this share of the target
+# box's height: box bottoms of people standing side by side differ by detector noise.
+HIDDEN_FEET_TOLERANCE = 0.05
+
 # Targeting used together with the offsets: the bottom edge of the box.
 OFFSET_TARGETING = TargetingPosition(0.5, 1.0)
 # How far above the target (fraction of the box height, at least 2 px) the second pixel is
@@ -84,6 +95,7 @@ def make_message(
     reference: ReferenceImage,
     targeting: dict[str, TargetingPosition] | None = None,
     targeter: Targeter | None = None,
+    drop_hidden_feet: bool = False,
 ) -> CameraMessage:
     """Localise one frame's detections through the reference image and build the message.
 
@@ -99,6 +111,9 @@ def make_message(
             :class:`cblrs.geometric_targeting.GeometricTargeter`, which aims at the
             footprint centre); then no depth offset is applied. The border policy is the
             same as for the default targeting.
+        drop_hidden_feet: no location for a box whose target lies inside the box of a
+            nearer object (:func:`feet_hidden`); for detector boxes, which end where the
+            visible part ends.
 
     Returns:
         The message; a detection whose target pixel sees no plane (or lies outside the
@@ -117,6 +132,8 @@ def make_message(
         offset = np.zeros(len(detections))
     colours, valid = reference.colours_at(pixels)
     cut = cut_by_border(detections.xyxy, vertical, horizontal_matters, reference.image_size)
+    if drop_hidden_feet:
+        cut |= feet_hidden(detections.xyxy, pixels, vertical)
     colours[~(valid & inside) | cut] = 0
     shift = (offset > 0) & ~cut
     if shift.any():
@@ -152,6 +169,39 @@ def cut_by_border(
         top = (vertical < 0.5) & (xyxy[:, 1] <= margin - 1.0)
         sides = sides_matter & ((xyxy[:, 0] <= margin - 1.0) | (xyxy[:, 2] >= width - margin))
     return bottom | top | sides
+
+
+def feet_hidden(
+    xyxy: np.ndarray,
+    pixels: np.ndarray,
+    vertical: np.ndarray,
+    tolerance: float = HIDDEN_FEET_TOLERANCE,
+) -> np.ndarray:
+    """(N,) bool: targets in the lower part of a box that lie inside a nearer object's box.
+
+    On a ground plane a nearer object's box reaches lower in the image; when the target of
+    box A lies inside box B and B's bottom is lower than A's target by more than
+    ``tolerance`` x A's height, B stands in front of A's ground contact.
+
+    Args:
+        xyxy: (N, 4) pixel boxes.
+        pixels: (N, 2) target pixels.
+        vertical: (N,) vertical targeting fractions; only targets below the box centre count.
+    """
+    count = len(xyxy)
+    if count < 2:
+        return np.zeros(count, dtype=bool)
+    with np.errstate(invalid="ignore"):
+        x, y = pixels[:, 0], pixels[:, 1]
+        margin = tolerance * (xyxy[:, 3] - xyxy[:, 1])
+        inside = (
+            (x[:, None] >= xyxy[None, :, 0])
+            & (x[:, None] <= xyxy[None, :, 2])
+            & (y[:, None] >= xyxy[None, :, 1])
+            & (xyxy[None, :, 3] > y[:, None] + margin[:, None])
+        )
+    np.fill_diagonal(inside, False)
+    return (vertical > 0.5) & inside.any(axis=1)
 
 
 def depth_offsets(

@@ -109,11 +109,13 @@ def scene_messages(
     scene: Scene,
     references: Sequence[ReferenceImage],
     targeters: Sequence[Targeter] | None = None,
+    drop_hidden_feet: bool = False,
 ) -> Iterator[tuple[float, list[CameraMessage]]]:
     """The camera messages of each frame, as ``(timestamp, messages)`` in time order.
 
     Every camera sends a message per frame, empty or not (an empty message says "I looked
-    and saw nothing"). ``targeters`` (one per camera) replace the fixed box targeting.
+    and saw nothing"). ``targeters`` (one per camera) replace the fixed box targeting;
+    ``drop_hidden_feet`` is :func:`cblrs.edge.make_message`'s (for a detector's boxes).
     """
     chosen: list[Targeter | None] = (
         [None] * len(scene.cameras) if targeters is None else list(targeters)
@@ -129,7 +131,8 @@ def scene_messages(
         frame = int(scene.frames[index])
         messages = [
             make_message(
-                name, sequence, timestamp, frame, detections, reference, targeter=targeter
+                name, sequence, timestamp, frame, detections, reference, targeter=targeter,
+                drop_hidden_feet=drop_hidden_feet,
             )
             for name, detections, reference, targeter in zip(
                 names, scene.detections[index], references, chosen, strict=True
@@ -165,6 +168,7 @@ def track_scene(
     bits: int = 16,
     progress: bool = False,
     targeting: str | Sequence[Targeter] = "box",
+    drop_hidden_feet: bool = False,
     **matcher_options: Any,
 ) -> TrackingResult:
     """Track a scene end to end through the colour path.
@@ -179,6 +183,8 @@ def track_scene(
             ``"geometric"`` (a :class:`cblrs.geometric_targeting.GeometricTargeter` per
             camera: calibration and class size priors choose the footprint centre; needs
             posed cameras), or one targeter object per camera.
+        drop_hidden_feet: no location for boxes whose feet a nearer box hides; use it for
+            a real detector's boxes (see :func:`cblrs.edge.make_message`).
         **matcher_options: options for :func:`make_matcher`. For ``"fusion"`` the cameras'
             ground positions are passed as ``camera_positions`` unless given (the noise
             model grows with distance from the camera).
@@ -207,7 +213,7 @@ def track_scene(
     elif matcher_options:
         raise ValueError("matcher options are only accepted with a matcher name.")
     instants: Iterable[tuple[float, list[CameraMessage]]] = scene_messages(
-        scene, references, scene_targeters(scene, targeting)
+        scene, references, scene_targeters(scene, targeting), drop_hidden_feet
     )
     if progress:
         from tqdm import tqdm

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
+from cblrs.calibration import default_ground
 from cblrs.cli.common import (
     UsageError,
     add_output_options,
@@ -46,6 +47,13 @@ def register(subparsers) -> None:
         type=Path,
         help="score only inside the site file's planes (what its cameras can locate)",
     )
+    parser.add_argument(
+        "--whole-plane",
+        action="store_true",
+        help="WILDTRACK / MultiviewX: also score predictions outside the annotated area that "
+        "match no ground truth (by default they are not scored: the data sets annotate only "
+        "people inside that area)",
+    )
     add_output_options(parser)
     parser.set_defaults(handler=run)
 
@@ -58,7 +66,8 @@ def run(args: argparse.Namespace) -> int:
     note = ""
     if args.site is not None:
         ground_truth, predictions, note = inside_site(args.site, ground_truth, predictions)
-    metrics = evaluate(ground_truth, predictions, frames=frames)
+    area = None if args.whole_plane or not args.dataset.is_dir() else default_ground(args.dataset)
+    metrics = evaluate(ground_truth, predictions, frames=frames, area=area)
     if args.json:
         print_json(metrics.to_dict())
     else:

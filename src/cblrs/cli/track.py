@@ -4,13 +4,13 @@ from __future__ import annotations
 
 import argparse
 import time
-from dataclasses import replace
 from pathlib import Path
 
 from cblrs.cli.common import UsageError, add_output_options, parse_frame_range, print_json
 from cblrs.datasets import load_scene, simulate_detections, write_tracks
+from cblrs.detectors import DEFAULT_CONFIDENCE, DEFAULT_IOU, DEFAULT_TILING, LAYOUTS, TILING_MODES
 from cblrs.matching import DEFAULT_MATCHER, MATCHERS
-from cblrs.pipeline import track_scene
+from cblrs.pipeline import render_scene_references, track_scene
 
 
 def register(subparsers) -> None:
@@ -22,7 +22,9 @@ def register(subparsers) -> None:
             "(target pixel -> colour), match the messages into global tracks and write them "
             "in the AI City 2024 text format (world metres, one row per frame and track). "
             "Detections are the dataset's annotated boxes, optionally degraded by a simulated "
-            "detector (--drop, --jitter, --false-positives)."
+            "detector (--drop, --jitter, --false-positives); or a real detector run on the "
+            "dataset's images (--detector onnx --model M.onnx, images in Image_subsets/C<k>/); "
+            "or your own detector's boxes (--detections DIR)."
         ),
     )
     parser.add_argument(
@@ -85,8 +87,109 @@ def register(subparsers) -> None:
         help="a site file giving the cameras' geometry, positions and planes instead of the "
         "dataset's calibration (e.g. a calibration from clicked points)",
     )
+    add_detector_options(parser, detections_help=DETECTIONS_HELP)
     add_output_options(parser)
     parser.set_defaults(handler=run)
+
+
+DETECTIONS_HELP = (
+    "folder of per-camera MOT files instead of the annotated boxes: one file per camera named "
+    "after it (<camera>.txt, e.g. Camera1.txt or CVLab1.txt, or C1.txt after its image "
+    "folder), lines frame,id,x,y,w,h,conf[,...] in pixels, frame numbers those of the "
+    "dataset's annotation files (annotations_positions/<frame>.json; in the MultiviewX "
+    "release in ../shared image NNNN.jpg is frame NNNN+1)"
+)
+
+
+def add_detector_options(parser, detections_help: str | None = None) -> None:
+    """``--detector onnx --model``, tiling, thresholds (and ``--detections``) for datasets."""
+    group = parser.add_argument_group("real detections (instead of the annotated boxes)")
+    group.add_argument(
+        "--detector",
+        choices=("onnx",),
+        help="run this detector on the dataset's images (Image_subsets/C<k>/)",
+    )
+    group.add_argument(
+        "--model", type=Path, metavar="MODEL.onnx",
+        help="ONNX model file: a YOLOX or Ultralytics YOLOv5/v8/v11 export (local; never "
+        "downloaded)",
+    )
+    group.add_argument(
+        "--tiling", choices=TILING_MODES, default=DEFAULT_TILING,
+        help="auto: also detect on tiles where the reference image says people look small "
+        "(default); off: the whole frame only",
+    )
+    group.add_argument(
+        "--confidence", type=float, default=DEFAULT_CONFIDENCE,
+        help=f"minimum detector score (default {DEFAULT_CONFIDENCE})",
+    )
+    group.add_argument(
+        "--iou", type=float, default=DEFAULT_IOU,
+        help=f"NMS IoU threshold (default {DEFAULT_IOU})",
+    )
+    group.add_argument(
+        "--layout", choices=LAYOUTS, default="auto",
+        help="model output layout (default: from its output shape)",
+    )
+    if detections_help is not None:
+        group.add_argument("--detections", type=Path, metavar="DIR", help=detections_help)
+    group.add_argument(
+        "--hidden-feet", choices=("auto", "keep", "drop"), default="auto",
+        help="boxes whose feet a nearer box hides: drop their location (default for a "
+        "detector's boxes, which end where the person is hidden) or keep it (default for "
+        "annotated boxes, which include hidden parts)",
+    )
+
+
+def detection_source(args: argparse.Namespace) -> str:
+    """``"annotations"``, ``"detector"`` or ``"detections"``, after checking the options."""
+    detections = getattr(args, "detections", None)
+    if args.detector is not None and detections is not None:
+        raise UsageError("give either --detector or --detections, not both.")
+    if args.detector is not None:
+        if args.model is None:
+            raise UsageError(f"--detector {args.detector} needs --model MODEL.onnx.")
+        if not 0.0 <= args.confidence <= 1.0:
+            raise UsageError(f"--confidence must be within 0..1, got {args.confidence}.")
+        if not 0.0 < args.iou <= 1.0:
+            raise UsageError(f"--iou must be within (0, 1], got {args.iou}.")
+        return "detector"
+    if args.model is not None:
+        raise UsageError("--model needs --detector onnx.")
+    return "detections" if detections is not None else "annotations"
+
+
+def drop_hidden_feet(args: argparse.Namespace, source: str) -> bool:
+    if args.hidden_feet == "auto":
+        return source != "annotations"
+    return args.hidden_feet == "drop"
+
+
+def real_detections(args: argparse.Namespace, scene, references, source: str, quiet: bool):
+    """``(scene with the chosen detections, detector summary or None)``."""
+    if source == "annotations":
+        return scene, None
+    if source == "detections":
+        from cblrs.datasets.detection_folder import read_detection_folder
+
+        scene = read_detection_folder(scene, args.detections, dataset_root=args.dataset)
+        return scene, {"detections": str(args.detections)}
+    from cblrs.detectors.offline import detect_scene
+
+    run = detect_scene(
+        scene, args.dataset, args.model, references, tiling=args.tiling,
+        confidence=args.confidence, iou=args.iou, layout=args.layout, progress=not quiet,
+    )
+    summary = {
+        "model": str(args.model),
+        "tiling": args.tiling,
+        "tiles": {camera.name: plan.describe() for camera, plan in zip(
+            scene.cameras, run.plans, strict=True)},
+        "images": run.images,
+        "detector_ms_per_image": round(run.ms_per_image, 2),
+        "decode_ms_per_image": round(1000 * run.decode_seconds / max(run.images, 1), 2),
+    }
+    return run.scene, summary
 
 
 def run(args: argparse.Namespace) -> int:
@@ -98,10 +201,34 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError(f"--drop is a probability and must be at most 1, got {args.drop}.")
     if args.out.is_dir():
         raise UsageError(f"--out {args.out} is a folder; give a file name.")
+    source = detection_source(args)
+    simulated = bool(args.drop or args.jitter or args.false_positives)
+    if simulated and source != "annotations":
+        raise UsageError(
+            "--drop, --jitter and --false-positives simulate a detector on the annotated "
+            "boxes; leave them out with --detector or --detections."
+        )
     scene = load_scene(args.dataset)
     if args.frames:
         scene = scene.select_frames(*parse_frame_range(args.frames))
-    if args.drop or args.jitter or args.false_positives:
+    options: dict = {}
+    started = time.perf_counter()
+    if args.site is not None:
+        from cblrs.site import load_site
+
+        site = load_site(args.site)
+        scene = site.scene(scene)
+        references = [site.render_reference(name, args.bits) for name in scene.camera_names]
+        if args.matcher == "fusion":
+            positions = site.camera_positions()
+            options["camera_positions"] = {
+                name: positions[name] for name in scene.camera_names if name in positions
+            }
+    else:
+        references = render_scene_references(scene, args.bits or 16)
+    render_seconds = time.perf_counter() - started
+    scene, detector_summary = real_detections(args, scene, references, source, args.quiet)
+    if simulated:
         scene = simulate_detections(
             scene,
             drop=args.drop,
@@ -109,31 +236,10 @@ def run(args: argparse.Namespace) -> int:
             false_positives=args.false_positives,
             seed=args.seed,
         )
-    options: dict = {}
-    references = None
-    if args.site is not None:
-        from cblrs.site import load_site
-
-        site = load_site(args.site)
-        scene = site.scene(scene)
-        started = time.perf_counter()
-        references = [site.render_reference(name, args.bits) for name in scene.camera_names]
-        render_seconds = time.perf_counter() - started
-        if args.matcher == "fusion":
-            positions = site.camera_positions()
-            options["camera_positions"] = {
-                name: positions[name] for name in scene.camera_names if name in positions
-            }
     result = track_scene(
-        scene, args.matcher, references=references, bits=args.bits or 16,
-        progress=not args.quiet, **options,
+        scene, args.matcher, references=references, progress=not args.quiet,
+        drop_hidden_feet=drop_hidden_feet(args, source), **options,
     )
-    if references is not None:
-        result = replace(
-            result,
-            render_seconds=render_seconds,
-            total_seconds=result.total_seconds + render_seconds,
-        )
     write_tracks(args.out, result.tracks)
     tracks = result.tracks
     summary = {
@@ -146,10 +252,13 @@ def run(args: argparse.Namespace) -> int:
         "tracks": len(set(tracks.track_id.tolist())),
         "rows": len(tracks),
         "matcher_seconds": round(result.matcher_seconds, 4),
-        "render_seconds": round(result.render_seconds, 4),
-        "total_seconds": round(result.total_seconds, 4),
+        "render_seconds": round(render_seconds, 4),
+        "total_seconds": round(time.perf_counter() - started, 4),
         "out": str(args.out),
+        "source": source,
     }
+    if detector_summary is not None:
+        summary["detector"] = detector_summary
     if args.json:
         print_json(summary)
     else:
@@ -157,6 +266,12 @@ def run(args: argparse.Namespace) -> int:
             f"{summary['matcher']}: {summary['frames']} frames x {summary['cameras']} cameras, "
             f"{summary['detections']} detections -> {summary['tracks']} tracks, "
             f"{summary['rows']} rows in {summary['out']} (matcher {result.matcher_seconds:.2f} s, "
-            f"total {result.total_seconds:.2f} s incl. rendering {result.render_seconds:.2f} s)"
+            f"total {summary['total_seconds']:.2f} s incl. rendering {render_seconds:.2f} s)"
         )
+        if detector_summary is not None and "model" in detector_summary:
+            print(
+                f"detector {detector_summary['model']} ({detector_summary['tiling']} tiling): "
+                f"{detector_summary['detector_ms_per_image']:.1f} ms per image, "
+                f"{detector_summary['images']} images"
+            )
     return 0

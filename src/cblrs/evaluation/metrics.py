@@ -12,7 +12,13 @@ The protocol is the AI City Challenge 2024 (track 1) one:
 * MOTA (CLEAR) and IDF1 (Identity) match at TrackEval's default threshold 0.5 on that same
   similarity, i.e. within 1 m;
 * the timesteps are the frames that hold ground truth (optionally restricted to a given set);
-  prediction rows at other frames are ignored.
+  prediction rows at other frames are ignored;
+* optionally (``area``, on by default in ``cblrs eval`` and the CLI for WILDTRACK and
+  MultiviewX, whose annotations cover only their annotated ground area): a prediction
+  outside the area that lies farther than 1 m (the CLEAR / Identity match distance) from
+  every ground-truth position of its frame is not scored. People standing outside the area
+  are real but unannotated, like MOTChallenge's distractors; a prediction that could match
+  a person at the border is still scored.
 
 The dataset side (this module) builds TrackEval's per-sequence ``data`` dict and computes the
 similarities; the metric classes (``trackeval.metrics.HOTA``, ``CLEAR``, ``Identity``) do the
@@ -115,7 +121,10 @@ class Metrics:
 
 
 def evaluate(
-    ground_truth: Tracks, predictions: Tracks, frames: ArrayLike | None = None
+    ground_truth: Tracks,
+    predictions: Tracks,
+    frames: ArrayLike | None = None,
+    area: tuple[float, float, float, float] | None = None,
 ) -> Metrics:
     """Score predicted world tracks against ground truth (AI City 2024 protocol).
 
@@ -125,6 +134,9 @@ def evaluate(
             are ignored.
         frames: (K,) int native frame numbers to evaluate; None evaluates every frame with
             ground truth. Frames without ground truth are never timesteps.
+        area: the annotated ground area (x0, y0, width, length) metres, or None; see the
+            module notes (predictions outside it and more than 1 m from every ground-truth
+            position are not scored).
 
     Returns:
         The scores; see :class:`Metrics`.
@@ -139,7 +151,7 @@ def evaluate(
     """
     from trackeval.metrics import CLEAR, HOTA, Identity
 
-    data = build_trackeval_data(ground_truth, predictions, frames)
+    data = build_trackeval_data(ground_truth, predictions, frames, area)
     hota = HOTA().eval_sequence(data)
     clear = CLEAR({"THRESHOLD": MATCH_THRESHOLD, "PRINT_CONFIG": False}).eval_sequence(data)
     identity = Identity({"THRESHOLD": MATCH_THRESHOLD, "PRINT_CONFIG": False}).eval_sequence(data)
@@ -185,6 +197,32 @@ def first_rows(tracks: Tracks) -> Tracks:
     return tracks[np.sort(first)]
 
 
+def outside_unmatched(
+    ground_truth: Tracks, predictions: Tracks, area: tuple[float, float, float, float]
+) -> NDArray[np.bool_]:
+    """(P,) True for predictions outside ``area`` farther than 1 m from every ground-truth
+    position of their frame (unannotated people; see the module notes).
+
+    Args:
+        ground_truth: ground-truth rows.
+        predictions: predicted rows.
+        area: (x0, y0, width, length) metres.
+    """
+    x0, y0, width, length = area
+    xy = predictions.world_xy
+    outside = (xy[:, 0] < x0) | (xy[:, 0] > x0 + width) | (xy[:, 1] < y0) | (xy[:, 1] > y0 + length)
+    match_distance = ZERO_SIMILARITY_DISTANCE * (1.0 - MATCH_THRESHOLD)
+    unmatched = outside.copy()
+    for frame in np.unique(predictions.frame[outside]):
+        rows = np.flatnonzero(outside & (predictions.frame == frame))
+        truth_xy = ground_truth.world_xy[ground_truth.frame == frame]
+        if len(truth_xy) == 0:
+            continue
+        distance = np.linalg.norm(xy[rows, None, :] - truth_xy[None, :, :], axis=2)
+        unmatched[rows] = distance.min(axis=1) > match_distance
+    return unmatched
+
+
 def euclidean_similarity(
     ground_truth_xy: NDArray[np.float64], predicted_xy: NDArray[np.float64]
 ) -> NDArray[np.float64]:
@@ -202,7 +240,10 @@ def euclidean_similarity(
 
 
 def build_trackeval_data(
-    ground_truth: Tracks, predictions: Tracks, frames: ArrayLike | None = None
+    ground_truth: Tracks,
+    predictions: Tracks,
+    frames: ArrayLike | None = None,
+    area: tuple[float, float, float, float] | None = None,
 ) -> dict[str, Any]:
     """TrackEval's per-sequence ``data`` dict under the AI City 2024 protocol.
 
@@ -226,6 +267,14 @@ def build_trackeval_data(
     ignored = len(predictions) - len(predicted)
     if ignored:
         logger.debug("%d prediction rows are duplicates or at frames without ground truth", ignored)
+    if area is not None and len(predicted):
+        unannotated = outside_unmatched(truth, predicted, area)
+        if unannotated.any():
+            logger.debug(
+                "%d prediction rows outside the annotated area match no ground truth; "
+                "not scored", int(unannotated.sum()),
+            )
+            predicted = predicted[~unannotated]
 
     gt_labels, gt_ids = np.unique(truth.track_id, return_inverse=True)
     tracker_labels, tracker_ids = np.unique(predicted.track_id, return_inverse=True)

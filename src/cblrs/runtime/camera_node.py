@@ -100,6 +100,8 @@ class CameraNode:
         first_sequence: sequence number of the first message; replays restart at the same
             number, so a matcher ignores frames it already has.
         targeting: per-class targeting overrides.
+        drop_hidden_feet: no location for boxes whose feet a nearer box hides (for a
+            detector's boxes; see :func:`cblrs.edge.feet_hidden`).
         flush_timeout_s: how long to wait at the end for the broker to acknowledge
             everything (queued messages included).
         clock: wall clock, seconds since the Unix epoch.
@@ -117,6 +119,7 @@ class CameraNode:
         epoch: float | None = None,
         first_sequence: int = 0,
         targeting: dict[str, TargetingPosition] | None = None,
+        drop_hidden_feet: bool = False,
         flush_timeout_s: float = 30.0,
         clock: Callable[[], float] = time.time,
     ):
@@ -132,6 +135,7 @@ class CameraNode:
         self.epoch = epoch
         self.first_sequence = int(first_sequence)
         self.targeting = targeting
+        self.drop_hidden_feet = bool(drop_hidden_feet)
         self.flush_timeout_s = float(flush_timeout_s)
         self._clock = clock
         self._stop = threading.Event()
@@ -166,7 +170,7 @@ class CameraNode:
                 frame, capture_time = item
                 message = make_message(
                     self.camera_id, sequence, capture_time, frame.frame, frame.detections,
-                    self.reference, self.targeting,
+                    self.reference, self.targeting, drop_hidden_feet=self.drop_hidden_feet,
                 )
                 payload = encode_message(message, self.plane_id)
                 self.transport.publish(self.topic, payload, qos=1)

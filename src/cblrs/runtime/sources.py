@@ -9,8 +9,8 @@ order. Sources:
 * :func:`scene_source` — one camera of a WILDTRACK / MultiviewX folder (its annotations as
   detections);
 * :func:`video_source` / :func:`image_folder_source` — frames run through a
-  :class:`Detector`: :class:`YoloDetector` (Ultralytics, optional extra ``cblrs[yolo]``, local
-  weights only) or the dependency-free :class:`ColourBlobDetector`.
+  :class:`~cblrs.detectors.Detector` from :mod:`cblrs.detectors` (an ONNX model, Ultralytics,
+  or the dependency-free colour blob detector).
 
 Images never leave this module: only the detector's boxes go on.
 """
@@ -22,18 +22,24 @@ import math
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Protocol, runtime_checkable
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
-from cblrs.detections import CLASS_NAMES, Detections
+from cblrs.datasets.images import IMAGE_SUFFIXES, read_image
+from cblrs.detections import Detections
+
+# The detectors live in cblrs.detectors; these names stay importable from here.
+from cblrs.detectors.base import Detector as Detector
+from cblrs.detectors.blob import ColourBlobDetector as ColourBlobDetector
+from cblrs.detectors.ultralytics_yolo import YoloDetector as YoloDetector
+from cblrs.detectors.ultralytics_yolo import (
+    detections_from_ultralytics as detections_from_ultralytics,
+)
 from cblrs.errors import CblrsError, DatasetError
 
 logger = logging.getLogger(__name__)
-
-IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp")
-
 
 @dataclass(frozen=True, eq=False)
 class SourceFrame:
@@ -49,22 +55,6 @@ class SourceFrame:
     frame: int
     timestamp: float | None
     detections: Detections
-
-
-@runtime_checkable
-class Detector(Protocol):
-    """Anything that turns an image into boxes."""
-
-    def detect(self, image: NDArray[np.uint8]) -> Detections:
-        """Detect objects.
-
-        Args:
-            image: (H, W, 3) uint8 image in OpenCV's BGR channel order.
-
-        Returns:
-            The boxes in pixels, with class ids from :data:`cblrs.detections.CLASS_NAMES`.
-        """
-        ...
 
 
 # -- detection files ---------------------------------------------------------------------
@@ -245,7 +235,12 @@ def camera_position(names: list[str], camera: str | int) -> int:
 
 
 def video_source(
-    path: str | Path, detector: Detector, fps: float | None = None, live: bool = False
+    path: str | Path,
+    detector: Detector,
+    fps: float | None = None,
+    live: bool = False,
+    first: int | None = None,
+    last: int | None = None,
 ) -> Iterator[SourceFrame]:
     """Frames of a video file (or a camera device / stream URL with ``live=True``).
 
@@ -254,9 +249,12 @@ def video_source(
         detector: turns each frame into boxes.
         fps: override the file's frame rate (timestamps are ``frame / fps``).
         live: frames carry no recorded timestamp; the camera node stamps them on capture.
+        first, last: only frames ``first..last`` (inclusive, 0-based; None: from the start
+            / to the end).
 
     Raises:
-        DatasetError: the video cannot be opened.
+        DatasetError: the video cannot be opened, has no frame rate, or ends before
+            ``last`` (raised when the end is reached; earlier frames were yielded).
     """
     import cv2
 
@@ -270,9 +268,15 @@ def video_source(
     if not live and not (rate > 0 and math.isfinite(rate)):
         capture.release()
         raise DatasetError(f"{path} has no frame rate; give it with --fps.")
+    declared = int(capture.get(cv2.CAP_PROP_FRAME_COUNT) or 0)
     try:
         number = 0
-        while True:
+        while last is None or number <= last:
+            if first is not None and number < first:
+                if not capture.grab():
+                    break
+                number += 1
+                continue
             ok, image = capture.read()
             if not ok:
                 break
@@ -281,18 +285,32 @@ def video_source(
             number += 1
     finally:
         capture.release()
+    if last is not None and number <= last:
+        raise DatasetError(
+            f"video {path} ended after {number} frames, before the requested last frame {last}."
+        )
+    if last is None and not live and declared > number + 1:
+        logger.warning(
+            "video %s ended after %d of the %d frames its header declares", path, number, declared
+        )
 
 
 def image_folder_source(
-    folder: str | Path, detector: Detector, fps: float
+    folder: str | Path,
+    detector: Detector,
+    fps: float,
+    first: int | None = None,
+    last: int | None = None,
 ) -> Iterator[SourceFrame]:
     """Image files of a folder in name order, as frames ``0, 1, ...`` at ``fps``.
 
-    Raises:
-        DatasetError: the folder is missing, empty or an image cannot be read.
-    """
-    import cv2
+    Args:
+        first, last: only frames ``first..last`` (inclusive; None: from the start / to the end).
 
+    Raises:
+        DatasetError: the folder is missing or empty, holds fewer images than ``last``
+            asks for, or an image cannot be read.
+    """
     folder = Path(folder)
     if not folder.is_dir():
         raise DatasetError(f"image folder {folder} does not exist.")
@@ -301,132 +319,12 @@ def image_folder_source(
     paths = sorted(path for path in folder.iterdir() if path.suffix.lower() in IMAGE_SUFFIXES)
     if not paths:
         raise DatasetError(f"{folder} holds no images ({', '.join(IMAGE_SUFFIXES)}).")
+    if last is not None and last >= len(paths):
+        raise DatasetError(
+            f"{folder} holds {len(paths)} images (frames 0..{len(paths) - 1}), fewer than the "
+            f"requested last frame {last} needs."
+        )
     for number, path in enumerate(paths):
-        image = cv2.imread(str(path), cv2.IMREAD_COLOR)
-        if image is None:
-            raise DatasetError(f"cannot read image {path}.")
-        yield SourceFrame(number, number / fps, detector.detect(np.asarray(image, np.uint8)))
-
-
-class ColourBlobDetector:
-    """Boxes around connected regions of one colour — a detector with no model.
-
-    Useful for tests, demos and marker-based setups (e.g. coloured hats seen from above).
-
-    Args:
-        colour_rgb: the colour to find, (R, G, B) 0..255.
-        tolerance: maximum absolute difference per channel.
-        min_area: smallest region in pixels.
-        class_id: class given to every box.
-    """
-
-    def __init__(
-        self,
-        colour_rgb: tuple[int, int, int],
-        tolerance: int = 30,
-        min_area: int = 20,
-        class_id: int = 0,
-    ):
-        if len(colour_rgb) != 3 or not all(0 <= int(value) <= 255 for value in colour_rgb):
-            raise CblrsError(f"blob colour must be three values 0..255, got {colour_rgb}.")
-        self.colour_bgr = np.array(colour_rgb[::-1], dtype=np.int16)
-        self.tolerance = int(tolerance)
-        self.min_area = int(min_area)
-        self.class_id = int(class_id)
-
-    def detect(self, image: NDArray[np.uint8]) -> Detections:
-        """Boxes ``(x, y, x + w, y + h)`` of each region of at least ``min_area`` pixels."""
-        import cv2
-
-        if image.ndim != 3 or image.shape[2] != 3:
-            raise CblrsError(f"expected an (H, W, 3) image, got shape {image.shape}.")
-        difference = np.abs(image.astype(np.int16) - self.colour_bgr).max(axis=2)
-        mask = (difference <= self.tolerance).astype(np.uint8)
-        count, _, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
-        stats = stats[1:count]
-        stats = stats[stats[:, cv2.CC_STAT_AREA] >= self.min_area]
-        x, y = stats[:, cv2.CC_STAT_LEFT], stats[:, cv2.CC_STAT_TOP]
-        width, height = stats[:, cv2.CC_STAT_WIDTH], stats[:, cv2.CC_STAT_HEIGHT]
-        xyxy = np.column_stack([x, y, x + width, y + height]).astype(np.float64).reshape(-1, 4)
-        order = np.lexsort((xyxy[:, 1], xyxy[:, 0]))
-        return Detections(
-            xyxy=xyxy[order],
-            confidence=np.ones(len(xyxy)),
-            class_id=np.full(len(xyxy), self.class_id, np.int64),
-        )
-
-
-class YoloDetector:
-    """Ultralytics YOLO with local weights (``pip install cblrs[yolo]``).
-
-    Nothing is downloaded: ``weights`` must be an existing file (a ``.pt`` or exported model).
-    Classes not in :data:`cblrs.detections.CLASS_NAMES` are dropped.
-
-    Args:
-        weights: path of the model file.
-        confidence: minimum score.
-        device: ``"cpu"``, ``"0"``, ... passed to Ultralytics.
-
-    Raises:
-        ImportError: ultralytics is not installed.
-        CblrsError: the weights file does not exist.
-    """
-
-    def __init__(self, weights: str | Path, confidence: float = 0.25, device: str = "cpu"):
-        weights = Path(weights)
-        if not weights.is_file():
-            raise CblrsError(
-                f"YOLO weights {weights} do not exist; give a local model file with --weights "
-                "(nothing is downloaded at run time)."
-            )
-        try:
-            from ultralytics import YOLO
-        except ImportError:
-            raise ImportError(
-                "the YOLO detector needs ultralytics: pip install cblrs[yolo]"
-            ) from None
-        self._model = YOLO(str(weights))
-        self.confidence = float(confidence)
-        self.device = device
-
-    def detect(self, image: NDArray[np.uint8]) -> Detections:
-        results = self._model.predict(
-            image, conf=self.confidence, device=self.device, verbose=False
-        )
-        return detections_from_ultralytics(results[0])
-
-
-def detections_from_ultralytics(result: Any) -> Detections:
-    """Map one ``ultralytics.engine.results.Results`` to :class:`Detections`.
-
-    Uses ``result.names`` (class index -> name) and ``result.boxes.xyxy`` / ``.conf`` /
-    ``.cls`` (torch tensors or arrays). Boxes whose class name is not in
-    :data:`CLASS_NAMES` (the COCO names person, car, bicycle, motorcycle, bus, truck) are
-    dropped.
-    """
-    boxes = result.boxes
-    if boxes is None:
-        return Detections.empty()
-    xyxy = _to_numpy(boxes.xyxy).astype(np.float64).reshape(-1, 4)
-    confidence = _to_numpy(boxes.conf).astype(np.float64).reshape(-1)
-    model_class = _to_numpy(boxes.cls).astype(np.int64).reshape(-1)
-    names = result.names
-    class_id = np.array(
-        [
-            CLASS_NAMES.index(names[value]) if names.get(value) in CLASS_NAMES else -1
-            for value in model_class.tolist()
-        ],
-        dtype=np.int64,
-    )
-    keep = class_id >= 0
-    return Detections(xyxy=xyxy[keep], confidence=confidence[keep], class_id=class_id[keep])
-
-
-def _to_numpy(value: Any) -> NDArray:
-    if hasattr(value, "detach"):
-        value = value.detach()
-    if hasattr(value, "cpu"):
-        value = value.cpu()
-    if hasattr(value, "numpy"):
-        value = value.numpy()
-    return np.asarray(value)
+        if (first is not None and number < first) or (last is not None and number > last):
+            continue
+        yield SourceFrame(number, number / fps, detector.detect(read_image(path)))

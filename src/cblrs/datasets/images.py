@@ -1,0 +1,120 @@
+"""The image files of a WILDTRACK / MultiviewX folder, matched to its annotated frames.
+
+Both layouts keep one folder per camera, in view order::
+
+    DATASET/Image_subsets/C1/0000.jpg ...     (MultiviewX; WILDTRACK: 00000000.png ...)
+
+The number in an image's file name is its frame number, except in the first public
+MultiviewX release (the one in ``../shared/data/multiviewx``), where image ``NNNN.jpg``
+shows the instant of annotation file ``NNNN+1.json``. :func:`image_frame_offset` finds
+the offset from the numbers themselves: 0 when the image numbers are the annotated frame
+numbers, 1 when they are those numbers minus one (and then says so in the log); anything
+else is an error, so images are never paired with the wrong annotations.
+"""
+
+from __future__ import annotations
+
+import logging
+import re
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from cblrs.errors import DatasetError
+
+logger = logging.getLogger(__name__)
+
+IMAGE_FOLDER = "Image_subsets"
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp")
+
+
+def read_image(path: str | Path) -> NDArray[np.uint8]:
+    """An image file as an (H, W, 3) uint8 BGR array.
+
+    Raises:
+        DatasetError: the file is missing or is not an image OpenCV can decode.
+    """
+    import cv2
+
+    path = Path(path)
+    if not path.is_file():
+        raise DatasetError(f"image {path} does not exist.")
+    image = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if image is None:
+        raise DatasetError(f"cannot read image {path}: not an image file OpenCV can decode.")
+    return np.asarray(image, np.uint8)
+
+
+def camera_image_folders(root: str | Path, camera_count: int) -> list[Path]:
+    """``Image_subsets/C1 .. C<camera_count>`` of a dataset folder, in view order.
+
+    Raises:
+        DatasetError: the image folder of a camera is missing.
+    """
+    root = Path(root)
+    folders = [root / IMAGE_FOLDER / f"C{number}" for number in range(1, camera_count + 1)]
+    missing = [folder for folder in folders if not folder.is_dir()]
+    if missing:
+        raise DatasetError(
+            f"{root} has no images for {len(missing)} of its {camera_count} cameras "
+            f"(expected {IMAGE_FOLDER}/C1..C{camera_count}/; missing {missing[0]})."
+        )
+    return folders
+
+
+def numbered_images(folder: Path) -> dict[int, Path]:
+    """Image files of a folder by the number in their names (``0042.jpg`` -> 42)."""
+    images: dict[int, Path] = {}
+    for path in folder.iterdir():
+        if path.suffix.lower() not in IMAGE_SUFFIXES:
+            continue
+        match = re.fullmatch(r"\D*(\d+)", path.stem)
+        if match is None:
+            logger.debug("ignoring %s: no frame number in its name", path)
+            continue
+        images.setdefault(int(match.group(1)), path)
+    return images
+
+
+def image_frame_offset(image_numbers: set[int], frames: NDArray[np.int64]) -> int:
+    """Frame number minus image number: 0, or 1 for the first MultiviewX release.
+
+    Args:
+        image_numbers: the numbers in the image file names of one camera.
+        frames: (F,) the annotated frame numbers to find images for.
+
+    Raises:
+        DatasetError: the images cover the frames with neither offset.
+    """
+    wanted = {int(frame) for frame in frames}
+    if wanted <= image_numbers:
+        return 0
+    if {frame - 1 for frame in wanted} <= image_numbers:
+        logger.info(
+            "image NNNN shows annotated frame NNNN+1 (the first MultiviewX release's numbering)"
+        )
+        return 1
+    missing = sorted(wanted - image_numbers)
+    raise DatasetError(
+        f"the images do not cover the annotated frames {min(wanted)}..{max(wanted)} "
+        f"(no image numbered {missing[0]}, nor one less); the image file numbers must be the "
+        "frame numbers of the annotation files."
+    )
+
+
+def scene_image_paths(
+    root: str | Path, camera_count: int, frames: NDArray[np.int64]
+) -> list[list[Path]]:
+    """``paths[f][c]``: the image of camera c at annotated frame ``frames[f]``.
+
+    Raises:
+        DatasetError: a camera's folder is missing or lacks an image for some frame.
+    """
+    paths: list[list[Path]] = [[] for _ in frames]
+    for folder in camera_image_folders(root, camera_count):
+        images = numbered_images(folder)
+        offset = image_frame_offset(set(images), frames)
+        for index, frame in enumerate(frames):
+            paths[index].append(images[int(frame) - offset])
+    return paths
