@@ -149,15 +149,48 @@ def register(subparsers) -> None:
         "--frame-step", type=int, help="detections files: emit every Nth frame (default: auto)"
     )
     source.add_argument(
-        "--frames", metavar="FIRST:LAST", help="dataset: only these native frame numbers"
+        "--frames",
+        metavar="FIRST:LAST",
+        help="dataset: only these native frame numbers; video / images: only these frames "
+        "(0-based; a video that ends before LAST is an error)",
     )
     source.add_argument(
         "--class", dest="class_name", default="person", help="class of file detections"
     )
     detector = parser.add_argument_group("detector (video / images)")
-    detector.add_argument("--detector", choices=("yolo", "blob"), default="yolo")
+    detector.add_argument(
+        "--detector",
+        choices=("onnx", "yolo", "blob"),
+        default="onnx",
+        help="onnx: a YOLOX / Ultralytics YOLOv5/v8/v11 ONNX export on onnxruntime (default); "
+        "yolo: Ultralytics .pt weights (pip install cblrs[yolo]); blob: a colour",
+    )
+    detector.add_argument(
+        "--model", type=Path, help="ONNX model file (local; never downloaded)"
+    )
+    detector.add_argument(
+        "--tiling",
+        choices=("auto", "off"),
+        default="auto",
+        help="onnx: also detect on tiles where the reference image says people look small "
+        "(default) or on the whole frame only",
+    )
+    detector.add_argument("--iou", type=float, default=0.45, help="onnx: NMS IoU threshold")
+    detector.add_argument(
+        "--layout",
+        choices=("auto", "yolox", "yolov5", "yolov8"),
+        default="auto",
+        help="onnx: model output layout (default: from its output shape)",
+    )
+    detector.add_argument(
+        "--hidden-feet",
+        choices=("auto", "keep", "drop"),
+        default="auto",
+        help="boxes whose feet a nearer box hides: no location (default for detector boxes "
+        "and detection files) or keep it (default for dataset annotations)",
+    )
     detector.add_argument("--weights", type=Path, help="YOLO model file (local; never downloaded)")
-    detector.add_argument("--confidence", type=float, default=0.25, help="YOLO minimum score")
+    detector.add_argument("--confidence", type=float, default=0.25, help="minimum score")
     detector.add_argument("--device", default="cpu", help="YOLO device")
     detector.add_argument(
         "--blob-colour", default="255,0,0", metavar="R,G,B", help="blob detector colour"
@@ -271,9 +304,14 @@ def build_source(args: argparse.Namespace):
             )
         return frames, None
     detector = build_detector(args, class_id)
+    first, last = _frames_range(args.frames)
     if kind == "video":
-        return sources.video_source(args.video, detector, args.fps, live=args.live), None
-    return sources.image_folder_source(args.images, detector, args.fps or 10.0), None
+        return sources.video_source(
+            args.video, detector, args.fps, live=args.live, first=first, last=last
+        ), None
+    return sources.image_folder_source(
+        args.images, detector, args.fps or 10.0, first=first, last=last
+    ), None
 
 
 def build_detector(args: argparse.Namespace, class_id: int):
@@ -291,6 +329,18 @@ def build_detector(args: argparse.Namespace, class_id: int):
             args.blob_tolerance,
             args.blob_min_area,
             class_id,
+        )
+    if args.detector == "onnx":
+        from cblrs.detectors import onnx_camera_detector
+
+        if args.model is None:
+            raise UsageError("--detector onnx needs --model MODEL.onnx (a local file).")
+        if not 0.0 <= args.confidence <= 1.0 or not 0.0 < args.iou <= 1.0:
+            raise UsageError("--confidence must be within 0..1 and --iou within (0, 1].")
+        # The tile plan comes from the camera's reference image.
+        return onnx_camera_detector(
+            args.model, load_reference(args, None), tiling=args.tiling,
+            confidence=args.confidence, iou=args.iou, layout=args.layout,
         )
     if args.weights is None:
         raise UsageError("--detector yolo needs --weights MODEL.pt (a local file).")
@@ -343,6 +393,9 @@ def run(args: argparse.Namespace) -> int:
         speed=args.speed,
         epoch=args.epoch,
         first_sequence=first_sequence(args),
+        drop_hidden_feet=(
+            args.hidden_feet == "drop" or (args.hidden_feet == "auto" and args.dataset is None)
+        ),
         flush_timeout_s=args.flush_timeout,
     )
     install_stop_handlers(node.stop)

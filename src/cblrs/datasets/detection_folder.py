@@ -23,7 +23,12 @@ from pathlib import Path
 
 import numpy as np
 
-from cblrs.datasets.images import IMAGE_FOLDER, image_frame_offset, numbered_images
+from cblrs.datasets.images import (
+    IMAGE_FOLDER,
+    annotated_frames,
+    image_frame_offset,
+    numbered_images,
+)
 from cblrs.datasets.scene import Scene
 from cblrs.detections import Detections
 from cblrs.errors import DatasetError
@@ -127,7 +132,8 @@ def _check_numbering(
             images = Path(dataset_root) / IMAGE_FOLDER / f"C{index + 1}"
             if images.is_dir():
                 numbers = set(numbered_images(images))
-                shifted = bool(numbers) and image_frame_offset(numbers, scene.frames) == 1
+                everything = annotated_frames(dataset_root)
+                shifted = bool(numbers) and image_frame_offset(numbers, everything) == 1
                 if shifted and present <= numbers:
                     raise DatasetError(
                         f"{path.name} is numbered like the image files (frames "

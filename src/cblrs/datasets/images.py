@@ -8,8 +8,8 @@ The number in an image's file name is its frame number, except in the first publ
 MultiviewX release (the one in ``../shared/data/multiviewx``), where image ``NNNN.jpg``
 shows the instant of annotation file ``NNNN+1.json``. :func:`image_frame_offset` finds
 the offset from the numbers themselves: 0 when the image numbers are the annotated frame
-numbers, 1 when they are those numbers minus one (and then says so in the log); anything
-else is an error, so images are never paired with the wrong annotations.
+numbers, 1 when they are those numbers minus one (and then says so in the log); a frame
+without its image is an error, so images are never paired with the wrong annotations.
 """
 
 from __future__ import annotations
@@ -80,27 +80,29 @@ def numbered_images(folder: Path) -> dict[int, Path]:
 def image_frame_offset(image_numbers: set[int], frames: NDArray[np.int64]) -> int:
     """Frame number minus image number: 0, or 1 for the first MultiviewX release.
 
+    The offset is the one under which the images cover more of ``frames`` (all the data
+    set's annotated frames); a tie means 0.
+
     Args:
         image_numbers: the numbers in the image file names of one camera.
-        frames: (F,) the annotated frame numbers to find images for.
-
-    Raises:
-        DatasetError: the images cover the frames with neither offset.
+        frames: (F,) the annotated frame numbers.
     """
     wanted = {int(frame) for frame in frames}
-    if wanted <= image_numbers:
-        return 0
-    if {frame - 1 for frame in wanted} <= image_numbers:
+    same = len(wanted & image_numbers)
+    shifted = len({frame - 1 for frame in wanted} & image_numbers)
+    if shifted > same:
         logger.info(
             "image NNNN shows annotated frame NNNN+1 (the first MultiviewX release's numbering)"
         )
         return 1
-    missing = sorted(wanted - image_numbers)
-    raise DatasetError(
-        f"the images do not cover the annotated frames {min(wanted)}..{max(wanted)} "
-        f"(no image numbered {missing[0]}, nor one less); the image file numbers must be the "
-        "frame numbers of the annotation files."
-    )
+    return 0
+
+
+def annotated_frames(root: str | Path) -> NDArray[np.int64]:
+    """Every annotated frame number of a data set folder (its annotation file names)."""
+    from cblrs.datasets.multiview import _annotation_files
+
+    return np.array([frame for frame, _ in _annotation_files(Path(root))], dtype=np.int64)
 
 
 def scene_image_paths(
@@ -108,13 +110,25 @@ def scene_image_paths(
 ) -> list[list[Path]]:
     """``paths[f][c]``: the image of camera c at annotated frame ``frames[f]``.
 
+    The numbering offset is found from all the data set's annotated frames, so that a
+    selection of frames is paired exactly as the whole set.
+
     Raises:
         DatasetError: a camera's folder is missing or lacks an image for some frame.
     """
+    everything = annotated_frames(root)
     paths: list[list[Path]] = [[] for _ in frames]
     for folder in camera_image_folders(root, camera_count):
         images = numbered_images(folder)
-        offset = image_frame_offset(set(images), frames)
+        offset = image_frame_offset(set(images), everything)
         for index, frame in enumerate(frames):
-            paths[index].append(images[int(frame) - offset])
+            path = images.get(int(frame) - offset)
+            if path is None:
+                raise DatasetError(
+                    f"{folder} has no image for annotated frame {int(frame)} (expected one "
+                    f"numbered {int(frame) - offset}"
+                    + (", one less than the frame, as in the rest of this data set)." if offset
+                       else ", the frame number).")
+                )
+            paths[index].append(path)
     return paths
