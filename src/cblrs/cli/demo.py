@@ -14,6 +14,11 @@ them against the ground truth and write::
 
 The synthetic scenes are the presets of :mod:`cblrs.datasets.synthetic`: ``roundabout``
 (one car handed over between two cameras twice) and ``plaza`` (four cameras, a crowd).
+
+On a real data set with ``--detector onnx --model M.onnx`` the boxes come from the model run
+on the data set's images (``Image_subsets/C<k>/``), and the overlays are drawn over the real
+frames: detector boxes labelled with the fusion track they fed, the located targets, the
+annotated positions (green rings) and, faintly, the reference's metric grid.
 """
 
 from __future__ import annotations
@@ -27,6 +32,7 @@ from typing import Any
 
 import numpy as np
 
+from cblrs.calibration import default_ground
 from cblrs.cli.common import (
     UsageError,
     add_output_options,
@@ -34,6 +40,13 @@ from cblrs.cli.common import (
     parse_frame_range,
     print_json,
     progress,
+)
+from cblrs.cli.detector_options import (
+    DETECTIONS_HELP,
+    add_detector_options,
+    detection_source,
+    drop_hidden_feet,
+    real_detections,
 )
 from cblrs.datasets.scene import Scene
 from cblrs.detections import Tracks
@@ -61,6 +74,7 @@ class SceneReport:
     detections: int
     ground_truth_ids: int
     targeting: str = "box"
+    detector: dict[str, Any] | None = None
     scores: dict[str, dict[str, float]] = field(default_factory=dict)
     predicted_ids: dict[str, int] = field(default_factory=dict)
     seconds: dict[str, float] = field(default_factory=dict)
@@ -75,6 +89,7 @@ class SceneReport:
             "detections": self.detections,
             "ground_truth_ids": self.ground_truth_ids,
             "targeting": self.targeting,
+            **({"detector": self.detector} if self.detector is not None else {}),
             "metrics": self.scores,
             "predicted_ids": self.predicted_ids,
             "seconds": {key: round(value, 3) for key, value in self.seconds.items()},
@@ -137,6 +152,7 @@ def register(subparsers: Any) -> None:
         help="where in each box the camera looks: fixed per-class position (box, default) "
         "or fitted from the calibration and a class size prior (geometric)",
     )
+    add_detector_options(parser, detections_help=DETECTIONS_HELP)
     add_output_options(parser)
     parser.set_defaults(handler=run)
 
@@ -150,6 +166,9 @@ def run(args: Any) -> int:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as error:
         raise UsageError(f"cannot create the output folder {out}: {error.strerror}.") from None
+    source = detection_source(args)
+    if source != "annotations" and not args.dataset:
+        raise UsageError("--detector and --detections need --dataset DIR (a real data set).")
     start = time.perf_counter()
     reports = []
     if args.site and not args.dataset:
@@ -158,6 +177,7 @@ def run(args: Any) -> int:
         )
     if args.dataset:
         from cblrs.datasets import load_scene
+        from cblrs.pipeline import render_scene_references
 
         scene = load_scene(args.dataset)
         if frame_range:
@@ -168,14 +188,24 @@ def run(args: Any) -> int:
 
             site = load_site(args.site)
             scene = site.scene(scene)
-            site_options["references"] = [site.render_reference(n) for n in scene.camera_names]
+            references = [site.render_reference(n) for n in scene.camera_names]
             positions = site.camera_positions()
             site_options["camera_positions"] = {
                 name: positions[name] for name in scene.camera_names if name in positions
             }
+        else:
+            references = render_scene_references(scene)
+        scene, detector_summary = real_detections(args, scene, references, source, args.quiet)
+        images = None
+        if source == "detector":
+            from cblrs.datasets.images import scene_image_paths
+
+            images = scene_image_paths(args.dataset, len(scene.cameras), scene.frames)
         reports.append(
             run_scene(
                 scene, out / scene.name, quiet=args.quiet, targeting=args.targeting,
+                references=references, drop_hidden_feet=drop_hidden_feet(args, source),
+                images=images, detector=detector_summary, area=default_ground(args.dataset),
                 **site_options,
             )
         )
@@ -258,6 +288,10 @@ def run_scene(
     targeting: str = "box",
     references: list[ReferenceImage] | None = None,
     camera_positions: dict[str, Any] | None = None,
+    drop_hidden_feet: bool = False,
+    images: list[list[Path]] | None = None,
+    detector: dict[str, Any] | None = None,
+    area: tuple[float, float, float, float] | None = None,
 ) -> SceneReport:
     """Render, track with both matchers, evaluate and draw one scene into ``directory``.
 
@@ -271,6 +305,11 @@ def run_scene(
         references: the cameras' reference images (default: rendered for the scene's plane).
         camera_positions: the fusion tracker's camera positions (default: the posed
             cameras' centres).
+        drop_hidden_feet: see :func:`cblrs.pipeline.track_scene` (for a detector's boxes).
+        images: ``images[f][c]`` the camera frames the detections came from; the overlays
+            are drawn over them.
+        detector: what the detector did (model, tiles, timings), kept in metrics.json.
+        area: the annotated ground area, for scoring (see :func:`cblrs.evaluate`).
     """
     from cblrs.datasets.aicity import write_tracks
     from cblrs.evaluation.metrics import evaluate
@@ -292,6 +331,7 @@ def run_scene(
     if references is None:
         references = render_scene_references(scene)
     report.seconds["render"] = time.perf_counter() - started
+    report.detector = detector
     for reference, camera in zip(references, scene.cameras, strict=True):
         report.files.append(reference.save(directory / "references" / f"{camera.name}.png"))
 
@@ -309,11 +349,12 @@ def run_scene(
             progress=not quiet,
             # Targeters are built once and shared by both matchers (geometric ones cost).
             targeting="box" if targeters is None else targeters,
+            drop_hidden_feet=drop_hidden_feet,
             **options,
         )
         report.seconds[matcher] = time.perf_counter() - started
         tracks[matcher] = result.tracks
-        metrics = evaluate(truth, result.tracks)
+        metrics = evaluate(truth, result.tracks, area=area)
         report.scores[matcher] = {key: round(value, 3) for key, value in metrics.to_dict().items()}
         report.predicted_ids[matcher] = len(np.unique(result.tracks.track_id))
         path = directory / f"tracks_{matcher}.txt"
@@ -323,9 +364,12 @@ def run_scene(
     report.files.append(directory / "ground_truth.txt")
 
     started = time.perf_counter()
-    report.files.append(draw_trajectories(scene, tracks, directory, world))
+    report.files.append(draw_trajectories(scene, tracks, directory, world, area=area))
     report.files.extend(
-        draw_overlays(scene, references, tracks["fusion"], directory, world, targeters)
+        draw_overlays(
+            scene, references, tracks["fusion"], directory, world, targeters,
+            images=images, drop_hidden_feet=drop_hidden_feet,
+        )
     )
     report.seconds["pictures"] = time.perf_counter() - started
 
@@ -349,14 +393,24 @@ def _plot_area(scene: Scene) -> tuple[float, float, float, float]:
 
 
 def draw_trajectories(
-    scene: Scene, tracks: dict[str, Tracks], directory: Path, world: Any = None
+    scene: Scene,
+    tracks: dict[str, Tracks],
+    directory: Path,
+    world: Any = None,
+    area: tuple[float, float, float, float] | None = None,
 ) -> Path:
-    """``trajectories.png``: paper | fusion | ground truth, bird's-eye view."""
+    """``trajectories.png``: paper | fusion | ground truth, bird's-eye view (the annotated
+    ``area``, if given, shaded)."""
+    from cblrs.datasets.synthetic import GroundMarking
     from cblrs.viz.trajectories import plot_trajectories
 
     markings = list(world.markings) if world is not None else []
     if world is not None:
         markings += [_footprint_marking(structure) for structure in world.structures]
+    if area is not None:
+        x0, y0, width, length = area
+        corners = ((x0, y0), (x0 + width, y0), (x0 + width, y0 + length), (x0, y0 + length))
+        markings.append(GroundMarking(corners, (232, 232, 222)))
     figure = plot_trajectories(
         scene.ground_truth,
         {name: tracks[name] for name in MATCHERS},
@@ -397,10 +451,14 @@ def draw_overlays(
     directory: Path,
     world: Any = None,
     targeters: Any = None,
+    images: list[list[Path]] | None = None,
+    drop_hidden_feet: bool = False,
 ) -> list[Path]:
     """``overlay_<camera>.png`` for one frame: reference colours, boxes labelled with the
     fusion track they fed, and each box's target (its reported location seen in the image);
-    for synthetic scenes also the 3D boxes and a green ring at each true footprint centre.
+    for synthetic scenes also the 3D boxes and a green ring at each true footprint centre;
+    over ``images`` (the real frames), the annotated positions as green rings and the
+    reference's colours and metric grid faintly.
     """
     from cblrs.edge import make_message
     from cblrs.viz.overlay import camera_overlay, draw_boxes_3d, save_image, world_frame
@@ -426,10 +484,13 @@ def draw_overlays(
     paths = []
     if targeters is None:
         targeters = [None] * len(scene.cameras)
-    for camera, reference, detections, targeter in zip(
+    for number, (camera, reference, detections, targeter) in enumerate(zip(
         scene.cameras, references, scene.detections[index], targeters, strict=True
-    ):
-        message = make_message(camera.name, 0, 0.0, frame, detections, reference, targeter=targeter)
+    )):
+        message = make_message(
+            camera.name, 0, 0.0, frame, detections, reference, targeter=targeter,
+            drop_hidden_feet=drop_hidden_feet,
+        )
         located, valid, _ = reference.planes.decode(message.colour)
         labels = np.full(len(detections), -1, dtype=np.int64)
         if len(track_xy) and valid.any():
@@ -442,11 +503,18 @@ def draw_overlays(
             targets[valid], _ = camera.world_to_pixel(located[valid], reference.planes[0].height)
         background = None
         highlight = None
+        opacity = 1.0
         if world is not None and camera.has_pose and corners is not None:
             background = draw_boxes_3d(
                 world_frame(camera, world.markings), camera, corners, colours=colours
             )
             highlight, _ = camera.world_to_pixel(truth.world_xy)
+        elif images is not None:
+            from cblrs.datasets.images import read_image
+
+            background = read_image(images[index][number])[..., ::-1]
+            highlight = visible_pixels(camera, truth.world_xy)
+            opacity = 0.35
         image = camera_overlay(
             reference,
             detections,
@@ -456,8 +524,23 @@ def draw_overlays(
             grid_m=5.0 if world is not None else 1.0,
             title=f"{scene.name}  camera {camera.name}  frame {frame}",
             highlight_pixels=highlight,
-            caption="labels: fusion track ids   dot: located target"
+            caption="labels: fusion track ids   dot: located target   grey: no location / no track"
             + ("   green ring: true position" if highlight is not None else ""),
+            overlay_opacity=opacity,
         )
         paths.append(save_image(directory / f"overlay_{camera.name}.png", image))
     return paths
+
+
+def visible_pixels(camera: Any, world_xy: np.ndarray) -> np.ndarray:
+    """Raw pixels of ground points the camera sees (in front, inside the image before the
+    lens model, which far outside the view folds points back into the image); (N, 2), NaN
+    for the others."""
+    homogeneous = np.column_stack([world_xy, np.ones(len(world_xy))]) @ camera.homography.T
+    pixels = np.full((len(world_xy), 2), np.nan)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        pinhole = homogeneous[:, :2] / homogeneous[:, 2:3]
+    seen = (homogeneous[:, 2] > 0) & camera.contains(pinhole)
+    if seen.any():
+        pixels[seen], _ = camera.world_to_pixel(world_xy[seen])
+    return pixels

@@ -36,6 +36,7 @@ class DetectionRun:
 
     Attributes:
         scene: the input scene with the detector's boxes as detections (``object_id`` -1).
+        layout: the model's output layout (``yolox``, ``yolov5``, ``yolov8``).
         plans: each camera's tile plan.
         images: images read and detected.
         decode_seconds: time spent reading and decoding image files.
@@ -43,6 +44,7 @@ class DetectionRun:
     """
 
     scene: Scene
+    layout: str
     plans: list[TilePlan]
     images: int
     decode_seconds: float
@@ -50,7 +52,7 @@ class DetectionRun:
 
     @property
     def ms_per_image(self) -> float:
-        """Median-free average detector time per camera frame, milliseconds."""
+        """Mean detector time per camera frame, milliseconds."""
         return 1000.0 * self.detect_seconds / max(self.images, 1)
 
 
@@ -123,6 +125,7 @@ def detect_scene(
     )
     return DetectionRun(
         scene=replace(scene, detections=detections),
+        layout=detector.layout,
         plans=[camera.plan for camera in cameras],
         images=len(paths) * len(scene.cameras),
         decode_seconds=decode_seconds,

@@ -54,6 +54,7 @@ def camera_overlay(
     title: str | None = None,
     highlight_pixels: NDArray | None = None,
     caption: str | None = None,
+    overlay_opacity: float = 1.0,
 ) -> UInt8Image:
     """Reference colours, boxes and target pixels of one camera frame.
 
@@ -69,6 +70,9 @@ def camera_overlay(
         highlight_pixels: (M, 2) pixels marked with a green ring, e.g. one world point seen
             by several cameras (the paper's green dot).
         caption: text written in the bottom-left corner (e.g. a legend).
+        overlay_opacity: how strongly the reference colours and the grid show over
+            ``frame`` (1: as :func:`cblrs.viz.reference.reference_overlay` draws them; less
+            lets a real camera image show through).
 
     Returns:
         (H, W, 3) uint8 RGB image.
@@ -82,6 +86,15 @@ def camera_overlay(
     if len(ids) != len(detections):
         raise ValueError(f"identities has {len(ids)} rows but there are {len(detections)} boxes")
     image = reference_overlay(reference, frame, grid_m=grid_m, labels=True)
+    if frame is not None and overlay_opacity < 1.0:
+        if not 0.0 <= overlay_opacity <= 1.0:
+            raise ValueError(f"overlay_opacity must be within 0..1, got {overlay_opacity}")
+        image = np.asarray(
+            cv2.addWeighted(
+                np.asarray(frame, np.uint8), 1.0 - overlay_opacity, image, overlay_opacity, 0.0
+            ),
+            np.uint8,
+        )
     image = np.ascontiguousarray(image)
     width, height = reference.image_size
     scale = max(width, height) / 1280.0
@@ -95,11 +108,13 @@ def camera_overlay(
         class_id = int(detections.class_id[row])
         name = CLASS_NAMES[class_id] if 0 <= class_id < len(CLASS_NAMES) else str(class_id)
         if ids[row] < 0:
-            label = name
+            # An unlabelled person box says nothing a label would add; other classes do.
+            label = "" if name == "person" else name
         else:
             # People are the common case: the id alone keeps crowded frames readable.
             label = str(int(ids[row])) if name == "person" else f"{name} {int(ids[row])}"
-        _label(image, label, (x0, y0), colour, font_scale, thickness)
+        if label:
+            _label(image, label, (x0, y0), colour, font_scale, thickness)
     for row, (x, y) in enumerate(targets):
         if not (np.isfinite(x) and np.isfinite(y)):
             continue
