@@ -65,6 +65,25 @@ def register(subparsers) -> None:
     _common(pipeline)
     pipeline.set_defaults(handler=run, benchmark="pipeline")
 
+    for name, help_text in (
+        ("camera", "on-camera cost per real frame: decode, detector (whole / tiled), "
+         "targeting + colour lookup, encode"),
+        ("detect", "track a data set from its images through a detector (tiling off / auto) "
+         "next to its annotated boxes: recall, ms/image, HOTA, IDF1"),
+    ):
+        real = kinds.add_parser(name, help=help_text)
+        real.add_argument(
+            "--dataset", type=Path, default=None,
+            help="data set with images (default: $CBLRS_MULTIVIEWX or ../shared/data/multiviewx)",
+        )
+        real.add_argument(
+            "--model", type=Path, default=None,
+            help="ONNX detector (default: ../shared/models/yolox_nano.onnx)",
+        )
+        real.add_argument("--repeats", type=int, default=3, help="timed runs (default 3)")
+        _common(real)
+        real.set_defaults(handler=run, benchmark=name)
+
     every = kinds.add_parser("all", help="every benchmark; writes JSON and markdown to --out")
     every.add_argument("--repeats", type=int, default=5, help="timed runs (default 5)")
     every.add_argument("--n", type=int, default=100_000, help="pixels for lookup (default 100000)")
@@ -175,7 +194,37 @@ def _run_one(name: str, args: argparse.Namespace) -> tuple[dict[str, Any], str]:
             targetings=targetings,
         )
         return result, pipeline_report(result)
+    if name in ("camera", "detect"):
+        dataset, model = _real_frames(args)
+        if name == "camera":
+            from cblrs.bench.camera_cost import benchmark_camera, camera_report
+
+            result = benchmark_camera(dataset, model, repeats=repeats)
+            return result, camera_report(result)
+        from cblrs.bench.detection import benchmark_detection, detection_report
+
+        result = benchmark_detection(dataset, model)
+        return result, detection_report(result)
     raise UsageError(f"unknown benchmark {name!r}.")
+
+
+def _real_frames(args: argparse.Namespace) -> tuple[Path, Path]:
+    """The data set with images and the ONNX model of ``bench camera`` / ``bench detect``."""
+    import os
+
+    shared = Path(__file__).resolve().parents[3].parent / "shared"
+    dataset = args.dataset or Path(
+        os.environ.get("CBLRS_MULTIVIEWX") or shared / "data" / "multiviewx"
+    )
+    model = args.model or shared / "models" / "yolox_nano.onnx"
+    if not (dataset / "Image_subsets").is_dir():
+        raise UsageError(
+            f"{dataset} holds no Image_subsets/ folder; give a data set with images with "
+            "--dataset."
+        )
+    if not model.is_file():
+        raise UsageError(f"model {model} does not exist; give an ONNX detector with --model.")
+    return dataset, model
 
 
 def _words(text: str, option: str) -> list[str]:
