@@ -265,3 +265,25 @@ def test_height_axis_must_be_a_sign():
     with pytest.raises(CalibrationError, match="height_axis must be 1 or -1"):
         Camera.from_extrinsics("c", camera.intrinsics, camera.rotation, camera.translation,
                                (640, 480), height_axis=0)
+
+
+def test_a_site_file_with_published_multiviewx_extrinsics_is_converted(
+    multiviewx_real_root: Path, tmp_path, caplog: pytest.LogCaptureFixture
+):
+    from cblrs.site.core import site_from_document
+
+    rvec, tvec, matrix, distortion = _published(multiviewx_real_root, "Camera1")
+    document = {
+        "version": 1,
+        "planes": [{"id": 1, "origin": [-2, -2], "size": [29, 20]}],
+        "cameras": [{
+            "name": "Camera1", "image_size": [1920, 1080], "intrinsics": matrix.tolist(),
+            "distortion": distortion.tolist(), "rvec": rvec.tolist(), "tvec": tvec.tolist(),
+        }],
+    }
+    with caplog.at_level(logging.WARNING, logger="cblrs.calibration"):
+        camera = site_from_document(document, tmp_path / "site.yaml").camera("Camera1").camera
+    assert camera.height_axis == -1 and "left-handed" in caplog.text
+    reference = read_multiviewx_cameras(multiviewx_real_root)[0]
+    world = np.array([[5.0, 5.0, 0.0], [10.0, 3.0, 1.5]])
+    np.testing.assert_allclose(camera.project_points(world)[0], reference.project_points(world)[0])

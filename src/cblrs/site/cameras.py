@@ -49,6 +49,10 @@ def resolve_camera(site: Site, index: int) -> SiteCamera:
                 (spec.image_size[0], spec.image_size[1]),
                 distortion=np.array(spec.distortion or []),
             )
+            from cblrs.calibration import orient_cameras
+
+            # A left-handed calibration (MultiviewX's) is converted, with a warning.
+            camera = orient_cameras([camera], where)[0]
         elif kind == "homography":
             assert spec.image_size is not None
             camera = Camera.from_homography(
