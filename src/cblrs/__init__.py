@@ -16,6 +16,7 @@ from cblrs.calibration import (
 from cblrs.camera import Camera
 from cblrs.datasets import Scene, load_scene, read_tracks, simulate_detections, write_tracks
 from cblrs.detections import CLASS_NAMES, CameraMessage, Detections, Tracks
+from cblrs.detectors import OnnxDetector, TiledDetector, plan_tiles
 from cblrs.edge import make_message
 from cblrs.errors import (
     CalibrationError,
@@ -52,6 +53,7 @@ __all__ = [
     "LUTLocator",
     "Locator",
     "Metrics",
+    "OnnxDetector",
     "PlaneError",
     "PlaneSet",
     "PlaneSpec",
@@ -59,6 +61,7 @@ __all__ = [
     "ReferenceImageError",
     "Scene",
     "TargetingPosition",
+    "TiledDetector",
     "TrackingResult",
     "Tracks",
     "__version__",
@@ -66,6 +69,7 @@ __all__ = [
     "load_scene",
     "make_matcher",
     "make_message",
+    "plan_tiles",
     "read_aicity_calibration",
     "read_camera_json",
     "read_cameras",
