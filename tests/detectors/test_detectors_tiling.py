@@ -135,3 +135,39 @@ def test_tiles_find_more_of_the_annotated_people_than_the_whole_frame(
                 total += len(truth)
         recalls[name] = matched / total
     assert recalls["tiles"] > recalls["whole"] + 0.15, recalls
+
+
+def test_real_detector_boxes_cut_or_off_the_plane_carry_no_location(
+    multiviewx, multiviewx_real_root, yolox_model
+):
+    """Near people cut by the bottom border and people off the plane get colour 0; the
+    located ones stand where annotated people stand (or outside the annotated area)."""
+    from cblrs.edge import make_message
+
+    scene, references = multiviewx
+    frames = scene.frames[4:6]  # near people walk out of the bottom of the images here
+    paths = scene_image_paths(multiviewx_real_root, len(scene.cameras), frames)
+    detector = OnnxDetector(yolox_model)
+    cut = off_plane = 0
+    distances = []
+    for position, row in enumerate(paths):
+        truth = scene.ground_truth[scene.ground_truth.frame == frames[position]]
+        for camera, path in enumerate(row):
+            reference = references[camera]
+            found = TiledDetector(detector, plan_tiles(reference, detector.input_size)).detect(
+                read_image(path)
+            )
+            message = make_message("c", 0, 0.0, 0, found, reference, drop_hidden_feet=True)
+            located, valid, _ = reference.planes.decode(message.colour)
+            bottom = found.xyxy[:, 3] >= reference.image_size[1] - 1
+            assert not valid[bottom].any()
+            cut += int(bottom.sum())
+            pixels = np.column_stack([(found.xyxy[:, 0] + found.xyxy[:, 2]) / 2, found.xyxy[:, 3]])
+            seen = reference.colours_at(np.minimum(pixels, [1919, 1079]))[0][:, 2] > 0
+            off_plane += int((~seen & ~bottom).sum())
+            inside = valid & (located[:, 0] >= 0) & (located[:, 0] <= 25)
+            inside &= (located[:, 1] >= 0) & (located[:, 1] <= 16)
+            for point in located[inside]:
+                distances.append(np.min(np.linalg.norm(truth.world_xy - point, axis=1)))
+    assert cut > 0 and off_plane > 0  # both happen on these frames
+    assert np.median(distances) < 0.3
