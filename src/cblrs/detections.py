@@ -173,6 +173,9 @@ class Tracks(_Columns):
         world_xy: (N, 2) float64 metres.
         camera_id: (N,) int64 index of the camera whose box is reported (-1 if none).
         xyxy: (N, 4) float64 that camera's box (NaN if none).
+        class_id: (N,) int64 the track's class, index into :data:`CLASS_NAMES` (-1 unknown).
+            Matchers fill it from their detections' classes; the AI City text format has no
+            class field, so :func:`cblrs.datasets.write_tracks` keeps it in a sidecar file.
     """
 
     frame: NDArray[np.int64]
@@ -181,8 +184,11 @@ class Tracks(_Columns):
     world_xy: NDArray[np.float64]
     camera_id: NDArray[np.int64] = field(default=None)  # type: ignore[arg-type]
     xyxy: NDArray[np.float64] = field(default=None)  # type: ignore[arg-type]
+    class_id: NDArray[np.int64] = field(default=None)  # type: ignore[arg-type]
 
-    _row_columns = ("frame", "timestamp", "track_id", "world_xy", "camera_id", "xyxy")
+    _row_columns = (
+        "frame", "timestamp", "track_id", "world_xy", "camera_id", "xyxy", "class_id",
+    )
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "frame", _column(self.frame, np.int64, (None,), "frame"))
@@ -198,6 +204,8 @@ class Tracks(_Columns):
         xyxy = np.full((count, 4), np.nan) if self.xyxy is None else self.xyxy
         object.__setattr__(self, "camera_id", _column(camera_id, np.int64, (None,), "camera_id"))
         object.__setattr__(self, "xyxy", _column(xyxy, np.float64, (None, 4), "xyxy"))
+        class_id = np.full(count, -1) if self.class_id is None else self.class_id
+        object.__setattr__(self, "class_id", _column(class_id, np.int64, (None,), "class_id"))
         self._validate_lengths()
 
     @classmethod

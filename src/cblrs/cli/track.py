@@ -146,7 +146,8 @@ def run(args: argparse.Namespace) -> int:
         scene, args.matcher, references=references, progress=not args.quiet,
         drop_hidden_feet=drop_hidden_feet(args, source), **options,
     )
-    write_tracks(args.out, result.tracks)
+    # The sidecar keeps the classes and frame rate that the AI City format cannot hold.
+    write_tracks(args.out, result.tracks, frames_per_second=scene.frames_per_second)
     tracks = result.tracks
     summary = {
         "dataset": str(args.dataset),

@@ -16,19 +16,30 @@ written with the box ``-1 -1 -1 -1`` and read back as NaN. A track without a cam
 The format carries no time: :func:`read_tracks` sets ``timestamp`` to the frame number (or to
 ``frame / frames_per_second`` when the rate is given); callers that know the dataset's timing
 map frames to seconds themselves.
+
+Nor does it carry a class. So that the file stays exactly what TrackEval and the AI City tools
+read, :func:`write_tracks` puts what the format lacks — each track's class and the frame rate
+— in a JSON sidecar ``<file>.meta.json`` (schema ``cblrs.tracks-meta/1``) next to it, with the
+SHA-256 of the tracks file so that a sidecar left over from another file is refused, not
+trusted; :func:`read_track_metadata` reads it and :func:`apply_track_metadata` fills
+``Tracks.class_id``.
 """
 
 from __future__ import annotations
 
+import hashlib
 import io
+import json
 import logging
 import warnings
+from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
-from cblrs.detections import Tracks
+from cblrs.detections import CLASS_NAMES, Tracks, class_id_of
 from cblrs.errors import DatasetError
 
 logger = logging.getLogger(__name__)
@@ -40,13 +51,20 @@ _INTEGER_COLUMNS = (0, 1, 2)
 _NO_BOX = -1.0
 
 
-def write_tracks(path: str | Path, tracks: Tracks) -> None:
+def write_tracks(
+    path: str | Path, tracks: Tracks, frames_per_second: float | None = None
+) -> None:
     """Write tracks as an AI City 2024 text file (rows in the given order).
+
+    When some ``class_id`` is known or ``frames_per_second`` is given, a sidecar
+    ``<path>.meta.json`` keeps them (see the module docstring); otherwise a sidecar left from
+    an earlier file of that name is removed.
 
     Args:
         path: the output file (overwritten).
         tracks: the rows; ``camera_id``, ``track_id``, ``frame``, ``xyxy`` (pixels, NaN for
             no box) and ``world_xy`` (metres) are written, ``timestamp`` is not.
+        frames_per_second: the rate of the frame numbers (``timestamp = frame / rate``).
 
     Raises:
         DatasetError: a world position is not finite, or the file cannot be written.
@@ -74,11 +92,128 @@ def write_tracks(path: str | Path, tracks: Tracks) -> None:
             strict=True,
         )
     ]
+    text = "".join(lines)
     try:
-        path.write_text("".join(lines))
+        path.write_text(text)
     except OSError as error:
         raise DatasetError(f"cannot write {path}: {error.strerror or error}.") from None
     logger.debug("wrote %d rows to %s", len(tracks), path)
+    _write_metadata(path, text, tracks, frames_per_second)
+
+
+METADATA_SCHEMA = "cblrs.tracks-meta/1"
+
+
+@dataclass(frozen=True)
+class TrackMetadata:
+    """What the AI City format cannot hold, read from a tracks file's sidecar.
+
+    Attributes:
+        frames_per_second: rate of the file's frame numbers (None: unknown).
+        classes: track id -> class id (index into :data:`CLASS_NAMES`), for tracks whose
+            class is known.
+    """
+
+    frames_per_second: float | None
+    classes: dict[int, int]
+
+
+def metadata_path(path: str | Path) -> Path:
+    """The sidecar of a tracks file: ``tracks.txt`` -> ``tracks.txt.meta.json``."""
+    path = Path(path)
+    return path.with_name(path.name + ".meta.json")
+
+
+def track_classes(tracks: Tracks) -> dict[int, int]:
+    """Each track's class: the most frequent known ``class_id`` of its rows (ties: lowest).
+
+    Tracks whose rows all have class -1 are left out.
+    """
+    known = tracks.class_id >= 0
+    if not known.any():
+        return {}
+    ids, classes = tracks.track_id[known], tracks.class_id[known]
+    pairs, counts = np.unique(np.stack([ids, classes], axis=1), axis=0, return_counts=True)
+    # Sort by track, then count descending, then class ascending; keep each track's first.
+    order = np.lexsort((pairs[:, 1], -counts, pairs[:, 0]))
+    pairs = pairs[order]
+    first = np.ones(len(pairs), dtype=bool)
+    first[1:] = pairs[1:, 0] != pairs[:-1, 0]
+    return {int(track): int(class_id) for track, class_id in pairs[first].tolist()}
+
+
+def _write_metadata(
+    path: Path, text: str, tracks: Tracks, frames_per_second: float | None
+) -> None:
+    sidecar = metadata_path(path)
+    classes = track_classes(tracks)
+    if frames_per_second is None and not classes:
+        sidecar.unlink(missing_ok=True)
+        return
+    if frames_per_second is not None and not frames_per_second > 0:
+        raise DatasetError(f"frames per second must be positive, got {frames_per_second}.")
+    document = {
+        "schema": METADATA_SCHEMA,
+        "tracks_file": path.name,
+        "rows": len(tracks),
+        "sha256": hashlib.sha256(text.encode()).hexdigest(),
+        "frames_per_second": frames_per_second,
+        "classes": {str(track): CLASS_NAMES[class_id] for track, class_id in classes.items()},
+    }
+    try:
+        sidecar.write_text(json.dumps(document, indent=1) + "\n")
+    except OSError as error:
+        raise DatasetError(f"cannot write {sidecar}: {error.strerror or error}.") from None
+
+
+def read_track_metadata(path: str | Path) -> TrackMetadata | None:
+    """The sidecar of a tracks file, or None when there is none.
+
+    Raises:
+        DatasetError: the sidecar is malformed, or was written for a different tracks file
+            (its SHA-256 does not match), so its classes cannot be trusted.
+    """
+    path = Path(path)
+    sidecar = metadata_path(path)
+    if not sidecar.exists():
+        return None
+    try:
+        document: Any = json.loads(sidecar.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
+        raise DatasetError(f"cannot read {sidecar}: {error}.") from None
+    if not isinstance(document, dict) or document.get("schema") != METADATA_SCHEMA:
+        raise DatasetError(f"{sidecar} is not a {METADATA_SCHEMA} sidecar.")
+    try:
+        digest = hashlib.sha256(path.read_bytes()).hexdigest()
+    except OSError as error:
+        raise DatasetError(f"cannot read tracks file {path}: {error.strerror or error}.") from None
+    if document.get("sha256") != digest:
+        raise DatasetError(
+            f"{sidecar} belongs to another version of {path.name} (the file changed since); "
+            "delete the sidecar or write the tracks again."
+        )
+    try:
+        rate = document.get("frames_per_second")
+        rate = None if rate is None else float(rate)
+        classes = {
+            int(track): class_id_of(str(name))
+            for track, name in dict(document.get("classes") or {}).items()
+        }
+    except (TypeError, ValueError) as error:
+        raise DatasetError(f"{sidecar}: {error}.") from None
+    return TrackMetadata(frames_per_second=rate, classes=classes)
+
+
+def apply_track_metadata(tracks: Tracks, metadata: TrackMetadata | None) -> Tracks:
+    """``tracks`` with ``class_id`` set from the sidecar's classes (others left as they are)."""
+    if metadata is None or not metadata.classes or len(tracks) == 0:
+        return tracks
+    ids = np.array(sorted(metadata.classes), dtype=np.int64)
+    classes = np.array([metadata.classes[int(track)] for track in ids], dtype=np.int64)
+    position = np.clip(np.searchsorted(ids, tracks.track_id), 0, len(ids) - 1)
+    found = ids[position] == tracks.track_id
+    class_id = np.where(found, classes[position], tracks.class_id)
+    return replace(tracks, class_id=class_id)
 
 
 def read_tracks(path: str | Path, frames_per_second: float | None = None) -> Tracks:

@@ -203,6 +203,8 @@ def load_scene(path: str | Path, layout: str | None = None, distorted: bool | No
         timestamp=all_truth_frames / spec.frames_per_second,
         track_id=np.concatenate(truth_id),
         world_xy=np.concatenate(truth_position),
+        # WILDTRACK and MultiviewX annotate people only.
+        class_id=np.full(len(all_truth_frames), class_id_of("person"), np.int64),
     )
     x0, y0, width, length = spec.ground
     margin = GROUND_MARGIN_M

@@ -70,6 +70,14 @@ class Scene:
             return 0.0
         return float(np.median(np.diff(self.timestamps)))
 
+    @property
+    def frames_per_second(self) -> float | None:
+        """Rate of the native frame numbers (frame units per second), None if unknown."""
+        span = float(self.timestamps[-1] - self.timestamps[0]) if len(self.frames) > 1 else 0.0
+        if span <= 0:
+            return None
+        return float(self.frames[-1] - self.frames[0]) / span
+
     def select_frames(self, first: int | None = None, last: int | None = None) -> Scene:
         """The sub-sequence with native frame numbers in [first, last] (inclusive)."""
         keep = np.ones(len(self.frames), dtype=bool)

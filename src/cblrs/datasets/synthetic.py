@@ -823,6 +823,7 @@ class SyntheticWorld:
             timestamp=states.times[frame_index],
             track_id=object_ids[column],
             world_xy=states.xy[frame_index, column],
+            class_id=class_ids[column],
         )
         logger.debug(
             "synthetic scene %s: %d frames, %d cameras, %d objects, %d detections",

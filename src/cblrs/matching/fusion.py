@@ -493,6 +493,7 @@ class FusionTracker:
             world_xy=self._state[rows, :2],
             camera_id=report_camera[rows],
             xyxy=report_box[rows],
+            class_id=self._class[rows],
         )
 
     # ------------------------------------------------------------------ steps

@@ -108,7 +108,7 @@ class PaperMatcher:
     def update(self, timestamp: float, messages: Sequence[CameraMessage]) -> Tracks:
         if not messages:
             return Tracks.empty()
-        touched: dict[int, tuple[int, np.ndarray]] = {}  # object row -> (camera, box)
+        touched: dict[int, tuple[int, np.ndarray, int]] = {}  # row -> (camera, box, class)
         for message in messages:
             observed = decode_messages(self.planes, self._cameras, [message])
             if len(observed) == 0:
@@ -137,10 +137,11 @@ class PaperMatcher:
             self._world_xy[assigned_object] = observed.world_xy
             self._last_seen[assigned_object] = timestamp
             self._detections[assigned_object] += 1
-            for row, camera, box in zip(
-                assigned_object.tolist(), observed.camera.tolist(), observed.xyxy, strict=True
+            for row, camera, box, class_id in zip(
+                assigned_object.tolist(), observed.camera.tolist(), observed.xyxy,
+                observed.class_id.tolist(), strict=True,
             ):
-                touched[row] = (camera, box)
+                touched[row] = (camera, box, class_id)
         rows = np.array(sorted(touched), dtype=np.int64)
         count = len(rows)
         return Tracks(
@@ -150,6 +151,7 @@ class PaperMatcher:
             world_xy=self._world_xy[rows].reshape(-1, 2),
             camera_id=np.array([touched[row][0] for row in rows.tolist()], np.int64),
             xyxy=np.array([touched[row][1] for row in rows.tolist()]).reshape(-1, 4),
+            class_id=np.array([touched[row][2] for row in rows.tolist()], np.int64),
         )
 
     def get_state(self) -> dict:
