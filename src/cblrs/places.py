@@ -76,11 +76,14 @@ class Zone:
         polygon: (N, 2) float64 vertices in metres, N >= 3, not closed (the last vertex is not
             repeated), not self-intersecting, non-zero area. Either winding order.
         plane_id: the plane the zone lies on (``None``: every plane).
+        hysteresis_m: how far past the border (metres, each side) a track must go to count
+            as inside or outside; ``None`` leaves it to the analytics' default.
     """
 
     name: str
     polygon: FloatArray
     plane_id: int | None = None
+    hysteresis_m: float | None = None
 
     def __post_init__(self) -> None:
         if not self.name:
@@ -104,6 +107,7 @@ class Zone:
                     )
         if abs(_shoelace(polygon)) < 1e-9:
             raise PlaceError(f"zone {self.name!r}: its polygon has zero area.")
+        _check_hysteresis(self.hysteresis_m, f"zone {self.name!r}")
         polygon.setflags(write=False)
         object.__setattr__(self, "polygon", polygon)
 
@@ -131,11 +135,42 @@ class Zone:
         inside = np.count_nonzero(straddles & (x < x_cross), axis=1) % 2 == 1
         return inside
 
+    def signed_distance(self, world_xy: ArrayLike) -> FloatArray:
+        """Distance to the polygon's border, positive inside, negative outside.
+
+        Args:
+            world_xy: (N, 2) float64 metres.
+
+        Returns:
+            (N,) float64 metres.
+        """
+        points = np.asarray(world_xy, dtype=np.float64).reshape(-1, 2)
+        start = self.polygon[None, :, :]
+        edge = np.roll(self.polygon, -1, axis=0)[None, :, :] - start
+        offset = points[:, None, :] - start
+        fraction = np.clip(
+            np.sum(offset * edge, axis=2) / np.sum(edge * edge, axis=2), 0.0, 1.0
+        )
+        gap = offset - fraction[:, :, None] * edge
+        distance = np.sqrt(np.min(np.sum(gap * gap, axis=2), axis=1))
+        return np.where(self.contains(points), distance, -distance)
+
     def to_dict(self) -> dict[str, Any]:
         data: dict[str, Any] = {"name": self.name, "polygon": self.polygon.tolist()}
         if self.plane_id is not None:
             data["plane_id"] = self.plane_id
+        if self.hysteresis_m is not None:
+            data["hysteresis_m"] = self.hysteresis_m
         return data
+
+
+def _check_hysteresis(value: Any, what: str) -> None:
+    if value is None:
+        return
+    if isinstance(value, bool) or not isinstance(value, int | float) or not (
+        np.isfinite(value) and value >= 0
+    ):
+        raise PlaceError(f"{what}: hysteresis_m must be a number >= 0, got {value!r}.")
 
 
 def _shoelace(polygon: FloatArray) -> float:
@@ -191,12 +226,7 @@ class CountingLine:
                     "give a vector pointing to the positive side."
                 )
             normal = left if side > 0 else -left
-        if self.hysteresis_m is not None and not (
-            np.isfinite(self.hysteresis_m) and self.hysteresis_m >= 0
-        ):
-            raise PlaceError(
-                f"line {self.name!r}: hysteresis_m must be a number >= 0, got {self.hysteresis_m}."
-            )
+        _check_hysteresis(self.hysteresis_m, f"line {self.name!r}")
         for array in (start, end, normal):
             array.setflags(write=False)
         object.__setattr__(self, "start", start)
@@ -307,7 +337,7 @@ class Places:
         zones, lines = data.get("zones") or [], data.get("lines") or []
         if not isinstance(zones, list) or not isinstance(lines, list):
             raise PlaceError("places.zones and places.lines must be lists.")
-        zone_keys, line_keys = {"name", "polygon", "plane_id"}, set(_LINE_KEYS)
+        zone_keys, line_keys = {"name", "polygon", "plane_id", "hysteresis_m"}, set(_LINE_KEYS)
         built_zones = []
         for index, item in enumerate(zones):
             where = f"places.zones[{index}]"
@@ -317,7 +347,12 @@ class Places:
             if "polygon" not in item:
                 raise PlaceError(f"{where} ({item.get('name', 'unnamed')}) has no polygon.")
             built_zones.append(
-                Zone(str(item.get("name", "")), item["polygon"], item.get("plane_id"))
+                Zone(
+                    str(item.get("name", "")),
+                    item["polygon"],
+                    item.get("plane_id"),
+                    hysteresis_m=item.get("hysteresis_m"),
+                )
             )
         built_lines = []
         for index, item in enumerate(lines):

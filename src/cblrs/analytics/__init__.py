@@ -1,0 +1,28 @@
+"""Analytics on global tracks: line counts, zone visits and dwell, occupancy, OD, heatmap.
+
+The engine (:class:`Analytics`) is incremental — the same object runs offline on a whole
+tracks file and online on each matcher update, with a JSON-serialisable state — and the
+offline entry point :func:`analyse_tracks` is just the engine fed once and flushed.
+"""
+
+from cblrs.analytics.config import (
+    AnalyticsConfig,
+    AnalyticsError,
+    Event,
+    HeatmapGrid,
+    LineCrossing,
+    ZoneEntered,
+    ZoneLeft,
+)
+from cblrs.analytics.engine import Analytics
+
+__all__ = [
+    "Analytics",
+    "AnalyticsConfig",
+    "AnalyticsError",
+    "Event",
+    "HeatmapGrid",
+    "LineCrossing",
+    "ZoneEntered",
+    "ZoneLeft",
+]
