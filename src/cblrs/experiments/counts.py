@@ -1,0 +1,270 @@
+"""How right are the counts? Analytics on tracked positions against the same on ground truth.
+
+For each scene (WILDTRACK, the synthetic plaza, roundabout and roundabout with traffic), its
+checked-in site file (``sites/<scene>.yaml``) gives the places; the ground truth's analytics
+are the truth and each matcher's tracks — with exact boxes and with the simulated detector
+(several seeds) — are compared with it:
+
+* **line error** = sum over lines, directions and classes of |predicted - true|, divided by
+  the sum of the true counts (so over- and under-counts do not cancel);
+* **entry error** = the same over zones' entries (tracks that crossed into the zone);
+* **dwell error** = mean over zones of |predicted - true| / true mean dwell per visit;
+* **OD error** = the same sum-of-absolute-differences ratio over the cells of the
+  origin-destination matrix (the roundabout with traffic; its truth is also checked against
+  the matrix the world was built with).
+
+The analytics settings are the defaults for every scene; the site files only set a wider
+hysteresis for vehicle places. Nothing here is tuned to a scene.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from cblrs.analytics.config import AnalyticsConfig
+from cblrs.analytics.site import SitePlaces, load_site_places
+from cblrs.analytics.tables import AnalyticsResult, analyse_tracks
+from cblrs.datasets.scene import Scene
+from cblrs.errors import DatasetError
+
+logger = logging.getLogger(__name__)
+
+SCENES = ("wildtrack", "plaza", "roundabout", "roundabout-traffic")
+
+
+@dataclass(frozen=True)
+class CountsSetup:
+    """What :func:`run_counts` measures.
+
+    Attributes:
+        scenes: scene names (see :data:`SCENES`).
+        matchers: matcher names.
+        seeds: seeds of the simulated detector (one run per seed).
+        drop, jitter: the simulated detector (``--drop`` / ``--jitter`` of ``cblrs track``).
+        sites: folder with ``<scene>.yaml`` site files.
+        wildtrack: WILDTRACK folder (None: found automatically).
+        config: analytics settings.
+    """
+
+    scenes: tuple[str, ...] = SCENES
+    matchers: tuple[str, ...] = ("fusion", "paper")
+    seeds: tuple[int, ...] = (1, 2, 3)
+    drop: float = 0.2
+    jitter: float = 0.05
+    sites: Path | None = None
+    wildtrack: Path | None = None
+    config: AnalyticsConfig = AnalyticsConfig()
+
+
+def find_sites(path: str | Path | None = None) -> Path:
+    """The folder of the checked-in site files: ``path``, ``./sites`` or the repository's."""
+    candidates = [Path(path)] if path is not None else [
+        Path("sites"), Path(__file__).resolve().parents[3] / "sites",
+    ]
+    for candidate in candidates:
+        if (candidate / "wildtrack.yaml").exists() or (candidate / "plaza.yaml").exists():
+            return candidate
+    raise DatasetError(
+        f"no site files in {candidates[0]}; run from the repository or pass --sites DIR."
+    )
+
+
+def load_counts_scene(name: str, wildtrack: str | Path | None = None) -> Scene:
+    """A scene by name: ``wildtrack`` (the data folder) or a synthetic one."""
+    if name == "roundabout-traffic":
+        from cblrs.datasets.traffic import make_traffic_scene
+
+        return make_traffic_scene()
+    if name in ("wildtrack", "plaza", "roundabout"):
+        from cblrs.experiments.resolution import load_named_scene
+
+        return load_named_scene(name, wildtrack, None)
+    raise DatasetError(f"unknown scene {name!r}; known: {', '.join(SCENES)}.")
+
+
+def relative_error(predicted: list[int], truth: list[int]) -> float:
+    """sum |predicted - true| / sum true (NaN when there is nothing to count)."""
+    total = sum(truth)
+    if total == 0:
+        return math.nan
+    return sum(abs(p - t) for p, t in zip(predicted, truth, strict=True)) / total
+
+
+def count_errors(truth: AnalyticsResult, predicted: AnalyticsResult) -> dict[str, Any]:
+    """Per-place counts and the summary errors of ``predicted`` against ``truth``."""
+    lines = []
+    keys = sorted({(row["line"], row["direction"], row["class"]) for row in truth.lines
+                   + predicted.lines if row["class"] != "all"})
+    for line, direction, class_label in keys:
+        lines.append({"line": line, "direction": direction, "class": class_label,
+                      "true": truth.line_count(line, direction, class_label),
+                      "predicted": predicted.line_count(line, direction, class_label)})
+    zones = []
+    dwell_errors = []
+    for row in truth.zones:
+        other = predicted.zone_row(row["zone"])
+        zones.append({"zone": row["zone"], "true_entries": row["entries"],
+                      "predicted_entries": other["entries"], "true_visits": row["visits"],
+                      "predicted_visits": other["visits"],
+                      "true_mean_dwell_s": row["mean_dwell_s"],
+                      "predicted_mean_dwell_s": other["mean_dwell_s"]})
+        if row["visits"] and math.isfinite(row["mean_dwell_s"]) and row["mean_dwell_s"] > 0:
+            predicted_dwell = other["mean_dwell_s"] if other["visits"] else 0.0
+            dwell_errors.append(abs(predicted_dwell - row["mean_dwell_s"]) / row["mean_dwell_s"])
+    od_truth = [truth.od[o][d] for o in truth.od for d in truth.od[o]]
+    od_predicted = [predicted.od[o][d] for o in truth.od for d in truth.od[o]]
+    return {
+        "lines": lines,
+        "zones": zones,
+        "line_error": relative_error([row["predicted"] for row in lines],
+                                     [row["true"] for row in lines]),
+        "entry_error": relative_error([row["predicted_entries"] for row in zones],
+                                      [row["true_entries"] for row in zones]),
+        "dwell_error": float(np.mean(dwell_errors)) if dwell_errors else math.nan,
+        "od_error": relative_error(od_predicted, od_truth) if any(od_truth) else math.nan,
+        "true_crossings": sum(row["true"] for row in lines),
+        "predicted_crossings": sum(row["predicted"] for row in lines),
+    }
+
+
+def run_counts(
+    setup: CountsSetup, report: Callable[[str], None] | None = None
+) -> dict[str, Any]:
+    """Track every scene with every matcher and detector, and compare the counts.
+
+    Returns:
+        ``{"setup": ..., "scenes": {scene: {"truth": ..., "runs": [...]}}}`` (JSON-ready).
+    """
+    from cblrs.datasets import simulate_detections
+    from cblrs.pipeline import render_scene_references, track_scene
+
+    sites = find_sites(setup.sites)
+    result: dict[str, Any] = {
+        "setup": {"scenes": list(setup.scenes), "matchers": list(setup.matchers),
+                  "seeds": list(setup.seeds), "drop": setup.drop, "jitter": setup.jitter,
+                  "settings": setup.config.to_dict(), "sites": str(sites)},
+        "scenes": {},
+    }
+    for name in setup.scenes:
+        site = load_site_places(sites / f"{name}.yaml")
+        scene = load_counts_scene(name, setup.wildtrack)
+        truth = analyse_tracks(scene.ground_truth, site.places, setup.config)
+        entry: dict[str, Any] = {
+            "site": site.source, "frames": len(scene.frames),
+            "seconds": float(scene.timestamps[-1] - scene.timestamps[0]),
+            "true_ids": len(np.unique(scene.ground_truth.track_id)),
+            "truth": {"lines": truth.lines, "zones": truth.zones, "od": truth.od},
+            "runs": [],
+        }
+        if name == "roundabout-traffic":
+            entry["built_od_matches_truth"] = _built_od_matches(truth)
+        references = render_scene_references(scene)
+        detectors: list[tuple[str, Scene]] = [("exact", scene)]
+        for seed in setup.seeds:
+            label = f"--drop {setup.drop:g} --jitter {setup.jitter:g} --seed {seed}"
+            detectors.append((label, simulate_detections(
+                scene, drop=setup.drop, jitter=setup.jitter, seed=seed)))
+        for matcher in setup.matchers:
+            for label, variant in detectors:
+                start = time.perf_counter()
+                tracks = track_scene(variant, matcher, references=references).tracks
+                predicted = analyse_tracks(tracks, site.places, setup.config)
+                errors = count_errors(truth, predicted)
+                errors.update(matcher=matcher, detector=label,
+                              predicted_ids=len(np.unique(tracks.track_id)),
+                              seconds=time.perf_counter() - start)
+                entry["runs"].append(errors)
+                if report is not None:
+                    report(f"{name} {matcher} {label}: line error {errors['line_error']:.3f}")
+        result["scenes"][name] = entry
+    return result
+
+
+def _built_od_matches(truth: AnalyticsResult) -> bool:
+    """The ground truth's OD equals the matrix the traffic world was built with."""
+    from cblrs.datasets.traffic import roundabout_traffic_world, traffic_od
+
+    built = traffic_od(roundabout_traffic_world())
+    return all(
+        truth.od[f"{origin}_arm"][f"{destination}_arm"] == built.get((origin, destination), 0)
+        for origin in ("east", "north", "west", "south")
+        for destination in ("east", "north", "west", "south")
+    )
+
+
+def _percent(value: float) -> str:
+    return "–" if not math.isfinite(value) else f"{100 * value:.1f} %"
+
+
+def counts_report(result: dict[str, Any]) -> str:
+    """Markdown tables of :func:`run_counts`' result."""
+    setup = result["setup"]
+    settings = setup["settings"]
+    text = [
+        "### How right are the counts (analytics on tracks vs on ground truth)",
+        "",
+        f"Places: `{setup['sites']}/<scene>.yaml`. Settings (defaults, the same for every "
+        f"scene): line and zone hysteresis {settings['line_hysteresis_m']:g} m (vehicle places "
+        f"1 m, set in their site files), visits merged across exits shorter than "
+        f"{settings['merge_gap_s']:g} s, tracks lost after {settings['lost_after_s']:g} s, "
+        f"events only from tracks that lived {settings['min_track_s']:g} s. Errors: "
+        "sum of |predicted - true| over lines x directions x classes (zones' entries; OD "
+        "cells) / sum of true; dwell: mean over zones of |predicted - true| / true mean "
+        "dwell per visit. Command: `cblrs experiment counts`.",
+        "",
+        "| scene | matcher | detector | crossings pred / true | line error | entry error | "
+        "dwell error | OD error | ids pred / true |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for name, entry in result["scenes"].items():
+        for run in entry["runs"]:
+            text.append(
+                f"| {name} | {run['matcher']} | {run['detector']} | "
+                f"{run['predicted_crossings']} / {run['true_crossings']} | "
+                f"{_percent(run['line_error'])} | {_percent(run['entry_error'])} | "
+                f"{_percent(run['dwell_error'])} | {_percent(run['od_error'])} | "
+                f"{run['predicted_ids']} / {entry['true_ids']} |"
+            )
+    for name, entry in result["scenes"].items():
+        runs = [run for run in entry["runs"] if run["matcher"] == "fusion"]
+        if not runs:
+            continue
+        noisy = [run for run in runs if run["detector"] != "exact"]
+        exact = next((run for run in runs if run["detector"] == "exact"), None)
+        text += ["", f"#### {name}: per line and direction (fusion)", "",
+                 "| line | direction | class | true | exact boxes | simulated detector, "
+                 "per seed |", "|---|---|---|---|---|---|"]
+        for index, row in enumerate((exact or runs[0])["lines"]):
+            seeds = ", ".join(str(run["lines"][index]["predicted"]) for run in noisy)
+            text.append(f"| {row['line']} | {row['direction']} | {row['class']} | {row['true']} "
+                        f"| {row['predicted'] if exact else '–'} | {seeds or '–'} |")
+        if entry["truth"]["zones"]:
+            text += ["", "| zone | true entries | exact | detector, per seed | true mean dwell s "
+                     "| exact | detector, per seed |", "|---|---|---|---|---|---|---|"]
+            for index, row in enumerate((exact or runs[0])["zones"]):
+                seeds = ", ".join(str(run["zones"][index]["predicted_entries"]) for run in noisy)
+                dwell = ", ".join(f"{run['zones'][index]['predicted_mean_dwell_s']:.1f}"
+                                  for run in noisy)
+                text.append(
+                    f"| {row['zone']} | {row['true_entries']} | "
+                    f"{row['predicted_entries'] if exact else '–'} | {seeds or '–'} | "
+                    f"{row['true_mean_dwell_s']:.1f} | "
+                    f"{row['predicted_mean_dwell_s']:.1f} | {dwell or '–'} |"
+                )
+        if "built_od_matches_truth" in entry:
+            text += ["", "Ground-truth OD equals the matrix the world was built with: "
+                     f"{'yes' if entry['built_od_matches_truth'] else 'NO'}."]
+    return "\n".join(text)
+
+
+def site_for(scene: str, sites: Path | None = None) -> SitePlaces:
+    """The checked-in site file of a scene."""
+    return load_site_places(find_sites(sites) / f"{scene}.yaml")

@@ -1,0 +1,178 @@
+"""Pictures of the analytics: places on the ground, counts over time, dwell, heatmap, OD.
+
+Functions take data and an optional matplotlib Axes and return the Figure; they never show
+a window (a Figure with the Agg canvas is made when no Axes is given).
+"""
+
+from __future__ import annotations
+
+from collections import defaultdict
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from cblrs.analytics.config import HeatmapGrid
+from cblrs.analytics.tables import AnalyticsResult
+from cblrs.detections import Tracks
+from cblrs.places import Places
+
+if TYPE_CHECKING:
+    from matplotlib.axes import Axes
+    from matplotlib.figure import Figure
+
+ZONE_COLOURS = ("#1f77b4", "#2ca02c", "#9467bd", "#8c564b", "#e377c2", "#17becf", "#bcbd22")
+LINE_COLOUR = "#d62728"
+
+
+def _axes(ax: Axes | None, size: tuple[float, float]) -> tuple[Figure, Axes]:
+    if ax is not None:
+        return ax.figure, ax  # type: ignore[return-value]
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    figure = Figure(figsize=size, layout="constrained")
+    FigureCanvasAgg(figure)
+    return figure, figure.add_subplot()
+
+
+def draw_places(ax: Axes, places: Places, labels: bool = True) -> None:
+    """Zones as translucent polygons, lines as red segments with an arrow to the positive side."""
+    from matplotlib.patches import Polygon
+
+    for index, zone in enumerate(places.zones):
+        colour = ZONE_COLOURS[index % len(ZONE_COLOURS)]
+        ax.add_patch(Polygon(zone.polygon, closed=True, facecolor=colour, alpha=0.18,
+                             edgecolor=colour, linewidth=1.5))
+        if labels:
+            centre = zone.polygon.mean(axis=0)
+            ax.text(centre[0], centre[1], zone.name, color=colour, ha="center", va="center",
+                    fontsize=8, weight="bold")
+    for line in places.lines:
+        ax.plot([line.start[0], line.end[0]], [line.start[1], line.end[1]], color=LINE_COLOUR,
+                linewidth=2.2, solid_capstyle="round")
+        middle = (line.start + line.end) / 2
+        assert line.direction is not None
+        arrow = line.direction * min(1.5, 0.25 * line.length + 0.5)
+        ax.annotate("", xy=middle + arrow, xytext=middle,
+                    arrowprops={"arrowstyle": "->", "color": LINE_COLOUR, "linewidth": 1.5})
+        if labels:
+            ax.text(line.end[0], line.end[1], f" {line.name} (+)", color=LINE_COLOUR,
+                    fontsize=8, ha="left", va="center")
+
+
+def plot_site(
+    places: Places, tracks: Tracks | None = None, title: str = "", ax: Axes | None = None
+) -> Figure:
+    """Trajectories (thin grey, start dot green, end dot red) under the places."""
+    figure, ax = _axes(ax, (6.0, 7.5))
+    if tracks is not None and len(tracks):
+        order = np.lexsort((tracks.timestamp, tracks.track_id))
+        ids, xy = tracks.track_id[order], tracks.world_xy[order]
+        cuts = np.flatnonzero(np.diff(ids)) + 1
+        for piece in np.split(xy, cuts):
+            ax.plot(piece[:, 0], piece[:, 1], color="0.55", linewidth=0.6, alpha=0.8)
+            ax.plot(*piece[0], "o", color="tab:green", markersize=2)
+            ax.plot(*piece[-1], "o", color="tab:red", markersize=2)
+    draw_places(ax, places)
+    ax.set_aspect("equal")
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    ax.grid(True, linewidth=0.3)
+    ax.set_title(title or "places and trajectories (start green, end red)")
+    return figure
+
+
+def plot_counts_over_time(result: AnalyticsResult, ax: Axes | None = None) -> Figure:
+    """Line crossings per time bin and direction (all classes), one step line each."""
+    figure, ax = _axes(ax, (8.0, 4.0))
+    interval = result.summary["settings"]["interval_s"]
+    series: dict[str, dict[float, int]] = defaultdict(lambda: defaultdict(int))
+    for row in result.counts_over_time:
+        if row["kind"] in ("positive", "negative"):
+            series[f"{row['place']} {row['kind']}"][row["bin_start_s"]] += row["count"]
+        else:
+            series[f"{row['place']} {row['kind']}"][row["bin_start_s"]] += row["count"]
+    if not series:
+        ax.text(0.5, 0.5, "no crossings or entries", ha="center", va="center",
+                transform=ax.transAxes)
+    starts = sorted({start for values in series.values() for start in values})
+    if starts:
+        bins = np.arange(starts[0], starts[-1] + interval, interval)
+        for name in sorted(series):
+            counts = [series[name].get(start, 0) for start in bins]
+            style = "-" if ("positive" in name or "negative" in name) else ":"
+            ax.step(bins, counts, where="post", linestyle=style, label=name)
+        ax.legend(fontsize=7, ncols=2)
+    ax.set_xlabel(f"time (s), bins of {interval:g} s")
+    ax.set_ylabel("count per bin")
+    ax.set_title("line crossings (solid) and zone entries / exits (dotted) over time")
+    ax.grid(True, linewidth=0.3)
+    return figure
+
+
+def plot_dwell(result: AnalyticsResult, ax: Axes | None = None) -> Figure:
+    """Histogram of dwell per visit, one colour per zone (complete visits solid)."""
+    figure, ax = _axes(ax, (7.0, 4.0))
+    by_zone: dict[str, list[float]] = defaultdict(list)
+    for visit in result.visits:
+        by_zone[visit.zone].append(visit.dwell_s)
+    values = [dwell for dwells in by_zone.values() for dwell in dwells]
+    if not values:
+        ax.text(0.5, 0.5, "no visits", ha="center", va="center", transform=ax.transAxes)
+    else:
+        edges = np.histogram_bin_edges(values, bins=min(30, max(5, len(values) // 3)))
+        zones = [row["zone"] for row in result.zones]
+        ax.hist([by_zone[zone] for zone in zones], bins=edges, label=zones,
+                color=[ZONE_COLOURS[zones.index(zone) % len(ZONE_COLOURS)] for zone in zones],
+                histtype="barstacked", alpha=0.8)
+        ax.legend(fontsize=8)
+    ax.set_xlabel("dwell per visit (s)")
+    ax.set_ylabel("visits")
+    ax.set_title("dwell time per visit")
+    ax.grid(True, linewidth=0.3)
+    return figure
+
+
+def plot_heatmap(
+    result: AnalyticsResult, grid: HeatmapGrid, places: Places | None = None,
+    ax: Axes | None = None,
+) -> Figure:
+    """Person-seconds per cell on the metric grid, places drawn on top."""
+    figure, ax = _axes(ax, (6.0, 7.5))
+    heat = result.heatmap if result.heatmap is not None else np.zeros(grid.shape)
+    shown = np.ma.masked_where(heat <= 0, heat)
+    image = ax.imshow(shown, origin="lower", extent=grid.extent, cmap="inferno_r",
+                      interpolation="nearest")
+    figure.colorbar(image, ax=ax, label=f"person-seconds per {grid.cell_m:g} m cell",
+                    shrink=0.8)
+    if places is not None:
+        draw_places(ax, places)
+    ax.set_xlim(grid.extent[0], grid.extent[1])
+    ax.set_ylim(grid.extent[2], grid.extent[3])
+    ax.set_aspect("equal")
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    ax.grid(True, linewidth=0.3)
+    ax.set_title("occupancy heatmap")
+    return figure
+
+
+def plot_od(result: AnalyticsResult, ax: Axes | None = None) -> Figure:
+    """Origin-destination matrix between zones (lives with two or more visits)."""
+    names = list(result.od)
+    figure, ax = _axes(ax, (1.4 * len(names) + 3.0, 1.1 * len(names) + 2.2))
+    matrix = np.array([[result.od[origin][destination] for destination in names]
+                       for origin in names]).reshape(len(names), len(names))
+    ax.imshow(matrix, cmap="Blues", vmin=0)
+    for row in range(len(names)):
+        for column in range(len(names)):
+            value = matrix[row, column]
+            ax.text(column, row, str(value), ha="center", va="center",
+                    color="white" if value > matrix.max() / 2 else "black")
+    ax.set_xticks(range(len(names)), names, rotation=30, ha="right")
+    ax.set_yticks(range(len(names)),
+                  [f"{name} ({result.od_unpaired[name]} unpaired)" for name in names])
+    ax.set_xlabel("destination (zone of the last visit)")
+    ax.set_ylabel("origin (zone of the first visit)")
+    ax.set_title("origin-destination")
+    return figure
