@@ -96,6 +96,10 @@ class AnalyticsConfig:
         lost_after_s: a track not seen for longer than this has ended (its open visits end
             where it was last seen); if its id comes back, that is a new life, and nothing is
             counted across the unobserved gap.
+        max_person_speed_m_s, max_speed_m_s: a step between consecutive rows faster than
+            this (people; other and unknown classes) is not movement but a jump — an
+            identity switch or an annotation error — and ends the track's life there, so no
+            crossing is counted along a straight line the object never walked.
         min_track_s: a track's events count only once it has lived this long (first to
             latest row of its life); shorter-lived ids (false positives, id fragments)
             count nothing. Until then its events are held, then released with their times.
@@ -108,6 +112,8 @@ class AnalyticsConfig:
     zone_hysteresis_m: float = 0.5
     merge_gap_s: float = 2.0
     lost_after_s: float = 2.0
+    max_person_speed_m_s: float = 10.0
+    max_speed_m_s: float = 70.0
     min_track_s: float = 1.0
     interval_s: float = 60.0
     heatmap: HeatmapGrid | None = None
@@ -117,7 +123,7 @@ class AnalyticsConfig:
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0):
                 raise AnalyticsError(f"{name} must be a number >= 0, got {value}.")
-        for name in ("lost_after_s", "interval_s"):
+        for name in ("lost_after_s", "interval_s", "max_person_speed_m_s", "max_speed_m_s"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
                 raise AnalyticsError(f"{name} must be a positive number, got {value}.")

@@ -47,7 +47,7 @@ from cblrs.analytics.config import (
     ZoneEntered,
     ZoneLeft,
 )
-from cblrs.detections import Tracks
+from cblrs.detections import CLASS_NAMES, Tracks
 from cblrs.places import Places
 
 STATE_VERSION = "cblrs.analytics-state/1"
@@ -58,6 +58,7 @@ BoolArray = NDArray[np.bool_]
 
 # Order of simultaneous transitions of one track: exits before entries, ends last.
 _EXIT, _ENTER, _APPEAR, _CROSS = 0, 1, 1, 2
+_PERSON = CLASS_NAMES.index("person")
 
 
 @dataclass
@@ -252,8 +253,12 @@ class Analytics:
         all_xy[virtual] = self._last_xy[slots]
 
         boundary = np.ones(count, dtype=bool)
-        boundary[1:] = (all_track[1:] != all_track[:-1]) | (
-            all_time[1:] - all_time[:-1] > self.config.lost_after_s
+        step_s = all_time[1:] - all_time[:-1]
+        step_m = np.hypot(*(all_xy[1:] - all_xy[:-1]).T)
+        limit = np.where(all_class[1:] == _PERSON, self.config.max_person_speed_m_s,
+                         self.config.max_speed_m_s)
+        boundary[1:] = (all_track[1:] != all_track[:-1]) | (step_s > self.config.lost_after_s) | (
+            step_m > limit * step_s
         )
         segment = np.cumsum(boundary) - 1
         segment_start = np.flatnonzero(boundary)

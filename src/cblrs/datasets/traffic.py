@@ -34,6 +34,7 @@ ARMS = {"east": 0.0, "north": 90.0, "west": 180.0, "south": 270.0}
 RING_RADIUS_M = 12.0
 LANE_OFFSET_M = 2.0
 ARM_LENGTH_M = 31.0
+MIN_GAP_M = 8.0
 _IMAGE_SIZE = (1280, 720)
 
 
@@ -87,18 +88,26 @@ def roundabout_traffic_world(
     """
     rng = np.random.default_rng(seed)
     names = list(ARMS)
-    objects = []
+    objects: list[MovingObject] = []
     start = 0.0
+    grid = np.arange(0.0, cars * 6.0 + 60.0, 0.1)
+    occupied: list[np.ndarray] = []  # (T, 2) positions of the cars placed so far
     for index in range(cars):
         origin = names[int(rng.integers(4))]
         destination = names[(names.index(origin) + int(rng.integers(1, 4))) % 4]
         speed = float(rng.uniform(6.0, 8.0))
-        objects.append(
-            MovingObject(
-                index + 1, "car", class_size("car", rng),
-                car_path(origin, destination, speed, start),
-            )
-        )
+        # A car waits at its entry until it keeps MIN_GAP_M from every other car all the way
+        # (cars do not drive through each other, and a tracker could not tell them apart).
+        while True:
+            path = car_path(origin, destination, speed, start)
+            xy = path.sample(grid).xy
+            if all(
+                not (np.hypot(*(xy - other).T) < MIN_GAP_M).any() for other in occupied
+            ):
+                break
+            start += 0.5
+        occupied.append(xy)
+        objects.append(MovingObject(index + 1, "car", class_size("car", rng), path))
         start += float(rng.uniform(2.0, 4.0))
     cameras = tuple(
         Camera.from_pose(name, (x, y, 10.0), math.degrees(math.atan2(-y, -x)), 20.0, 700.0,

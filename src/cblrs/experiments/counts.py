@@ -23,7 +23,7 @@ import logging
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -34,6 +34,7 @@ from cblrs.analytics.site import SitePlaces, load_site_places
 from cblrs.analytics.tables import AnalyticsResult, analyse_tracks
 from cblrs.datasets.scene import Scene
 from cblrs.errors import DatasetError
+from cblrs.places import Places
 
 logger = logging.getLogger(__name__)
 
@@ -135,6 +136,22 @@ def count_errors(truth: AnalyticsResult, predicted: AnalyticsResult) -> dict[str
     }
 
 
+NAIVE = AnalyticsConfig(
+    line_hysteresis_m=0.0, zone_hysteresis_m=0.0, merge_gap_s=0.0, min_track_s=0.0,
+    max_person_speed_m_s=1e9, max_speed_m_s=1e9,
+)
+"""Counting without the robustness rules: any sign change is a crossing, every border
+flicker a visit, every id counts, jumps are movement."""
+
+
+def without_hysteresis(places: Places) -> Places:
+    """The places with their own hysteresis settings removed (for :data:`NAIVE`)."""
+    return Places(
+        tuple(replace(zone, hysteresis_m=None) for zone in places.zones),
+        tuple(replace(line, hysteresis_m=None) for line in places.lines),
+    )
+
+
 def run_counts(
     setup: CountsSetup, report: Callable[[str], None] | None = None
 ) -> dict[str, Any]:
@@ -157,6 +174,8 @@ def run_counts(
         site = load_site_places(sites / f"{name}.yaml")
         scene = load_counts_scene(name, setup.wildtrack)
         truth = analyse_tracks(scene.ground_truth, site.places, setup.config)
+        naive_places = without_hysteresis(site.places)
+        naive_truth = analyse_tracks(scene.ground_truth, naive_places, NAIVE)
         entry: dict[str, Any] = {
             "site": site.source, "frames": len(scene.frames),
             "seconds": float(scene.timestamps[-1] - scene.timestamps[0]),
@@ -181,6 +200,10 @@ def run_counts(
                 errors.update(matcher=matcher, detector=label,
                               predicted_ids=len(np.unique(tracks.track_id)),
                               seconds=time.perf_counter() - start)
+                naive = count_errors(naive_truth, analyse_tracks(tracks, naive_places, NAIVE))
+                errors["naive"] = {key: naive[key] for key in (
+                    "line_error", "entry_error", "dwell_error", "od_error", "true_crossings",
+                    "predicted_crossings")}
                 entry["runs"].append(errors)
                 if report is not None:
                     report(f"{name} {matcher} {label}: line error {errors['line_error']:.3f}")
@@ -232,6 +255,24 @@ def counts_report(result: dict[str, Any]) -> str:
                 f"{_percent(run['line_error'])} | {_percent(run['entry_error'])} | "
                 f"{_percent(run['dwell_error'])} | {_percent(run['od_error'])} | "
                 f"{run['predicted_ids']} / {entry['true_ids']} |"
+            )
+    text += [
+        "",
+        "Without the robustness rules (no hysteresis, no merging of visits, no confirmation, "
+        "jumps taken as movement; truth counted the same way), the same tracks give:",
+        "",
+        "| scene | matcher | detector | crossings pred / true | line error | entry error | "
+        "dwell error | OD error |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for name, entry in result["scenes"].items():
+        for run in entry["runs"]:
+            naive = run["naive"]
+            text.append(
+                f"| {name} | {run['matcher']} | {run['detector']} | "
+                f"{naive['predicted_crossings']} / {naive['true_crossings']} | "
+                f"{_percent(naive['line_error'])} | {_percent(naive['entry_error'])} | "
+                f"{_percent(naive['dwell_error'])} | {_percent(naive['od_error'])} |"
             )
     for name, entry in result["scenes"].items():
         runs = [run for run in entry["runs"] if run["matcher"] == "fusion"]
