@@ -30,6 +30,7 @@ SUBCOMMANDS = [
     "show",
     "track",
     "eval",
+    "analytics",
     "broker_config",
     "camera",
     "matcher",

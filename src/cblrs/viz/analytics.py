@@ -82,31 +82,54 @@ def plot_site(
     return figure
 
 
-def plot_counts_over_time(result: AnalyticsResult, ax: Axes | None = None) -> Figure:
-    """Line crossings per time bin and direction (all classes), one step line each."""
-    figure, ax = _axes(ax, (8.0, 4.0))
+def plot_counts_over_time(result: AnalyticsResult, axes: list[Axes] | None = None) -> Figure:
+    """Crossings per time bin (one colour per line: positive solid, negative dashed) and,
+    below, zone entries per bin (all classes)."""
     interval = result.summary["settings"]["interval_s"]
-    series: dict[str, dict[float, int]] = defaultdict(lambda: defaultdict(int))
+    lines: dict[tuple[str, str], dict[float, int]] = defaultdict(lambda: defaultdict(int))
+    zones: dict[str, dict[float, int]] = defaultdict(lambda: defaultdict(int))
     for row in result.counts_over_time:
         if row["kind"] in ("positive", "negative"):
-            series[f"{row['place']} {row['kind']}"][row["bin_start_s"]] += row["count"]
+            lines[(row["place"], row["kind"])][row["bin_start_s"]] += row["count"]
+        elif row["kind"] == "entries":
+            zones[row["place"]][row["bin_start_s"]] += row["count"]
+    line_names = [row["line"] for row in result.lines if row["class"] == "all"]
+    line_names = list(dict.fromkeys(line_names))
+    zone_names = [row["zone"] for row in result.zones]
+    panels = [name for name, present in (("lines", line_names), ("zones", zone_names)) if present]
+    if axes is None:
+        from matplotlib.backends.backend_agg import FigureCanvasAgg
+        from matplotlib.figure import Figure
+
+        figure = Figure(figsize=(8.0, 2.6 * max(len(panels), 1) + 0.6), layout="constrained")
+        FigureCanvasAgg(figure)
+        axes = list(figure.subplots(max(len(panels), 1), 1, squeeze=False, sharex=True)[:, 0])
+    else:
+        figure = axes[0].figure  # type: ignore[assignment]
+    starts = [start for series in (*lines.values(), *zones.values()) for start in series]
+    end = result.summary.get("end_s") or 0.0
+    first = min(starts) if starts else 0.0
+    bins = np.arange(first, max(max(starts, default=first), end) + interval, interval)
+    for ax, panel in zip(axes, panels, strict=False):
+        if panel == "lines":
+            for index, name in enumerate(line_names):
+                colour = f"C{index % 10}"
+                for direction, style in (("positive", "-"), ("negative", "--")):
+                    counts = [lines[(name, direction)].get(start, 0) for start in bins]
+                    ax.step(bins, counts, where="post", linestyle=style, color=colour,
+                            label=f"{name} {'+' if direction == 'positive' else '-'}")
+            ax.set_ylabel("crossings per bin")
+            ax.set_title("line crossings over time (+ solid, - dashed)")
         else:
-            series[f"{row['place']} {row['kind']}"][row["bin_start_s"]] += row["count"]
-    if not series:
-        ax.text(0.5, 0.5, "no crossings or entries", ha="center", va="center",
-                transform=ax.transAxes)
-    starts = sorted({start for values in series.values() for start in values})
-    if starts:
-        bins = np.arange(starts[0], starts[-1] + interval, interval)
-        for name in sorted(series):
-            counts = [series[name].get(start, 0) for start in bins]
-            style = "-" if ("positive" in name or "negative" in name) else ":"
-            ax.step(bins, counts, where="post", linestyle=style, label=name)
-        ax.legend(fontsize=7, ncols=2)
-    ax.set_xlabel(f"time (s), bins of {interval:g} s")
-    ax.set_ylabel("count per bin")
-    ax.set_title("line crossings (solid) and zone entries / exits (dotted) over time")
-    ax.grid(True, linewidth=0.3)
+            for index, name in enumerate(zone_names):
+                counts = [zones[name].get(start, 0) for start in bins]
+                ax.step(bins, counts, where="post",
+                        color=ZONE_COLOURS[index % len(ZONE_COLOURS)], label=name)
+            ax.set_ylabel("entries per bin")
+            ax.set_title("zone entries over time")
+        ax.legend(fontsize=7, ncols=3, loc="upper left")
+        ax.grid(True, linewidth=0.3)
+    axes[-1].set_xlabel(f"time (s), bins of {interval:g} s")
     return figure
 
 

@@ -1,0 +1,149 @@
+"""``cblrs analytics``: a tracks file + a site file -> CSV/JSON tables and PNG plots."""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from cblrs.analytics.config import AnalyticsConfig, AnalyticsError, HeatmapGrid
+from cblrs.analytics.site import check_tracks_on_site, load_site_places, site_extent
+from cblrs.analytics.tables import AnalyticsResult, analyse_tracks, write_result
+from cblrs.datasets.aicity import apply_track_metadata, read_track_metadata, read_tracks
+
+logger = logging.getLogger(__name__)
+
+NICE_INTERVALS_S = (1, 2, 5, 10, 15, 30, 60, 120, 300, 600, 900, 1800, 3600, 7200, 21600, 86400)
+
+
+def auto_interval(duration_s: float, bins: int = 40) -> float:
+    """The smallest of :data:`NICE_INTERVALS_S` giving at most ``bins`` bins over the span."""
+    for interval in NICE_INTERVALS_S:
+        if duration_s / interval <= bins:
+            return float(interval)
+    return float(NICE_INTERVALS_S[-1])
+
+
+def analyse_file(
+    tracks_path: str | Path,
+    site_path: str | Path,
+    out: str | Path,
+    frames_per_second: float | None = None,
+    config: AnalyticsConfig | None = None,
+    cell_m: float = 0.5,
+    plots: bool = True,
+) -> dict[str, Any]:
+    """Run the analytics on an AI City tracks file with a site file's places.
+
+    Args:
+        tracks_path: AI City 2024 text file (its ``.meta.json`` sidecar, when present, gives
+            the classes and frame rate).
+        site_path: site file (YAML/JSON) with a ``places`` section.
+        out: folder for the tables and plots (created).
+        frames_per_second: rate of the file's frame numbers; needed unless the sidecar has it.
+        config: settings; ``interval_s`` is chosen from the data's span when left at its
+            default and ``heatmap`` from the site's planes (or its places and the tracks).
+        cell_m: heatmap cell, metres (when the grid is chosen here).
+        plots: write the PNGs too.
+
+    Returns:
+        A summary: files written, counts per line and zone, settings.
+
+    Raises:
+        AnalyticsError: the site has no places, the tracks lie outside the site, no frame
+            rate, or bad settings.
+        DatasetError: the tracks file is missing or unreadable.
+    """
+    site = load_site_places(site_path)
+    if len(site.places) == 0:
+        raise AnalyticsError(
+            f"{site_path} has no places, so there is nothing to count: add zones or lines "
+            "under places: (see sites/wildtrack.yaml)."
+        )
+    metadata = read_track_metadata(tracks_path)
+    rate = frames_per_second
+    if rate is None and metadata is not None:
+        rate = metadata.frames_per_second
+    if rate is None:
+        raise AnalyticsError(
+            f"{tracks_path} carries no frame rate (no .meta.json sidecar from cblrs track): "
+            "give --fps, the frames per second of its frame numbers."
+        )
+    if not (math.isfinite(rate) and rate > 0):
+        raise AnalyticsError(f"--fps must be a positive number, got {rate}.")
+    tracks = apply_track_metadata(read_tracks(tracks_path, frames_per_second=rate), metadata)
+    if len(tracks) == 0:
+        raise AnalyticsError(f"{tracks_path} holds no track rows.")
+    outside = check_tracks_on_site(tracks, site)
+    config = config or AnalyticsConfig()
+    span = float(tracks.timestamp.max() - tracks.timestamp.min())
+    if config.interval_s == AnalyticsConfig().interval_s:
+        config = replace(config, interval_s=auto_interval(span))
+    if config.heatmap is None:
+        config = replace(config, heatmap=HeatmapGrid.covering(_heatmap_bounds(site, tracks),
+                                                              cell_m))
+    result = analyse_tracks(tracks, site.places, config)
+    files = write_result(result, out)
+    if plots:
+        files += write_plots(result, site.places, tracks, config, out)
+    summary = {
+        "tracks": str(tracks_path),
+        "site": site.name or str(site_path),
+        "rows": len(tracks),
+        "track_ids": int(len(np.unique(tracks.track_id))),
+        "rows_outside_site": outside,
+        "frames_per_second": rate,
+        "classes_known": bool((tracks.class_id >= 0).any()),
+        "seconds": span,
+        "lines": [row for row in result.lines if row["class"] == "all"],
+        "zones": result.zones,
+        "od": result.od,
+        "settings": config.to_dict(),
+        "files": [str(path) for path in files],
+    }
+    return summary
+
+
+def _heatmap_bounds(site, tracks) -> tuple[float, float, float, float]:
+    if site.planes:
+        return site_extent(site)
+    x0, y0, x1, y1 = site_extent(site)
+    # Without planes, the places and the bulk of the tracks (robust to a few stray rows).
+    low = np.percentile(tracks.world_xy, 0.5, axis=0)
+    high = np.percentile(tracks.world_xy, 99.5, axis=0)
+    return (min(x0, low[0]), min(y0, low[1]), max(x1, high[0]), max(y1, high[1]))
+
+
+def write_plots(
+    result: AnalyticsResult, places, tracks, config: AnalyticsConfig, out: str | Path
+) -> list[Path]:
+    """counts_over_time.png, dwell.png, heatmap.png, od.png (two zones or more), places.png."""
+    from cblrs.viz.analytics import (
+        plot_counts_over_time,
+        plot_dwell,
+        plot_heatmap,
+        plot_od,
+        plot_site,
+    )
+
+    out = Path(out)
+    figures = {
+        "places.png": plot_site(places, tracks),
+        "counts_over_time.png": plot_counts_over_time(result),
+    }
+    if places.zones:
+        figures["dwell.png"] = plot_dwell(result)
+    if config.heatmap is not None:
+        figures["heatmap.png"] = plot_heatmap(result, config.heatmap, places)
+    if len(places.zones) >= 2:
+        figures["od.png"] = plot_od(result)
+    written = []
+    for name, figure in figures.items():
+        path = out / name
+        figure.savefig(path, dpi=110)
+        written.append(path)
+    return written
