@@ -18,7 +18,7 @@ from cblrs.cli.common import UsageError, add_output_options, print_json
 def register(subparsers) -> None:
     parser = subparsers.add_parser(
         "bench",
-        help="benchmarks: lookup (Table I), render, claims, tracker, pipeline, all",
+        help="benchmarks: lookup (Table I), render, claims, tracker, pipeline, analytics, all",
         description="Measure cblrs on this machine; medians over repeated runs.",
     )
     kinds = parser.add_subparsers(dest="benchmark", metavar="BENCHMARK")
@@ -83,6 +83,17 @@ def register(subparsers) -> None:
         real.add_argument("--repeats", type=int, default=3, help="timed runs (default 3)")
         _common(real)
         real.set_defaults(handler=run, benchmark=name)
+    analytics = kinds.add_parser(
+        "analytics", help="analytics on a busy site: offline rows/s, online ms per update"
+    )
+    analytics.add_argument("--tracks", type=int, default=200, help="live tracks (default 200)")
+    analytics.add_argument("--hours", type=float, default=1.0, help="hours of tracks (default 1)")
+    analytics.add_argument("--rate", type=float, default=10.0, help="updates per second (10)")
+    analytics.add_argument("--online-minutes", type=float, default=5.0,
+                           help="minutes fed update by update (default 5)")
+    analytics.add_argument("--repeats", type=int, default=1, help=argparse.SUPPRESS)
+    _common(analytics)
+    analytics.set_defaults(handler=run, benchmark="analytics")
 
     every = kinds.add_parser("all", help="every benchmark; writes JSON and markdown to --out")
     every.add_argument("--repeats", type=int, default=5, help="timed runs (default 5)")
@@ -205,6 +216,17 @@ def _run_one(name: str, args: argparse.Namespace) -> tuple[dict[str, Any], str]:
 
         result = benchmark_detection(dataset, model)
         return result, detection_report(result)
+    if name == "analytics":
+        from cblrs.bench.analytics import analytics_report, benchmark_analytics
+
+        for option in ("hours", "rate", "online_minutes"):
+            if not getattr(args, option) > 0:
+                raise UsageError(f"--{option.replace('_', '-')} must be positive.")
+        result = benchmark_analytics(
+            tracks=_positive(args.tracks, "--tracks"), hours=args.hours, rate_hz=args.rate,
+            online_minutes=args.online_minutes,
+        )
+        return result, analytics_report(result)
     raise UsageError(f"unknown benchmark {name!r}.")
 
 

@@ -1,4 +1,5 @@
-"""``cblrs experiment``: the paper's experiments rerun — targeting (IV-B) and resolution.
+"""``cblrs experiment``: the paper's experiments rerun — targeting (IV-B) and resolution —
+and the count accuracy of the analytics (counts).
 
 Each prints a markdown table (or ``--json``); ``--out DIR`` also writes
 ``DIR/experiment_<name>.json``, ``.md`` and the figures.
@@ -18,6 +19,7 @@ def register(subparsers) -> None:
     parser = subparsers.add_parser(
         "experiment",
         help="rerun the paper's experiments: targeting (IV-B), resolution; clicked calibration",
+        help="rerun the paper's experiments: targeting (IV-B), resolution; count accuracy",
         description="Rerun the paper's experiments on the synthetic world and WILDTRACK.",
     )
     kinds = parser.add_subparsers(dest="experiment", metavar="EXPERIMENT")
@@ -94,6 +96,23 @@ def register(subparsers) -> None:
     )
     add_output_options(calibration)
     calibration.set_defaults(handler=run, experiment="calibration")
+    counts = kinds.add_parser(
+        "counts",
+        help="analytics on tracks vs on ground truth: line, zone, dwell and OD count errors",
+    )
+    counts.add_argument("--scenes", default="wildtrack,plaza,roundabout,roundabout-traffic",
+                        help="scenes (comma-separated)")
+    counts.add_argument("--matchers", default="fusion,paper", help="matchers (comma-separated)")
+    counts.add_argument("--seeds", default="1,2,3", help="simulated-detector seeds")
+    counts.add_argument("--drop", type=float, default=0.2, help="simulated detector drop (0.2)")
+    counts.add_argument("--jitter", type=float, default=0.05, help="box edge jitter (0.05)")
+    counts.add_argument("--sites", type=Path, default=None,
+                        help="folder of <scene>.yaml site files (default: the repository's sites/)")
+    counts.add_argument("--wildtrack", type=Path, default=None, help="WILDTRACK folder")
+    counts.add_argument("--out", type=Path, help="write JSON, markdown and figures here")
+    counts.add_argument("--figures", type=Path, help="write the PNGs here (default: --out)")
+    add_output_options(counts)
+    counts.set_defaults(handler=run, experiment="counts")
 
     def usage(args: argparse.Namespace) -> int:
         parser.print_help()
@@ -205,11 +224,43 @@ def run_calibration_command(args: argparse.Namespace) -> tuple[dict[str, Any], s
     return result, text
 
 
+def run_counts_command(args: argparse.Namespace) -> tuple[dict[str, Any], str]:
+    import sys
+
+    from cblrs.experiments.counts import SCENES, CountsSetup, counts_report, run_counts
+
+    scenes = tuple(name.strip() for name in args.scenes.split(",") if name.strip())
+    unknown = [name for name in scenes if name not in SCENES]
+    if unknown or not scenes:
+        raise UsageError(f"--scenes must list some of {', '.join(SCENES)}; got {args.scenes!r}.")
+    matchers = tuple(name.strip() for name in args.matchers.split(",") if name.strip())
+    if not matchers or any(name not in ("fusion", "paper") for name in matchers):
+        raise UsageError(f"--matchers must list fusion and/or paper, got {args.matchers!r}.")
+    seeds = tuple(int(seed) for seed in parse_numbers(args.seeds, "--seeds"))
+    if not (0 <= args.drop <= 1 and args.jitter >= 0):
+        raise UsageError("--drop must lie in [0, 1] and --jitter be >= 0.")
+    setup = CountsSetup(scenes=scenes, matchers=matchers, seeds=seeds, drop=args.drop,
+                        jitter=args.jitter, sites=args.sites, wildtrack=args.wildtrack)
+    show = not args.quiet and sys.stderr.isatty()
+    result = run_counts(setup, report=(lambda line: print(line, file=sys.stderr)) if show
+                        else None)
+    text = counts_report(result)
+    if args.out is not None:
+        from cblrs.experiments.counts import plot_counts
+
+        result["figures"] = [str(path) for path in plot_counts(result, setup,
+                                                               args.figures or args.out)]
+        _write(args.out, "counts", result, text)
+    return result, text
+
+
 def run(args: argparse.Namespace) -> int:
     if args.experiment == "targeting":
         result, text = run_targeting_command(args)
     elif args.experiment == "calibration":
         result, text = run_calibration_command(args)
+    elif args.experiment == "counts":
+        result, text = run_counts_command(args)
     elif args.experiment == "resolution":
         from cblrs.experiments.resolution import run_resolution_command
 

@@ -350,3 +350,90 @@ def counts_report(result: dict[str, Any]) -> str:
 def site_for(scene: str, sites: Path | None = None) -> SitePlaces:
     """The checked-in site file of a scene."""
     return load_site_places(find_sites(sites) / f"{scene}.yaml")
+
+
+def plot_counts(result: dict[str, Any], setup: CountsSetup, folder: str | Path) -> list[Path]:
+    """Figures for the docs: WILDTRACK places, heatmap and counts over time (fusion, exact
+    boxes), the roundabout's OD (truth | fusion), and the line errors of every run."""
+    from cblrs.analytics.config import HeatmapGrid
+    from cblrs.analytics.site import site_extent
+    from cblrs.pipeline import track_scene
+    from cblrs.viz.analytics import plot_counts_over_time, plot_heatmap, plot_od, plot_site
+
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    written = []
+
+    def save(figure: Any, name: str) -> None:
+        path = folder / name
+        figure.savefig(path, dpi=100)
+        written.append(path)
+
+    if "wildtrack" in result["scenes"]:
+        site = site_for("wildtrack", setup.sites)
+        scene = load_counts_scene("wildtrack", setup.wildtrack)
+        save(plot_site(site.places, scene.ground_truth,
+                       "WILDTRACK ground truth and sites/wildtrack.yaml"),
+             "analytics_wildtrack_places.png")
+        grid = HeatmapGrid.covering(site_extent(site), 0.5)
+        config = replace(setup.config, heatmap=grid, interval_s=5.0)
+        tracks = track_scene(scene, "fusion").tracks
+        tables = analyse_tracks(tracks, site.places, config)
+        save(plot_heatmap(tables, grid, site.places), "analytics_wildtrack_heatmap.png")
+        save(plot_counts_over_time(tables), "analytics_wildtrack_counts.png")
+    if "roundabout-traffic" in result["scenes"]:
+        from matplotlib.backends.backend_agg import FigureCanvasAgg
+        from matplotlib.figure import Figure
+
+        site = site_for("roundabout-traffic", setup.sites)
+        scene = load_counts_scene("roundabout-traffic")
+        figure = Figure(figsize=(13.0, 5.2), layout="constrained")
+        FigureCanvasAgg(figure)
+        left, right = figure.subplots(1, 2)
+        plot_od(analyse_tracks(scene.ground_truth, site.places, setup.config), ax=left)
+        left.set_title("ground truth (entry arm -> exit arm)")
+        tracked = track_scene(scene, "fusion").tracks
+        plot_od(analyse_tracks(tracked, site.places, setup.config), ax=right)
+        right.set_title("fusion, exact boxes")
+        save(figure, "analytics_roundabout_od.png")
+    save(_plot_errors(result), "analytics_count_errors.png")
+    return written
+
+
+def _plot_errors(result: dict[str, Any]) -> Any:
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    figure = Figure(figsize=(9.0, 4.0), layout="constrained")
+    FigureCanvasAgg(figure)
+    ax = figure.add_subplot()
+    labels, exact, noisy, noisy_spread = [], [], [], []
+    for name, entry in result["scenes"].items():
+        for matcher in dict.fromkeys(run["matcher"] for run in entry["runs"]):
+            runs = [run for run in entry["runs"] if run["matcher"] == matcher]
+            labels.append(f"{name}\n{matcher}")
+            exact.append(100 * next((r["line_error"] for r in runs if r["detector"] == "exact"),
+                                    math.nan))
+            values = [100 * r["line_error"] for r in runs if r["detector"] != "exact"]
+            noisy.append(float(np.mean(values)) if values else math.nan)
+            noisy_spread.append((float(np.mean(values) - np.min(values)),
+                                 float(np.max(values) - np.mean(values))) if values else (0, 0))
+    positions = np.arange(len(labels))
+    ax.bar(positions - 0.2, exact, 0.4, label="exact boxes")
+    ax.bar(positions + 0.2, noisy, 0.4, yerr=np.array(noisy_spread).T.reshape(2, -1),
+           label="simulated detector (mean, min-max over seeds)", capsize=3)
+    ax.axhline(2, color="0.3", linestyle=":", linewidth=1)
+    ax.axhline(5, color="0.3", linestyle="--", linewidth=1)
+    ax.set_xticks(positions, labels, fontsize=7)
+    ax.set_yscale("symlog", linthresh=10, linscale=2)
+    ax.set_ylim(0, 120)
+    ax.set_yticks([0, 1, 2, 5, 10, 20, 50, 100], ["0", "1", "2", "5", "10", "20", "50", "100"])
+    for x, value in [*zip(positions - 0.2, exact, strict=True),
+                     *zip(positions + 0.2, noisy, strict=True)]:
+        if math.isfinite(value):
+            ax.text(x, value, f"{value:.1f}", ha="center", va="bottom", fontsize=6)
+    ax.set_ylabel("line-count error (%)")
+    ax.set_title("line-count error against ground truth (targets 2 % exact, 5 % detector)")
+    ax.legend(fontsize=8)
+    ax.grid(True, axis="y", linewidth=0.3)
+    return figure
