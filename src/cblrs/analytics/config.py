@@ -75,7 +75,9 @@ class HeatmapGrid:
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> HeatmapGrid:
-        return cls(tuple(data["origin"]), tuple(data["size"]), float(data["cell_m"]))  # type: ignore[arg-type]
+        origin, size = data["origin"], data["size"]
+        return cls((float(origin[0]), float(origin[1])), (float(size[0]), float(size[1])),
+                   float(data["cell_m"]))
 
 
 @dataclass(frozen=True)

@@ -12,7 +12,7 @@ import numpy as np
 
 from cblrs.analytics.config import AnalyticsConfig, AnalyticsError, HeatmapGrid
 from cblrs.analytics.site import check_tracks_on_site, load_site_places, site_extent
-from cblrs.analytics.tables import AnalyticsResult, analyse_tracks, write_result
+from cblrs.analytics.tables import AnalyticsResult, analyse_tracks, json_safe, write_result
 from cblrs.datasets.aicity import apply_track_metadata, read_track_metadata, read_tracks
 
 logger = logging.getLogger(__name__)
@@ -64,6 +64,7 @@ def analyse_file(
             f"{site_path} has no places, so there is nothing to count: add zones or lines "
             "under places: (see sites/wildtrack.yaml)."
         )
+    tracks = read_tracks(tracks_path)  # a missing or malformed file is reported first
     metadata = read_track_metadata(tracks_path)
     rate = frames_per_second
     if rate is None and metadata is not None:
@@ -75,7 +76,7 @@ def analyse_file(
         )
     if not (math.isfinite(rate) and rate > 0):
         raise AnalyticsError(f"--fps must be a positive number, got {rate}.")
-    tracks = apply_track_metadata(read_tracks(tracks_path, frames_per_second=rate), metadata)
+    tracks = apply_track_metadata(replace(tracks, timestamp=tracks.frame / rate), metadata)
     if len(tracks) == 0:
         raise AnalyticsError(f"{tracks_path} holds no track rows.")
     outside = check_tracks_on_site(tracks, site)
@@ -94,7 +95,7 @@ def analyse_file(
         "tracks": str(tracks_path),
         "site": site.name or str(site_path),
         "rows": len(tracks),
-        "track_ids": int(len(np.unique(tracks.track_id))),
+        "track_ids": len(np.unique(tracks.track_id)),
         "rows_outside_site": outside,
         "frames_per_second": rate,
         "classes_known": bool((tracks.class_id >= 0).any()),
@@ -105,7 +106,7 @@ def analyse_file(
         "settings": config.to_dict(),
         "files": [str(path) for path in files],
     }
-    return summary
+    return json_safe(summary)
 
 
 def _heatmap_bounds(site, tracks) -> tuple[float, float, float, float]:

@@ -19,7 +19,7 @@ import numpy as np
 
 from cblrs.analytics.config import AnalyticsError
 from cblrs.detections import Tracks
-from cblrs.places import Places, PlaceError, bounding_box
+from cblrs.places import PlaceError, Places, bounding_box
 
 _SECTIONS = {"version", "name", "planes", "cameras", "map", "places"}
 
@@ -91,7 +91,9 @@ def _parse(text: str, path: Path) -> Any:
         try:
             return json.loads(text)
         except json.JSONDecodeError as error:
-            raise AnalyticsError(f"{path} is not valid JSON: {error.msg} (line {error.lineno}).")
+            raise AnalyticsError(
+                f"{path} is not valid JSON: {error.msg} (line {error.lineno})."
+            ) from None
     import yaml
 
     try:

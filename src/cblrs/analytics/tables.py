@@ -252,7 +252,7 @@ def write_result(result: AnalyticsResult, out: str | Path) -> list[Path]:
                    header="person-seconds per cell; row 0 = lowest y (see analytics.json)")
         written.append(path)
     path = out / "analytics.json"
-    path.write_text(json.dumps(_json_safe(result.to_json()), indent=1) + "\n")
+    path.write_text(json.dumps(json_safe(result.to_json()), indent=1) + "\n")
     written.append(path)
     return written
 
@@ -263,12 +263,12 @@ def _cell(value: Any) -> Any:
     return value
 
 
-def _json_safe(value: Any) -> Any:
+def json_safe(value: Any) -> Any:
     """NaN and infinity become null (JSON has neither)."""
     if isinstance(value, float) and not math.isfinite(value):
         return None
     if isinstance(value, dict):
-        return {key: _json_safe(item) for key, item in value.items()}
+        return {key: json_safe(item) for key, item in value.items()}
     if isinstance(value, list | tuple):
-        return [_json_safe(item) for item in value]
+        return [json_safe(item) for item in value]
     return value

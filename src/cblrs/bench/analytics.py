@@ -18,27 +18,28 @@ from cblrs.analytics import Analytics, AnalyticsConfig, HeatmapGrid
 from cblrs.analytics.tables import analyse_tracks
 from cblrs.bench.machine import describe_machine, json_ready, machine_info
 from cblrs.detections import Tracks
-from cblrs.places import CountingLine, Places, Zone
+from cblrs.places import Places
 
 AREA_M = (60.0, 40.0)
 
 
 def bench_places() -> Places:
     """Four lines and four zones over the benchmark's 60 x 40 m square."""
-    return Places(
-        zones=(
-            Zone("north_west", [[2, 22], [28, 22], [28, 38], [2, 38]]),
-            Zone("north_east", [[32, 22], [58, 22], [58, 38], [32, 38]]),
-            Zone("south_west", [[2, 2], [28, 2], [28, 18], [2, 18]]),
-            Zone("centre", [[20, 12], [40, 12], [45, 20], [40, 28], [20, 28], [15, 20]]),
-        ),
-        lines=(
-            CountingLine("x15", (15, 0), (15, 40)),
-            CountingLine("x30", (30, 0), (30, 40)),
-            CountingLine("x45", (45, 0), (45, 40)),
-            CountingLine("y20", (0, 20), (60, 20)),
-        ),
-    )
+    return Places.from_dict({
+        "zones": [
+            {"name": "north_west", "polygon": [[2, 22], [28, 22], [28, 38], [2, 38]]},
+            {"name": "north_east", "polygon": [[32, 22], [58, 22], [58, 38], [32, 38]]},
+            {"name": "south_west", "polygon": [[2, 2], [28, 2], [28, 18], [2, 18]]},
+            {"name": "centre",
+             "polygon": [[20, 12], [40, 12], [45, 20], [40, 28], [20, 28], [15, 20]]},
+        ],
+        "lines": [
+            {"name": "x15", "start": [15, 0], "end": [15, 40]},
+            {"name": "x30", "start": [30, 0], "end": [30, 40]},
+            {"name": "x45", "start": [45, 0], "end": [45, 40]},
+            {"name": "y20", "start": [0, 20], "end": [60, 20]},
+        ],
+    })
 
 
 def crowd_tracks(
@@ -47,7 +48,7 @@ def crowd_tracks(
 ) -> Tracks:
     """``tracks`` walkers present at every instant, rows sorted by time."""
     rng = np.random.default_rng(seed)
-    times = np.arange(int(round(seconds * rate_hz))) / rate_hz
+    times = np.arange(round(seconds * rate_hz)) / rate_hz
     offset = rng.uniform(0, life_s, tracks)  # staggered births
     life = np.floor((times[:, None] + offset[None, :]) / life_s).astype(np.int64)  # (T, S)
     track_id = life * tracks + np.arange(tracks)[None, :] + 1
@@ -89,7 +90,7 @@ def benchmark_analytics(
     offline_s = time.perf_counter() - start
 
     engine = Analytics(places, config)
-    instants = int(round(min(online_minutes * 60.0, seconds) * rate_hz))
+    instants = round(min(online_minutes * 60.0, seconds) * rate_hz)
     per_update = np.empty(instants)
     for index in range(instants):
         chunk = rows[index * tracks:(index + 1) * tracks]
@@ -100,7 +101,7 @@ def benchmark_analytics(
     return json_ready({
         "machine": machine_info(),
         "tracks": tracks, "hours": hours, "rate_hz": rate_hz, "rows": len(rows),
-        "track_ids": int(len(np.unique(rows.track_id))),
+        "track_ids": len(np.unique(rows.track_id)),
         "lines": len(places.lines), "zones": len(places.zones),
         "generate_s": generate_s,
         "offline_s": offline_s,

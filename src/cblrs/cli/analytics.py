@@ -46,7 +46,8 @@ def register(subparsers) -> None:
                         help="exits shorter than this continue the visit "
                         f"(default {defaults.merge_gap_s:g} s)")
     parser.add_argument("--lost-after", type=float, default=defaults.lost_after_s, metavar="S",
-                        help=f"a track unseen this long has ended (default {defaults.lost_after_s:g} s)")
+                        help="a track unseen this long has ended "
+                        f"(default {defaults.lost_after_s:g} s)")
     parser.add_argument("--min-track", type=float, default=defaults.min_track_s, metavar="S",
                         help="tracks shorter-lived than this count nothing "
                         f"(default {defaults.min_track_s:g} s)")
@@ -77,7 +78,7 @@ def run(args: argparse.Namespace) -> int:
     print(f"{summary['rows']} rows, {summary['track_ids']} track ids, "
           f"{summary['seconds']:.1f} s on site {summary['site']}")
     if summary["lines"]:
-        rows = {}
+        rows: dict[str, dict[str, int]] = {}
         for row in summary["lines"]:
             rows.setdefault(row["line"], {})[row["direction"]] = row["count"]
         print(format_table(["line", "positive", "negative"],

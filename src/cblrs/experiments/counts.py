@@ -23,7 +23,7 @@ import logging
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -62,7 +62,7 @@ class CountsSetup:
     jitter: float = 0.05
     sites: Path | None = None
     wildtrack: Path | None = None
-    config: AnalyticsConfig = AnalyticsConfig()
+    config: AnalyticsConfig = field(default_factory=AnalyticsConfig)
 
 
 def find_sites(path: str | Path | None = None) -> Path:

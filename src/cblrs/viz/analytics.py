@@ -53,7 +53,9 @@ def draw_places(ax: Axes, places: Places, labels: bool = True) -> None:
         middle = (line.start + line.end) / 2
         assert line.direction is not None
         arrow = line.direction * min(1.5, 0.25 * line.length + 0.5)
-        ax.annotate("", xy=middle + arrow, xytext=middle,
+        tip = middle + arrow
+        ax.annotate("", xy=(float(tip[0]), float(tip[1])),
+                    xytext=(float(middle[0]), float(middle[1])),
                     arrowprops={"arrowstyle": "->", "color": LINE_COLOUR, "linewidth": 1.5})
         if labels:
             ax.text(line.end[0], line.end[1], f" {line.name} (+)", color=LINE_COLOUR,
@@ -143,7 +145,7 @@ def plot_dwell(result: AnalyticsResult, ax: Axes | None = None) -> Figure:
     if not values:
         ax.text(0.5, 0.5, "no visits", ha="center", va="center", transform=ax.transAxes)
     else:
-        edges = np.histogram_bin_edges(values, bins=min(30, max(5, len(values) // 3)))
+        edges = np.histogram_bin_edges(values, bins=min(30, max(5, len(values) // 3))).tolist()
         zones = [row["zone"] for row in result.zones]
         ax.hist([by_zone[zone] for zone in zones], bins=edges, label=zones,
                 color=[ZONE_COLOURS[zones.index(zone) % len(ZONE_COLOURS)] for zone in zones],

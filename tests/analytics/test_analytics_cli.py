@@ -1,0 +1,158 @@
+"""``cblrs analytics`` end to end on real WILDTRACK tracks, the site files, bad input."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from cblrs.analytics.site import load_site_places
+from cblrs.cli.main import main
+from cblrs.datasets import (
+    apply_track_metadata,
+    read_track_metadata,
+    read_tracks,
+    write_tracks,
+)
+from cblrs.detections import Tracks
+from cblrs.errors import DatasetError
+
+REPOSITORY = Path(__file__).resolve().parents[2]
+SITES = REPOSITORY / "sites"
+WILDTRACK = REPOSITORY.parent / "shared" / "data" / "wildtrack"
+needs_wildtrack = pytest.mark.skipif(
+    not (WILDTRACK / "calibrations").is_dir(), reason="WILDTRACK not found in ../shared/data"
+)
+
+
+@pytest.fixture(scope="module")
+def wildtrack_tracks(tmp_path_factory) -> Path:
+    if not (WILDTRACK / "calibrations").is_dir():
+        pytest.skip("WILDTRACK not found in ../shared/data")
+    path = tmp_path_factory.mktemp("tracks") / "tracks.txt"
+    assert main(["track", str(WILDTRACK), "--out", str(path), "--quiet"]) == 0
+    return path
+
+
+@needs_wildtrack
+def test_analytics_on_wildtrack_writes_tables_and_pictures(wildtrack_tracks, tmp_path, capsys):
+    out = tmp_path / "out"
+    code = main(["analytics", str(wildtrack_tracks), "--site", str(SITES / "wildtrack.yaml"),
+                 "--out", str(out), "--json"])
+    assert code == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["frames_per_second"] == 10.0 and summary["classes_known"]
+    north = {row["direction"]: row["count"] for row in summary["lines"]
+             if row["line"] == "north_flow"}
+    assert north["positive"] > 80  # the main flow walks north-west through this line
+    names = {path.name for path in out.iterdir()}
+    assert {"lines.csv", "zones.csv", "od.csv", "crossings.csv", "visits.csv", "occupancy.csv",
+            "counts_over_time.csv", "heatmap.csv", "analytics.json", "places.png",
+            "counts_over_time.png", "dwell.png", "heatmap.png", "od.png"} <= names
+    for name in ("heatmap.png", "od.png", "counts_over_time.png"):
+        image = cv2.imread(str(out / name))
+        assert image is not None and image.shape[0] > 200 and image.std() > 5
+    crossings = (out / "crossings.csv").read_text().splitlines()
+    assert crossings[0] == "timestamp_s,line,track_id,direction,class,x_m,y_m"
+    assert len(crossings) - 1 == sum(row["count"] for row in summary["lines"])
+    assert "person" in crossings[1]
+
+
+def test_the_checked_in_site_files_load_with_places():
+    for path in sorted(SITES.glob("*.yaml")):
+        site = load_site_places(path)
+        assert site.name == path.stem and len(site.places) and site.planes, path
+
+
+def run_cli(args: list[str], capsys) -> tuple[int, str]:
+    code = main(args)
+    return code, capsys.readouterr().err
+
+
+def small_tracks(tmp_path: Path, shift: float = 0.0, rate: float | None = 10.0) -> Path:
+    x = np.linspace(-2, 8, 30) + shift
+    tracks = Tracks(np.arange(30), np.arange(30) / 10.0, np.ones(30, int),
+                    np.c_[x, np.full(30, 17.0 + shift)], class_id=np.zeros(30, int))
+    path = tmp_path / "t.txt"
+    write_tracks(path, tracks, frames_per_second=rate)
+    return path
+
+
+@pytest.mark.parametrize(
+    ("case", "message"),
+    [
+        ("no places", "has no places, so there is nothing to count"),
+        ("other site", "lie outside every plane of site wildtrack: are these tracks from another"),
+        ("missing tracks", "does not exist"),
+        ("garbage tracks", "expected 9 columns"),
+        ("no rate", "carries no frame rate"),
+        ("stale sidecar", "belongs to another version of t.txt"),
+        ("bad yaml", "is not valid YAML"),
+        ("unknown key", "colour: unknown key"),
+    ],
+)
+def test_bad_input_gets_one_sentence_and_a_non_zero_exit(case, message, tmp_path, capsys):
+    site = SITES / "wildtrack.yaml"
+    tracks = small_tracks(tmp_path)
+    if case == "no places":
+        site = tmp_path / "empty.yaml"
+        site.write_text("version: 1\nname: empty\n")
+    elif case == "other site":
+        tracks = small_tracks(tmp_path, shift=1000.0)
+    elif case == "missing tracks":
+        tracks = tmp_path / "missing.txt"
+    elif case == "garbage tracks":
+        tracks = tmp_path / "garbage.txt"
+        tracks.write_text("this is not a tracks file\n")
+    elif case == "no rate":
+        tracks = small_tracks(tmp_path, rate=None)
+        tracks.with_name("t.txt.meta.json").unlink()
+    elif case == "stale sidecar":
+        tracks.write_text(tracks.read_text().replace("17.0000", "17.5000", 1))
+    elif case == "bad yaml":
+        site = tmp_path / "bad.yaml"
+        site.write_text("version: 1\nplaces: {zones: [\n")
+    elif case == "unknown key":
+        site = tmp_path / "extra.yaml"
+        site.write_text("version: 1\ncolour: red\nplaces: {lines: []}\n")
+    code, err = run_cli(["analytics", str(tracks), "--site", str(site), "--out",
+                         str(tmp_path / "out")], capsys)
+    assert code != 0
+    assert message in err
+    assert "Traceback" not in err and len(err.strip().splitlines()) == 1
+
+
+def test_no_sidecar_but_fps_given_works_without_classes(tmp_path, capsys):
+    tracks = small_tracks(tmp_path, rate=None)
+    tracks.with_name("t.txt.meta.json").unlink()
+    code = main(["analytics", str(tracks), "--site", str(SITES / "wildtrack.yaml"), "--out",
+                 str(tmp_path / "out"), "--fps", "10", "--json", "--no-plots"])
+    assert code == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert not summary["classes_known"]
+    assert not (tmp_path / "out" / "heatmap.png").exists()
+
+
+def test_the_sidecar_round_trips_classes_and_rate_and_the_text_file_is_unchanged(tmp_path):
+    tracks = Tracks(np.array([0, 0, 5, 5]), np.zeros(4), np.array([1, 2, 1, 2]),
+                    np.zeros((4, 2)), class_id=np.array([0, 1, 0, -1]))
+    path = tmp_path / "t.txt"
+    write_tracks(path, tracks, frames_per_second=10.0)
+    assert all(len(line.split()) == 9 for line in path.read_text().splitlines())
+    metadata = read_track_metadata(path)
+    assert metadata is not None and metadata.frames_per_second == 10.0
+    assert metadata.classes == {1: 0, 2: 1}
+    loaded = apply_track_metadata(read_tracks(path), metadata)
+    assert loaded.class_id.tolist() == [0, 1, 0, 1]
+    write_tracks(path, Tracks(np.zeros(1), np.zeros(1), np.ones(1), np.zeros((1, 2))))
+    assert read_track_metadata(path) is None  # no classes, no rate: the old sidecar goes
+
+
+def test_a_sidecar_that_is_not_one_is_refused(tmp_path):
+    path = small_tracks(tmp_path)
+    path.with_name("t.txt.meta.json").write_text('{"schema": "other"}')
+    with pytest.raises(DatasetError, match=r"is not a cblrs\.tracks-meta/1 sidecar"):
+        read_track_metadata(path)
