@@ -145,14 +145,16 @@ class Zone:
             (N,) float64 metres.
         """
         points = np.asarray(world_xy, dtype=np.float64).reshape(-1, 2)
-        start = self.polygon[None, :, :]
-        edge = np.roll(self.polygon, -1, axis=0)[None, :, :] - start
-        offset = points[:, None, :] - start
-        fraction = np.clip(
-            np.sum(offset * edge, axis=2) / np.sum(edge * edge, axis=2), 0.0, 1.0
-        )
-        gap = offset - fraction[:, :, None] * edge
-        distance = np.sqrt(np.min(np.sum(gap * gap, axis=2), axis=1))
+        x, y = points[:, 0], points[:, 1]
+        nearest = np.full(len(points), np.inf)
+        # One edge at a time, vectorised over the points: no (N, edges, 2) temporaries.
+        for (ax, ay), (bx, by) in zip(self.polygon, np.roll(self.polygon, -1, axis=0),
+                                      strict=True):
+            ex, ey = bx - ax, by - ay
+            fraction = np.clip(((x - ax) * ex + (y - ay) * ey) / (ex * ex + ey * ey), 0.0, 1.0)
+            gap_x, gap_y = x - ax - fraction * ex, y - ay - fraction * ey
+            np.minimum(nearest, gap_x * gap_x + gap_y * gap_y, out=nearest)
+        distance = np.sqrt(nearest)
         return np.where(self.contains(points), distance, -distance)
 
     def to_dict(self) -> dict[str, Any]:

@@ -337,9 +337,11 @@ class Analytics:
         with np.errstate(divide="ignore", invalid="ignore"):
             fraction = np.where(crossing, d0 / (d0 - d1), 0.0)
         zc_t = time[previous][:, None] + fraction * (time - time[previous])[:, None]
-        step = (xy - xy[previous])[:, None, :]
-        zc_xy = xy[previous][:, None, :] + fraction[:, :, None] * step  # (N, L, 2)
-        zc_along = np.sum((zc_xy - self._line_start[None]) * self._line_along[None], axis=2)
+        # Position along each line is linear in the point, so interpolate it directly.
+        along = (xy @ self._line_along.T) - np.sum(
+            self._line_start * self._line_along, axis=1
+        )[None, :]
+        zc_along = along[previous] + fraction * (along - along[previous])
         crossing[virtual] = self._line_zc[slots]
         zc_t[virtual] = self._line_zc_t[slots]
         zc_along[virtual] = self._line_zc_along[slots]
