@@ -156,3 +156,16 @@ def test_a_sidecar_that_is_not_one_is_refused(tmp_path):
     path.with_name("t.txt.meta.json").write_text('{"schema": "other"}')
     with pytest.raises(DatasetError, match=r"is not a cblrs\.tracks-meta/1 sidecar"):
         read_track_metadata(path)
+
+
+@pytest.mark.parametrize("matcher", ["fusion", "paper"])
+def test_both_matchers_report_the_class_of_their_detections(matcher):
+    from cblrs.datasets.synthetic import make_scene
+    from cblrs.detections import class_id_of
+    from cblrs.pipeline import track_scene
+
+    scene = make_scene("plaza", duration_s=8.0)
+    tracks = track_scene(scene, matcher).tracks
+    assert set(tracks.class_id.tolist()) <= {class_id_of("person"), class_id_of("car")}
+    assert class_id_of("person") in tracks.class_id
+    assert set(scene.ground_truth.class_id.tolist()) >= {class_id_of("person")}

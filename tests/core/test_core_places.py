@@ -106,3 +106,20 @@ def test_places_round_trip_through_dict():
 def test_places_from_dict_errors_name_the_path(data, message):
     with pytest.raises(PlaceError, match=re.escape(message)):
         Places.from_dict(data)
+
+
+def test_zone_hysteresis_round_trips_and_is_validated():
+    places = Places.from_dict(
+        {"zones": [{"name": "a", "polygon": [[0, 0], [1, 0], [1, 1]], "hysteresis_m": 0.25}]}
+    )
+    assert places.zones[0].hysteresis_m == 0.25
+    assert Places.from_dict(places.to_dict()).to_dict() == places.to_dict()
+    with pytest.raises(PlaceError, match="zone 'a': hysteresis_m must be a number >= 0"):
+        Zone("a", [[0, 0], [1, 0], [1, 1]], hysteresis_m=-1.0)
+
+
+def test_zone_signed_distance_is_positive_inside_and_measured_to_the_nearest_edge():
+    square = Zone("s", [[0, 0], [4, 0], [4, 4], [0, 4]])
+    distance = square.signed_distance([[1, 2], [2, 2], [-1, 2], [6, 7], [2, 0]])
+    assert distance[:4] == pytest.approx([1.0, 2.0, -1.0, -np.hypot(2, 3)])
+    assert abs(distance[4]) < 1e-12
