@@ -169,3 +169,28 @@ def test_both_matchers_report_the_class_of_their_detections(matcher):
     assert set(tracks.class_id.tolist()) <= {class_id_of("person"), class_id_of("car")}
     assert class_id_of("person") in tracks.class_id
     assert set(scene.ground_truth.class_id.tolist()) >= {class_id_of("person")}
+
+
+def test_the_heatmap_is_drawn_over_the_site_map(tmp_path, capsys):
+    plan = np.full((400, 200, 3), 235, np.uint8)
+    cv2.rectangle(plan, (40, 40), (160, 360), (90, 160, 90), -1)  # a lawn
+    cv2.imwrite(str(tmp_path / "plan.png"), plan)
+    places = (SITES / "wildtrack.yaml").read_text().split("places:", 1)[1]
+    (tmp_path / "site.yaml").write_text(
+        "version: 1\nname: mapped\n"
+        "map: {image: plan.png, metres_per_pixel: 0.1, origin_px: [50, 290], y_up: true}\n"
+        "places:" + places
+    )
+    tracks = small_tracks(tmp_path)
+    with_map, without_map = tmp_path / "with", tmp_path / "without"
+    for site, out in ((tmp_path / "site.yaml", with_map), (SITES / "wildtrack.yaml", without_map)):
+        assert main(["analytics", str(tracks), "--site", str(site), "--out", str(out),
+                     "--quiet"]) == 0
+    capsys.readouterr()
+    mapped = cv2.imread(str(with_map / "heatmap.png"))
+    plain = cv2.imread(str(without_map / "heatmap.png"))
+    assert mapped is not None and plain is not None
+    lawn = np.array([90, 160, 90])  # BGR, blended with alpha 0.6 over white
+    blended = 0.6 * lawn + 0.4 * 255
+    assert (np.abs(mapped.astype(float) - blended).sum(axis=2) < 40).sum() > 1000
+    assert (np.abs(plain.astype(float) - blended).sum(axis=2) < 40).sum() < 100

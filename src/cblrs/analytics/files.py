@@ -11,7 +11,12 @@ from typing import Any
 import numpy as np
 
 from cblrs.analytics.config import AnalyticsConfig, AnalyticsError, HeatmapGrid
-from cblrs.analytics.site import check_tracks_on_site, load_site_places, site_extent
+from cblrs.analytics.site import (
+    SitePlaces,
+    check_tracks_on_site,
+    load_site_places,
+    site_extent,
+)
 from cblrs.analytics.tables import AnalyticsResult, analyse_tracks, json_safe, write_result
 from cblrs.datasets.aicity import apply_track_metadata, read_track_metadata, read_tracks
 
@@ -90,7 +95,7 @@ def analyse_file(
     result = analyse_tracks(tracks, site.places, config)
     files = write_result(result, out)
     if plots:
-        files += write_plots(result, site.places, tracks, config, out)
+        files += write_plots(result, site.places, tracks, config, out, site)
     summary = {
         "tracks": str(tracks_path),
         "site": site.name or str(site_path),
@@ -120,7 +125,8 @@ def _heatmap_bounds(site, tracks) -> tuple[float, float, float, float]:
 
 
 def write_plots(
-    result: AnalyticsResult, places, tracks, config: AnalyticsConfig, out: str | Path
+    result: AnalyticsResult, places, tracks, config: AnalyticsConfig, out: str | Path,
+    site: SitePlaces | None = None,
 ) -> list[Path]:
     """counts_over_time.png, dwell.png, heatmap.png, od.png (two zones or more), places.png."""
     from cblrs.viz.analytics import (
@@ -139,7 +145,15 @@ def write_plots(
     if places.zones:
         figures["dwell.png"] = plot_dwell(result)
     if config.heatmap is not None:
-        figures["heatmap.png"] = plot_heatmap(result, config.heatmap, places)
+        background = None
+        if site is not None and site.map_image is not None and site.map_extent is not None:
+            import cv2
+
+            picture = cv2.imread(str(site.map_image), cv2.IMREAD_COLOR)
+            if picture is not None:
+                background = (cv2.cvtColor(picture, cv2.COLOR_BGR2RGB), site.map_extent)
+        figures["heatmap.png"] = plot_heatmap(result, config.heatmap, places,
+                                              site_map=background)
     if len(places.zones) >= 2:
         figures["od.png"] = plot_od(result)
     written = []

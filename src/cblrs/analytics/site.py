@@ -1,27 +1,20 @@
-"""The parts of a site file the analytics need: name, planes' extents and places.
+"""What the analytics read from a site file, and the check that tracks belong to it.
 
-STOPGAP, to be replaced at merge: ``cblrs.site.load_site`` (the site schema, written in
-parallel) reads and validates the whole file. Until it is on main, :func:`load_site_places`
-reads only ``version``, ``name``, ``planes`` (extent) and ``places`` of the agreed layout
-(YAML or JSON; ``cameras`` and ``map`` are accepted and left to the full loader). At merge,
-build :class:`SitePlaces` from ``load_site(path)`` (``site.name``, ``site.planes``,
-``site.places``) and delete the reader below.
+The site file itself is read and validated by :func:`cblrs.site.load_site`; here it is
+reduced to what counting needs: the name, the places, the planes' extents (the heatmap grid
+and the "tracks from another site" check) and the site map (drawn under the heatmap).
 """
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
 from cblrs.analytics.config import AnalyticsError
 from cblrs.detections import Tracks
-from cblrs.places import PlaceError, Places, bounding_box
-
-_SECTIONS = {"version", "name", "planes", "cameras", "map", "places"}
+from cblrs.places import Places, bounding_box
 
 Bounds = tuple[float, float, float, float]
 
@@ -35,73 +28,44 @@ class SitePlaces:
         places: its zones and counting lines.
         planes: (x_min, y_min, x_max, y_max) metres of each plane; empty without planes.
         source: the file it came from.
+        map_image: the site map's image file, if the site has one.
+        map_extent: (x_min, x_max, y_min, y_max) metres the map image covers (``imshow``).
     """
 
     name: str
     places: Places
     planes: tuple[Bounds, ...]
     source: str
+    map_image: Path | None = None
+    map_extent: tuple[float, float, float, float] | None = None
 
 
 def load_site_places(path: str | Path) -> SitePlaces:
-    """Read a site file's name, plane extents and places.
+    """Read a site file (:func:`cblrs.site.load_site`) for the analytics.
 
     Raises:
-        AnalyticsError: missing or unreadable file, not YAML/JSON, wrong version, unknown
-            top-level key, malformed planes or places (one sentence naming the file).
+        cblrs.site.SiteError: the file is missing, malformed or invalid (one sentence).
     """
-    path = Path(path)
-    try:
-        text = path.read_text()
-    except FileNotFoundError:
-        raise AnalyticsError(f"site file {path} does not exist.") from None
-    except (OSError, UnicodeDecodeError) as error:
-        raise AnalyticsError(f"cannot read site file {path}: {error}.") from None
-    document = _parse(text, path)
-    if not isinstance(document, dict):
-        raise AnalyticsError(f"{path}: a site file is a mapping with version: 1 and sections.")
-    unknown = sorted(set(document) - _SECTIONS)
-    if unknown:
-        raise AnalyticsError(
-            f"{path}: {unknown[0]}: unknown key (allowed: {', '.join(sorted(_SECTIONS))})."
-        )
-    if document.get("version") != 1:
-        raise AnalyticsError(f"{path}: version must be 1, got {document.get('version')!r}.")
-    planes = []
-    for index, plane in enumerate(document.get("planes") or []):
-        try:
-            (x, y), (width, length) = plane["origin"], plane["size"]
-            bounds = (float(x), float(y), float(x) + float(width), float(y) + float(length))
-        except (KeyError, TypeError, ValueError):
-            raise AnalyticsError(
-                f"{path}: planes[{index}] needs origin: [x, y] and size: [width, length]."
-            ) from None
-        if not (bounds[2] > bounds[0] and bounds[3] > bounds[1]):
-            raise AnalyticsError(f"{path}: planes[{index}] needs a positive size.")
-        planes.append(bounds)
-    try:
-        places = Places.from_dict(document.get("places") or {})
-    except PlaceError as error:
-        raise AnalyticsError(f"{path}: {error}") from None
-    return SitePlaces(str(document.get("name") or ""), places, tuple(planes), str(path))
+    from cblrs.site import load_site
 
+    site = load_site(path)
+    planes = tuple(
+        (plane.origin[0], plane.origin[1], plane.origin[0] + plane.width,
+         plane.origin[1] + plane.length)
+        for plane in (site.planes or [])
+    )
+    image, extent = None, None
+    if site.map is not None and site.map.image is not None and site.map.image.is_file():
+        import cv2
 
-def _parse(text: str, path: Path) -> Any:
-    if path.suffix.lower() == ".json":
-        try:
-            return json.loads(text)
-        except json.JSONDecodeError as error:
-            raise AnalyticsError(
-                f"{path} is not valid JSON: {error.msg} (line {error.lineno})."
-            ) from None
-    import yaml
-
-    try:
-        return yaml.safe_load(text)
-    except yaml.YAMLError as error:
-        mark = getattr(error, "problem_mark", None)
-        where = f" (line {mark.line + 1})" if mark is not None else ""
-        raise AnalyticsError(f"{path} is not valid YAML{where}.") from None
+        picture = cv2.imread(str(site.map.image), cv2.IMREAD_UNCHANGED)
+        if picture is not None:
+            height, width = picture.shape[:2]
+            corners = site.map.to_world(np.array([[0.0, 0.0], [width, height]]))
+            image = site.map.image
+            extent = (float(corners[0, 0]), float(corners[1, 0]),
+                      float(corners[1, 1]), float(corners[0, 1]))
+    return SitePlaces(site.name or "", site.places, planes, str(path), image, extent)
 
 
 def site_extent(site: SitePlaces) -> Bounds:

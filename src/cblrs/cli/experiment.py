@@ -1,5 +1,5 @@
-"""``cblrs experiment``: the paper's experiments rerun — targeting (IV-B) and resolution —
-and the count accuracy of the analytics (counts).
+"""``cblrs experiment``: the paper's experiments rerun — targeting (IV-B), resolution, clicked
+calibration — and the count accuracy of the analytics (counts).
 
 Each prints a markdown table (or ``--json``); ``--out DIR`` also writes
 ``DIR/experiment_<name>.json``, ``.md`` and the figures.
@@ -18,8 +18,8 @@ from cblrs.cli.common import UsageError, add_output_options, print_json
 def register(subparsers) -> None:
     parser = subparsers.add_parser(
         "experiment",
-        help="rerun the paper's experiments: targeting (IV-B), resolution; clicked calibration",
-        help="rerun the paper's experiments: targeting (IV-B), resolution; count accuracy",
+        help="rerun the paper's experiments: targeting (IV-B), resolution; clicked "
+        "calibration; count accuracy",
         description="Rerun the paper's experiments on the synthetic world and WILDTRACK.",
     )
     kinds = parser.add_subparsers(dest="experiment", metavar="EXPERIMENT")

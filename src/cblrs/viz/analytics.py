@@ -160,14 +160,21 @@ def plot_dwell(result: AnalyticsResult, ax: Axes | None = None) -> Figure:
 
 def plot_heatmap(
     result: AnalyticsResult, grid: HeatmapGrid, places: Places | None = None,
-    ax: Axes | None = None,
+    ax: Axes | None = None, site_map: tuple[np.ndarray, tuple[float, float, float, float]]
+    | None = None,
 ) -> Figure:
-    """Person-seconds per cell on the metric grid, places drawn on top."""
+    """Person-seconds per cell on the metric grid, places drawn on top.
+
+    Args:
+        site_map: ``(RGB image, (x_min, x_max, y_min, y_max) metres)`` drawn underneath.
+    """
     figure, ax = _axes(ax, (6.0, 7.5))
     heat = result.heatmap if result.heatmap is not None else np.zeros(grid.shape)
     shown = np.ma.masked_where(heat <= 0, heat)
+    if site_map is not None:
+        ax.imshow(site_map[0], extent=site_map[1], origin="upper", alpha=0.6)
     image = ax.imshow(shown, origin="lower", extent=grid.extent, cmap="inferno_r",
-                      interpolation="nearest")
+                      interpolation="nearest", alpha=0.85 if site_map is not None else 1.0)
     figure.colorbar(image, ax=ax, label=f"person-seconds per {grid.cell_m:g} m cell",
                     shrink=0.8)
     if places is not None:
