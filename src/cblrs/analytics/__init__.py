@@ -15,14 +15,22 @@ from cblrs.analytics.config import (
     ZoneLeft,
 )
 from cblrs.analytics.engine import Analytics
+from cblrs.analytics.site import SitePlaces, check_tracks_on_site, load_site_places
+from cblrs.analytics.tables import AnalyticsResult, analyse_tracks, write_result
 
 __all__ = [
     "Analytics",
     "AnalyticsConfig",
     "AnalyticsError",
+    "AnalyticsResult",
     "Event",
     "HeatmapGrid",
     "LineCrossing",
+    "SitePlaces",
     "ZoneEntered",
     "ZoneLeft",
+    "analyse_tracks",
+    "check_tracks_on_site",
+    "load_site_places",
+    "write_result",
 ]
