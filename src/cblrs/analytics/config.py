@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 from dataclasses import asdict, dataclass
 from typing import Any
@@ -213,3 +214,27 @@ class ZoneLeft:
 
 
 Event = LineCrossing | ZoneEntered | ZoneLeft
+
+
+def event_to_dict(event: Event) -> dict[str, Any]:
+    """An event as a JSON-ready dict with its ``kind`` (e.g. for a message payload)."""
+    data = asdict(event)
+    data["kind"] = event.kind
+    return data
+
+
+def event_from_dict(data: dict[str, Any]) -> Event:
+    """The event of :func:`event_to_dict`."""
+    values = dict(data)
+    kind = values.pop("kind")
+    if kind == LineCrossing.kind:
+        values["world_xy"] = tuple(values["world_xy"])
+        return LineCrossing(**values)
+    if kind == ZoneEntered.kind:
+        return ZoneEntered(**values)
+    return ZoneLeft(**values)
+
+
+def json_round_trip(data: Any) -> Any:
+    """What ``data`` looks like after a JSON round trip (tuples become lists)."""
+    return json.loads(json.dumps(data))

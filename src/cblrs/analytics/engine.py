@@ -46,6 +46,9 @@ from cblrs.analytics.config import (
     LineCrossing,
     ZoneEntered,
     ZoneLeft,
+    event_from_dict,
+    event_to_dict,
+    json_round_trip,
 )
 from cblrs.detections import CLASS_NAMES, Tracks
 from cblrs.places import Places
@@ -586,7 +589,7 @@ class Analytics:
             "clock": None if math.isinf(self.clock) else self.clock,
             "slots": {name: getattr(self, name).tolist() for name in self._SLOT_ARRAYS},
             "confirmed": [[track, value] for track, value in self._confirmed.items()],
-            "held": [[track, [_event_dict(event) for event in events]]
+            "held": [[track, [event_to_dict(event) for event in events]]
                      for track, events in self._held.items()],
             "open": [[*key, asdict(visit)] for key, visit in self._open.items()],
             "pending": [[*key, asdict(visit)] for key, visit in self._pending.items()],
@@ -598,7 +601,7 @@ class Analytics:
             "zone_bins": [[*key, value] for key, value in self.zone_bins.items()],
             "zone_entries": [[*key, value] for key, value in self.zone_entries.items()],
             "zone_appeared": [[*key, value] for key, value in self.zone_appeared.items()],
-            "visits": [_event_dict(event) for event in self.visits],
+            "visits": [event_to_dict(event) for event in self.visits],
             "occupancy_seconds": [[*key, value] for key, value in self.occupancy_seconds.items()],
             "od": [[*key, value] for key, value in self.od.items()],
             "od_unpaired": [[key, value] for key, value in self.od_unpaired.items()],
@@ -614,9 +617,9 @@ class Analytics:
         """
         if not isinstance(state, dict) or state.get("version") != STATE_VERSION:
             raise AnalyticsError(f"not a saved analytics state (expected {STATE_VERSION}).")
-        if state.get("places") != _plain(self.places.to_dict()):
+        if state.get("places") != json_round_trip(self.places.to_dict()):
             raise AnalyticsError("the saved analytics state is for other places.")
-        if state.get("config") != _plain(self.config.to_dict()):
+        if state.get("config") != json_round_trip(self.config.to_dict()):
             raise AnalyticsError("the saved analytics state was made with other settings.")
         try:
             self.reset()
@@ -627,7 +630,7 @@ class Analytics:
                 setattr(self, name, value.reshape((-1, *template.shape[1:])))
             self._slot = {int(track): slot for slot, track in enumerate(self._ids.tolist())}
             self._confirmed = {int(track): bool(value) for track, value in state["confirmed"]}
-            self._held = {int(track): [_event_from(item) for item in events]
+            self._held = {int(track): [event_from_dict(item) for item in events]
                           for track, events in state["held"]}
             self._open = {(int(t), int(z)): _Visit(**visit) for t, z, visit in state["open"]}
             self._pending = {(int(t), int(z)): _Visit(**visit)
@@ -642,7 +645,7 @@ class Analytics:
                     table[tuple(item[:width])] = item[width]
             for key, value in state["od_unpaired"]:
                 self.od_unpaired[key] = int(value)
-            self.visits = [_event_from(item) for item in state["visits"]]  # type: ignore[misc]
+            self.visits = [event_from_dict(item) for item in state["visits"]]  # type: ignore[misc]
             self.heatmap = np.asarray(state["heatmap"], np.float64).reshape(self.heatmap.shape)
             self.heatmap_outside_s = float(state["heatmap_outside_s"])
         except (KeyError, TypeError, ValueError) as error:
@@ -677,27 +680,3 @@ def _fill_index(valid: BoolArray, boundary: BoolArray) -> IntArray:
 def _left(zone: str, track: int, visit: _Visit) -> ZoneLeft:
     return ZoneLeft(zone, track, visit.start, visit.end, visit.end - visit.start, visit.crossed,
                     visit.exited, visit.class_id)
-
-
-def _event_dict(event: Event) -> dict[str, Any]:
-    data = asdict(event)
-    data["kind"] = event.kind
-    return data
-
-
-def _event_from(data: dict[str, Any]) -> Event:
-    values = dict(data)
-    kind = values.pop("kind")
-    if kind == LineCrossing.kind:
-        values["world_xy"] = tuple(values["world_xy"])
-        return LineCrossing(**values)
-    if kind == ZoneEntered.kind:
-        return ZoneEntered(**values)
-    return ZoneLeft(**values)
-
-
-def _plain(data: Any) -> Any:
-    """What ``data`` looks like after a JSON round trip (tuples become lists)."""
-    import json
-
-    return json.loads(json.dumps(data))
