@@ -285,6 +285,8 @@ class NatsTransport:
         self.refused_publishes = 0
         """Stream publishes refused for good (e.g. a stream limit); retried ones don't count."""
         self.lease_lost = False
+        self._lease_paused = False
+        self._held: list[_Incoming] = []
         self._handlers = _HandlerTable()
         self._bound: list[str] = []  # filters served by the durable consumer
         self._core: dict[str, Any] = {}  # filter -> NATS subscription (None until connected)
@@ -455,6 +457,10 @@ class NatsTransport:
         if loop is None:
             return
         if thread is not None and thread is not threading.current_thread():
+            try:
+                asyncio.run_coroutine_threadsafe(_cancel_tasks(), loop).result(5)
+            except Exception:  # stopping anyway
+                pass
             loop.call_soon_threadsafe(loop.stop)
             thread.join(5)
             loop.close()
@@ -506,9 +512,19 @@ class NatsTransport:
         self._js = self._nc.jetstream(timeout=settings.publish_timeout_s * 2)
         self._connected_at = time.time()
         self._connected.set()
-        await self._ensure_streams()
-        if self.lease is not None:
-            await self._acquire_lease()
+        try:
+            await self._ensure_streams()
+            if self.lease is not None:
+                await self._acquire_lease()
+        except BaseException as error:
+            await self._nc.close()
+            self._nc = None
+            if isinstance(error, TransportError):
+                raise
+            raise TransportError(
+                f"{self.client_id}: NATS JetStream did not answer ({error or type(error).__name__}"
+                "); is JetStream enabled and does the cluster have a leader?"
+            ) from None
         self._publishes = asyncio.Queue()
         self._senders = [asyncio.get_running_loop().create_task(self._send_publishes())
                          for _ in range(max(1, settings.publish_window))]
@@ -668,9 +684,12 @@ class NatsTransport:
         retain = topic.endswith("/status") and stamp < self._connected_at
         if self.lease_lost:
             return
-        self._handlers.dispatch(_Incoming(
-            topic, msg.data, delivered > 1, retain, 1,
-            functools.partial(self._queue_ack, reply), None))
+        item = _Incoming(topic, msg.data, delivered > 1, retain, 1,
+                         functools.partial(self._queue_ack, reply), None)
+        if self._lease_paused:
+            self._held.append(item)
+        else:
+            self._handlers.dispatch(item)
 
     def _queue_ack(self, reply: str) -> None:
         """Acknowledge (any thread): queued, sent in batches by the loop."""
@@ -793,23 +812,43 @@ class NatsTransport:
         while not self._closing:
             await asyncio.sleep(lease.ttl_s / 3)
             try:
-                self._lease_revision = await self._lease_kv.update(
-                    lease.key, value, last=self._lease_revision)
+                try:
+                    self._lease_revision = await self._lease_kv.update(
+                        lease.key, value, last=self._lease_revision)
+                except KeyWrongLastSequenceError:
+                    # Our entry expired while the cluster was out of reach: take it again
+                    # only if nobody has written the key since (expected last revision 0).
+                    self._lease_revision = await self._lease_kv.update(lease.key, value, last=0)
+                    logger.warning("%s: %s had expired while out of reach; taken again",
+                                   self.client_id, lease.key)
                 last_renewal = time.monotonic()
+                self._resume_deliveries()
             except KeyWrongLastSequenceError:
-                self._lose_lease(f"{lease.key} was taken over by another matcher")
+                self._lose_lease(f"{lease.what or lease.key} was taken over by another matcher")
                 return
             except asyncio.CancelledError:
                 raise
             except Exception as error:
-                if time.monotonic() - last_renewal > lease.ttl_s:
-                    self._lose_lease(f"{lease.key} could not be renewed for {lease.ttl_s:g} s "
-                                     f"({error or type(error).__name__})")
-                    return
+                if time.monotonic() - last_renewal > lease.ttl_s and not self._lease_paused:
+                    # Another matcher could hold the plane now: hold deliveries until the
+                    # lease is ours again (or lost).
+                    self._lease_paused = True
+                    logger.warning("%s: lease not renewed for %.0f s (%s); holding deliveries",
+                                   self.client_id, lease.ttl_s, error or type(error).__name__)
+
+    def _resume_deliveries(self) -> None:
+        if not self._lease_paused:
+            return
+        self._lease_paused = False
+        held, self._held = self._held, []
+        logger.info("%s: lease renewed; delivering %d held messages", self.client_id, len(held))
+        for item in held:
+            self._handlers.dispatch(item)
 
     def _lose_lease(self, reason: str) -> None:
         self.lease_lost = True
         self._acks.clear()
+        self._held.clear()
         logger.error("%s: lost the lease: %s; no more deliveries", self.client_id, reason)
         if self.on_failure is not None:
             self.on_failure(f"lost the plane lease: {reason}.")
@@ -817,6 +856,14 @@ class NatsTransport:
 
 def _no_ack() -> None:
     pass
+
+
+async def _cancel_tasks() -> None:
+    """Cancel every other task of the loop (nats-py's readers, flushers, subscriptions)."""
+    tasks = [task for task in asyncio.all_tasks() if task is not asyncio.current_task()]
+    for task in tasks:
+        task.cancel()
+    await asyncio.gather(*tasks, return_exceptions=True)
 
 
 def _ack_metadata(reply: str) -> tuple[int, float]:
