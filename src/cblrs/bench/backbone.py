@@ -133,7 +133,7 @@ def _subscribe(kind: str, address: str, ready: Any, stop: Any, results: Any) -> 
     decoder = msgspec.json.Decoder(_Update)
     latencies: list[float] = []
 
-    def arrived(payload: bytes) -> None:
+    def arrived(payload: bytes | bytearray) -> None:
         now = time.time()
         update = decoder.decode(payload)
         if update.tracks:

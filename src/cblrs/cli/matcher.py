@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import functools
 import gc
 import json
 import logging
@@ -208,7 +209,7 @@ def run(args: argparse.Namespace) -> int:
         rebuild = store.released_timestamp() is None and not store.status_counts()
         transport = matcher_transport(
             args, matcher_id, plane_id, rebuild=rebuild, will=will,
-            on_failure=lambda reason: (failures.append(reason), stop.set()),
+            on_failure=functools.partial(_failed, failures, stop),
         )
     else:
         transport = MqttTransport(matcher_id, mqtt_settings(args), persistent=True, will=will)
@@ -271,6 +272,12 @@ def run(args: argparse.Namespace) -> int:
         print(f"cblrs matcher: error: {failures[0]}", file=sys.stderr)
         return 1
     return 0
+
+
+def _failed(failures: list[str], stop: threading.Event, reason: str) -> None:
+    """The transport failed for good (e.g. lost the plane's lease): record it and stop."""
+    failures.append(reason)
+    stop.set()
 
 
 def site_positions(site: Any, names: list[str]) -> dict[str, tuple[float, float, float]]:

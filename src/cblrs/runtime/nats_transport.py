@@ -496,7 +496,7 @@ class NatsTransport:
                 user=settings.username,
                 password=settings.password,
                 connect_timeout=max(1, round(settings.connect_timeout_s)),
-                reconnect_time_wait=settings.reconnect_wait_s,  # type: ignore[arg-type]
+                reconnect_time_wait=settings.reconnect_wait_s,
                 max_reconnect_attempts=-1,
                 allow_reconnect=True,
                 error_cb=on_error,
