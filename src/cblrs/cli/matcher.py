@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import functools
 import gc
 import json
 import logging
@@ -12,6 +13,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from cblrs.cli.backbone import add_backbone_options, matcher_transport, uses_nats
 from cblrs.cli.camera import (
     add_mqtt_options,
     connect_or_queue,
@@ -95,6 +97,7 @@ def register(subparsers) -> None:
         "--stats-interval", type=float, metavar="SECONDS", help="log counters every N seconds"
     )
     add_mqtt_options(parser)
+    add_backbone_options(parser, matcher=True)
     parser.add_argument("--json", action="store_true", help="print the final summary as JSON")
     parser.add_argument("--quiet", action="store_true", help="no progress output")
     parser.set_defaults(handler=run)
@@ -197,13 +200,19 @@ def run(args: argparse.Namespace) -> int:
         args.client_id or args.username or f"matcher{plane_id}", "client id"
     )
     status_topic = matcher_status_topic(plane_id, matcher_id)
-    transport = MqttTransport(
-        matcher_id,
-        mqtt_settings(args),
-        persistent=True,
-        will=Will(status_topic, encode_status(matcher_id, "offline", role="matcher")),
-    )
+    will = Will(status_topic, encode_status(matcher_id, "offline", role="matcher"))
+    stop = threading.Event()
+    failures: list[str] = []
     store = RuntimeStore(args.db)
+    if uses_nats(args):
+        # An empty store is rebuilt from the plane's stream (e.g. on a new host).
+        rebuild = store.released_timestamp() is None and not store.status_counts()
+        transport = matcher_transport(
+            args, matcher_id, plane_id, rebuild=rebuild, will=will,
+            on_failure=functools.partial(_failed, failures, stop),
+        )
+    else:
+        transport = MqttTransport(matcher_id, mqtt_settings(args), persistent=True, will=will)
     service = MatcherService(
         transport,
         store,
@@ -215,15 +224,21 @@ def run(args: argparse.Namespace) -> int:
         publish_tracks=not args.no_publish_tracks,
         settings={"matcher": args.matcher, "options": options},
     )
-    stop = threading.Event()
     install_stop_handlers(stop.set)
     started = time.perf_counter()
     # What is alive now (modules, the matcher) stays for the life of the process: keep it out
     # of the garbage collector's full passes, which otherwise pause every thread for tens of
     # milliseconds while messages wait.
     gc.freeze()
+    if hasattr(transport, "open"):
+        transport.open()  # NATS: the plane's lease before the store is touched
     service.start(connect=False)  # handlers first, so nothing arrives without one
-    connect_or_queue(transport)
+    try:
+        connect_or_queue(transport)
+    except Exception:
+        service.close()
+        store.close()
+        raise
     transport.publish(
         status_topic,
         encode_status(matcher_id, "online", role="matcher", timestamp=time.time()),
@@ -253,7 +268,16 @@ def run(args: argparse.Namespace) -> int:
         print_json(summary)
     else:
         print(_one_line(summary))
+    if failures:
+        print(f"cblrs matcher: error: {failures[0]}", file=sys.stderr)
+        return 1
     return 0
+
+
+def _failed(failures: list[str], stop: threading.Event, reason: str) -> None:
+    """The transport failed for good (e.g. lost the plane's lease): record it and stop."""
+    failures.append(reason)
+    stop.set()
 
 
 def site_positions(site: Any, names: list[str]) -> dict[str, tuple[float, float, float]]:

@@ -39,7 +39,7 @@ import time
 import zlib
 from collections import OrderedDict, deque
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Protocol, runtime_checkable
 
@@ -513,6 +513,10 @@ class MqttSettings:
         reconnect_max_s: longest reconnection delay.
         connect_timeout_s: how long ``connect()`` waits for the broker's answer.
         max_inflight: QoS 1 publishes sent but not yet acknowledged, at most.
+        protocol: MQTT version: "5", "3.1.1" (e.g. the NATS server's MQTT listener, which
+            refuses MQTT 5), or "auto" (MQTT 5, and 3.1.1 when the broker refuses version 5).
+            Under 3.1.1 the session expiry is the broker's, overlapping subscriptions get no
+            identifiers, and ``close(unclean=True)`` does not make the broker send the will.
     """
 
     host: str = "127.0.0.1"
@@ -528,6 +532,11 @@ class MqttSettings:
     reconnect_max_s: float = 5.0
     connect_timeout_s: float = 5.0
     max_inflight: int = 100
+    protocol: str = "5"
+
+    @property
+    def mqtt5(self) -> bool:
+        return self.protocol != "3.1.1"
 
     @property
     def tls(self) -> bool:
@@ -610,7 +619,8 @@ class MqttTransport:
         client = mqtt.Client(
             callback_api_version=CallbackAPIVersion.VERSION2,
             client_id=self.client_id,
-            protocol=mqtt.MQTTv5,
+            protocol=mqtt.MQTTv5 if settings.mqtt5 else mqtt.MQTTv311,
+            clean_session=None if settings.mqtt5 else not self.persistent,
         )
         if _paho_logger.isEnabledFor(logging.DEBUG):
             # paho formats a log line for every packet once a log callback is set: debug only.
@@ -636,14 +646,16 @@ class MqttTransport:
         client.on_message = self._on_message
         client.on_publish = self._on_publish
         client.on_subscribe = self._on_subscribe
-        properties = Properties(PacketTypes.CONNECT)
-        properties.SessionExpiryInterval = settings.session_expiry_s if self.persistent else 0
+        properties = None
+        if settings.mqtt5:
+            properties = Properties(PacketTypes.CONNECT)
+            properties.SessionExpiryInterval = settings.session_expiry_s if self.persistent else 0
         self._client = client
         client.connect_async(
             settings.host,
             settings.port,
             keepalive=settings.keepalive_s,
-            clean_start=not self.persistent,
+            clean_start=not self.persistent if settings.mqtt5 else mqtt.MQTT_CLEAN_START_FIRST_ONLY,
             properties=properties,
         )
         client.loop_start()
@@ -660,6 +672,12 @@ class MqttTransport:
         if self._refusal is not None:
             refusal = self._refusal
             self._abandon()
+            if settings.protocol == "auto" and "protocol version" in refusal.lower():
+                logger.info("%s: the broker refuses MQTT 5; using MQTT 3.1.1", self.client_id)
+                self.settings = replace(settings, protocol="3.1.1")
+                self._answered.clear()
+                self.connect(wait)
+                return
             raise TransportError(
                 f"{self.client_id}: the MQTT broker at {settings.host}:{settings.port} "
                 f"refused the connection: {refusal}."
@@ -751,7 +769,10 @@ class MqttTransport:
         if unclean:
             # MQTT 5 "Disconnect with Will Message": the broker publishes the will, as on a crash.
             self._disconnected.clear()
-            client.disconnect(reasoncode=ReasonCode(PacketTypes.DISCONNECT, identifier=4))
+            client.disconnect(
+                reasoncode=ReasonCode(PacketTypes.DISCONNECT, identifier=4)
+                if self.settings.mqtt5 else None
+            )
         else:
             if self.will is not None and was_connected:
                 self.publish(self.will.topic, self.will.payload, self.will.qos, self.will.retain)
@@ -793,14 +814,9 @@ class MqttTransport:
         self._client = None
 
     def _subscribe_and_wait(self, topic_filter: str, qos: int) -> list:
-        from paho.mqtt.subscribeoptions import SubscribeOptions
 
         client = self._require_client()
-        result, mid = client.subscribe(
-            topic_filter,
-            options=SubscribeOptions(qos=qos),
-            properties=self._subscribe_properties(topic_filter),
-        )
+        result, mid = self._send_subscribe(client, topic_filter, qos)
         if mid is None:
             raise TransportError(
                 f"{self.client_id}: subscribe to {topic_filter} failed ({result})."
@@ -815,6 +831,17 @@ class MqttTransport:
                     )
                 self._condition.wait(remaining)
             return self._suback.pop(mid)
+
+    def _send_subscribe(self, client, topic_filter: str, qos: int) -> tuple:
+        if not self.settings.mqtt5:
+            return client.subscribe(topic_filter, qos=qos)
+        from paho.mqtt.subscribeoptions import SubscribeOptions
+
+        return client.subscribe(
+            topic_filter,
+            options=SubscribeOptions(qos=qos),
+            properties=self._subscribe_properties(topic_filter),
+        )
 
     def _subscribe_properties(self, topic_filter: str):
         return _identifier_properties(topic_filter) if topic_filter in self._identified else None
@@ -832,21 +859,18 @@ class MqttTransport:
     def _on_connect(self, client, userdata, flags, reason_code, properties) -> None:
         if reason_code.is_failure:
             self._refusal = str(reason_code)
-            logger.warning("%s: connection refused: %s", self.client_id, reason_code)
+            expected = self.settings.protocol == "auto" and "protocol version" in self._refusal
+            logger.log(logging.INFO if expected else logging.WARNING,
+                       "%s: connection refused: %s", self.client_id, reason_code)
             self._answered.set()
             return
         self._refusal = None
         if not flags.session_present:
             self._subscribed.clear()
-        from paho.mqtt.subscribeoptions import SubscribeOptions
 
         for topic_filter in self._handlers.filters():
             if topic_filter not in self._subscribed:
-                _, mid = client.subscribe(
-                    topic_filter,
-                    options=SubscribeOptions(qos=self._qos[topic_filter]),
-                    properties=self._subscribe_properties(topic_filter),
-                )
+                _, mid = self._send_subscribe(client, topic_filter, self._qos[topic_filter])
                 if mid is not None:
                     with self._condition:
                         self._background_subscribes.add(mid)

@@ -1,0 +1,118 @@
+"""Backbone options shared by ``cblrs camera`` and ``cblrs matcher``: MQTT (default) or NATS.
+
+``--backbone nats://host:port[,host:port...]`` switches a camera or a matcher from MQTT to
+NATS JetStream (:mod:`cblrs.runtime.nats_transport`); cameras may also stay on MQTT and
+publish to the NATS server's MQTT listener (``--broker HOST:MQTTPORT``; the default
+``--mqtt-version auto`` falls back to 3.1.1, the version NATS speaks).
+"""
+
+from __future__ import annotations
+
+import argparse
+from typing import Any
+
+from cblrs.cli.common import UsageError
+
+
+def add_backbone_options(parser: argparse.ArgumentParser, matcher: bool) -> None:
+    group = parser.add_argument_group("NATS backbone (instead of MQTT)")
+    group.add_argument(
+        "--backbone",
+        metavar="URL",
+        help="nats://host:port[,host:port...]: use NATS JetStream (give every node of a "
+        "cluster); default: MQTT at --broker",
+    )
+    if not matcher:
+        return
+    group.add_argument(
+        "--lease-ttl",
+        type=float,
+        default=10.0,
+        metavar="SECONDS",
+        help="NATS: the plane lease outlives a dead matcher by this long (default 10; set "
+        "when the lease bucket is created)",
+    )
+    group.add_argument(
+        "--lease-wait",
+        type=float,
+        default=0.0,
+        metavar="SECONDS",
+        help="NATS: wait this long for another matcher's lease on the plane to expire "
+        "(default 0: refuse at once)",
+    )
+    group.add_argument(
+        "--replicas",
+        type=int,
+        choices=(1, 3, 5),
+        help="NATS: stream replicas when creating the streams (default 3 on a cluster, else 1)",
+    )
+    group.add_argument(
+        "--retention-hours",
+        type=float,
+        default=168.0,
+        help="NATS: how long the stream keeps detections (the replay horizon; default 168)",
+    )
+
+
+def uses_nats(args: argparse.Namespace) -> bool:
+    backbone = getattr(args, "backbone", None)
+    if backbone is None or backbone.startswith("mqtt://"):
+        return False
+    if not backbone.startswith("nats://"):
+        raise UsageError(f"--backbone {backbone!r} must be nats://host:port[,host:port...].")
+    return True
+
+
+def nats_settings(args: argparse.Namespace, **options: Any) -> Any:
+    """:class:`NatsSettings` from ``--backbone``, the login options and ``options``."""
+    from cblrs.cli.camera import read_password
+    from cblrs.runtime.nats_transport import NatsSettings
+
+    try:
+        return NatsSettings.from_url(
+            args.backbone, username=args.username, password=read_password(args), **options
+        )
+    except ValueError as error:
+        raise UsageError(f"--backbone: {error}") from None
+
+
+def matcher_transport(
+    args: argparse.Namespace,
+    matcher_id: str,
+    plane_id: int,
+    *,
+    rebuild: bool,
+    will: Any,
+    on_failure: Any,
+) -> Any:
+    """The matcher's NATS transport: the plane's durable consumer and lease.
+
+    Args:
+        rebuild: the store is empty, so the consumer replays the plane's stream from the
+            start (the store is rebuilt from the stream).
+    """
+    from cblrs.runtime.nats_transport import LeaseSettings, NatsTransport
+
+    if args.lease_ttl <= 0 or args.lease_wait < 0 or args.retention_hours <= 0:
+        raise UsageError("--lease-ttl and --retention-hours must be > 0, --lease-wait >= 0.")
+    settings = nats_settings(
+        args, replicas=args.replicas, retention_s=args.retention_hours * 3600.0,
+        publish_window=64,
+    )
+    return NatsTransport(
+        matcher_id,
+        settings,
+        durable=f"cblrs-plane-{plane_id}",
+        replay=rebuild,
+        lease=LeaseSettings(f"plane-{plane_id}", args.lease_ttl, args.lease_wait,
+                            f"plane {plane_id}"),
+        will=will,
+        on_failure=on_failure,
+    )
+
+
+def camera_transport(args: argparse.Namespace, client_id: str) -> Any:
+    """A camera's NATS transport: JetStream publishes, one at a time so they stay in order."""
+    from cblrs.runtime.nats_transport import NatsTransport
+
+    return NatsTransport(client_id, nats_settings(args, publish_window=1))

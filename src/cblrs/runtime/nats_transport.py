@@ -1,0 +1,885 @@
+"""NATS JetStream transport (nats-py): the clustered, replicated backbone beside MQTT.
+
+:class:`NatsTransport` implements :class:`~cblrs.runtime.transport.Transport` with the same
+behaviour the services rely on, on a NATS server or cluster with JetStream:
+
+* **topics** stay MQTT topics for the services; on the wire they are NATS subjects, mapped
+  exactly as the NATS server's MQTT listener maps them (``/`` -> ``.``, ``.`` -> ``//``,
+  ``+`` -> ``*``, ``#`` -> ``>``), so a camera publishing MQTT 3.1.1 to that listener on
+  ``cblrs/<plane>/<camera>/detections`` lands on ``cblrs.<plane>.<camera>.detections``;
+* **streams** (created on first connect, replicated over up to three nodes): ``CBLRS`` keeps
+  every camera's detections and status (``cblrs.*.*.detections``, ``cblrs.*.*.status``) for
+  ``retention_s``; ``CBLRS_TRACKS`` keeps the matchers' track updates (``cblrs.*.tracks``)
+  and later analytics events (``cblrs.*.events``);
+* **durable consumer** (``durable=``): the subscriptions that fall in ``CBLRS`` are served by
+  one durable pull consumer with explicit acknowledgements: ``delivery.ack()`` acknowledges
+  (the matcher does so after its SQLite commit, as on MQTT), un-acknowledged messages come
+  again after ``ack_wait_s`` or to the next holder, flagged ``duplicate``; a status message
+  older than the connection is flagged ``retain`` (history, like an MQTT retained message);
+  other subscriptions are plain NATS subscriptions;
+* **publishes** to a stream are JetStream publishes, each with a ``Nats-Msg-Id``
+  (``<plane>.<camera>.<sequence>`` for detections, ``<plane>.<timestamp>`` for a track
+  update), retried with the same id until the stream acknowledges them, so a retry after a
+  leader change or a lost connection is stored once; ``flush`` waits for those
+  acknowledgements. With ``publish_window=1`` (cameras) publishes stay in order even across
+  retries. Publishes made while the servers are away wait in memory;
+* **plane lease** (``lease=``): a key with a time to live in the replicated key-value bucket
+  ``cblrs_leases``; :meth:`connect` refuses (one sentence) when another client holds it, the
+  transport renews it every third of its TTL and deletes it on a clean close. Losing it
+  (another holder took it) stops deliveries and calls ``on_failure``.
+
+NATS has no last will: the will is published on a clean ``close()`` only.
+
+The nats-py client is asyncio: its event loop runs in a thread of the transport and handlers
+run on that thread, one delivery at a time, as on paho's network thread.
+
+Example:
+    >>> settings = NatsSettings.from_url("nats://127.0.0.1:4222")       # doctest: +SKIP
+    >>> matcher = NatsTransport("matcher1", settings, durable="cblrs-plane-1")  # doctest: +SKIP
+    >>> matcher.subscribe("cblrs/1/+/detections", store_then_ack)          # doctest: +SKIP
+    >>> matcher.connect()                                                 # doctest: +SKIP
+"""
+
+from __future__ import annotations
+
+import asyncio
+import functools
+import json
+import logging
+import os
+import socket
+import threading
+import time
+from collections import deque
+from collections.abc import Callable, Coroutine
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import msgspec
+
+from cblrs.runtime.topics import topic_matches, validate_filter, validate_topic
+from cblrs.runtime.transport import Handler, TransportError, Will, _HandlerTable, _Incoming
+
+logger = logging.getLogger(__name__)
+
+DETECTIONS_STREAM = "CBLRS"
+DETECTIONS_SUBJECTS = ("cblrs.*.*.detections", "cblrs.*.*.status")
+TRACKS_STREAM = "CBLRS_TRACKS"
+TRACKS_SUBJECTS = ("cblrs.*.tracks", "cblrs.*.events")
+LEASE_BUCKET = "cblrs_leases"
+
+
+def _import_nats() -> Any:
+    try:
+        import nats
+    except ImportError:
+        raise TransportError(
+            "the NATS backbone needs nats-py: pip install cblrs[nats]"
+        ) from None
+    return nats
+
+
+# --------------------------------------------------------------------------- subjects
+
+
+@functools.lru_cache(maxsize=4096)
+def topic_to_subject(topic: str) -> str:
+    """An MQTT topic (or filter) as the NATS subject the server's MQTT listener uses."""
+    levels = []
+    for level in topic.split("/"):
+        if level == "+":
+            levels.append("*")
+        elif level == "#":
+            levels.append(">")
+        else:
+            levels.append(level.replace(".", "//"))
+    return ".".join(levels)
+
+
+@functools.lru_cache(maxsize=4096)
+def subject_to_topic(subject: str) -> str:
+    """The MQTT topic of a NATS subject (inverse of :func:`topic_to_subject`)."""
+    return "/".join(token.replace("//", ".") for token in subject.split("."))
+
+
+def subject_matches(pattern: str, subject: str) -> bool:
+    """NATS subject matching with ``*`` (one token) and ``>`` (one or more tokens)."""
+    return topic_matches(
+        subject_to_topic(pattern.replace(">", "#").replace("*", "+")), subject_to_topic(subject)
+    )
+
+
+def stream_of(subject: str) -> str | None:
+    """The cblrs stream that stores ``subject``, or None (a plain NATS subject)."""
+    for stream, patterns in ((DETECTIONS_STREAM, DETECTIONS_SUBJECTS),
+                             (TRACKS_STREAM, TRACKS_SUBJECTS)):
+        if any(subject_matches(pattern, subject) for pattern in patterns):
+            return stream
+    return None
+
+
+class _MessageKey(msgspec.Struct):
+    camera: str
+    sequence: int
+    plane: int
+
+
+class _TrackRow(msgspec.Struct):
+    timestamp: float
+
+
+class _TracksKey(msgspec.Struct):
+    plane: int
+    tracks: list[_TrackRow]
+
+
+_message_key = msgspec.json.Decoder(_MessageKey)
+_tracks_key = msgspec.json.Decoder(_TracksKey)
+
+
+def message_id(subject: str, payload: bytes) -> str | None:
+    """The ``Nats-Msg-Id`` a publish on ``subject`` carries, or None.
+
+    Detections: ``<plane>.<camera>.<sequence>`` (the matcher's de-duplication key too); track
+    updates: ``tracks.<plane>.<capture timestamp>`` (one update per plane and timestamp
+    group), so a matcher that re-tracks groups after a failover does not store them twice.
+    """
+    try:
+        if subject.endswith(".detections"):
+            key = _message_key.decode(payload)
+            return f"{key.plane}.{key.camera}.{key.sequence}"
+        if subject.endswith(".tracks"):
+            update = _tracks_key.decode(payload)
+            if update.tracks:
+                return f"tracks.{update.plane}.{update.tracks[0].timestamp!r}"
+    except msgspec.DecodeError:
+        return None  # the matcher rejects and counts it; nothing to de-duplicate by
+    return None
+
+
+# --------------------------------------------------------------------------- settings
+
+
+@dataclass(frozen=True)
+class LeaseSettings:
+    """A lease that one client at a time holds (e.g. a plane's matcher).
+
+    Attributes:
+        key: the key in the ``cblrs_leases`` bucket (letters, digits, ``-_``).
+        ttl_s: how long the lease outlives its holder's last renewal; the bucket keeps the
+            TTL it was created with.
+        wait_s: how long :meth:`NatsTransport.connect` waits for a held lease to free up
+            before refusing.
+        what: what the lease guards, for messages (e.g. "plane 1").
+    """
+
+    key: str
+    ttl_s: float = 10.0
+    wait_s: float = 0.0
+    what: str = ""
+
+
+@dataclass(frozen=True)
+class NatsSettings:
+    """How to reach a NATS server or cluster and how the streams and consumer are set up.
+
+    Attributes:
+        servers: ``nats://host:port`` of one or more nodes (the client fails over).
+        username: user name (None: none).
+        password: password; from the environment or a 0600 file, never the repository.
+        connect_timeout_s: how long ``connect()`` waits for a server.
+        reconnect_wait_s: delay between reconnection attempts.
+        replicas: stream replicas; None: 3 on a cluster, else 1.
+        retention_s: how long the streams keep messages (the replay horizon of a plane).
+        duplicate_window_s: how long JetStream remembers message ids.
+        ack_wait_s: redelivery of an un-acknowledged message after this long.
+        max_ack_pending: deliveries awaiting acknowledgement, at most.
+        pull_batch: messages asked for per pull request.
+        heartbeat_s: idle heartbeat of pull requests (a silent consumer is asked again).
+        publish_timeout_s: wait for a stream's acknowledgement before retrying.
+        publish_window: stream publishes awaiting acknowledgement at once; 1 keeps order.
+    """
+
+    servers: tuple[str, ...] = ("nats://127.0.0.1:4222",)
+    username: str | None = None
+    password: str | None = field(default=None, repr=False)
+    connect_timeout_s: float = 5.0
+    reconnect_wait_s: float = 0.25
+    replicas: int | None = None
+    retention_s: float = 7 * 24 * 3600.0
+    duplicate_window_s: float = 600.0
+    ack_wait_s: float = 30.0
+    max_ack_pending: int = 20_000
+    pull_batch: int = 500
+    heartbeat_s: float = 1.0
+    publish_timeout_s: float = 2.0
+    publish_window: int = 1
+
+    @classmethod
+    def from_url(cls, url: str, **options: Any) -> NatsSettings:
+        """Settings from ``nats://host:port[,host:port...]`` (also ``nats://a,nats://b``).
+
+        Raises:
+            ValueError: not a nats:// address.
+        """
+        text = url.strip()
+        if not text.startswith("nats://"):
+            raise ValueError(f"{url!r} is not a nats:// address (nats://host:port[,host:port]).")
+        servers = []
+        for part in text[len("nats://"):].split(","):
+            part = part.strip().removeprefix("nats://")
+            if not part:
+                continue
+            host, _, port = part.rpartition(":") if ":" in part else (part, "", "4222")
+            if not port.isdigit():
+                raise ValueError(f"{url!r}: {part!r} is not host:port.")
+            servers.append(f"nats://{host or '127.0.0.1'}:{port}")
+        if not servers:
+            raise ValueError(f"{url!r} names no server.")
+        return cls(servers=tuple(servers), **options)
+
+
+# --------------------------------------------------------------------------- transport
+
+
+_CLOSE = object()
+
+
+class NatsTransport:
+    """A client of a NATS JetStream server or cluster, with the :class:`Transport` behaviour.
+
+    Args:
+        client_id: the connection name (and the lease holder's name).
+        settings: servers, credentials, stream and consumer settings.
+        durable: name of the durable consumer that serves the subscriptions falling in the
+            ``CBLRS`` stream (one per plane: ``cblrs-plane-<plane>``); None: subscriptions
+            are plain NATS subscriptions (live only).
+        replay: on connect, rebuild the durable consumer so that it delivers the stream's
+            messages from the first one again (a matcher rebuilding an empty store).
+        lease: hold this lease while connected (see :class:`LeaseSettings`).
+        will: published on a clean close (NATS has no last will).
+        on_failure: called (with a sentence) when the lease is lost.
+        persistent: accepted for interface compatibility; a durable consumer is persistent.
+    """
+
+    def __init__(
+        self,
+        client_id: str,
+        settings: NatsSettings | None = None,
+        *,
+        durable: str | None = None,
+        replay: bool = False,
+        lease: LeaseSettings | None = None,
+        will: Will | None = None,
+        on_failure: Callable[[str], None] | None = None,
+        persistent: bool = True,
+    ):
+        self.client_id = client_id
+        self.settings = settings or NatsSettings()
+        self.durable = durable
+        self.replay = replay
+        self.lease = lease
+        self.will = will
+        self.on_failure = on_failure
+        self.persistent = persistent
+        self.refused_publishes = 0
+        """Stream publishes refused for good (e.g. a stream limit); retried ones don't count."""
+        self.lease_lost = False
+        self._lease_paused = False
+        self._held: list[_Incoming] = []
+        self._handlers = _HandlerTable()
+        self._bound: list[str] = []  # filters served by the durable consumer
+        self._core: dict[str, Any] = {}  # filter -> NATS subscription (None until connected)
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._thread: threading.Thread | None = None
+        self._nc: Any = None
+        self._js: Any = None
+        self._connected = threading.Event()
+        self._closing = False
+        self._started = False
+        self._connected_at = time.time()
+        self._condition = threading.Condition()
+        self._pending = 0
+        self._publishes: asyncio.Queue | None = None
+        self._senders: list[asyncio.Task] = []
+        self._acks: deque[str] = deque()
+        self._ack_scheduled = False
+        self._ack_task: asyncio.Future | None = None
+        self._core_publishes: set[asyncio.Future] = set()
+        self._pull_task: asyncio.Task | None = None
+        self._pull_wake: asyncio.Event | None = None
+        self._outstanding = 0
+        self._last_activity = 0.0
+        self._lease_task: asyncio.Task | None = None
+        self._lease_revision = 0
+        self._lease_kv: Any = None
+        self.lease_holder = f"{client_id}@{socket.gethostname()}:{os.getpid()}"
+
+    # Public API ------------------------------------------------------------------------
+
+    @property
+    def connected(self) -> bool:
+        return self._connected.is_set()
+
+    def open(self) -> None:
+        """Connect, create the streams if missing and take the lease; deliver nothing yet.
+
+        A service calls this before it starts (so a second matcher of a plane is refused
+        before it touches anything), subscribes, then calls :meth:`connect`.
+
+        Raises:
+            TransportError: no server answered, a stream could not be created, or the lease
+                is held by another client.
+        """
+        _import_nats()
+        if self._thread is not None:
+            return
+        self._loop = asyncio.new_event_loop()
+        self._thread = threading.Thread(
+            target=self._loop.run_forever, name=f"cblrs-nats-{self.client_id}", daemon=True
+        )
+        self._thread.start()
+        try:
+            self._run(self._open(), None)
+        except BaseException:
+            self._shutdown_loop()
+            raise
+
+    def connect(self, wait: bool = True) -> None:
+        """:meth:`open` if not yet done, then start the subscriptions and the consumer.
+
+        Args:
+            wait: accepted for interface compatibility; the first connection is always
+                waited for (nats-py does not retry a first connection in the background).
+
+        Raises:
+            TransportError: as :meth:`open`, or the consumer could not be set up.
+        """
+        self.open()
+        if self._started:
+            return
+        self._started = True
+        self._run(self._start(), None)
+
+    def publish(self, topic: str, payload: bytes, qos: int = 1, retain: bool = False) -> None:
+        validate_topic(topic)
+        if qos not in (0, 1):
+            raise TransportError(f"QoS must be 0 or 1, got {qos}.")
+        loop = self._require_loop()
+        subject = topic_to_subject(topic)
+        data = bytes(payload)
+        if qos == 0 or stream_of(subject) is None:
+            loop.call_soon_threadsafe(self._publish_core, subject, data)
+            return
+        with self._condition:
+            self._pending += 1
+        loop.call_soon_threadsafe(self._enqueue_publish, (subject, data,
+                                                          message_id(subject, data)))
+
+    def subscribe(self, topic_filter: str, handler: Handler, qos: int = 1) -> None:
+        validate_filter(topic_filter)
+        if qos not in (0, 1):
+            raise TransportError(f"QoS must be 0 or 1, got {qos}.")
+        new = topic_filter not in self._bound and topic_filter not in self._core
+        self._handlers.add(topic_filter, handler)
+        if not new:
+            return
+        subject = topic_to_subject(topic_filter)
+        if self.durable is not None and stream_of(subject) == DETECTIONS_STREAM:
+            if self._started:
+                # Widening a consumer's filter later would skip what it had passed already.
+                raise TransportError(
+                    f"{self.client_id}: subscribe to {topic_filter} before connect()."
+                )
+            self._bound.append(topic_filter)
+        else:
+            self._core[topic_filter] = None
+            if self._started:
+                self._run(self._subscribe_core(topic_filter), self.settings.connect_timeout_s)
+
+    def flush(self, timeout: float) -> bool:
+        deadline = time.monotonic() + timeout
+        with self._condition:
+            while self._pending:
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    return False
+                self._condition.wait(remaining)
+            return True
+
+    def pending(self) -> int:
+        """Stream publishes not yet acknowledged by the stream."""
+        with self._condition:
+            return self._pending
+
+    def close(self, unclean: bool = False, timeout: float = 5.0) -> None:
+        if self._loop is None:
+            return
+        if not unclean:
+            if self.will is not None and self._nc is not None:
+                self.publish(self.will.topic, self.will.payload, self.will.qos, self.will.retain)
+            if not self.flush(timeout):
+                logger.warning("%s: closing with %d publishes not acknowledged",
+                               self.client_id, self.pending())
+        try:
+            self._run(self._close(release=not unclean), timeout + 5)
+        except Exception as error:  # closing must not fail the caller
+            logger.warning("%s: unclean NATS close: %s", self.client_id, error)
+        self._shutdown_loop()
+
+    def call(self, coroutine: Coroutine[Any, Any, Any], timeout: float | None = 30.0) -> Any:
+        """Run a coroutine on the transport's event loop (with its connection) and wait."""
+        return self._run(coroutine, timeout)
+
+    @property
+    def jetstream(self) -> Any:
+        """The nats-py JetStream context (use it through :meth:`call`)."""
+        return self._js
+
+    # Internals: loop ---------------------------------------------------------------------
+
+    def _require_loop(self) -> asyncio.AbstractEventLoop:
+        if self._loop is None:
+            raise TransportError(f"{self.client_id}: publish before connect().")
+        return self._loop
+
+    def _run(self, coroutine: Coroutine[Any, Any, Any], timeout: float | None) -> Any:
+        loop = self._require_loop()
+        future = asyncio.run_coroutine_threadsafe(coroutine, loop)
+        try:
+            return future.result(timeout)
+        except TimeoutError:
+            future.cancel()
+            raise TransportError(f"{self.client_id}: no answer from NATS in time.") from None
+
+    def _shutdown_loop(self) -> None:
+        loop, thread = self._loop, self._thread
+        if loop is None:
+            return
+        if thread is not None and thread is not threading.current_thread():
+            try:
+                asyncio.run_coroutine_threadsafe(_cancel_tasks(), loop).result(5)
+            except Exception:  # stopping anyway
+                pass
+            loop.call_soon_threadsafe(loop.stop)
+            thread.join(5)
+            loop.close()
+        self._loop = None
+        self._thread = None
+        self._connected.clear()
+
+    # Internals: connection -----------------------------------------------------------------
+
+    async def _open(self) -> None:
+        nats = _import_nats()
+        settings = self.settings
+
+        async def on_error(error: Exception) -> None:
+            logger.debug("%s: NATS: %s", self.client_id, error)
+
+        async def on_disconnected() -> None:
+            self._connected.clear()
+            logger.info("%s: disconnected from NATS", self.client_id)
+
+        async def on_reconnected() -> None:
+            self._connected.set()
+            self._outstanding = 0  # pull requests die with the connection: ask again
+            if self._pull_wake is not None:
+                self._pull_wake.set()
+            logger.info("%s: reconnected to %s", self.client_id,
+                        self._nc.connected_url.netloc if self._nc else "?")
+
+        try:
+            self._nc = await nats.connect(
+                servers=list(settings.servers),
+                name=self.client_id,
+                user=settings.username,
+                password=settings.password,
+                connect_timeout=max(1, round(settings.connect_timeout_s)),
+                reconnect_time_wait=settings.reconnect_wait_s,
+                max_reconnect_attempts=-1,
+                allow_reconnect=True,
+                error_cb=on_error,
+                disconnected_cb=on_disconnected,
+                reconnected_cb=on_reconnected,
+                pending_size=64 * 1024 * 1024,
+            )
+        except Exception as error:
+            raise TransportError(
+                f"{self.client_id}: cannot connect to NATS at {', '.join(settings.servers)}: "
+                f"{error or type(error).__name__}."
+            ) from None
+        self._js = self._nc.jetstream(timeout=settings.publish_timeout_s * 2)
+        self._connected_at = time.time()
+        self._connected.set()
+        try:
+            await self._ensure_streams()
+            if self.lease is not None:
+                await self._acquire_lease()
+        except BaseException as error:
+            await self._nc.close()
+            self._nc = None
+            if isinstance(error, TransportError):
+                raise
+            raise TransportError(
+                f"{self.client_id}: NATS JetStream did not answer ({error or type(error).__name__}"
+                "); is JetStream enabled and does the cluster have a leader?"
+            ) from None
+        self._publishes = asyncio.Queue()
+        self._senders = [asyncio.get_running_loop().create_task(self._send_publishes())
+                         for _ in range(max(1, settings.publish_window))]
+
+    async def _start(self) -> None:
+        for topic_filter in list(self._core):
+            await self._subscribe_core(topic_filter)
+        if self._bound:
+            await self._start_consumer()
+
+    async def _close(self, release: bool) -> None:
+        self._closing = True
+        tasks = [task for task in (self._pull_task, self._lease_task, *self._senders) if task]
+        for task in tasks:
+            task.cancel()
+        await asyncio.gather(*tasks, return_exceptions=True)
+        if not self.lease_lost:
+            await self._flush_acks()
+        nc = self._nc
+        if nc is None:
+            return
+        if release and self.lease is not None and self._lease_kv is not None \
+                and not self.lease_lost:
+            try:
+                await self._lease_kv.delete(self.lease.key, last=self._lease_revision)
+            except Exception as error:  # it expires anyway
+                logger.debug("lease release failed: %s", error)
+        try:
+            await nc.flush(timeout=2)
+        except Exception:
+            pass
+        await nc.close()
+        self._connected.clear()
+
+    async def _subscribe_core(self, topic_filter: str) -> None:
+        async def deliver(msg: Any) -> None:
+            self._handlers.dispatch(_Incoming(
+                subject_to_topic(msg.subject), msg.data, False, False, 0, _no_ack,
+                (topic_filter,)))
+
+        self._core[topic_filter] = await self._nc.subscribe(
+            topic_to_subject(topic_filter), cb=deliver)
+
+    # Internals: streams ------------------------------------------------------------------
+
+    async def _replicas(self) -> int:
+        if self.settings.replicas is not None:
+            return self.settings.replicas
+        info = self._nc._server_info or {}
+        return 3 if info.get("cluster") else 1
+
+    async def _ensure_streams(self) -> None:
+        from nats.js.api import RetentionPolicy, StorageType, StreamConfig
+        from nats.js.errors import BadRequestError, NotFoundError
+
+        replicas = await self._replicas()
+        for name, subjects in ((DETECTIONS_STREAM, DETECTIONS_SUBJECTS),
+                               (TRACKS_STREAM, TRACKS_SUBJECTS)):
+            try:
+                await self._js.stream_info(name)
+                continue
+            except NotFoundError:
+                pass
+            config = StreamConfig(
+                name=name, subjects=list(subjects), retention=RetentionPolicy.LIMITS,
+                storage=StorageType.FILE, max_age=self.settings.retention_s,
+                duplicate_window=self.settings.duplicate_window_s, num_replicas=replicas,
+                allow_direct=True,
+            )
+            try:
+                await self._js.add_stream(config)
+            except BadRequestError as error:
+                if "already in use" in str(error) or "already exists" in str(error):
+                    continue  # another client created it meanwhile
+                raise TransportError(f"cannot create the NATS stream {name}: {error}.") from None
+
+    async def _start_consumer(self) -> None:
+        from nats.js.api import AckPolicy, ConsumerConfig, DeliverPolicy
+        from nats.js.errors import NotFoundError
+
+        assert self.durable is not None
+        subjects = sorted({topic_to_subject(topic_filter) for topic_filter in self._bound})
+        config = ConsumerConfig(
+            durable_name=self.durable, ack_policy=AckPolicy.EXPLICIT,
+            deliver_policy=DeliverPolicy.ALL, ack_wait=self.settings.ack_wait_s,
+            max_ack_pending=self.settings.max_ack_pending, max_deliver=-1,
+            filter_subjects=subjects if len(subjects) > 1 else None,
+            filter_subject=subjects[0] if len(subjects) == 1 else None,
+        )
+        if self.replay:
+            try:
+                await self._js.delete_consumer(DETECTIONS_STREAM, self.durable)
+                logger.info("%s: consumer %s reset to replay the stream", self.client_id,
+                            self.durable)
+            except NotFoundError:
+                pass
+            self.replay = False
+        try:
+            await self._js.add_consumer(DETECTIONS_STREAM, config)
+        except Exception as error:
+            raise TransportError(
+                f"{self.client_id}: cannot set up the consumer {self.durable}: {error}."
+            ) from None
+        self._pull_wake = asyncio.Event()
+        self._pull_task = asyncio.get_running_loop().create_task(self._pull())
+
+    # Internals: pulling ------------------------------------------------------------------
+
+    async def _pull(self) -> None:
+        """Keep pull requests outstanding on the durable consumer; deliver what comes."""
+        nc, settings = self._nc, self.settings
+        inbox = nc.new_inbox()
+        await nc.subscribe(inbox, cb=self._on_pulled)
+        request_subject = f"$JS.API.CONSUMER.MSG.NEXT.{DETECTIONS_STREAM}.{self.durable}"
+        batch = max(1, settings.pull_batch)
+        expires_s = max(5.0, 5 * settings.heartbeat_s)
+        assert self._pull_wake is not None
+        while not self._closing and not self.lease_lost:
+            now = time.monotonic()
+            if now - self._last_activity > 3 * settings.heartbeat_s:
+                self._outstanding = 0  # nothing, not even heartbeats: the requests are gone
+            if self._outstanding <= batch // 2 and nc.is_connected:
+                request = {"batch": batch, "expires": int(expires_s * 1e9),
+                           "idle_heartbeat": int(settings.heartbeat_s * 1e9)}
+                try:
+                    await nc.publish(request_subject, json.dumps(request).encode(), reply=inbox)
+                    self._outstanding += batch
+                    self._last_activity = now
+                except Exception as error:
+                    logger.debug("%s: pull request failed: %s", self.client_id, error)
+            self._pull_wake.clear()
+            try:
+                await asyncio.wait_for(self._pull_wake.wait(), settings.heartbeat_s)
+            except TimeoutError:
+                pass
+
+    async def _on_pulled(self, msg: Any) -> None:
+        self._last_activity = time.monotonic()
+        headers = msg.headers
+        if headers and not msg.data and "Status" in headers:
+            status = headers.get("Status")
+            if status != "100":  # 404/408 request done, 409 consumer changed: ask again
+                pending = int(headers.get("Nats-Pending-Messages", 0) or 0)
+                self._outstanding = max(0, self._outstanding - pending) if pending else 0
+                if status == "409":
+                    logger.info("%s: pull request ended: %s", self.client_id,
+                                headers.get("Description"))
+                assert self._pull_wake is not None
+                self._pull_wake.set()
+            return
+        self._outstanding -= 1
+        if self._outstanding <= self.settings.pull_batch // 2:
+            self._pull_wake.set()  # type: ignore[union-attr]
+        reply = msg.reply
+        delivered, stamp = _ack_metadata(reply)
+        topic = subject_to_topic(msg.subject)
+        retain = topic.endswith("/status") and stamp < self._connected_at
+        if self.lease_lost:
+            return
+        item = _Incoming(topic, msg.data, delivered > 1, retain, 1,
+                         functools.partial(self._queue_ack, reply), None)
+        if self._lease_paused:
+            self._held.append(item)
+        else:
+            self._handlers.dispatch(item)
+
+    def _queue_ack(self, reply: str) -> None:
+        """Acknowledge (any thread): queued, sent in batches by the loop."""
+        if self.lease_lost or self._loop is None:
+            return
+        self._acks.append(reply)
+        if not self._ack_scheduled:
+            self._ack_scheduled = True
+            try:
+                self._loop.call_soon_threadsafe(self._send_acks)
+            except RuntimeError:  # the loop has closed: it is redelivered later
+                pass
+
+    def _send_acks(self) -> None:
+        self._ack_scheduled = False
+        if self._ack_task is None or self._ack_task.done():
+            self._ack_task = asyncio.ensure_future(self._flush_acks())
+
+    async def _flush_acks(self) -> None:
+        # One task sends every queued ack: nats-py's publish only appends to its write
+        # buffer (and wakes its flusher), so this rarely yields.
+        nc = self._nc
+        while self._acks and nc is not None:
+            await nc.publish(self._acks.popleft(), b"+ACK")
+
+    # Internals: publishing ---------------------------------------------------------------
+
+    def _publish_core(self, subject: str, data: bytes) -> None:
+        if self._nc is not None:
+            task = asyncio.ensure_future(self._nc.publish(subject, data))
+            self._core_publishes.add(task)
+            task.add_done_callback(self._core_publishes.discard)
+
+    def _enqueue_publish(self, item: tuple[str, bytes, str | None]) -> None:
+        assert self._publishes is not None
+        self._publishes.put_nowait(item)
+
+    async def _send_publishes(self) -> None:
+        from nats.js.errors import APIError
+
+        assert self._publishes is not None
+        while True:
+            subject, data, identifier = await self._publishes.get()
+            headers = {"Nats-Msg-Id": identifier} if identifier else None
+            delay = 0.05
+            while True:
+                try:
+                    await self._js.publish(subject, data, timeout=self.settings.publish_timeout_s,
+                                           headers=headers)
+                    break
+                except APIError as error:
+                    if error.code in (503, None) or (error.code or 0) >= 500:
+                        pass  # no stream leader yet: retry
+                    else:
+                        self.refused_publishes += 1
+                        logger.warning("%s: stream refused a publish on %s: %s",
+                                       self.client_id, subject, error)
+                        break
+                except asyncio.CancelledError:
+                    raise
+                except Exception as error:  # timeout, no responders, reconnecting
+                    logger.debug("%s: publish on %s retried: %s", self.client_id, subject,
+                                 error or type(error).__name__)
+                await asyncio.sleep(delay)
+                delay = min(1.0, delay * 2)
+            with self._condition:
+                self._pending -= 1
+                self._condition.notify_all()
+
+    # Internals: lease --------------------------------------------------------------------
+
+    async def _acquire_lease(self) -> None:
+        from nats.js.api import KeyValueConfig
+        from nats.js.errors import BucketNotFoundError, KeyWrongLastSequenceError
+
+        lease = self.lease
+        assert lease is not None
+        try:
+            kv = await self._js.key_value(LEASE_BUCKET)
+        except BucketNotFoundError:
+            kv = await self._js.create_key_value(KeyValueConfig(
+                bucket=LEASE_BUCKET, history=1, ttl=lease.ttl_s,
+                replicas=await self._replicas()))
+        self._lease_kv = kv
+        value = json.dumps({"holder": self.lease_holder, "since": time.time()}).encode()
+        deadline = time.monotonic() + lease.wait_s
+        while True:
+            try:
+                self._lease_revision = await kv.create(lease.key, value)
+                break
+            except KeyWrongLastSequenceError:
+                holder, age = await self._lease_holder(kv)
+                if time.monotonic() >= deadline:
+                    raise TransportError(
+                        f"{lease.what or lease.key} is already served by {holder} (lease renewed "
+                        f"{age:.0f} s ago); stop that matcher first, or give --lease-wait longer "
+                        f"than the lease's {lease.ttl_s:g} s time to live to take over once it "
+                        "has died"
+                    ) from None
+                await asyncio.sleep(min(0.5, max(0.05, deadline - time.monotonic())))
+        logger.info("%s: holds %s", self.client_id, lease.key)
+        self._lease_task = asyncio.get_running_loop().create_task(self._renew_lease(value))
+
+    async def _lease_holder(self, kv: Any) -> tuple[str, float]:
+        try:
+            entry = await kv.get(self.lease.key)  # type: ignore[union-attr]
+            holder = json.loads(entry.value or b"{}").get("holder", "another matcher")
+            created = entry.created
+            age = time.time() - created.timestamp() if created is not None else 0.0
+            return holder, age
+        except Exception:
+            return "another matcher", 0.0
+
+    async def _renew_lease(self, value: bytes) -> None:
+        from nats.js.errors import KeyWrongLastSequenceError
+
+        lease = self.lease
+        assert lease is not None
+        last_renewal = time.monotonic()
+        while not self._closing:
+            await asyncio.sleep(lease.ttl_s / 3)
+            try:
+                try:
+                    self._lease_revision = await self._lease_kv.update(
+                        lease.key, value, last=self._lease_revision)
+                except KeyWrongLastSequenceError:
+                    # Our entry expired while the cluster was out of reach: take it again
+                    # only if nobody has written the key since (expected last revision 0).
+                    self._lease_revision = await self._lease_kv.update(lease.key, value, last=0)
+                    logger.warning("%s: %s had expired while out of reach; taken again",
+                                   self.client_id, lease.key)
+                last_renewal = time.monotonic()
+                self._resume_deliveries()
+            except KeyWrongLastSequenceError:
+                self._lose_lease(f"{lease.what or lease.key} was taken over by another matcher")
+                return
+            except asyncio.CancelledError:
+                raise
+            except Exception as error:
+                if time.monotonic() - last_renewal > lease.ttl_s and not self._lease_paused:
+                    # Another matcher could hold the plane now: hold deliveries until the
+                    # lease is ours again (or lost).
+                    self._lease_paused = True
+                    logger.warning("%s: lease not renewed for %.0f s (%s); holding deliveries",
+                                   self.client_id, lease.ttl_s, error or type(error).__name__)
+
+    def _resume_deliveries(self) -> None:
+        if not self._lease_paused:
+            return
+        self._lease_paused = False
+        held, self._held = self._held, []
+        logger.info("%s: lease renewed; delivering %d held messages", self.client_id, len(held))
+        for item in held:
+            self._handlers.dispatch(item)
+
+    def _lose_lease(self, reason: str) -> None:
+        self.lease_lost = True
+        self._acks.clear()
+        self._held.clear()
+        logger.error("%s: lost the lease: %s; no more deliveries", self.client_id, reason)
+        if self.on_failure is not None:
+            self.on_failure(f"lost the plane lease: {reason}.")
+
+
+def _no_ack() -> None:
+    pass
+
+
+async def _cancel_tasks() -> None:
+    """Cancel every other task of the loop (nats-py's readers, flushers, subscriptions)."""
+    tasks = [task for task in asyncio.all_tasks() if task is not asyncio.current_task()]
+    for task in tasks:
+        task.cancel()
+    await asyncio.gather(*tasks, return_exceptions=True)
+
+
+def _ack_metadata(reply: str) -> tuple[int, float]:
+    """``(times delivered, stream timestamp in seconds)`` from a JetStream ack subject.
+
+    ``$JS.ACK.<stream>.<consumer>.<delivered>.<sseq>.<cseq>.<ns>.<pending>`` or, with a
+    domain and account hash, two tokens more after ``$JS.ACK``.
+    """
+    tokens = reply.split(".")
+    offset = 2 if len(tokens) == 9 else 4
+    try:
+        return int(tokens[offset + 2]), int(tokens[offset + 5]) / 1e9
+    except (IndexError, ValueError):
+        return 1, time.time()
+
+
+def with_servers(settings: NatsSettings, url: str) -> NatsSettings:
+    """``settings`` pointed at the servers of ``url`` (``nats://host:port[,...]``)."""
+    return replace(settings, servers=NatsSettings.from_url(url).servers)

