@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from enum import StrEnum
 from typing import Any
@@ -11,9 +12,14 @@ from typing import Any
 import cv2
 import numpy as np
 from numpy.typing import NDArray
+from scipy.stats import chi2
 
+from cblrs.calibrate.models import ModelFailure, fit_model
 from cblrs.calibrate.points import Correspondences
-from cblrs.calibrate.pose import FOCAL_RANGE, estimate_focal, pose_from_homography
+from cblrs.calibrate.pose import pose_from_homography
+from cblrs.calibrate.refine import PointNoise, Refined, normalised_errors
+from cblrs.calibrate.robust import OUTLIER_DISTANCE, consensus, homography_distances
+from cblrs.calibrate.select import ORDER, HeldOut, choose, cross_validate
 from cblrs.camera import Camera
 from cblrs.errors import CalibrationError
 
@@ -36,6 +42,10 @@ class Model(StrEnum):
 MINIMUM_POINTS = {Model.HOMOGRAPHY: 4, Model.POSE: 4, Model.FOCAL: 6, Model.K1: 8}
 """Fewest correspondences each model accepts."""
 
+# The global test of a fit: its squared normalised errors exceed what the stated noise
+# explains with this probability only.
+_LARGE_ERROR_PROBABILITY = 1e-3
+
 
 @dataclass(frozen=True, eq=False)
 class CalibrationFit:
@@ -46,15 +56,20 @@ class CalibrationFit:
         model: the model actually fitted (``auto`` resolved; a failed pose falls back to
             ``homography``).
         points: the correspondences.
-        inliers: (N,) bool, False for RANSAC outliers (left out of the fit).
+        inliers: (N,) bool, False for outliers (left out of the fit).
         error_px: (N,) float64 distance between each clicked pixel and its world point
             projected into the image, pixels.
         error_m: (N,) float64 distance between each world point and its clicked pixel
             projected onto the ground, metres (NaN above the horizon).
         warnings: sentences for the user (outliers, large errors, a failed pose).
         position: camera centre (x, y, height) metres, or None; for a homography fit it
-            comes from :func:`pose_from_homography` when that succeeds.
+            comes from a fitted pose or :func:`pose_from_homography`.
         focal_px: the focal length (given, estimated or fitted), or None.
+        position_source: how the position was found.
+        noise: the points' stated noise.
+        held_out: per candidate model, how it predicts each inlier left out of its fit
+            (empty when only one model was possible).
+        refined: the chosen model's refinement (parameters and their covariance).
     """
 
     camera: Camera
@@ -67,6 +82,9 @@ class CalibrationFit:
     position: tuple[float, float, float] | None = None
     focal_px: float | None = None
     position_source: str = ""
+    noise: PointNoise = field(default_factory=PointNoise)
+    held_out: Mapping[str, HeldOut] = field(default_factory=dict)
+    refined: Refined | None = None
     extra: dict[str, Any] = field(default_factory=dict)
 
     @property
@@ -96,6 +114,16 @@ class CalibrationFit:
             "distortion": self.camera.distortion.tolist(),
             "position": list(self.position) if self.position is not None else None,
             "position_source": self.position_source,
+            "noise": {"click_px": self.noise.click_px, "ground_m": self.noise.ground_m},
+            "held_out": {
+                model: {
+                    "score": result.score,
+                    "standard_error": result.standard_error,
+                    "rms_px": _finite_rms(result.error_px),
+                    "median_m": _nan_median(result.error_m),
+                }
+                for model, result in self.held_out.items()
+            },
             "warnings": list(self.warnings),
             "per_point": [
                 {
@@ -132,6 +160,8 @@ def calibrate_camera(
     model: Model | str = Model.AUTO,
     ransac_px: float | None = None,
     warn_px: float | None = None,
+    click_px: float = 2.0,
+    ground_m: float = 0.1,
 ) -> CalibrationFit:
     """Fit a camera to clicked points.
 
@@ -142,12 +172,16 @@ def calibrate_camera(
         name: the camera's name.
         focal_px: a focal length guess in pixels (needed by ``pose``; the starting point of
             ``focal``/``k1``; without it the focal length is estimated from the homography).
-        model: ``auto`` (the richest model the points allow), ``homography``, ``pose``,
-            ``focal`` or ``k1``.
-        ransac_px: RANSAC inlier threshold, pixels (default 0.5 % of the image diagonal,
-            11 px at 1080p); RANSAC runs from 5 points up.
-        warn_px: warn when the inliers' RMS error exceeds this many pixels (default 0.25 %
-            of the diagonal, 5.5 px at 1080p: a few pixels of clicking are expected).
+        model: ``auto`` (the model that best predicts points left out of the fit, among
+            those the points allow), ``homography``, ``pose``, ``focal`` or ``k1``.
+        ransac_px: an outlier threshold in pixels instead of the test under the stated noise
+            (a point is an outlier when the noise explains its error with a chance under
+            1 in 1000); outliers are looked for from 5 points up.
+        warn_px: warn when the inliers' RMS error exceeds this many pixels instead of when
+            the stated noise does not explain the errors.
+        click_px: how far a click may miss its pixel, one standard deviation per axis.
+        ground_m: how far a point's ground position may be off (the site plan's accuracy),
+            metres, one standard deviation per axis.
 
     Returns:
         The fit, with per-point errors and warnings.
@@ -159,26 +193,21 @@ def calibrate_camera(
     """
     model = _model(model, points.source)
     width, height = _image_size(image_size, points.source)
-    diagonal = math.hypot(width, height)
-    if ransac_px is not None and not (math.isfinite(ransac_px) and ransac_px > 0):
-        raise CalibrationError(
-            f"{points.source}: the RANSAC threshold must be a positive number of pixels, "
-            f"got {ransac_px}."
-        )
-    # An outlier is a gross mistake (a wrong or swapped point), far beyond clicking error:
-    # 11 px at 1080p by default.
-    ransac_px = 0.005 * diagonal if ransac_px is None else float(ransac_px)
-    warn_px = 0.0025 * diagonal if warn_px is None else float(warn_px)
+    for value, what in (
+        (ransac_px, "the RANSAC threshold must be a positive number of pixels"),
+        (warn_px, "the warning threshold must be a positive number of pixels"),
+        (click_px, "the click noise must be a positive number of pixels"),
+        (ground_m, "the ground noise must be a positive number of metres"),
+        (focal_px, "the focal length must be a positive number of pixels"),
+    ):
+        if value is not None and not (math.isfinite(value) and value > 0):
+            raise CalibrationError(f"{points.source}: {what}, got {value}.")
+    noise = PointNoise(float(click_px), float(ground_m))
     count = len(points)
     if count < MINIMUM_POINTS[Model.HOMOGRAPHY]:
         raise CalibrationError(
             f"{points.source}: {count} point{'s' if count != 1 else ''} cannot calibrate a camera; "
             "a ground homography needs at least 4 (u, v, x, y) correspondences."
-        )
-    if focal_px is not None and not (math.isfinite(focal_px) and focal_px > 0):
-        raise CalibrationError(
-            f"{points.source}: the focal length must be a positive number of pixels, "
-            f"got {focal_px}."
         )
     _check_spread(points)
     if model is not Model.AUTO and count < MINIMUM_POINTS[model]:
@@ -197,39 +226,52 @@ def calibrate_camera(
             "(--focal PX); with 6 or more points model focal fits it."
         )
     warnings: list[str] = []
-    homography, inliers = _fit_homography(points, ransac_px, warnings)
+    homography, inliers = _consensus(points, noise, ransac_px)
     used = int(inliers.sum())
-    chosen = model
-    if model is Model.AUTO:
-        if used >= MINIMUM_POINTS[Model.K1]:
-            chosen = Model.K1
-        elif used >= MINIMUM_POINTS[Model.FOCAL]:
-            chosen = Model.FOCAL
-        elif focal_px is not None:
-            chosen = Model.POSE
-        else:
-            chosen = Model.HOMOGRAPHY
-    elif used < MINIMUM_POINTS[model]:
+    if model is not Model.AUTO and used < MINIMUM_POINTS[model]:
         raise CalibrationError(
             f"{points.source}: only {used} of {count} points agree with one another (the rest are "
             f"outliers), too few for model {model.value} (needs {MINIMUM_POINTS[model]})."
         )
-    camera = Camera.from_homography(name, homography, (width, height))
+    fits, failures, inliers = _fit_candidates(
+        points, inliers, (width, height), noise, homography, focal_px, model, ransac_px
+    )
+    _report_outliers(points, inliers, fits, noise, warnings)
+    held_out: dict[str, HeldOut] = {}
+    if model is Model.AUTO and len(fits) > 1:
+        image, world = points.image_xy[inliers], points.world_xy[inliers]
+        for candidate, refined in fits.items():
+            result = cross_validate(refined, image, world, noise)
+            if result is not None:
+                held_out[candidate] = result
+        chosen_name = choose(held_out) or next(m for m in reversed(ORDER) if m in fits)
+    elif model is Model.AUTO:
+        chosen_name = next(iter(fits))
+    else:
+        chosen_name = model.value if model.value in fits else Model.HOMOGRAPHY.value
+    chosen = Model(chosen_name)
+    poses = [candidate for candidate in fits if candidate != Model.HOMOGRAPHY.value]
+    if chosen is Model.HOMOGRAPHY and failures and not poses:
+        # Say why no pose: the reason of the richest pose model tried.
+        warnings.append(f"{points.source}: {failures[-1]}; keeping the ground homography only.")
+    refined = fits[chosen.value]
+    camera = refined.camera(name)
     position: tuple[float, float, float] | None = None
     position_source = ""
     fitted_focal = focal_px
     if chosen is not Model.HOMOGRAPHY:
-        try:
-            camera = _fit_pose(points, inliers, (width, height), name, chosen, focal_px, homography)
-            assert camera.intrinsics is not None
-            fitted_focal = float(camera.intrinsics[0, 0])
-            position = _position(camera)
-            position_source = "pose"
-        except _PoseFailure as failure:
-            warnings.append(f"{points.source}: {failure}; keeping the ground homography only.")
-            chosen = Model.HOMOGRAPHY
-            camera = Camera.from_homography(name, homography, (width, height))
-    if chosen is Model.HOMOGRAPHY:
+        assert camera.intrinsics is not None
+        fitted_focal = float(camera.intrinsics[0, 0])
+        position = _position(camera)
+        position_source = "pose"
+    elif poses:
+        # The homography maps the ground best, but a pose fitted too: it places the camera.
+        pose_name = choose({key: held_out[key] for key in poses if key in held_out}) or poses[-1]
+        posed = fits[pose_name].camera(name)
+        assert posed.intrinsics is not None
+        position, fitted_focal = _position(posed), float(posed.intrinsics[0, 0])
+        position_source = f"pose (model {pose_name})"
+    else:
         recovered, reason = pose_from_homography(camera.homography, (width, height), focal_px)
         if recovered is not None:
             position = _position(recovered.camera)
@@ -248,8 +290,8 @@ def calibrate_camera(
             f"{points.source}: 4 points determine a homography exactly, so the errors say "
             "nothing about its quality; click a few more points to check it."
         )
-    rms = float(np.sqrt(np.mean(error_px[inliers] ** 2)))
-    if rms > warn_px:
+    large = _large_error(refined, error_px[inliers], noise, warn_px, (width, height))
+    if large is not None:
         hint = {
             Model.HOMOGRAPHY: "a distorting lens or a sloping ground? 6 or more points fit a pose "
             "and focal length, 8 also k1",
@@ -257,10 +299,7 @@ def calibrate_camera(
             Model.FOCAL: "a distorting lens? 8 or more points fit k1",
             Model.K1: "check the clicked points with the largest errors, or a sloping ground",
         }[chosen]
-        warnings.append(
-            f"{points.source}: the RMS error is {rms:.1f} px, large for model {chosen.value} "
-            f"(expected under {warn_px:.1f} px); {hint}."
-        )
+        warnings.append(f"{points.source}: {large}; {hint}.")
     return CalibrationFit(
         camera=camera,
         model=chosen,
@@ -272,6 +311,9 @@ def calibrate_camera(
         position=position,
         focal_px=fitted_focal,
         position_source=position_source,
+        noise=noise,
+        held_out=held_out,
+        refined=refined,
     )
 
 
@@ -286,8 +328,199 @@ def point_errors(camera: Camera, points: Correspondences) -> tuple[FloatArray, F
     return error_px, error_m
 
 
-class _PoseFailure(Exception):
-    """A pose fit that is not physically possible; the caller falls back to the homography."""
+# ---------------------------------------------------------------------------- steps
+
+
+def _consensus(
+    points: Correspondences, noise: PointNoise, ransac_px: float | None
+) -> tuple[FloatArray, BoolArray]:
+    """A homography of the points and the inliers; refuses points behind the camera."""
+    world, image = points.world_xy, points.image_xy
+    if len(points) >= 5:
+        homography, inliers = consensus(image, world, noise, ransac_px)
+    else:
+        homography, _ = cv2.findHomography(world, image, 0)
+        inliers = np.ones(len(points), dtype=bool)
+    if homography is None or not np.all(np.isfinite(homography)):
+        raise CalibrationError(f"{points.source}: OpenCV found no homography through these points.")
+    if inliers.sum() < 4:
+        raise CalibrationError(
+            f"{points.source}: fewer than 4 points agree with one another; check the rows."
+        )
+    _, _, depth = homography_distances(homography, image, world, noise)
+    # A point mapped through the line at infinity: with these correspondences it would have
+    # to lie behind the camera (its pixel above the horizon of the others).
+    behind = np.flatnonzero(inliers & (depth <= 0))
+    if len(behind):
+        index = int(behind[0])
+        raise CalibrationError(
+            f"{points.source}: {points.names[index]} (u, v = {image[index][0]:g}, "
+            f"{image[index][1]:g}; x, y = {world[index][0]:g}, {world[index][1]:g}) "
+            "lies behind the camera under the fit of the other points (beyond the horizon); "
+            "check its coordinates or whether two rows are swapped."
+        )
+    return homography, inliers
+
+
+def _candidates(model: Model, used: int, focal_px: float | None) -> list[str]:
+    """Models to fit, simplest first; the homography always (the fallback of a failed pose)."""
+    if model is not Model.AUTO:
+        wanted = [model.value]
+    else:
+        wanted = [Model.POSE.value] if focal_px is not None else []
+        wanted += [
+            candidate.value
+            for candidate in (Model.FOCAL, Model.K1)
+            if used >= MINIMUM_POINTS[candidate]
+        ]
+    return [Model.HOMOGRAPHY.value] + [name for name in wanted if name != Model.HOMOGRAPHY.value]
+
+
+def _fit_candidates(
+    points: Correspondences,
+    inliers: BoolArray,
+    image_size: tuple[int, int],
+    noise: PointNoise,
+    homography: FloatArray,
+    focal_px: float | None,
+    model: Model,
+    ransac_px: float | None,
+) -> tuple[dict[str, Refined], list[str], BoolArray]:
+    """Fit every candidate model on the inliers; with 5 points or more, re-admit or drop
+    points under the richest model that fits (a lens's distortion is no outlier) until the
+    inliers settle.
+
+    Returns:
+        ``(fits by model name, reasons of the pose models that failed, inliers)``.
+    """
+    consensus_inliers = inliers
+    if not inliers.all():
+        # The consensus is a homography's: a distorting lens moves the frame's edges off it.
+        # The richest model the points allow, fitted robustly to all of them, says which
+        # points are really beyond the noise.
+        richest = _candidates(model, len(points), focal_px)[-1]
+        if richest != Model.HOMOGRAPHY.value:
+            try:
+                robust = fit_model(
+                    richest,
+                    points.image_xy,
+                    points.world_xy,
+                    image_size,
+                    noise,
+                    homography,
+                    focal_px,
+                    start_on=inliers,
+                )
+                admitted = _outlier_scores(robust, points, noise, ransac_px) <= OUTLIER_DISTANCE
+                if admitted.sum() > inliers.sum():
+                    inliers = admitted
+            except ModelFailure:
+                pass
+    settled: tuple[dict[str, Refined], list[str], BoolArray] | None = None
+    for _ in range(4):
+        image, world = points.image_xy[inliers], points.world_xy[inliers]
+        fits: dict[str, Refined] = {}
+        failures: list[str] = []
+        for candidate in _candidates(model, int(inliers.sum()), focal_px):
+            try:
+                fits[candidate] = fit_model(
+                    candidate, image, world, image_size, noise, homography, focal_px
+                )
+            except ModelFailure as failure:
+                failures.append(str(failure))
+        if not fits:
+            if settled is not None:
+                return settled
+            if not np.array_equal(inliers, consensus_inliers):
+                inliers = consensus_inliers
+                continue
+            raise CalibrationError(
+                f"{points.source}: no model fits these points ({failures[0]}); check the rows."
+            )
+        settled = (fits, failures, inliers)
+        if len(points) < 5:
+            break
+        richest_fit = fits[list(fits)[-1]]
+        admitted = _outlier_scores(richest_fit, points, noise, ransac_px) <= OUTLIER_DISTANCE
+        if np.array_equal(admitted, inliers) or admitted.sum() < 4:
+            break
+        if model is not Model.AUTO and admitted.sum() < MINIMUM_POINTS[model]:
+            break
+        inliers = admitted
+    assert settled is not None
+    return settled
+
+
+def _outlier_scores(
+    refined: Refined, points: Correspondences, noise: PointNoise, ransac_px: float | None
+) -> FloatArray:
+    parameterisation = refined.parameterisation
+    if ransac_px is None:
+        return normalised_errors(
+            parameterisation, refined.params, points.image_xy, points.world_xy, noise
+        )
+    predicted, depth = parameterisation.project(refined.params, points.world_xy)
+    error = np.where(depth > 0, np.hypot(*(predicted - points.image_xy).T), np.inf)
+    return (error / ransac_px) ** 2 * OUTLIER_DISTANCE
+
+
+def _report_outliers(
+    points: Correspondences,
+    inliers: BoolArray,
+    fits: Mapping[str, Refined],
+    noise: PointNoise,
+    warnings: list[str],
+) -> None:
+    if inliers.all():
+        return
+    refined = fits[list(fits)[-1]]
+    predicted, depth = refined.parameterisation.project(refined.params, points.world_xy)
+    error = np.hypot(*(predicted - points.image_xy).T)
+    for index in np.flatnonzero(~inliers).tolist():
+        where = "behind the camera" if depth[index] <= 0 else f"{error[index]:.1f} px from the fit"
+        warnings.append(
+            f"{points.source}: {points.names[index]} is an outlier ({where}); left out of the fit."
+        )
+
+
+def _large_error(
+    refined: Refined,
+    error_px: FloatArray,
+    noise: PointNoise,
+    warn_px: float | None,
+    image_size: tuple[int, int],
+) -> str | None:
+    """The sentence on errors too large for the model, or None."""
+    rms = float(np.sqrt(np.mean(error_px**2)))
+    model = refined.parameterisation.model
+    if warn_px is not None:
+        if rms <= warn_px:
+            return None
+        return (
+            f"the RMS error is {rms:.1f} px, large for model {model} "
+            f"(expected under {warn_px:.1f} px)"
+        )
+    redundancy = refined.redundancy
+    if redundancy <= 0:
+        return None
+    if refined.chi_square <= chi2.ppf(1 - _LARGE_ERROR_PROBABILITY, redundancy):
+        return None
+    factor = math.sqrt(refined.chi_square / redundancy)
+    return (
+        f"the RMS error is {rms:.1f} px, large for model {model}: the points disagree "
+        f"{factor:.1f} times more than {noise.click_px:g} px clicks and {noise.ground_m:g} m on "
+        "the ground explain"
+    )
+
+
+def _finite_rms(values: FloatArray) -> float | None:
+    finite = values[np.isfinite(values)]
+    return float(np.sqrt(np.mean(finite**2))) if len(finite) else None
+
+
+def _nan_median(values: FloatArray) -> float | None:
+    finite = values[np.isfinite(values)]
+    return float(np.median(finite)) if len(finite) else None
 
 
 def _model(model: Model | str, source: str) -> Model:
@@ -333,15 +566,11 @@ def _check_spread(points: Correspondences) -> None:
         )
 
 
-def _normalising(points: FloatArray) -> FloatArray:
-    centre = points.mean(axis=0)
-    scale = math.sqrt(2) / max(float(np.mean(np.hypot(*(points - centre).T))), 1e-12)
-    return np.array([[scale, 0, -scale * centre[0]], [0, scale, -scale * centre[1]], [0, 0, 1]])
-
-
 def _dlt_matrix(image_xy: FloatArray, world_xy: FloatArray) -> FloatArray:
     """Hartley-normalised DLT system of the homography world -> image, (2N, 9)."""
-    image_norm, world_norm = _normalising(image_xy), _normalising(world_xy)
+    from cblrs.calibrate.refine import normalising
+
+    image_norm, world_norm = normalising(image_xy), normalising(world_xy)
     image = np.column_stack([image_xy, np.ones(len(image_xy))]) @ image_norm.T
     world = np.column_stack([world_xy, np.ones(len(world_xy))]) @ world_norm.T
     rows = []
@@ -349,185 +578,6 @@ def _dlt_matrix(image_xy: FloatArray, world_xy: FloatArray) -> FloatArray:
         rows.append([0, 0, 0, -s * x, -s * y, -s * w, v * x, v * y, v * w])
         rows.append([s * x, s * y, s * w, 0, 0, 0, -u * x, -u * y, -u * w])
     return np.array(rows, dtype=np.float64)
-
-
-def _fit_homography(
-    points: Correspondences, ransac_px: float, warnings: list[str]
-) -> tuple[FloatArray, BoolArray]:
-    """World -> pixel homography (sign: seen points in front) and the inlier mask."""
-    world = points.world_xy.astype(np.float64)
-    image = points.image_xy.astype(np.float64)
-    if len(points) >= 5:
-        homography, mask = cv2.findHomography(world, image, cv2.RANSAC, ransac_px)
-    else:
-        homography, mask = cv2.findHomography(world, image, 0)
-    if homography is None or not np.all(np.isfinite(homography)):
-        raise CalibrationError(f"{points.source}: OpenCV found no homography through these points.")
-    inliers = np.ones(len(points), dtype=bool) if mask is None else mask.ravel().astype(bool)
-    if len(points) >= 5:
-        # RANSAC keeps the consensus of its best minimal sample, which with few points can
-        # leave out a good one: refit on the inliers and re-admit every point within the
-        # threshold until the set settles.
-        for _ in range(10):
-            if inliers.sum() < 4:
-                break
-            refit, _ = cv2.findHomography(world[inliers], image[inliers], 0)
-            if refit is None:
-                break
-            homography = refit
-            projected = cv2.perspectiveTransform(world.reshape(-1, 1, 2), refit).reshape(-1, 2)
-            admitted = np.hypot(*(projected - image).T) <= ransac_px
-            if np.array_equal(admitted, inliers) or admitted.sum() < 4:
-                break
-            inliers = admitted
-    if inliers.sum() < 4:
-        raise CalibrationError(
-            f"{points.source}: fewer than 4 points agree with one another; check the rows."
-        )
-    homogeneous = np.column_stack([world, np.ones(len(world))]) @ homography.T
-    depth = homogeneous[:, 2]
-    if np.median(depth[inliers]) < 0:
-        homography, depth = -homography, -depth
-    # A point mapped through the line at infinity: with these correspondences it would have
-    # to lie behind the camera (its pixel above the horizon of the others).
-    behind = np.flatnonzero(inliers & (depth <= 0))
-    if len(behind):
-        index = int(behind[0])
-        raise CalibrationError(
-            f"{points.source}: {points.names[index]} (u, v = {points.image_xy[index][0]:g}, "
-            f"{points.image_xy[index][1]:g}; x, y = {world[index][0]:g}, {world[index][1]:g}) "
-            "lies behind the camera under the fit of the other points (beyond the horizon); "
-            "check its coordinates or whether two rows are swapped."
-        )
-    projected = homogeneous[:, :2] / np.where(depth == 0, np.nan, depth)[:, None]
-    error = np.hypot(*(projected - image).T)
-    for index in np.flatnonzero(~inliers).tolist():
-        where = "behind the camera" if depth[index] <= 0 else f"{error[index]:.1f} px from the fit"
-        warnings.append(
-            f"{points.source}: {points.names[index]} is an outlier ({where}); left out of the fit."
-        )
-    return homography / np.abs(homography).max(), inliers
-
-
-def _fit_pose(
-    points: Correspondences,
-    inliers: BoolArray,
-    image_size: tuple[int, int],
-    name: str,
-    model: Model,
-    focal_px: float | None,
-    homography: FloatArray,
-) -> Camera:
-    width, height = image_size
-    centre = ((width - 1) / 2.0, (height - 1) / 2.0)
-    world = np.column_stack([points.world_xy[inliers], np.zeros(int(inliers.sum()))])
-    image = points.image_xy[inliers]
-    focal = focal_px
-    if focal is None:
-        focal = estimate_focal(homography, image_size)
-    if focal is None:
-        # No perspective to read it from (camera looking straight down): start from a
-        # normal lens (about 60 degrees horizontal field of view).
-        focal = 0.87 * max(width, height)
-    intrinsics = np.array([[focal, 0, centre[0]], [0, focal, centre[1]], [0, 0, 1.0]])
-    object_points = world.astype(np.float32).reshape(-1, 1, 3)
-    image_points = image.astype(np.float32).reshape(-1, 1, 2)
-    distortion = np.zeros(5)
-    if model is Model.POSE:
-        rvec, tvec = _solve_pnp(object_points, image_points, intrinsics)
-    else:
-        flags = (
-            cv2.CALIB_USE_INTRINSIC_GUESS
-            | cv2.CALIB_FIX_PRINCIPAL_POINT
-            | cv2.CALIB_FIX_ASPECT_RATIO
-            | cv2.CALIB_ZERO_TANGENT_DIST
-            | cv2.CALIB_FIX_K2
-            | cv2.CALIB_FIX_K3
-        )
-        if model is Model.FOCAL:
-            flags |= cv2.CALIB_FIX_K1
-        criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-12)
-        try:
-            _, fitted_intrinsics, fitted_distortion, rvecs, tvecs = cv2.calibrateCamera(
-                [object_points],
-                [image_points],
-                (width, height),
-                intrinsics.copy(),
-                distortion.copy(),
-                flags=flags,
-                criteria=criteria,
-            )
-        except cv2.error as error:
-            raise _PoseFailure(f"OpenCV could not fit a pose ({error.err})") from None
-        rvec, tvec = np.asarray(rvecs[0], np.float64), np.asarray(tvecs[0], np.float64)
-        intrinsics = np.asarray(fitted_intrinsics, dtype=np.float64)
-        distortion = np.asarray(fitted_distortion, dtype=np.float64).ravel()
-    fitted_focal = float(intrinsics[0, 0])
-    low, high = (bound * max(width, height) for bound in FOCAL_RANGE)
-    if not (low <= fitted_focal <= high):
-        raise _PoseFailure(
-            f"the fitted focal length ({fitted_focal:.0f} px) is not a real lens's; the points "
-            "show too little perspective"
-        )
-    rotation = cv2.Rodrigues(np.asarray(rvec, dtype=np.float64))[0]
-    translation = np.asarray(tvec, dtype=np.float64).ravel()
-    distortion_used = np.zeros(0)
-    if model is Model.K1:
-        distortion_used = np.array([distortion[0], 0.0, 0.0, 0.0])
-        if not abs(distortion[0]) < 2.0:
-            raise _PoseFailure(f"the fitted k1 ({distortion[0]:.3g}) is not a real lens's")
-    camera = Camera.from_extrinsics(
-        name, intrinsics, rotation, translation, image_size, distortion=distortion_used
-    )
-    _check_pose(camera, points.world_xy[inliers])
-    return camera
-
-
-def _solve_pnp(
-    object_points: NDArray[np.float32], image_points: NDArray[np.float32], intrinsics: FloatArray
-) -> tuple[FloatArray, FloatArray]:
-    """Planar PnP: IPPE's two solutions, keep the one with the camera above the ground and the
-    smaller error, then refine it (Levenberg-Marquardt)."""
-    _, rvecs, tvecs, errors = cv2.solvePnPGeneric(
-        object_points, image_points, intrinsics, None, flags=cv2.SOLVEPNP_IPPE
-    )
-    best: tuple[float, FloatArray, FloatArray] | None = None
-    for rvec, tvec, error in zip(rvecs, tvecs, np.ravel(errors), strict=True):
-        rotation = cv2.Rodrigues(rvec)[0]
-        height = float((-rotation.T @ tvec.ravel())[2])
-        score = float(error) + (0.0 if height > 0 else 1e9)
-        if best is None or score < best[0]:
-            best = (score, np.asarray(rvec, np.float64), np.asarray(tvec, np.float64))
-    if best is None:
-        raise _PoseFailure("OpenCV found no pose through these points")
-    _, rvec, tvec = best
-    ok, rvec, tvec = cv2.solvePnP(
-        object_points,
-        image_points,
-        intrinsics,
-        None,
-        rvec.copy(),
-        tvec.copy(),
-        useExtrinsicGuess=True,
-        flags=cv2.SOLVEPNP_ITERATIVE,
-    )
-    if not ok:
-        raise _PoseFailure("OpenCV could not refine the pose")
-    return np.asarray(rvec, np.float64), np.asarray(tvec, np.float64)
-
-
-def _check_pose(camera: Camera, world_xy: FloatArray) -> None:
-    centre = camera.centre
-    if not centre[2] > 0:
-        raise _PoseFailure(
-            f"the camera comes out {-centre[2]:.2f} m below the ground, so the world axes look "
-            "left-handed (seen from above, x must turn anticlockwise onto y)"
-        )
-    assert camera.rotation is not None and camera.translation is not None
-    world = np.column_stack([world_xy, np.zeros(len(world_xy))])
-    depth = (world @ camera.rotation.T + camera.translation)[:, 2]
-    if np.any(depth <= 0):
-        raise _PoseFailure("some points come out behind the fitted camera")
 
 
 def _position(camera: Camera) -> tuple[float, float, float]:
