@@ -20,6 +20,7 @@ from cblrs.calibrate.pose import pose_from_homography
 from cblrs.calibrate.refine import PointNoise, Refined, normalised_errors
 from cblrs.calibrate.robust import OUTLIER_DISTANCE, consensus, homography_distances
 from cblrs.calibrate.select import ORDER, HeldOut, choose, cross_validate
+from cblrs.calibrate.uncertainty import Coverage, ErrorMap, coverage, error_map, ground_error
 from cblrs.camera import Camera
 from cblrs.errors import CalibrationError
 
@@ -45,6 +46,9 @@ MINIMUM_POINTS = {Model.HOMOGRAPHY: 4, Model.POSE: 4, Model.FOCAL: 6, Model.K1: 
 # The global test of a fit: its squared normalised errors exceed what the stated noise
 # explains with this probability only.
 _LARGE_ERROR_PROBABILITY = 1e-3
+# Warn when more than this share of the image between the points is poorly constrained
+# (far ground is a thin band of rows that may hold most of the people).
+_POOR_SHARE = 0.01
 
 
 @dataclass(frozen=True, eq=False)
@@ -70,6 +74,8 @@ class CalibrationFit:
         held_out: per candidate model, how it predicts each inlier left out of its fit
             (empty when only one model was possible).
         refined: the chosen model's refinement (parameters and their covariance).
+        error_map: the predicted ground error over the image
+            (:mod:`cblrs.calibrate.uncertainty`), None without a refinement.
     """
 
     camera: Camera
@@ -85,12 +91,28 @@ class CalibrationFit:
     noise: PointNoise = field(default_factory=PointNoise)
     held_out: Mapping[str, HeldOut] = field(default_factory=dict)
     refined: Refined | None = None
+    error_map: ErrorMap | None = None
     extra: dict[str, Any] = field(default_factory=dict)
 
     @property
     def rms_px(self) -> float:
         """Root mean square of ``error_px`` over the inliers."""
         return float(np.sqrt(np.mean(self.error_px[self.inliers] ** 2)))
+
+    @property
+    def coverage(self) -> Coverage | None:
+        """How much of the image between the points is poorly constrained (None without
+        an error map)."""
+        if self.error_map is None:
+            return None
+        return coverage(self.error_map, self.points.image_xy[self.inliers])
+
+    def predicted_error_m(self, pixels: FloatArray) -> FloatArray:
+        """(N,) predicted RMS ground error (metres) of locating raw pixels (N, 2) with this
+        fit; NaN where no ground is seen (see :func:`cblrs.calibrate.uncertainty.ground_error`)."""
+        if self.refined is None:
+            return np.full(len(pixels), np.nan)
+        return ground_error(self.refined, pixels)
 
     @property
     def degrees_of_freedom(self) -> int:
@@ -115,6 +137,7 @@ class CalibrationFit:
             "position": list(self.position) if self.position is not None else None,
             "position_source": self.position_source,
             "noise": {"click_px": self.noise.click_px, "ground_m": self.noise.ground_m},
+            "predicted_error": _coverage_dict(self.coverage),
             "held_out": {
                 model: {
                     "score": result.score,
@@ -300,6 +323,15 @@ def calibrate_camera(
             Model.K1: "check the clicked points with the largest errors, or a sloping ground",
         }[chosen]
         warnings.append(f"{points.source}: {large}; {hint}.")
+    errors = error_map(refined, (width, height))
+    cover = coverage(errors, points.image_xy[inliers])
+    if cover.share > _POOR_SHARE and cover.rows is not None and cover.columns is not None:
+        warnings.append(
+            f"{points.source}: on {cover.share:.0%} of the image from the highest point down, "
+            f"the predicted ground error exceeds {cover.limit_m:g} m (mostly rows "
+            f"{cover.rows[0]:.0f}-{cover.rows[1]:.0f}, columns {cover.columns[0]:.0f}-"
+            f"{cover.columns[1]:.0f}); click more points there."
+        )
     return CalibrationFit(
         camera=camera,
         model=chosen,
@@ -314,6 +346,7 @@ def calibrate_camera(
         noise=noise,
         held_out=held_out,
         refined=refined,
+        error_map=errors,
     )
 
 
@@ -511,6 +544,19 @@ def _large_error(
         f"{factor:.1f} times more than {noise.click_px:g} px clicks and {noise.ground_m:g} m on "
         "the ground explain"
     )
+
+
+def _coverage_dict(result: Coverage | None) -> dict[str, Any] | None:
+    if result is None:
+        return None
+    return {
+        "median_m": None if not math.isfinite(result.median_m) else result.median_m,
+        "limit_m": result.limit_m,
+        "share_over_limit": result.share,
+        "rows": list(result.rows) if result.rows else None,
+        "columns": list(result.columns) if result.columns else None,
+        "reliable_below_row": result.reliable_below_row,
+    }
 
 
 def _finite_rms(values: FloatArray) -> float | None:

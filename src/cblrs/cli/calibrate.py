@@ -20,10 +20,13 @@ def register(subparsers) -> None:
         description=(
             "Fit a camera to at least 4 clicked correspondences (CSV rows u,v,x,y[,name]; pixel "
             "u,v in the camera's frame, ground x,y in metres or site-map pixels): a ground "
-            "homography from 4 points (RANSAC from 5), the pose with a given focal length "
-            "(--focal) from 4, the focal length too from 6 and lens distortion k1 from 8. "
-            "Prints each point's error in pixels and metres, writes the camera as cblrs "
-            "camera JSON (--out) and a picture of the fit (--picture)."
+            "homography from 4 points, the pose with a given focal length (--focal) from 4, the "
+            "focal length too from 6 and lens distortion k1 from 8. Every model is fitted under "
+            "the stated click and ground noise (--click-px, --ground-m), outliers are looked for "
+            "from 5 points, and auto keeps the model that best predicts points left out of its "
+            "fit. Prints each point's error in pixels and metres, writes the camera as cblrs "
+            "camera JSON (--out) and a picture of the fit (--picture) that shades the part of "
+            "the image the points leave poorly constrained."
         ),
     )
     parser.add_argument("points", type=Path, metavar="POINTS.csv", help="u,v,x,y[,name] rows")
@@ -36,7 +39,15 @@ def register(subparsers) -> None:
         "--model",
         choices=("auto", "homography", "pose", "focal", "k1"),
         default="auto",
-        help="what to fit (default auto: the most the points allow)",
+        help="what to fit (default auto: the model that best predicts held-out points)",
+    )
+    noise = parser.add_argument_group("how exact the points are (one standard deviation)")
+    noise.add_argument("--click-px", type=float, default=2.0, help="of a click, pixels (default 2)")
+    noise.add_argument(
+        "--ground-m",
+        type=float,
+        default=0.1,
+        help="of a point's ground position (the site plan's accuracy), metres (default 0.1)",
     )
     world = parser.add_argument_group("world coordinates")
     world.add_argument(
@@ -53,7 +64,11 @@ def register(subparsers) -> None:
     world.add_argument(
         "--map-y-down", action="store_true", help="world y grows down the map (default: up)"
     )
-    parser.add_argument("--ransac-px", type=float, help="RANSAC inlier threshold, pixels")
+    parser.add_argument(
+        "--ransac-px",
+        type=float,
+        help="an outlier threshold in pixels instead of the test under the stated noise",
+    )
     parser.add_argument("--out", type=Path, help="write the camera (cblrs camera JSON)")
     parser.add_argument("--picture", type=Path, help="write the picture of the fit (PNG)")
     parser.add_argument("--grid", type=float, metavar="M", help="grid spacing of the picture")
@@ -119,7 +134,14 @@ def run(args: argparse.Namespace) -> int:
     points = Correspondences.from_csv(args.points, transform)
     name = args.name or args.points.stem
     fit = calibrate_camera(
-        points, image_size, name, focal_px=args.focal, model=args.model, ransac_px=args.ransac_px
+        points,
+        image_size,
+        name,
+        focal_px=args.focal,
+        model=args.model,
+        ransac_px=args.ransac_px,
+        click_px=args.click_px,
+        ground_m=args.ground_m,
     )
     summary = fit.to_dict()
     if args.out is not None:

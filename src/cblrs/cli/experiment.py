@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 from pathlib import Path
 from typing import Any
 
@@ -88,6 +89,18 @@ def register(subparsers) -> None:
     )
     calibration.add_argument(
         "--point-frames", type=int, default=5, help="frames the points come from (default 5)"
+    )
+    calibration.add_argument(
+        "--click-px",
+        type=float,
+        default=2.0,
+        help="click noise the site states, pixels (cblrs calibrate's default, 2)",
+    )
+    calibration.add_argument(
+        "--ground-m",
+        type=float,
+        default=0.1,
+        help="ground accuracy the site states, metres (cblrs calibrate's default, 0.1)",
     )
     calibration.add_argument("--wildtrack", type=Path, default=None, help="WILDTRACK folder")
     calibration.add_argument("--out", type=Path, help="write JSON and markdown here")
@@ -207,12 +220,17 @@ def run_calibration_command(args: argparse.Namespace) -> tuple[dict[str, Any], s
         raise UsageError(f"--noise-px must be >= 0, got {args.noise_px}.")
     if args.point_frames < 1:
         raise UsageError(f"--point-frames must be >= 1, got {args.point_frames}.")
+    for option, value in (("--click-px", args.click_px), ("--ground-m", args.ground_m)):
+        if not (value > 0 and math.isfinite(value)):
+            raise UsageError(f"{option} must be a positive number, got {value}.")
     scene = load_named_scene("wildtrack", args.wildtrack, None)
     setup = CalibrationSetup(
         counts=tuple(int(count) for count in counts),
         seeds=tuple(int(seed) for seed in seeds),
         noise_px=args.noise_px,
         point_frames=args.point_frames,
+        click_px=args.click_px,
+        ground_m=args.ground_m,
     )
     result = run_calibration(scene, setup, progress=not args.quiet)
     text = calibration_report(result)

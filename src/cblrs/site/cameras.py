@@ -135,6 +135,11 @@ def _fit_points(site: Site, index: int, spec: CameraModel, where: str) -> Calibr
             spec.name,
             focal_px=spec.focal_px,
             model=spec.model,
+            **{
+                key: value
+                for key, value in (("click_px", spec.click_px), ("ground_m", spec.ground_m))
+                if value is not None
+            },
         )
     except CblrsError as error:
         text = _sentence(error)

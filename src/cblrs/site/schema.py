@@ -227,6 +227,9 @@ class CameraModel(_Strict):
     points_unit: Literal["metres", "map"] = "metres"
     focal_px: float | None = Field(default=None, gt=0)
     model: Literal["auto", "homography", "pose", "focal", "k1"] = "auto"
+    # How far clicks and the points' ground positions may be off (one standard deviation).
+    click_px: float | None = Field(default=None, gt=0)
+    ground_m: float | None = Field(default=None, gt=0)
     frame: str | None = None
 
     @model_validator(mode="before")
@@ -266,8 +269,15 @@ class CameraModel(_Strict):
             raise ValueError(f"a camera given by {kind} needs image_size: [width, height]")
         if self.focal_px is not None and kind not in ("homography", "points"):
             raise ValueError("focal_px is for cameras given by homography or points")
-        if kind != "points" and ("model" in self.model_fields_set or self.points_unit != "metres"):
-            raise ValueError("model and points_unit are for cameras given by points")
+        if kind != "points" and (
+            "model" in self.model_fields_set
+            or self.points_unit != "metres"
+            or self.click_px is not None
+            or self.ground_m is not None
+        ):
+            raise ValueError(
+                "model, points_unit, click_px and ground_m are for cameras given by points"
+            )
         return self
 
     @property

@@ -1,9 +1,11 @@
 """The picture of a calibration from clicked points: is it right?
 
 The camera's frame (or a grey canvas of its size) with the fitted camera's metric ground
-grid, every clicked point (circle; orange when RANSAC left it out) and where the fit puts its
-world point (cross, joined to the click by a line), labelled with both errors, and a box
-summing up the model, the errors, the focal length and the camera's position.
+grid, every clicked point (circle; orange when left out as an outlier) and where the fit puts
+its world point (cross, joined to the click by a line), labelled with both errors, and a box
+summing up the model, the errors, the focal length and the camera's position. The part of
+the image whose predicted ground error exceeds half a metre
+(:mod:`cblrs.calibrate.uncertainty`) is shaded red: click more points there.
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ UInt8Image = NDArray[np.uint8]
 _CLICK = (40, 220, 60)
 _OUTLIER = (255, 150, 0)
 _PROJECTED = (235, 40, 40)
+_POOR = np.array([220, 30, 30], dtype=np.float32)
 _GRID_STEPS_M = (0.25, 0.5, 1.0, 2.0, 5.0, 10.0, 20.0, 50.0, 100.0)
 
 
@@ -69,6 +72,12 @@ def calibration_picture(
     )
     reference = render_reference(camera, plane)
     image = draw_metric_grid(image, reference, grid_m=step)
+    coverage = getattr(fit, "coverage", None)
+    errors = getattr(fit, "error_map", None)
+    if errors is not None and coverage is not None:
+        poor = errors.full((width, height)) > coverage.limit_m
+        shaded = image[poor].astype(np.float32) * 0.6 + _POOR * 0.4
+        image[poor] = shaded.astype(np.uint8)
     scale = max(width, height) / 1920
     radius = max(4, round(9 * scale))
     thickness = max(1, round(2 * scale))
@@ -119,6 +128,8 @@ def calibration_picture(
     legend = "circle: clicked   x: world point projected by the fit   grid: fitted ground, " + (
         f"{step:g} m"
     )
+    if coverage is not None:
+        legend += f"   red: predicted error > {coverage.limit_m:g} m"
     _text(
         image,
         legend,
@@ -148,7 +159,24 @@ def summary_lines(fit: Any) -> list[str]:
         lines.append(f"camera at ({x:.2f}, {y:.2f}) m, {z:.2f} m high [{fit.position_source}]")
     else:
         lines.append("camera position unknown")
+    held_out = getattr(fit, "held_out", {})
+    if held_out:
+        scores = ", ".join(
+            f"{model} {_held_out_metres(result):.2f} m" for model, result in held_out.items()
+        )
+        lines.append(f"held-out points (median ground error): {scores}")
+    coverage = getattr(fit, "coverage", None)
+    if coverage is not None and math.isfinite(coverage.median_m):
+        text = f"predicted ground error: median {coverage.median_m:.2f} m below the highest point"
+        if coverage.reliable_below_row is not None:
+            text += f"; over {coverage.limit_m:g} m above row {coverage.reliable_below_row:.0f}"
+        lines.append(text)
     return lines
+
+
+def _held_out_metres(result: Any) -> float:
+    finite = result.error_m[np.isfinite(result.error_m)]
+    return float(np.median(finite)) if len(finite) else math.nan
 
 
 def _text(
