@@ -185,6 +185,17 @@ CASES = [
         r"scale",
     ),
     (
+        "point noise for a camera not given by points",
+        _set("cameras[0].ground_m", 0.1),
+        r"^site\.yaml: cameras\[0\] \(a\): model, points_unit, click_px and ground_m are for "
+        r"cameras given by points\.$",
+    ),
+    (
+        "a ground noise of zero",
+        _set("cameras[1].ground_m", 0),
+        r"^site\.yaml: cameras\[1\]\.ground_m: Input should be greater than 0\.$",
+    ),
+    (
         "a missing calibration file",
         _set("cameras[0]", {"name": "a", "calibration": "none.json"}),
         r"^site\.yaml: cameras\[0\] \(a\)\.calibration: none\.json does not exist",
@@ -214,6 +225,21 @@ def test_bad_site_files(tmp_path, capsys, what, change, message):
     assert main(["site", "check", str(path)]) == 1
     checked = capsys.readouterr().out
     assert sentence.split(": ")[1].split(" ")[0].split(".")[0] in checked
+
+
+def test_the_points_stated_noise_reaches_their_fit(tmp_path):
+    def change(document: dict) -> None:
+        document["cameras"][1].update(click_px=1.5, ground_m=0.05)
+
+    site = load_site(_write(tmp_path, change))
+    fit = site.camera("b").fit
+    assert fit is not None and (fit.noise.click_px, fit.noise.ground_m) == (1.5, 0.05)
+    # Exported and read again, the noise stays with the camera.
+    from cblrs.site.core import save_document
+
+    exported = save_document(site.export(), tmp_path / "exported.yaml")
+    again = load_site(exported).camera("b").fit
+    assert again is not None and again.noise == fit.noise
 
 
 def test_check_lists_every_schema_problem(tmp_path):
