@@ -246,7 +246,7 @@ def test_points_bunched_low_in_the_frame_warn_about_the_rest():
     )
     fit = calibrate_camera(points, SIZE, "c")
     coverage = fit.coverage
-    assert coverage is not None and coverage.share > 0.01 and coverage.rows is not None
+    assert coverage is not None and coverage.share > 0.02 and coverage.rows is not None
     assert coverage.rows[1] < 450  # the poorly constrained part lies above the clicks
     assert any(
         re.search(r"the predicted ground error exceeds 0\.5 m \(mostly rows \d+-\d+", warning)
@@ -268,7 +268,7 @@ def test_points_bunched_low_in_the_frame_warn_about_the_rest():
 def test_well_spread_points_do_not_warn():
     fit = calibrate_camera(noisy_clicks(TRUTH, 20, seed=2), SIZE, "c")
     assert fit.warnings == ()
-    assert fit.coverage is not None and fit.coverage.share <= 0.01
+    assert fit.coverage is not None and fit.coverage.share <= 0.02
 
 
 # ---------------------------------------------------------------------------- options

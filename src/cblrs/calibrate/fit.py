@@ -48,7 +48,7 @@ MINIMUM_POINTS = {Model.HOMOGRAPHY: 4, Model.POSE: 4, Model.FOCAL: 6, Model.K1: 
 _LARGE_ERROR_PROBABILITY = 1e-3
 # Warn when more than this share of the image between the points is poorly constrained
 # (far ground is a thin band of rows that may hold most of the people).
-_POOR_SHARE = 0.01
+_POOR_SHARE = 0.02
 
 
 @dataclass(frozen=True, eq=False)
