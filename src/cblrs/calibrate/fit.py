@@ -372,9 +372,10 @@ def _consensus(
     if len(points) >= 5:
         homography, inliers = consensus(image, world, noise, ransac_px)
     else:
-        homography, _ = cv2.findHomography(world, image, 0)
+        exact, _ = cv2.findHomography(world, image, 0)
+        homography = np.full((3, 3), np.nan) if exact is None else np.asarray(exact, np.float64)
         inliers = np.ones(len(points), dtype=bool)
-    if homography is None or not np.all(np.isfinite(homography)):
+    if not np.all(np.isfinite(homography)):
         raise CalibrationError(f"{points.source}: OpenCV found no homography through these points.")
     if inliers.sum() < 4:
         raise CalibrationError(

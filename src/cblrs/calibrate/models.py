@@ -194,10 +194,10 @@ def _solve_pnp(
     except cv2.error as error:
         raise ModelFailure(f"OpenCV could not fit a pose ({error.err})") from None
     best: tuple[float, FloatArray, FloatArray] | None = None
-    for rvec, tvec, error in zip(rvecs, tvecs, np.ravel(errors), strict=True):
+    for rvec, tvec, residual in zip(rvecs, tvecs, np.ravel(errors), strict=True):
         rotation = cv2.Rodrigues(rvec)[0]
         height = float((-rotation.T @ tvec.ravel())[2])
-        score = float(error) + (0.0 if height > 0 else 1e9)
+        score = float(residual) + (0.0 if height > 0 else 1e9)
         if best is None or score < best[0]:
             best = (score, np.asarray(rvec, np.float64), np.asarray(tvec, np.float64))
     if best is None:

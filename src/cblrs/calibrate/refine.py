@@ -82,7 +82,9 @@ class Parameterisation:
         """World metres -> pixels (3, 3) of a homography parameter vector."""
         assert self.world_norm is not None and self.image_norm is not None
         normalised = np.append(params, 1.0).reshape(3, 3)
-        return np.linalg.solve(self.image_norm, normalised @ self.world_norm)
+        return np.asarray(
+            np.linalg.solve(self.image_norm, normalised @ self.world_norm), dtype=np.float64
+        )
 
     def project(self, params: FloatArray, world_xy: FloatArray) -> tuple[FloatArray, FloatArray]:
         """``(pixels (N, 2), depth (N,))``; depth > 0 in front of the camera."""
@@ -99,15 +101,22 @@ class Parameterisation:
         depth = camera_xyz[:, 2]
         with np.errstate(divide="ignore", invalid="ignore"):
             normalised = camera_xyz[:, :2] / depth[:, None]
-        focal = self.focal_px if self.model == POSE else params[6]
+        focal = self.focal(params)
         if self.model == K1:
             normalised = normalised * (1.0 + params[7] * np.sum(normalised**2, axis=1))[:, None]
         return focal * normalised + self.principal_point, depth
 
+    def focal(self, params: FloatArray) -> float:
+        """The focal length (pixels) of a pose model's parameters."""
+        if self.model == POSE:
+            assert self.focal_px is not None
+            return float(self.focal_px)
+        return float(params[6])
+
     def camera(self, params: FloatArray, name: str) -> Camera:
         if self.model == HOMOGRAPHY:
             return Camera.from_homography(name, self.homography(params), self.image_size)
-        focal = float(self.focal_px if self.model == POSE else params[6])
+        focal = self.focal(params)
         centre = self.principal_point
         intrinsics = np.array([[focal, 0, centre[0]], [0, focal, centre[1]], [0, 0, 1.0]])
         distortion = np.array([params[7], 0.0, 0.0, 0.0]) if self.model == K1 else np.zeros(0)
@@ -182,7 +191,7 @@ class Refined:
         widened (never narrowed) when the errors exceed the stated noise."""
         size = self.parameterisation.size
         information = self.jacobian.T @ self.jacobian
-        covariance = np.linalg.pinv(information)[:size, :size]
+        covariance = np.asarray(np.linalg.pinv(information)[:size, :size], dtype=np.float64)
         if self.redundancy > 0:
             covariance = covariance * max(1.0, self.chi_square / self.redundancy)
         return covariance
@@ -248,7 +257,7 @@ def refine(
     solution = least_squares(
         residuals,
         start,
-        jac=jacobian,  # type: ignore[arg-type]
+        jac=jacobian,
         method=method,
         loss="soft_l1" if robust else "linear",
         f_scale=2.0,

@@ -97,8 +97,11 @@ def consensus(
         if best is None or cost < best[0]:
             best = (cost, homography)
     if best is None:
-        homography, _ = cv2.findHomography(world_xy, image_xy, 0)
-        return homography, np.ones(count, dtype=bool)
+        # No 4 points in general position: the least-squares homography of all (the caller
+        # refuses it if there is none).
+        fallback, _ = cv2.findHomography(world_xy, image_xy, 0)
+        matrix = np.full((3, 3), np.nan) if fallback is None else fallback
+        return np.asarray(matrix, dtype=np.float64), np.ones(count, dtype=bool)
     homography = best[1]
     inliers = outlier_scores(homography, image_xy, world_xy, noise, ransac_px) <= OUTLIER_DISTANCE
     # The consensus of one minimal sample can leave out a good point (its 4 points are
@@ -109,7 +112,7 @@ def consensus(
         refitted, _ = cv2.findHomography(world_xy[inliers], image_xy[inliers], 0)
         if refitted is None:
             break
-        homography = refitted
+        homography = np.asarray(refitted, dtype=np.float64)
         admitted = (
             outlier_scores(homography, image_xy, world_xy, noise, ransac_px) <= OUTLIER_DISTANCE
         )

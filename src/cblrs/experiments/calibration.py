@@ -26,7 +26,9 @@ calibration run the same way.
 
 from __future__ import annotations
 
+import itertools
 import logging
+import math
 import time
 from dataclasses import dataclass
 from typing import Any
@@ -194,6 +196,56 @@ def localisation_errors(scene: Scene, references: list) -> np.ndarray:
     return np.array(errors)
 
 
+# Bins of predicted ground error (metres) in which the real error is compared.
+PREDICTED_BINS = (0.0, 0.1, 0.2, 0.5, float("inf"))
+
+
+def box_pixels(scene: Scene, camera_index: int) -> tuple[np.ndarray, np.ndarray]:
+    """Bottom centres (pixels) of every annotated box of a camera, and the annotated ground
+    positions (metres) of those people: ``((M, 2), (M, 2))``."""
+    truth = scene.ground_truth
+    positions = {
+        (int(frame), int(person)): xy
+        for frame, person, xy in zip(truth.frame, truth.track_id, truth.world_xy, strict=True)
+    }
+    pixels, world = [], []
+    for index, frame in enumerate(scene.frames.tolist()):
+        detections = scene.detections[index][camera_index]
+        for (x0, _, x1, y1), person in zip(
+            detections.xyxy, detections.object_id.tolist(), strict=True
+        ):
+            key = (int(frame), int(person))
+            if key in positions:
+                pixels.append([(x0 + x1) / 2.0, y1])
+                world.append(positions[key])
+    return np.array(pixels).reshape(-1, 2), np.array(world).reshape(-1, 2)
+
+
+def predicted_and_real(fit: Any, pixels: np.ndarray, world: np.ndarray) -> np.ndarray:
+    """(M, 2): each box's predicted ground error under the fit and its real one (the fitted
+    camera locating its bottom centre, against the annotated position), metres."""
+    located, _ = fit.camera.pixel_to_world(pixels)
+    real = np.hypot(*(located - world).T)
+    return np.column_stack([fit.predicted_error_m(pixels), real])
+
+
+def _predicted_bins(pairs: np.ndarray) -> list[dict[str, Any]]:
+    """Share of boxes and their median real error per bin of predicted error."""
+    usable = pairs[np.isfinite(pairs).all(axis=1)]
+    bins = []
+    for low, high in itertools.pairwise(PREDICTED_BINS):
+        inside = usable[(usable[:, 0] >= low) & (usable[:, 0] < high)]
+        bins.append(
+            {
+                "low_m": low,
+                "high_m": high,
+                "share": float(len(inside) / max(len(usable), 1)),
+                "real_median_m": float(np.median(inside[:, 1])) if len(inside) else None,
+            }
+        )
+    return bins
+
+
 def _run(scene: Scene, references: list, positions: dict[str, Any]) -> dict[str, Any]:
     from cblrs.evaluation import evaluate
     from cblrs.pipeline import track_scene
@@ -224,6 +276,8 @@ def run_calibration(
 
     started = time.perf_counter()
     lab = _run(scene, render_scene_references(scene), camera_positions(scene))
+    boxes = [box_pixels(scene, index) for index in range(len(scene.cameras))]
+    pairs: dict[int, list[np.ndarray]] = {count: [] for count in setup.counts}
     runs = []
     jobs = [(count, seed) for count in setup.counts for seed in setup.seeds]
     iterator: Any = jobs
@@ -239,6 +293,9 @@ def run_calibration(
         references = [site.render_reference(name) for name in scene.camera_names]
         cameras = site.cameras()
         run = _run(site_scene, references, site.camera_positions())
+        for camera, (pixels, world) in zip(cameras, boxes, strict=True):
+            if camera.fit is not None:
+                pairs[count].append(predicted_and_real(camera.fit, pixels, world))
         run.update(
             count=count,
             seed=seed,
@@ -275,6 +332,7 @@ def run_calibration(
                 ),
                 "cameras": len(scene.cameras),
                 "refused_sets": int(sum(c["refused_sets"] for r in chosen for c in r["cameras"])),
+                "predicted_bins": _predicted_bins(np.concatenate(pairs[count])),
             }
         )
     return json_ready(
@@ -376,6 +434,31 @@ def calibration_report(result: dict[str, Any]) -> str:
         "the rendered reference, against its annotated position. Warned: fits that warn that "
         "part of the image between the points has a predicted ground error over 0.5 m.",
     ]
+    if all("predicted_bins" in row for row in result["rows"]):
+        bins = result["rows"][0]["predicted_bins"]
+        names = [
+            f"{item['low_m']:g}-{item['high_m']:g} m"
+            if item["high_m"] is not None and math.isfinite(item["high_m"])
+            else f"over {item['low_m']:g} m"
+            for item in bins
+        ]
+        lines += [
+            "",
+            "Is the predicted error honest? Every annotated box, by the ground error its clicked "
+            "calibration predicts at its bottom centre: the share of boxes, and their median real "
+            "error (the fitted camera locating the bottom centre, against the annotated position).",
+            "",
+            "| points per camera | " + " | ".join(f"predicted {name}" for name in names) + " |",
+            "|---|" + "---|" * len(names),
+        ]
+        for row in result["rows"]:
+            cells = [
+                f"{item['share']:.0%}: {item['real_median_m']:.2f} m"
+                if item["real_median_m"] is not None
+                else f"{item['share']:.0%}: -"
+                for item in row["predicted_bins"]
+            ]
+            lines.append(f"| {row['count']} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
 
