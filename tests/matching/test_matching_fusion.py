@@ -65,9 +65,12 @@ def sequence(fps: float = 2.0, seconds: float = 10.0, seed: int = 0, offsets=(0.
     return instants
 
 
-def run(tracker, instants) -> Tracks:
-    return Tracks.concatenate([tracker.update(timestamp, messages)
-                               for timestamp, messages in instants])
+def run(tracker, instants, flush: bool = True) -> Tracks:
+    """Feed instants; with ``flush`` the stream ends there (the tracker fuses all it holds)."""
+    parts = [tracker.update(timestamp, messages) for timestamp, messages in instants]
+    if flush:
+        parts.append(tracker.flush())
+    return Tracks.concatenate(parts)
 
 
 def identities(tracks: Tracks, times: np.ndarray) -> dict[int, set[int]]:
@@ -108,7 +111,7 @@ def test_state_round_trip_gives_the_same_output():
     instants = sequence(fps=5.0, seed=3, missing={(12, 0): True})
     uninterrupted = run(FusionTracker(PLANES, CAMERAS, camera_positions=CAMERA_XY), instants)
     first = FusionTracker(PLANES, CAMERAS, camera_positions=CAMERA_XY)
-    head = run(first, instants[:17])
+    head = run(first, instants[:17], flush=False)
     resumed = FusionTracker(PLANES, CAMERAS, camera_positions=CAMERA_XY)
     resumed.set_state(json.loads(json.dumps(first.get_state())))
     tail = run(resumed, instants[17:])
@@ -143,9 +146,13 @@ def test_a_single_camera_detection_is_not_reported_until_confirmed():
     tracker = FusionTracker(PLANES, CAMERAS)
     point = np.array([[1.0, 1.0]])
     first = tracker.update(0.0, [camera_message("north", 0, 0.0, point, rng)])
+    # The other cameras might still send a message captured up to 0.25 s after 0.5 s:
+    # the second view waits until the stream ends.
     second = tracker.update(0.5, [camera_message("north", 1, 0.5, point, rng)])
-    assert len(first) == 0 and second.track_id.tolist() == [1]
-    assert second.camera_id.tolist() == [0]
+    assert len(first) == 0 and len(second) == 0 and tracker.waiting == 1
+    last = tracker.flush()
+    assert last.track_id.tolist() == [1] and last.camera_id.tolist() == [0]
+    assert tracker.waiting == 0
 
 
 @pytest.mark.parametrize(

@@ -45,6 +45,7 @@ look-ahead.
 from __future__ import annotations
 
 import dataclasses
+import logging
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
@@ -64,12 +65,22 @@ from cblrs.matching.base import (
     build_config,
     camera_index,
     decode_messages,
-    instant_frame,
     require,
+)
+from cblrs.matching.clock import DEFAULT_MAX_OFFSET_S, DEFAULT_TOLERANCE_S, ClockModel
+from cblrs.matching.timing import (
+    DEFAULT_MAX_WINDOW_S,
+    DEFAULT_WINDOW_FRACTION,
+    Window,
+    WindowBuffer,
 )
 from cblrs.plane import PlaneSet
 
-STATE_VERSION = "cblrs.fusion-tracker/4"
+logger = logging.getLogger(__name__)
+
+STATE_VERSION = "cblrs.fusion-tracker/5"
+_REPORTED_FRAMES = 64  # frames remembered to report each track at most once per frame
+_CORROBORATION_S = 2.0  # a track seen by another camera this recently corroborates a view
 _UNASSIGNABLE = 1.0e9
 _DENSE_PAIRS = 20_000  # below this many N x T pairs a dense distance matrix is faster
 
@@ -166,6 +177,17 @@ class FusionConfig:
         max_age_s: a confirmed track unseen this long is dropped, seconds.
         report_coasting_s: keep reporting the prediction of a confirmed track that was
             missed for at most this long, seconds (0: report only observed tracks).
+        max_window_s: messages are fused in windows of nearby capture times (see
+            :mod:`cblrs.matching.timing`), at most this wide, seconds.
+        window_fraction: window width as a fraction of the shortest camera frame period.
+        max_lag_s: a message whose corrected capture time is older than the tracker's time
+            by more than this cannot be fused any more and is dropped (counted), seconds.
+        estimate_clocks: estimate each camera's clock offset from the data and correct its
+            timestamps (see :mod:`cblrs.matching.clock`); False trusts the timestamps.
+        clock_tolerance_s: a camera whose clock is estimated off by more than this is
+            reported (logged, and in :meth:`FusionTracker.clock_report`), seconds.
+        max_clock_offset_s: largest clock error searched for when a camera's locations stop
+            matching the other cameras' tracks, seconds (0: only the fine estimate).
     """
 
     measurement_sigma_m: float = 0.2
@@ -197,17 +219,25 @@ class FusionConfig:
     tentative_max_age_s: float = 1.0
     max_age_s: float = 2.0
     report_coasting_s: float = 0.0
+    max_window_s: float = DEFAULT_MAX_WINDOW_S
+    window_fraction: float = DEFAULT_WINDOW_FRACTION
+    max_lag_s: float = 0.5
+    estimate_clocks: bool = True
+    clock_tolerance_s: float = DEFAULT_TOLERANCE_S
+    max_clock_offset_s: float = DEFAULT_MAX_OFFSET_S
 
     def __post_init__(self) -> None:
         for name in (
             "measurement_sigma_m", "minimum_sigma_m", "acceleration_sigma",
             "initial_velocity_sigma", "gate_sigmas", "max_gate_m", "cluster_sigmas",
-            "cluster_radius_m", "tentative_max_age_s", "max_age_s",
+            "cluster_radius_m", "tentative_max_age_s", "max_age_s", "max_window_s",
+            "window_fraction", "max_lag_s", "clock_tolerance_s",
         ):
             value = getattr(self, name)
             require(_positive(value), f"{name} must be a positive number, got {value!r}.")
         for name in ("sigma_per_distance", "along_sigma_per_distance", "merge_radius_m",
-                     "report_coasting_s", "object_sigma_m", "group_radius_m"):
+                     "report_coasting_s", "object_sigma_m", "group_radius_m",
+                     "max_clock_offset_s"):
             value = getattr(self, name)
             require(
                 _positive(value) or value == 0,
@@ -226,9 +256,13 @@ class FusionConfig:
             "model_acceleration_factors and model_sojourn_s need one entry per model, got "
             f"{len(self.model_acceleration_factors)} and {len(self.model_sojourn_s)}.",
         )
+        for name in ("adapt_noise", "estimate_clocks"):
+            value = getattr(self, name)
+            require(isinstance(value, bool), f"{name} must be true or false, got {value!r}.")
         require(
-            isinstance(self.adapt_noise, bool),
-            f"adapt_noise must be true or false, got {self.adapt_noise!r}.",
+            self.window_fraction < 1,
+            f"window_fraction must be below 1 (a fraction of a frame period), "
+            f"got {self.window_fraction!r}.",
         )
         require(
             isinstance(self.refine_passes, int) and not isinstance(self.refine_passes, bool)
@@ -297,6 +331,8 @@ class FusionTracker:
     """
 
     name = "fusion"
+    _EXP_INFLATE = True
+    _EXP_COMPENSATE = True
 
     def __init__(self, planes: PlaneSet, camera_ids: Sequence[str], **options: Any):
         self.config = build_config(FusionConfig, options, self.name)
@@ -332,6 +368,19 @@ class FusionTracker:
             [config.class_acceleration_sigma.get(name, config.acceleration_sigma)
              for name in CLASS_NAMES] + [config.acceleration_sigma]
         )
+        # How far an object may move per second, to widen the gate of a detection captured
+        # a little before or after the window's time (before its track's velocity is known
+        # to compensate it): the initial velocity uncertainty, scaled like the acceleration.
+        self._class_speed = (
+            config.initial_velocity_sigma * self._class_acceleration / config.acceleration_sigma
+        )
+        self._windows = WindowBuffer(
+            len(self.camera_ids), config.max_window_s, config.window_fraction
+        )
+        self._clock = ClockModel(
+            len(self.camera_ids), config.clock_tolerance_s, config.max_clock_offset_s,
+            estimate=config.estimate_clocks,
+        )
         self.reset()
 
     def _class_slot(self, class_id: np.ndarray) -> np.ndarray:
@@ -358,6 +407,11 @@ class FusionTracker:
         self._mode_probability = np.zeros((0, models))
         self._evidence = np.zeros(0, np.int64)
         self._last_seen = np.zeros(0)
+        # When each camera last saw each track (-inf: never), for corroboration.
+        self._seen_by = np.zeros((0, len(self.camera_ids)))
+        self._windows.reset()
+        self._clock.reset()
+        self._reported: dict[int, set[int]] = {}
 
     @property
     def track_count(self) -> int:
@@ -380,6 +434,10 @@ class FusionTracker:
             "mode_state": self._mode_state.tolist(),
             "mode_covariance": self._mode_covariance.tolist(),
             "mode_probability": self._mode_probability.tolist(),
+            "seen_by": np.where(np.isfinite(self._seen_by), self._seen_by, None).tolist(),
+            "windows": self._windows.get_state(),
+            "clock": self._clock.get_state(),
+            "reported": [[frame, sorted(ids)] for frame, ids in self._reported.items()],
         }
 
     def set_state(self, state: dict) -> None:
@@ -408,22 +466,114 @@ class FusionTracker:
                 -1, models, 4, 4)
             self._mode_probability = np.asarray(
                 state["mode_probability"], np.float64).reshape(-1, models)
+            self._seen_by = np.array(
+                [[-np.inf if value is None else value for value in row]
+                 for row in state["seen_by"]], np.float64,
+            ).reshape(-1, len(self.camera_ids))
+            self._windows.set_state(state["windows"])
+            self._clock.set_state(state["clock"])
+            self._reported = {int(frame): set(ids) for frame, ids in state["reported"]}
         except (KeyError, TypeError, ValueError, IndexError) as error:
             raise MatcherError(f"the saved fusion-tracker state is incomplete: {error}.") from None
         columns = (self._ids, self._class, self._state, self._covariance, self._evidence,
                    self._last_seen, self._mode_state, self._mode_covariance,
-                   self._mode_probability)
+                   self._mode_probability, self._seen_by)
         lengths = {len(column) for column in columns}
         if len(lengths) != 1:
             raise MatcherError("the saved fusion-tracker state has columns of different lengths.")
 
     # ------------------------------------------------------------------ update
     def update(self, timestamp: float, messages: Sequence[CameraMessage]) -> Tracks:
-        timestamp = float(timestamp)
+        """Take the messages of one released group and fuse every window now complete.
+
+        Messages are fused in windows of nearby clock-corrected capture times (see
+        :mod:`cblrs.matching.timing`), each at its own capture time, so the rows returned
+        may belong to earlier groups, and a window waits until no message can still join it;
+        :meth:`flush` fuses what waits at the end of a stream.
+
+        Args:
+            timestamp: every message captured (by the cameras' own clocks) at or before this
+                has been delivered, in this call or earlier (the latest capture time among
+                ``messages`` when groups are released in capture order), seconds.
+            messages: messages from any subset of the cameras, each camera's in capture order.
+
+        Returns:
+            One row per confirmed track and fused window (frame: the window's newest frame).
+        """
+        for message in messages:
+            camera = self._cameras.get(message.camera_id)
+            if camera is None:
+                raise MatcherError(
+                    f"message from unknown camera {message.camera_id!r}; "
+                    f"known: {', '.join(self._cameras)}."
+                )
+            self._windows.add(camera, message)
+        self._windows.advance(float(timestamp))
+        return self._drain(final=False)
+
+    def flush(self) -> Tracks:
+        """Fuse every message still waiting (the stream has ended); the rows of those windows."""
+        return self._drain(final=True)
+
+    def clock_report(self) -> dict[str, dict[str, Any]]:
+        """Per camera: estimated clock offset (seconds, positive: ahead of the others), its
+        uncertainty, whether it is beyond the tolerance, and counters (see
+        :meth:`cblrs.matching.clock.ClockModel.report`)."""
+        return self._clock.report(self.camera_ids)
+
+    def clock_events(self) -> list[dict[str, Any]]:
+        """Clock events since the last call: ``{"camera", "kind", "offset_s", "time_s"}``."""
+        return [
+            {"camera": self.camera_ids[event.camera], "kind": event.kind,
+             "offset_s": event.offset_s, "time_s": event.time_s}
+            for event in self._clock.events()
+        ]
+
+    @property
+    def waiting(self) -> int:
+        """Messages received but not fused yet (their window is not complete)."""
+        return len(self._windows)
+
+    def _drain(self, final: bool) -> Tracks:
+        parts = []
+        while (window := self._windows.next_window(self._clock.offsets, final)) is not None:
+            parts.append(self._fuse_window(window))
+        return Tracks.concatenate(parts)
+
+    def _fuse_window(self, window: Window) -> Tracks:
+        """Fuse one window: each message at its own corrected capture time."""
+        times = window.times
+        timestamp = float(times.max())
+        if self._time is not None and timestamp < self._time:
+            timestamp = self._time  # late messages are fused at the tracker's time
+        fresh = times >= timestamp - self.config.max_lag_s
+        for camera in window.cameras[~fresh].tolist():
+            self._clock.stale(camera)
+        if not fresh.all():
+            window = Window([m for m, ok in zip(window.messages, fresh.tolist(), strict=True)
+                             if ok], window.cameras[fresh], times[fresh], window.end)
+            times = window.times
+            if not len(times):
+                return Tracks.empty()
+        messages = window.messages
+        # Capture time of each camera's message relative to the window's time (<= 0).
+        lag_of_camera = np.zeros(len(self.camera_ids))
+        lag_of_camera[window.cameras] = times - timestamp
+        raw_time_of_camera = np.zeros(len(self.camera_ids))
+        raw_time_of_camera[window.cameras] = [message.timestamp for message in messages]
+
         raw = decode_messages(self.planes, self._cameras, messages)
+        lag = lag_of_camera[raw.camera]
         self._predict(timestamp)
         covariance = self._measurement_covariance(raw)
-        plain = self._class_extra[self._class_slot(raw.class_id)] == 0
+        base_covariance = covariance
+        slot = self._class_slot(raw.class_id)
+        if self._EXP_INFLATE and np.any(lag != 0):
+            # Until a detection is given a track, its motion over its lag is unknown: widen
+            # its gate by how far the class moves in that time.
+            covariance = covariance + ((lag * self._class_speed[slot]) ** 2)[:, None, None] * (
+                np.eye(2)[None])
+        plain = self._class_extra[slot] == 0
         observed = raw
         if plain.any():
             # Box bottoms are not exactly the feet: remove the learned along-ray bias.
@@ -435,6 +585,20 @@ class FusionTracker:
 
         assigned = self._associate(observed, covariance)
         assigned = self._join_observed(observed, covariance, assigned)
+        matched = assigned >= 0
+        located_xy = observed.world_xy
+        if self._EXP_COMPENSATE and matched.any() and np.any(lag[matched] != 0):
+            # Each view shows its track where it was at the view's capture time: move it
+            # along the track's velocity to the window's time.
+            rows = assigned[matched]
+            motion = lag[matched, None] * self._state[rows, 2:4]
+            observed = dataclasses.replace(observed, world_xy=observed.world_xy.copy())
+            observed.world_xy[matched] -= motion
+            raw = dataclasses.replace(raw, world_xy=raw.world_xy.copy())
+            raw.world_xy[matched] -= motion
+            covariance = base_covariance.copy()
+            covariance[matched] += (lag[matched] ** 2)[:, None, None] * (
+                self._covariance[rows, 2:4, 2:4])
         if self.config.adapt_noise:
             self._noise.learn(raw.world_xy, self._distance, np.where(plain, assigned, -1),
                               self._direction, self._along_distance)
@@ -443,9 +607,10 @@ class FusionTracker:
         report_camera = np.full(track_count, -1, np.int64)
         report_box = np.full((track_count, 4), np.nan)
         cameras_of_track = np.zeros((track_count, len(self.camera_ids)), dtype=bool)
-        matched = assigned >= 0
         if matched.any():
             rows = assigned[matched]
+            self._seen_by[rows, observed.camera[matched]] = timestamp
+            self._learn_clocks(observed, base_covariance, matched, rows, timestamp)
             fused_xy, fused_covariance, seen_now = fuse(
                 rows, track_count, observed.world_xy[matched], covariance[matched]
             )
@@ -463,6 +628,8 @@ class FusionTracker:
             self._last_seen[seen_now] = timestamp
             cameras_of_track[rows, observed.camera[matched]] = True
             report_camera, report_box = self._largest_boxes(observed, matched, rows, track_count)
+        else:
+            self._clock.corroboration(observed.camera, np.zeros(len(observed), dtype=bool))
 
         births = self._birth(_subset(observed, ~matched), covariance[~matched], timestamp)
         seen_now = np.concatenate([seen_now, np.ones(births, dtype=bool)])
@@ -479,22 +646,102 @@ class FusionTracker:
         count = int(newly_confirmed.sum())
         self._ids[newly_confirmed] = self._next_id + np.arange(count)
         self._next_id += count
-        if not messages:
-            return Tracks.empty()
         report = (self._ids >= 0) & (
             seen_now | (timestamp - self._last_seen <= self.config.report_coasting_s)
         )
-        order = np.argsort(self._ids[report], kind="stable")
-        rows = np.flatnonzero(report)[order]
-        return Tracks(
-            frame=np.full(len(rows), instant_frame(messages)),
-            timestamp=np.full(len(rows), timestamp),
-            track_id=self._ids[rows],
-            world_xy=self._state[rows, :2],
-            camera_id=report_camera[rows],
-            xyxy=report_box[rows],
-            class_id=self._class[rows],
+        self._record_for_clocks(timestamp, seen_now & (self._ids >= 0), located_xy,
+                                observed.camera, raw_time_of_camera)
+        return self._report_instants(report, report_camera, report_box, window, timestamp)
+
+    def _report_instants(
+        self, report: np.ndarray, report_camera: np.ndarray, report_box: np.ndarray,
+        window: Window, timestamp: float,
+    ) -> Tracks:
+        """Rows of the reported tracks at each capture instant of the window.
+
+        An instant is a frame number: the window's messages of one frame (cameras numbering
+        frames alike, as data sets do) are one instant, at their mean corrected capture time;
+        a window holding the frames of cameras at different rates reports each. The state is
+        at the window's latest capture time and is moved back along the track's velocity.
+        A track is reported at most once per frame: cameras whose clocks disagree by about
+        a frame can put one frame's messages in two windows.
+        """
+        frames = np.array([message.frame for message in window.messages], np.int64)
+        parts = []
+        for frame in np.unique(frames).tolist():
+            reported = self._reported.setdefault(frame, set())
+            if len(self._reported) > _REPORTED_FRAMES:
+                del self._reported[next(iter(self._reported))]
+            mask = report & ~np.isin(self._ids, list(reported)) if reported else report
+            order = np.argsort(self._ids[mask], kind="stable")
+            rows = np.flatnonzero(mask)[order]
+            reported.update(self._ids[rows].tolist())
+            instant = float(window.times[frames == frame].mean())
+            position = self._state[rows, :2]
+            if instant != timestamp:
+                position = position + (instant - timestamp) * self._state[rows, 2:4]
+            parts.append(Tracks(
+                frame=np.full(len(rows), frame),
+                timestamp=np.full(len(rows), instant),
+                track_id=self._ids[rows],
+                world_xy=position,
+                camera_id=report_camera[rows],
+                xyxy=report_box[rows],
+            ))
+        return Tracks.concatenate(parts)
+
+    def _learn_clocks(
+        self, observed: Observations, covariance: np.ndarray, matched: np.ndarray,
+        rows: np.ndarray, timestamp: float,
+    ) -> None:
+        """Give the clock model each view's innovation against its track's prediction.
+
+        Only views of confirmed tracks that another camera saw recently count: a track seen
+        by one camera alone follows that camera's clock and says nothing about it.
+        """
+        camera = observed.camera[matched]
+        recent = self._seen_by[rows] >= timestamp - _CORROBORATION_S
+        recent[np.arange(len(rows)), camera] = False
+        corroborated = recent.any(axis=1) & (self._ids[rows] >= 0)
+        self._clock.corroboration(
+            np.concatenate([camera, observed.camera[~matched]]),
+            np.concatenate([corroborated, np.zeros(int((~matched).sum()), dtype=bool)]),
         )
+        if not self.config.estimate_clocks or not corroborated.any():
+            return
+        use = np.flatnonzero(corroborated)
+        tracks = rows[use]
+        direction = self._direction[matched][use]
+        across = None
+        if np.isfinite(self._camera_xy[camera[use], 0]).all():
+            across = np.column_stack([-direction[:, 1], direction[:, 0]])
+        self._clock.learn(
+            camera[use], tracks, observed.world_xy[matched][use], covariance[matched][use],
+            self._state[tracks, 2:4], across, self._state[tracks, :2],
+            self._covariance[tracks, :2, :2] + self._object_covariance,
+        )
+
+    def _record_for_clocks(
+        self, timestamp: float, shown: np.ndarray, located_xy: np.ndarray,
+        camera: np.ndarray, raw_time_of_camera: np.ndarray,
+    ) -> None:
+        """End the window for the clock model: tracks and views for its coarse search."""
+        if self.config.estimate_clocks:
+            recent = self._seen_by[shown] >= timestamp - _CORROBORATION_S
+            sole = np.where(recent.sum(axis=1) == 1, np.argmax(recent, axis=1), -1)
+            self._clock.record(timestamp, self._state[shown, :2], sole.astype(np.int64),
+                               camera, located_xy, raw_time_of_camera[camera])
+        for event in self._clock.end_window(timestamp):
+            name = self.camera_ids[event.camera]
+            if event.kind == "back":
+                logger.info("camera %s: clock back within %.3f s of the others (%+.3f s)",
+                            name, self.config.clock_tolerance_s, event.offset_s)
+            else:
+                logger.warning(
+                    "camera %s: clock off by %+.3f s against the other cameras%s; its "
+                    "timestamps are corrected", name, event.offset_s,
+                    " (found by searching)" if event.kind == "jump" else "",
+                )
 
     # ------------------------------------------------------------------ steps
     def _predict(self, timestamp: float) -> None:
@@ -975,6 +1222,8 @@ class FusionTracker:
         ])
         self._evidence = np.concatenate([self._evidence, np.bincount(labels, minlength=count)])
         self._last_seen = np.concatenate([self._last_seen, np.full(count, timestamp)])
+        self._seen_by = np.concatenate([
+            self._seen_by, np.where(self._birth_cameras, timestamp, -np.inf)])
         return count
 
     def _merge_duplicates(self, seen_now: np.ndarray, cameras_of_track: np.ndarray) -> np.ndarray:
@@ -1014,6 +1263,23 @@ class FusionTracker:
         self._mode_probability = self._mode_probability[keep]
         self._evidence = self._evidence[keep]
         self._last_seen = self._last_seen[keep]
+        self._seen_by = self._seen_by[keep]
+
+
+def clock_report(state: dict | None, camera_ids: Sequence[str]) -> dict[str, Any] | None:
+    """The clock report (:meth:`FusionTracker.clock_report`) of a saved fusion-tracker state.
+
+    Returns:
+        None for a state of another matcher (or none).
+    """
+    if not isinstance(state, dict) or state.get("version") != STATE_VERSION:
+        return None
+    clock = ClockModel(len(camera_ids))
+    try:
+        clock.set_state(state["clock"])
+    except (KeyError, TypeError, ValueError):
+        return None
+    return clock.report(camera_ids)
 
 
 def _subset(observed: Observations, mask: np.ndarray) -> Observations:
