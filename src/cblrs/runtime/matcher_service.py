@@ -12,20 +12,20 @@ Per delivery:
    past or future); a rejection is counted by reason and acknowledged, the service goes on;
 2. **de-duplicate** by ``(camera, sequence)``: the inbox's primary key, so redeliveries are
    recognised across restarts too;
-3. **order**: messages wait in a buffer grouped by equal capture timestamp. A group is
-   released, in timestamp order, when every camera of the plane has delivered that timestamp
-   or a later one (cameras send one message per frame, in order), or — so that a dead
-   camera does not stall the plane — when the group has waited ``window_s`` *and* each
-   camera still missing has been silent for ``window_s``. A camera that is still sending
-   older frames (e.g. a slower replay) is waited for, so an ordinary replay has no late
-   messages; a camera that says "offline" is not waited for. The window clock stops while
-   the service is disconnected from the broker, so an outage does not expire groups whose
-   remaining messages are queued at the broker. A message at or before the last released
-   timestamp is ``late``: stored, counted, not tracked;
-4. **track**: the group goes to the matcher (``update(timestamp, messages)``, messages in
-   camera order) and one transaction stores its track rows, marks its inbox rows processed
-   and saves the matcher state (``get_state()``); the rows are published on
-   ``cblrs/<plane>/tracks``. Groups released together (a backlog) share one transaction.
+3. **order** (:class:`~cblrs.runtime.ordering.Orderer`): messages wait in a buffer and are
+   released in windows of nearby capture times (cameras need not share a clock, a frame
+   rate nor capture instants) once no camera can still add to them: every camera has moved
+   past the window, is in it, is not due to capture again before its end, or said
+   "offline"; a dead camera is given up after ``window_s`` of silence. The window clock
+   stops while the service is disconnected from the broker, so an outage does not expire
+   windows whose remaining messages are queued at the broker. A message at or before the
+   last released window's timestamp is ``late``: stored, counted, not tracked;
+4. **track**: the window goes to the matcher (``update(timestamp, messages)``, messages in
+   time and camera order; the fusion tracker fuses each at its own clock-corrected capture
+   time) and one transaction stores the track rows it returns, marks the window's inbox rows
+   processed and saves the matcher state (``get_state()``, messages it still holds
+   included); the rows are published on ``cblrs/<plane>/tracks``. Windows released together
+   (a backlog) share one transaction. Stopping with ``flush`` fuses what the matcher holds.
 
 Steps 1-3 run in the service's process: a *receiver* thread validates, stores, acknowledges
 and buffers the deliveries the transport's thread queues, in batches of what has arrived (one
@@ -48,7 +48,6 @@ acknowledged, so the broker delivers them again.
 from __future__ import annotations
 
 import functools
-import heapq
 import logging
 import math
 import multiprocessing
@@ -56,10 +55,11 @@ import threading
 import time
 from collections import Counter, defaultdict, deque
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
 from typing import Any
 
 from cblrs.detections import Tracks
+from cblrs.matching.fusion import clock_report
+from cblrs.runtime.ordering import Orderer
 from cblrs.runtime.store import LATE, PENDING, InboxEntry, RuntimeStore
 from cblrs.runtime.topics import (
     TopicError,
@@ -77,12 +77,6 @@ logger = logging.getLogger(__name__)
 
 COUNTER_NAMES = ("received", "accepted", "duplicates", "late", "processed", "groups", "tracks")
 """Counters every summary shows (rejections add ``rejected.<reason>``)."""
-
-
-@dataclass
-class _Group:
-    messages: dict[str, InboxEntry]
-    first_arrival: float  # service clock
 
 
 class ServiceClock:
@@ -180,29 +174,24 @@ class MatcherService:
         self.window_s = float(window_s)
         self.publish_tracks = publish_tracks
         self.max_buffered_groups = int(max_buffered_groups)
+        self._orderer = Orderer(self.camera_ids, timeout_s=self.window_s,
+                                max_buffered_groups=self.max_buffered_groups)
         self.batch_size = int(batch_size)
         self.groups_per_commit = max(1, int(groups_per_commit))
         self.observer = observer
         self._wall_clock = wall_clock
         self.clock = ServiceClock(lambda: bool(getattr(transport, "connected", True)))
-        self._camera_order = {name: index for index, name in enumerate(self.camera_ids)}
         self._settings = {"plane_id": self.plane_id, "camera_ids": self.camera_ids}
         self._settings.update(settings or {})
 
         self._inbox: deque[tuple[str, Any, float]] = deque()
         self._arrived = threading.Event()
-        self._groups: dict[float, _Group] = {}
-        self._timestamps: list[float] = []  # heap of the buffered groups' timestamps
-        self._released: float | None = None
-        self._latest: dict[str, float] = {}
-        self._last_heard: dict[str, float] = {}
         self._offline: dict[str, bool] = dict.fromkeys(self.camera_ids, False)
         self._final_offline: dict[str, bool] = dict.fromkeys(self.camera_ids, False)
         self._offline_at: dict[str, float | None] = dict.fromkeys(self.camera_ids, None)
         self._started_at = wall_clock()
         self._active_this_run: set[str] = set()
         self._last_delivery = 0.0
-        self._silence_origin: float | None = None
         self._stop = threading.Event()
         self._flush_requested = threading.Event()
         self._wake = threading.Event()
@@ -280,18 +269,19 @@ class MatcherService:
             self.transport.close()
 
     def _recover(self) -> None:
-        self._released = self.store.released_timestamp()
-        for camera, summary in self.store.inbox_summary().items():
-            if camera in self._offline:
-                self._latest[camera] = summary["max_timestamp"]
+        released = self.store.released_timestamp()
+        self._orderer.restore(released, {
+            camera: summary["max_timestamp"]
+            for camera, summary in self.store.inbox_summary().items()
+        })
         now = self.clock()
         pending = self.store.pending_entries()
         for entry in pending:
-            self._buffer(entry, now)
-        if self._released is not None or pending:
+            self._orderer.add(entry, now)
+        if released is not None or pending:
             logger.info(
                 "plane %d: resumed at %s with %d pending messages",
-                self.plane_id, self._released, len(pending),
+                self.plane_id, released, len(pending),
             )
 
     def _fail(self, error: BaseException, role: str) -> None:
@@ -370,7 +360,7 @@ class MatcherService:
                 counters[f"rejected.{error.reason.value}"] += 1
                 logger.debug("rejected on %s: %s", delivery.topic, error)
                 continue
-            late = self._released is not None and wire.timestamp <= self._released
+            late = self._orderer.is_late(wire.timestamp)
             accepted.append((InboxEntry.from_wire(wire), LATE if late else PENDING, received_at))
         inserted = self.store.insert_messages(accepted, counters)
         # Acknowledge only now: everything above is durably stored (or rejected on purpose).
@@ -381,14 +371,11 @@ class MatcherService:
             if not new:
                 continue
             stored.append(entry)
-            camera = entry.camera_id
-            self._active_this_run.add(camera)
-            self._last_heard[camera] = now
-            if self._silence_origin is None:
-                self._silence_origin = now
-            self._latest[camera] = max(self._latest.get(camera, -math.inf), entry.timestamp)
+            self._active_this_run.add(entry.camera_id)
             if status == PENDING:
-                self._buffer(entry, now)
+                self._orderer.add(entry, now)
+            else:
+                self._orderer.heard(entry.camera_id, now)
         if self.observer is not None and hasattr(self.observer, "on_stored") and stored:
             self.observer.on_stored(stored, self._wall_clock())
 
@@ -405,9 +392,8 @@ class MatcherService:
             self._offline[camera] = self._final_offline[camera] = False
             self._offline_at[camera] = None
             self._active_this_run.add(camera)
-            self._last_heard[camera] = now
-            if self._silence_origin is None:
-                self._silence_origin = now
+            self._orderer.set_offline(camera, False)
+            self._orderer.heard(camera, now)
         elif status.timestamp is None:
             # A last will (no timestamp): the connection dropped — a crash, or a broker
             # restart. It does not say the stream ended, so ordering keeps waiting for the
@@ -424,29 +410,8 @@ class MatcherService:
             )
             if not stale:
                 self._offline[camera] = True
+                self._orderer.set_offline(camera, True)
         logger.info("plane %d: camera %s is %s", self.plane_id, camera, status.state)
-
-    def _buffer(self, entry: InboxEntry, now: float) -> None:
-        group = self._groups.get(entry.timestamp)
-        if group is None:
-            group = self._groups[entry.timestamp] = _Group({}, now)
-            heapq.heappush(self._timestamps, entry.timestamp)
-        group.messages[entry.camera_id] = entry
-
-    def _ready(self, timestamp: float, group: _Group, now: float) -> bool:
-        missing = [
-            camera
-            for camera in self.camera_ids
-            if self._latest.get(camera, -math.inf) < timestamp and not self._offline[camera]
-        ]
-        if not missing:
-            return True
-        if now - group.first_arrival < self.window_s:
-            return False
-        origin = self._silence_origin if self._silence_origin is not None else now
-        return all(
-            now - self._last_heard.get(camera, origin) >= self.window_s for camera in missing
-        )
 
     # -- releaser and collector threads ---------------------------------------------------
 
@@ -455,7 +420,7 @@ class MatcherService:
         assert self._tracker is not None
         try:
             while not self._received_all.is_set():
-                self._wake.wait(0.05 if self._groups else 0.2)
+                self._wake.wait(0.05 if len(self._orderer) else 0.2)
                 self._wake.clear()
                 self._release_ready()
             if self._failure is None:
@@ -465,34 +430,19 @@ class MatcherService:
         except BaseException as error:  # surfaced by stop()
             self._fail(error, "releaser")
         finally:
-            self._tracker.finish()
+            self._tracker.finish(flush=self._flush_requested.is_set() and self._failure is None)
 
     def _release_ready(self, force: bool = False) -> None:
         assert self._tracker is not None
         while self._failure is None:
             with self._state_lock:
-                batch: Batch = []
-                while self._groups and len(batch) < self.groups_per_commit:
-                    now = self.clock()
-                    timestamp = self._timestamps[0]
-                    group = self._groups[timestamp]
-                    if not (
-                        force
-                        or len(self._groups) > self.max_buffered_groups
-                        or self._ready(timestamp, group, now)
-                    ):
-                        break
-                    heapq.heappop(self._timestamps)
-                    del self._groups[timestamp]
-                    messages = sorted(
-                        group.messages.values(), key=lambda m: self._camera_order[m.camera_id]
-                    )
-                    batch.append((timestamp, messages))
+                batch: Batch = self._orderer.release(
+                    self.clock(), force=force, limit=self.groups_per_commit
+                )
                 if not batch:
                     return
                 # From now on a message at or before these timestamps is late; the store
-                # records the same timestamp when the groups are committed.
-                self._released = batch[-1][0]
+                # records the same timestamp when the windows are committed.
                 self._inflight.append(batch)
             self._tracker.submit(batch)  # blocks while the tracker process is behind
 
@@ -513,6 +463,10 @@ class MatcherService:
                     return
                 if answer[0] == "failed":
                     raise TrackerProcessError(f"the tracker process failed:\n{answer[1]}")
+                if answer[0] == "flushed":  # what the matcher held at the end of the stream
+                    _, timestamp, tracks, payload = answer
+                    self._publish(timestamp, [], tracks, payload)
+                    continue
                 _, results, _ = answer
                 batch = self._inflight[0]
                 for (timestamp, tracks, payload), (_, entries) in zip(results, batch, strict=True):
@@ -542,7 +496,7 @@ class MatcherService:
     def buffered(self) -> int:
         """Messages waiting in the ordering buffer."""
         with self._state_lock:
-            return sum(len(group.messages) for group in self._groups.values())
+            return len(self._orderer)
 
     def cameras_done(self) -> bool:
         """Whether every camera has ended its stream with its own "offline" status.
@@ -570,7 +524,7 @@ class MatcherService:
     def drained(self) -> bool:
         """Nothing waiting: no delivery to store, no buffered group, no group being tracked."""
         with self._state_lock:
-            return not self._inbox and not self._groups and not self._inflight
+            return not self._inbox and not len(self._orderer) and not self._inflight
 
     def failed(self) -> bool:
         return self._failure is not None
@@ -592,11 +546,12 @@ class MatcherService:
             **totals,
             "rejected_by_reason": rejected,
             "buffered_messages": self.buffered(),
-            "buffered_groups": len(self._groups),
+            "buffered_groups": self._orderer.groups,
             "inbox": summary["inbox"],
             "track_ids": summary["track_ids"],
-            "released_timestamp": self._released,
+            "released_timestamp": self._orderer.released,
             "offline_cameras": sorted(c for c, off in self._offline.items() if off),
+            "clocks": clock_report(self.store.matcher_state(), self.camera_ids),
         }
 
 

@@ -14,8 +14,10 @@ the same database (after a crash of either process) continues from the last comm
 
 Messages (pickled) on the two pipes:
 
-* service -> tracker: a batch ``[(timestamp, [InboxEntry, ...]), ...]`` (groups in time
-  order, messages in camera order), or ``None``: commit nothing more and stop;
+* service -> tracker: a batch ``[(timestamp, [InboxEntry, ...]), ...]`` (windows in time
+  order, messages in time and camera order), ``None``: commit nothing more and stop, or
+  ``"flush"``: the stream has ended: fuse and commit what the matcher still holds (its
+  ``flush()``), answer ``("flushed", timestamp, tracks, payload or None)``, then stop;
 * tracker -> service, in the order of the batches: ``("tracked", [(timestamp, tracks,
   payload or None), ...], counters)`` once a batch is committed; ``("failed", traceback)``
   when tracking or committing raised (the process then exits); ``("stopped",)`` after
@@ -92,10 +94,14 @@ class TrackerProcess:
         """
         self._requests.send(batch)
 
-    def finish(self) -> None:
-        """Ask the process to stop after the batches already sent (a no-op once it has gone)."""
+    def finish(self, flush: bool = False) -> None:
+        """Ask the process to stop after the batches already sent (a no-op once it has gone).
+
+        Args:
+            flush: first fuse and commit the messages the matcher still holds.
+        """
         try:
-            self._requests.send(None)
+            self._requests.send("flush" if flush else None)
         except OSError:
             pass
 
@@ -146,7 +152,21 @@ def run(
         # out of the garbage collector's full passes, which would otherwise walk it all.
         gc.freeze()
         updates = 0
+        released = store.released_timestamp()
         while (batch := requests.recv()) is not None:
+            if batch == "flush":
+                flush = getattr(matcher, "flush", None)
+                if flush is not None and released is not None:
+                    tracks = flush()
+                    store.commit_group([], tracks, matcher.get_state(), released,
+                                       {"tracks": len(tracks)}, tracker=tracker)
+                    if len(tracks):
+                        payload = None
+                        if publish_tracks:
+                            updates += 1
+                            payload = _encode(tracks, plane_id, updates, camera_ids, released)
+                        results.send(("flushed", released, tracks, payload))
+                break
             tracked = []
             for timestamp, entries in batch:
                 messages = [entry.message() for entry in entries]
@@ -154,6 +174,8 @@ def run(
             keys = [(entry.camera_id, entry.sequence) for _, entries in batch for entry in entries]
             tracks = Tracks.concatenate([group_tracks for _, group_tracks in tracked])
             counters = {"processed": len(keys), "groups": len(batch), "tracks": len(tracks)}
+            counters.update(_clock_counters(matcher))
+            released = batch[-1][0]
             # One snapshot after the last group: the file holds all of these groups or none.
             store.commit_group(keys, tracks, matcher.get_state(), batch[-1][0], counters,
                                tracker=tracker)
@@ -176,6 +198,18 @@ def run(
         stop_checkpoints.set()
         checkpoints.join()
         store.close()
+
+
+def _clock_counters(matcher: Any) -> dict[str, int]:
+    """Counters of the matcher's clock events (cameras found off, searched, back in line)."""
+    events = getattr(matcher, "clock_events", None)
+    if events is None:
+        return {}
+    counters: dict[str, int] = {}
+    for event in events():
+        name = f"clock_{event['kind']}"
+        counters[name] = counters.get(name, 0) + 1
+    return counters
 
 
 def _encode(
