@@ -2,8 +2,11 @@
 
 Each camera turns its detections into a :class:`CameraMessage` through its own colour
 reference image (:func:`cblrs.edge.make_message`), exactly as an edge device would; the
-matcher only ever sees colours. Messages are grouped by capture timestamp and fed to the
-matcher in time order.
+matcher only ever sees colours. Messages reach the matcher through the same
+:class:`~cblrs.runtime.ordering.Orderer` as in the matcher service, in capture-time order, so
+the in-process tracks equal the service's on the same messages. A
+:class:`~cblrs.datasets.clocks.ClockSimulation` gives the cameras their own clocks, frame
+rates and lost messages.
 """
 
 from __future__ import annotations
@@ -17,6 +20,7 @@ from typing import Any
 
 import numpy as np
 
+from cblrs.datasets.clocks import ClockSimulation, camera_clocks
 from cblrs.datasets.scene import Scene
 from cblrs.detections import CameraMessage, Tracks
 from cblrs.edge import Targeter, make_message
@@ -40,6 +44,13 @@ class TrackingResult:
         matcher_seconds: time spent inside the matcher's ``update`` calls.
         total_seconds: wall time of the whole call, rendering included.
         render_seconds: time spent rendering reference images (0 when they were given).
+        captured_frames: (F,) int64 the scene frames of which some camera's message reached
+            the matcher (the instants there is anything to report; all frames unless a
+            clock simulation changed frame rates or lost messages).
+        clocks: the fusion tracker's clock report per camera (estimated offset, whether it is
+            beyond the tolerance, ...; see :meth:`cblrs.matching.FusionTracker.clock_report`);
+            None for other matchers.
+        late_messages: messages the ordering received after their window had gone.
     """
 
     tracks: Tracks
@@ -49,6 +60,9 @@ class TrackingResult:
     matcher_seconds: float
     total_seconds: float
     render_seconds: float = 0.0
+    captured_frames: np.ndarray | None = None
+    clocks: dict[str, dict[str, Any]] | None = None
+    late_messages: int = 0
 
 
 def scene_planes(scene: Scene, bits: int = 16) -> PlaneSet:
@@ -158,7 +172,79 @@ def run_matcher(
         start = time.perf_counter()
         parts.append(matcher.update(timestamp, messages))
         seconds += time.perf_counter() - start
+    start = time.perf_counter()
+    parts.append(flush_matcher(matcher))
+    seconds += time.perf_counter() - start
     return Tracks.concatenate(parts), seconds, message_count, detection_count
+
+
+def flush_matcher(matcher: Matcher) -> Tracks:
+    """The rows of what a matcher still holds at the end of a stream (none if it holds none)."""
+    flush = getattr(matcher, "flush", None)
+    return flush() if flush is not None else Tracks.empty()
+
+
+def camera_messages(
+    scene: Scene,
+    references: Sequence[ReferenceImage],
+    targeters: Sequence[Targeter] | None = None,
+    clocks: ClockSimulation | None = None,
+    drop_hidden_feet: bool = False,
+) -> list[CameraMessage]:
+    """Every camera's messages in the order a matcher receives them: by timestamp, then camera.
+
+    Without ``clocks`` every camera sends one message per scene frame stamped with the frame's
+    time (as :func:`scene_messages`); with it, each camera keeps its own frames and clock.
+    ``drop_hidden_feet`` is :func:`cblrs.edge.make_message`'s.
+    """
+    if clocks is None or (clocks.synchronised and not clocks.epoch_s):
+        return [message for _, messages in scene_messages(
+            scene, references, targeters, drop_hidden_feet) for message in messages]
+    if len(references) != len(scene.cameras):
+        raise DatasetError(
+            f"need one reference image per camera ({len(scene.cameras)}), got {len(references)}."
+        )
+    chosen: list[Targeter | None] = (
+        [None] * len(scene.cameras) if targeters is None else list(targeters)
+    )
+    epoch = clocks.epoch_s
+    timed: list[tuple[float, int, CameraMessage]] = []
+    for camera_index, (clock, reference, targeter) in enumerate(
+        zip(camera_clocks(scene, clocks), references, chosen, strict=True)
+    ):
+        for sequence, (index, recorded) in enumerate(
+            zip(clock.frame_index.tolist(), clock.timestamp.tolist(), strict=True)
+        ):
+            timestamp = epoch + recorded
+            message = make_message(
+                clock.camera, sequence, timestamp, int(scene.frames[index]),
+                scene.detections[index][camera_index], reference, targeter=targeter,
+                drop_hidden_feet=drop_hidden_feet,
+            )
+            timed.append((timestamp, camera_index, message))
+    timed.sort(key=lambda item: (item[0], item[1]))
+    return [message for _, _, message in timed]
+
+
+def ordered_windows(
+    messages: Iterable[CameraMessage], camera_ids: Sequence[str]
+) -> Iterator[tuple[float, list[CameraMessage]]]:
+    """Release messages (each camera's in capture order) in windows, as the matcher service
+    does: through an :class:`~cblrs.runtime.ordering.Orderer`.
+
+    Yields:
+        ``(timestamp, messages)`` per window, in time order (the input to ``update``).
+    """
+    from cblrs.runtime.ordering import Orderer
+
+    # Nothing here is ever silent for long: the timeout is only for live cameras.
+    orderer = Orderer(camera_ids, timeout_s=1e9)
+    for message in messages:
+        if orderer.is_late(message.timestamp):  # cannot happen in capture order
+            continue
+        orderer.add(message, 0.0)
+        yield from orderer.release(0.0)
+    yield from orderer.release(0.0, force=True)
 
 
 def track_scene(
@@ -169,6 +255,7 @@ def track_scene(
     progress: bool = False,
     targeting: str | Sequence[Targeter] = "box",
     drop_hidden_feet: bool = False,
+    clocks: ClockSimulation | None = None,
     **matcher_options: Any,
 ) -> TrackingResult:
     """Track a scene end to end through the colour path.
@@ -185,6 +272,8 @@ def track_scene(
             posed cameras), or one targeter object per camera.
         drop_hidden_feet: no location for boxes whose feet a nearer box hides; use it for
             a real detector's boxes (see :func:`cblrs.edge.make_message`).
+        clocks: simulate cameras with their own clocks, frame rates and lost messages
+            (:class:`~cblrs.datasets.clocks.ClockSimulation`); None: one synchronised capture.
         **matcher_options: options for :func:`make_matcher`. For ``"fusion"`` the cameras'
             ground positions are passed as ``camera_positions`` unless given (the noise
             model grows with distance from the camera).
@@ -212,22 +301,25 @@ def track_scene(
         )
     elif matcher_options:
         raise ValueError("matcher options are only accepted with a matcher name.")
-    instants: Iterable[tuple[float, list[CameraMessage]]] = scene_messages(
-        scene, references, scene_targeters(scene, targeting), drop_hidden_feet
+    messages: Iterable[CameraMessage] = camera_messages(
+        scene, references, scene_targeters(scene, targeting), clocks, drop_hidden_feet
     )
+    captured = np.unique([message.frame for message in messages])  # type: ignore[union-attr]
     if progress:
         from tqdm import tqdm
 
-        instants = tqdm(
-            instants, desc="tracking", total=len(scene.frames), leave=False,
-            disable=not sys.stderr.isatty(),
+        messages = tqdm(
+            messages, desc="tracking", leave=False, disable=not sys.stderr.isatty(),
         )
-    tracks, matcher_seconds, message_count, detection_count = run_matcher(matcher, instants)
+    tracks, matcher_seconds, message_count, detection_count = run_matcher(
+        matcher, ordered_windows(messages, scene.camera_names)
+    )
     total = time.perf_counter() - start
     logger.debug(
         "tracked %s: %d rows, %d messages, %d detections, matcher %.3f s, total %.3f s",
         scene.name, len(tracks), message_count, detection_count, matcher_seconds, total,
     )
+    report = getattr(matcher, "clock_report", None)
     return TrackingResult(
         tracks=tracks,
         references=references,
@@ -236,4 +328,6 @@ def track_scene(
         matcher_seconds=matcher_seconds,
         total_seconds=total,
         render_seconds=render_seconds,
+        captured_frames=captured.astype(np.int64),
+        clocks=report() if report is not None else None,
     )

@@ -204,17 +204,29 @@ def aicity_source(
     )
 
 
-def scene_source(scene: Any, camera: str | int) -> Iterator[SourceFrame]:
+def scene_source(scene: Any, camera: str | int, clocks: Any = None) -> Iterator[SourceFrame]:
     """One camera of a loaded :class:`~cblrs.datasets.scene.Scene`, frame by frame.
 
     Args:
         scene: the scene (e.g. from :func:`cblrs.datasets.load_scene`).
         camera: the camera's name or index.
+        clocks: a :class:`~cblrs.datasets.clocks.ClockSimulation`: the camera keeps only its
+            own frames (frame rate, lost messages) stamped by its own clock.
 
     Raises:
         DatasetError: no such camera.
     """
     index = camera_position(scene.camera_names, camera)
+    if clocks is not None:
+        from cblrs.datasets.clocks import camera_clocks
+
+        clock = camera_clocks(scene, clocks)[index]
+        for position, recorded in zip(clock.frame_index.tolist(), clock.timestamp.tolist(),
+                                      strict=True):
+            yield SourceFrame(
+                int(scene.frames[position]), recorded, scene.detections[position][index]
+            )
+        return
     for position, frame in enumerate(scene.frames):
         yield SourceFrame(
             int(frame), float(scene.timestamps[position]), scene.detections[position][index]
