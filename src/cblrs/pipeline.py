@@ -15,7 +15,7 @@ import logging
 import sys
 import time
 from collections.abc import Iterable, Iterator, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -60,7 +60,7 @@ class TrackingResult:
     matcher_seconds: float
     total_seconds: float
     render_seconds: float = 0.0
-    captured_frames: np.ndarray | None = None
+    captured_frames: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     clocks: dict[str, dict[str, Any]] | None = None
     late_messages: int = 0
 
@@ -304,7 +304,7 @@ def track_scene(
     messages: Iterable[CameraMessage] = camera_messages(
         scene, references, scene_targeters(scene, targeting), clocks, drop_hidden_feet
     )
-    captured = np.unique([message.frame for message in messages])  # type: ignore[union-attr]
+    captured = np.unique([message.frame for message in messages])
     if progress:
         from tqdm import tqdm
 

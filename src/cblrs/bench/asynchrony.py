@@ -207,7 +207,7 @@ def benchmark_asynchrony(
                     result = track_scene(scene, references=references, clocks=clocks)
                     seconds = time.perf_counter() - start
                     truth = {clock.camera: clock.offset_s for clock in camera_clocks(scene, clocks)}
-                    row = {
+                    row: dict[str, Any] = {
                         "scene": case.name, "setting": setting.label, "seed": seed,
                         "synchronised": base,
                         "in_process": score(scene, result.tracks, result.captured_frames),

@@ -354,15 +354,26 @@ def _one_line(stats: dict[str, Any]) -> str:
         f"rejected {stats['rejected']}{f' ({details})' if details else ''}, "
         f"duplicates {stats['duplicates']}, late {stats['late']}, "
         f"processed {stats['processed']}, tracks {stats['tracks']}, "
-        f"buffered {stats['buffered_messages']}"
+        f"buffered {stats['buffered_messages']}{_clocks_off(stats.get('clocks'))}"
     )
 
 
+def _clocks_off(clocks: dict[str, Any] | None) -> str:
+    """``", clock off: CAM +2.000 s"`` for cameras whose clocks are beyond the tolerance."""
+    off = [f"{name} {report['offset_s']:+.3f} s" for name, report in (clocks or {}).items()
+           if report["beyond_tolerance"]]
+    return f", clock off: {', '.join(off)}" if off else ""
+
+
 def show_stats(path: Path, as_json: bool) -> int:
+    from cblrs.matching.fusion import clock_report
     from cblrs.runtime.store import RuntimeStore
 
     with RuntimeStore(path, read_only=True) as store:
         summary = store.summary()
+        summary["clocks"] = clock_report(
+            store.matcher_state(), (summary.get("settings") or {}).get("camera_ids") or []
+        )
     if as_json:
         print_json(summary)
         return 0
@@ -374,5 +385,8 @@ def show_stats(path: Path, as_json: bool) -> int:
     rows = [[name, value] for name, value in summary["counters"].items()]
     rows += [[f"inbox {status}", count] for status, count in sorted(summary["inbox"].items())]
     rows += [["track rows", summary["track_rows"]], ["track ids", summary["track_ids"]]]
+    rows += [[f"clock offset {name} (s)", f"{report['offset_s']:+.3f}"
+              + (" beyond tolerance" if report["beyond_tolerance"] else "")]
+             for name, report in (summary["clocks"] or {}).items()]
     print(format_table(["counter", "value"], rows))
     return 0

@@ -6,6 +6,12 @@ import argparse
 import time
 from pathlib import Path
 
+from cblrs.cli.clock_options import (
+    add_clock_options,
+    clock_simulation,
+    is_synthetic,
+    synthetic_scene,
+)
 from cblrs.cli.common import UsageError, add_output_options, parse_frame_range, print_json
 from cblrs.cli.detector_options import (
     DETECTIONS_HELP,
@@ -30,11 +36,14 @@ def register(subparsers) -> None:
             "Detections are the dataset's annotated boxes, optionally degraded by a simulated "
             "detector (--drop, --jitter, --false-positives); or a real detector run on the "
             "dataset's images (--detector onnx --model M.onnx, images in Image_subsets/C<k>/); "
-            "or your own detector's boxes (--detections DIR)."
+            "or your own detector's boxes (--detections DIR). Cameras can be given their own "
+            "clocks, frame rates and lost messages (--clock-offset-ms, --clock-jitter-ms, "
+            "--camera-fps, --drop-messages, --clock-error)."
         ),
     )
     parser.add_argument(
-        "dataset", type=Path, metavar="DATASET_DIR", help="WILDTRACK or MultiviewX folder"
+        "dataset", type=Path, metavar="DATASET_DIR",
+        help="WILDTRACK or MultiviewX folder, or synthetic:PRESET (plaza, roundabout)",
     )
     parser.add_argument(
         "--out",
@@ -93,7 +102,13 @@ def register(subparsers) -> None:
         help="a site file giving the cameras' geometry, positions and planes instead of the "
         "dataset's calibration (e.g. a calibration from clicked points)",
     )
+    parser.add_argument(
+        "--score", action="store_true",
+        help="also score the tracks against the scene's ground truth (as cblrs eval, at the "
+        "frames of which some camera's message arrived)",
+    )
     add_detector_options(parser, detections_help=DETECTIONS_HELP)
+    add_clock_options(parser)
     add_output_options(parser)
     parser.set_defaults(handler=run)
 
@@ -114,7 +129,16 @@ def run(args: argparse.Namespace) -> int:
             "--drop, --jitter and --false-positives simulate a detector on the annotated "
             "boxes; leave them out with --detector or --detections."
         )
-    scene = load_scene(args.dataset)
+    clocks = clock_simulation(args)
+    if is_synthetic(args.dataset):
+        if args.site is not None or source != "annotations":
+            raise UsageError(
+                "a synthetic scene has no images, detection files or site: leave out "
+                "--site, --detector and --detections."
+            )
+        scene = synthetic_scene(args.dataset, clocks, args.duration)
+    else:
+        scene = load_scene(args.dataset)
     if args.frames:
         scene = scene.select_frames(*parse_frame_range(args.frames))
     options: dict = {}
@@ -144,7 +168,7 @@ def run(args: argparse.Namespace) -> int:
         )
     result = track_scene(
         scene, args.matcher, references=references, progress=not args.quiet,
-        drop_hidden_feet=drop_hidden_feet(args, source), **options,
+        drop_hidden_feet=drop_hidden_feet(args, source), clocks=clocks, **options,
     )
     # The sidecar keeps the classes and frame rate that the AI City format cannot hold.
     write_tracks(args.out, result.tracks, frames_per_second=scene.frames_per_second)
@@ -166,6 +190,12 @@ def run(args: argparse.Namespace) -> int:
     }
     if detector_summary is not None:
         summary["detector"] = detector_summary
+    if clocks is not None:
+        summary["captured_frames"] = len(result.captured_frames)
+    if result.clocks is not None:
+        summary["clocks"] = result.clocks
+    if args.score:
+        summary["scores"] = _score(args.dataset, scene, result)
     if args.json:
         print_json(summary)
     else:
@@ -181,4 +211,25 @@ def run(args: argparse.Namespace) -> int:
                 f"{detector_summary['detector_ms_per_image']:.1f} ms per image, "
                 f"{detector_summary['images']} images"
             )
+        for name, report in (result.clocks or {}).items():
+            if report["beyond_tolerance"] or report["coarse_corrections"]:
+                print(f"camera {name}: clock off by {report['offset_s']:+.3f} s against the "
+                      "other cameras (estimated from the tracks; its timestamps were corrected)")
+        if args.score:
+            scores = summary["scores"]
+            print("  ".join(f"{key} {scores[key]:.2f}"
+                            for key in ("HOTA", "DetA", "AssA", "LocA", "MOTA", "IDF1")))
     return 0
+
+
+def _score(dataset: Path, scene, result) -> dict:
+    """The tracks' scores at the frames some camera captured (the annotated-area rule of
+    ``cblrs eval`` for data set folders)."""
+    from cblrs.calibration import default_ground
+    from cblrs.evaluation import evaluate
+
+    area = None if is_synthetic(dataset) else default_ground(dataset)
+    metrics = evaluate(scene.ground_truth, result.tracks, frames=result.captured_frames,
+                       area=area)
+    return {key: round(value, 4) for key, value in metrics.to_dict().items()
+            if isinstance(value, float)}

@@ -257,7 +257,8 @@ class ClockModel:
         information = sums[:, 3] - sums[:, 1] ** 2 / total
         score = sums[:, 4] - sums[:, 1] * sums[:, 2] / total
         count = self.camera_count
-        return (np.bincount(camera, information, count), np.bincount(camera, score, count))
+        return (np.bincount(camera, information, count).astype(np.float64),
+                np.bincount(camera, score, count).astype(np.float64))
 
     def corroboration(self, camera: IntArray, corroborated: BoolArray) -> None:
         """Count located detections per camera and those on tracks other cameras see."""
@@ -406,6 +407,7 @@ class ClockModel:
             return
         self.offsets[camera] = lag
         self._active[camera] = True
+        self._flagged[camera] = abs(lag) > self.tolerance_s  # reported by the jump itself
         self._sums[self._key_camera == camera] = 0.0
         self._located[camera] = self._corroborated[camera] = 0.0
         self._jumps[camera] += 1
@@ -434,7 +436,10 @@ class ClockModel:
             times, points = times[keep], points[keep]
         if len(points) < 20:
             return None
-        entry_times, history_points, history_times, history_entry = [], [], [], []
+        entry_times: list[float] = []
+        history_points: list[FloatArray] = []
+        history_times: list[FloatArray] = []
+        history_entry: list[IntArray] = []
         for history_time, positions, sole in self._history:
             others = positions[sole != camera]
             if len(others):
@@ -490,8 +495,8 @@ class ClockModel:
         # Refine within the best bin and its neighbours by their excess-weighted mean lag.
         window = np.arange(max(0, best - 1), min(2 * bins, best + 1) + 1)
         weights = np.maximum(excess[window], 0.0)
-        lag = float(np.sum((window - bins) * bin_s * weights) / np.sum(weights))
-        return lag, float(excess[best] / max(around, 0.01))
+        estimate = float(np.sum((window - bins) * bin_s * weights) / np.sum(weights))
+        return estimate, float(excess[best] / max(around, 0.01))
 
     # ------------------------------------------------------------------------ reports
     def events(self) -> list[ClockEvent]:

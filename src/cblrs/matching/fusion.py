@@ -331,8 +331,6 @@ class FusionTracker:
     """
 
     name = "fusion"
-    _EXP_INFLATE = True
-    _EXP_COMPENSATE = True
 
     def __init__(self, planes: PlaneSet, camera_ids: Sequence[str], **options: Any):
         self.config = build_config(FusionConfig, options, self.name)
@@ -434,7 +432,8 @@ class FusionTracker:
             "mode_state": self._mode_state.tolist(),
             "mode_covariance": self._mode_covariance.tolist(),
             "mode_probability": self._mode_probability.tolist(),
-            "seen_by": np.where(np.isfinite(self._seen_by), self._seen_by, None).tolist(),
+            "seen_by": [[value if math.isfinite(value) else None for value in row]
+                        for row in self._seen_by.tolist()],
             "windows": self._windows.get_state(),
             "clock": self._clock.get_state(),
             "reported": [[frame, sorted(ids)] for frame, ids in self._reported.items()],
@@ -568,7 +567,7 @@ class FusionTracker:
         covariance = self._measurement_covariance(raw)
         base_covariance = covariance
         slot = self._class_slot(raw.class_id)
-        if self._EXP_INFLATE and np.any(lag != 0):
+        if np.any(lag != 0):
             # Until a detection is given a track, its motion over its lag is unknown: widen
             # its gate by how far the class moves in that time.
             covariance = covariance + ((lag * self._class_speed[slot]) ** 2)[:, None, None] * (
@@ -587,7 +586,7 @@ class FusionTracker:
         assigned = self._join_observed(observed, covariance, assigned)
         matched = assigned >= 0
         located_xy = observed.world_xy
-        if self._EXP_COMPENSATE and matched.any() and np.any(lag[matched] != 0):
+        if matched.any() and np.any(lag[matched] != 0):
             # Each view shows its track where it was at the view's capture time: move it
             # along the track's velocity to the window's time.
             rows = assigned[matched]
