@@ -208,17 +208,18 @@ class ClockModel:
                            for direction in directions]
         else:
             projections = [across[views]]
-        for normal in projections:
+        for axis, normal in enumerate(projections):
             # residual_n = x (d_camera - d_others) + b: x = -v along the normal, and b the
-            # camera's bias where the view lies (see :meth:`_accumulate`).
+            # camera's bias where the view lies, along this normal (see :meth:`_accumulate`).
             residual_n = np.sum(normal * residual, axis=1)
             variance = np.einsum("ni,nij,nj->n", normal, spread, normal)
             slope = -np.sum(normal * velocity[views], axis=1)
-            self._accumulate(camera[views], world_xy[views], slope, residual_n, 1.0 / variance)
+            self._accumulate(camera[views], world_xy[views], slope, residual_n, 1.0 / variance,
+                             axis)
 
     def _accumulate(
         self, camera: IntArray, world_xy: FloatArray, slope: FloatArray, value: FloatArray,
-        weight: FloatArray,
+        weight: FloatArray, axis: int = 0,
     ) -> None:
         """Weighted sums per camera and ground cell of ``value = slope * offset + bias``.
 
@@ -229,14 +230,15 @@ class ClockModel:
         leaves only what varies with the velocity in one place: a clock.
         """
         cells = np.floor(world_xy / self.cell_m).astype(np.int64) + _CELL_OFFSET
-        keys = (camera.astype(np.int64) << 42) | (cells[:, 0] << 21) | cells[:, 1]
+        keys = ((camera.astype(np.int64) << 43) | (axis << 42) | (cells[:, 0] << 21)
+                | cells[:, 1])
         index = np.searchsorted(self._keys, keys)
         known = index < len(self._keys)
         known[known] = self._keys[index[known]] == keys[known]
         if not known.all():
             new = np.unique(keys[~known])
             self._keys = np.concatenate([self._keys, new])
-            self._key_camera = np.concatenate([self._key_camera, new >> 42])
+            self._key_camera = np.concatenate([self._key_camera, new >> 43])
             self._sums = np.concatenate([self._sums, np.zeros((len(new), 5))])
             order = np.argsort(self._keys, kind="stable")
             self._keys, self._key_camera = self._keys[order], self._key_camera[order]
@@ -352,12 +354,17 @@ class ClockModel:
         ready = information >= self.minimum_information
         if ready.sum() < 2:
             return None
-        step = np.where(ready, score / (information + self.prior_information), 0.0)
-        # A camera's first correction needs a significant step: on synchronised cameras the
-        # estimate wanders within its noise and must not move their timestamps. Once
-        # corrected, a camera's offset follows its estimate.
+        estimate = np.where(ready, score / (information + self.prior_information), 0.0)
+        # Each camera is measured against the others, whose offsets are corrected in the
+        # same step: of C cameras' estimates d_c - mean(others), (C - 1) / C of each moves
+        # every camera to d_c - mean(all) (all of it would overshoot; two cameras would swap).
+        count = int(ready.sum())
+        step = estimate * (count - 1) / count
+        # A camera's first correction needs a significant estimate: on synchronised cameras
+        # it wanders within its noise and must not move their timestamps. Once corrected, a
+        # camera's offset follows its estimate.
         with np.errstate(divide="ignore"):
-            significant = np.abs(step) > self.significance / np.sqrt(information)
+            significant = np.abs(estimate) > self.significance / np.sqrt(information)
         return np.where(significant | self._active, step, 0.0)
 
     def _centre(self) -> None:
@@ -492,9 +499,16 @@ class ClockModel:
         around = float(excess[max(0, current - 1):current + 2].max())
         if excess[best] < self.minimum_excess:
             return None
-        # Refine within the best bin and its neighbours by their excess-weighted mean lag.
-        window = np.arange(max(0, best - 1), min(2 * bins, best + 1) + 1)
-        weights = np.maximum(excess[window], 0.0)
+        # Slow walkers fit over a range of lags around the true one: take the middle of the
+        # run of lags that fit nearly as well as the best (excess-weighted).
+        threshold = 0.9 * excess[best]
+        low = high = best
+        while low > 0 and excess[low - 1] >= threshold:
+            low -= 1
+        while high < 2 * bins and excess[high + 1] >= threshold:
+            high += 1
+        window = np.arange(low, high + 1)
+        weights = excess[window]
         estimate = float(np.sum((window - bins) * bin_s * weights) / np.sum(weights))
         return estimate, float(excess[best] / max(around, 0.01))
 
@@ -536,6 +550,7 @@ class ClockModel:
             "keys": self._keys.tolist(),
             "sums": (self._sums * self._gain).tolist(),
             "next_solve": self._next_solve,
+            "fit": [self._fit[0].tolist(), self._fit[1].tolist()],
             "time": self._time,
             "located": self._located.tolist(),
             "corroborated": self._corroborated.tolist(),
@@ -554,10 +569,11 @@ class ClockModel:
         self.reset()
         self.offsets = np.asarray(state["offsets"], np.float64).reshape(self.camera_count)
         self._keys = np.asarray(state["keys"], np.int64).reshape(-1)
-        self._key_camera = self._keys >> 42
+        self._key_camera = self._keys >> 43
         self._sums = np.asarray(state["sums"], np.float64).reshape(-1, 5)
         self._next_solve = state["next_solve"]
-        self._fit = self._within()
+        self._fit = (np.asarray(state["fit"][0], np.float64),
+                     np.asarray(state["fit"][1], np.float64))
         self._time = None if state["time"] is None else float(state["time"])
         self._located = np.asarray(state["located"], np.float64).reshape(-1)
         self._corroborated = np.asarray(state["corroborated"], np.float64).reshape(-1)
