@@ -47,6 +47,8 @@ class SceneCase:
     name: str
     scene: Scene
     camera_fps: tuple[float, ...] = ()
+    area: tuple[float, float, float, float] | None = None
+    """The annotated ground area (``cblrs eval``'s rule for data sets), or None."""
 
 
 @dataclass(frozen=True)
@@ -62,12 +64,14 @@ class Setting:
 
 def default_cases(wildtrack: Path | None, duration_s: float = 30.0) -> list[SceneCase]:
     """WILDTRACK (2 fps, when present) and the synthetic plaza at 10 + 15 fps and at 20 fps."""
+    from cblrs.calibration import default_ground
     from cblrs.datasets import load_scene
     from cblrs.datasets.synthetic import make_scene
 
     cases = []
     if wildtrack is not None:
-        cases.append(SceneCase("WILDTRACK (7 cameras, 2 fps)", load_scene(wildtrack)))
+        cases.append(SceneCase("WILDTRACK (7 cameras, 2 fps)", load_scene(wildtrack),
+                               area=default_ground(wildtrack)))
     rates = (10.0, 15.0)
     base = ClockSimulation(camera_fps=rates).scene_fps(10.0)
     cases.append(SceneCase(
@@ -98,9 +102,9 @@ def simulation(case: SceneCase, setting: Setting | None, seed: int) -> ClockSimu
     )
 
 
-def score(scene: Scene, tracks: Tracks, captured: np.ndarray) -> dict[str, float]:
-    truth = scene.ground_truth[np.isin(scene.ground_truth.frame, captured)]
-    metrics = evaluate(truth, tracks)
+def score(case: SceneCase, tracks: Tracks, captured: np.ndarray) -> dict[str, float]:
+    """Scores at the captured frames, and the most rows any (frame, track) got."""
+    metrics = evaluate(case.scene.ground_truth, tracks, frames=captured, area=case.area)
     keys = np.stack([tracks.frame, tracks.track_id], axis=1) if len(tracks) else np.zeros((0, 2))
     _, counts = np.unique(keys, axis=0, return_counts=True)
     return {
@@ -200,7 +204,7 @@ def benchmark_asynchrony(
                 reference = simulation(case, None, seed)
                 synchronised = track_scene(scene, references=references,
                                            clocks=replace(reference, epoch_s=epoch))
-                base = score(scene, synchronised.tracks, synchronised.captured_frames)
+                base = score(case, synchronised.tracks, synchronised.captured_frames)
                 for setting in settings:
                     clocks = replace(simulation(case, setting, seed), epoch_s=epoch)
                     start = time.perf_counter()
@@ -210,7 +214,7 @@ def benchmark_asynchrony(
                     row: dict[str, Any] = {
                         "scene": case.name, "setting": setting.label, "seed": seed,
                         "synchronised": base,
-                        "in_process": score(scene, result.tracks, result.captured_frames),
+                        "in_process": score(case, result.tracks, result.captured_frames),
                         "in_process_seconds": seconds,
                         "clock_error_ms": _clock_error_ms(result.clocks or {}, truth),
                         "beyond_tolerance": sorted(
@@ -221,7 +225,7 @@ def benchmark_asynchrony(
                         start = time.perf_counter()
                         stored = track_service(scene, references, clocks, files.port, folder)
                         row["service_seconds"] = time.perf_counter() - start
-                        row["service"] = score(scene, stored, result.captured_frames)
+                        row["service"] = score(case, stored, result.captured_frames)
                         row["service_identical"] = _identical(stored, result.tracks)
                     rows.append(row)
                     logger.info("%s, %s, seed %d: HOTA %.2f (synchronised %.2f)", case.name,

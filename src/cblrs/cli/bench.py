@@ -19,7 +19,7 @@ def register(subparsers) -> None:
     parser = subparsers.add_parser(
         "bench",
         help="benchmarks: lookup (Table I), render, claims, tracker, pipeline, analytics, "
-        "backbone, all",
+        "backbone, asynchrony, all",
         description="Measure cblrs on this machine; medians over repeated runs.",
     )
     kinds = parser.add_subparsers(dest="benchmark", metavar="BENCHMARK")
@@ -110,6 +110,22 @@ def register(subparsers) -> None:
                           help="length of a paced (30 fps) run")
     _common(backbone)
     backbone.set_defaults(handler=run, benchmark="backbone")
+
+    asynchrony = kinds.add_parser(
+        "asynchrony",
+        help="unsynchronised cameras: fusion HOTA with clock offsets, jitter, frame rates and "
+        "lost messages, in process and through Mosquitto and the matcher service",
+    )
+    asynchrony.add_argument("--spreads", default="5,20,50",
+                            help="clock offset spreads, ms (default 5,20,50)")
+    asynchrony.add_argument("--seeds", default="0,1,2", help="seeds (default 0,1,2)")
+    asynchrony.add_argument("--duration", type=float, default=30.0,
+                            help="length of the synthetic scenes, s (default 30)")
+    asynchrony.add_argument("--in-process-only", action="store_true",
+                            help="skip the runs through the services (no Mosquitto needed)")
+    asynchrony.set_defaults(repeats=1)
+    _common(asynchrony)
+    asynchrony.set_defaults(handler=run, benchmark="asynchrony")
 
     every = kinds.add_parser("all", help="every benchmark; writes JSON and markdown to --out")
     every.add_argument("--repeats", type=int, default=5, help="timed runs (default 5)")
@@ -221,6 +237,8 @@ def _run_one(name: str, args: argparse.Namespace) -> tuple[dict[str, Any], str]:
             targetings=targetings,
         )
         return result, pipeline_report(result)
+    if name == "asynchrony":
+        return _asynchrony(args)
     if name in ("camera", "detect"):
         dataset, model = _real_frames(args)
         if name == "camera":
@@ -246,6 +264,45 @@ def _run_one(name: str, args: argparse.Namespace) -> tuple[dict[str, Any], str]:
     if name == "backbone":
         return _run_backbone(args, repeats)
     raise UsageError(f"unknown benchmark {name!r}.")
+
+
+def _asynchrony(args: argparse.Namespace) -> tuple[dict[str, Any], str]:
+    from cblrs.bench.asynchrony import (
+        asynchrony_report,
+        benchmark_asynchrony,
+        default_cases,
+        default_settings,
+    )
+    from cblrs.bench.cameras import find_wildtrack
+
+    try:
+        spreads = tuple(float(word) for word in _words(args.spreads, "--spreads"))
+    except ValueError:
+        raise UsageError(f"--spreads {args.spreads!r} must be comma-separated numbers.") from None
+    if any(not spread >= 0 for spread in spreads):
+        raise UsageError(f"--spreads must be >= 0 milliseconds, got {args.spreads!r}.")
+    try:
+        seeds = tuple(int(word) for word in _words(args.seeds, "--seeds"))
+    except ValueError:
+        raise UsageError(f"--seeds {args.seeds!r} must be comma-separated integers.") from None
+    if any(seed < 0 for seed in seeds):
+        raise UsageError(f"--seeds must be >= 0, got {args.seeds!r}.")
+    if not args.duration > 0:
+        raise UsageError(f"--duration must be positive, got {args.duration}.")
+    service = not args.in_process_only
+    if service:
+        from cblrs.runtime.broker import find_mosquitto
+
+        if find_mosquitto() is None:
+            raise UsageError(
+                "the runs through the services need Mosquitto (Debian package mosquitto); "
+                "install it or pass --in-process-only."
+            )
+    result = benchmark_asynchrony(
+        default_cases(find_wildtrack(args.calibration), args.duration),
+        default_settings(spreads), seeds, service=service,
+    )
+    return result, asynchrony_report(result)
 
 
 def _real_frames(args: argparse.Namespace) -> tuple[Path, Path]:

@@ -83,12 +83,18 @@ class ClockModel:
     """Fine evidence a camera needs before its offset moves at all (1/s^2)."""
     corroboration_memory_s = 5.0
     search_every_s = 2.0
+    """How often a camera whose locations stopped landing on the others' tracks is searched."""
+    turn_every_s = 6.0
+    """How often the next camera in turn is searched when none stands out."""
+    settled_information = 1.0 / 0.004**2
+    """Evidence (1/s^2) beyond which a camera's offset is known to 4 ms: learn less often."""
+    settled_learn_every_s = 0.5
     hit_radius_m = 0.5
     minimum_excess = 0.1
-    history_step_s = 0.05
+    history_step_s = 0.1
     solve_every_s = 0.5
     """Fraction of a camera's detections more that must fit the tracks at a new lag."""
-    sample_limit = 400
+    sample_limit = 200
     kept_events = 100
     apply_corrections = True
     significance = 3.0
@@ -125,7 +131,11 @@ class ClockModel:
         self._flagged = np.zeros(count, dtype=bool)
         self._active = np.zeros(count, dtype=bool)  # cameras whose offset has been moved
         self._next_search: float | None = None
+        self._next_turn: float | None = None
         self._turn = -1
+        self._last_learn: float | None = None
+        self._queued: list[tuple[np.ndarray, ...]] = []  # views waiting for the next solve
+        self._queued_groups = 0
         self._stale = np.zeros(count, np.int64)
         self._jumps = np.zeros(count, np.int64)
         # Coarse search material: confirmed tracks per window (time, positions, the only
@@ -135,6 +145,42 @@ class ClockModel:
         self._events: list[ClockEvent] = []
 
     # ----------------------------------------------------------------------- evidence
+    def add_views(
+        self,
+        camera: IntArray,
+        track: IntArray,
+        world_xy: FloatArray,
+        covariance: FloatArray,
+        velocity: FloatArray,
+        across: FloatArray | None,
+        predicted_xy: FloatArray,
+        predicted_covariance: FloatArray,
+    ) -> None:
+        """Queue one window's views (the arguments of :meth:`learn`); they are learnt in one
+        batch before the offsets are next solved (a few numpy calls per batch rather than per
+        window)."""
+        if not self.estimate or len(camera) == 0:
+            return
+        if across is None:
+            across = np.zeros((len(camera), 2))  # no ray known: both axes
+        self._queued.append((camera, track + self._queued_groups, world_xy, covariance,
+                             velocity, across, predicted_xy, predicted_covariance))
+        self._queued_groups += int(track.max()) + 1
+
+    def _learn_queued(self) -> None:
+        if not self._queued:
+            return
+        parts = [np.concatenate(column) for column in zip(*self._queued, strict=True)]
+        self._queued, self._queued_groups = [], 0
+        camera, track, world_xy, covariance, velocity, across, predicted, spread = parts
+        known = np.any(across != 0, axis=1)
+        for mask, normals in ((known, across), (~known, None)):
+            if mask.any():
+                _, label = np.unique(track[mask], return_inverse=True)
+                self.learn(camera[mask], label.reshape(-1), world_xy[mask], covariance[mask],
+                           velocity[mask], None if normals is None else normals[mask],
+                           predicted[mask], spread[mask])
+
     def learn(
         self,
         camera: IntArray,
@@ -173,14 +219,18 @@ class ClockModel:
             return
         information, _ = _inverse_2x2(covariance)
         weighted = np.einsum("nij,nj->ni", information, world_xy)
-        _, label = np.unique(track, return_inverse=True)
-        label = label.reshape(-1)
-        groups = int(label.max()) + 1
-        total = np.zeros((groups, 2, 2))
-        vector = np.zeros((groups, 2))
-        np.add.at(total, label, information)
-        np.add.at(vector, label, weighted)
-        others = total[label] - information  # the information of the other views
+        # Sums over each track's views (bincount: far faster than np.add.at).
+        groups = int(track.max()) + 1
+        total = np.stack([np.bincount(track, information[:, 0, 0], groups),
+                          np.bincount(track, information[:, 0, 1], groups),
+                          np.bincount(track, information[:, 1, 1], groups)], axis=1)
+        vector = np.stack([np.bincount(track, weighted[:, 0], groups),
+                           np.bincount(track, weighted[:, 1], groups)], axis=1)
+        label = track
+        others = np.empty_like(information)  # the information of the other views
+        others[:, 0, 0] = total[track, 0] - information[:, 0, 0]
+        others[:, 0, 1] = others[:, 1, 0] = total[track, 1] - information[:, 0, 1]
+        others[:, 1, 1] = total[track, 2] - information[:, 1, 1]
         alone = np.abs(others[:, 0, 0] * others[:, 1, 1] - others[:, 0, 1] ** 2) < 1e-12
         if predicted_xy is None or predicted_covariance is None:
             views = np.flatnonzero(~alone)
@@ -244,10 +294,12 @@ class ClockModel:
             self._keys, self._key_camera = self._keys[order], self._key_camera[order]
             self._sums = self._sums[order]
             index = np.searchsorted(self._keys, keys)
-        parts = np.column_stack([weight, weight * slope, weight * value,
-                                 weight * slope * slope, weight * slope * value])
         # Stored sums are the true ones divided by the running decay (see end_window).
-        np.add.at(self._sums, index, parts / self._gain)
+        weight = weight / self._gain
+        rows = len(self._sums)
+        for column, part in enumerate((weight, weight * slope, weight * value,
+                                       weight * slope * slope, weight * slope * value)):
+            self._sums[:, column] += np.bincount(index, part, rows)
 
     def _within(self) -> tuple[FloatArray, FloatArray]:
         """(C,) information and (C,) score of the within-cell fit: offset = score / information."""
@@ -325,6 +377,7 @@ class ClockModel:
         self._time = time_s if self._time is None else max(self._time, time_s)
         if self._next_solve is None or self._time >= self._next_solve:
             self._next_solve = self._time + self.solve_every_s
+            self._learn_queued()
             self._fit = self._within()
             step = self.solve()
             if self.apply_corrections and step is not None:
@@ -382,9 +435,8 @@ class ClockModel:
             self._events.append(ClockEvent(camera, "back", float(self.offsets[camera]), time_s))
         self._flagged = (self._flagged | off) & ~back
 
-    def _next_suspect(self) -> int | None:
-        """The camera to search next: the least corroborated one if it falls below half the
-        median camera's corroboration, else the next in turn."""
+    def _suspect(self) -> int | None:
+        """The least corroborated camera, if it falls below half the median camera's."""
         enough = self._located >= 20
         if enough.sum() >= 2:
             ratio = np.where(enough, self._corroborated / np.maximum(self._located, 1e-9),
@@ -393,8 +445,19 @@ class ClockModel:
             worst = int(np.nanargmin(ratio))
             if typical >= 0.3 and ratio[worst] < 0.5 * typical:
                 return worst
-        self._turn = (self._turn + 1) % self.camera_count
-        return self._turn
+        return None
+
+    def wants_evidence(self, time_s: float) -> bool:
+        """Whether to learn from the window at ``time_s``: always while some camera's
+        estimate rests on little evidence, then every ``settled_learn_every_s`` (the evidence
+        only has to follow a drifting clock; learning costs time)."""
+        if not self.estimate:
+            return False
+        if (self._fit[0] < self.settled_information).any() or self._last_learn is None or (
+                time_s - self._last_learn >= self.settled_learn_every_s):
+            self._last_learn = time_s
+            return True
+        return False
 
     def _search(self, time_s: float) -> None:
         """Every ``search_every_s`` of stream, look for one camera's clock at every lag."""
@@ -403,9 +466,14 @@ class ClockModel:
         if self._next_search is not None and time_s < self._next_search:
             return
         self._next_search = time_s + self.search_every_s
-        camera = self._next_suspect()
+        camera = self._suspect()
         if camera is None:
-            return
+            # No camera stands out: look at each in turn, less often.
+            if self._next_turn is not None and time_s < self._next_turn:
+                return
+            self._next_turn = time_s + self.turn_every_s
+            self._turn = (self._turn + 1) % self.camera_count
+            camera = self._turn
         found = self._best_lag(camera)
         if found is None:
             return
@@ -557,7 +625,11 @@ class ClockModel:
             "flagged": self._flagged.tolist(),
             "active": self._active.tolist(),
             "next_search": self._next_search,
+            "next_turn": self._next_turn,
             "turn": self._turn,
+            "last_learn": self._last_learn,
+            "queued": [[column.tolist() for column in views] for views in self._queued],
+            "queued_groups": self._queued_groups,
             "stale": self._stale.tolist(),
             "jumps": self._jumps.tolist(),
             "history": [[t, positions.tolist(), sole.tolist()]
@@ -580,7 +652,15 @@ class ClockModel:
         self._flagged = np.asarray(state["flagged"], bool).reshape(-1)
         self._active = np.asarray(state["active"], bool).reshape(-1)
         self._next_search = state["next_search"]
+        self._next_turn = state["next_turn"]
         self._turn = int(state["turn"])
+        self._last_learn = state["last_learn"]
+        self._queued = [
+            tuple(np.asarray(column, np.int64 if index < 2 else np.float64)
+                  for index, column in enumerate(views))
+            for views in state["queued"]
+        ]
+        self._queued_groups = int(state["queued_groups"])
         self._stale = np.asarray(state["stale"], np.int64).reshape(-1)
         self._jumps = np.asarray(state["jumps"], np.int64).reshape(-1)
         self._history = deque(

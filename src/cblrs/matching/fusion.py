@@ -81,6 +81,7 @@ logger = logging.getLogger(__name__)
 STATE_VERSION = "cblrs.fusion-tracker/5"
 _REPORTED_FRAMES = 64  # frames remembered to report each track at most once per frame
 _CORROBORATION_S = 2.0  # a track seen by another camera this recently corroborates a view
+_CLOCK_VIEWS = 48  # views per window the clock model learns from, at most (about)
 _UNASSIGNABLE = 1.0e9
 _DENSE_PAIRS = 20_000  # below this many N x T pairs a dense distance matrix is faster
 
@@ -410,6 +411,7 @@ class FusionTracker:
         self._windows.reset()
         self._clock.reset()
         self._reported: dict[int, set[int]] = {}
+        self._clock_turn = 0
 
     @property
     def track_count(self) -> int:
@@ -437,6 +439,7 @@ class FusionTracker:
             "windows": self._windows.get_state(),
             "clock": self._clock.get_state(),
             "reported": [[frame, sorted(ids)] for frame, ids in self._reported.items()],
+            "clock_turn": self._clock_turn,
         }
 
     def set_state(self, state: dict) -> None:
@@ -472,6 +475,7 @@ class FusionTracker:
             self._windows.set_state(state["windows"])
             self._clock.set_state(state["clock"])
             self._reported = {int(frame): set(ids) for frame, ids in state["reported"]}
+            self._clock_turn = int(state["clock_turn"])
         except (KeyError, TypeError, ValueError, IndexError) as error:
             raise MatcherError(f"the saved fusion-tracker state is incomplete: {error}.") from None
         columns = (self._ids, self._class, self._state, self._covariance, self._evidence,
@@ -537,7 +541,7 @@ class FusionTracker:
         parts = []
         while (window := self._windows.next_window(self._clock.offsets, final)) is not None:
             parts.append(self._fuse_window(window))
-        return Tracks.concatenate(parts)
+        return parts[0] if len(parts) == 1 else Tracks.concatenate(parts)
 
     def _fuse_window(self, window: Window) -> Tracks:
         """Fuse one window: each message at its own corrected capture time."""
@@ -665,17 +669,22 @@ class FusionTracker:
         A track is reported at most once per frame: cameras whose clocks disagree by about
         a frame can put one frame's messages in two windows.
         """
-        frames = np.array([message.frame for message in window.messages], np.int64)
+        frame_list = [int(message.frame) for message in window.messages]
+        distinct = sorted(set(frame_list))
+        frames = np.asarray(frame_list, np.int64)
         parts = []
-        for frame in np.unique(frames).tolist():
-            reported = self._reported.setdefault(frame, set())
-            if len(self._reported) > _REPORTED_FRAMES:
-                del self._reported[next(iter(self._reported))]
+        for frame in distinct:
+            reported = self._reported.get(frame)
+            if reported is None:
+                reported = self._reported[frame] = set()
+                if len(self._reported) > _REPORTED_FRAMES:
+                    del self._reported[next(iter(self._reported))]
             mask = report & ~np.isin(self._ids, list(reported)) if reported else report
             order = np.argsort(self._ids[mask], kind="stable")
             rows = np.flatnonzero(mask)[order]
             reported.update(self._ids[rows].tolist())
-            instant = float(window.times[frames == frame].mean())
+            instant = float(window.times[frames == frame].mean()) if len(distinct) > 1 else (
+                float(window.times.mean()))
             position = self._state[rows, :2]
             if instant != timestamp:
                 position = position + (instant - timestamp) * self._state[rows, 2:4]
@@ -687,7 +696,7 @@ class FusionTracker:
                 camera_id=report_camera[rows],
                 xyxy=report_box[rows],
             ))
-        return Tracks.concatenate(parts)
+        return parts[0] if len(parts) == 1 else Tracks.concatenate(parts)
 
     def _learn_clocks(
         self, observed: Observations, covariance: np.ndarray, matched: np.ndarray,
@@ -698,6 +707,8 @@ class FusionTracker:
         Only views of confirmed tracks that another camera saw recently count: a track seen
         by one camera alone follows that camera's clock and says nothing about it.
         """
+        if len(self.camera_ids) < 2 or not self.config.estimate_clocks:
+            return  # one camera: nothing to compare its clock with
         camera = observed.camera[matched]
         recent = self._seen_by[rows] >= timestamp - _CORROBORATION_S
         recent[np.arange(len(rows)), camera] = False
@@ -706,15 +717,22 @@ class FusionTracker:
             np.concatenate([camera, observed.camera[~matched]]),
             np.concatenate([corroborated, np.zeros(int((~matched).sum()), dtype=bool)]),
         )
-        if not self.config.estimate_clocks or not corroborated.any():
+        if not corroborated.any() or not self._clock.wants_evidence(timestamp):
             return
         use = np.flatnonzero(corroborated)
+        ids = self._ids[rows[use]]
+        share = -(-len(use) // _CLOCK_VIEWS)  # ceil
+        if share > 1:
+            # A crowd gives more evidence than needed: learn from a rotating share of its
+            # tracks (whole tracks: a view is compared with the same track's other views).
+            use = use[ids % share == self._clock_turn % share]
+            self._clock_turn += 1
         tracks = rows[use]
         direction = self._direction[matched][use]
         across = None
         if np.isfinite(self._camera_xy[camera[use], 0]).all():
             across = np.column_stack([-direction[:, 1], direction[:, 0]])
-        self._clock.learn(
+        self._clock.add_views(
             camera[use], tracks, observed.world_xy[matched][use], covariance[matched][use],
             self._state[tracks, 2:4], across, self._state[tracks, :2],
             self._covariance[tracks, :2, :2] + self._object_covariance,
@@ -725,11 +743,12 @@ class FusionTracker:
         camera: np.ndarray, raw_time_of_camera: np.ndarray,
     ) -> None:
         """End the window for the clock model: tracks and views for its coarse search."""
-        if self.config.estimate_clocks:
-            recent = self._seen_by[shown] >= timestamp - _CORROBORATION_S
-            sole = np.where(recent.sum(axis=1) == 1, np.argmax(recent, axis=1), -1)
-            self._clock.record(timestamp, self._state[shown, :2], sole.astype(np.int64),
-                               camera, located_xy, raw_time_of_camera[camera])
+        if not self.config.estimate_clocks or len(self.camera_ids) < 2:
+            return  # one camera: nothing to compare its clock with
+        recent = self._seen_by[shown] >= timestamp - _CORROBORATION_S
+        sole = np.where(recent.sum(axis=1) == 1, np.argmax(recent, axis=1), -1)
+        self._clock.record(timestamp, self._state[shown, :2], sole.astype(np.int64),
+                           camera, located_xy, raw_time_of_camera[camera])
         for event in self._clock.end_window(timestamp):
             name = self.camera_ids[event.camera]
             if event.kind == "back":
