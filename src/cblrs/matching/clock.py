@@ -88,7 +88,8 @@ class ClockModel:
     """How often the next camera in turn is searched when none stands out."""
     settled_information = 1.0 / 0.004**2
     """Evidence (1/s^2) beyond which a camera's offset is known to 4 ms: learn less often."""
-    settled_learn_every_s = 0.5
+    views = 48
+    settled_views = 12
     hit_radius_m = 0.5
     minimum_excess = 0.1
     history_step_s = 0.1
@@ -133,7 +134,6 @@ class ClockModel:
         self._next_search: float | None = None
         self._next_turn: float | None = None
         self._turn = -1
-        self._last_learn: float | None = None
         self._queued: list[tuple[np.ndarray, ...]] = []  # views waiting for the next solve
         self._queued_groups = 0
         self._stale = np.zeros(count, np.int64)
@@ -447,17 +447,14 @@ class ClockModel:
                 return worst
         return None
 
-    def wants_evidence(self, time_s: float) -> bool:
-        """Whether to learn from the window at ``time_s``: always while some camera's
-        estimate rests on little evidence, then every ``settled_learn_every_s`` (the evidence
-        only has to follow a drifting clock; learning costs time)."""
-        if not self.estimate:
-            return False
-        if (self._fit[0] < self.settled_information).any() or self._last_learn is None or (
-                time_s - self._last_learn >= self.settled_learn_every_s):
-            self._last_learn = time_s
-            return True
-        return False
+    @property
+    def view_budget(self) -> int:
+        """About how many views per window to learn from: fewer once every camera's offset
+        is known to a few milliseconds (the evidence then only follows a drifting clock;
+        learning costs time). Every window contributes, so no capture pattern is favoured."""
+        if (self._fit[0] >= self.settled_information).all():
+            return self.settled_views
+        return self.views
 
     def _search(self, time_s: float) -> None:
         """Every ``search_every_s`` of stream, look for one camera's clock at every lag."""
@@ -627,7 +624,6 @@ class ClockModel:
             "next_search": self._next_search,
             "next_turn": self._next_turn,
             "turn": self._turn,
-            "last_learn": self._last_learn,
             "queued": [[column.tolist() for column in views] for views in self._queued],
             "queued_groups": self._queued_groups,
             "stale": self._stale.tolist(),
@@ -654,7 +650,6 @@ class ClockModel:
         self._next_search = state["next_search"]
         self._next_turn = state["next_turn"]
         self._turn = int(state["turn"])
-        self._last_learn = state["last_learn"]
         self._queued = [
             tuple(np.asarray(column, np.int64 if index < 2 else np.float64)
                   for index, column in enumerate(views))

@@ -81,7 +81,6 @@ logger = logging.getLogger(__name__)
 STATE_VERSION = "cblrs.fusion-tracker/5"
 _REPORTED_FRAMES = 64  # frames remembered to report each track at most once per frame
 _CORROBORATION_S = 2.0  # a track seen by another camera this recently corroborates a view
-_CLOCK_VIEWS = 48  # views per window the clock model learns from, at most (about)
 _UNASSIGNABLE = 1.0e9
 _DENSE_PAIRS = 20_000  # below this many N x T pairs a dense distance matrix is faster
 
@@ -717,11 +716,11 @@ class FusionTracker:
             np.concatenate([camera, observed.camera[~matched]]),
             np.concatenate([corroborated, np.zeros(int((~matched).sum()), dtype=bool)]),
         )
-        if not corroborated.any() or not self._clock.wants_evidence(timestamp):
+        if not corroborated.any():
             return
         use = np.flatnonzero(corroborated)
         ids = self._ids[rows[use]]
-        share = -(-len(use) // _CLOCK_VIEWS)  # ceil
+        share = -(-len(use) // self._clock.view_budget)  # ceil
         if share > 1:
             # A crowd gives more evidence than needed: learn from a rotating share of its
             # tracks (whole tracks: a view is compared with the same track's other views).
