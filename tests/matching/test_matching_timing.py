@@ -17,16 +17,29 @@ from cblrs.matching.timing import (
 )
 
 
-def test_period_is_the_median_interval_and_ignores_a_dropped_frame():
+def test_period_is_the_shortest_interval_and_ignores_dropped_frames():
     periods = PeriodEstimator(2)
     for timestamp in (0.0, 0.1, 0.2, 0.4, 0.5, 0.6):  # 0.3 was dropped
         periods.observe(0, timestamp)
     periods.observe(0, 0.55)  # not after the previous one: ignored
-    assert periods.periods[0] == pytest.approx(0.1)
+    assert periods.periods[0] == pytest.approx(0.1)  # the dropped frame does not count
     assert np.isnan(periods.periods[1])  # camera 1 never seen
     assert periods.last[0] == 0.6 and periods.last[1] == -np.inf
     assert periods.width(0.25, 0.3) == pytest.approx(0.03)
     assert PeriodEstimator(1).width(0.25, 0.3) == 0.25  # no period known yet
+
+
+def test_a_run_of_dropped_frames_does_not_lengthen_the_period():
+    """Five of eight intervals doubled by lost frames: a median would call the period 0.1 s
+    and predict the next frame 70 ms after the last (it comes after 50 ms); the shortest
+    interval does not."""
+    periods = PeriodEstimator(1)
+    timestamp = 0.0
+    for interval in (0.05, 0.1, 0.1, 0.05, 0.1, 0.1, 0.1, 0.05):
+        periods.observe(0, timestamp)
+        timestamp += interval
+    periods.observe(0, timestamp)
+    assert periods.periods[0] == pytest.approx(0.05)
 
 
 @pytest.mark.parametrize(

@@ -33,15 +33,19 @@ class Matcher(Protocol):
     """Online multi-camera matcher: messages in, global tracks out."""
 
     def update(self, timestamp: float, messages: Sequence[CameraMessage]) -> Tracks:
-        """Process all messages captured at ``timestamp`` (seconds).
+        """Process the messages of one released group (seconds by the cameras' clocks).
 
         Args:
-            timestamp: capture time in seconds, non-decreasing between calls.
-            messages: the messages of this instant, from any subset of the cameras (possibly
-                none).
+            timestamp: the latest capture time among ``messages``, non-decreasing between
+                calls; every message captured at or before it has been delivered (in this
+                call or an earlier one). With synchronised cameras: the instant's time.
+            messages: messages from any subset of the cameras (possibly none), captured at
+                or before ``timestamp``, at most one per camera and capture time.
 
         Returns:
-            The rows to output for this instant, one per reported track.
+            The rows to output now, one per reported track and frame. A matcher that waits
+            for late cameras (the fusion tracker) may return rows of earlier groups; an
+            optional ``flush()`` method returns what it still holds at the end of a stream.
         """
         ...
 

@@ -34,6 +34,17 @@ observations of one point. Per instant:
 7. confirm tracks with enough evidence (camera detections), optionally merge duplicates,
    delete tracks unseen for too long.
 
+Cameras need not be synchronised. Messages are fused in windows of nearby capture times
+(:mod:`cblrs.matching.timing`: a fraction of the shortest frame period wide, one message per
+camera, released once no camera can still add to it), each detection at its own capture time:
+its gate is widened by how far its class moves in its lag to the window's latest time, and
+once it has a track it is moved along the track's velocity to that time before fusion. Each
+camera's clock offset is estimated from the data and subtracted from its timestamps
+(:mod:`cblrs.matching.clock`): finely from how its views lead or trail the other cameras'
+views of the same walking people, coarsely (seconds: a wrong clock) by searching the lag at
+which its views land on the other cameras' tracks. A window is reported at the capture time
+of each frame it holds, one row per confirmed track and frame.
+
 Measurement noise is ``a**2 + (b * d)**2`` along the ray and ``e**2 + (c * d)**2`` across
 it (``d`` the distance from the camera, along the ray scaled by the camera's height when
 known), and :class:`NoiseModel` re-estimates the four coefficients and a bias online from

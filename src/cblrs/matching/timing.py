@@ -55,7 +55,7 @@ DEFAULT_WINDOW_FRACTION = 0.3
 DEFAULT_SLACK = 0.3
 """A camera's next frame comes at least ``1 - slack`` frame periods after its previous one."""
 PERIOD_INTERVALS = 8
-"""Frame periods are the median of this many recent intervals (robust to dropped frames)."""
+"""Frame periods are the shortest of this many recent intervals (robust to dropped frames)."""
 MINIMUM_INTERVALS = 3
 """Intervals needed before a camera's frame period counts as known."""
 
@@ -63,10 +63,11 @@ MINIMUM_INTERVALS = 3
 class PeriodEstimator:
     """Each camera's frame period from the capture times of its recent messages.
 
-    The period is the median of the last :data:`PERIOD_INTERVALS` intervals between a
-    camera's consecutive messages, so occasional dropped frames (one interval twice as long)
-    do not change it. Times must be observed in each camera's capture order; a time not
-    after the camera's previous one is ignored.
+    The period is the shortest of the last :data:`PERIOD_INTERVALS` intervals between a
+    camera's consecutive messages, so dropped frames (intervals twice as long, however many)
+    do not lengthen it; timestamp jitter shortens it a little, which is the safe side.
+    Times must be observed in each camera's capture order; a time not after the camera's
+    previous one is ignored.
 
     Args:
         camera_count: number of cameras C (cameras are indices 0..C-1).
@@ -91,11 +92,11 @@ class PeriodEstimator:
             del times[0]
         self._last[camera] = timestamp
         if len(times) > MINIMUM_INTERVALS:
-            # A handful of numbers: plain Python is several times faster than numpy here.
-            intervals = sorted(b - a for a, b in itertools.pairwise(times))
-            middle = len(intervals) // 2
-            self._period[camera] = (intervals[middle] if len(intervals) % 2 else
-                                    0.5 * (intervals[middle - 1] + intervals[middle]))
+            # The shortest recent interval: a dropped frame only lengthens intervals, and a
+            # period taken too long would predict a camera's next frame too late (a window
+            # released before that frame arrived); one taken too short only waits longer.
+            # (A handful of numbers: plain Python is faster than numpy here.)
+            self._period[camera] = min(b - a for a, b in itertools.pairwise(times))
 
     @property
     def periods(self) -> FloatArray:
