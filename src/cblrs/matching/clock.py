@@ -40,7 +40,7 @@ FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 BoolArray = NDArray[np.bool_]
 
-DEFAULT_TOLERANCE_S = 0.1
+DEFAULT_TOLERANCE_S = 0.2
 """Clock offsets beyond this are reported (all are corrected)."""
 DEFAULT_MAX_OFFSET_S = 5.0
 """Largest clock error the coarse search looks for, seconds."""
@@ -413,12 +413,14 @@ class ClockModel:
         # every camera to d_c - mean(all) (all of it would overshoot; two cameras would swap).
         count = int(ready.sum())
         step = estimate * (count - 1) / count
-        # A camera's first correction needs a significant estimate: on synchronised cameras
-        # it wanders within its noise and must not move their timestamps. Once corrected, a
-        # camera's offset follows its estimate.
+        # The first correction needs a significant estimate: on synchronised cameras it
+        # wanders within its noise and must not move their timestamps. Once one camera has
+        # been shown off, every camera's offset follows its estimate.
         with np.errstate(divide="ignore"):
             significant = np.abs(estimate) > self.significance / np.sqrt(information)
-        return np.where(significant | self._active, step, 0.0)
+        if not self._active.any() and not significant.any():
+            return np.zeros(self.camera_count)
+        return np.where(ready, step, 0.0)
 
     def _centre(self) -> None:
         """Keep offsets relative to the median camera (a common shift is unobservable)."""
