@@ -712,7 +712,7 @@ class FusionTracker:
         self, observed: Observations, covariance: np.ndarray, matched: np.ndarray,
         rows: np.ndarray, timestamp: float,
     ) -> None:
-        """Give the clock model each view's innovation against its track's prediction.
+        """Count corroborated views and queue views for the clock model (before the update).
 
         Only views of confirmed tracks that another camera saw recently count: a track seen
         by one camera alone follows that camera's clock and says nothing about it.
