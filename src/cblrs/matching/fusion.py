@@ -705,6 +705,7 @@ class FusionTracker:
                 world_xy=position,
                 camera_id=report_camera[rows],
                 xyxy=report_box[rows],
+                class_id=self._class[rows],
             ))
         return parts[0] if len(parts) == 1 else Tracks.concatenate(parts)
 
