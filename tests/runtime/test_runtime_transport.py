@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import socket
 import threading
 import time
 
@@ -429,13 +430,28 @@ def test_without_broker_persistence_a_restart_loses_the_queue(start_mosquitto):
     resumed.close()
 
 
-def test_connect_to_a_closed_port_fails_within_the_timeout():
+def test_connect_to_a_closed_port_says_why_at_once():
     from cblrs.runtime.broker import free_port
     from cblrs.runtime.transport import MqttSettings
 
-    transport = MqttTransport("lonely", MqttSettings(port=free_port(), connect_timeout_s=0.3))
-    with pytest.raises(TransportError, match=r"no answer from the MQTT broker at 127\.0\.0\.1:\d+"):
+    transport = MqttTransport("lonely", MqttSettings(port=free_port(), connect_timeout_s=30))
+    started = time.monotonic()
+    with pytest.raises(
+        TransportError, match=r"cannot reach the MQTT broker at 127\.0\.0\.1:\d+: Connection refused"
+    ):
         transport.connect()
+    assert time.monotonic() - started < 5, "the refusal must be reported within seconds"
+
+
+def test_connect_to_a_silent_port_fails_within_the_timeout():
+    from cblrs.runtime.transport import MqttSettings
+
+    with socket.socket() as silent:  # accepts TCP connections, never speaks MQTT
+        silent.bind(("127.0.0.1", 0))
+        silent.listen(1)
+        settings = MqttSettings(port=silent.getsockname()[1], connect_timeout_s=0.3)
+        with pytest.raises(TransportError, match=r"no answer from the MQTT broker at 127\.0\.0\.1"):
+            MqttTransport("lonely", settings).connect()
 
 
 def test_connect_without_waiting_queues_until_the_broker_appears(start_mosquitto, tmp_path):

@@ -19,8 +19,10 @@ from cblrs.errors import CblrsError
 
 ROOT = "cblrs"
 MAX_ID_LENGTH = 64
-ID_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_.\-]{0,63}$"
-"""Camera and matcher ids: letters, digits, ``_ . -``; no MQTT wildcards, ``/`` or ``$``."""
+ID_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_.\-]{0,63}\Z"
+"""Camera and matcher ids: letters, digits, ``_ . -``; no MQTT wildcards, ``/`` or ``$``.
+Anchored with ``\\Z``, not ``$``: ``$`` also matches before a trailing newline, so
+``"CVLab1\\n"`` would pass (msgspec applies the pattern with ``re.search``)."""
 
 _ID = re.compile(ID_PATTERN)
 MAX_PLANE_ID = 65535
@@ -37,7 +39,7 @@ def validate_client_id(name: str, what: str = "camera id") -> str:
         name: a camera or matcher id.
         what: how to call it in the error message.
     """
-    if not isinstance(name, str) or not _ID.match(name):
+    if not isinstance(name, str) or not _ID.fullmatch(name):
         raise TopicError(
             f"{what} {name!r} is not usable in MQTT topics: use 1 to {MAX_ID_LENGTH} letters, "
             "digits, '_', '.' or '-', starting with a letter or digit."

@@ -8,7 +8,11 @@ Both implement :class:`Transport` with the same behaviour, so services and tests
   at-least-once end to end); un-acknowledged messages are delivered again, flagged
   ``duplicate``, when a persistent session reconnects;
 * persistent sessions: QoS 1 messages for a disconnected subscriber wait for it;
-* publishes made while the broker is away are queued in memory and sent on reconnection.
+* publishes made while the broker is away are queued in memory and sent on reconnection,
+  in the order they were made (a publish never overtakes an earlier one, also across a
+  reconnection);
+* every QoS 1 publish can report the broker's answer (``on_result``: the MQTT 5 reason code,
+  0 = accepted, 0x10 = no matching subscribers, >= 0x80 = refused).
 
 Handlers run on the transport's own thread (paho's network thread, or one dispatcher thread
 per in-process client), one delivery at a time, in arrival order. A handler must not block
@@ -33,6 +37,7 @@ from __future__ import annotations
 import itertools
 import logging
 import queue
+import socket
 import ssl
 import threading
 import time
@@ -90,6 +95,19 @@ class Will:
 
 
 Handler = Callable[[Delivery], None]
+PublishResult = Callable[[int], None]
+"""Called once with the broker's answer to a QoS 1 publish: an MQTT 5 reason code."""
+
+ACCEPTED = 0x00
+NO_MATCHING_SUBSCRIBERS = 0x10
+"""A broker may accept a publish nobody has subscribed to (Mosquitto 2.0 answers 0 then)."""
+LOST = -1
+"""Not a broker answer: the transport was closed before the broker acknowledged the publish."""
+
+
+def refused(reason: int) -> bool:
+    """Whether a publish answer is a refusal (MQTT 5 reason codes >= 0x80, or :data:`LOST`)."""
+    return reason >= 0x80 or reason == LOST
 
 
 @runtime_checkable
@@ -101,8 +119,16 @@ class Transport(Protocol):
     def connect(self) -> None:
         """Connect (resuming the persistent session of ``client_id`` if there is one)."""
 
-    def publish(self, topic: str, payload: bytes, qos: int = 1, retain: bool = False) -> None:
-        """Publish; queued in memory while disconnected."""
+    def publish(
+        self,
+        topic: str,
+        payload: bytes,
+        qos: int = 1,
+        retain: bool = False,
+        on_result: PublishResult | None = None,
+    ) -> None:
+        """Publish; queued in memory while disconnected; ``on_result`` gets the broker's
+        answer (QoS 1)."""
 
     def subscribe(self, topic_filter: str, handler: Handler, qos: int = 1) -> None:
         """Call ``handler`` for each message matching ``topic_filter``."""
@@ -341,7 +367,9 @@ class InProcessBroker:
                         session.inflight[stored.message_id] = stored
                     transport._enqueue(stored, duplicate=False)
 
-    def _publish(self, topic: str, payload: bytes, qos: int, retain: bool) -> None:
+    def _publish(self, topic: str, payload: bytes, qos: int, retain: bool) -> bool:
+        """Route a message; returns whether any subscription matched."""
+        routed = False
         with self._lock:
             if retain:
                 if payload:
@@ -353,6 +381,7 @@ class InProcessBroker:
                 for topic_filter, granted_qos in session.subscriptions.items():
                     if not topic_matches(topic_filter, topic):
                         continue
+                    routed = True
                     delivered_qos = min(qos, granted_qos)
                     stored = _Stored(
                         next(self._ids), topic, payload, delivered_qos, topic_filter=topic_filter
@@ -363,6 +392,7 @@ class InProcessBroker:
                         session.transport._enqueue(stored, duplicate=False)
                     elif delivered_qos > 0 and session.persistent:
                         session.pending.append(stored)
+        return routed
 
     def _ack(self, client_id: str, message_id: int) -> None:
         with self._lock:
@@ -403,6 +433,23 @@ class InProcessTransport:
         self._queue: queue.Queue = queue.Queue()
         self._thread: threading.Thread | None = None
         self._connected = False
+        self._connect_hooks: list[Callable[[bool], None]] = []
+
+    @property
+    def connected(self) -> bool:
+        return self._connected
+
+    def add_connect_hook(self, hook: Callable[[bool], None]) -> None:
+        """Call ``hook(session_present)`` after every (re)connection."""
+        self._connect_hooks.append(hook)
+
+    def clear_will(self) -> None:
+        """The client announced its end itself: publish no will on a clean close."""
+        self.will = None
+        with self.broker._lock:
+            session = self.broker._sessions.get(self.client_id)
+            if session is not None and session.transport is self:
+                session.will = None
 
     def connect(self) -> None:
         if self._connected:
@@ -419,14 +466,25 @@ class InProcessTransport:
             if topic_filter not in self._subscribed:
                 self.broker._subscribe(self, topic_filter, self._qos[topic_filter])
                 self._subscribed.add(topic_filter)
+        for hook in self._connect_hooks:
+            hook(present)
 
-    def publish(self, topic: str, payload: bytes, qos: int = 1, retain: bool = False) -> None:
+    def publish(
+        self,
+        topic: str,
+        payload: bytes,
+        qos: int = 1,
+        retain: bool = False,
+        on_result: PublishResult | None = None,
+    ) -> None:
         validate_topic(topic)
         if qos not in (0, 1):
             raise TransportError(f"QoS must be 0 or 1, got {qos}.")
         if not self._connected:
             raise TransportError(f"{self.client_id}: publish before connect().")
-        self.broker._publish(topic, bytes(payload), qos, retain)
+        routed = self.broker._publish(topic, bytes(payload), qos, retain)
+        if on_result is not None:
+            on_result(ACCEPTED if routed else NO_MATCHING_SUBSCRIBERS)
 
     def subscribe(self, topic_filter: str, handler: Handler, qos: int = 1) -> None:
         validate_filter(topic_filter)
@@ -512,11 +570,17 @@ class MqttSettings:
         reconnect_min_s: first reconnection delay; doubles up to ``reconnect_max_s``.
         reconnect_max_s: longest reconnection delay.
         connect_timeout_s: how long ``connect()`` waits for the broker's answer.
-        max_inflight: QoS 1 publishes sent but not yet acknowledged, at most.
+        max_inflight: QoS 1 publishes sent but not yet acknowledged, at most (paho's window).
+        max_handed: publishes handed to paho and not yet acknowledged, at most; the rest
+            wait in the transport's own queue (paho numbers messages with 16 bits and fails
+            past 65 535 outstanding ones).
+        tcp_nodelay: disable Nagle's algorithm on the connection, so small packets (a
+            track update, an acknowledgement) leave at once instead of up to ~40 ms later.
         protocol: MQTT version: "5", "3.1.1" (e.g. the NATS server's MQTT listener, which
             refuses MQTT 5), or "auto" (MQTT 5, and 3.1.1 when the broker refuses version 5).
             Under 3.1.1 the session expiry is the broker's, overlapping subscriptions get no
-            identifiers, and ``close(unclean=True)`` does not make the broker send the will.
+            identifiers, ``close(unclean=True)`` does not make the broker send the will, and
+            a publish's answer is always "accepted" (3.1.1 has no reason codes).
     """
 
     host: str = "127.0.0.1"
@@ -532,6 +596,8 @@ class MqttSettings:
     reconnect_max_s: float = 5.0
     connect_timeout_s: float = 5.0
     max_inflight: int = 100
+    max_handed: int = 1000
+    tcp_nodelay: bool = True
     protocol: str = "5"
 
     @property
@@ -541,6 +607,21 @@ class MqttSettings:
     @property
     def tls(self) -> bool:
         return self.ca_file is not None
+
+    @property
+    def address(self) -> str:
+        return f"{self.host}:{self.port}"
+
+
+@dataclass
+class _Outgoing:
+    """A publish waiting in the transport's queue or handed to paho."""
+
+    topic: str
+    payload: bytes
+    qos: int
+    retain: bool
+    on_result: PublishResult | None
 
 
 class MqttTransport:
@@ -554,8 +635,13 @@ class MqttTransport:
             messages for this client while it is away.
         will: last will (e.g. retained "offline" on the client's status topic).
 
-    Publishes made while disconnected are kept in memory (unbounded queue) and sent when the
-    connection returns; they are lost if the process exits first (use ``flush``).
+    Publishes wait in an in-memory queue of the transport (unbounded) and are handed to paho
+    in order, at most ``settings.max_handed`` at a time, only while connected. After a
+    reconnection, paho first sends again what it held unacknowledged, and only once all of
+    that is acknowledged does the transport hand over newer publishes: paho alone would send
+    a publish made during the reconnection ahead of the older ones it re-sends, which
+    reorders a camera's stream. Queued publishes are lost if the process exits first (use
+    ``flush``, or the camera's disk spool, :mod:`cblrs.runtime.spool`).
     """
 
     def __init__(
@@ -572,6 +658,12 @@ class MqttTransport:
         self.will = will
         self.refused_publishes = 0
         """QoS 1 publishes the broker acknowledged with a failure code (e.g. not authorised)."""
+        self.last_refusal: tuple[str, str] | None = None
+        """``(topic, reason)`` of the latest refused publish."""
+        self.connections = 0
+        """Successful connections so far (1 after the first, more after reconnections)."""
+        self.disconnections = 0
+        """Connections lost or closed so far."""
         self._handlers = _HandlerTable()
         self._qos: dict[str, int] = {}
         self._subscribed: set[str] = set()
@@ -579,10 +671,18 @@ class MqttTransport:
         self._connected = threading.Event()
         self._disconnected = threading.Event()
         self._answered = threading.Event()
+        self._attempt_failed = threading.Event()
         self._refusal: str | None = None
         self._condition = threading.Condition()
-        self._unacknowledged: set[int] = set()
-        self._early: set[int] = set()
+        self._backlog: deque[_Outgoing] = deque()
+        self._handed: dict[int, _Outgoing] = {}
+        self._early: dict[int, int] = {}
+        self._hold = False
+        """True after a reconnection until paho's re-sends are all acknowledged."""
+        self._send_lock = threading.Lock()
+        self._pump_wanted = False
+        self._will_on_close = True
+        self._connect_hooks: list[Callable[[bool], None]] = []
         self._suback: dict[int, list] = {}
         self._background_subscribes: set[int] = set()
         self._filter_ids: dict[int, str] = {}
@@ -597,16 +697,30 @@ class MqttTransport:
     def connected(self) -> bool:
         return self._connected.is_set()
 
+    def add_connect_hook(self, hook: Callable[[bool], None]) -> None:
+        """Call ``hook(session_present)`` after every successful (re)connection.
+
+        Hooks run on paho's network thread; they may publish (the publish is queued behind
+        anything paho still re-sends) but must not block.
+        """
+        self._connect_hooks.append(hook)
+
+    def clear_will(self) -> None:
+        """The client announced its end itself (e.g. a timestamped "offline"): do not publish
+        the will again on a clean close. After a crash the broker still publishes it."""
+        self._will_on_close = False
+
     def connect(self, wait: bool = True) -> None:
         """Start the network thread and connect.
 
         Args:
             wait: wait for the broker's answer (up to ``settings.connect_timeout_s``) and raise
-                if it refuses or does not answer; with False, return at once and keep trying
-                in the background (publishes are queued meanwhile).
+                if it refuses, cannot be reached or does not answer; with False, return at
+                once and keep trying in the background (publishes are queued meanwhile).
 
         Raises:
-            TransportError: refused (bad credentials, not authorised) or no answer in time.
+            TransportError: refused (bad credentials, not authorised), unreachable (the
+                message names the operating system's reason) or no answer in time.
         """
         if self._client is not None:
             return
@@ -626,7 +740,7 @@ class MqttTransport:
             # paho formats a log line for every packet once a log callback is set: debug only.
             client.on_log = self._on_log
         client.manual_ack_set(True)
-        client.max_queued_messages_set(0)  # unbounded: nothing is dropped while away
+        client.max_queued_messages_set(0)  # the transport bounds what it hands over
         client.max_inflight_messages_set(settings.max_inflight)
         client.reconnect_delay_set(settings.reconnect_min_s, settings.reconnect_max_s)  # type: ignore[arg-type]
         if settings.username is not None:
@@ -642,15 +756,19 @@ class MqttTransport:
         if self.will is not None:
             client.will_set(self.will.topic, self.will.payload, self.will.qos, self.will.retain)
         client.on_connect = self._on_connect
+        client.on_connect_fail = self._on_connect_fail
         client.on_disconnect = self._on_disconnect
         client.on_message = self._on_message
         client.on_publish = self._on_publish
         client.on_subscribe = self._on_subscribe
+        if settings.tcp_nodelay:
+            client.on_socket_open = _no_delay
         properties = None
         if settings.mqtt5:
             properties = Properties(PacketTypes.CONNECT)
             properties.SessionExpiryInterval = settings.session_expiry_s if self.persistent else 0
         self._client = client
+        self._attempt_failed.clear()
         client.connect_async(
             settings.host,
             settings.port,
@@ -661,14 +779,25 @@ class MqttTransport:
         client.loop_start()
         if not wait:
             return
-        if not self._answered.wait(settings.connect_timeout_s):
-            self._abandon()
-            raise TransportError(
-                f"{self.client_id}: no answer from the MQTT broker at {settings.host}:"
-                f"{settings.port} within {settings.connect_timeout_s:g} s"
-                + (" (is it a TLS port? check the CA file)" if settings.tls else "")
-                + "."
-            )
+        deadline = time.monotonic() + settings.connect_timeout_s
+        while not self._answered.wait(0.05):
+            if self._attempt_failed.is_set():
+                reason = unreachable_reason(settings.host, settings.port)
+                if reason is not None:
+                    self._abandon()
+                    raise TransportError(
+                        f"{self.client_id}: cannot reach the MQTT broker at {settings.address}: "
+                        f"{reason}."
+                    )
+                self._attempt_failed.clear()
+            if time.monotonic() >= deadline:
+                self._abandon()
+                raise TransportError(
+                    f"{self.client_id}: no answer from the MQTT broker at {settings.address} "
+                    f"within {settings.connect_timeout_s:g} s"
+                    + (" (is it a TLS port? check the CA file)" if settings.tls else "")
+                    + "."
+                )
         if self._refusal is not None:
             refusal = self._refusal
             self._abandon()
@@ -679,25 +808,32 @@ class MqttTransport:
                 self.connect(wait)
                 return
             raise TransportError(
-                f"{self.client_id}: the MQTT broker at {settings.host}:{settings.port} "
+                f"{self.client_id}: the MQTT broker at {settings.address} "
                 f"refused the connection: {refusal}."
             )
 
-    def publish(self, topic: str, payload: bytes, qos: int = 1, retain: bool = False) -> None:
+    def publish(
+        self,
+        topic: str,
+        payload: bytes,
+        qos: int = 1,
+        retain: bool = False,
+        on_result: PublishResult | None = None,
+    ) -> None:
+        """Queue a publish; it is handed to paho in order once connected (see the class).
+
+        Args:
+            on_result: called once, on paho's network thread, with the broker's MQTT 5
+                reason code (QoS 1), or :data:`LOST` if the transport is closed first.
+        """
         validate_topic(topic)
         if qos not in (0, 1):
             raise TransportError(f"QoS must be 0 or 1, got {qos}.")
-        client = self._require_client()
-        info = client.publish(topic, bytes(payload), qos=qos, retain=retain)
-        import paho.mqtt.client as mqtt
-
-        if info.rc not in (mqtt.MQTT_ERR_SUCCESS, mqtt.MQTT_ERR_NO_CONN):
-            raise TransportError(f"{self.client_id}: publish on {topic} failed: {info.rc!s}.")
+        if self._client is None:
+            raise TransportError(f"{self.client_id}: publish before connect().")
         with self._condition:
-            if info.mid in self._early:
-                self._early.discard(info.mid)
-            else:
-                self._unacknowledged.add(info.mid)
+            self._backlog.append(_Outgoing(topic, bytes(payload), qos, retain, on_result))
+        self._pump(blocking=threading.current_thread() is not self._network_thread())
 
     def subscribe(self, topic_filter: str, handler: Handler, qos: int = 1) -> None:
         """Register ``handler``; when connected, wait for the broker's grant.
@@ -740,19 +876,20 @@ class MqttTransport:
                 )
 
     def flush(self, timeout: float) -> bool:
+        """Wait until every publish so far is acknowledged by the broker; False on timeout."""
         deadline = time.monotonic() + timeout
         with self._condition:
-            while self._unacknowledged:
+            while self._backlog or self._handed:
                 remaining = deadline - time.monotonic()
                 if remaining <= 0:
                     return False
-                self._condition.wait(remaining)
+                self._condition.wait(min(remaining, 0.5))
             return True
 
     def pending(self) -> int:
-        """Publishes not yet acknowledged by the broker."""
+        """Publishes not yet acknowledged by the broker (queued or handed to paho)."""
         with self._condition:
-            return len(self._unacknowledged)
+            return len(self._backlog) + len(self._handed)
 
     def close(self, unclean: bool = False, timeout: float = 5.0) -> None:
         client = self._client
@@ -774,11 +911,12 @@ class MqttTransport:
                 if self.settings.mqtt5 else None
             )
         else:
-            if self.will is not None and was_connected:
+            if self.will is not None and was_connected and self._will_on_close:
                 self.publish(self.will.topic, self.will.payload, self.will.qos, self.will.retain)
             if not self.flush(timeout):
                 logger.warning(
-                    "%s: closing with %d publishes not acknowledged", self.client_id, self.pending()
+                    "%s: closing with %d publishes not acknowledged by the broker",
+                    self.client_id, self.pending(),
                 )
             self._disconnected.clear()
             client.disconnect()
@@ -789,8 +927,77 @@ class MqttTransport:
         client.loop_stop()
         self._client = None
         self._connected.clear()
+        with self._condition:
+            lost = list(self._handed.values()) + list(self._backlog)
+            self._handed.clear()
+            self._backlog.clear()
+            self._condition.notify_all()
+        for item in lost:
+            _report(item, LOST)
 
     # Internals -------------------------------------------------------------------------
+
+    def _network_thread(self) -> threading.Thread | None:
+        client = self._client
+        return None if client is None else getattr(client, "_thread", None)
+
+    def _pump(self, blocking: bool) -> None:
+        """Hand queued publishes to paho, in order, while connected and within the window.
+
+        Only one thread hands over at a time (``_send_lock``). paho's network thread never
+        waits for that lock: it holds paho's own lock when it calls back, and the handing
+        thread needs that one inside ``client.publish``; it asks the holder to go on instead.
+        """
+        while True:
+            if not self._send_lock.acquire(blocking=blocking):
+                self._pump_wanted = True
+                return
+            try:
+                self._pump_wanted = False
+                self._hand_over()
+            finally:
+                self._send_lock.release()
+            if not self._pump_wanted:
+                return
+            blocking = False
+
+    def _hand_over(self) -> None:
+        import paho.mqtt.client as mqtt
+
+        client = self._client
+        while client is not None:
+            with self._condition:
+                if not (
+                    self._backlog
+                    and self._connected.is_set()
+                    and not self._hold
+                    and len(self._handed) < self.settings.max_handed
+                ):
+                    return
+                item = self._backlog.popleft()
+            info = client.publish(item.topic, item.payload, qos=item.qos, retain=item.retain)
+            if info.rc not in (mqtt.MQTT_ERR_SUCCESS, mqtt.MQTT_ERR_NO_CONN):
+                # Not expected within the window; keep the order by putting it back.
+                with self._condition:
+                    self._backlog.appendleft(item)
+                logger.warning("%s: paho could not take publish on %s: %s", self.client_id,
+                               item.topic, mqtt.error_string(info.rc))
+                return
+            if item.qos == 0:
+                _report(item, ACCEPTED)
+                continue
+            with self._condition:
+                early = self._early.pop(info.mid, None)
+                if early is None:
+                    self._handed[info.mid] = item
+            if early is not None:
+                self._finished(item, early)
+
+    def _finished(self, item: _Outgoing, reason: int) -> None:
+        if refused(reason):
+            self.refused_publishes += 1
+            self.last_refusal = (item.topic, _reason_text(reason))
+        _report(item, reason)
 
     def _wait_for_subscriptions(self, timeout: float) -> None:
         deadline = time.monotonic() + timeout
@@ -803,7 +1010,7 @@ class MqttTransport:
 
     def _require_client(self):
         if self._client is None:
-            raise TransportError(f"{self.client_id}: publish before connect().")
+            raise TransportError(f"{self.client_id}: not connected (call connect() first).")
         return self._client
 
     def _abandon(self) -> None:
@@ -856,12 +1063,16 @@ class MqttTransport:
         elif _paho_logger.isEnabledFor(logging.DEBUG):
             _paho_logger.debug("%s: %s", self.client_id, text)
 
+    def _on_connect_fail(self, client, userdata) -> None:
+        self._attempt_failed.set()
+
     def _on_connect(self, client, userdata, flags, reason_code, properties) -> None:
         if reason_code.is_failure:
             self._refusal = str(reason_code)
             expected = self.settings.protocol == "auto" and "protocol version" in self._refusal
             logger.log(logging.INFO if expected else logging.WARNING,
-                       "%s: connection refused: %s", self.client_id, reason_code)
+                       "%s: connection refused by %s: %s", self.client_id,
+                       self.settings.address, reason_code)
             self._answered.set()
             return
         self._refusal = None
@@ -875,27 +1086,53 @@ class MqttTransport:
                     with self._condition:
                         self._background_subscribes.add(mid)
                 self._subscribed.add(topic_filter)
-        logger.info(
-            "%s: connected (session present: %s)", self.client_id, bool(flags.session_present)
-        )
+        self.connections += 1
+        with self._condition:
+            # paho sends what it holds unacknowledged again right after this callback; newer
+            # publishes wait until all of that is acknowledged, so nothing overtakes it.
+            self._hold = bool(self._handed)
+        log = logger.info if self.connections == 1 else logger.warning
+        log("%s: %s %s (session present: %s)", self.client_id,
+            "connected to" if self.connections == 1 else "reconnected to",
+            self.settings.address, bool(flags.session_present))
         self._connected.set()
         self._answered.set()
+        for hook in self._connect_hooks:
+            try:
+                hook(bool(flags.session_present))
+            except Exception:
+                logger.exception("%s: connect hook failed", self.client_id)
+        self._pump(blocking=False)
 
     def _on_disconnect(self, client, userdata, flags, reason_code, properties) -> None:
+        was_connected = self._connected.is_set()
         self._connected.clear()
         self._disconnected.set()
-        logger.info("%s: disconnected: %s", self.client_id, reason_code)
+        if not was_connected:
+            return
+        self.disconnections += 1
+        with self._condition:
+            self._hold = bool(self._handed)
+        if reason_code.is_failure:
+            logger.warning("%s: disconnected from %s: %s; reconnecting", self.client_id,
+                           self.settings.address, reason_code)
+        else:
+            logger.info("%s: disconnected from %s", self.client_id, self.settings.address)
 
     def _on_publish(self, client, userdata, mid, reason_code, properties) -> None:
-        if reason_code.is_failure:
-            self.refused_publishes += 1
-            logger.warning("%s: broker refused publish %d: %s", self.client_id, mid, reason_code)
+        reason = int(getattr(reason_code, "value", 0))
+        if refused(reason):
+            logger.debug("%s: broker refused publish %d: %s", self.client_id, mid, reason_code)
         with self._condition:
-            if mid in self._unacknowledged:
-                self._unacknowledged.discard(mid)
-            else:
-                self._early.add(mid)
+            item = self._handed.pop(mid, None)
+            if item is None:
+                self._early[mid] = reason
+            if self._hold and not self._handed:
+                self._hold = False
             self._condition.notify_all()
+        if item is not None:
+            self._finished(item, reason)
+        self._pump(blocking=False)
 
     def _on_subscribe(self, client, userdata, mid, reason_codes, properties) -> None:
         with self._condition:
@@ -941,6 +1178,45 @@ class MqttTransport:
                 filters,
             )
         )
+
+
+def _report(item: _Outgoing, reason: int) -> None:
+    if item.on_result is not None:
+        try:
+            item.on_result(reason)
+        except Exception:
+            logger.exception("publish result handler for %s failed", item.topic)
+
+
+def _reason_text(reason: int) -> str:
+    if reason == LOST:
+        return "not acknowledged before the transport closed"
+    try:
+        from paho.mqtt.packettypes import PacketTypes
+        from paho.mqtt.reasoncodes import ReasonCode
+
+        return str(ReasonCode(PacketTypes.PUBACK, identifier=reason))
+    except Exception:
+        return f"reason code 0x{reason:02x}"
+
+
+def _no_delay(client, userdata, sock) -> None:
+    """paho's on_socket_open: disable Nagle's algorithm (paho does not)."""
+    try:
+        sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+    except (OSError, AttributeError):  # not a TCP socket (e.g. a unix socket): nothing to do
+        pass
+
+
+def unreachable_reason(host: str, port: int, timeout: float = 2.0) -> str | None:
+    """Why a TCP connection to ``host:port`` fails (the OS's words), or None if it opens."""
+    try:
+        with socket.create_connection((host, port), timeout=timeout):
+            return None
+    except TimeoutError:
+        return f"no TCP answer within {timeout:g} s"
+    except OSError as error:
+        return error.strerror or str(error)
 
 
 def _subscription_id(topic_filter: str) -> int:
