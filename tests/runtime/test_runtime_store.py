@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import shutil
 import sqlite3
+import stat
 import subprocess
 import sys
 import threading
@@ -203,19 +205,92 @@ def test_bind_refuses_a_database_of_another_matcher(store):
         store.bind({"plane_id": 2, "camera_ids": ["a", "b"]})
 
 
+def _other_program(path):
+    with sqlite3.connect(path) as connection:
+        connection.execute("CREATE TABLE invoices (id INTEGER)")
+
+
+@pytest.mark.parametrize("read_only", [False, True], ids=["writing", "reading"])
 @pytest.mark.parametrize(
-    ("content", "read_only", "expected"),
+    ("make", "expected"),
     [
-        (None, True, "does not exist"),
-        (b"this is not a database, just some text" * 20, False, "is not a usable SQLite database"),
+        (lambda path: path.write_bytes(b""), r"is an empty file, not a cblrs matcher database"),
+        (lambda path: path.write_bytes(b"this is not a database, just some text" * 20),
+         r"is not a SQLite database \(a cblrs matcher database is one\)"),
+        (_other_program, r"is a SQLite database of another program \(tables invoices\)"),
+        (lambda path: path.mkdir(), r"is not a file"),
     ],
+    ids=["empty", "text", "other program", "folder"],
 )
-def test_unusable_files_are_reported(tmp_path, content, read_only, expected):
+def test_unusable_files_are_refused_in_one_sentence(tmp_path, make, expected, read_only):
     path = tmp_path / "runtime.db"
-    if content is not None:
-        path.write_bytes(content)
+    make(path)
     with pytest.raises(StoreError, match=expected):
         RuntimeStore(path, read_only=read_only)
+
+
+def test_missing_database_and_missing_folder(tmp_path):
+    with pytest.raises(StoreError, match="does not exist"):
+        RuntimeStore(tmp_path / "none.db", read_only=True)
+    with pytest.raises(StoreError, match=r"the folder .*gone of the database m\.db does not exist"):
+        RuntimeStore(tmp_path / "gone" / "m.db")
+    assert not (tmp_path / "gone").exists(), "the folder must not be created silently"
+
+
+def test_damaged_database_is_reported(tmp_path):
+    path = tmp_path / "runtime.db"
+    with RuntimeStore(path) as store:
+        store.insert_messages([(entry("A", index), PENDING, 1.0) for index in range(2000)])
+    data = bytearray(path.read_bytes())
+    data[4096:len(data) // 2] = b"\xff" * (len(data) // 2 - 4096)  # pages after the first
+    path.write_bytes(bytes(data))
+    with pytest.raises(StoreError, match=r"(is damaged: SQLite says|not a usable SQLite)"):
+        with RuntimeStore(path, read_only=True) as store:
+            store.summary()
+
+
+def test_database_files_are_private(tmp_path):
+    path = tmp_path / "runtime.db"
+    with RuntimeStore(path) as store:
+        store.add_counters({"received": 1})
+        shared = store.share()
+        store.add_counters({"received": 1})
+        modes = {item.name: stat.S_IMODE(item.stat().st_mode) for item in tmp_path.iterdir()}
+    assert shared.path == path
+    assert modes == dict.fromkeys(modes, 0o600), modes
+    assert {"runtime.db", "runtime.db-wal", "runtime.db-shm"} <= set(modes)
+
+
+def test_a_deleted_database_fails_the_next_commit(tmp_path):
+    folder = tmp_path / "db"
+    folder.mkdir()
+    with RuntimeStore(folder / "runtime.db") as store:
+        store.insert_messages([(entry("A", 0), PENDING, 1.0)])
+        shutil.rmtree(folder)
+        with pytest.raises(StoreError, match="was deleted or replaced while the matcher"):
+            store.insert_messages([(entry("A", 1), PENDING, 1.0)])
+
+
+def test_a_replaced_database_fails_the_next_commit(tmp_path):
+    path = tmp_path / "runtime.db"
+    with RuntimeStore(path) as store:
+        store.add_counters({"received": 1})
+        path.rename(tmp_path / "moved.db")
+        RuntimeStore(path).close()  # someone creates a new, empty file under the old name
+        with pytest.raises(StoreError, match="was deleted or replaced"):
+            store.add_counters({"received": 1})
+
+
+def test_a_held_database_refuses_a_second_matcher(tmp_path):
+    path = tmp_path / "runtime.db"
+    with RuntimeStore(path) as first:
+        first.hold()
+        second = RuntimeStore(path)
+        with pytest.raises(StoreError, match=r"is in use by another matcher \(pid \d+ on "):
+            second.hold()
+        second.close()
+    with RuntimeStore(path) as third:  # released when the first closed
+        third.hold()
 
 
 def test_read_only_reader_sees_a_writer_commits(tmp_path):

@@ -19,17 +19,29 @@ it, and a restarted matcher resumes from exactly the last committed group.
 
 One matcher service writes at a time, from two processes: its own (the inbox) and its tracker
 process (the groups), which take turns through a lock shared by :meth:`RuntimeStore.share`;
-readers (``cblrs matcher --stats``) may open the file concurrently.
+readers (``cblrs matcher --stats``) may open the file concurrently. A service holds the file
+exclusively (:meth:`RuntimeStore.hold`, a lock on ``<file>-matcher.lock``), so a second
+matcher on the same file is refused.
+
+The file holds people's positions: it is created with mode 0600 (SQLite gives its ``-wal``
+and ``-shm`` files the same mode), an existing one is set to 0600 when opened for writing.
+Opening refuses, with one sentence, a missing folder (nothing is created silently), an empty
+file and a file that is not a SQLite database or holds another program's tables. Every
+transaction checks that the path still names the file that was opened: a database deleted or
+replaced under a running matcher fails the next commit (:class:`StoreError`), so nothing more
+is acknowledged into a file nobody will ever read.
 """
 
 from __future__ import annotations
 
 import fcntl
 import json
+import os
+import socket
 import sqlite3
 import threading
 import uuid
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -42,6 +54,8 @@ from cblrs.errors import CblrsError
 from cblrs.runtime.wire import CLASS_IDS, WireMessage
 
 SCHEMA_VERSION = 1
+SQLITE_HEADER = b"SQLite format 3\x00"
+_OWN_TABLES = frozenset({"inbox", "tracks", "meta", "counters"})
 
 PENDING = "pending"
 PROCESSED = "processed"
@@ -195,7 +209,9 @@ class WriterLock:
 
     def acquire(self) -> None:
         if self._file is None:
-            self._file = open(self.path, "ab")  # kept open: the lock belongs to the open file
+            # Kept open: the lock belongs to the open file.
+            self._file = os.fdopen(os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_APPEND,
+                                           0o600), "ab")
         fcntl.flock(self._file.fileno(), fcntl.LOCK_EX)
 
     def release(self) -> None:
@@ -239,18 +255,21 @@ class RuntimeStore:
         self.path = Path(path)
         self._lock = threading.RLock()
         self._write_lock = write_lock
+        self._holder: Any = None
+        self._identity: tuple[int, int] | None = None
+        _check_file(self.path, read_only)
         try:
             if read_only:
-                if not self.path.is_file():
-                    raise StoreError(f"runtime database {self.path} does not exist.")
                 self._connection = sqlite3.connect(
                     f"file:{self.path}?mode=ro", uri=True, check_same_thread=False
                 )
+                self._check_tables()
             else:
-                self.path.parent.mkdir(parents=True, exist_ok=True)
+                _create_private(self.path)
                 self._connection = sqlite3.connect(
                     str(self.path), check_same_thread=False, isolation_level=None
                 )
+                self._check_tables()
                 self._connection.execute("PRAGMA journal_mode=WAL")
                 # WAL + NORMAL: a commit survives a process crash (the case that matters for
                 # a killed matcher); only an OS crash can lose the last transactions.
@@ -259,9 +278,11 @@ class RuntimeStore:
                 self._check_version()
                 if write_lock is not None:
                     self._leave_checkpoints()
+                _make_private(self.path)
             self._connection.execute("PRAGMA busy_timeout=5000")
         except sqlite3.DatabaseError as error:
             raise StoreError(f"{self.path} is not a usable SQLite database: {error}.") from None
+        self._identity = _identity(self.path)
 
     # -- lifecycle -------------------------------------------------------------------------
 
@@ -270,6 +291,73 @@ class RuntimeStore:
             self._connection.close()
             if self._write_lock is not None:
                 self._write_lock.close()
+            if self._holder is not None:
+                self._holder.close()
+                self._holder = None
+
+    def hold(self) -> None:
+        """Hold the file exclusively for one matcher service until :meth:`close`.
+
+        Raises:
+            StoreError: another process (a matcher still running) holds it.
+        """
+        if self._holder is not None:
+            return
+        path = self.path.with_name(self.path.name + "-matcher.lock")
+        handle = os.fdopen(os.open(path, os.O_RDWR | os.O_CREAT, 0o600), "r+")
+        try:
+            fcntl.flock(handle.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            owner = handle.read().strip() or "another process"
+            handle.close()
+            raise StoreError(
+                f"{self.path} is in use by another matcher ({owner}); stop it first or use "
+                "another --db."
+            ) from None
+        handle.seek(0)
+        handle.truncate()
+        handle.write(f"pid {os.getpid()} on {socket.gethostname()}\n")
+        handle.flush()
+        self._holder = handle
+
+    def check_file(self) -> None:
+        """Raise if the path no longer names the file this store opened.
+
+        Raises:
+            StoreError: the file (or its folder) was deleted, moved or replaced.
+        """
+        if self._identity is None:
+            return
+        try:
+            current = _identity(self.path)
+        except OSError:
+            current = None
+        if current != self._identity:
+            raise StoreError(
+                f"the database {self.path} was deleted or replaced while the matcher was "
+                "running; nothing more is acknowledged (the messages acknowledged into it are "
+                "gone with it: restore the file, or restart with --new-db)."
+            )
+
+    def database_id(self) -> str:
+        """A random id given to the file when it was created (names it in the plane lease)."""
+        value = self.get_meta("database_id")
+        if value is None:
+            value = uuid.uuid4().hex
+            self.set_meta("database_id", value)
+        return str(value)
+
+    def _check_tables(self) -> None:
+        rows = self._connection.execute(
+            "SELECT name FROM sqlite_master WHERE type = 'table' AND name NOT LIKE 'sqlite_%'"
+        ).fetchall()
+        names = {name for (name,) in rows}
+        if names and not names & _OWN_TABLES:
+            raise StoreError(
+                f"{self.path} is a SQLite database of another program (tables "
+                f"{', '.join(sorted(names)[:5])}), not a cblrs matcher database; choose "
+                "another --db."
+            )
 
     def __enter__(self) -> RuntimeStore:
         return self
@@ -353,7 +441,7 @@ class RuntimeStore:
         self._connection.execute("PRAGMA wal_autocheckpoint=0")
 
     def _transaction(self):
-        return _Transaction(self._connection, self._write_lock)
+        return _Transaction(self._connection, self._write_lock, self.check_file)
 
     def claim(self) -> str:
         """Make a new matcher service the file's tracker: returns its token for
@@ -555,7 +643,17 @@ class RuntimeStore:
         )
 
     def summary(self) -> dict[str, Any]:
-        """Counters, inbox status counts, track rows and settings, for ``--stats``."""
+        """Counters, inbox status counts, track rows and settings, for ``--stats``.
+
+        Raises:
+            StoreError: the file is damaged (SQLite cannot read it).
+        """
+        try:
+            return self._summary()
+        except sqlite3.DatabaseError as error:
+            raise StoreError(f"{self.path} is damaged: SQLite says {error}.") from None
+
+    def _summary(self) -> dict[str, Any]:
         with self._lock:
             track_rows = self._connection.execute("SELECT COUNT(*) FROM tracks").fetchone()[0]
             identities = self._connection.execute(
@@ -588,13 +686,22 @@ def checkpoint_regularly(path: Path, stop: threading.Event, interval_s: float = 
 
 class _Transaction:
     """``BEGIN IMMEDIATE`` ... ``COMMIT`` (or ``ROLLBACK`` on an exception), holding the
-    writers' lock when the store is shared."""
+    writers' lock when the store is shared; ``check`` runs before and after (it raises if the
+    file was deleted or replaced, so the caller does not acknowledge what it wrote)."""
 
-    def __init__(self, connection: sqlite3.Connection, write_lock: WriterLock | None):
+    def __init__(
+        self,
+        connection: sqlite3.Connection,
+        write_lock: WriterLock | None,
+        check: Callable[[], None] | None = None,
+    ):
         self._connection = connection
         self._write_lock = write_lock
+        self._check = check
 
     def __enter__(self) -> sqlite3.Cursor:
+        if self._check is not None:
+            self._check()
         if self._write_lock is not None:
             self._write_lock.acquire()
         try:
@@ -610,10 +717,61 @@ class _Transaction:
             self._cursor.execute("COMMIT" if kind is None else "ROLLBACK")
         finally:
             self._release()
+        if kind is None and self._check is not None:
+            self._check()
 
     def _release(self) -> None:
         if self._write_lock is not None:
             self._write_lock.release()
+
+
+def _identity(path: Path) -> tuple[int, int]:
+    status = os.stat(path)
+    return status.st_dev, status.st_ino
+
+
+def _check_file(path: Path, read_only: bool) -> None:
+    """One sentence for every file that cannot be a matcher database (see the module)."""
+    folder = path.parent
+    if not folder.is_dir():
+        raise StoreError(
+            f"the folder {folder} of the database {path.name} does not exist; create it first "
+            "(it is not created silently, so a mistyped path does not start an empty database)."
+        )
+    if not path.exists():
+        if read_only:
+            raise StoreError(f"runtime database {path} does not exist.")
+        return
+    if not path.is_file():
+        raise StoreError(f"{path} is not a file.")
+    try:
+        with path.open("rb") as handle:
+            header = handle.read(len(SQLITE_HEADER))
+    except OSError as error:
+        raise StoreError(f"cannot read {path}: {error.strerror or error}.") from None
+    if not header:
+        raise StoreError(
+            f"{path} is an empty file, not a cblrs matcher database; delete it to start a new "
+            "database, or give the right --db."
+        )
+    if header != SQLITE_HEADER:
+        raise StoreError(f"{path} is not a SQLite database (a cblrs matcher database is one).")
+
+
+def _create_private(path: Path) -> None:
+    """Create ``path`` with mode 0600 if it does not exist (SQLite would use 0644)."""
+    try:
+        os.close(os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600))
+    except FileExistsError:
+        pass
+
+
+def _make_private(path: Path) -> None:
+    for name in (path.name, path.name + "-wal", path.name + "-shm"):
+        try:
+            os.chmod(path.with_name(name), 0o600)
+        except OSError:  # not ours, or gone: nothing to do
+            pass
 
 
 _INSERT_INBOX = (

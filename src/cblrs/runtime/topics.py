@@ -4,8 +4,10 @@ Layout (one subtree per plane, so a broker cluster can be split by plane id)::
 
     cblrs/<plane>/<camera>/detections        camera -> matcher, QoS 1
     cblrs/<plane>/<camera>/status            retained availability, last will "offline"
+    cblrs/<plane>/<camera>/stored            matcher -> camera: sequences stored (or rejected)
     cblrs/<plane>/tracks                     matcher -> viewers, track updates
     cblrs/<plane>/matchers/<matcher>/status  retained availability of a matcher
+    cblrs/<plane>/lease                      retained: which matcher instance holds the plane
 
 ``<plane>`` is the decimal plane id (the B channel of the reference colours).
 """
@@ -74,6 +76,21 @@ def matcher_status_topic(plane_id: int, matcher_id: str) -> str:
     """``cblrs/<plane>/matchers/<matcher>/status``: retained availability of a matcher."""
     matcher = validate_client_id(matcher_id, "matcher id")
     return f"{ROOT}/{_plane(plane_id)}/matchers/{matcher}/status"
+
+
+def matcher_status_filter(plane_id: int) -> str:
+    """Subscription filter for the status of every matcher of a plane."""
+    return f"{ROOT}/{_plane(plane_id)}/matchers/+/status"
+
+
+def lease_topic(plane_id: int) -> str:
+    """``cblrs/<plane>/lease``: retained record of the matcher instance serving the plane."""
+    return f"{ROOT}/{_plane(plane_id)}/lease"
+
+
+def stored_topic(plane_id: int, camera_id: str) -> str:
+    """``cblrs/<plane>/<camera>/stored``: the matcher's confirmations to one camera."""
+    return f"{ROOT}/{_plane(plane_id)}/{validate_camera_id(camera_id)}/stored"
 
 
 def tracks_topic(plane_id: int) -> str:

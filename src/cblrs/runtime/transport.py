@@ -498,9 +498,18 @@ class InProcessTransport:
             self.broker._subscribe(self, topic_filter, self._qos[topic_filter])
             self._subscribed.add(topic_filter)
 
+    def resubscribe(self, topic_filter: str) -> None:
+        """Subscribe again: the broker sends the filter's retained messages again."""
+        if not self._connected:
+            raise TransportError(f"{self.client_id}: not connected.")
+        self.broker._subscribe(self, topic_filter, self._qos.get(topic_filter, 1))
+
     def flush(self, timeout: float) -> bool:
         # Publishing hands the message to the broker synchronously: nothing is ever pending.
         return True
+
+    def pending(self) -> int:
+        return 0
 
     def close(self, unclean: bool = False, timeout: float = 5.0) -> None:
         if not self._connected:
@@ -874,6 +883,23 @@ class MqttTransport:
                     f"{self.client_id}: the broker refused the subscription to "
                     f"{topic_filter}: {failures[0]}."
                 )
+
+    def resubscribe(self, topic_filter: str) -> None:
+        """Subscribe to a registered filter again, so the broker sends its retained
+        messages again (MQTT 5 retain handling 0); needs a connection.
+
+        Raises:
+            TransportError: not connected, or the broker refused.
+        """
+        if not self._connected.is_set():
+            raise TransportError(f"{self.client_id}: not connected.")
+        codes = self._subscribe_and_wait(topic_filter, self._qos.get(topic_filter, 1))
+        failures = [code for code in codes if code.is_failure]
+        if failures:
+            raise TransportError(
+                f"{self.client_id}: the broker refused the subscription to {topic_filter}: "
+                f"{failures[0]}."
+            )
 
     def flush(self, timeout: float) -> bool:
         """Wait until every publish so far is acknowledged by the broker; False on timeout."""

@@ -708,7 +708,7 @@ def decode_tracks(payload: bytes, *, max_bytes: int = 8 * 1024 * 1024) -> Tracks
 StatusState = Literal["online", "offline"]
 
 
-class Status(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
+class Status(msgspec.Struct, forbid_unknown_fields=True, frozen=True, omit_defaults=True):
     """A ``cblrs.status/1`` payload: availability of a camera or matcher.
 
     Attributes:
@@ -718,6 +718,9 @@ class Status(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
         state: "online" or "offline".
         timestamp: when it was published (seconds since the epoch); None in a last will,
             which is composed at connection time.
+        session_present: a matcher's "online": whether the broker still held its session
+            (False: nothing was queued for it, so cameras send again what it has not
+            confirmed); None when not said.
     """
 
     schema: str
@@ -725,23 +728,29 @@ class Status(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
     role: Literal["camera", "matcher", "viewer"]
     state: StatusState
     timestamp: float | None = None
+    session_present: bool | None = None
 
 
 def encode_status(
-    client: str, state: StatusState, *, role: str = "camera", timestamp: float | None = None
+    client: str,
+    state: StatusState,
+    *,
+    role: str = "camera",
+    timestamp: float | None = None,
+    session_present: bool | None = None,
 ) -> bytes:
     """Serialise an availability payload (publish retained on the status topic)."""
+    document: dict[str, Any] = {
+        "schema": STATUS_SCHEMA,
+        "client": client,
+        "role": role,
+        "state": state,
+        "timestamp": timestamp,
+    }
+    if session_present is not None:
+        document["session_present"] = session_present
     try:
-        status = msgspec.convert(
-            {
-                "schema": STATUS_SCHEMA,
-                "client": client,
-                "role": role,
-                "state": state,
-                "timestamp": timestamp,
-            },
-            Status,
-        )
+        status = msgspec.convert(document, Status)
     except msgspec.ValidationError as error:
         raise RejectedMessage(RejectReason.INVALID_VALUE, str(error)) from None
     return msgspec.json.encode(status)
