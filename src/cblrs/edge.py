@@ -3,6 +3,11 @@
 This is all an edge camera computes per frame. Its output, a :class:`CameraMessage`, holds
 boxes and reference colours only.
 
+Boxes a camera refuses outright (:func:`box_rejections`; dropped from the message and counted
+by reason; ``cblrs locate --boxes`` applies the same rule): a coordinate that is not finite
+(``not_finite``), ``x_max < x_min`` or ``y_max < y_min`` (``inverted``), and a box that does
+not overlap the image at all (``outside_image``: no detector of this camera produced it).
+
 Policy for locations a camera cannot vouch for (colour ``(0, 0, 0)``, "no location"):
 
 * the target pixel lies outside the image (a box cut by the image border at the target's
@@ -49,6 +54,63 @@ GROUND_DEPTH_OFFSET_M: dict[str, float] = {
     "bicycle": 0.4,
     "motorcycle": 0.5,
 }
+
+
+BOX_REJECTIONS = ("not_finite", "inverted", "outside_image")
+"""Why a camera refuses a box (see the module docstring)."""
+
+
+def box_rejections(xyxy: np.ndarray, image_size: tuple[int, int]) -> list[str | None]:
+    """Per box, why a camera refuses it (one of :data:`BOX_REJECTIONS`), or None.
+
+    Args:
+        xyxy: (N, 4) boxes, pixels.
+        image_size: (width, height) of the camera's image.
+    """
+    boxes = np.asarray(xyxy, dtype=np.float64).reshape(-1, 4)
+    width, height = image_size
+    reasons: list[str | None] = []
+    with np.errstate(invalid="ignore"):
+        finite = np.isfinite(boxes).all(axis=1)
+        inverted = (boxes[:, 2] < boxes[:, 0]) | (boxes[:, 3] < boxes[:, 1])
+        # Pixel areas span -0.5 .. size - 0.5; a box touching that area overlaps the image.
+        outside = ((boxes[:, 2] < -0.5) | (boxes[:, 0] > width - 0.5)
+                   | (boxes[:, 3] < -0.5) | (boxes[:, 1] > height - 0.5))
+    for index in range(len(boxes)):
+        if not finite[index]:
+            reasons.append("not_finite")
+        elif inverted[index]:
+            reasons.append("inverted")
+        elif outside[index]:
+            reasons.append("outside_image")
+        else:
+            reasons.append(None)
+    return reasons
+
+
+def location_status(
+    xyxy: np.ndarray,
+    pixels: np.ndarray,
+    inside: np.ndarray,
+    valid: np.ndarray,
+    vertical: np.ndarray,
+    sides_matter: np.ndarray,
+    image_size: tuple[int, int],
+) -> list[str]:
+    """Per box, what the camera sends: ``located``, or why not (``target_outside``,
+    ``cut_by_border``, ``no_plane``); the same words ``cblrs locate --boxes`` prints."""
+    cut = cut_by_border(xyxy, vertical, sides_matter, image_size)
+    status = []
+    for index in range(len(pixels)):
+        if not inside[index]:
+            status.append("target_outside")
+        elif cut[index]:
+            status.append("cut_by_border")
+        elif not valid[index]:
+            status.append("no_plane")
+        else:
+            status.append("located")
+    return status
 
 
 class Targeter(Protocol):

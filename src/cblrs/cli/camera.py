@@ -6,17 +6,20 @@ import argparse
 import logging
 import os
 import signal
+import sys
 import time
 from pathlib import Path
 from typing import Any
 
 from cblrs.cli.backbone import add_backbone_options, camera_transport, uses_nats
 from cblrs.cli.common import UsageError, add_output_options, print_json
-from cblrs.errors import CblrsError
 
 logger = logging.getLogger(__name__)
 
 PASSWORD_ENVIRONMENT = "CBLRS_MQTT_PASSWORD"
+DEFAULT_SPOOL_FOLDER = Path("~/.local/state/cblrs/spool")
+EXIT_UNCONFIRMED = 3
+"""Exit code of ``cblrs camera`` when messages remain in its spool."""
 
 
 def add_mqtt_options(parser: argparse.ArgumentParser) -> None:
@@ -44,24 +47,31 @@ def add_mqtt_options(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def parse_broker(text: str) -> tuple[str, int]:
+    """``HOST[:PORT]`` -> (host, port); one sentence for anything else."""
+    host, separator, port_text = text.rpartition(":") if ":" in text else (text, "", "1883")
+    if not host.strip():
+        raise UsageError(f"--broker {text!r} names no host; write HOST or HOST:PORT.")
+    if not (port_text.isascii() and port_text.isdigit()) or not 1 <= int(port_text) <= 65535:
+        raise UsageError(
+            f"--broker {text!r}: the port must be a number from 1 to 65535."
+            if separator else f"--broker {text!r} must be HOST or HOST:PORT."
+        )
+    return host.strip(), int(port_text)
+
+
 def mqtt_settings(args: argparse.Namespace) -> Any:
     """:class:`MqttSettings` from the broker options; the password never comes from argv."""
     from cblrs.runtime.transport import MqttSettings
 
-    host, _, port_text = (
-        args.broker.rpartition(":") if ":" in args.broker else (args.broker, "", "1883")
-    )
-    try:
-        port = int(port_text)
-    except ValueError:
-        raise UsageError(f"--broker {args.broker!r} must be HOST or HOST:PORT.") from None
+    host, port = parse_broker(args.broker)
     password = read_password(args)
     for name in ("ca_file", "cert_file", "key_file"):
         path = getattr(args, name)
         if path is not None and not path.is_file():
             raise UsageError(f"--{name.replace('_', '-')} {path} does not exist.")
     return MqttSettings(
-        host=host or "127.0.0.1",
+        host=host,
         port=port,
         username=args.username,
         password=password,
@@ -86,19 +96,23 @@ def read_password(args: argparse.Namespace) -> str | None:
     return None
 
 
-def connect_or_queue(transport: Any) -> None:
-    """Connect; if the broker does not answer, keep trying in the background.
+def connect_or_queue(transport: Any, where: str = "in memory") -> None:
+    """Connect; if the broker cannot be reached, say so at once and keep trying.
 
-    A refused login is an error; an absent broker is not: publishes are queued meanwhile.
+    A refused login is an error; an absent broker is not: messages wait (``where``) meanwhile.
     """
     from cblrs.runtime.transport import TransportError
 
     try:
         transport.connect()
     except TransportError as error:
-        if "refused" in str(error):
+        if "refused the connection" in str(error):
             raise
-        logger.warning("%s; queueing until it is reachable", error)
+        logger.warning(
+            "%s Messages wait %s; reconnecting every %g s at most.",
+            str(error).rstrip("."), where,
+            getattr(transport.settings, "reconnect_max_s", 5.0),
+        )
         transport.connect(wait=False)
 
 
@@ -106,7 +120,7 @@ def install_stop_handlers(stop) -> None:
     """Call ``stop()`` on SIGINT / SIGTERM (main thread only)."""
 
     def handle(signum, frame) -> None:
-        logger.info("signal %d: stopping", signum)
+        logger.info("%s: stopping", signal.Signals(signum).name)
         stop()
 
     signal.signal(signal.SIGINT, handle)
@@ -223,11 +237,38 @@ def register(subparsers) -> None:
         "recognised as duplicates; --live: the clock in milliseconds, so a restarted live "
         "camera is not)",
     )
-    parser.add_argument(
+    delivery = parser.add_argument_group(
+        "delivery",
+        "Messages wait in a spool file until the matcher confirms it stored them; a camera "
+        "restarted on the same spool sends what is still there. Exit code 0: the matcher "
+        "confirmed everything (with --confirm-timeout 0: the broker acknowledged "
+        "everything); 3: some messages remain in the spool (sent again on the next start); "
+        "1: refused by the broker, or another error.",
+    )
+    delivery.add_argument(
+        "--spool", type=Path, metavar="FILE",
+        help=f"spool file (default: {DEFAULT_SPOOL_FOLDER}/<plane>-<camera>.db)",
+    )
+    delivery.add_argument(
+        "--spool-max-mb", type=float, default=512.0,
+        help="spool size bound; when full the oldest unconfirmed messages are dropped "
+        "(counted, logged) (default 512 MB: ~9 h of a 30 fps camera)",
+    )
+    delivery.add_argument(
         "--flush-timeout",
         type=float,
-        default=60.0,
-        help="seconds to wait at the end for the broker to acknowledge everything",
+        default=30.0,
+        help="seconds to wait at the end for the broker to acknowledge everything (default 30)",
+    )
+    delivery.add_argument(
+        "--confirm-timeout", type=float, default=10.0,
+        help="then, seconds to wait for the matcher's confirmations (default 10; 0: do not "
+        "wait)",
+    )
+    delivery.add_argument(
+        "--resend-after", type=float, default=5.0,
+        help="send unconfirmed messages again after this many seconds without a "
+        "confirmation while a matcher is online (doubles each round; default 5)",
     )
     add_mqtt_options(parser)
     parser.add_argument(
@@ -373,14 +414,25 @@ def first_sequence(args: argparse.Namespace) -> int:
     return int(time.time() * 1000) if args.live else 0
 
 
+def check_delivery_options(args: argparse.Namespace) -> None:
+    from cblrs.cli.common import check_non_negative, check_positive
+
+    check_positive(args.spool_max_mb, "--spool-max-mb")
+    check_non_negative(args.flush_timeout, "--flush-timeout")
+    check_non_negative(args.confirm_timeout, "--confirm-timeout")
+    check_positive(args.resend_after, "--resend-after")
+
+
 def run(args: argparse.Namespace) -> int:
     from cblrs.runtime.camera_node import CameraNode, camera_last_will
+    from cblrs.runtime.spool import Spool
     from cblrs.runtime.topics import validate_camera_id
     from cblrs.runtime.transport import MqttTransport, Will
 
     validate_camera_id(args.camera)
-    if args.speed <= 0:
-        raise UsageError("--speed must be positive.")
+    if not (args.speed > 0 and args.speed < float("inf")):
+        raise UsageError("--speed must be a finite number greater than 0.")
+    check_delivery_options(args)
     nats = uses_nats(args)
     settings = None if nats else mqtt_settings(args)
     frames, expected_size = build_source(args)
@@ -393,6 +445,12 @@ def run(args: argparse.Namespace) -> int:
         plane_id = plane_ids[0]
     elif plane_id not in plane_ids:
         raise UsageError(f"--plane {plane_id} is not in the reference (planes {plane_ids}).")
+    spool_path = (args.spool if args.spool is not None
+                  else DEFAULT_SPOOL_FOLDER.expanduser() / f"{plane_id}-{args.camera}.db")
+    spool = Spool(spool_path, max_bytes=int(args.spool_max_mb * 1e6))
+    if len(spool):
+        logger.info("camera %s: %d unconfirmed messages from an earlier run are sent first",
+                    args.camera, len(spool))
     topic, payload = camera_last_will(plane_id, args.camera)
     client_id = args.client_id or f"cblrs-camera-{plane_id}-{args.camera}"
     if nats:
@@ -412,26 +470,61 @@ def run(args: argparse.Namespace) -> int:
             args.hidden_feet == "drop" or (args.hidden_feet == "auto" and args.dataset is None)
         ),
         flush_timeout_s=args.flush_timeout,
+        confirm_timeout_s=args.confirm_timeout,
+        spool=spool,
+        resend_after_s=args.resend_after,
+        clear_retained=True,
     )
     install_stop_handlers(node.stop)
-    connect_or_queue(transport)
     started = time.perf_counter()
     try:
+        connect_or_queue(transport, f"in the spool {spool_path}")
         report = node.run(frames, connect=False)
-    except CblrsError:
-        transport.close(unclean=True)
+    except BaseException:
+        transport.close(unclean=True, timeout=1.0)
+        spool.close()
         raise
-    transport.close(timeout=args.flush_timeout)
+    transport.close(timeout=2.0)
+    spool.close()
     summary = report.to_dict()
     summary["wall_s"] = time.perf_counter() - started
-    summary["refused_by_broker"] = transport.refused_publishes
+    summary["spool"] = str(spool_path)
     if args.json:
         print_json(summary)
     else:
-        print(
-            f"camera {report.camera_id} (plane {report.plane_id}): {report.messages} messages, "
-            f"{report.detections} detections ({report.located} located), "
-            f"{report.bytes / 1024:.1f} kB in {report.elapsed_s:.2f} s; "
-            + ("all acknowledged" if report.flushed else "NOT all acknowledged by the broker")
-        )
-    return 0 if report.flushed and transport.refused_publishes == 0 else 1
+        print(_summary_line(report, spool_path, args.confirm_timeout))
+    if report.refusal is not None:
+        print(f"cblrs camera: error: {report.refusal}.", file=sys.stderr)
+        return 1
+    done = report.confirmed_all if args.confirm_timeout > 0 else report.flushed
+    return 0 if done else EXIT_UNCONFIRMED
+
+
+def _summary_line(report: Any, spool_path: Path, confirm_timeout: float) -> str:
+    head = (
+        f"camera {report.camera_id} (plane {report.plane_id}): {report.messages} messages, "
+        f"{report.detections} detections ({report.located} located), "
+        f"{report.bytes / 1024:.1f} kB in {report.elapsed_s:.2f} s; "
+    )
+    details = []
+    if report.boxes_rejected:
+        details.append("boxes dropped: " + ", ".join(
+            f"{count} {reason}" for reason, count in sorted(report.boxes_rejected.items())))
+    if report.rejected_by_matcher:
+        details.append("rejected by the matcher: " + ", ".join(
+            f"{count} {reason}" for reason, count in sorted(report.rejected_by_matcher.items())))
+    if report.dropped_from_spool:
+        details.append(f"{report.dropped_from_spool} dropped by the full spool")
+    tail = f" ({'; '.join(details)})" if details else ""
+    if report.refusal is not None:
+        return head + f"REFUSED by the broker; {report.unconfirmed} kept in {spool_path}" + tail
+    if report.confirmed_all:
+        return head + "all confirmed stored by the matcher" + tail
+    if report.flushed and confirm_timeout <= 0:
+        return (head + f"all acknowledged by the broker (not waiting for the matcher; "
+                f"{report.unconfirmed} kept in {spool_path} until it confirms)" + tail)
+    if report.flushed:
+        return (head + f"acknowledged by the broker, but {report.unconfirmed} not yet confirmed "
+                f"by a matcher: kept in {spool_path}, sent again on the next start" + tail)
+    return (head + f"NOT all acknowledged by the broker: {report.unconfirmed} kept in "
+            f"{spool_path}, sent on the next start" + tail)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 import sys
 from collections.abc import Iterable, Iterator
 from typing import Any, TypeVar
@@ -41,6 +42,20 @@ def parse_frame_range(text: str) -> tuple[int | None, int | None]:
     if first is not None and last is not None and first > last:
         raise UsageError(f"frame range {text!r} is empty: FIRST {first} is after LAST {last}.")
     return first, last
+
+
+def check_positive(value: float, option: str) -> float:
+    """``value`` if it is a finite number > 0, else a :class:`UsageError` naming ``option``."""
+    if not (math.isfinite(value) and value > 0):
+        raise UsageError(f"{option} must be a finite number greater than 0, got {value}.")
+    return value
+
+
+def check_non_negative(value: float, option: str) -> float:
+    """``value`` if it is a finite number >= 0, else a :class:`UsageError` naming ``option``."""
+    if not (math.isfinite(value) and value >= 0):
+        raise UsageError(f"{option} must be a finite number of at least 0, got {value}.")
+    return value
 
 
 def print_json(data: Any) -> None:

@@ -16,11 +16,17 @@ from typing import Any
 from cblrs.cli.backbone import add_backbone_options, matcher_transport, uses_nats
 from cblrs.cli.camera import (
     add_mqtt_options,
-    connect_or_queue,
     install_stop_handlers,
     mqtt_settings,
 )
-from cblrs.cli.common import UsageError, format_table, print_json
+from cblrs.cli.common import (
+    UsageError,
+    check_non_negative,
+    check_positive,
+    format_table,
+    print_json,
+)
+from cblrs.errors import CblrsError
 
 logger = logging.getLogger(__name__)
 
@@ -33,11 +39,26 @@ def register(subparsers) -> None:
             "Subscribe to cblrs/<plane>/+/detections (persistent session, QoS 1), validate, "
             "de-duplicate, order by capture time, track, and store everything in a SQLite file "
             "(--db). Restarting with the same --db and --client-id resumes where it stopped. "
-            "With --stats DB, print the counters stored in DB and exit."
+            "One matcher serves a plane at a time (a second one is refused). With --stats DB, "
+            "print the counters stored in DB and exit; with --prepare, create the matcher's "
+            "session on the broker (so it keeps the plane's messages) and exit. SIGTERM or "
+            "SIGINT stop it cleanly: summary, --out-tracks, exit 0."
         ),
     )
     parser.add_argument("--stats", type=Path, metavar="DB", help="print a database's counters")
-    parser.add_argument("--db", type=Path, help="SQLite file of this matcher (created if missing)")
+    parser.add_argument(
+        "--db", type=Path,
+        help="SQLite file of this matcher (created if missing; its folder must exist)",
+    )
+    parser.add_argument(
+        "--prepare", action="store_true",
+        help="subscribe once (creating the persistent session and the database) and exit: "
+        "run it before any camera starts",
+    )
+    parser.add_argument(
+        "--new-db", action="store_true",
+        help="serve the plane from this database although another one served it last",
+    )
     parser.add_argument(
         "--references",
         type=Path,
@@ -136,11 +157,27 @@ def read_references(folder: Path) -> tuple[list[str], Any]:
     return names, planes
 
 
+def check_arguments(args: argparse.Namespace) -> None:
+    """One sentence for every option value that makes no sense (before anything starts)."""
+    check_non_negative(args.window, "--window")
+    if args.max_age is not None:
+        check_positive(args.max_age, "--max-age")
+    if args.max_future is not None:
+        check_non_negative(args.max_future, "--max-future")
+    if args.max_bytes is not None and args.max_bytes <= 0:
+        raise UsageError(f"--max-bytes must be a positive number of bytes, got {args.max_bytes}.")
+    if args.idle_exit is not None:
+        check_positive(args.idle_exit, "--idle-exit")
+    if args.stats_interval is not None:
+        check_positive(args.stats_interval, "--stats-interval")
+
+
 def run(args: argparse.Namespace) -> int:
     if args.stats is not None:
         return show_stats(args.stats, args.json)
     if args.db is None or (args.references is None and args.site is None):
         raise UsageError("give --db FILE and --references DIR or --site SITE (or --stats DB).")
+    check_arguments(args)
     from cblrs.matching import make_matcher
     from cblrs.runtime.matcher_service import MatcherService
     from cblrs.runtime.store import RuntimeStore
@@ -223,6 +260,7 @@ def run(args: argparse.Namespace) -> int:
         window_s=args.window,
         publish_tracks=not args.no_publish_tracks,
         settings={"matcher": args.matcher, "options": options},
+        allow_other_database=args.new_db,
     )
     install_stop_handlers(stop.set)
     started = time.perf_counter()
@@ -230,30 +268,36 @@ def run(args: argparse.Namespace) -> int:
     # of the garbage collector's full passes, which otherwise pause every thread for tens of
     # milliseconds while messages wait.
     gc.freeze()
-    if hasattr(transport, "open"):
-        transport.open()  # NATS: the plane's lease before the store is touched
-    service.start(connect=False)  # handlers first, so nothing arrives without one
     try:
-        connect_or_queue(transport)
-    except Exception:
-        service.close()
+        if hasattr(transport, "open"):
+            transport.open()  # NATS: the plane's lease before the store is touched
+        # Connects, holds the database and the plane's lease, then starts the tracker
+        # process: a refusal (wrong password, another matcher) ends here with one sentence.
+        service.start()
+    except BaseException:
+        try:
+            service.stop()
+        except Exception:  # the start failure is what the user needs to read
+            pass
+        clear_will = getattr(transport, "clear_will", None)
+        if clear_will is not None:
+            clear_will()  # it never said "online": say nothing about the plane
+        transport.close(unclean=False, timeout=1.0)
         store.close()
         raise
-    transport.publish(
-        status_topic,
-        encode_status(matcher_id, "online", role="matcher", timestamp=time.time()),
-        qos=1,
-        retain=True,
-    )
     if not args.quiet:
         print(
-            f"matcher {matcher_id}: plane {plane_id}, cameras {', '.join(names)}, db {args.db}",
+            f"matcher {matcher_id}: plane {plane_id}, cameras {', '.join(names)}, db {args.db}"
+            + (" (preparing: exits once subscribed)" if args.prepare else ""),
             file=sys.stderr,
         )
         print(position_summary(site, names, options, args.matcher), file=sys.stderr)
-    flush = _wait(service, stop, args)
+    flush = True if args.prepare else _wait(service, stop, args)
+    failure: BaseException | None = None
     try:
         service.close(flush=flush)
+    except RuntimeError as error:
+        failure = error.__cause__ or error
     finally:
         summary = service.stats()
         if args.out_tracks is not None:
@@ -264,14 +308,38 @@ def run(args: argparse.Namespace) -> int:
         store.close()
     summary["elapsed_s"] = time.perf_counter() - started
     summary["database"] = str(args.db)
+    summary["stopped_by"] = "failure" if failure is not None else (
+        "signal" if stop.is_set() else "prepare" if args.prepare else "condition")
     if args.json:
         print_json(summary)
     else:
         print(_one_line(summary))
+    if failure is not None:
+        raise MatcherFailed(f"the matcher stopped: {_first_line(failure)}")
     if failures:
-        print(f"cblrs matcher: error: {failures[0]}", file=sys.stderr)
-        return 1
+        raise MatcherFailed(f"the matcher stopped: {failures[0].rstrip('.')}.")
+    if args.prepare and not args.quiet:
+        session_hours = getattr(getattr(transport, "settings", None), "session_expiry_s",
+                                24 * 3600) // 3600
+        print(
+            f"prepared: the broker keeps plane {plane_id}'s messages for {matcher_id} from now "
+            f"on (for {session_hours} h while it is away); start the matcher "
+            "with the same --db and --client-id",
+            file=sys.stderr,
+        )
     return 0
+
+
+class MatcherFailed(CblrsError):
+    """The running matcher stopped because of a failure (printed as one sentence)."""
+
+
+def _first_line(error: BaseException) -> str:
+    text = str(error).strip().splitlines()
+    first = text[0] if text else type(error).__name__
+    if first.startswith("the tracker process failed:") and len(text) > 1:
+        first = f"the tracker process failed ({text[-1].strip()})"
+    return first.rstrip(".") + "."
 
 
 def _failed(failures: list[str], stop: threading.Event, reason: str) -> None:

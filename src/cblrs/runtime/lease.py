@@ -19,9 +19,10 @@ claim for as long as it runs:
   record waits up to ``ttl_s`` for the holder's next heartbeat and refuses if one comes;
 * the holder renews the record every ``heartbeat_s``, checks it again after every
   reconnection, and steps down as soon as it sees another instance's claim;
-* the record names the database (its ``database_id``): a matcher started on another
-  database than the one that served the plane last is refused unless allowed, because the
-  messages acknowledged into that database are not in this one.
+* the record names the database (its ``database_id``): a matcher started under the same id
+  (the same MQTT session) on another database than the one that served the plane last is
+  refused unless allowed, because the messages its session acknowledged into that database
+  are not in this one (a deleted file, a mistyped ``--db``).
 
 The lease only works on a broker that keeps retained messages (any MQTT broker does; with
 persistence they also survive a restart of the broker).
@@ -125,6 +126,8 @@ class PlaneLease:
         self._held = False
         self._lost: str | None = None
         self._on_lost: Callable[[str], None] | None = None
+        self._on_checked: Callable[[], None] | None = None
+        self._refused: str | None = None
         self._stop = threading.Event()
         self._recheck = threading.Event()
         self._thread: threading.Thread | None = None
@@ -132,8 +135,15 @@ class PlaneLease:
     # -- lifecycle ---------------------------------------------------------------------------
 
     def register(self) -> None:
-        """Subscribe to the lease topic (before the transport connects)."""
-        self.transport.subscribe(self.topic, self._on_record, qos=1)
+        """Subscribe to the lease topic (before the transport connects).
+
+        At QoS 0: a matcher acknowledges no detections before it holds the lease, and a
+        broker sends a client at most so many unacknowledged QoS 1 messages (Mosquitto's
+        ``max_inflight_messages``), so QoS 1 lease records would wait behind a backlog of
+        detections forever. QoS 0 deliveries are not held back; a record lost with a
+        connection is read again after the reconnection.
+        """
+        self.transport.subscribe(self.topic, self._on_record, qos=0)
 
     @property
     def held(self) -> bool:
@@ -169,10 +179,14 @@ class PlaneLease:
                            "taking over", self.plane_id, record.describe(), self.ttl_s)
         self._claim()
 
-    def start(self, on_lost: Callable[[str], None]) -> None:
+    def start(
+        self, on_lost: Callable[[str], None], on_checked: Callable[[], None] | None = None
+    ) -> None:
         """Renew the claim every ``heartbeat_s`` in a thread; ``on_lost(reason)`` is called
-        once if another instance claims the plane or the claim cannot be confirmed."""
+        once if another instance claims the plane or the claim cannot be confirmed,
+        ``on_checked()`` each time a :meth:`recheck` confirmed the claim."""
         self._on_lost = on_lost
+        self._on_checked = on_checked
         self._thread = threading.Thread(
             target=self._renew, name=f"cblrs-lease-{self.plane_id}", daemon=True
         )
@@ -227,7 +241,24 @@ class PlaneLease:
         ))
 
     def _publish(self, state: str, retain: bool, nonce: str = "") -> None:
-        self.transport.publish(self.topic, self._record(state, nonce), qos=1, retain=retain)
+        self.transport.publish(self.topic, self._record(state, nonce), qos=1, retain=retain,
+                               on_result=self._on_result)
+
+    def _on_result(self, reason: int) -> None:
+        from cblrs.runtime.transport import reason_text, refused
+
+        if refused(reason) and reason != -1:
+            with self._condition:
+                self._refused = reason_text(reason)
+                self._condition.notify_all()
+
+    def _check_refused(self) -> None:
+        if self._refused is not None:
+            raise LeaseError(
+                f"the broker refused this matcher's lease message on {self.topic} "
+                f"({self._refused}): log in with a matcher's credentials (a camera's or the "
+                "viewer's may not serve a plane)."
+            )
 
     def _read(self) -> LeaseRecord | None:
         """The current record: subscribe again (the broker re-sends the retained record),
@@ -242,6 +273,7 @@ class PlaneLease:
         deadline = time.monotonic() + self.timeout_s
         with self._condition:
             while True:
+                self._check_refused()
                 seen = self._log[start:]
                 for index, record in enumerate(seen):
                     if record.state == "probe" and record.nonce == nonce:
@@ -269,8 +301,11 @@ class PlaneLease:
         return None
 
     def _check_database(self, record: LeaseRecord) -> None:
-        if (record.database and record.database != self.database_id
-                and not self.allow_other_database):
+        # Only for the same matcher id, i.e. the same MQTT session: what that session's
+        # broker queue handed over was acknowledged into the recorded database. Another id
+        # has its own session (starting a plane afresh under a new id is a deliberate act).
+        if (record.matcher == self.matcher_id and record.database
+                and record.database != self.database_id and not self.allow_other_database):
             raise LeaseError(
                 f"plane {self.plane_id} was last served by {record.describe()} from another "
                 f"database (id {record.database}, not {self.database_id}): the messages it "
@@ -286,6 +321,7 @@ class PlaneLease:
         with self._condition:
             while not any(item.instance == self.instance and item.state == "held"
                           for item in self._log[start:]):
+                self._check_refused()
                 remaining = deadline - time.monotonic()
                 if remaining <= 0:
                     raise LeaseError(
@@ -324,7 +360,11 @@ class PlaneLease:
                             record.instance != self.instance):
                         self._lose(f"{record.describe()} holds plane {self.plane_id} now")
                         return
+                    self._publish("held", retain=True)
                     self._recheck.clear()
+                    if self._on_checked is not None:
+                        self._on_checked()
+                    continue
                 self._publish("held", retain=True)
             except Exception as error:  # the broker went away: checked after reconnecting
                 if getattr(self.transport, "connected", True):

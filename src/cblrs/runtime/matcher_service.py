@@ -43,6 +43,22 @@ A restarted service resumes from what SQLite holds: the matcher state and the la
 timestamp of the last committed group, the unprocessed inbox rows (back into the buffer) and
 the de-duplication set. Messages that were received but not yet stored were never
 acknowledged, so the broker delivers them again.
+
+Lifecycle (this module's share of "nothing acknowledged is lost"):
+
+* the service holds its database exclusively (:meth:`RuntimeStore.hold`) and its plane
+  through a lease on the broker (:mod:`cblrs.runtime.lease`); it acknowledges nothing before
+  it holds both, and after a reconnection nothing before the lease is confirmed again; a
+  second matcher of the plane is refused, a matcher that loses its lease stops;
+* every inbox commit checks the database file is still the one opened; if it was deleted
+  or replaced the service fails and acknowledges nothing more;
+* after each inbox commit the stored (and rejected) sequences are confirmed to their
+  cameras (:mod:`cblrs.runtime.confirmations`), which keep them in their spools until then;
+* the service announces itself on ``cblrs/<plane>/matchers/<id>/status``: "online" (with
+  whether the broker kept its session) after it holds the lease and after every
+  reconnection, a timestamped "offline" when it stops;
+* rejections are counted by reason and logged at most once per reason every
+  ``log_interval_s`` seconds.
 """
 
 from __future__ import annotations
@@ -59,11 +75,15 @@ from typing import Any
 
 from cblrs.detections import Tracks
 from cblrs.matching.fusion import clock_report
+from cblrs.runtime.confirmations import ConfirmationBuffer, peek_sequence
+from cblrs.runtime.lease import PlaneLease
 from cblrs.runtime.ordering import Orderer
+from cblrs.runtime.rate_limited import RateLimitedLog
 from cblrs.runtime.store import LATE, PENDING, InboxEntry, RuntimeStore
 from cblrs.runtime.topics import (
     TopicError,
     detections_filter,
+    matcher_status_topic,
     parse_detections_topic,
     parse_status_topic,
     status_filter,
@@ -71,12 +91,16 @@ from cblrs.runtime.topics import (
     validate_camera_id,
 )
 from cblrs.runtime.tracker_process import Batch, TrackerProcess, TrackerProcessError
-from cblrs.runtime.wire import RejectedMessage, ValidationPolicy, decode_status
+from cblrs.runtime.wire import RejectedMessage, ValidationPolicy, decode_status, encode_status
 
 logger = logging.getLogger(__name__)
 
 COUNTER_NAMES = ("received", "accepted", "duplicates", "late", "processed", "groups", "tracks")
 """Counters every summary shows (rejections add ``rejected.<reason>``)."""
+
+
+class LeaseLost(RuntimeError):
+    """Another matcher instance took the plane: this one stopped acknowledging."""
 
 
 class ServiceClock:
@@ -134,6 +158,11 @@ class MatcherService:
             acknowledged, and once a group's tracks are committed and handed to the
             transport; ``wall_time`` is the wall clock then.
         wall_clock: seconds since the Unix epoch (for staleness checks and receipt times).
+        lease: hold the plane through a lease on the broker (see the module docstring).
+        allow_other_database: start even if the plane was last served from another
+            database (``cblrs matcher --new-db``).
+        confirm_interval_s: how often stored sequences are confirmed to the cameras.
+        log_interval_s: at most one log line per rejection reason this often.
     """
 
     def __init__(
@@ -153,6 +182,10 @@ class MatcherService:
         settings: dict[str, Any] | None = None,
         observer: Any = None,
         wall_clock: Callable[[], float] = time.time,
+        lease: bool = True,
+        allow_other_database: bool = False,
+        confirm_interval_s: float = 0.25,
+        log_interval_s: float = 10.0,
     ):
         if window_s < 0 or not math.isfinite(window_s):
             raise ValueError(f"window must be a finite number >= 0, got {window_s}.")
@@ -202,6 +235,18 @@ class MatcherService:
         self._threads: list[threading.Thread] = []
         self._failure: BaseException | None = None
         self._started = False
+        self.matcher_id = str(getattr(transport, "client_id", f"matcher{self.plane_id}"))
+        self._use_lease = lease
+        self._allow_other_database = allow_other_database
+        self._lease: PlaneLease | None = None
+        self._receiving = threading.Event()
+        self._connections = 0
+        self._session_present = False
+        self._confirmations = ConfirmationBuffer(self.plane_id, self.matcher_id)
+        self.confirm_interval_s = float(confirm_interval_s)
+        self._last_confirmation = 0.0
+        self._rejections = RateLimitedLog(logger, log_interval_s)
+        self._retained_warned: set[str] = set()
 
     # -- lifecycle -------------------------------------------------------------------------
 
@@ -213,7 +258,24 @@ class MatcherService:
         """
         if self._started:
             return
+        self.store.hold()
         self.store.bind(self._settings)
+        add_hook = getattr(self.transport, "add_connect_hook", None)
+        if add_hook is not None:
+            add_hook(self._on_connected)
+        if self._use_lease:
+            # Before anything is acknowledged: deliveries wait in the inbox meanwhile.
+            self._lease = PlaneLease(
+                self.transport, self.plane_id, self.matcher_id, self.store.database_id(),
+                allow_other_database=self._allow_other_database,
+            )
+            self._lease.register()
+        self.transport.subscribe(status_filter(self.plane_id), self._on_status, qos=1)
+        self.transport.subscribe(detections_filter(self.plane_id), self._on_detections, qos=1)
+        if connect:
+            self.transport.connect()
+        if self._lease is not None:
+            self._lease.acquire()
         tracker = self.store.claim()  # before reading where to resume
         self._started_at = self._wall_clock()
         self._recover()
@@ -230,11 +292,13 @@ class MatcherService:
         ]
         for thread in self._threads:
             thread.start()
-        self.transport.subscribe(status_filter(self.plane_id), self._on_status, qos=1)
-        self.transport.subscribe(detections_filter(self.plane_id), self._on_detections, qos=1)
-        if connect:
-            self.transport.connect()
+        if self._lease is not None:
+            self._lease.start(self._lease_lost, self._lease_confirmed)
+        self._receiving.set()
+        self._announce("online")
         self._started = True
+        logger.info("plane %d: matcher %s serving cameras %s", self.plane_id, self.matcher_id,
+                    ", ".join(self.camera_ids))
 
     def stop(self, flush: bool = False, timeout: float = 30.0) -> None:
         """Stop the threads and the tracker process; with ``flush``, first store and track
@@ -258,15 +322,64 @@ class MatcherService:
                                thread.name, timeout)
         if self._tracker is not None:
             self._tracker.close(max(0.0, deadline - time.monotonic()))
+        self._send_confirmations(force=True)
+        self.store.release_hold()
         if self._failure is not None:
             raise RuntimeError("the matcher service failed") from self._failure
 
     def close(self, flush: bool = False) -> None:
-        """:meth:`stop`, then close the transport (the store stays open for the caller)."""
+        """:meth:`stop`, then release the lease, say "offline" and close the transport (the
+        store stays open for the caller)."""
         try:
             self.stop(flush=flush)
         finally:
-            self.transport.close()
+            try:
+                if self._started and getattr(self.transport, "connected", True):
+                    self._announce("offline")
+                    clear_will = getattr(self.transport, "clear_will", None)
+                    if clear_will is not None:
+                        clear_will()
+                if self._lease is not None:
+                    self._lease.release()
+            finally:
+                self.transport.close()
+
+    def _announce(self, state: str) -> None:
+        """The matcher's retained, timestamped status (cameras watch it)."""
+        try:
+            self.transport.publish(
+                matcher_status_topic(self.plane_id, self.matcher_id),
+                encode_status(self.matcher_id, state, role="matcher",  # type: ignore[arg-type]
+                              timestamp=self._wall_clock(),
+                              session_present=self._session_present if state == "online"
+                              else None),
+                qos=1, retain=True,
+            )
+        except Exception as error:  # the status is for viewers and cameras; never fatal
+            logger.warning("plane %d: could not publish the matcher status: %s",
+                           self.plane_id, error)
+
+    def _on_connected(self, session_present: bool) -> None:
+        """Transport hook, on its thread: after a reconnection, acknowledge nothing until
+        the lease is confirmed again."""
+        self._connections += 1
+        self._session_present = session_present
+        if self._connections > 1 and self._started:
+            logger.warning("plane %d: reconnected (session present: %s); checking the lease "
+                           "before acknowledging again", self.plane_id, session_present)
+            if self._lease is not None:
+                self._receiving.clear()
+                self._lease.recheck()
+            else:
+                self._announce("online")
+
+    def _lease_confirmed(self) -> None:
+        self._receiving.set()
+        self._announce("online")
+
+    def _lease_lost(self, reason: str) -> None:
+        self._receiving.clear()
+        self._fail(LeaseLost(f"plane {self.plane_id}: lease lost ({reason})"), "lease")
 
     def _recover(self) -> None:
         released = self.store.released_timestamp()
@@ -309,15 +422,21 @@ class MatcherService:
         """Receiver thread: store and acknowledge deliveries, buffer them for the tracker."""
         try:
             while not self._stop.is_set():
+                if not self._receiving.is_set():  # no verified lease: acknowledge nothing
+                    self._receiving.wait(0.2)
+                    continue
                 self._arrived.wait(0.2)
                 self._arrived.clear()  # before emptying the inbox, so no arrival is missed
-                while self._handle():
+                while self._receiving.is_set() and self._handle():
                     self._wake.set()
+                    self._send_confirmations()
                     if self._stop.is_set():
                         break
+                self._send_confirmations()
             # Stopping: with a flush, also store what is queued. Anything left is
             # unacknowledged, so the broker delivers it again later.
-            while self._flush_requested.is_set() and self._failure is None and self._handle():
+            while (self._flush_requested.is_set() and self._failure is None
+                   and self._receiving.is_set() and self._handle()):
                 pass
         except BaseException as error:  # surfaced by stop()
             self._fail(error, "receiver")
@@ -341,11 +460,23 @@ class MatcherService:
         counters: Counter[str] = Counter()
         accepted: list[tuple[InboxEntry, str, float]] = []
         acknowledge = []
+        rejected: list[tuple[str, int, str]] = []
         for kind, delivery, received_at in batch:
             acknowledge.append(delivery)
             if kind == "status":
                 self._status(delivery, now)
                 continue
+            if not delivery.payload:
+                # An empty retained publish removes a retained message (a camera clearing its
+                # detections topic); it is never a message.
+                continue
+            if delivery.retain and delivery.topic not in self._retained_warned:
+                self._retained_warned.add(delivery.topic)
+                logger.warning(
+                    "plane %d: a retained message sits on %s (some client published with "
+                    "retain); every new subscription receives it again. It is stored once "
+                    "(duplicates are ignored); `cblrs camera` removes it when it starts.",
+                    self.plane_id, delivery.topic)
             self._last_delivery = now
             counters["received"] += 1
             try:
@@ -355,10 +486,19 @@ class MatcherService:
                 )
             except TopicError:
                 counters["rejected.bad_topic"] += 1
+                self._rejections.log(logging.WARNING, "bad_topic",
+                                     "plane %d: rejected a message on %s: not a detections "
+                                     "topic", self.plane_id, delivery.topic)
                 continue
             except RejectedMessage as error:
-                counters[f"rejected.{error.reason.value}"] += 1
-                logger.debug("rejected on %s: %s", delivery.topic, error)
+                reason = error.reason.value
+                counters[f"rejected.{reason}"] += 1
+                self._rejections.log(logging.WARNING, reason,
+                                     "plane %d: rejected a message on %s (%s): %s",
+                                     self.plane_id, delivery.topic, reason, error)
+                sequence = peek_sequence(delivery.payload, camera)
+                if sequence is not None:
+                    rejected.append((camera, sequence, reason))
                 continue
             late = self._orderer.is_late(wire.timestamp)
             accepted.append((InboxEntry.from_wire(wire), LATE if late else PENDING, received_at))
@@ -366,6 +506,10 @@ class MatcherService:
         # Acknowledge only now: everything above is durably stored (or rejected on purpose).
         for delivery in acknowledge:
             delivery.ack()
+        for entry, _, _ in accepted:  # new or duplicates: stored either way
+            self._confirmations.add_stored(entry.camera_id, entry.sequence)
+        for camera, sequence, reason in rejected:
+            self._confirmations.add_rejected(camera, sequence, reason)
         stored = []
         for (entry, status, _), new in zip(accepted, inserted, strict=True):
             if not new:
@@ -378,6 +522,21 @@ class MatcherService:
                 self._orderer.heard(entry.camera_id, now)
         if self.observer is not None and hasattr(self.observer, "on_stored") and stored:
             self.observer.on_stored(stored, self._wall_clock())
+
+    def _send_confirmations(self, force: bool = False) -> None:
+        """Publish the buffered confirmations, at most every ``confirm_interval_s``."""
+        now = time.monotonic()
+        if not force and now - self._last_confirmation < self.confirm_interval_s:
+            return
+        if not self._confirmations:
+            return
+        self._last_confirmation = now
+        for topic, payload in self._confirmations.take():
+            try:
+                self.transport.publish(topic, payload, qos=1)
+            except Exception as error:  # a camera sends again what it does not hear about
+                logger.warning("plane %d: could not publish confirmations on %s: %s",
+                               self.plane_id, topic, error)
 
     def _status(self, delivery: Any, now: float) -> None:
         try:

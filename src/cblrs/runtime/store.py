@@ -291,9 +291,7 @@ class RuntimeStore:
             self._connection.close()
             if self._write_lock is not None:
                 self._write_lock.close()
-            if self._holder is not None:
-                self._holder.close()
-                self._holder = None
+            self.release_hold()
 
     def hold(self) -> None:
         """Hold the file exclusively for one matcher service until :meth:`close`.
@@ -319,6 +317,12 @@ class RuntimeStore:
         handle.write(f"pid {os.getpid()} on {socket.gethostname()}\n")
         handle.flush()
         self._holder = handle
+
+    def release_hold(self) -> None:
+        """End :meth:`hold` (the service stopped writing; closing the store also ends it)."""
+        if self._holder is not None:
+            self._holder.close()
+            self._holder = None
 
     def check_file(self) -> None:
         """Raise if the path no longer names the file this store opened.

@@ -136,8 +136,11 @@ def run(
     publish_tracks: bool,
 ) -> None:
     """The tracker process's main function (see the module docstring for the protocol)."""
-    # The service decides when this process stops (Ctrl-C in a terminal reaches both).
+    # The service decides when this process stops: Ctrl-C in a terminal and systemd's SIGTERM
+    # to the whole process group reach both; the service then finishes the batches it sent.
+    # A service that dies closes the pipe, which ends this process too.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
     store = RuntimeStore(shared.path, write_lock=shared.write_lock)
     stop_checkpoints = threading.Event()
     checkpoints = threading.Thread(

@@ -1022,7 +1022,7 @@ class MqttTransport:
     def _finished(self, item: _Outgoing, reason: int) -> None:
         if refused(reason):
             self.refused_publishes += 1
-            self.last_refusal = (item.topic, _reason_text(reason))
+            self.last_refusal = (item.topic, reason_text(reason))
         _report(item, reason)
 
     def _wait_for_subscriptions(self, timeout: float) -> None:
@@ -1214,7 +1214,7 @@ def _report(item: _Outgoing, reason: int) -> None:
             logger.exception("publish result handler for %s failed", item.topic)
 
 
-def _reason_text(reason: int) -> str:
+def reason_text(reason: int) -> str:
     if reason == LOST:
         return "not acknowledged before the transport closed"
     try:
