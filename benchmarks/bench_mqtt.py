@@ -287,7 +287,8 @@ def run_once(receiver_kind: str, publisher_kind: str, cameras: int, frames: int,
     with tempfile.TemporaryDirectory(prefix="cblrs-bench-") as folder:
         port = free_port()
         files = write_broker_config(Path(folder) / "broker", [], [], port=port,
-                                    allow_anonymous=True, viewer=False, persistence=False)
+                                    allow_anonymous=True, viewer=False, persistence=False,
+                                    run_as="root" if os.geteuid() == 0 else None)
         broker = MosquittoProcess.from_files(files).start()
         receiver = _Receiver(total, paced)
         probe = Probe()

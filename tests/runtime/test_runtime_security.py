@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import os
 import stat
+import threading
 import time
 from dataclasses import replace
 
@@ -163,6 +164,7 @@ def test_acl_and_credentials_files(mosquitto_auth):
     acl = files.acl_file.read_text()
     assert (
         "user CVLab1\ntopic write cblrs/+/CVLab1/detections\ntopic write cblrs/+/CVLab1/status\n"
+        "topic read cblrs/+/CVLab1/stored\ntopic read cblrs/+/matchers/+/status\n"
         in acl
     )
     assert "topic read cblrs/1/+/detections" in acl and "topic read cblrs/2/+/detections" in acl
@@ -214,10 +216,13 @@ def test_broker_config_command_writes_a_working_configuration(tmp_path, capsys):
     from cblrs.cli.main import main
     from cblrs.runtime.broker import MosquittoProcess, free_port
     from cblrs.runtime.transport import MqttSettings
+    from conftest import RUN_AS
 
     port = free_port()
     out = tmp_path / "broker"
     arguments = ["broker-config", "--out", str(out), "--cameras", "CVLab1,CVLab2"]
+    if RUN_AS:
+        arguments += ["--run-as", RUN_AS]
     assert main([*arguments, "--matchers", "matcher1", "--planes", "1,2", "--port", str(port)]) == 0
     printed = capsys.readouterr().out
     assert f"mosquitto -c {out / 'mosquitto.conf'}" in printed
@@ -261,3 +266,116 @@ def test_broker_config_command_errors(tmp_path, capsys, arguments, message):
     assert main(["broker-config", "--out", str(tmp_path), *arguments]) != 0
     error = capsys.readouterr().err
     assert message in error and "Traceback" not in error
+
+
+# -- issue 10, item 14: identity, keys, passwords, privileges, sizes -----------------------
+
+
+def test_a_client_certificate_is_its_users_identity(mosquitto_tls):
+    # CVLab1's certificate with CVLab2's login: the broker takes the certificate's name.
+    cert, key = mosquitto_tls.files.client_certificates["CVLab1"]
+    settings = replace(mosquitto_tls.settings("CVLab2"), cert_file=cert, key_file=key)
+    matcher = connect(mosquitto_tls, "matcher1")
+    collector = Collector()
+    matcher.subscribe("cblrs/1/+/detections", collector)
+    mixed = MqttTransport("CVLab2", settings, persistent=False)
+    mixed.connect()
+    answers: list[int] = []
+    mixed.publish(detections_topic(1, "CVLab2"), b"as CVLab2", on_result=answers.append)
+    mixed.publish(detections_topic(1, "CVLab1"), b"as CVLab1", on_result=answers.append)
+    assert mixed.flush(WAIT)
+    assert answers == [0x87, 0], "publishing as CVLab2 with CVLab1's certificate must fail"
+    assert [delivery.payload for delivery in collector.wait_for(1)] == [b"as CVLab1"]
+    mixed.close()
+    matcher.close()
+
+
+def test_the_ca_key_stays_out_of_the_broker_folder(mosquitto_tls):
+    files = mosquitto_tls.files
+    assert files.ca_key_file is not None and files.ca_key_file.is_file()
+    assert files.directory not in files.ca_key_file.parents
+    assert not list(files.directory.rglob("ca.key"))
+    assert stat.S_IMODE(os.stat(files.ca_key_file).st_mode) == 0o600
+    assert stat.S_IMODE(os.stat(files.ca_key_file.parent).st_mode) == 0o700
+    for line in files.config.read_text().splitlines():
+        assert str(files.ca_key_file) not in line
+
+
+def test_passwords_are_hashed_without_any_command_line(tmp_path, monkeypatch):
+    import subprocess
+
+    def refuse(*args, **kwargs):
+        raise AssertionError(f"no process may be started to hash passwords: {args[0]}")
+
+    monkeypatch.setattr(subprocess, "run", refuse)
+    monkeypatch.setattr(subprocess, "Popen", refuse)
+    files = write_broker_config(tmp_path / "b", ["CVLab1"], ["matcher1"], port=1883,
+                                passwords={"CVLab1": "pa55word"}, run_as=_run_as())
+    line = next(item for item in files.password_file.read_text().splitlines()
+                if item.startswith("CVLab1:"))
+    kind, iterations, salt, digest = line.split(":", 1)[1].split("$")[1:]
+    assert (kind, iterations) == ("7", "101")
+    import base64
+    import hashlib
+
+    expected = hashlib.pbkdf2_hmac("sha512", b"pa55word", base64.b64decode(salt), 101)
+    assert base64.b64decode(digest) == expected
+
+
+def test_a_broker_configured_as_root_does_not_run_as_root(tmp_path):
+    if os.geteuid() != 0:
+        config = write_broker_config(tmp_path / "b", ["c"], ["m"], port=1883).config.read_text()
+        assert "\nuser " not in config  # not root: mosquitto keeps the user that starts it
+        return
+    import pwd
+
+    files = write_broker_config(tmp_path / "b", ["c"], ["m"], port=1883)
+    config = files.config.read_text()
+    assert "\nuser mosquitto\n" in config and "user root" not in config
+    service = pwd.getpwnam("mosquitto").pw_uid
+    for path in (files.directory, files.config, files.password_file, files.acl_file,
+                 files.persistence_directory):
+        assert path.stat().st_uid == service, path
+    for path in (files.credentials_file, files.directory / "secrets"):
+        assert path.stat().st_uid == 0, f"{path} must stay with its owner"
+
+
+def test_oversized_messages_never_reach_the_broker(mosquitto_auth, matcher):
+    camera = connect(mosquitto_auth, "CVLab1")
+    answers: list[int] = []
+    camera.publish(detections_topic(1, "CVLab1"), b"x" * (2 * 1024 * 1024),
+                   on_result=answers.append)
+    camera.publish(detections_topic(1, "CVLab1"), b"small", on_result=answers.append)
+    assert camera.flush(WAIT)
+    assert answers == [0x95, 0]
+    assert camera.connected and camera.disconnections == 0
+    assert [delivery.payload for delivery in matcher.wait_for(1)] == [b"small"]
+    assert matcher.settle(0.2) and matcher.payloads == [b"small"]
+    camera.close()
+
+
+def test_the_broker_itself_refuses_oversized_packets(mosquitto_auth, matcher):
+    # A client that does not check (a plain paho client) is disconnected; nothing arrives.
+    import paho.mqtt.client as mqtt
+    from paho.mqtt.enums import CallbackAPIVersion
+
+    files = mosquitto_auth.files
+    client = mqtt.Client(callback_api_version=CallbackAPIVersion.VERSION2, client_id="CVLab2",
+                         protocol=mqtt.MQTTv5)
+    client.username_pw_set("CVLab2", files.credentials()["CVLab2"])
+    disconnected = threading.Event()
+    client.on_disconnect = lambda *args: disconnected.set()
+    client.connect("127.0.0.1", files.port)
+    client.loop_start()
+    try:
+        client.publish(detections_topic(1, "CVLab2"), b"x" * (2 * 1024 * 1024), qos=1)
+        assert disconnected.wait(WAIT)
+    finally:
+        client.loop_stop()
+    assert matcher.settle(0.2) == []
+
+
+def _run_as():
+    from conftest import RUN_AS
+
+    return RUN_AS

@@ -455,9 +455,11 @@ def test_connect_to_a_silent_port_fails_within_the_timeout():
 
 def test_connect_without_waiting_queues_until_the_broker_appears(start_mosquitto, tmp_path):
     from cblrs.runtime.broker import MosquittoProcess, free_port, write_broker_config
+    from conftest import RUN_AS
 
     files = write_broker_config(
-        tmp_path / "late", [], [], port=free_port(), allow_anonymous=True, viewer=False
+        tmp_path / "late", [], [], port=free_port(), allow_anonymous=True, viewer=False,
+        run_as=RUN_AS,
     )
     settings = files.settings(None, reconnect_min_s=0.05, reconnect_max_s=0.2)
     publisher = MqttTransport("camera", settings)

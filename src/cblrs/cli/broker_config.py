@@ -7,7 +7,7 @@ import shlex
 from pathlib import Path
 
 from cblrs.cli.common import UsageError, add_output_options, print_json
-from cblrs.runtime.broker import write_broker_config
+from cblrs.runtime.broker import DEFAULT_AUTOSAVE_S, DEFAULT_QUEUE_BYTES, write_broker_config
 
 
 def register(subparsers) -> None:
@@ -50,6 +50,25 @@ def register(subparsers) -> None:
     )
     parser.add_argument("--no-viewer", action="store_true", help="no read-only viewer user")
     parser.add_argument(
+        "--queue-mb", type=float, default=DEFAULT_QUEUE_BYTES / 2**20,
+        help="bytes of queued messages the broker holds per client, MiB (default 64; beyond "
+        "it the broker drops messages and the cameras' spools send them again)",
+    )
+    parser.add_argument(
+        "--autosave", type=int, default=DEFAULT_AUTOSAVE_S, metavar="SECONDS",
+        help="save the broker's database every N seconds (default 1)",
+    )
+    parser.add_argument(
+        "--run-as", metavar="USER",
+        help="user Mosquitto runs as when started as root (default: mosquitto; the files it "
+        "reads are handed to that user). Never root in production.",
+    )
+    parser.add_argument(
+        "--ca-dir", type=Path,
+        help="with --tls: folder for the CA's private key (default: OUT-ca, beside OUT, "
+        "never inside it)",
+    )
+    parser.add_argument(
         "--force", action="store_true", help="overwrite an existing configuration (new passwords)"
     )
     add_output_options(parser)
@@ -77,6 +96,8 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError("--cameras needs at least one camera id.")
     planes = _planes(args.planes)
     port = args.port if args.port is not None else (8883 if args.tls else 1883)
+    if not (args.queue_mb > 0 and args.queue_mb < float("inf")):
+        raise UsageError(f"--queue-mb must be a positive number, got {args.queue_mb}.")
     if (args.out / "mosquitto.conf").exists() and not args.force:
         raise UsageError(
             f"{args.out / 'mosquitto.conf'} exists; use --force to overwrite it "
@@ -92,6 +113,10 @@ def run(args: argparse.Namespace) -> int:
         persistence=not args.no_persistence,
         bind=args.bind,
         viewer=not args.no_viewer,
+        queue_bytes=int(args.queue_mb * 2**20),
+        autosave_s=args.autosave,
+        run_as=args.run_as,
+        ca_directory=args.ca_dir,
     )
     if args.json:
         print_json({**files.to_dict(), "start": ["mosquitto", "-c", str(files.config)]})
@@ -128,10 +153,20 @@ def run(args: argparse.Namespace) -> int:
             f"  TLS           {files.ca_file.parent} (CA, server and client certificates, "
             "valid 365 days)"
         )
+        lines.append(f"  CA key        {files.ca_key_file} (keep it offline; not needed to run)")
+    lines.append(
+        f"  limits        {args.queue_mb:g} MiB queued per client, packets up to 1 MiB, "
+        f"saved every {args.autosave} s"
+        + (f"; runs as user {files.run_as}" if files.run_as else "")
+    )
     lines += [
         "",
         "Start the broker:",
         f"  mosquitto -c {shlex.quote(str(files.config))}",
+        "",
+        "Before the cameras, create the matcher's session so the broker keeps its messages:",
+        f"  cblrs matcher --prepare --references REFS --db DB "
+        f"{client_options(matchers[0]) if matchers else ''}".rstrip(),
         "",
         "Users: " + ", ".join(f"{user} ({role})" for user, role in files.roles.items()),
         "Connect a camera / matcher with (copy only that user's files to its machine):",

@@ -101,6 +101,8 @@ PublishResult = Callable[[int], None]
 ACCEPTED = 0x00
 NO_MATCHING_SUBSCRIBERS = 0x10
 """A broker may accept a publish nobody has subscribed to (Mosquitto 2.0 answers 0 then)."""
+PACKET_TOO_LARGE = 0x95
+"""Larger than the broker's Maximum Packet Size: refused by the transport before sending."""
 LOST = -1
 """Not a broker answer: the transport was closed before the broker acknowledged the publish."""
 
@@ -691,6 +693,8 @@ class MqttTransport:
         self._send_lock = threading.Lock()
         self._pump_wanted = False
         self._will_on_close = True
+        self._max_packet: int | None = None
+        """The broker's Maximum Packet Size (MQTT 5 CONNACK property), if it announced one."""
         self._connect_hooks: list[Callable[[bool], None]] = []
         self._suback: dict[int, list] = {}
         self._background_subscribes: set[int] = set()
@@ -1001,6 +1005,16 @@ class MqttTransport:
                 ):
                     return
                 item = self._backlog.popleft()
+            if self._max_packet is not None and (
+                len(item.payload) + len(item.topic.encode()) + 32 > self._max_packet
+            ):
+                # The broker would close the connection, paho would send it again after
+                # reconnecting, and so on: refuse it here, as the broker would.
+                logger.warning("%s: a %d-byte publish on %s exceeds the broker's packet limit "
+                               "of %d bytes; not sent", self.client_id, len(item.payload),
+                               item.topic, self._max_packet)
+                self._finished(item, PACKET_TOO_LARGE)
+                continue
             info = client.publish(item.topic, item.payload, qos=item.qos, retain=item.retain)
             if info.rc not in (mqtt.MQTT_ERR_SUCCESS, mqtt.MQTT_ERR_NO_CONN):
                 # Not expected within the window; keep the order by putting it back.
@@ -1113,6 +1127,7 @@ class MqttTransport:
                         self._background_subscribes.add(mid)
                 self._subscribed.add(topic_filter)
         self.connections += 1
+        self._max_packet = getattr(properties, "MaximumPacketSize", None)
         with self._condition:
             # paho sends what it holds unacknowledged again right after this callback; newer
             # publishes wait until all of that is acknowledged, so nothing overtakes it.
