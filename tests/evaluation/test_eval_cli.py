@@ -123,3 +123,52 @@ def test_eval_on_wildtrack(wildtrack_root: Path, tmp_path: Path, capsys) -> None
     assert main(["eval", str(wildtrack_root), str(tracks), "--json"]) == 0
     recall_limited = json.loads(capsys.readouterr().out)
     assert recall_limited["MOTA"] == pytest.approx(100.0 * (truth.frame < 100).sum() / len(truth))
+
+
+def _wildtrack_variants(root: Path, folder: Path) -> dict[str, Path]:
+    """Ground truth of WILDTRACK written back as predictions, and four ways to get it wrong."""
+    from cblrs.datasets import load_scene
+
+    truth = load_scene(root).ground_truth
+    frames = np.unique(truth.frame)
+    variants = {
+        "right": truth,
+        "empty": Tracks.empty(),
+        "half the frames": truth[truth.frame <= np.median(frames)],
+        "frame indices": Tracks(np.searchsorted(frames, truth.frame), truth.timestamp,
+                                truth.track_id, truth.world_xy),
+        "centimetres": Tracks(truth.frame, truth.timestamp, truth.track_id,
+                              100.0 * truth.world_xy),
+    }
+    paths = {}
+    for name, tracks in variants.items():
+        paths[name] = folder / f"{name.replace(' ', '_')}.txt"
+        write_tracks(paths[name], tracks)
+    return paths
+
+
+@pytest.mark.parametrize(
+    ("variant", "warning"),
+    [
+        ("right", None),
+        ("empty", "has no rows"),
+        ("half the frames", r"rows in 100 of the 200 ground-truth frames \(50 %"),
+        ("frame indices", r"look like indices of the 200 ground-truth frames, not their native "
+                          r"numbers \(0\.\.995 \(every 5th\)\)"),
+        ("centimetres", r"spread 100 times as far .*\(centimetres instead of metres\?\)"),
+    ],
+)
+def test_eval_warns_about_a_predictions_file_that_looks_wrong(
+    wildtrack_root, tmp_path, capsys, variant, warning
+):
+    import re
+
+    paths = _wildtrack_variants(wildtrack_root, tmp_path)
+    assert main(["eval", str(wildtrack_root), str(paths[variant]), "--json"]) == 0
+    captured = capsys.readouterr()
+    json.loads(captured.out)  # still scored
+    warnings = [line for line in captured.err.splitlines() if "warning:" in line]
+    if warning is None:
+        assert warnings == []
+    else:
+        assert len(warnings) == 1 and re.search(warning, warnings[0]), captured.err

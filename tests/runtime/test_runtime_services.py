@@ -748,3 +748,38 @@ def test_matcher_command_stops_cleanly_on_sigterm(small_world, mosquitto, tmp_pa
     assert process.returncode == 0, err
     summary = json.loads(out)
     assert (summary["plane_id"], summary["cameras"], summary["received"]) == (PLANE, 1, 0)
+
+
+def test_locate_boxes_and_the_camera_agree_on_every_box(small_world, tmp_path, capsys):
+    # Issue 10, item 11: one rule for boxes on both sides.
+    _, reference = small_world
+    path = reference.save(tmp_path / "cam1.png")
+    boxes = np.array([
+        [150.0, 100, 170, 200],      # a person in view
+        [1e12, 1e12, 1e12 + 5, 1e12 + 5],  # entirely outside the image
+        [np.nan, 10, 20, 30],        # not finite
+        [50.0, 60, 40, 80],          # inverted
+        [150.0, 150, 170, 239.5],    # feet on the bottom border: no location
+        [-40.0, 100, -10, 200],      # left of the image
+    ])
+    lines = "\n".join(" ".join(f"{value!r}" for value in row) for row in boxes.tolist())
+    (tmp_path / "boxes.txt").write_text(lines.replace("nan", "nan") + "\n")
+    assert main(["locate", str(path), "--boxes", str(tmp_path / "boxes.txt"), "--json"]) == 0
+    positions = json.loads(capsys.readouterr().out)["positions"]
+    broker = InProcessBroker()
+    received = _collector(broker)
+    node = CameraNode(InProcessTransport(broker, "cam1", persistent=False), PLANE, "cam1",
+                      reference, epoch=1000.0)
+    report = node.run([SourceFrame(0, 0.0, Detections(boxes))])
+    wait_until(lambda: any(t.endswith("/detections") for t, _, _ in received), 5, "the message")
+    (payload,) = [p for t, p, _ in received if t.endswith("/detections")]
+    message = decode_message(payload, now=1000.0)
+    rejected = [row["rejected"] for row in positions]
+    assert rejected == [None, "outside_image", "not_finite", "inverted", None, "outside_image"]
+    assert report.boxes_rejected == {"outside_image": 2, "not_finite": 1, "inverted": 1}
+    kept = [row for row in positions if row["rejected"] is None]
+    assert len(message) == len(kept) == 2
+    for row, colour in zip(kept, message.colour, strict=True):
+        assert (row["camera_sends"] == "location") == bool(colour[2] != 0)
+    assert [row["camera_sends"] for row in kept] == ["location", "no location (cut_by_border)"]
+    assert all(row["x"] is None for row in positions if row["rejected"])

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -19,6 +20,7 @@ from cblrs.datasets.aicity import read_tracks
 from cblrs.datasets.multiview import load_scene
 from cblrs.detections import Tracks
 from cblrs.evaluation import Metrics, evaluate
+from cblrs.evaluation.checks import check_predictions
 
 
 def register(subparsers) -> None:
@@ -66,6 +68,9 @@ def run(args: argparse.Namespace) -> int:
     note = ""
     if args.site is not None:
         ground_truth, predictions, note = inside_site(args.site, ground_truth, predictions)
+    # Scored anyway, but a file that looks wrong is said to look wrong.
+    for warning in check_predictions(ground_truth, predictions, frames):
+        print(f"cblrs eval: warning: {warning}", file=sys.stderr)
     area = None if args.whole_plane or not args.dataset.is_dir() else default_ground(args.dataset)
     metrics = evaluate(ground_truth, predictions, frames=frames, area=area)
     if args.json:

@@ -11,6 +11,7 @@ import numpy as np
 
 from cblrs.calibration import WILDTRACK_CAMERAS
 from cblrs.cli.common import UsageError, add_output_options, format_table, print_json
+from cblrs.edge import GROUND_DEPTH_OFFSET_M, box_rejections, location_status
 from cblrs.errors import DatasetError
 from cblrs.locate import ColorLocator
 from cblrs.reference import ReferenceImage
@@ -181,15 +182,30 @@ def run(args: argparse.Namespace) -> int:
             )
         pixels, inside = target_pixels(boxes, args.hpos, args.vtp, reference.image_size)
     world_xy, valid = locator.locate(pixels)
+    rejections: list[str | None] = [None] * len(pixels)
+    sends: list[str] = []
+    if boxes is not None and inside is not None:
+        # The camera's rule (cblrs.edge): refused boxes never get a position, and the
+        # "camera sends" column says what a camera would send for each box.
+        rejections = box_rejections(boxes, reference.image_size)
+        vehicles = np.array([name in GROUND_DEPTH_OFFSET_M for name in classes]
+                            if classes else [False] * len(boxes), dtype=bool)
+        sends = location_status(boxes, pixels, inside, valid, np.full(len(boxes), args.vtp),
+                                vehicles, reference.image_size)
+        valid = valid & np.array([reason is None for reason in rejections], dtype=bool)
     rows = []
     for index in range(len(pixels)):
         row: dict = {"index": index}
         if boxes is not None and inside is not None:
-            row["box"] = boxes[index].tolist()
-            row["target_inside"] = bool(inside[index])
+            row["box"] = [value if np.isfinite(value) else None for value in boxes[index].tolist()]
+            row["target_inside"] = bool(inside[index]) and rejections[index] is None
+            row["rejected"] = rejections[index]
+            row["camera_sends"] = (f"nothing ({rejections[index]})" if rejections[index]
+                                   else "location" if sends[index] == "located"
+                                   else f"no location ({sends[index]})")
         if classes:
             row["class"] = classes[index]
-        row["pixel"] = pixels[index].tolist()
+        row["pixel"] = pixels[index].tolist() if rejections[index] is None else None
         row["x"] = float(world_xy[index, 0]) if valid[index] else None
         row["y"] = float(world_xy[index, 1]) if valid[index] else None
         row["valid"] = bool(valid[index])
@@ -216,15 +232,17 @@ def run(args: argparse.Namespace) -> int:
     for row in rows:
         cells = [
             row["index"],
-            f"{row['pixel'][0]:.1f}",
-            f"{row['pixel'][1]:.1f}",
+            "-" if row["pixel"] is None else f"{row['pixel'][0]:.1f}",
+            "-" if row["pixel"] is None else f"{row['pixel'][1]:.1f}",
             _metres(row["x"]),
             _metres(row["y"]),
             "yes" if row["valid"] else "no",
         ]
         if "target_inside" in row:
             # A target clamped to the image border (the box is cut off) is only a bound.
-            cells.append("yes" if row["target_inside"] else "clamped")
+            cells.append(f"rejected: {row['rejected']}" if row["rejected"]
+                         else "yes" if row["target_inside"] else "clamped")
+            cells.append(row["camera_sends"])
         if classes:
             cells.insert(1, row["class"] or "-")
         if summary is not None:
@@ -236,7 +254,7 @@ def run(args: argparse.Namespace) -> int:
             ]
         table.append(cells)
     if boxes is not None:
-        headers.append("in image")
+        headers += ["in image", "camera sends"]
     if classes:
         headers.insert(1, "class")
     if summary is not None:

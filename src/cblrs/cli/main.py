@@ -45,20 +45,36 @@ def build_parser() -> argparse.ArgumentParser:
         description="Privacy-preserving multi-camera localisation with colour reference images.",
     )
     parser.add_argument("--version", action="version", version=f"cblrs {__version__}")
-    parser.add_argument("-v", "--verbose", action="store_true", help="log debug messages")
+    parser.add_argument(
+        "-v", "--verbose", action="count", default=0,
+        help="-v: debug messages of cblrs; -vv: also every MQTT packet (paho)",
+    )
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name in SUBCOMMANDS:
         importlib.import_module(f"cblrs.cli.{name}").register(subparsers)
     return parser
 
 
+LOG_FORMAT = "%(asctime)s.%(msecs)03d %(levelname)s %(name)s: %(message)s"
+LOG_DATE_FORMAT = "%Y-%m-%dT%H:%M:%S"
+
+
+def configure_logging(verbosity: int) -> None:
+    """Timestamped lines on stderr. cblrs logs its lifecycle at INFO (connections,
+    reconnections, cameras online/offline, rejections at most once per reason every few
+    seconds); other libraries only warnings. ``-v``: cblrs at DEBUG; ``-vv``: paho's packet
+    log too."""
+    # A no-op where logging is configured already (a program embedding the CLI, pytest).
+    logging.basicConfig(level=logging.WARNING, format=LOG_FORMAT, datefmt=LOG_DATE_FORMAT)
+    logging.getLogger("cblrs").setLevel(logging.DEBUG if verbosity >= 1 else logging.INFO)
+    paho = logging.getLogger("cblrs.runtime.transport.paho")
+    paho.setLevel(logging.DEBUG if verbosity >= 2 else logging.INFO)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    logging.basicConfig(
-        level=logging.DEBUG if args.verbose else logging.WARNING,
-        format="%(levelname)s %(name)s: %(message)s",
-    )
+    configure_logging(args.verbose)
     if not getattr(args, "handler", None):
         parser.print_help()
         return 2

@@ -13,9 +13,12 @@ has not confirmed is sent again (the matcher recognises duplicates by camera and
 
 * at once when a matcher announces itself "online" with a new session (the broker held
   nothing for it, e.g. it never subscribed before, or the broker lost its state);
+* when the matcher confirms a message but not earlier ones the broker had acknowledged
+  before it (the matcher stores a camera's messages in order, so those were dropped between
+  broker and matcher: a full queue, a crash between two saves of the broker's database);
 * when confirmations stall: a matcher is online, and for ``resend_after_s`` nothing was
-  confirmed while acknowledged messages wait (a broker that dropped them: a full queue, a
-  crash between two saves); the wait doubles after each round, up to 5 minutes.
+  confirmed while acknowledged messages wait (the same losses at the end of a stream); the
+  wait doubles after each round, up to 5 minutes.
 
 A broker's refusal (an MQTT 5 reason code >= 0x80, e.g. "Not authorized" from the ACL) stops
 the node: it is a configuration mistake, reported in one sentence
@@ -501,6 +504,9 @@ class CameraNode:
             return
         stored = confirmation.stored_sequences()
         rejected = confirmation.rejected_sequences()
+        answered = stored + [value for values in rejected.values() for value in values]
+        top = max(answered) if answered else None
+        top_acked = None if top is None else self._spool.acked_at(top)
         count = self._spool.confirm(stored)
         rejected_count = 0
         for reason, sequences in rejected.items():
@@ -511,6 +517,16 @@ class CameraNode:
                     self._rejected_by_matcher[reason] += dropped
                 logger.warning("camera %s: the matcher rejected %d messages (%s)",
                                self.camera_id, dropped, reason)
+        if top is not None and top_acked is not None:
+            gaps = self._spool.requeue_gaps(below=top, acknowledged_before=top_acked)
+            if gaps:
+                with self._lock:
+                    self._counts["resent"] += gaps
+                logger.warning(
+                    "camera %s: the matcher confirmed message %d but not %d earlier ones the "
+                    "broker had acknowledged (dropped on the way); sending them again",
+                    self.camera_id, top, gaps)
+                self._wake.set()
         with self._lock:
             self._counts["confirmed"] += count
         self._last_confirmation = self._spool.clock()

@@ -276,6 +276,25 @@ class Spool:
                 )
             return int(cursor.rowcount)
 
+    def acked_at(self, sequence: int) -> float | None:
+        """When the broker acknowledged ``sequence`` (None: not acknowledged, or not held)."""
+        with self._lock:
+            row = self._db.execute(
+                "SELECT acked_at FROM outbox WHERE sequence = ? AND state = 2", (int(sequence),)
+            ).fetchone()
+        return None if row is None or row[0] is None else float(row[0])
+
+    def requeue_gaps(self, below: int, acknowledged_before: float) -> int:
+        """Send again the messages numbered below ``below`` that the broker acknowledged
+        before ``acknowledged_before`` and the matcher has not confirmed: the matcher stores a
+        camera's messages in order, so these were lost between broker and matcher."""
+        with self._lock:
+            cursor = self._db.execute(
+                "UPDATE outbox SET state = 0 WHERE state = 2 AND sequence < ? AND acked_at < ?",
+                (int(below), float(acknowledged_before)),
+            )
+            return int(cursor.rowcount)
+
     def _add_counter(self, name: str, value: int) -> None:
         self._db.execute(
             "INSERT INTO counters (name, value) VALUES (?, ?) "
