@@ -117,6 +117,18 @@ def register(subparsers) -> None:
     parser.add_argument(
         "--stats-interval", type=float, metavar="SECONDS", help="log counters every N seconds"
     )
+    retention = parser.add_argument_group(
+        "retention", "history kept in --db (never a message not yet tracked; --out-tracks "
+        "writes what is kept)")
+    retention.add_argument(
+        "--retain-hours", type=float, default=24.0,
+        help="delete inbox and track rows older than this (default 24; 0: no age limit)",
+    )
+    retention.add_argument(
+        "--retain-gb", type=float, default=4.0,
+        help="keep the database under this size, GiB, oldest rows first (default 4; 0: no "
+        "size limit)",
+    )
     add_mqtt_options(parser)
     add_backbone_options(parser, matcher=True)
     parser.add_argument("--json", action="store_true", help="print the final summary as JSON")
@@ -170,6 +182,8 @@ def check_arguments(args: argparse.Namespace) -> None:
         check_positive(args.idle_exit, "--idle-exit")
     if args.stats_interval is not None:
         check_positive(args.stats_interval, "--stats-interval")
+    check_non_negative(args.retain_hours, "--retain-hours")
+    check_non_negative(args.retain_gb, "--retain-gb")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -180,6 +194,7 @@ def run(args: argparse.Namespace) -> int:
     check_arguments(args)
     from cblrs.matching import make_matcher
     from cblrs.runtime.matcher_service import MatcherService
+    from cblrs.runtime.retention import RetentionPolicy
     from cblrs.runtime.store import RuntimeStore
     from cblrs.runtime.topics import matcher_status_topic, validate_client_id
     from cblrs.runtime.transport import MqttTransport, Will
@@ -261,6 +276,10 @@ def run(args: argparse.Namespace) -> int:
         publish_tracks=not args.no_publish_tracks,
         settings={"matcher": args.matcher, "options": options},
         allow_other_database=args.new_db,
+        retention=RetentionPolicy(
+            max_age_s=args.retain_hours * 3600 if args.retain_hours > 0 else None,
+            max_bytes=int(args.retain_gb * 2**30) if args.retain_gb > 0 else None,
+        ),
     )
     install_stop_handlers(stop.set)
     started = time.perf_counter()

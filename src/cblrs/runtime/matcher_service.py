@@ -79,6 +79,7 @@ from cblrs.runtime.confirmations import ConfirmationBuffer, peek_sequence
 from cblrs.runtime.lease import PlaneLease
 from cblrs.runtime.ordering import Orderer
 from cblrs.runtime.rate_limited import RateLimitedLog
+from cblrs.runtime.retention import RetentionPolicy, apply_retention
 from cblrs.runtime.store import LATE, PENDING, InboxEntry, RuntimeStore
 from cblrs.runtime.topics import (
     TopicError,
@@ -163,6 +164,8 @@ class MatcherService:
             database (``cblrs matcher --new-db``).
         confirm_interval_s: how often stored sequences are confirmed to the cameras.
         log_interval_s: at most one log line per rejection reason this often.
+        retention: how much history the database keeps (:mod:`cblrs.runtime.retention`;
+            default: 24 h or 4 GiB, never anything not yet tracked); None keeps everything.
     """
 
     def __init__(
@@ -186,6 +189,7 @@ class MatcherService:
         allow_other_database: bool = False,
         confirm_interval_s: float = 0.25,
         log_interval_s: float = 10.0,
+        retention: RetentionPolicy | None = RetentionPolicy(),  # noqa: B008 (frozen)
     ):
         if window_s < 0 or not math.isfinite(window_s):
             raise ValueError(f"window must be a finite number >= 0, got {window_s}.")
@@ -247,6 +251,7 @@ class MatcherService:
         self._last_confirmation = 0.0
         self._rejections = RateLimitedLog(logger, log_interval_s)
         self._retained_warned: set[str] = set()
+        self.retention = retention
 
     # -- lifecycle -------------------------------------------------------------------------
 
@@ -288,7 +293,7 @@ class MatcherService:
         self._threads = [
             threading.Thread(target=target, name=f"cblrs-{role}-{self.plane_id}", daemon=True)
             for role, target in (("receiver", self._work), ("releaser", self._release),
-                                 ("collector", self._collect))
+                                 ("collector", self._collect), ("retention", self._retain))
         ]
         for thread in self._threads:
             thread.start()
@@ -522,6 +527,17 @@ class MatcherService:
                 self._orderer.heard(entry.camera_id, now)
         if self.observer is not None and hasattr(self.observer, "on_stored") and stored:
             self.observer.on_stored(stored, self._wall_clock())
+
+    def _retain(self) -> None:
+        """Retention thread: apply the retention policy every ``interval_s``."""
+        policy = self.retention
+        if policy is None or not policy.enabled:
+            return
+        try:
+            while not self._stop.wait(policy.interval_s):
+                apply_retention(self.store, policy, self._wall_clock())
+        except BaseException as error:  # surfaced by stop(): a store that fails, fails
+            self._fail(error, "retention")
 
     def _send_confirmations(self, force: bool = False) -> None:
         """Publish the buffered confirmations, at most every ``confirm_interval_s``."""

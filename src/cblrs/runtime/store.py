@@ -562,6 +562,38 @@ class RuntimeStore:
             _set_meta(cursor, "released_timestamp", float(released_timestamp))
             _add_counters(cursor, counters or {})
 
+    def execute_write(self, sql: str, parameters: tuple = ()) -> int:
+        """One write statement in its own transaction (with the file check); rows changed."""
+        with self._lock, self._transaction() as cursor:
+            cursor.execute(sql, parameters)
+            return int(cursor.rowcount)
+
+    def has_table(self, name: str) -> bool:
+        with self._lock:
+            row = self._connection.execute(
+                "SELECT 1 FROM sqlite_master WHERE type = 'table' AND name = ?", (name,)
+            ).fetchone()
+        return row is not None
+
+    def oldest_time(self, table: str, column: str) -> float | None:
+        """The time column of the first row in rowid order (rows come in about time order)."""
+        with self._lock:
+            try:
+                row = self._connection.execute(
+                    f"SELECT {column} FROM {table} ORDER BY rowid LIMIT 1"
+                ).fetchone()
+            except sqlite3.OperationalError:  # no rowid (an inbox of early files)
+                return None
+        return None if row is None or row[0] is None else float(row[0])
+
+    def used_bytes(self) -> int:
+        """Bytes of the database's pages in use (free pages are reused, not counted)."""
+        with self._lock:
+            (pages,) = self._connection.execute("PRAGMA page_count").fetchone()
+            (free,) = self._connection.execute("PRAGMA freelist_count").fetchone()
+            (size,) = self._connection.execute("PRAGMA page_size").fetchone()
+        return int((pages - free) * size)
+
     def add_counters(self, counters: Mapping[str, int]) -> None:
         with self._lock, self._transaction() as cursor:
             _add_counters(cursor, counters)
