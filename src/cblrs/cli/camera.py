@@ -251,8 +251,8 @@ def register(subparsers) -> None:
     )
     delivery.add_argument(
         "--spool-max-mb", type=float, default=512.0,
-        help="spool size bound; when full the oldest unconfirmed messages are dropped "
-        "(counted, logged) (default 512 MB: ~9 h of a 30 fps camera)",
+        help="spool size bound, MiB; when full the oldest unconfirmed messages are dropped "
+        "(counted, logged) (default 512: ~9 h of a 30 fps camera)",
     )
     delivery.add_argument(
         "--flush-timeout",
@@ -447,7 +447,7 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError(f"--plane {plane_id} is not in the reference (planes {plane_ids}).")
     spool_path = (args.spool if args.spool is not None
                   else DEFAULT_SPOOL_FOLDER.expanduser() / f"{plane_id}-{args.camera}.db")
-    spool = Spool(spool_path, max_bytes=int(args.spool_max_mb * 1e6))
+    spool = Spool(spool_path, max_bytes=int(args.spool_max_mb * 2**20))
     if len(spool):
         logger.info("camera %s: %d unconfirmed messages from an earlier run are sent first",
                     args.camera, len(spool))

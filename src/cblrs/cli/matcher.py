@@ -358,6 +358,8 @@ def _first_line(error: BaseException) -> str:
     first = text[0] if text else type(error).__name__
     if first.startswith("the tracker process failed:") and len(text) > 1:
         first = f"the tracker process failed ({text[-1].strip()})"
+    elif first.startswith("the tracker process failed: "):
+        first = first.removeprefix("the tracker process failed: ")
     return first.rstrip(".") + "."
 
 

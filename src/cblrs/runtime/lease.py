@@ -77,6 +77,10 @@ class LeaseRecord(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
 _decoder = msgspec.json.Decoder(LeaseRecord)
 
 
+class _Retry(Exception):
+    """A lease read that lost its connection or its answer: try again."""
+
+
 class PlaneLease:
     """The lease of one matcher service on its plane.
 
@@ -158,8 +162,6 @@ class PlaneLease:
                 allowed. Nothing has been acknowledged when this is raised.
         """
         record = self._read()
-        if record is not None:
-            self._check_database(record)
         if record is not None and record.state == "held" and record.instance != self.instance:
             age = self._clock() - record.heartbeat
             if age < self.ttl_s:
@@ -177,6 +179,8 @@ class PlaneLease:
                     )
             logger.warning("plane %d: the lease of %s expired (no renewal for %.0f s); "
                            "taking over", self.plane_id, record.describe(), self.ttl_s)
+        if record is not None:
+            self._check_database(record)
         self._claim()
 
     def start(
@@ -262,15 +266,43 @@ class PlaneLease:
 
     def _read(self) -> LeaseRecord | None:
         """The current record: subscribe again (the broker re-sends the retained record),
-        then wait for our own probe; the last claim before it is current."""
+        then wait for our own probe; the last claim before it is current.
+
+        Retried while the connection comes and goes (another client with this matcher's id
+        takes the session for a moment), up to ``timeout_s``.
+        """
+        deadline = time.monotonic() + self.timeout_s
+        while True:
+            self._check_refused()
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                raise LeaseError(
+                    f"plane {self.plane_id}: the broker did not echo the lease probe on "
+                    f"{self.topic} within {self.timeout_s:g} s; is this user allowed to "
+                    "read and write it (a matcher's credentials)?"
+                )
+            if not getattr(self.transport, "connected", True):
+                time.sleep(min(0.05, remaining))
+                continue
+            try:
+                return self._read_once(min(2.0, remaining))
+            except _Retry:
+                continue
+
+    def _read_once(self, timeout: float) -> LeaseRecord | None:
+        from cblrs.runtime.transport import TransportError
+
         with self._condition:
             start = len(self._log)
         resubscribe = getattr(self.transport, "resubscribe", None)
-        if resubscribe is not None:
-            resubscribe(self.topic)
-        nonce = uuid.uuid4().hex
-        self._publish("probe", retain=False, nonce=nonce)
-        deadline = time.monotonic() + self.timeout_s
+        try:
+            if resubscribe is not None:
+                resubscribe(self.topic)
+            nonce = uuid.uuid4().hex
+            self._publish("probe", retain=False, nonce=nonce)
+        except TransportError:
+            raise _Retry from None
+        deadline = time.monotonic() + timeout
         with self._condition:
             while True:
                 self._check_refused()
@@ -281,12 +313,8 @@ class PlaneLease:
                         return claims[-1] if claims else None
                 remaining = deadline - time.monotonic()
                 if remaining <= 0:
-                    raise LeaseError(
-                        f"plane {self.plane_id}: the broker did not echo the lease probe on "
-                        f"{self.topic} within {self.timeout_s:g} s; is this user allowed to "
-                        "read and write it (a matcher's credentials)?"
-                    )
-                self._condition.wait(remaining)
+                    raise _Retry
+                self._condition.wait(min(remaining, 0.1))
 
     def _wait_for_renewal(self, record: LeaseRecord, seconds: float) -> LeaseRecord | None:
         """A newer claim of ``record``'s instance within ``seconds``, or None."""

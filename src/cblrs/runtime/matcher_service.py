@@ -74,6 +74,7 @@ from collections.abc import Callable, Sequence
 from typing import Any
 
 from cblrs.detections import Tracks
+from cblrs.errors import CblrsError
 from cblrs.matching.fusion import clock_report
 from cblrs.runtime.confirmations import ConfirmationBuffer, peek_sequence
 from cblrs.runtime.lease import PlaneLease
@@ -404,7 +405,12 @@ class MatcherService:
 
     def _fail(self, error: BaseException, role: str) -> None:
         """Record the first failure and stop the service (``stop`` raises it)."""
-        logger.error("matcher service %s failed: %s", role, error, exc_info=error)
+        # A cause the operator can fix (a deleted database, a lost lease) is one sentence;
+        # anything else is a bug and keeps its traceback.
+        expected = isinstance(error, CblrsError | LeaseLost) or (
+            isinstance(error, TrackerProcessError) and "Traceback" not in str(error))
+        logger.error("matcher service %s failed: %s", role, error,
+                     exc_info=None if expected else error)
         if self._failure is None:
             self._failure = error
         self._stop.set()
@@ -637,7 +643,8 @@ class MatcherService:
                 if answer[0] == "stopped":
                     return
                 if answer[0] == "failed":
-                    raise TrackerProcessError(f"the tracker process failed:\n{answer[1]}")
+                    separator = "\n" if "Traceback" in answer[1] else " "
+                    raise TrackerProcessError(f"the tracker process failed:{separator}{answer[1]}")
                 if answer[0] == "flushed":  # what the matcher held at the end of the stream
                     _, timestamp, tracks, payload = answer
                     self._publish(timestamp, [], tracks, payload)

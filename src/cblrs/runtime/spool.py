@@ -205,7 +205,7 @@ class Spool:
             now = self._clock()
             if now - self._last_drop_log >= _DROP_LOG_INTERVAL_S:
                 logger.error(
-                    "spool %s is full (%.0f MiB): dropped the %d oldest messages no matcher had "
+                    "spool %s is full (%.3g MiB): dropped the %d oldest messages no matcher had "
                     "confirmed (up to sequence %d); they are lost. Bring the matcher or broker "
                     "back, or give a larger spool.", self.path or "(memory)",
                     self.max_bytes / 2**20, self._dropped_since_log, dropped[-1],

@@ -35,6 +35,7 @@ from collections.abc import Sequence
 from typing import Any
 
 from cblrs.detections import Tracks
+from cblrs.errors import CblrsError
 from cblrs.runtime.store import InboxEntry, RuntimeStore, SharedStore, checkpoint_regularly
 from cblrs.runtime.wire import encode_tracks
 
@@ -191,9 +192,11 @@ def run(
                 answers.append((timestamp, group_tracks, payload))
             results.send(("tracked", answers, counters))
         results.send(("stopped",))
-    except BaseException:
+    except BaseException as error:
+        # A cause the operator can fix is its one sentence; anything else, a traceback.
+        text = str(error) if isinstance(error, CblrsError) else traceback.format_exc()
         try:
-            results.send(("failed", traceback.format_exc()))
+            results.send(("failed", text))
         except OSError:  # the service has gone too
             pass
         raise SystemExit(1) from None
