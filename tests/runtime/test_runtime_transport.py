@@ -491,3 +491,50 @@ def test_subscriptions_are_restored_after_a_broker_restart_without_persistence(s
     assert collector.deliveries and collector.deliveries[0].payload == b"after restart"
     publisher.close()
     subscriber.close()
+
+
+def test_publishes_keep_their_order_across_broker_restarts(start_mosquitto):
+    # paho sends a publish made while it reconnects (socket open, CONNACK not yet read) before
+    # the older ones it sends again after the CONNACK; a camera's stream then arrives out of
+    # order and the matcher counts the overtaken messages late. The transport holds newer
+    # publishes back until paho's re-sends are acknowledged.
+    broker = start_mosquitto()
+    subscriber = MqttTransport("order-subscriber", broker.settings(), persistent=True)
+    collector = Collector()
+    subscriber.subscribe("order/#", collector)
+    subscriber.connect()
+    publisher = MqttTransport("order-publisher", broker.settings(), persistent=False)
+    publisher.connect()
+    total = 3000
+    published = threading.Event()
+
+    def publish() -> None:
+        for index in range(total):
+            publisher.publish("order/a", str(index).encode())
+            if index % 10 == 0:
+                time.sleep(0.001)
+        published.set()
+
+    thread = threading.Thread(target=publish)
+    thread.start()
+    for _ in range(3):
+        time.sleep(0.15)
+        broker.restart()
+    thread.join(30)
+    assert publisher.flush(30)
+    deadline = time.monotonic() + 30
+    while len({int(item) for item in collector.payloads}) < total and time.monotonic() < deadline:
+        time.sleep(0.05)
+    values = [int(item) for item in collector.payloads]
+    assert set(values) == set(range(total))
+    seen: set[int] = set()
+    highest = -1
+    overtaken = []
+    for value in values:
+        if value not in seen and value < highest:
+            overtaken.append(value)
+        seen.add(value)
+        highest = max(highest, value)
+    assert overtaken == [], f"{len(overtaken)} messages were overtaken by newer ones"
+    publisher.close()
+    subscriber.close()

@@ -329,6 +329,8 @@ class MatcherService:
         if self._tracker is not None:
             self._tracker.close(max(0.0, deadline - time.monotonic()))
         self._send_confirmations(force=True)
+        if self._lease is not None:
+            self._lease.release()  # nothing more is acknowledged: a restart may claim at once
         self.store.release_hold()
         if self._failure is not None:
             raise RuntimeError("the matcher service failed") from self._failure
@@ -345,8 +347,6 @@ class MatcherService:
                     clear_will = getattr(self.transport, "clear_will", None)
                     if clear_will is not None:
                         clear_will()
-                if self._lease is not None:
-                    self._lease.release()
             finally:
                 self.transport.close()
 
