@@ -28,8 +28,14 @@ Rates:
 * ``paced``: every camera publishes one message per frame at ``--fps`` (50 cameras x 30 fps
   = 1500 messages/s); figures: p50/p99 latency from the frame's capture time (its scheduled
   publish time, so publisher lag counts) to the receipt (paho: the callback; matcher: stored
-  in the inbox and acknowledged) and to the track output (matcher: the group committed by
-  the tracker process and its update handed to the transport, in the service's process).
+  in the inbox and acknowledged), to the track output (matcher: the group committed by the
+  tracker process and its update handed to the transport, in the service's process), and —
+  the figure a user sees — to the track update's arrival at a *separate subscriber process*
+  (a paho client on ``cblrs/<plane>/tracks``, one sample per update, i.e. per frame).
+
+``--nagle`` leaves Nagle's algorithm on (no ``TCP_NODELAY`` on the matcher's, the broker's and
+the subscriber's sockets), as cblrs did before issue 10: small packets (a track update, an
+acknowledgement) then wait for the previous one's TCP acknowledgement.
 
 Printed figures are medians over ``--repeats`` runs, with the machine (CPU, cores, load
 average at start and end). Not a test: nothing is asserted.
@@ -51,6 +57,7 @@ import multiprocessing
 import os
 import platform
 import shutil
+import socket
 import statistics
 import subprocess
 import sys
@@ -69,7 +76,7 @@ from cblrs.plane import PlaneSet, PlaneSpec
 from cblrs.runtime.broker import MosquittoProcess, free_port, write_broker_config
 from cblrs.runtime.matcher_service import MatcherService
 from cblrs.runtime.store import InboxEntry, RuntimeStore
-from cblrs.runtime.topics import detections_filter, detections_topic
+from cblrs.runtime.topics import detections_filter, detections_topic, tracks_topic
 from cblrs.runtime.transport import MqttSettings, MqttTransport
 from cblrs.runtime.wire import ValidationPolicy, encode_message
 
@@ -281,15 +288,63 @@ def _start_paho(port: int, receiver: _Receiver):
     return client
 
 
+class _TrackTimes(msgspec.Struct):
+    timestamp: float
+
+
+class _TrackUpdate(msgspec.Struct):
+    tracks: list[_TrackTimes]
+
+
+_update_decoder = msgspec.json.Decoder(_TrackUpdate)
+
+
+def track_subscriber(port: int, nagle: bool, ready, stop, results) -> None:
+    """Child process: a paho client on the tracks topic; capture -> arrival latency of each
+    track update (its rows carry the frame's capture time)."""
+    import paho.mqtt.client as mqtt
+    from paho.mqtt.enums import CallbackAPIVersion
+
+    latencies: list[float] = []
+    client = mqtt.Client(callback_api_version=CallbackAPIVersion.VERSION2,
+                         client_id="bench-tracks", protocol=mqtt.MQTTv5)
+    if not nagle:
+        client.on_socket_open = lambda c, u, sock: sock.setsockopt(
+            socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+
+    def on_message(client, userdata, message) -> None:
+        now = time.time()
+        update = _update_decoder.decode(message.payload)
+        if update.tracks:
+            latencies.append(now - update.tracks[0].timestamp)
+
+    client.on_message = on_message
+    client.on_subscribe = lambda *args: ready.set()
+    client.connect("127.0.0.1", port)
+    client.subscribe(tracks_topic(PLANE_ID), qos=1)
+    client.loop_start()
+    stop.wait(1200)
+    time.sleep(0.2)
+    client.loop_stop()
+    results.put(latencies)
+
+
 def run_once(receiver_kind: str, publisher_kind: str, cameras: int, frames: int, fps: float,
-             paced: bool, people: int, matcher_name: str) -> dict:
+             paced: bool, people: int, matcher_name: str, nagle: bool = False) -> dict:
     total = cameras * frames
     with tempfile.TemporaryDirectory(prefix="cblrs-bench-") as folder:
         port = free_port()
         files = write_broker_config(Path(folder) / "broker", [], [], port=port,
                                     allow_anonymous=True, viewer=False, persistence=False,
                                     run_as="root" if os.geteuid() == 0 else None)
+        if nagle:
+            files.config.write_text(files.config.read_text().replace("set_tcp_nodelay true\n",
+                                                                     ""))
         broker = MosquittoProcess.from_files(files).start()
+        subscriber_process = None
+        subscriber_latencies: list[float] = []
+        subscriber_results: multiprocessing.Queue = multiprocessing.Queue()
+        subscriber_stop = multiprocessing.Event()
         receiver = _Receiver(total, paced)
         probe = Probe()
         service = store = client = transport = subscriber = None
@@ -317,11 +372,22 @@ def run_once(receiver_kind: str, publisher_kind: str, cameras: int, frames: int,
                 names = camera_names(cameras)
                 store = RuntimeStore(Path(folder) / "matcher.db")
                 service = MatcherService(
-                    MqttTransport("bench-matcher", MqttSettings(port=port), persistent=True),
+                    MqttTransport("bench-matcher",
+                                  MqttSettings(port=port, tcp_nodelay=not nagle),
+                                  persistent=True),
                     store, make_matcher(matcher_name, PlaneSet([PLANE]), names), PLANE_ID,
                     names, policy=ValidationPolicy(max_future_s=3600.0), window_s=2.0,
                     observer=probe,
                 )
+                if paced:
+                    ready = multiprocessing.Event()
+                    subscriber_process = multiprocessing.Process(
+                        target=track_subscriber,
+                        args=(port, nagle, ready, subscriber_stop, subscriber_results),
+                    )
+                    subscriber_process.start()
+                    if not ready.wait(30):
+                        raise RuntimeError("the tracks subscriber did not subscribe")
                 gc.freeze()  # as cblrs matcher does before starting its service
                 service.start()
             results: multiprocessing.Queue = multiprocessing.Queue()
@@ -344,6 +410,10 @@ def run_once(receiver_kind: str, publisher_kind: str, cameras: int, frames: int,
                 receiver.count, receiver.last = probe.stored, probe.last_stored
                 service.close(flush=True)
                 stats = service.stats()
+                if subscriber_process is not None:
+                    subscriber_stop.set()
+                    subscriber_latencies = subscriber_results.get(timeout=60)
+                    subscriber_process.join(30)
             else:
                 receiver.done.wait(max(0.0, deadline - time.time()))
         finally:
@@ -365,6 +435,7 @@ def run_once(receiver_kind: str, publisher_kind: str, cameras: int, frames: int,
         "tracked_per_s": math.nan, "late": 0, "rejected": 0,
         "receipt_p50_ms": math.nan, "receipt_p99_ms": math.nan,
         "track_p50_ms": math.nan, "track_p99_ms": math.nan,
+        "subscriber_p50_ms": math.nan, "subscriber_p99_ms": math.nan, "nagle": nagle,
     }
     if paced and receiver.receipt:
         row["receipt_p50_ms"] = 1000 * float(np.percentile(receiver.receipt, 50))
@@ -377,6 +448,10 @@ def run_once(receiver_kind: str, publisher_kind: str, cameras: int, frames: int,
             row["receipt_p99_ms"] = 1000 * float(np.percentile(probe.receipt, 99))
             row["track_p50_ms"] = 1000 * float(np.percentile(probe.tracked, 50))
             row["track_p99_ms"] = 1000 * float(np.percentile(probe.tracked, 99))
+            if subscriber_latencies:
+                row["subscriber_p50_ms"] = 1000 * float(np.percentile(subscriber_latencies, 50))
+                row["subscriber_p99_ms"] = 1000 * float(np.percentile(subscriber_latencies, 99))
+                row["subscriber_updates"] = len(subscriber_latencies)
     return row
 
 
@@ -499,13 +574,16 @@ def markdown_table(info: dict, rows: list[dict], args: argparse.Namespace) -> st
         f"QoS 1 on loopback, {args.people} detections per message, {args.fps:g} fps when paced, "
         f"{args.matcher} matcher; publishers: {args.publisher} (one connection per camera, "
         f"other processes). {info['cpu']}, {info['cores']} cores, Python {info['python']}, "
-        f"{info['mosquitto']}, paho-mqtt {info['paho-mqtt']}; load average "
+        f"{info['mosquitto']}, paho-mqtt {info['paho-mqtt']}; "
+        + ("Nagle's algorithm on (no TCP_NODELAY); " if args.nagle else "TCP_NODELAY on; ")
+        + "load average "
         f"{info['load_start'][0]:.2f} at start, {info['load_end'][0]:.2f} at end (a shared "
         f"machine); medians of {args.repeats} runs.",
         "",
         "| cameras | receiver | rate | received msg/s | tracked msg/s "
-        "| receipt p50 / p99 ms | track output p50 / p99 ms | lost |",
-        "|---:|---|---|---:|---:|---:|---:|---:|",
+        "| receipt p50 / p99 ms | track output p50 / p99 ms "
+        "| **tracks at a subscriber** p50 / p99 ms | lost |",
+        "|---:|---|---|---:|---:|---:|---:|---:|---:|",
     ]
     for row in rows:
         lines.append(
@@ -513,6 +591,7 @@ def markdown_table(info: dict, rows: list[dict], args: argparse.Namespace) -> st
             f"| {row['received_per_s']:.0f} | {cell(row['tracked_per_s'], 0)} "
             f"| {pair(row['receipt_p50_ms'], row['receipt_p99_ms'])} "
             f"| {pair(row['track_p50_ms'], row['track_p99_ms'])} "
+            f"| {pair(row['subscriber_p50_ms'], row['subscriber_p99_ms'])} "
             f"| {row['messages'] - row['received']} |"
         )
     return "\n".join(lines)
@@ -533,6 +612,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--fps", type=float, default=30.0)
     parser.add_argument("--people", type=int, default=2, help="detections per message")
     parser.add_argument("--matcher", default="fusion")
+    parser.add_argument("--nagle", action="store_true",
+                        help="leave Nagle's algorithm on (no TCP_NODELAY), as before issue 10")
     parser.add_argument("--stages", action="store_true",
                         help="only time each matcher step in-process (no broker) and exit")
     parser.add_argument("--json", action="store_true")
@@ -566,7 +647,7 @@ def main(argv: list[str] | None = None) -> int:
               f"{args.publisher}; load average {info['load_start'][0]:.2f}", flush=True)
         print(f"{'cams':>4s} {'receiver':9s} {'rate':5s} {'msgs':>6s} {'recv/s':>8s} "
               f"{'track/s':>8s} | {'receipt p50':>11s} {'p99 ms':>7s} | {'track p50':>9s} "
-              f"{'p99 ms':>7s} | lost late", flush=True)
+              f"{'p99 ms':>7s} | {'subscr p50':>10s} {'p99 ms':>7s} | lost late", flush=True)
     rows = []
     for cameras in args.cameras:
         for run in args.runs:
@@ -575,7 +656,8 @@ def main(argv: list[str] | None = None) -> int:
             frames = (int(args.paced_seconds * args.fps) if paced
                       else max(1, args.max_messages // cameras))
             runs = [run_once(receiver, args.publisher, cameras, frames, args.fps, paced,
-                             args.people, args.matcher) for _ in range(args.repeats)]
+                             args.people, args.matcher, args.nagle)
+                    for _ in range(args.repeats)]
             row = median_of(runs)
             row["runs"] = runs
             rows.append(row)
@@ -585,6 +667,8 @@ def main(argv: list[str] | None = None) -> int:
                     f"{row['received_per_s']:8.0f} {_format(row['tracked_per_s'], 8, 0)} | "
                     f"{_format(row['receipt_p50_ms'], 11)} {_format(row['receipt_p99_ms'])} | "
                     f"{_format(row['track_p50_ms'], 9)} {_format(row['track_p99_ms'])} | "
+                    f"{_format(row['subscriber_p50_ms'], 10)} "
+                    f"{_format(row['subscriber_p99_ms'])} | "
                     f"{row['messages'] - row['received']:4d} {row['late']:4d}",
                     flush=True,
                 )
