@@ -147,3 +147,20 @@ def test_the_service_applies_retention_while_it_runs(tmp_path):
     assert [item.message.sequence for item in store.messages()] == [2]
     assert store.counters()["processed"] == 3
     store.close()
+
+
+def test_rate_limited_log_says_how_many_it_held_back(caplog):
+    from cblrs.runtime.rate_limited import RateLimitedLog
+
+    now = [0.0]
+    log = RateLimitedLog(logging.getLogger("cblrs.test.rate"), interval_s=10, clock=lambda: now[0])
+    with caplog.at_level(logging.WARNING, logger="cblrs.test.rate"):
+        assert log.log(logging.WARNING, "too_old", "rejected %s", "a")
+        assert not log.log(logging.WARNING, "too_old", "rejected %s", "b")
+        assert log.log(logging.WARNING, "in_future", "rejected %s", "c")  # its own key
+        now[0] = 10.0
+        assert log.log(logging.WARNING, "too_old", "rejected %s", "d")
+    assert [record.getMessage() for record in caplog.records] == [
+        "rejected a", "rejected c",
+        "rejected d (and 1 more like it in the last 10 s)",
+    ]

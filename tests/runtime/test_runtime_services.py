@@ -689,6 +689,39 @@ def test_camera_command_replays_a_mot_file(small_world, mosquitto, tmp_path, cap
          "must be KEY=VALUE"),
         (["matcher", "--db", "x.db", "--references", "REFS", "--plane", "3"],
          r"--plane 3 is not in the references \(planes \[1\]\)"),
+        # issue 10, item 9: every bad value is one sentence, before anything starts
+        (["matcher", "--db", "x.db", "--references", "REFS", "--window", "-1"],
+         r"--window must be a finite number of at least 0, got -1\.0\."),
+        (["matcher", "--db", "x.db", "--references", "REFS", "--window", "nan"],
+         r"--window must be a finite number of at least 0, got nan\."),
+        (["matcher", "--db", "x.db", "--references", "REFS", "--max-future", "nan"],
+         r"--max-future must be a finite number of at least 0"),
+        (["matcher", "--db", "x.db", "--references", "REFS", "--max-age", "0"],
+         r"--max-age must be a finite number greater than 0"),
+        (["matcher", "--db", "x.db", "--references", "REFS", "--idle-exit", "-1"],
+         r"--idle-exit must be a finite number greater than 0"),
+        (["matcher", "--db", "x.db", "--references", "REFS", "--broker", ":99999"],
+         r"--broker ':99999' names no host"),
+        (["matcher", "--db", "x.db", "--references", "REFS", "--broker", "localhost:99999"],
+         r"--broker 'localhost:99999': the port must be a number from 1 to 65535\."),
+        (["matcher", "--db", "x.db", "--references", "REFS", "--broker", "localhost:x"],
+         r"the port must be a number from 1 to 65535"),
+        (["matcher", "--db", "x.db", "--references", "REFS", "--retain-hours", "-2"],
+         r"--retain-hours must be a finite number of at least 0"),
+        (["matcher", "--db", "missing/x.db", "--references", "REFS"],
+         r"the folder .*missing of the database x\.db does not exist; create it first"),
+        (["matcher", "--db", "EMPTY", "--references", "REFS"],
+         r"EMPTY is an empty file, not a cblrs matcher database"),
+        (["matcher", "--stats", "REF"], r"ref\.png is not a SQLite database"),
+        (["matcher", "--stats", "DAMAGED"], r"is damaged: SQLite says|not a usable SQLite"),
+        (["camera", "--camera", "CVLab1\n", "--reference", "REF", "--detections", "x"],
+         r"camera id 'CVLab1\\n' is not usable in MQTT topics"),
+        (["camera", "--camera", "cam1", "--reference", "REF", "--detections", "x",
+          "--speed", "nan"], r"--speed must be a finite number greater than 0"),
+        (["camera", "--camera", "cam1", "--reference", "REF", "--detections", "x",
+          "--spool-max-mb", "0"], r"--spool-max-mb must be a finite number greater than 0"),
+        (["camera", "--camera", "cam1", "--reference", "REF", "--detections", "x",
+          "--broker", "h:0"], r"the port must be a number from 1 to 65535"),
     ],
 )
 def test_command_line_mistakes(small_world, tmp_path, capsys, monkeypatch, arguments, message):
@@ -698,11 +731,19 @@ def test_command_line_mistakes(small_world, tmp_path, capsys, monkeypatch, argum
     (tmp_path / "REFS").mkdir()
     reference.save(tmp_path / "REFS" / "cam1.png")
     (tmp_path / "IMG").mkdir()
+    (tmp_path / "EMPTY").write_bytes(b"")
+    damaged = tmp_path / "DAMAGED"
+    with RuntimeStore(damaged) as store:
+        store.add_counters({"received": 1})
+    data = bytearray(damaged.read_bytes())
+    data[100:] = b"\xff" * (len(data) - 100)  # the header survives, the rest is noise
+    damaged.write_bytes(bytes(data))
     arguments = [str(tmp_path / "ref.png") if item == "REF" else item for item in arguments]
     code = main(arguments)
     error = capsys.readouterr().err
     assert code != 0
     assert re.search(message, error), error
+    assert "Traceback" not in error and error.count("error:") == 1, error
 
 
 def test_matcher_stats_reads_a_database(tmp_path, capsys):
