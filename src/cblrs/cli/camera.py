@@ -18,6 +18,8 @@ logger = logging.getLogger(__name__)
 
 PASSWORD_ENVIRONMENT = "CBLRS_MQTT_PASSWORD"
 DEFAULT_SPOOL_FOLDER = Path("~/.local/state/cblrs/spool")
+SPOOL_ENVIRONMENT = "CBLRS_SPOOL_DIR"
+"""Folder of the default spool files, instead of :data:`DEFAULT_SPOOL_FOLDER`."""
 EXIT_UNCONFIRMED = 3
 """Exit code of ``cblrs camera`` when messages remain in its spool."""
 
@@ -247,7 +249,8 @@ def register(subparsers) -> None:
     )
     delivery.add_argument(
         "--spool", type=Path, metavar="FILE",
-        help=f"spool file (default: {DEFAULT_SPOOL_FOLDER}/<plane>-<camera>.db)",
+        help=f"spool file (default: ${SPOOL_ENVIRONMENT} or {DEFAULT_SPOOL_FOLDER}, file "
+        "<plane>-<camera>.db)",
     )
     delivery.add_argument(
         "--spool-max-mb", type=float, default=512.0,
@@ -445,8 +448,8 @@ def run(args: argparse.Namespace) -> int:
         plane_id = plane_ids[0]
     elif plane_id not in plane_ids:
         raise UsageError(f"--plane {plane_id} is not in the reference (planes {plane_ids}).")
-    spool_path = (args.spool if args.spool is not None
-                  else DEFAULT_SPOOL_FOLDER.expanduser() / f"{plane_id}-{args.camera}.db")
+    folder = Path(os.environ.get(SPOOL_ENVIRONMENT) or DEFAULT_SPOOL_FOLDER).expanduser()
+    spool_path = args.spool if args.spool is not None else folder / f"{plane_id}-{args.camera}.db"
     spool = Spool(spool_path, max_bytes=int(args.spool_max_mb * 2**20))
     if len(spool):
         logger.info("camera %s: %d unconfirmed messages from an earlier run are sent first",

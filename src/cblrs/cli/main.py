@@ -59,14 +59,15 @@ LOG_FORMAT = "%(asctime)s.%(msecs)03d %(levelname)s %(name)s: %(message)s"
 LOG_DATE_FORMAT = "%Y-%m-%dT%H:%M:%S"
 
 
-def configure_logging(verbosity: int) -> None:
+def configure_logging(verbosity: int, quiet: bool = False) -> None:
     """Timestamped lines on stderr. cblrs logs its lifecycle at INFO (connections,
     reconnections, cameras online/offline, rejections at most once per reason every few
-    seconds); other libraries only warnings. ``-v``: cblrs at DEBUG; ``-vv``: paho's packet
-    log too."""
+    seconds); other libraries only warnings. ``--quiet``: cblrs warnings only; ``-v``: cblrs
+    at DEBUG; ``-vv``: paho's packet log too."""
     # A no-op where logging is configured already (a program embedding the CLI, pytest).
     logging.basicConfig(level=logging.WARNING, format=LOG_FORMAT, datefmt=LOG_DATE_FORMAT)
-    logging.getLogger("cblrs").setLevel(logging.DEBUG if verbosity >= 1 else logging.INFO)
+    level = logging.WARNING if quiet else logging.INFO
+    logging.getLogger("cblrs").setLevel(logging.DEBUG if verbosity >= 1 else level)
     paho = logging.getLogger("cblrs.runtime.transport.paho")
     paho.setLevel(logging.DEBUG if verbosity >= 2 else logging.INFO)
 
@@ -74,7 +75,7 @@ def configure_logging(verbosity: int) -> None:
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    configure_logging(args.verbose)
+    configure_logging(args.verbose, quiet=bool(getattr(args, "quiet", False)))
     if not getattr(args, "handler", None):
         parser.print_help()
         return 2

@@ -50,6 +50,7 @@ not, and the matcher keeps waiting for the rest.
 from __future__ import annotations
 
 import functools
+import inspect
 import logging
 import threading
 import time
@@ -244,6 +245,7 @@ class CameraNode:
         self._resend_wait = self.resend_after_s
         self._lock = threading.Lock()
         self._online_published = False
+        self._done = False
         self.topic = detections_topic(self.plane_id, camera_id)
         self.status_topic = status_topic(self.plane_id, camera_id)
 
@@ -272,6 +274,9 @@ class CameraNode:
             self._announce("online")
         if self.clear_retained:
             self.transport.publish(self.topic, b"", qos=1, retain=True)
+        # A transport without per-publish answers (NATS: its publishes are retried until the
+        # stream takes them) counts a publish as acknowledged once handed over.
+        self._answers = "on_result" in inspect.signature(self.transport.publish).parameters
         pump = threading.Thread(target=self._pump, name=f"cblrs-pump-{self.camera_id}",
                                 daemon=True)
         pump.start()
@@ -301,8 +306,10 @@ class CameraNode:
                 self._wake.set()
                 pump.join(5)
                 self._fill(report, spool)
+                self._done = True  # answers arriving later (the transport closes) change nothing
                 if own_spool:
-                    spool.close()
+                    with self._lock:
+                        spool.close()
         report.extra["final_status"] = final
         return report
 
@@ -409,10 +416,14 @@ class CameraNode:
                 if room > 0:
                     items = spool.take(min(room, 256))
                     for sequence, topic, payload in items:
-                        self.transport.publish(
-                            topic, payload, qos=1,
-                            on_result=functools.partial(self._on_result, sequence, topic),
-                        )
+                        if self._answers:
+                            self.transport.publish(
+                                topic, payload, qos=1,
+                                on_result=functools.partial(self._on_result, sequence, topic),
+                            )
+                        else:
+                            self.transport.publish(topic, payload, qos=1)
+                            self._on_result(sequence, topic, 0)
                     if items:
                         continue
             if not getattr(self.transport, "connected", True):
@@ -429,6 +440,8 @@ class CameraNode:
             self._wake.clear()
 
     def _on_result(self, sequence: int, topic: str, reason: int) -> None:
+        if self._done:
+            return
         spool = self._spool
         if reason == LOST:
             spool.not_sent(sequence)
@@ -494,6 +507,8 @@ class CameraNode:
 
     def _on_stored(self, delivery: Any) -> None:
         delivery.ack()
+        if self._done:
+            return
         try:
             confirmation = decode_confirmation(delivery.payload)
         except RejectedMessage as error:
@@ -535,6 +550,8 @@ class CameraNode:
 
     def _on_matcher_status(self, delivery: Any) -> None:
         delivery.ack()
+        if self._done:
+            return
         try:
             status = decode_status(delivery.payload)
         except RejectedMessage:

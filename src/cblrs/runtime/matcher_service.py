@@ -160,7 +160,9 @@ class MatcherService:
             acknowledged, and once a group's tracks are committed and handed to the
             transport; ``wall_time`` is the wall clock then.
         wall_clock: seconds since the Unix epoch (for staleness checks and receipt times).
-        lease: hold the plane through a lease on the broker (see the module docstring).
+        lease: hold the plane through a lease on the broker (see the module docstring);
+            None (default): unless the transport holds a lease of its own (the NATS
+            transport's ``lease``).
         allow_other_database: start even if the plane was last served from another
             database (``cblrs matcher --new-db``).
         confirm_interval_s: how often stored sequences are confirmed to the cameras.
@@ -186,7 +188,7 @@ class MatcherService:
         settings: dict[str, Any] | None = None,
         observer: Any = None,
         wall_clock: Callable[[], float] = time.time,
-        lease: bool = True,
+        lease: bool | None = None,
         allow_other_database: bool = False,
         confirm_interval_s: float = 0.25,
         log_interval_s: float = 10.0,
@@ -241,7 +243,7 @@ class MatcherService:
         self._failure: BaseException | None = None
         self._started = False
         self.matcher_id = str(getattr(transport, "client_id", f"matcher{self.plane_id}"))
-        self._use_lease = lease
+        self._use_lease = (getattr(transport, "lease", None) is None) if lease is None else lease
         self._allow_other_database = allow_other_database
         self._lease: PlaneLease | None = None
         self._receiving = threading.Event()
