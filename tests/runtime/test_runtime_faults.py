@@ -130,6 +130,15 @@ def assert_all_stored_once(database: Path) -> dict:
     return counters
 
 
+def counter(database: Path, name: str) -> int:
+    """A counter of a running matcher's database (0 while it is being created)."""
+    try:
+        with RuntimeStore(database, read_only=True) as store:
+            return store.counters().get(name, 0)
+    except Exception:  # not there yet, or its tables not yet written
+        return 0
+
+
 def spool_rows(path: Path) -> int:
     """Messages in a camera's spool file (0 while it does not exist yet)."""
     if not path.exists():
@@ -326,11 +335,7 @@ def test_item5_a_database_deleted_under_the_matcher_stops_it(plant, tmp_path):
                                         "--confirm-timeout", "90", "--resend-after", "1"))
                for name in CAMERAS]
 
-    def processed() -> int:
-        with RuntimeStore(database, read_only=True) as store:
-            return store.counters().get("accepted", 0)
-
-    wait_until(lambda: processed() >= 10, 60, "some messages")
+    wait_until(lambda: counter(database, "accepted") >= 10, 60, "some messages")
     moved = tmp_path / "db-moved"
     folder.rename(moved)  # "deleted" (kept aside to restore it below)
     code, _, err = finish(matcher)
@@ -398,11 +403,7 @@ def test_item10_sigterm_to_the_process_group_stops_cleanly_and_resumes(plant, tm
                                         "--confirm-timeout", "0"))
                for name in CAMERAS]
 
-    def accepted() -> int:
-        with RuntimeStore(database, read_only=True) as store:
-            return store.counters().get("accepted", 0)
-
-    wait_until(lambda: accepted() >= 10, 60, "some messages")
+    wait_until(lambda: counter(database, "accepted") >= 10, 60, "some messages")
     os.killpg(matcher.pid, signal.SIGTERM)
     code, out, err = finish(matcher)
     assert code == 0, err
