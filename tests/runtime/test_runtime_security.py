@@ -8,11 +8,12 @@ import stat
 import threading
 import time
 from dataclasses import replace
+from pathlib import Path
 
 import pytest
 from test_runtime_transport import Collector  # tests/runtime is on sys.path (rootdir-relative)
 
-from cblrs.runtime.broker import BrokerError, write_broker_config
+from cblrs.runtime.broker import BrokerError, MosquittoProcess, free_port, write_broker_config
 from cblrs.runtime.topics import detections_topic, status_topic, tracks_topic
 from cblrs.runtime.transport import MqttTransport, TransportError
 
@@ -328,16 +329,28 @@ def test_a_broker_configured_as_root_does_not_run_as_root(tmp_path):
         assert "\nuser " not in config  # not root: mosquitto keeps the user that starts it
         return
     import pwd
+    import shutil
+    import tempfile
 
-    files = write_broker_config(tmp_path / "b", ["c"], ["m"], port=1883)
-    config = files.config.read_text()
-    assert "\nuser mosquitto\n" in config and "user root" not in config
-    service = pwd.getpwnam("mosquitto").pw_uid
-    for path in (files.directory, files.config, files.password_file, files.acl_file,
-                 files.persistence_directory):
-        assert path.stat().st_uid == service, path
-    for path in (files.credentials_file, files.directory / "secrets"):
-        assert path.stat().st_uid == 0, f"{path} must stay with its owner"
+    # A folder the service user cannot enter is refused in one sentence, before writing.
+    with pytest.raises(BrokerError, match=r"runs as user mosquitto, which cannot enter "):
+        write_broker_config(tmp_path / "b", ["c"], ["m"], port=1883)
+    folder = Path(tempfile.mkdtemp(prefix="cblrs-broker-"))
+    try:
+        os.chmod(folder, 0o755)
+        files = write_broker_config(folder / "b", ["c"], ["m"], port=free_port())
+        config = files.config.read_text()
+        assert "\nuser mosquitto\n" in config and "user root" not in config
+        service = pwd.getpwnam("mosquitto").pw_uid
+        for path in (files.directory, files.config, files.password_file, files.acl_file,
+                     files.persistence_directory):
+            assert path.stat().st_uid == service, path
+        for path in (files.credentials_file, files.directory / "secrets"):
+            assert path.stat().st_uid == 0, f"{path} must stay with its owner"
+        with MosquittoProcess.from_files(files) as broker:  # it reads them as that user
+            assert broker.running
+    finally:
+        shutil.rmtree(folder)
 
 
 def test_oversized_messages_never_reach_the_broker(mosquitto_auth, matcher):

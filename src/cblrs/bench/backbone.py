@@ -23,6 +23,7 @@ from __future__ import annotations
 import asyncio
 import math
 import multiprocessing
+import os
 import statistics
 import subprocess
 import tempfile
@@ -212,7 +213,9 @@ def run_once(backbone: str, cameras: int, frames: int, fps: float, paced: bool,
         servers: Any
         if backbone == "mosquitto":
             port = free_port()
+            # run_as root: the broker reads a private temporary folder (a benchmark only).
             files = write_broker_config(Path(folder) / "broker", [], [], port=port,
+                                        run_as="root" if os.geteuid() == 0 else None,
                                         allow_anonymous=True, viewer=False, persistence=True)
             servers = MosquittoProcess.from_files(files).start()
             transport: Any = MqttTransport("bench-matcher", MqttSettings(port=port))

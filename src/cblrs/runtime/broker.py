@@ -236,7 +236,6 @@ def write_broker_config(
         BrokerError: invalid names or limits, or an unknown ``run_as`` user.
     """
     directory = Path(directory).resolve()
-    directory.mkdir(parents=True, exist_ok=True)
     for name in cameras:
         validate_client_id(name, "camera id")
     for name in matchers:
@@ -257,6 +256,9 @@ def write_broker_config(
         raise BrokerError(f"autosave interval must be at least 1 s, got {autosave_s}.")
     if run_as is None and os.geteuid() == 0:
         run_as = SERVICE_USER
+    if run_as is not None and run_as != "root" and os.geteuid() == 0:
+        _check_reachable(run_as, directory)
+    directory.mkdir(parents=True, exist_ok=True)
     owner = None
     if run_as is not None:
         try:
@@ -364,7 +366,6 @@ def write_broker_config(
     if owner is not None and os.geteuid() == 0:
         _hand_over(owner, directory, [config, password_file, acl_file, persistence_directory]
                    + ([directory / "tls", directory / "tls" / "server.key"] if tls else []))
-        _warn_unreachable(owner, directory)
     return BrokerFiles(
         directory=directory,
         config=config,
@@ -391,13 +392,20 @@ def _hand_over(owner: pwd.struct_passwd, directory: Path, paths: list[Path | Non
             os.chown(path, owner.pw_uid, owner.pw_gid)
 
 
-def _warn_unreachable(owner: pwd.struct_passwd, directory: Path) -> None:
-    """Warn when a folder above ``directory`` does not let the broker's user through."""
-    for parent in directory.parents:
+def _check_reachable(user: str, directory: Path) -> None:
+    """Raise unless ``user`` may pass through every existing folder above ``directory``."""
+    try:
+        owner = pwd.getpwnam(user)
+    except KeyError:
+        raise BrokerError(
+            f"there is no user {user!r} for Mosquitto to run as; create it (the Debian "
+            "package does: apt install mosquitto) or choose another."
+        ) from None
+    for parent in reversed(directory.parents):
         try:
             info = parent.stat()
         except OSError:
-            return
+            return  # not created yet: mkdir makes it 0755
         if info.st_uid == owner.pw_uid:
             allowed = bool(info.st_mode & stat.S_IXUSR)
         elif info.st_gid == owner.pw_gid:
@@ -405,11 +413,11 @@ def _warn_unreachable(owner: pwd.struct_passwd, directory: Path) -> None:
         else:
             allowed = bool(info.st_mode & stat.S_IXOTH)
         if not allowed:
-            logger.warning(
-                "user %s cannot enter %s (mode %o), so Mosquitto will not read %s: move the "
-                "configuration (e.g. under /etc/cblrs) or choose --run-as", owner.pw_name,
-                parent, stat.S_IMODE(info.st_mode), directory)
-            return
+            raise BrokerError(
+                f"Mosquitto runs as user {user}, which cannot enter {parent} (mode "
+                f"{stat.S_IMODE(info.st_mode):o}) to read {directory}: write the configuration "
+                "where it can (e.g. under /etc/cblrs), or choose the user with --run-as."
+            )
 
 
 def _acl(cameras: Sequence[str], matchers: Sequence[str], planes: list[int], viewer: bool) -> str:
