@@ -518,6 +518,7 @@ def measure_stages(cameras: int, people: int, matcher_name: str, frames: int = 9
             store.commit_group([(m.camera_id, m.sequence) for m in group], outputs[frame],
                                matcher.get_state(), epoch + frame / 30.0, {"groups": 1})
         commit = (time.perf_counter() - started) / frames
+        stored_bytes = store.used_bytes() / len(rows)  # inbox + track rows, per message
         store.close()
     return {
         "cameras": cameras, "people": people, "matcher": matcher_name,
@@ -527,6 +528,7 @@ def measure_stages(cameras: int, people: int, matcher_name: str, frames: int = 9
         "update_us_per_message": 1e6 * statistics.median(steady) / cameras,
         "update_worst_ms": 1e3 * max(updates),
         "commit_ms_per_group": 1e3 * commit,
+        "database_bytes_per_message": stored_bytes,
     }
 
 
@@ -631,7 +633,8 @@ def main(argv: list[str] | None = None) -> int:
                   f"update {row['update_ms_per_group']:5.2f} ms/group "
                   f"({row['update_us_per_message']:5.0f} us/msg, worst frame "
                   f"{row['update_worst_ms']:5.1f} ms), commit "
-                  f"{row['commit_ms_per_group']:5.2f} ms/group")
+                  f"{row['commit_ms_per_group']:5.2f} ms/group; database "
+                  f"{row['database_bytes_per_message']:.0f} bytes/message")
         return 0
     for run in args.runs:
         receiver, _, rate = run.partition("/")
