@@ -3,7 +3,11 @@
 * :mod:`cblrs.runtime.wire` — message schemas (JSON, validated with msgspec);
 * :mod:`cblrs.runtime.topics` — MQTT topic layout ``cblrs/<plane>/<camera>/...``;
 * :mod:`cblrs.runtime.transport` — in-process broker and MQTT 5 (paho) transports;
-* :mod:`cblrs.runtime.broker` — Mosquitto configuration (users, ACL, TLS) and process.
+* :mod:`cblrs.runtime.broker` — Mosquitto configuration (users, ACL, TLS) and process;
+* :mod:`cblrs.runtime.spool`, :mod:`cblrs.runtime.confirmations` — a camera keeps each message
+  on disk until the matcher confirms it stored it;
+* :mod:`cblrs.runtime.lease` — one matcher per plane;
+* :mod:`cblrs.runtime.retention` — how much history the matcher's database keeps.
 """
 
 from __future__ import annotations
@@ -15,6 +19,9 @@ from cblrs.runtime.broker import (
     free_port,
     write_broker_config,
 )
+from cblrs.runtime.lease import LeaseError, PlaneLease
+from cblrs.runtime.retention import RetainedTable, RetentionPolicy, apply_retention
+from cblrs.runtime.spool import Spool, SpoolError
 from cblrs.runtime.topics import (
     TopicError,
     detections_filter,
@@ -56,11 +63,17 @@ __all__ = [
     "Delivery",
     "InProcessBroker",
     "InProcessTransport",
+    "LeaseError",
     "MosquittoProcess",
     "MqttSettings",
     "MqttTransport",
+    "PlaneLease",
     "RejectReason",
     "RejectedMessage",
+    "RetainedTable",
+    "RetentionPolicy",
+    "Spool",
+    "SpoolError",
     "Status",
     "TopicError",
     "TracksUpdate",
@@ -68,6 +81,7 @@ __all__ = [
     "TransportError",
     "ValidationPolicy",
     "Will",
+    "apply_retention",
     "decode_message",
     "decode_message_with_plane",
     "decode_status",
