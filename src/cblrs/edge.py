@@ -71,7 +71,7 @@ def box_rejections(xyxy: np.ndarray, image_size: tuple[int, int]) -> list[str | 
     width, height = image_size
     reasons: list[str | None] = []
     with np.errstate(invalid="ignore"):
-        finite = np.isfinite(boxes).all(axis=1)
+        finite = np.asarray(np.isfinite(boxes).all(axis=1))
         inverted = (boxes[:, 2] < boxes[:, 0]) | (boxes[:, 3] < boxes[:, 1])
         # Pixel areas span -0.5 .. size - 0.5; a box touching that area overlaps the image.
         outside = ((boxes[:, 2] < -0.5) | (boxes[:, 0] > width - 0.5)

@@ -642,11 +642,23 @@ def test_topic_names():
 
 
 @pytest.mark.parametrize(
-    "camera_id", ["", "a/b", "a+b", "a#", "$SYS", "-lead", "x" * 65, "with space", "é", None]
+    "camera_id",
+    ["", "a/b", "a+b", "a#", "$SYS", "-lead", "x" * 65, "with space", "é", None,
+     "CVLab1\n", "CVLab1\r\n", "CVLab1\nCVLab2"],
 )
 def test_invalid_camera_ids(camera_id):
     with pytest.raises(TopicError, match="not usable in MQTT topics"):
         validate_camera_id(camera_id)
+
+
+def test_a_trailing_newline_is_not_a_camera_id_on_the_wire():
+    # "$" matches before a final newline; the pattern ends with "\Z" (issue 10, item 13).
+    document = json.loads(encode_status("CVLab1", "online"))
+    document["client"] = "CVLab1\n"
+    with pytest.raises(RejectedMessage):
+        decode_status(json.dumps(document).encode())
+    with pytest.raises(TopicError):
+        parse_detections_topic("cblrs/1/CVLab1\n/detections")
 
 
 @pytest.mark.parametrize("plane_id", [0, -1, 65536, 1.0, True, "1"])
