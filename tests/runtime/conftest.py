@@ -20,11 +20,11 @@ Fixtures:
 from __future__ import annotations
 
 import itertools
-import os
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
 import pytest
+from broker_user import RUN_AS
 
 from cblrs.runtime.broker import (
     BrokerFiles,
@@ -65,9 +65,7 @@ def require_mosquitto() -> None:
         pytest.skip("mosquitto not installed")
 
 
-RUN_AS = "root" if os.geteuid() == 0 else None
-"""Test brokers keep their files in pytest's private temporary folders, which the
-``mosquitto`` service user cannot enter: as root they run as root (never in production)."""
+
 
 
 @dataclass

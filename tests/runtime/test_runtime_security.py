@@ -214,10 +214,11 @@ def test_certificates_are_valid_for_a_year(mosquitto_tls):
 
 
 def test_broker_config_command_writes_a_working_configuration(tmp_path, capsys):
+    from broker_user import RUN_AS
+
     from cblrs.cli.main import main
     from cblrs.runtime.broker import MosquittoProcess, free_port
     from cblrs.runtime.transport import MqttSettings
-    from conftest import RUN_AS
 
     port = free_port()
     out = tmp_path / "broker"
@@ -389,6 +390,6 @@ def test_the_broker_itself_refuses_oversized_packets(mosquitto_auth, matcher):
 
 
 def _run_as():
-    from conftest import RUN_AS
+    from broker_user import RUN_AS
 
     return RUN_AS

@@ -454,8 +454,9 @@ def test_connect_to_a_silent_port_fails_within_the_timeout():
 
 
 def test_connect_without_waiting_queues_until_the_broker_appears(start_mosquitto, tmp_path):
+    from broker_user import RUN_AS
+
     from cblrs.runtime.broker import MosquittoProcess, free_port, write_broker_config
-    from conftest import RUN_AS
 
     files = write_broker_config(
         tmp_path / "late", [], [], port=free_port(), allow_anonymous=True, viewer=False,

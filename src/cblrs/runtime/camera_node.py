@@ -283,6 +283,7 @@ class CameraNode:
         sequence = self.first_sequence
         started: float | None = None
         final = False
+        failing = True  # until the source is read to its end (or the node was stopped)
         try:
             for frame, capture_time in self._timed(frames, report):
                 if self._stop.is_set():
@@ -297,10 +298,11 @@ class CameraNode:
                 if started is None:
                     started = time.perf_counter()
                 report.elapsed_s = time.perf_counter() - started
+            failing = False
         finally:
             report.next_sequence = sequence
             try:
-                final = self._finish(spool, report)
+                final = self._finish(spool, report, failing)
             finally:
                 self._pump_stop.set()
                 self._wake.set()
@@ -345,10 +347,11 @@ class CameraNode:
         report.bytes += len(payload)
         return payload
 
-    def _finish(self, spool: Spool, report: CameraReport) -> bool:
+    def _finish(self, spool: Spool, report: CameraReport, failing: bool = False) -> bool:
         """Wait for the broker (and the matcher); publish the final status. Returns whether
-        the timestamped (final) "offline" was published."""
-        stopping = self._stop.is_set()
+        the timestamped (final) "offline" was published. ``failing``: the source raised; wait
+        a little for the broker, not for the matcher (the spool keeps the rest)."""
+        stopping = self._stop.is_set() or failing
         flush_timeout = min(self.flush_timeout_s, 5.0) if stopping else self.flush_timeout_s
         deadline = time.monotonic() + flush_timeout
         reminded = time.monotonic()
