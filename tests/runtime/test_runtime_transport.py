@@ -539,3 +539,22 @@ def test_publishes_keep_their_order_across_broker_restarts(start_mosquitto):
     assert overtaken == [], f"{len(overtaken)} messages were overtaken by newer ones"
     publisher.close()
     subscriber.close()
+
+
+def test_a_connection_to_itself_is_refused():
+    # Reconnecting to a local broker that is down, a client may draw the broker's port as its
+    # source port and connect to itself; it would then block the broker's restart.
+    from cblrs.runtime.transport import _socket_options
+
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        sock.connect(sock.getsockname())  # TCP simultaneous open with itself
+        assert sock.getsockname() == sock.getpeername()
+        with pytest.raises(OSError, match="connected to itself"):
+            _socket_options(None, None, sock)
+    with socket.socket() as listener, socket.socket() as client:
+        listener.bind(("127.0.0.1", 0))
+        listener.listen(1)
+        client.connect(listener.getsockname())
+        _socket_options(None, None, client)  # an ordinary connection: Nagle off
+        assert client.getsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY) != 0

@@ -269,9 +269,9 @@ def register(subparsers) -> None:
         "wait)",
     )
     delivery.add_argument(
-        "--resend-after", type=float, default=5.0,
+        "--resend-after", type=float, default=30.0,
         help="send unconfirmed messages again after this many seconds without a "
-        "confirmation while a matcher is online (doubles each round; default 5)",
+        "confirmation while a matcher is online (doubles each round; default 30)",
     )
     add_mqtt_options(parser)
     parser.add_argument(

@@ -12,7 +12,8 @@ it (:mod:`cblrs.runtime.confirmations`). A message the broker acknowledged but t
 has not confirmed is sent again (the matcher recognises duplicates by camera and sequence):
 
 * at once when a matcher announces itself "online" with a new session (the broker held
-  nothing for it, e.g. it never subscribed before, or the broker lost its state);
+  nothing for it, e.g. it never subscribed before, or the broker lost its state; a retained
+  announcement from before this camera connected does not count);
 * when the matcher confirms a message but not earlier ones the broker had acknowledged
   before it (the matcher stores a camera's messages in order, so those were dropped between
   broker and matcher: a full queue, a crash between two saves of the broker's database);
@@ -207,7 +208,7 @@ class CameraNode:
         flush_timeout_s: float = 30.0,
         confirm_timeout_s: float = 0.0,
         spool: Spool | None = None,
-        resend_after_s: float = 5.0,
+        resend_after_s: float = 30.0,
         window: int = 1000,
         max_bytes: int = DEFAULT_MAX_BYTES,
         clear_retained: bool = False,
@@ -563,7 +564,10 @@ class CameraNode:
             return
         if status.state == "online":
             self._matcher_online = True
-            if status.session_present is False:
+            # A live "online" with a new session: the broker held nothing for this matcher
+            # until now. A retained one is history (the session exists since; what this
+            # camera sends now reaches it, and spooled messages of earlier runs go anyway).
+            if status.session_present is False and not getattr(delivery, "retain", False):
                 # The broker held nothing for this matcher: whatever it has not confirmed
                 # must be sent again.
                 count = self._spool.requeue()

@@ -34,6 +34,7 @@ Example:
 
 from __future__ import annotations
 
+import errno
 import itertools
 import logging
 import queue
@@ -774,8 +775,7 @@ class MqttTransport:
         client.on_message = self._on_message
         client.on_publish = self._on_publish
         client.on_subscribe = self._on_subscribe
-        if settings.tcp_nodelay:
-            client.on_socket_open = _no_delay
+        client.on_socket_open = _socket_options if settings.tcp_nodelay else _refuse_self_connection
         properties = None
         if settings.mqtt5:
             properties = Properties(PacketTypes.CONNECT)
@@ -1241,8 +1241,26 @@ def reason_text(reason: int) -> str:
         return f"reason code 0x{reason:02x}"
 
 
-def _no_delay(client, userdata, sock) -> None:
-    """paho's on_socket_open: disable Nagle's algorithm (paho does not)."""
+def _refuse_self_connection(client, userdata, sock) -> None:
+    """paho's on_socket_open: refuse a TCP connection to itself.
+
+    Reconnecting to a local broker that is down, a client can draw the broker's own port as
+    its source port and connect to itself (TCP simultaneous open); it would then hold the
+    port the broker needs to start again. The OSError makes paho retry later.
+    """
+    try:
+        same = sock.getsockname() == sock.getpeername()
+    except (OSError, AttributeError):
+        return
+    if same:
+        sock.close()
+        raise OSError(errno.ECONNREFUSED, "connected to itself: nothing listens on that port")
+
+
+def _socket_options(client, userdata, sock) -> None:
+    """paho's on_socket_open: refuse a self-connection, disable Nagle's algorithm (paho
+    does not set TCP_NODELAY)."""
+    _refuse_self_connection(client, userdata, sock)
     try:
         sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
     except (OSError, AttributeError):  # not a TCP socket (e.g. a unix socket): nothing to do
