@@ -287,9 +287,13 @@ def run(args: argparse.Namespace) -> int:
     # of the garbage collector's full passes, which otherwise pause every thread for tens of
     # milliseconds while messages wait.
     gc.freeze()
-    try:
-        if hasattr(transport, "open"):
+    if hasattr(transport, "open"):
+        try:
             transport.open()  # NATS: the plane's lease before the store is touched
+        except BaseException:
+            store.close()
+            raise
+    try:
         # Connects, holds the database and the plane's lease, then starts the tracker
         # process: a refusal (wrong password, another matcher) ends here with one sentence.
         service.start()

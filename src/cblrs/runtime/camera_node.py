@@ -247,6 +247,8 @@ class CameraNode:
         self._lock = threading.Lock()
         self._online_published = False
         self._done = False
+        self._flushed = False
+        self._answers = True
         self.topic = detections_topic(self.plane_id, camera_id)
         self.status_topic = status_topic(self.plane_id, camera_id)
 
@@ -369,6 +371,8 @@ class CameraNode:
             time.sleep(0.02)
         counts = spool.counts()
         all_handed = self._refusal is None and counts["waiting"] == 0 and counts["handed"] == 0
+        # Flushed: the broker acknowledged every message (later re-sends change nothing).
+        self._flushed = all_handed
         if (all_handed and self.confirm_timeout_s > 0 and not stopping):
             confirm_deadline = time.monotonic() + self.confirm_timeout_s
             while len(spool) and time.monotonic() < confirm_deadline and self._refusal is None:
@@ -376,9 +380,8 @@ class CameraNode:
         # Nothing may follow the final "offline": stop the pump before publishing it.
         self._pump_stop.set()
         self._wake.set()
-        counts = spool.counts()
-        accounted = counts["waiting"] == 0 and counts["handed"] == 0 and self._refusal is None
-        final = accounted and (self.confirm_timeout_s <= 0 or len(spool) == 0)
+        final = self._flushed and self._refusal is None and (
+            self.confirm_timeout_s <= 0 or len(spool) == 0)
         if getattr(self.transport, "connected", True):
             self._announce("offline", final=final)
             if final:
@@ -400,8 +403,7 @@ class CameraNode:
             report.refusal = self._refusal
         report.unconfirmed = len(spool)
         report.dropped_from_spool = counts["dropped"]
-        report.flushed = (self._refusal is None and counts["waiting"] == 0
-                          and counts["handed"] == 0)
+        report.flushed = self._flushed and self._refusal is None
         report.confirmed_all = report.unconfirmed == 0
         if self._counts["already_spooled"]:
             report.extra["already_spooled"] = self._counts["already_spooled"]
@@ -536,7 +538,11 @@ class CameraNode:
                     self._rejected_by_matcher[reason] += dropped
                 logger.warning("camera %s: the matcher rejected %d messages (%s)",
                                self.camera_id, dropped, reason)
-        if top is not None and top_acked is not None:
+        # Only where "acknowledged" means the broker has it (MQTT answers; a NATS transport
+        # retries on its own and its matcher may see re-deliveries out of order), and only
+        # while the pump still sends.
+        if (top is not None and top_acked is not None and self._answers
+                and not self._pump_stop.is_set()):
             gaps = self._spool.requeue_gaps(below=top, acknowledged_before=top_acked)
             if gaps:
                 with self._lock:
