@@ -459,7 +459,9 @@ def run(args: argparse.Namespace) -> int:
     if nats:
         transport = camera_transport(args, client_id)
     else:
-        transport = MqttTransport(client_id, settings, persistent=False, will=Will(topic, payload))
+        # A persistent session: the matcher's confirmations wait at the broker while the
+        # camera is away, so a restarted camera does not send again what was stored.
+        transport = MqttTransport(client_id, settings, persistent=True, will=Will(topic, payload))
     node = CameraNode(
         transport,
         plane_id,
