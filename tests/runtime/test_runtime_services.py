@@ -824,3 +824,18 @@ def test_locate_boxes_and_the_camera_agree_on_every_box(small_world, tmp_path, c
         assert (row["camera_sends"] == "location") == bool(colour[2] != 0)
     assert [row["camera_sends"] for row in kept] == ["location", "no location (cut_by_border)"]
     assert all(row["x"] is None for row in positions if row["rejected"])
+
+
+def test_a_camera_without_any_matcher_keeps_everything(small_world, caplog):
+    # MQTT 5 "no matching subscribers" (0x10; the in-process broker answers it, Mosquitto 2.0
+    # answers 0): accepted by the broker, delivered to nobody, so the spool keeps it.
+    _, reference = small_world
+    broker = InProcessBroker()
+    node = CameraNode(InProcessTransport(broker, "cam1", persistent=False), PLANE, "cam1",
+                      reference, epoch=1000.0, confirm_timeout_s=0.2)
+    with caplog.at_level("WARNING", logger="cblrs.runtime.camera_node"):
+        report = node.run(_frames(5))
+    assert report.flushed and not report.confirmed_all
+    assert (report.unconfirmed, report.extra["unrouted"], report.confirmed) == (5, 5, 0)
+    assert "no subscriber for cblrs/1/cam1/detections" in caplog.text
+    assert report.extra["final_status"] is False  # not the end of the stream for a matcher

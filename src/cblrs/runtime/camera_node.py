@@ -75,7 +75,7 @@ from cblrs.runtime.topics import (
     stored_topic,
     validate_camera_id,
 )
-from cblrs.runtime.transport import LOST, reason_text, refused
+from cblrs.runtime.transport import LOST, NO_MATCHING_SUBSCRIBERS, reason_text, refused
 from cblrs.runtime.wire import (
     DEFAULT_MAX_BYTES,
     RejectedMessage,
@@ -407,6 +407,7 @@ class CameraNode:
         report.confirmed_all = report.unconfirmed == 0
         if self._counts["already_spooled"]:
             report.extra["already_spooled"] = self._counts["already_spooled"]
+        report.extra["unrouted"] = self._counts["unrouted"]
 
     # -- the pump ---------------------------------------------------------------------------
 
@@ -471,6 +472,13 @@ class CameraNode:
         spool.acknowledged(sequence)
         with self._lock:
             self._counts["acknowledged"] += 1
+            first_unrouted = reason == NO_MATCHING_SUBSCRIBERS and not self._counts["unrouted"]
+            if reason == NO_MATCHING_SUBSCRIBERS:
+                self._counts["unrouted"] += 1
+        if first_unrouted:
+            logger.warning("camera %s: the broker has no subscriber for %s (no matcher has "
+                           "subscribed yet); the spool keeps the messages until one confirms "
+                           "them", self.camera_id, topic)
 
     def _maybe_resend(self) -> None:
         if not self._matcher_online:
