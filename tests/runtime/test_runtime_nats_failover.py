@@ -264,6 +264,17 @@ def test_matcher_killed_and_started_on_another_host(case, cluster, tmp_path, rec
     processes = [start_matcher(case, nats, first_database, "host-a")]
     try:
         wait_for_consumer(probe)
+        # A second matcher while the first holds the plane's lease is refused, in one sentence.
+        # (Asked while host-a is alive: after a kill the lease lives only LEASE_TTL seconds,
+        # less than a loaded machine may take to start a Python process.)
+        refused = subprocess.run(
+            [sys.executable, "-m", "cblrs.cli.main", "matcher", "--references",
+             str(case["folder"]), "--db", str(tmp_path / "host-c.db"), "--backbone", nats.url,
+             "--client-id", "host-c", "--idle-exit", "20", "--quiet"],
+            capture_output=True, text=True, timeout=60)
+        assert refused.returncode == 1, refused.stderr
+        assert "plane 1 is already served by host-a@" in refused.stderr
+        assert len(refused.stderr.strip().splitlines()) == 1, refused.stderr
         epoch = time.time() + 2.0
         cameras = start_cameras(case, nats, epoch)
         total = len(case["scene"].frames) * len(case["scene"].cameras)
@@ -272,15 +283,6 @@ def test_matcher_killed_and_started_on_another_host(case, cluster, tmp_path, rec
         processes[0].wait(10)
         killed = time.monotonic()
         processed_at_kill = counter(first_database, "processed")
-        # A second matcher while the dead one's lease lives is refused, in one sentence.
-        refused = subprocess.run(
-            [sys.executable, "-m", "cblrs.cli.main", "matcher", "--references",
-             str(case["folder"]), "--db", str(tmp_path / "host-c.db"), "--backbone", nats.url,
-             "--client-id", "host-c", "--quiet"],
-            capture_output=True, text=True, timeout=60)
-        assert refused.returncode == 1
-        assert "plane 1 is already served by host-a@" in refused.stderr
-        assert len(refused.stderr.strip().splitlines()) == 1, refused.stderr
         processes.append(start_matcher(case, nats, second_database, "host-b",
                                        "--lease-wait", "30"))
         wait_until(lambda: counter(second_database, "processed") >= processed_at_kill, 60,
