@@ -12,6 +12,9 @@ Tables:
 * ``meta`` — the matcher state snapshot (``get_state()`` JSON), the last released timestamp,
   the service settings and the token of the service currently tracking (:meth:`claim`).
 * ``counters`` — received, rejected by reason, duplicates, late, processed, ...
+* ``events``, ``counts``, ``count_bins``, ``od`` — the online analytics' outbox of events
+  and its persistent counters (:mod:`cblrs.runtime.analytics_store`), written in the
+  transaction of the group whose tracks produced them.
 
 Processing a timestamp group is one transaction (track rows + inbox rows marked processed +
 matcher state + counters), so after a crash the file holds either all of a group or none of
@@ -51,6 +54,7 @@ import numpy as np
 
 from cblrs.detections import CameraMessage, Tracks
 from cblrs.errors import CblrsError
+from cblrs.runtime.analytics_store import ANALYTICS_SCHEMA
 from cblrs.runtime.wire import CLASS_IDS, WireMessage
 
 SCHEMA_VERSION = 1
@@ -81,11 +85,12 @@ CREATE TABLE IF NOT EXISTS tracks (
     x REAL NOT NULL,
     y REAL NOT NULL,
     camera INTEGER NOT NULL,
-    x_min REAL, y_min REAL, x_max REAL, y_max REAL
+    x_min REAL, y_min REAL, x_max REAL, y_max REAL,
+    class_id INTEGER
 );
 CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
 CREATE TABLE IF NOT EXISTS counters (name TEXT PRIMARY KEY, value INTEGER NOT NULL);
-"""
+""" + ANALYTICS_SCHEMA
 
 
 class StoreError(CblrsError):
@@ -275,6 +280,7 @@ class RuntimeStore:
                 # a killed matcher); only an OS crash can lose the last transactions.
                 self._connection.execute("PRAGMA synchronous=NORMAL")
                 self._connection.executescript(_SCHEMA)
+                self._add_missing_columns()
                 self._check_version()
                 if write_lock is not None:
                     self._leave_checkpoints()
@@ -380,6 +386,12 @@ class RuntimeStore:
             raise StoreError(
                 f"{self.path} has runtime schema {stored}, this cblrs writes {SCHEMA_VERSION}."
             )
+
+    def _add_missing_columns(self) -> None:
+        """Columns added since a file was created (optional ones, so old rows stay valid)."""
+        columns = {row[1] for row in self._connection.execute("PRAGMA table_info(tracks)")}
+        if "class_id" not in columns:
+            self._connection.execute("ALTER TABLE tracks ADD COLUMN class_id INTEGER")
 
     def _execute_write(self, sql: str, parameters: tuple = ()) -> None:
         with self._lock:
@@ -513,6 +525,7 @@ class RuntimeStore:
         released_timestamp: float,
         counters: Mapping[str, int] | None = None,
         tracker: str | None = None,
+        also: Callable[[sqlite3.Cursor], None] | None = None,
     ) -> None:
         """Store one processed timestamp group atomically.
 
@@ -523,6 +536,8 @@ class RuntimeStore:
             released_timestamp: the group's capture timestamp, seconds.
             counters: counter increments.
             tracker: the committing service's :meth:`claim` token, if it has one.
+            also: more writes of the same transaction (the online analytics' events,
+                counters and state), given the cursor.
 
         Raises:
             StoreError: ``tracker`` is not the file's tracker any more (nothing is written).
@@ -536,6 +551,7 @@ class RuntimeStore:
                 float(tracks.world_xy[index, 1]),
                 int(tracks.camera_id[index]),
                 *(_nullable(value) for value in tracks.xyxy[index]),
+                None if tracks.class_id[index] < 0 else int(tracks.class_id[index]),
             )
             for index in range(len(tracks))
         ]
@@ -554,13 +570,25 @@ class RuntimeStore:
             )
             cursor.executemany(
                 "INSERT INTO tracks (frame, timestamp, track_id, x, y, camera, "
-                "x_min, y_min, x_max, y_max) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                "x_min, y_min, x_max, y_max, class_id) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
                 rows,
             )
             if matcher_state is not None:
                 _set_meta(cursor, "matcher_state", matcher_state)
             _set_meta(cursor, "released_timestamp", float(released_timestamp))
             _add_counters(cursor, counters or {})
+            if also is not None:
+                also(cursor)
+
+    def write(self, writes: Callable[[sqlite3.Cursor], Any]) -> Any:
+        """Run ``writes(cursor)`` in one write transaction of its own; returns its result."""
+        with self._lock, self._transaction() as cursor:
+            return writes(cursor)
+
+    def query(self, sql: str, parameters: tuple = ()) -> list[tuple]:
+        """The rows of one read statement."""
+        with self._lock:
+            return self._connection.execute(sql, parameters).fetchall()
 
     def execute_write(self, sql: str, parameters: tuple = ()) -> int:
         """One write statement in its own transaction (with the file check); rows changed."""
@@ -659,24 +687,17 @@ class RuntimeStore:
             ).fetchall()
         return {status: int(count) for status, count in rows}
 
-    def tracks(self) -> Tracks:
-        """All stored track rows in insertion order."""
-        with self._lock:
-            rows = self._connection.execute(
-                "SELECT frame, timestamp, track_id, x, y, camera, x_min, y_min, x_max, y_max "
-                "FROM tracks ORDER BY row"
-            ).fetchall()
-        if not rows:
-            return Tracks.empty()
-        table = np.array(rows, dtype=object)
-        return Tracks(
-            frame=table[:, 0].astype(np.int64),
-            timestamp=table[:, 1].astype(np.float64),
-            track_id=table[:, 2].astype(np.int64),
-            world_xy=table[:, 3:5].astype(np.float64),
-            camera_id=table[:, 5].astype(np.int64),
-            xyxy=np.where(table[:, 6:10] == None, np.nan, table[:, 6:10]).astype(np.float64),  # noqa: E711
+    def tracks(self, after_row: int = 0, limit: int | None = None) -> Tracks:
+        """Stored track rows in insertion order (all, or those after row ``after_row``)."""
+        sql = (
+            "SELECT frame, timestamp, track_id, x, y, camera, x_min, y_min, x_max, y_max, "
+            "class_id FROM tracks WHERE row > ? ORDER BY row"
         )
+        if limit is not None:
+            sql += f" LIMIT {int(limit)}"
+        with self._lock:
+            rows = self._connection.execute(sql, (int(after_row),)).fetchall()
+        return tracks_from_rows(rows)
 
     def summary(self) -> dict[str, Any]:
         """Counters, inbox status counts, track rows and settings, for ``--stats``.
@@ -704,6 +725,23 @@ class RuntimeStore:
             "track_ids": int(identities),
             "released_timestamp": self.released_timestamp(),
         }
+
+
+def tracks_from_rows(rows: Sequence[Sequence[Any]]) -> Tracks:
+    """Track rows ``(frame, timestamp, track_id, x, y, camera, x_min, y_min, x_max, y_max,
+    class_id)`` as :class:`Tracks` (NULL boxes become NaN, a NULL class -1)."""
+    if not rows:
+        return Tracks.empty()
+    table = np.array(rows, dtype=object)
+    return Tracks(
+        frame=table[:, 0].astype(np.int64),
+        timestamp=table[:, 1].astype(np.float64),
+        track_id=table[:, 2].astype(np.int64),
+        world_xy=table[:, 3:5].astype(np.float64),
+        camera_id=table[:, 5].astype(np.int64),
+        xyxy=np.where(table[:, 6:10] == None, np.nan, table[:, 6:10]).astype(np.float64),  # noqa: E711
+        class_id=np.where(table[:, 10] == None, -1, table[:, 10]).astype(np.int64),  # noqa: E711
+    )
 
 
 def checkpoint_regularly(path: Path, stop: threading.Event, interval_s: float = 1.0) -> None:

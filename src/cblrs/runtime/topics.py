@@ -6,6 +6,8 @@ Layout (one subtree per plane, so a broker cluster can be split by plane id)::
     cblrs/<plane>/<camera>/status            retained availability, last will "offline"
     cblrs/<plane>/<camera>/stored            matcher -> camera: sequences stored (or rejected)
     cblrs/<plane>/tracks                     matcher -> viewers, track updates
+    cblrs/<plane>/events                     matcher -> viewers, analytics events (QoS 1)
+    cblrs/<plane>/live                       matcher -> viewers, counts and camera health (1 Hz)
     cblrs/<plane>/matchers/<matcher>/status  retained availability of a matcher
     cblrs/<plane>/lease                      retained: which matcher instance holds the plane
 
@@ -96,6 +98,16 @@ def stored_topic(plane_id: int, camera_id: str) -> str:
 def tracks_topic(plane_id: int) -> str:
     """``cblrs/<plane>/tracks``: track updates published by the plane's matcher."""
     return f"{ROOT}/{_plane(plane_id)}/tracks"
+
+
+def events_topic(plane_id: int) -> str:
+    """``cblrs/<plane>/events``: analytics events (line crossings, zone entries and exits)."""
+    return f"{ROOT}/{_plane(plane_id)}/events"
+
+
+def live_topic(plane_id: int) -> str:
+    """``cblrs/<plane>/live``: the matcher's live summary (counts, occupancy, camera health)."""
+    return f"{ROOT}/{_plane(plane_id)}/live"
 
 
 def detections_filter(plane_id: int | None = None) -> str:

@@ -12,7 +12,9 @@ Three payloads, each JSON (readable with ``mosquitto_sub -v``) and tagged with a
   No field can carry image data: strings are a fixed schema tag, a bounded camera id and a
   class name from :data:`~cblrs.detections.CLASS_NAMES`; everything else is a number; unknown
   fields are refused and the payload size is bounded.
-* ``cblrs.tracks/1`` on ``cblrs/<plane>/tracks`` — track updates of a matcher.
+* ``cblrs.tracks/1`` on ``cblrs/<plane>/tracks`` — track updates of a matcher, one per
+  released group, empty ones too (no objects is information: a viewer drops stale marks);
+  each row may name its ``class``.
 * ``cblrs.status/1`` on the status topics — retained availability ("online"/"offline").
 
 The receiver decodes with :func:`decode_message` (or :meth:`ValidationPolicy.decode`), which
@@ -590,6 +592,8 @@ class WireTrack(msgspec.Struct, forbid_unknown_fields=True):
     world_xy: tuple[float, float]
     camera: Annotated[int, msgspec.Meta(ge=-1, le=MAX_INT)] = -1
     box: tuple[float, float, float, float] | None = None
+    class_name: ClassName | None = msgspec.field(default=None, name="class")
+    """The track's class (a name of :data:`~cblrs.detections.CLASS_NAMES`); absent: unknown."""
 
 
 class WireTracks(msgspec.Struct, forbid_unknown_fields=True):
@@ -642,13 +646,14 @@ def encode_tracks(
     if not (np.isfinite(tracks.world_xy).all() and np.isfinite(tracks.timestamp).all()):
         raise RejectedMessage(RejectReason.INVALID_VALUE, "track positions must be finite")
     rows = []
-    for frame, timestamp, track_id, world_xy, camera, box in zip(
+    for frame, timestamp, track_id, world_xy, camera, box, class_id in zip(
         tracks.frame.tolist(),
         tracks.timestamp.tolist(),
         tracks.track_id.tolist(),
         tracks.world_xy.tolist(),
         tracks.camera_id.tolist(),
         tracks.xyxy.tolist(),
+        tracks.class_id.tolist(),
         strict=True,
     ):
         row: dict[str, Any] = {
@@ -660,6 +665,8 @@ def encode_tracks(
         }
         if all(math.isfinite(value) for value in box):
             row["box"] = box
+        if 0 <= class_id < len(CLASS_NAMES):
+            row["class"] = CLASS_NAMES[class_id]
         rows.append(row)
     document = {
         "schema": TRACKS_SCHEMA,
@@ -697,9 +704,17 @@ def decode_tracks(payload: bytes, *, max_bytes: int = 8 * 1024 * 1024) -> Tracks
             [row.box if row.box is not None else (math.nan,) * 4 for row in rows],
             dtype=np.float64,
         ).reshape(-1, 4),
+        class_id=np.array(
+            [-1 if row.class_name is None else CLASS_IDS.get(row.class_name, -2) for row in rows],
+            dtype=np.int64,
+        ),
     )
     if not (np.isfinite(tracks.world_xy).all() and np.isfinite(tracks.timestamp).all()):
         raise RejectedMessage(RejectReason.INVALID_VALUE, "track positions must be finite")
+    if (tracks.class_id == -2).any():
+        raise RejectedMessage(
+            RejectReason.INVALID_VALUE, f"unknown track class; known: {', '.join(CLASS_NAMES)}"
+        )
     return TracksUpdate(wire.plane, wire.sequence, tracks, tuple(wire.cameras))
 
 

@@ -1,0 +1,215 @@
+"""The matcher's analytics on the wire: events (``cblrs.events/1``) and the live summary
+(``cblrs.live/1``), JSON validated like the other messages (:mod:`cblrs.runtime.wire`).
+
+* ``cblrs.events/1`` on ``cblrs/<plane>/events``, QoS 1, one message per event::
+
+      {"schema": "cblrs.events/1", "plane": 1, "id": 17, "kind": "line_crossed",
+       "timestamp": 1700000012.4, "track": 42, "class": "person", "place": "north_flow",
+       "direction": "positive", "world_xy": [3.1, 17.0], "total": 9,
+       "key": "line_crossed/north_flow/42/1700000012.4"}
+
+  ``kind`` is ``line_crossed`` (with ``direction`` and ``world_xy``), ``zone_entered``
+  (``crossed``: entered across the border, or first seen inside) or ``zone_left``
+  (``entered_at``, ``dwell_s``, ``entered``, ``exited``: left across the border, or the
+  track was lost inside). ``total`` is the running count of that place's events of the
+  kind (crossings in that direction; visits begun; visits ended), all classes. ``id`` is
+  the plane's event sequence in the matcher's database, ``key`` the event's natural
+  identity: QoS 1 may deliver an event twice (a matcher killed between the broker's
+  acknowledgement and marking it published sends it again), so subscribers de-duplicate by
+  ``key``. Times are capture times, seconds since the Unix epoch.
+* ``cblrs.live/1`` on ``cblrs/<plane>/live``, QoS 0, retained, about once a second: the
+  persistent counters, each zone's occupancy and live dwell (open visits of confirmed
+  tracks), and each camera's health as the matcher sees it (online, messages received and
+  rejected, message rate, age of its last message).
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Any, Literal
+
+import msgspec
+
+from cblrs.runtime.wire import (
+    MAX_INT,
+    CameraId,
+    ClassName,
+    Count,
+    PlaneId,
+    RejectedMessage,
+    RejectReason,
+    _decode_typed,
+)
+
+EVENTS_SCHEMA = "cblrs.events/1"
+LIVE_SCHEMA = "cblrs.live/1"
+EVENT_KINDS = ("line_crossed", "zone_entered", "zone_left")
+MAX_EVENT_BYTES = 4096
+MAX_LIVE_BYTES = 1024 * 1024
+
+PlaceName = Annotated[str, msgspec.Meta(min_length=1, max_length=128)]
+
+
+class WireEvent(msgspec.Struct, forbid_unknown_fields=True, omit_defaults=True):
+    """A ``cblrs.events/1`` payload (see the module docstring)."""
+
+    schema: str
+    plane: PlaneId
+    id: Count
+    kind: Literal["line_crossed", "zone_entered", "zone_left"]
+    timestamp: float
+    track: Annotated[int, msgspec.Meta(ge=-MAX_INT, le=MAX_INT)]
+    place: PlaceName
+    total: Count
+    key: Annotated[str, msgspec.Meta(min_length=1, max_length=512)]
+    class_name: ClassName | None = msgspec.field(default=None, name="class")
+    direction: Literal["positive", "negative"] | None = None
+    world_xy: tuple[float, float] | None = None
+    crossed: bool | None = None
+    entered_at: float | None = None
+    dwell_s: float | None = None
+    entered: bool | None = None
+    exited: bool | None = None
+
+
+_REQUIRED = {
+    "line_crossed": ("direction", "world_xy"),
+    "zone_entered": ("crossed",),
+    "zone_left": ("entered_at", "dwell_s", "entered", "exited"),
+}
+
+
+def encode_event(body: dict[str, Any], plane_id: int, event_id: int) -> bytes:
+    """The payload of a stored event (``events.body``) with its plane and id.
+
+    Raises:
+        RejectedMessage: the event would not pass :func:`decode_event`.
+    """
+    document = {"schema": EVENTS_SCHEMA, "plane": int(plane_id), "id": int(event_id), **body}
+    try:
+        event = msgspec.convert(document, WireEvent)
+    except msgspec.ValidationError as error:
+        raise RejectedMessage(RejectReason.INVALID_VALUE, str(error)) from None
+    _check_event(event)
+    return msgspec.json.encode(event)
+
+
+def decode_event(payload: bytes) -> WireEvent:
+    """Decode and validate a ``cblrs.events/1`` payload.
+
+    Raises:
+        RejectedMessage: for every kind of bad input, and nothing else.
+    """
+    if len(payload) > MAX_EVENT_BYTES:
+        raise RejectedMessage(RejectReason.OVERSIZED, f"event of {len(payload)} bytes")
+    event = _decode_typed(payload, WireEvent, EVENTS_SCHEMA)
+    _check_event(event)
+    return event
+
+
+def _check_event(event: WireEvent) -> None:
+    missing = [name for name in _REQUIRED[event.kind] if getattr(event, name) is None]
+    if missing:
+        raise RejectedMessage(
+            RejectReason.MISSING_FIELD, f"a {event.kind} event needs {', '.join(missing)}"
+        )
+    others = {name for names in _REQUIRED.values() for name in names} - set(_REQUIRED[event.kind])
+    extra = sorted(name for name in others if getattr(event, name) is not None)
+    if extra:
+        raise RejectedMessage(
+            RejectReason.UNKNOWN_FIELD, f"a {event.kind} event has no {', '.join(extra)}"
+        )
+    values = [event.timestamp, *(event.world_xy or ()), event.entered_at, event.dwell_s]
+    if not all(value is None or abs(value) < float("inf") for value in values):
+        raise RejectedMessage(RejectReason.INVALID_VALUE, "event times and places must be finite")
+
+
+# --------------------------------------------------------------------------- live summary
+
+
+class LiveCamera(msgspec.Struct, forbid_unknown_fields=True):
+    """One camera's health in a live summary.
+
+    Attributes:
+        camera: the camera id.
+        online: its last status said online (a last will or "offline" says not).
+        received: messages received from it since the matcher started.
+        rejected: of which refused by validation.
+        rate_hz: messages per second over the last few seconds.
+        last_capture: capture time of its newest message, seconds since the epoch.
+        last_age_s: seconds since its last message arrived (None: none yet).
+    """
+
+    camera: CameraId
+    online: bool
+    received: Count
+    rejected: Count
+    rate_hz: float
+    last_capture: float | None = None
+    last_age_s: float | None = None
+
+
+class LiveLine(msgspec.Struct, forbid_unknown_fields=True):
+    line: PlaceName
+    positive: Count
+    negative: Count
+
+
+class LiveZone(msgspec.Struct, forbid_unknown_fields=True):
+    """A zone now and in total.
+
+    Attributes:
+        zone: its name.
+        occupancy: confirmed tracks inside now.
+        entries, exits, visits: totals since counting began.
+        mean_dwell_s: mean dwell of the ended visits, seconds.
+        dwell: ``[track, seconds so far]`` of the open visits (live dwell), longest first.
+    """
+
+    zone: PlaceName
+    occupancy: Count
+    entries: Count
+    exits: Count
+    visits: Count
+    mean_dwell_s: float
+    dwell: Annotated[list[tuple[int, float]], msgspec.Meta(max_length=1000)]
+
+
+class LiveSummary(msgspec.Struct, forbid_unknown_fields=True):
+    """A ``cblrs.live/1`` payload (see the module docstring).
+
+    Attributes:
+        clock: the analytics' clock (capture time they have counted up to), or None.
+        sent_at: when the matcher published it, seconds since the epoch.
+    """
+
+    schema: str
+    plane: PlaneId
+    sent_at: float
+    clock: float | None
+    cameras: list[LiveCamera]
+    lines: list[LiveLine]
+    zones: list[LiveZone]
+
+
+def encode_live(summary: dict[str, Any]) -> bytes:
+    """Serialise a live summary (a dict with the :class:`LiveSummary` fields, no schema).
+
+    Raises:
+        RejectedMessage: it does not match the schema.
+    """
+    try:
+        live = msgspec.convert({"schema": LIVE_SCHEMA, **summary}, LiveSummary)
+    except msgspec.ValidationError as error:
+        raise RejectedMessage(RejectReason.INVALID_VALUE, str(error)) from None
+    return msgspec.json.encode(live)
+
+
+def decode_live(payload: bytes) -> LiveSummary:
+    """Decode and validate a ``cblrs.live/1`` payload.
+
+    Raises:
+        RejectedMessage: for every kind of bad input, and nothing else.
+    """
+    if len(payload) > MAX_LIVE_BYTES:
+        raise RejectedMessage(RejectReason.OVERSIZED, f"live summary of {len(payload)} bytes")
+    return _decode_typed(payload, LiveSummary, LIVE_SCHEMA)
