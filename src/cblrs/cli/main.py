@@ -34,6 +34,7 @@ SUBCOMMANDS = [
     "broker_config",
     "camera",
     "matcher",
+    "dashboard",
     "bench",
     "experiment",
 ]

@@ -8,8 +8,9 @@
                        clear password on any command line)
     acl                a camera publishes only its own detections and status and reads only
                        its confirmations and the matchers' status; matchers read detections,
-                       publish tracks and confirmations and hold their plane's lease; the
-                       viewer reads tracks and status
+                       publish tracks, analytics events, live summaries and confirmations and
+                       hold their plane's lease; the viewer (the dashboard) reads tracks,
+                       events, live summaries and status, and writes nothing
     credentials.json   the generated passwords (mode 0600)
     secrets/<user>.password   one user's password (mode 0600): copy it to that client only
     data/              persistence (queued QoS 1 messages survive a broker restart)
@@ -439,6 +440,8 @@ def _acl(cameras: Sequence[str], matchers: Sequence[str], planes: list[int], vie
                 f"topic read {ROOT}/{plane}/+/detections",
                 f"topic read {ROOT}/{plane}/+/status",
                 f"topic write {ROOT}/{plane}/tracks",
+                f"topic write {ROOT}/{plane}/events",
+                f"topic write {ROOT}/{plane}/live",
                 f"topic write {ROOT}/{plane}/+/stored",
                 f"topic write {ROOT}/{plane}/matchers/{matcher}/status",
                 f"topic readwrite {ROOT}/{plane}/lease",
@@ -448,6 +451,8 @@ def _acl(cameras: Sequence[str], matchers: Sequence[str], planes: list[int], vie
         lines += [
             f"user {VIEWER}",
             f"topic read {ROOT}/+/tracks",
+            f"topic read {ROOT}/+/events",
+            f"topic read {ROOT}/+/live",
             f"topic read {ROOT}/+/+/status",
             f"topic read {ROOT}/+/matchers/+/status",
             f"topic read {ROOT}/+/lease",

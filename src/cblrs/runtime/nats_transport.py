@@ -133,8 +133,14 @@ class _TracksKey(msgspec.Struct):
     tracks: list[_TrackRow]
 
 
+class _EventKey(msgspec.Struct):
+    plane: int
+    key: str
+
+
 _message_key = msgspec.json.Decoder(_MessageKey)
 _tracks_key = msgspec.json.Decoder(_TracksKey)
+_event_key = msgspec.json.Decoder(_EventKey)
 
 
 def message_id(subject: str, payload: bytes) -> str | None:
@@ -142,7 +148,10 @@ def message_id(subject: str, payload: bytes) -> str | None:
 
     Detections: ``<plane>.<camera>.<sequence>`` (the matcher's de-duplication key too); track
     updates: ``tracks.<plane>.<capture timestamp>`` (one update per plane and timestamp
-    group), so a matcher that re-tracks groups after a failover does not store them twice.
+    group), so a matcher that re-tracks groups after a failover does not store them twice;
+    analytics events: ``events.<plane>.<key>`` (the event's natural identity), so an event
+    published again (after a matcher restart, or counted again by a rebuilt plane) is stored
+    once.
     """
     try:
         if subject.endswith(".detections"):
@@ -152,6 +161,9 @@ def message_id(subject: str, payload: bytes) -> str | None:
             update = _tracks_key.decode(payload)
             if update.tracks:
                 return f"tracks.{update.plane}.{update.tracks[0].timestamp!r}"
+        if subject.endswith(".events"):
+            event = _event_key.decode(payload)
+            return f"events.{event.plane}.{event.key}"
     except msgspec.DecodeError:
         return None  # the matcher rejects and counts it; nothing to de-duplicate by
     return None

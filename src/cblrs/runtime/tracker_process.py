@@ -223,7 +223,8 @@ def _encode(
 ) -> bytes | None:
     """The track update of one group; None (logged) if it cannot be encoded."""
     try:
-        return encode_tracks(tracks, plane_id, sequence=sequence, cameras=camera_ids)
+        return encode_tracks(tracks, plane_id, sequence=sequence, cameras=camera_ids,
+                             timestamp=timestamp)
     except Exception:  # a viewer feed must never stop the matcher
         logger.exception("could not encode the tracks of %s", timestamp)
         return None

@@ -606,6 +606,7 @@ class WireTracks(msgspec.Struct, forbid_unknown_fields=True):
     cameras: Annotated[list[CameraId], msgspec.Meta(max_length=1000)] = msgspec.field(
         default_factory=list
     )
+    timestamp: float | None = None
 
 
 @dataclass(frozen=True)
@@ -617,16 +618,24 @@ class TracksUpdate:
         sequence: the matcher's update counter.
         tracks: the rows (``camera_id`` indexes ``cameras`` when that is given).
         cameras: camera ids, in the order ``Tracks.camera_id`` refers to them (may be empty).
+        timestamp: the update's time, seconds: the matcher has tracked everything captured
+            up to it (an empty update says no track is there at that time); None if not said.
     """
 
     plane_id: int
     sequence: int
     tracks: Tracks
     cameras: tuple[str, ...] = field(default=())
+    timestamp: float | None = None
 
 
 def encode_tracks(
-    tracks: Tracks, plane_id: int, *, sequence: int = 0, cameras: list[str] | None = None
+    tracks: Tracks,
+    plane_id: int,
+    *,
+    sequence: int = 0,
+    cameras: list[str] | None = None,
+    timestamp: float | None = None,
 ) -> bytes:
     """Serialise track rows for ``cblrs/<plane>/tracks`` (schema ``cblrs.tracks/1``).
 
@@ -635,6 +644,7 @@ def encode_tracks(
         plane_id: the plane.
         sequence: the matcher's update counter.
         cameras: camera ids that ``tracks.camera_id`` indexes (optional).
+        timestamp: the update's time (the released group's capture time; optional).
 
     Raises:
         RejectedMessage: non-finite positions or times, or too many rows.
@@ -675,6 +685,10 @@ def encode_tracks(
         "tracks": rows,
         "cameras": list(cameras or []),
     }
+    if timestamp is not None:
+        if not math.isfinite(timestamp):
+            raise RejectedMessage(RejectReason.INVALID_VALUE, "the update's time must be finite")
+        document["timestamp"] = float(timestamp)
     try:
         msgspec.convert(document, WireTracks)
     except msgspec.ValidationError as error:
@@ -715,7 +729,9 @@ def decode_tracks(payload: bytes, *, max_bytes: int = 8 * 1024 * 1024) -> Tracks
         raise RejectedMessage(
             RejectReason.INVALID_VALUE, f"unknown track class; known: {', '.join(CLASS_NAMES)}"
         )
-    return TracksUpdate(wire.plane, wire.sequence, tracks, tuple(wire.cameras))
+    if wire.timestamp is not None and not math.isfinite(wire.timestamp):
+        raise RejectedMessage(RejectReason.INVALID_VALUE, "the update's time must be finite")
+    return TracksUpdate(wire.plane, wire.sequence, tracks, tuple(wire.cameras), wire.timestamp)
 
 
 # --------------------------------------------------------------------------- status

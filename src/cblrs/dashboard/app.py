@@ -1,0 +1,271 @@
+"""The dashboard's web application (Starlette; served by uvicorn from ``cblrs dashboard``).
+
+Pages (static files shipped with the package, no build step, nothing fetched from a CDN):
+
+* ``/`` — the live map: the site's planes, zones, counting lines, cameras and their fields
+  of view; live global tracks with short trails coloured by id; zones and lines with their
+  counts; per-camera status; the event log; a replay of a stored run at 1x-10x;
+* ``/calibrate`` — a camera's frame beside the site map: click point pairs, see each
+  point's reprojection error live, save to the site file and render the reference.
+
+API (JSON, and Server-Sent Events for the streams):
+
+* ``GET /api/site`` — the site as drawn (:func:`cblrs.dashboard.scene.site_scene`);
+* ``GET /api/stream`` — the live feed (:mod:`cblrs.dashboard.feed`);
+* ``GET /api/replay/info``, ``GET /api/replay?speed=S&start=T`` — a stored run
+  (:mod:`cblrs.dashboard.replay`);
+* ``GET /api/status`` — what the dashboard is connected to;
+* ``GET /map`` — the site map image;
+* ``GET /api/calibrate/cameras``, ``GET /api/calibrate/frame/{camera}``,
+  ``POST /api/calibrate/fit``, ``POST /api/calibrate/save``,
+  ``GET /api/calibrate/reference/{camera}`` — the calibration page
+  (:mod:`cblrs.dashboard.calibration`).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from cblrs.dashboard.feed import LiveFeed, sse
+from cblrs.dashboard.replay import ReplayError, StoreReplay
+from cblrs.dashboard.scene import map_image, site_scene
+from cblrs.errors import CblrsError
+from cblrs.site import Site, load_site
+
+logger = logging.getLogger(__name__)
+
+STATIC = Path(__file__).parent / "static"
+
+
+@dataclass
+class DashboardConfig:
+    """What one dashboard serves.
+
+    Attributes:
+        site_path: the site file (read at start; the calibration page rewrites it).
+        plane_id: the plane shown (default: the site's first).
+        feed: the live feed (None: replay only).
+        database: a matcher database to replay (None: no replay).
+        frames: folder of camera frames for the calibration page.
+        references: where the calibration page writes rendered references.
+        broker: the broker's address, for the page's header.
+    """
+
+    site_path: Path
+    plane_id: int | None = None
+    feed: LiveFeed | None = None
+    database: Path | None = None
+    frames: Path | None = None
+    references: Path | None = None
+    broker: str = ""
+    site: Site = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.site = load_site(self.site_path)
+        if self.references is None:
+            self.references = self.site_path.parent / "references"
+
+
+def create_app(config: DashboardConfig) -> Any:
+    """The ASGI application (needs the ``dashboard`` extra: Starlette)."""
+    try:
+        from starlette.applications import Starlette
+        from starlette.responses import (
+            FileResponse,
+            JSONResponse,
+            Response,
+            StreamingResponse,
+        )
+        from starlette.routing import Mount, Route
+        from starlette.staticfiles import StaticFiles
+    except ImportError:  # pragma: no cover - depends on the environment
+        raise CblrsError(
+            "the dashboard needs Starlette and uvicorn: pip install cblrs[dashboard]"
+        ) from None
+
+    from cblrs.dashboard import calibration
+
+    scene_cache: dict[str, Any] = {}
+
+    def scene() -> dict[str, Any]:
+        if "scene" not in scene_cache:
+            scene_cache["scene"] = site_scene(config.site, config.plane_id)
+        return scene_cache["scene"]
+
+    async def index(request: Any) -> Any:
+        return FileResponse(STATIC / "index.html")
+
+    async def calibrate_page(request: Any) -> Any:
+        return FileResponse(STATIC / "calibrate.html")
+
+    async def site(request: Any) -> Any:
+        data = await asyncio.to_thread(scene)
+        return JSONResponse({**data, "live": config.feed is not None,
+                             "replay": config.database is not None, "broker": config.broker})
+
+    async def site_map(request: Any) -> Any:
+        image = map_image(config.site)
+        if image is None:
+            return Response("the site has no map image\n", status_code=404)
+        return Response(image[0], media_type=image[1])
+
+    async def status(request: Any) -> Any:
+        feed = config.feed
+        return JSONResponse({
+            "live": feed is not None,
+            "connected": bool(feed and feed.connected),
+            "messages": feed.counters if feed else {},
+            "replay": str(config.database) if config.database else None,
+        })
+
+    async def stream(request: Any) -> Any:
+        feed = config.feed
+        if feed is None:
+            return JSONResponse({"error": "this dashboard has no broker (--broker)."},
+                                status_code=404)
+        subscriber = feed.subscribe(asyncio.get_running_loop())
+
+        async def body():
+            try:
+                while True:
+                    yield sse(await subscriber.next())
+            finally:
+                feed.unsubscribe(subscriber)
+
+        return StreamingResponse(body(), media_type="text/event-stream",
+                                 headers={"Cache-Control": "no-cache"})
+
+    def open_replay() -> StoreReplay:
+        if config.database is None:
+            raise ReplayError("this dashboard has no stored run (--db).")
+        return StoreReplay(config.database)
+
+    async def replay_info(request: Any) -> Any:
+        try:
+            replay = open_replay()
+        except ReplayError as error:
+            return JSONResponse({"error": str(error)}, status_code=404)
+        try:
+            return JSONResponse(replay.info())
+        finally:
+            replay.close()
+
+    async def replay(request: Any) -> Any:
+        try:
+            speed = float(request.query_params.get("speed", "1"))
+            start_text = request.query_params.get("start")
+            start = float(start_text) if start_text else None
+        except ValueError:
+            return JSONResponse({"error": "speed and start must be numbers."}, status_code=400)
+        try:
+            stored = open_replay()
+        except ReplayError as error:
+            return JSONResponse({"error": str(error)}, status_code=404)
+        messages = stored.messages(speed, start)
+        try:
+            first = await messages.__anext__()  # errors (speed, empty run) as an answer
+        except ReplayError as error:
+            stored.close()
+            return JSONResponse({"error": str(error)}, status_code=400)
+
+        async def body():
+            try:
+                yield sse(first)
+                async for item in messages:
+                    yield sse(item)
+            finally:
+                stored.close()
+
+        return StreamingResponse(body(), media_type="text/event-stream",
+                                 headers={"Cache-Control": "no-cache"})
+
+    # -- calibration ----------------------------------------------------------------------
+
+    def refusal(error: Exception, status_code: int = 422) -> Any:
+        return JSONResponse({"error": str(error)}, status_code=status_code)
+
+    async def calibrate_cameras(request: Any) -> Any:
+        cameras = await asyncio.to_thread(calibration.camera_list, config.site, config.frames)
+        return JSONResponse({"cameras": cameras, "map": scene()["map"],
+                             "bounds": scene()["bounds"], "site": config.site.source})
+
+    async def calibrate_frame(request: Any) -> Any:
+        camera = request.path_params["camera"]
+        try:
+            path = calibration.frame_path(config.site, camera, config.frames)
+        except CblrsError as error:
+            return refusal(error, 404)
+        if path is None:
+            return refusal(CblrsError(f"no frame for camera {camera}; open one from a file."),
+                           404)
+        return FileResponse(path)
+
+    async def calibrate_fit(request: Any) -> Any:
+        try:
+            data = await request.json()
+            result = await asyncio.to_thread(
+                calibration.fit_points, config.site, str(data.get("camera")),
+                data.get("points"), data.get("image_size"), str(data.get("model", "auto")),
+                _optional_float(data.get("focal_px")), str(data.get("unit", "metres")),
+            )
+        except (CblrsError, ValueError, AttributeError) as error:
+            return refusal(error)
+        return JSONResponse(result)
+
+    async def calibrate_save(request: Any) -> Any:
+        assert config.references is not None
+        try:
+            data = await request.json()
+            result = await asyncio.to_thread(
+                calibration.save_points, config.site_path, str(data.get("camera")),
+                data.get("points"), data.get("image_size"), config.references,
+                str(data.get("model", "auto")), _optional_float(data.get("focal_px")),
+                str(data.get("unit", "metres")),
+            )
+        except (CblrsError, ValueError, AttributeError) as error:
+            return refusal(error)
+        config.site = load_site(config.site_path)
+        scene_cache.clear()
+        return JSONResponse(result)
+
+    async def calibrate_reference(request: Any) -> Any:
+        assert config.references is not None
+        try:
+            png = await asyncio.to_thread(
+                calibration.reference_preview, config.site, request.path_params["camera"],
+                config.references, config.frames)
+        except CblrsError as error:
+            return refusal(error, 404)
+        return Response(png, media_type="image/png")
+
+    async def healthz(request: Any) -> Any:
+        return Response("ok\n", media_type="text/plain")
+
+    routes = [
+        Route("/", index),
+        Route("/calibrate", calibrate_page),
+        Route("/healthz", healthz),
+        Route("/map", site_map),
+        Route("/api/site", site),
+        Route("/api/status", status),
+        Route("/api/stream", stream),
+        Route("/api/replay/info", replay_info),
+        Route("/api/replay", replay),
+        Route("/api/calibrate/cameras", calibrate_cameras),
+        Route("/api/calibrate/frame/{camera}", calibrate_frame),
+        Route("/api/calibrate/fit", calibrate_fit, methods=["POST"]),
+        Route("/api/calibrate/save", calibrate_save, methods=["POST"]),
+        Route("/api/calibrate/reference/{camera}", calibrate_reference),
+        Mount("/static", StaticFiles(directory=STATIC), name="static"),
+    ]
+    return Starlette(routes=routes)
+
+
+def _optional_float(value: Any) -> float | None:
+    if value is None or value == "":
+        return None
+    return float(value)
