@@ -129,6 +129,32 @@ def register(subparsers) -> None:
         help="keep the database under this size, GiB, oldest rows first (default 4; 0: no "
         "size limit)",
     )
+    online = parser.add_argument_group("analytics, live summary and metrics")
+    online.add_argument(
+        "--no-analytics",
+        action="store_true",
+        help="do not count the site's places (default with --site places: count them, "
+        "publish events on cblrs/<plane>/events and keep the counts in --db)",
+    )
+    online.add_argument(
+        "--analytics-delay",
+        type=float,
+        default=0.5,
+        metavar="SECONDS",
+        help="rows wait this long behind the newest capture time before they are counted",
+    )
+    online.add_argument(
+        "--http",
+        metavar="HOST:PORT",
+        help="serve Prometheus /metrics, /healthz and /readyz here (e.g. 127.0.0.1:9100)",
+    )
+    online.add_argument(
+        "--live-interval",
+        type=float,
+        default=1.0,
+        metavar="SECONDS",
+        help="seconds between live summaries on cblrs/<plane>/live (0: none)",
+    )
     add_mqtt_options(parser)
     add_backbone_options(parser, matcher=True)
     parser.add_argument("--json", action="store_true", help="print the final summary as JSON")
@@ -255,6 +281,13 @@ def run(args: argparse.Namespace) -> int:
     will = Will(status_topic, encode_status(matcher_id, "offline", role="matcher"))
     stop = threading.Event()
     failures: list[str] = []
+    analytics = make_analytics(site, plane_id, args)
+    metrics = server = None
+    if args.http is not None:
+        from cblrs.runtime.metrics import MetricsServer, ServiceMetrics, parse_address
+
+        address = parse_address(args.http)
+        metrics = ServiceMetrics(plane_id, names)
     store = RuntimeStore(args.db)
     if uses_nats(args):
         # An empty store is rebuilt from the plane's stream (e.g. on a new host).
@@ -280,7 +313,21 @@ def run(args: argparse.Namespace) -> int:
             max_age_s=args.retain_hours * 3600 if args.retain_hours > 0 else None,
             max_bytes=int(args.retain_gb * 2**30) if args.retain_gb > 0 else None,
         ),
+        analytics=analytics,
+        metrics=metrics,
+        live_interval_s=args.live_interval or None,
     )
+    if metrics is not None:
+
+        def exposition() -> bytes:
+            metrics.set_buffered(service.buffered())
+            return metrics.exposition()
+
+        try:
+            server = MetricsServer(address, exposition, service.health, service.ready).start()
+        except Exception:
+            store.close()
+            raise
     install_stop_handlers(stop.set)
     started = time.perf_counter()
     # What is alive now (modules, the matcher) stays for the life of the process: keep it out
@@ -315,6 +362,12 @@ def run(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
         print(position_summary(site, names, options, args.matcher), file=sys.stderr)
+        if analytics is not None:
+            print(f"analytics: {len(analytics.places.lines)} counting lines, "
+                  f"{len(analytics.places.zones)} zones; events on cblrs/{plane_id}/events",
+                  file=sys.stderr)
+        if server is not None:
+            print(f"metrics: {server.url}/metrics, /healthz, /readyz", file=sys.stderr)
     flush = True if args.prepare else _wait(service, stop, args)
     failure: BaseException | None = None
     try:
@@ -322,6 +375,8 @@ def run(args: argparse.Namespace) -> int:
     except RuntimeError as error:
         failure = error.__cause__ or error
     finally:
+        if server is not None:
+            server.close()
         summary = service.stats()
         if args.out_tracks is not None:
             from cblrs.datasets.aicity import write_tracks
@@ -371,6 +426,18 @@ def _failed(failures: list[str], stop: threading.Event, reason: str) -> None:
     """The transport failed for good (e.g. lost the plane's lease): record it and stop."""
     failures.append(reason)
     stop.set()
+
+
+def make_analytics(site: Any, plane_id: int, args: argparse.Namespace) -> Any:
+    """The plane's online analytics: the site's places of this plane (None without)."""
+    if site is None or args.no_analytics:
+        return None
+    from cblrs.runtime.online_analytics import OnlineAnalytics, plane_places
+
+    places = plane_places(site.places, plane_id)
+    if not len(places):
+        return None
+    return OnlineAnalytics(places, delay_s=args.analytics_delay)
 
 
 def site_positions(site: Any, names: list[str]) -> dict[str, tuple[float, float, float]]:

@@ -93,7 +93,7 @@ def _correspondences(points: Any, site: Site, unit: str) -> Any:
             raise CalibrationPageError(f"{site.source} has no map to convert map pixels.")
         world = site.map.to_world(world)
     names = [str(point.get("name") or f"p{index + 1}") for index, point in enumerate(points)]
-    return Correspondences(table[:, 0:2], world, names)
+    return Correspondences(table[:, 0:2], world, tuple(names))
 
 
 def fit_points(
@@ -212,7 +212,7 @@ def reference_preview(site: Site, camera: str, references: Path, frames: Path | 
     if source is not None:
         image = cv2.imread(str(source), cv2.IMREAD_COLOR)
         if image is not None and (image.shape[1], image.shape[0]) == reference.image_size:
-            frame = image[..., ::-1]
+            frame = np.ascontiguousarray(image[..., ::-1], dtype=np.uint8)
     picture = reference_overlay(reference, frame, grid_m=1.0)
     ok, encoded = cv2.imencode(".png", picture[..., ::-1])
     if not ok:

@@ -47,7 +47,7 @@ def site_scene(site: Site, plane_id: int | None = None) -> dict[str, Any]:
     ]
     lines = [
         {"name": line.name, "start": line.start.tolist(), "end": line.end.tolist(),
-         "normal": line.direction.tolist()}
+         "normal": np.asarray(line.direction).tolist()}
         for line in site.places.lines
         if line.plane_id in (None, plane)
     ]

@@ -78,6 +78,8 @@ from cblrs.errors import CblrsError
 from cblrs.matching.fusion import clock_report
 from cblrs.runtime.confirmations import ConfirmationBuffer, peek_sequence
 from cblrs.runtime.lease import PlaneLease
+from cblrs.runtime.analytics_service import ServiceReporter
+from cblrs.runtime.metrics import ServiceMetrics
 from cblrs.runtime.ordering import Orderer
 from cblrs.runtime.rate_limited import RateLimitedLog
 from cblrs.runtime.retention import RetentionPolicy, apply_retention
@@ -169,6 +171,12 @@ class MatcherService:
         log_interval_s: at most one log line per rejection reason this often.
         retention: how much history the database keeps (:mod:`cblrs.runtime.retention`;
             default: 24 h or 4 GiB, never anything not yet tracked); None keeps everything.
+        analytics: the plane's :class:`~cblrs.runtime.online_analytics.OnlineAnalytics`:
+            counted in the tracker process with each group, committed with it, events
+            published from the store (:mod:`cblrs.runtime.analytics_service`); None: none.
+        metrics: :class:`~cblrs.runtime.metrics.ServiceMetrics` to feed, or None.
+        live_interval_s: seconds between live summaries on ``cblrs/<plane>/live`` (counts,
+            occupancy, camera health); None publishes none.
     """
 
     def __init__(
@@ -193,6 +201,9 @@ class MatcherService:
         confirm_interval_s: float = 0.25,
         log_interval_s: float = 10.0,
         retention: RetentionPolicy | None = RetentionPolicy(),  # noqa: B008 (frozen)
+        analytics: Any = None,
+        metrics: ServiceMetrics | None = None,
+        live_interval_s: float | None = 1.0,
     ):
         if window_s < 0 or not math.isfinite(window_s):
             raise ValueError(f"window must be a finite number >= 0, got {window_s}.")
@@ -255,6 +266,12 @@ class MatcherService:
         self._rejections = RateLimitedLog(logger, log_interval_s)
         self._retained_warned: set[str] = set()
         self.retention = retention
+        self.analytics = analytics
+        self.reporter = ServiceReporter(
+            transport, store, self.plane_id, self.camera_ids,
+            places=None if analytics is None else analytics.places, metrics=metrics,
+            live_interval_s=live_interval_s,
+        )
 
     # -- lifecycle -------------------------------------------------------------------------
 
@@ -291,7 +308,7 @@ class MatcherService:
         context = _process_context()
         self._tracker = TrackerProcess(
             context, self.matcher, self.store.share(), tracker, self.plane_id,
-            self.camera_ids, self.publish_tracks,
+            self.camera_ids, self.publish_tracks, self.analytics,
         )
         self._threads = [
             threading.Thread(target=target, name=f"cblrs-{role}-{self.plane_id}", daemon=True)
@@ -302,6 +319,7 @@ class MatcherService:
             thread.start()
         if self._lease is not None:
             self._lease.start(self._lease_lost, self._lease_confirmed)
+        self.reporter.start()
         self._receiving.set()
         self._announce("online")
         self._started = True
@@ -330,6 +348,7 @@ class MatcherService:
                                thread.name, timeout)
         if self._tracker is not None:
             self._tracker.close(max(0.0, deadline - time.monotonic()))
+        self.reporter.stop(max(1.0, deadline - time.monotonic()))
         self._send_confirmations(force=True)
         if self._lease is not None:
             self._lease.release()  # nothing more is acknowledged: a restart may claim at once
@@ -469,6 +488,7 @@ class MatcherService:
             return True
 
     def _handle_locked(self, batch: list[tuple[str, Any, float]]) -> None:
+        started = time.perf_counter()
         now = self.clock()
         counters: Counter[str] = Counter()
         accepted: list[tuple[InboxEntry, str, float]] = []
@@ -523,6 +543,7 @@ class MatcherService:
             self._confirmations.add_stored(entry.camera_id, entry.sequence)
         for camera, sequence, reason in rejected:
             self._confirmations.add_rejected(camera, sequence, reason)
+        self.reporter.stored(batch, accepted, counters, time.perf_counter() - started)
         stored = []
         for (entry, status, _), new in zip(accepted, inserted, strict=True):
             if not new:
@@ -571,6 +592,7 @@ class MatcherService:
             return
         if camera not in self._offline or plane_id != self.plane_id:
             return
+        self.reporter.status(camera, status.state == "online")
         if status.state == "online":
             self._offline[camera] = self._final_offline[camera] = False
             self._offline_at[camera] = None
@@ -613,6 +635,7 @@ class MatcherService:
         except BaseException as error:  # surfaced by stop()
             self._fail(error, "releaser")
         finally:
+            # A flushed stop ends the stream: the analytics end every track, as offline.
             self._tracker.finish(flush=self._flush_requested.is_set() and self._failure is None)
 
     def _release_ready(self, force: bool = False) -> None:
@@ -647,14 +670,21 @@ class MatcherService:
                 if answer[0] == "failed":
                     separator = "\n" if "Traceback" in answer[1] else " "
                     raise TrackerProcessError(f"the tracker process failed:{separator}{answer[1]}")
-                if answer[0] == "flushed":  # what the matcher held at the end of the stream
-                    _, timestamp, tracks, payload = answer
-                    self._publish(timestamp, [], tracks, payload)
+                if answer[0] == "flushed":  # the end of the stream: what the matcher held
+                    _, timestamp, tracks, payload, report = answer
+                    if len(tracks):
+                        self._publish(timestamp, [], tracks, payload)
+                    self.reporter.tracked([(timestamp, len(tracks))] if len(tracks) else [],
+                                          report)
                     continue
-                _, results, _ = answer
+                _, results, _, report = answer
                 batch = self._inflight[0]
+                self.reporter.tracked([(item[0], len(item[1])) for item in results], report)
                 for (timestamp, tracks, payload), (_, entries) in zip(results, batch, strict=True):
+                    started = time.perf_counter()
                     self._publish(timestamp, entries, tracks, payload)
+                    if self.reporter.metrics is not None:
+                        self.reporter.metrics.published(time.perf_counter() - started)
                 with self._state_lock:
                     self._inflight.popleft()
         except BaseException as error:  # surfaced by stop()
@@ -712,6 +742,26 @@ class MatcherService:
 
     def failed(self) -> bool:
         return self._failure is not None
+
+    def health(self) -> tuple[bool, str]:
+        """``/healthz``: the service runs (no thread nor the tracker process has failed)."""
+        if self._failure is not None:
+            return False, f"failed: {self._failure}"
+        if self._tracker is not None and not self._tracker.process.is_alive() \
+                and not self._stop.is_set():
+            return False, "the tracker process has gone"
+        return True, ""
+
+    def ready(self) -> tuple[bool, str]:
+        """``/readyz``: started, healthy and connected to the broker."""
+        healthy, reason = self.health()
+        if not healthy:
+            return False, reason
+        if not self._started:
+            return False, "starting"
+        if not getattr(self.transport, "connected", True):
+            return False, "not connected to the broker"
+        return True, ""
 
     def stats(self) -> dict[str, Any]:
         """Totals from the store plus the live buffer state."""

@@ -272,7 +272,7 @@ class MetricsServer:
         }
 
         class Handler(BaseHTTPRequestHandler):
-            def do_GET(self) -> None:  # noqa: N802 (the standard library's name)
+            def do_GET(self) -> None:
                 route = routes.get(self.path.split("?", 1)[0])
                 if route is None:
                     status, kind, body = 404, "text/plain; charset=utf-8", b"not found\n"
@@ -282,14 +282,14 @@ class MetricsServer:
                     except Exception as error:  # a scrape must never stop the matcher
                         logger.exception("metrics endpoint %s failed", self.path)
                         status, kind = 500, "text/plain; charset=utf-8"
-                        body = f"error: {error}\n".encode()
+                        body = ("error: " + str(error) + "\n").encode()
                 self.send_response(status)
                 self.send_header("Content-Type", kind)
                 self.send_header("Content-Length", str(len(body)))
                 self.end_headers()
                 self.wfile.write(body)
 
-            def log_message(self, format: str, *args: Any) -> None:  # noqa: A002
+            def log_message(self, format: str, *args: Any) -> None:
                 logger.debug("metrics %s - %s", self.address_string(), format % args)
 
         try:
@@ -309,7 +309,8 @@ class MetricsServer:
 
     @property
     def url(self) -> str:
-        return f"http://{self._server.server_address[0]}:{self.port}"
+        host = self._server.server_address[0]
+        return f"http://{host if isinstance(host, str) else host.decode()}:{self.port}"
 
     def start(self) -> MetricsServer:
         self._thread.start()

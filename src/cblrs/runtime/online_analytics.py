@@ -179,14 +179,14 @@ class OnlineAnalytics:
         for (zone, klass), value in engine.zone_appeared.items():
             counts[(zone, "appeared", class_name(klass))] += value
         for visit in engine.visits:
-            klass = class_name(visit.class_id)
-            counts[(visit.zone, "visits", klass)] += 1
-            counts[(visit.zone, "dwell_s", klass)] += visit.dwell_s
+            label = class_name(visit.class_id)
+            counts[(visit.zone, "visits", label)] += 1
+            counts[(visit.zone, "dwell_s", label)] += visit.dwell_s
             if visit.exited:
-                counts[(visit.zone, "exits", klass)] += 1
+                counts[(visit.zone, "exits", label)] += 1
             if visit.entered and visit.exited:
-                counts[(visit.zone, "complete_visits", klass)] += 1
-                counts[(visit.zone, "complete_dwell_s", klass)] += visit.dwell_s
+                counts[(visit.zone, "complete_visits", label)] += 1
+                counts[(visit.zone, "complete_dwell_s", label)] += visit.dwell_s
         for key, value in engine.od.items():
             writes.od[key] += value
         for zone, value in engine.od_unpaired.items():

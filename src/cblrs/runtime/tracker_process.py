@@ -17,11 +17,17 @@ Messages (pickled) on the two pipes:
 * service -> tracker: a batch ``[(timestamp, [InboxEntry, ...]), ...]`` (windows in time
   order, messages in time and camera order), ``None``: commit nothing more and stop, or
   ``"flush"``: the stream has ended: fuse and commit what the matcher still holds (its
-  ``flush()``), answer ``("flushed", timestamp, tracks, payload or None)``, then stop;
+  ``flush()``), count those rows and end every track of the analytics, answer
+  ``("flushed", timestamp, tracks, payload or None, report)``, then stop;
 * tracker -> service, in the order of the batches: ``("tracked", [(timestamp, tracks,
-  payload or None), ...], counters)`` once a batch is committed; ``("failed", traceback)``
-  when tracking or committing raised (the process then exits); ``("stopped",)`` after
-  ``None``.
+  payload or None), ...], counters, report)`` once a batch is committed (``report``: the
+  stages' durations, the analytics events by kind, the zones' live occupancy and dwell);
+  ``("failed", traceback)`` when tracking or committing raised (the process then exits);
+  ``("stopped",)`` after ``None`` or ``"flush"``.
+
+With analytics, each group's rows are counted as soon as it is tracked
+(:class:`~cblrs.runtime.online_analytics.OnlineAnalytics`, empty groups too), and the
+events, counter increments and engine state go into the batch's transaction.
 """
 
 from __future__ import annotations
@@ -30,6 +36,7 @@ import gc
 import logging
 import signal
 import threading
+import time
 import traceback
 from collections.abc import Sequence
 from typing import Any
@@ -60,6 +67,8 @@ class TrackerProcess:
         plane_id: the plane served (track updates name it).
         camera_ids: the plane's cameras (track updates list them).
         publish_tracks: encode a track update per group.
+        analytics: the plane's :class:`~cblrs.runtime.online_analytics.OnlineAnalytics`
+            (pickled into the process; it resumes from the store), or None.
     """
 
     def __init__(
@@ -71,13 +80,14 @@ class TrackerProcess:
         plane_id: int,
         camera_ids: Sequence[str],
         publish_tracks: bool,
+        analytics: Any = None,
     ):
         requests_reader, self._requests = context.Pipe(duplex=False)
         self._results, results_writer = context.Pipe(duplex=False)
         self.process = context.Process(
             target=run,
             args=(requests_reader, results_writer, matcher, shared, tracker, plane_id,
-                  list(camera_ids), publish_tracks),
+                  list(camera_ids), publish_tracks, analytics),
             name=f"cblrs-tracker-{plane_id}",
             daemon=True,
         )
@@ -99,7 +109,8 @@ class TrackerProcess:
         """Ask the process to stop after the batches already sent (a no-op once it has gone).
 
         Args:
-            flush: first fuse and commit the messages the matcher still holds.
+            flush: first fuse and commit the messages the matcher still holds, and end every
+                track of the analytics (the stream has ended).
         """
         try:
             self._requests.send("flush" if flush else None)
@@ -135,6 +146,7 @@ def run(
     plane_id: int,
     camera_ids: list[str],
     publish_tracks: bool,
+    analytics: Any = None,
 ) -> None:
     """The tracker process's main function (see the module docstring for the protocol)."""
     # The service decides when this process stops: Ctrl-C in a terminal and systemd's SIGTERM
@@ -152,6 +164,8 @@ def run(
         state = store.matcher_state()
         if state is not None:
             matcher.set_state(state)
+        if analytics is not None:
+            analytics.resume(store)
         # Everything alive now (modules, the matcher) lives as long as the process: keep it
         # out of the garbage collector's full passes, which would otherwise walk it all.
         gc.freeze()
@@ -159,30 +173,30 @@ def run(
         released = store.released_timestamp()
         while (batch := requests.recv()) is not None:
             if batch == "flush":
-                flush = getattr(matcher, "flush", None)
-                if flush is not None and released is not None:
-                    tracks = flush()
-                    store.commit_group([], tracks, matcher.get_state(), released,
-                                       {"tracks": len(tracks)}, tracker=tracker)
-                    if len(tracks):
-                        payload = None
-                        if publish_tracks:
-                            updates += 1
-                            payload = _encode(tracks, plane_id, updates, camera_ids, released)
-                        results.send(("flushed", released, tracks, payload))
+                if released is not None:
+                    updates = _flush(store, matcher, analytics, released, tracker, results,
+                                     publish_tracks, plane_id, updates, camera_ids)
                 break
             tracked = []
+            report = _Report(analytics)
             for timestamp, entries in batch:
                 messages = [entry.message() for entry in entries]
-                tracked.append((timestamp, matcher.update(timestamp, messages)))
+                started = time.perf_counter()
+                group_tracks = matcher.update(timestamp, messages)
+                report.add("track", time.perf_counter() - started)
+                tracked.append((timestamp, group_tracks))
+                report.count(group_tracks, timestamp)
             keys = [(entry.camera_id, entry.sequence) for _, entries in batch for entry in entries]
             tracks = Tracks.concatenate([group_tracks for _, group_tracks in tracked])
             counters = {"processed": len(keys), "groups": len(batch), "tracks": len(tracks)}
             counters.update(_clock_counters(matcher))
             released = batch[-1][0]
-            # One snapshot after the last group: the file holds all of these groups or none.
+            # One snapshot after the last group: the file holds all of these groups or none,
+            # with their analytics events, counts and state.
+            started = time.perf_counter()
             store.commit_group(keys, tracks, matcher.get_state(), batch[-1][0], counters,
-                               tracker=tracker)
+                               tracker=tracker, also=report.writes())
+            report.add("commit", time.perf_counter() - started)
             answers = []
             for timestamp, group_tracks in tracked:
                 updates += 1
@@ -190,7 +204,7 @@ def run(
                 if publish_tracks:
                     payload = _encode(group_tracks, plane_id, updates, camera_ids, timestamp)
                 answers.append((timestamp, group_tracks, payload))
-            results.send(("tracked", answers, counters))
+            results.send(("tracked", answers, counters, report.summary()))
         results.send(("stopped",))
     except BaseException as error:
         # A cause the operator can fix is its one sentence; anything else, a traceback.
@@ -216,6 +230,62 @@ def _clock_counters(matcher: Any) -> dict[str, int]:
         name = f"clock_{event['kind']}"
         counters[name] = counters.get(name, 0) + 1
     return counters
+
+
+class _Report:
+    """What one batch did beyond tracking: its analytics (counted here, written in the
+    batch's transaction) and how long its stages took (for the service's metrics)."""
+
+    def __init__(self, analytics: Any):
+        self.analytics = analytics
+        self.durations: dict[str, list[float]] = {}
+        self.events: dict[str, int] = {}
+
+    def add(self, stage: str, seconds: float) -> None:
+        self.durations.setdefault(stage, []).append(seconds)
+
+    def count(self, tracks: Tracks, timestamp: float) -> None:
+        if self.analytics is None:
+            return
+        started = time.perf_counter()
+        for event in self.analytics.update(tracks, timestamp):
+            self.events[event.kind] = self.events.get(event.kind, 0) + 1
+        self.add("analytics", time.perf_counter() - started)
+
+    def writes(self) -> Any:
+        return None if self.analytics is None else self.analytics.take_writes()
+
+    def summary(self) -> dict[str, Any]:
+        return {
+            "durations": self.durations,
+            "events": self.events,
+            "live": None if self.analytics is None else self.analytics.live(),
+        }
+
+
+
+def _flush(store: RuntimeStore, matcher: Any, analytics: Any, released: float, tracker: str,
+           results: Any, publish_tracks: bool, plane_id: int, updates: int,
+           camera_ids: list[str]) -> int:
+    """The end of the stream: fuse what the matcher holds, count it, end every track of the
+    analytics; one commit, one ``flushed`` answer. Returns the update counter."""
+    flush = getattr(matcher, "flush", None)
+    tracks = flush() if flush is not None else Tracks.empty()
+    if not len(tracks) and analytics is None:
+        return updates
+    report = _Report(analytics)
+    report.count(tracks, released)
+    if analytics is not None:
+        for event in analytics.flush():
+            report.events[event.kind] = report.events.get(event.kind, 0) + 1
+    store.commit_group([], tracks, matcher.get_state(), released, {"tracks": len(tracks)},
+                       tracker=tracker, also=report.writes())
+    payload = None
+    if publish_tracks and len(tracks):
+        updates += 1
+        payload = _encode(tracks, plane_id, updates, camera_ids, released)
+    results.send(("flushed", released, tracks, payload, report.summary()))
+    return updates
 
 
 def _encode(
