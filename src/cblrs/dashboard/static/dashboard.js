@@ -9,6 +9,7 @@ const TRAIL_S = 3.0;     // trail length, capture seconds
 const TRAIL_POINTS = 40;
 const MAX_EVENTS = 30;
 const LABEL_LIMIT = 60;  // ids drawn next to the marks up to this many tracks
+const STALE_WALL_S = 3.0; // live: no update for this long (wall clock) and the marks go
 
 const stats = {
   mode: "live", connected: false, messages: 0, tracksMessages: 0, events: 0, draws: 0,
@@ -65,6 +66,7 @@ function onTracks(message) {
     stats.tracksMessages += 1;
     state.updates.push(performance.now());
   }
+  state.lastUpdateWall = performance.now();
   stats.lastT = t;
   state.dirty = true;
 }
@@ -150,7 +152,12 @@ function onMessage(message) {
       state.tablesDirty = true;
       break;
     case "hello": stats.mode = message.mode; break;
-    case "end": stats.ended = true; showNotice("replay finished"); break;
+    case "end":
+      stats.ended = true;
+      state.tracks.clear();
+      state.dirty = true;
+      showNotice("replay finished");
+      break;
     default: break;
   }
 }
@@ -162,6 +169,7 @@ function connect(url, mode) {
   state.events = [];
   state.seenKeys.clear();
   state.time = null;
+  state.cameras = {};
   stats.mode = mode;
   stats.ended = false;
   resetCounts();
@@ -200,7 +208,7 @@ function labels() {
   for (const [name, row] of Object.entries(state.lines)) lines[name] = `+${row.positive} −${row.negative}`;
   const zones = {};
   for (const [name, row] of Object.entries(state.zones)) {
-    zones[name] = { now: row.now, text: `${row.now} inside · ${row.entries} in` };
+    zones[name] = { now: row.now, text: `${row.now} now · ${row.entries} entered` };
   }
   return { lines, zones };
 }
@@ -302,6 +310,12 @@ setInterval(() => {
   $("stat-draw").textContent = stats.lastDrawMs === null ? "–" : stats.lastDrawMs.toFixed(2);
   $("clock").textContent = Cblrs.clockText(state.time);
   if (stats.mode === "replay") state.tablesDirty = true;  // live dwell grows
+  // A stream that stopped (cameras gone, matcher stopped): nobody is known to be there.
+  if (stats.mode === "live" && state.tracks.size && state.lastUpdateWall
+      && now - state.lastUpdateWall > STALE_WALL_S * 1000) {
+    state.tracks.clear();
+    state.dirty = true;
+  }
   // Flashing lines fade.
   if (Object.values(state.flashes).some((time) => now - time < 900)) state.dirty = true;
 }, 250);
