@@ -58,8 +58,6 @@ def run(args: argparse.Namespace) -> int:
 
     if not args.site.is_file():
         raise UsageError(f"--site {args.site} does not exist.")
-    if args.broker is None and args.db is None:
-        raise UsageError("give --broker HOST:PORT (live) and/or --db MATCHER.db (replay).")
     if args.frames is not None and not args.frames.is_dir():
         raise UsageError(f"--frames {args.frames} is not a folder.")
     config = DashboardConfig(args.site, args.plane, database=args.db, frames=args.frames,
@@ -99,6 +97,8 @@ def run(args: argparse.Namespace) -> int:
                                                     else ""))
     if args.db is not None:
         where.append(f"replay of {args.db}")
+    if feed is None and args.db is None:
+        where.append("no --broker nor --db: site map and calibration page only")
     print(f"dashboard on http://{host}:{port}/ ({', '.join(where)}); Ctrl-C stops it",
           flush=True)
     server = uvicorn.Server(uvicorn.Config(create_app(config), log_level="warning",

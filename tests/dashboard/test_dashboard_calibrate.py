@@ -1,0 +1,102 @@
+"""The calibration page in a real browser: click pairs on a real MultiviewX frame and the map.
+
+The site is `cblrs site init` of MultiviewX with Camera1's real frame; the test clicks eight
+ground points in the frame (where the published calibration sees them) and the same points on
+the map, as an operator would, and checks that the fit appears with small errors, that
+fewer than four pairs give none, and that saving writes the pairs into the site file (the
+previous file kept), renders Camera1's reference and shows it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import yaml
+from conftest import wait_until
+
+from cblrs.cli.main import main
+from cblrs.reference import ReferenceImage
+from cblrs.site import load_site
+
+CAMERA = "Camera1"
+
+
+def spread_points(camera, count: int = 8) -> tuple[np.ndarray, np.ndarray]:
+    """``count`` ground points of the annotated area that the camera sees well inside its
+    frame, spread out (each the farthest from those chosen), and their pixels."""
+    grid = np.array([(x, y) for x in np.arange(0.5, 25.0, 1.0) for y in np.arange(0.5, 16.0, 1.0)])
+    pixels, valid = camera.world_to_pixel(grid)
+    width, height = camera.image_size
+    inside = valid & (pixels[:, 0] > 60) & (pixels[:, 0] < width - 60) \
+        & (pixels[:, 1] > 60) & (pixels[:, 1] < height - 60)
+    grid, pixels = grid[inside], pixels[inside]
+    chosen = [0]
+    while len(chosen) < count:
+        distance = np.min(np.hypot(*(pixels[:, None, :] - pixels[chosen][None]).transpose(2, 0, 1)),
+                          axis=1)
+        chosen.append(int(np.argmax(distance)))
+    return grid[chosen], pixels[chosen]
+
+
+@pytest.fixture
+def multiviewx_site(multiviewx_real_root, tmp_path):
+    path = tmp_path / "site.yaml"
+    assert main(["site", "init", str(multiviewx_real_root), "--out", str(path)]) == 0
+    document = yaml.safe_load(path.read_text())
+    frame = multiviewx_real_root / "Image_subsets" / "C1" / "0000.jpg"
+    document["cameras"][0]["frame"] = str(frame)
+    path.write_text(yaml.safe_dump(document, sort_keys=False))
+    return path
+
+
+def test_calibration_page_fits_saves_and_renders(multiviewx_site, start_dashboard, page,
+                                                 tmp_path):
+    site = load_site(multiviewx_site)
+    truth = site.camera(CAMERA).camera
+    ground, pixels = spread_points(truth)
+    width, height = truth.image_size
+    pairs = list(zip(pixels.tolist(), ground.tolist(), strict=True))
+    references = tmp_path / "references"
+    _, url = start_dashboard("--site", str(multiviewx_site), "--references", str(references))
+    page.goto(f"{url}calibrate?camera={CAMERA}")
+    wait_until(lambda: page.evaluate("window.cblrsCalibrate.ready && "
+                                     "window.cblrsCalibrate.frameLoaded === true"), 20,
+               "the page and Camera1's frame")
+
+    def click_pair(pixel, world) -> None:
+        x, y = page.evaluate(f"window.cblrsCalibrate.frameToScreen({pixel[0]}, {pixel[1]})")
+        page.mouse.click(x, y)
+        x, y = page.evaluate(f"window.cblrsCalibrate.worldToScreen({world[0]}, {world[1]})")
+        page.mouse.click(x, y)
+
+    for pixel, world in pairs[:3]:
+        click_pair(pixel, world)
+    assert "four or more" in page.inner_text("#summary")
+    for pixel, world in pairs[3:]:
+        click_pair(pixel, world)
+    wait_until(lambda: page.evaluate("(window.cblrsCalibrate.result || {}).points") == 8, 30,
+               "the fit of eight pairs")
+    result = page.evaluate("window.cblrsCalibrate.result")
+    assert result["points"] == 8 and result["model"] in ("k1", "focal", "pose", "homography")
+    # Clicks land within a canvas pixel: about a frame pixel in the image, centimetres on
+    # the map; the fitted camera reprojects them within a few pixels.
+    assert result["rms_px"] < 6.0, result
+    assert result["median_error_m"] < 0.15, result
+    assert page.locator("#pairs tbody tr").count() == 8
+    assert "RMS" in page.inner_text("#summary")
+
+    page.click("#save")
+    wait_until(lambda: page.evaluate("window.cblrsCalibrate.referenceLoaded === true"), 60,
+               "the saved reference's preview")
+    saved = load_site(multiviewx_site)
+    spec = saved.model.cameras[0]
+    assert spec.name == CAMERA and spec.geometry == "points" and len(spec.points) == 8
+    assert (multiviewx_site.parent / "site.yaml.bak").is_file()
+    reference = ReferenceImage.load(references / f"{CAMERA}.png")
+    assert reference.image_size == (width, height)
+    # The clicked camera sees the ground where the published calibration does.
+    located, ok = saved.camera(CAMERA).camera.pixel_to_world(pixels)
+    assert ok.all()
+    assert np.median(np.hypot(*(located - ground).T)) < 0.15
+    assert page.evaluate("document.getElementById('reference').naturalWidth") == width
+    page.screenshot(path=str(tmp_path / "calibrate.png"))
