@@ -77,13 +77,16 @@ def run(args: argparse.Namespace) -> int:
     if args.broker is not None:
         settings = mqtt_settings(args)
         client_id = args.client_id or f"cblrs-dashboard-{socket.gethostname()}-{plane}"
+        if not logging.getLogger().isEnabledFor(logging.DEBUG):
+            # A refusal is said once, below, as one sentence; not also as a log line.
+            logging.getLogger("cblrs.runtime.transport").setLevel(logging.ERROR)
         feed = LiveFeed(settings, plane, client_id[:64])
         try:
             feed.start()
         except TransportError as error:
             listener.close()
             who = f"user {args.username!r}" if args.username else "an anonymous client"
-            reason = str(error).split(": ", 1)[-1].rstrip(".")
+            reason = str(error).rsplit(": ", 1)[-1].rstrip(".")
             raise UsageError(
                 f"the broker at {args.broker} did not accept the dashboard as {who} ({reason}); "
                 "check --broker, --username and --password-file (the broker's viewer)."
