@@ -33,6 +33,7 @@ from typing import Any
 from cblrs.runtime.analytics_store import count_summary, mark_published, read_counts, read_events
 from cblrs.runtime.events import encode_event, encode_live
 from cblrs.runtime.metrics import ServiceMetrics
+from cblrs.runtime.store import LATE
 from cblrs.runtime.topics import TopicError, events_topic, live_topic, parse_detections_topic
 
 logger = logging.getLogger(__name__)
@@ -175,11 +176,20 @@ class ServiceReporter:
     def stored(
         self,
         batch: Iterable[tuple[str, Any, float]],
-        accepted: Iterable[tuple[Any, str, float]],
+        accepted: list[tuple[Any, str, float]],
+        inserted: list[bool],
         counters: Mapping[str, int],
         seconds: float,
     ) -> None:
-        """A receiver batch was stored and acknowledged (the service's receiver thread)."""
+        """A receiver batch was stored and acknowledged (the service's receiver thread).
+
+        Args:
+            batch: the deliveries ``(kind, delivery, received_at)``.
+            accepted: ``(entry, status, received_at)`` of the valid messages.
+            inserted: per accepted message, whether it was new (False: a duplicate).
+            counters: the batch's ``received`` and ``rejected.<reason>`` counts.
+            seconds: how long validating, storing and acknowledging took.
+        """
         received: Counter[str] = Counter()
         for kind, delivery, _ in batch:
             if kind != "detections":
@@ -198,7 +208,11 @@ class ServiceReporter:
         for camera, count in received.items():
             self.health.add(camera, count, count - kept[camera], newest.get(camera))
         if self.metrics is not None:
-            self.metrics.stored(counters, received, seconds)
+            totals = dict(counters)
+            totals["duplicates"] = inserted.count(False)
+            totals["late"] = sum(1 for (_, status, _), new in zip(accepted, inserted, strict=True)
+                                 if new and status == LATE)
+            self.metrics.stored(totals, received, seconds)
 
     def status(self, camera: str, online: bool) -> None:
         self.health.said(camera, online)

@@ -543,7 +543,7 @@ class MatcherService:
             self._confirmations.add_stored(entry.camera_id, entry.sequence)
         for camera, sequence, reason in rejected:
             self._confirmations.add_rejected(camera, sequence, reason)
-        self.reporter.stored(batch, accepted, counters, time.perf_counter() - started)
+        self.reporter.stored(batch, accepted, inserted, counters, time.perf_counter() - started)
         stored = []
         for (entry, status, _), new in zip(accepted, inserted, strict=True):
             if not new:
