@@ -9,7 +9,6 @@ import subprocess
 
 import numpy as np
 import pytest
-from conftest import cblrs_command
 
 from cblrs.analytics import load_site_places
 from cblrs.dashboard.app import DashboardConfig, create_app
@@ -21,6 +20,7 @@ from cblrs.runtime.online_analytics import OnlineAnalytics
 from cblrs.runtime.store import RuntimeStore
 from cblrs.runtime.wire import decode_tracks, encode_tracks
 from cblrs.site import load_site
+from conftest import cblrs_command
 
 EPOCH = 1_700_000_000.0
 

@@ -18,7 +18,6 @@ import time
 from pathlib import Path
 
 import pytest
-from conftest import cblrs_command, wait_until
 
 from cblrs.datasets import load_scene
 from cblrs.runtime.analytics_store import count_summary, read_counts
@@ -27,6 +26,7 @@ from cblrs.runtime.sources import scene_source
 from cblrs.runtime.store import RuntimeStore
 from cblrs.runtime.transport import MqttTransport, Will
 from cblrs.site import load_site
+from conftest import cblrs_command, wait_until
 
 pytestmark = [pytest.mark.mqtt, pytest.mark.slow]
 
@@ -116,7 +116,7 @@ def test_live_dashboard_then_replay(wildtrack_root, wildtrack_site, start_broker
 
         for thread in threads:
             thread.join(60)
-        out, err = matcher.communicate(timeout=120)
+        _, err = matcher.communicate(timeout=120)
         assert matcher.returncode == 0, err
         # Stale marks go: once the stream ended, empty updates remove every track.
         wait_until(lambda: stats(page)["tracksShown"] == 0, 30, "stale marks to go")

@@ -12,11 +12,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import yaml
-from conftest import wait_until
 
 from cblrs.cli.main import main
 from cblrs.reference import ReferenceImage
 from cblrs.site import load_site
+from conftest import wait_until
 
 CAMERA = "Camera1"
 

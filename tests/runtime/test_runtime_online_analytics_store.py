@@ -131,7 +131,7 @@ def test_state_of_other_places_is_refused_with_one_sentence(truth, places, tmp_p
     store = RuntimeStore(tmp_path / "m.db")
     run_online(truth[truth.timestamp < EPOCH + 5], places, store, flush=False)
     other = Places(lines=(CountingLine("gate", (0.0, -5.0), (0.0, 5.0)),))
-    with pytest.raises(AnalyticsError, match="other places. Keep the site's places"):
+    with pytest.raises(AnalyticsError, match=r"other places\. Keep the site's places"):
         OnlineAnalytics(other).resume(store)
     with pytest.raises(AnalyticsError, match="another delay"):
         OnlineAnalytics(places, delay_s=2.0).resume(store)
