@@ -19,7 +19,7 @@ def register(subparsers) -> None:
     parser = subparsers.add_parser(
         "bench",
         help="benchmarks: lookup (Table I), render, claims, tracker, pipeline, analytics, "
-        "backbone, asynchrony, all",
+        "dashboard, backbone, asynchrony, all",
         description="Measure cblrs on this machine; medians over repeated runs.",
     )
     kinds = parser.add_subparsers(dest="benchmark", metavar="BENCHMARK")
@@ -95,6 +95,17 @@ def register(subparsers) -> None:
     analytics.add_argument("--repeats", type=int, default=1, help=argparse.SUPPRESS)
     _common(analytics)
     analytics.set_defaults(handler=run, benchmark="analytics")
+
+    dashboard = kinds.add_parser(
+        "dashboard", help="dashboard smoothness: live tracks drawn by headless Chromium"
+    )
+    dashboard.add_argument("--tracks", type=int, default=200, help="live tracks (default 200)")
+    dashboard.add_argument("--rate", type=float, default=10.0, help="updates per second (10)")
+    dashboard.add_argument("--seconds", type=float, default=20.0, help="measured seconds (20)")
+    dashboard.add_argument("--screenshot", type=Path, help="also save a screenshot (PNG)")
+    dashboard.add_argument("--repeats", type=int, default=1, help=argparse.SUPPRESS)
+    _common(dashboard)
+    dashboard.set_defaults(handler=run, benchmark="dashboard")
 
     backbone = kinds.add_parser(
         "backbone",
@@ -263,6 +274,21 @@ def _run_one(name: str, args: argparse.Namespace) -> tuple[dict[str, Any], str]:
         return result, analytics_report(result)
     if name == "backbone":
         return _run_backbone(args, repeats)
+    if name == "dashboard":
+        from cblrs.bench.dashboard import benchmark_dashboard, dashboard_report
+        from cblrs.dashboard.browser import browser_problem
+        from cblrs.runtime.broker import find_mosquitto
+
+        if not (args.rate > 0 and args.seconds > 0):
+            raise UsageError("--rate and --seconds must be positive.")
+        problem = browser_problem()
+        if problem is not None:
+            raise UsageError(f"the dashboard benchmark needs a browser: {problem}.")
+        if find_mosquitto() is None:
+            raise UsageError("the dashboard benchmark needs mosquitto installed.")
+        result = benchmark_dashboard(_positive(args.tracks, "--tracks"), args.rate,
+                                     args.seconds, screenshot=args.screenshot)
+        return result, dashboard_report(result)
     raise UsageError(f"unknown benchmark {name!r}.")
 
 
