@@ -111,6 +111,10 @@ def test_live_dashboard_then_replay(wildtrack_root, wildtrack_site, start_broker
         assert any(cameras[name]["rate_hz"] > 0 for name in names), cameras
         rows = page.locator("#cameras tbody tr").count()
         assert rows == len(names)
+        # Well into the run (for the picture): tens of crossings counted.
+        wait_until(lambda: line_total(counts(page)) >= 25 or not any(t.is_alive()
+                                                                     for t in threads),
+                   60, "more crossings")
         save_screenshot(page, tmp_path / "dashboard_live.png")
         live_stats = stats(page)
 

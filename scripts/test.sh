@@ -1,0 +1,38 @@
+#!/usr/bin/env bash
+# The whole test suite, as README's Quick start and CI (.ci/run) run it:
+#
+#   bash scripts/test.sh [pytest options]
+#
+# 1. system packages the tests use, when missing and this user may install them (root, or
+#    passwordless sudo): Debian's mosquitto and mosquitto-clients (the runtime tests start
+#    their own brokers) and chromium (the dashboard's browser tests; Playwright drives it, nothing is downloaded);
+#    tests whose package is missing are skipped with the reason;
+# 2. pip install -e ".[dev]";
+# 3. python -m pytest.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+export PIP_DISABLE_PIP_VERSION_CHECK=1
+
+missing=()
+command -v mosquitto > /dev/null 2>&1 || [[ -x /usr/sbin/mosquitto ]] || missing+=(mosquitto)
+command -v mosquitto_pub > /dev/null 2>&1 || missing+=(mosquitto-clients)
+[[ -x /usr/bin/chromium ]] || missing+=(chromium)
+if (( ${#missing[@]} )) && command -v apt-get > /dev/null 2>&1; then
+    sudo=()
+    if [[ "$(id -u)" != 0 ]]; then
+        if command -v sudo > /dev/null 2>&1 && sudo -n true 2> /dev/null; then
+            sudo=(sudo -n)
+        else
+            sudo=(false)
+        fi
+    fi
+    echo "installing ${missing[*]} (Debian packages) for the tests" >&2
+    if ! { "${sudo[@]}" apt-get update -qq \
+           && DEBIAN_FRONTEND=noninteractive "${sudo[@]}" apt-get install -y -qq \
+              --no-install-recommends "${missing[@]}"; } > /dev/null; then
+        echo "could not install ${missing[*]}: the tests that need them will be skipped" >&2
+    fi
+fi
+
+pip install -q -e ".[dev]"
+python -m pytest "$@"
