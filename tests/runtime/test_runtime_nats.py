@@ -298,3 +298,56 @@ def test_mqtt_cameras_through_nats_to_the_matcher(server, wildtrack_root, tmp_pa
         tracks = store.tracks()
     np.testing.assert_array_equal(tracks.track_id, expected.track_id)
     np.testing.assert_array_equal(tracks.world_xy, expected.world_xy)
+
+
+def test_analytics_events_flow_on_the_backbone_stored_once(server, transports, tmp_path):
+    """The matcher's event outbox over NATS: events land in the tracks stream under their
+    key as Nats-Msg-Id, so publishing them again (a matcher restarted after a kill between
+    the stream's ack and marking them published) stores nothing twice."""
+    import asyncio
+
+    import nats
+
+    from cblrs.detections import Tracks
+    from cblrs.places import CountingLine, Places
+    from cblrs.runtime.analytics_service import ServiceReporter
+    from cblrs.runtime.analytics_store import read_events
+    from cblrs.runtime.online_analytics import OnlineAnalytics
+    from cblrs.runtime.topics import events_topic
+
+    places = Places(lines=(CountingLine("gate", (0.0, -5.0), (0.0, 5.0)),))
+    store = RuntimeStore(tmp_path / "m.db")
+    online = OnlineAnalytics(places, delay_s=0.0)
+    walkers = Tracks(np.repeat(np.arange(8), 3), np.repeat(np.arange(8.0), 3) + 1e9,
+                     np.tile([1, 2, 3], 8),
+                     np.c_[np.repeat(np.linspace(-4, 3, 8), 3), np.tile([0.0, 1.0, 2.0], 8)])
+    online.update(walkers, 1e9 + 7)
+    store.commit_group([], walkers, None, 1e9 + 7, {}, also=online.take_writes())
+    stored = read_events(store)
+    assert len(stored) == 3
+    transport = NatsTransport("events-m", NatsSettings.from_url(server.url))
+    transports.append(transport)
+    transport.connect()
+    received: list = []
+    viewer = NatsTransport("events-v", NatsSettings.from_url(server.url))
+    transports.append(viewer)
+    viewer.subscribe(events_topic(5), lambda delivery: received.append(delivery.payload))
+    viewer.connect()
+    reporter = ServiceReporter(transport, store, 5, ["c"], places=places, live_interval_s=None)
+    assert reporter._publish_pending(with_result=False) == 3
+    store.write(lambda cursor: cursor.execute("UPDATE events SET published = 0"))
+    assert reporter._publish_pending(with_result=False) == 3  # published again
+    assert all(event.published for event in read_events(store))
+    wait_until(lambda: len(received) >= 3, 10, "the events at a subscriber")
+
+    async def stored_in_stream() -> int:
+        client = await nats.connect(server.url)
+        try:
+            info = await client.jetstream().stream_info("CBLRS_TRACKS",
+                                                        subjects_filter="cblrs.5.events")
+            return int((info.state.subjects or {}).get("cblrs.5.events", 0))
+        finally:
+            await client.close()
+
+    assert asyncio.run(stored_in_stream()) == 3
+    store.close()
