@@ -104,7 +104,7 @@ def test_live_dashboard_then_replay(wildtrack_root, wildtrack_site, start_broker
         first_total = line_total(counts(page))
         first_t = stats(page)["lastT"]
         wait_until(lambda: line_total(counts(page)) > first_total, 60, "the counts to change")
-        assert stats(page)["lastT"] > first_t
+        wait_until(lambda: stats(page)["lastT"] > first_t, 30, "the tracks' time to move on")
         wait_until(lambda: stats(page)["live"] > 0, 30, "a live summary")
         cameras = counts(page)["cameras"]
         assert all(cameras[name]["online"] for name in names), cameras
