@@ -174,3 +174,27 @@ def test_metrics_address_in_use_says_so():
         MetricsServer(("127.0.0.1", first.port), lambda: b"", lambda: (True, ""),
                       lambda: (True, ""))
     first.close()
+
+
+def test_a_database_counted_with_other_places_is_refused_at_start(tmp_path):
+    from cblrs.analytics import AnalyticsError
+
+    planes = PlaneSet([PlaneSpec(PLANE, (0.0, 0.0), SIZE_M, SIZE_M)])
+    first = Places(lines=(CountingLine("gate", (10.0, 2.0), (10.0, 18.0)),))
+    store = RuntimeStore(tmp_path / "matcher.db")
+    online = OnlineAnalytics(first)
+    online.update(walker_tracks(), 1.0)
+    store.commit_group([], walker_tracks(), None, 1.0, {}, also=online.take_writes())
+    moved = Places(lines=(CountingLine("gate", (11.0, 2.0), (11.0, 18.0)),))
+    service = MatcherService(InProcessTransport(InProcessBroker(), "matcher"), store,
+                             make_matcher("fusion", planes, ["A"]), PLANE, ["A"],
+                             analytics=OnlineAnalytics(moved))
+    with pytest.raises(AnalyticsError, match="for other places"):
+        service.start()
+    store.close()
+
+
+def walker_tracks():
+    from cblrs.detections import Tracks
+
+    return Tracks(np.array([0]), np.array([1.0]), np.array([1]), np.array([[2.0, 10.0]]))

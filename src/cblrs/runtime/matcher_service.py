@@ -285,6 +285,10 @@ class MatcherService:
             return
         self.store.hold()
         self.store.bind(self._settings)
+        if self.analytics is not None:
+            # Here, not only in the tracker process: a state counted with other places or
+            # settings is refused with one sentence before anything starts.
+            self.analytics.resume(self.store)
         add_hook = getattr(self.transport, "add_connect_hook", None)
         if add_hook is not None:
             add_hook(self._on_connected)
