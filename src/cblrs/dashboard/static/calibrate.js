@@ -159,7 +159,8 @@ function render() {
     summary.innerHTML = `<span class="ok">model ${result.model}</span> · RMS ` +
       `<b id="rms">${result.rms_px.toFixed(2)}</b> px · median ${result.median_error_m.toFixed(3)} m` +
       ` · max ${result.max_error_m.toFixed(3)} m · focal ${result.focal_px ? result.focal_px.toFixed(0) : "–"} px` +
-      ` · camera at (${position})` + result.warnings.map((w) => `<div class="error">${w}</div>`).join("");
+      ` · camera at (${position})` + predicted(result.predicted_error) +
+      result.warnings.map((w) => `<div class="error">${w}</div>`).join("");
   }
   const perPoint = result ? result.per_point : [];
   $c("pairs").querySelector("tbody").innerHTML = cal.pairs.map((pair, index) => {
@@ -173,6 +174,14 @@ function render() {
   }).join("");
   $c("save").disabled = !result;
   redraw();
+}
+
+// The fit's predicted ground error between the points (from its covariance), when known.
+function predicted(coverage) {
+  if (!coverage || coverage.median_m === null || coverage.median_m === undefined) return "";
+  const share = (100 * coverage.share_over_limit).toFixed(0);
+  return ` · predicted ground error median ${coverage.median_m.toFixed(3)} m` +
+    ` (${share} % of the view over ${coverage.limit_m.toFixed(2)} m)`;
 }
 
 function redraw() { drawFrame(); if (cal.map) drawMap(); }
