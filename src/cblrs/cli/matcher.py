@@ -141,7 +141,8 @@ def register(subparsers) -> None:
         type=float,
         default=0.5,
         metavar="SECONDS",
-        help="rows wait this long behind the newest capture time before they are counted",
+        help="rows wait this long (plus the tracker's own lag) behind the newest capture "
+        "time before they are counted",
     )
     online.add_argument(
         "--http",

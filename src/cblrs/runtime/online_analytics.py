@@ -12,8 +12,9 @@ nothing is counted twice and nothing is lost.
 How it differs from the offline run, and why the counts are nevertheless the same:
 
 * **time order.** The engine needs rows in time order. A tracker may return, for a released
-  group, rows of slightly earlier capture instants (windows of unsynchronised cameras), so rows
-  wait ``delay_s`` behind the newest time seen (the group's watermark) and are fed sorted.
+  group, rows of earlier capture instants (clock-corrected windows of unsynchronised
+  cameras), so rows wait behind the newest group time — ``delay_s`` plus the largest lag
+  between a group's time and its earliest row seen so far — and are fed sorted.
   Empty groups advance the watermark too, so tracks that left end and their ``zone_left`` is
   reported while nothing else happens. Rows older than what was already fed are counted as
   late (``analytics_late_rows``), not silently merged.
@@ -101,6 +102,7 @@ class OnlineAnalytics:
         self.engine.reset()
         self._waiting = Tracks.empty()
         self._watermark = -math.inf
+        self._lag = 0.0
         self._totals: dict[tuple[str, str], int] = defaultdict(int)
         self._writes = AnalyticsWrites()
 
@@ -116,10 +118,13 @@ class OnlineAnalytics:
         if len(tracks):
             self._waiting = Tracks.concatenate([self._waiting, tracks])
             newest = float(np.max(tracks.timestamp))
+            # How far behind its group's time the tracker returns rows (clock-corrected
+            # windows of unsynchronised cameras): rows wait that long too.
+            self._lag = max(self._lag, float(timestamp) - float(np.min(tracks.timestamp)))
         else:
             newest = -math.inf
         self._watermark = max(self._watermark, float(timestamp), newest)
-        cutoff = self._watermark - self.delay_s
+        cutoff = self._watermark - self.delay_s - self._lag
         ready = self._waiting.timestamp <= cutoff
         rows = self._waiting[ready]
         self._waiting = self._waiting[~ready]
@@ -238,6 +243,7 @@ class OnlineAnalytics:
             "engine": self.engine.get_state(),
             "delay_s": self.delay_s,
             "watermark": None if math.isinf(self._watermark) else self._watermark,
+            "lag_s": self._lag,
             "waiting": {name: getattr(self._waiting, name).tolist() for name in _ROW_FIELDS},
         }
 
@@ -257,6 +263,7 @@ class OnlineAnalytics:
         self.engine.set_state(state["engine"])
         watermark = state.get("watermark")
         self._watermark = -math.inf if watermark is None else float(watermark)
+        self._lag = float(state.get("lag_s", 0.0))
         waiting = state["waiting"]
         self._waiting = Tracks(
             frame=np.asarray(waiting["frame"], np.int64),
