@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -248,6 +249,14 @@ def test_online_counts_equal_offline_and_survive_sigkill(case, site_file, start_
                   for origin, row in offline["od"].items()
                   for destination, value in row.items() if value}
     assert od == offline_od
+
+    # `cblrs matcher --stats` shows the persistent counts.
+    stats = subprocess.run([sys.executable, "-m", "cblrs.cli.main", "matcher", "--stats",
+                            str(database)], capture_output=True, text=True, check=True).stdout
+    north = counts["lines"]["north_flow"]
+    shown = re.search(r"line north_flow \+/-\s+(\d+) / (\d+)", stats)
+    assert shown is not None, stats
+    assert (int(shown[1]), int(shown[2])) == (north.get("positive", 0), north.get("negative", 0))
 
     # The kill changed nothing: the same counts as an uninterrupted in-process run.
     site = case["site"]

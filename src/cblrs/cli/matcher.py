@@ -530,11 +530,17 @@ def show_stats(path: Path, as_json: bool) -> int:
     from cblrs.matching.fusion import clock_report
     from cblrs.runtime.store import RuntimeStore
 
+    from cblrs.runtime.analytics_store import count_summary, read_counts
+
     with RuntimeStore(path, read_only=True) as store:
         summary = store.summary()
         summary["clocks"] = clock_report(
             store.matcher_state(), (summary.get("settings") or {}).get("camera_ids") or []
         )
+        try:
+            summary["analytics"] = count_summary(read_counts(store))
+        except Exception:  # a file written before the analytics tables: none to show
+            summary["analytics"] = {"lines": {}, "zones": {}}
     if as_json:
         print_json(summary)
         return 0
@@ -549,5 +555,12 @@ def show_stats(path: Path, as_json: bool) -> int:
     rows += [[f"clock offset {name} (s)", f"{report['offset_s']:+.3f}"
               + (" beyond tolerance" if report["beyond_tolerance"] else "")]
              for name, report in (summary["clocks"] or {}).items()]
+    for line, row in sorted(summary["analytics"]["lines"].items()):
+        rows.append([f"line {line} +/-", f"{row.get('positive', 0):.0f} / "
+                     f"{row.get('negative', 0):.0f}"])
+    for zone, row in sorted(summary["analytics"]["zones"].items()):
+        rows.append([f"zone {zone} entries/exits/visits",
+                     f"{row.get('entries', 0):.0f} / {row.get('exits', 0):.0f} / "
+                     f"{row.get('visits', 0):.0f} (mean dwell {row['mean_dwell_s']:.1f} s)"])
     print(format_table(["counter", "value"], rows))
     return 0
