@@ -252,3 +252,21 @@ def test_live_occupancy_and_dwell_of_confirmed_tracks():
     assert engine.live_occupancy() == {"room": 1}
     ((zone, track, seconds),) = engine.live_dwell()
     assert (zone, track) == ("room", 1) and seconds == pytest.approx(2.5 - 0.75)
+
+
+@pytest.mark.parametrize("kind", ["lines only", "zones only"])
+def test_a_state_round_trips_without_zones_or_without_lines(kind):
+    """Slot columns of a place kind the site lacks have shape (N, 0): restored all the same."""
+    places = (Places(lines=(CountingLine("gate", (0.0, -5.0), (0.0, 5.0)),))
+              if kind == "lines only" else
+              Places(zones=(Zone("hall", [[0.0, -5.0], [5.0, -5.0], [5.0, 5.0], [0.0, 5.0]]),)))
+    walk = Tracks(np.arange(8), np.arange(8.0), np.ones(8, int),
+                  np.c_[np.linspace(-4, 3, 8), np.zeros(8)])
+    whole = Analytics(places)
+    expected = [event.kind for event in whole.update(walk) + whole.flush()]
+    first = Analytics(places)
+    events = first.update(walk[:4])
+    second = Analytics(places)
+    second.set_state(json.loads(json.dumps(first.get_state())))
+    events += second.update(walk[4:]) + second.flush()
+    assert [event.kind for event in events] == expected and expected

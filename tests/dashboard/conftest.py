@@ -7,6 +7,7 @@ tests that need it are skipped, with the reason, when either is missing.
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 import time
@@ -69,6 +70,9 @@ def start_broker(tmp_path) -> Iterator[Callable[..., Broker]]:
     started: list[Broker] = []
 
     def start(cameras=(), matchers=(), **options) -> Broker:
+        # pytest's private temporary folders: as root the broker runs as root (never in
+        # production; see broker-config's run_as).
+        options.setdefault("run_as", "root" if os.geteuid() == 0 else None)
         files = write_broker_config(tmp_path / f"broker{len(started)}", list(cameras),
                                     list(matchers), port=free_port(), plane_ids=(1,), **options)
         process = MosquittoProcess.from_files(files)

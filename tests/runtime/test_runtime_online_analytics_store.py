@@ -16,6 +16,7 @@ from cblrs.detections import Tracks
 from cblrs.places import CountingLine, Places, Zone
 from cblrs.runtime.analytics_store import (
     count_summary,
+    read_bins,
     read_counts,
     read_events,
     read_od,
@@ -244,3 +245,36 @@ def test_unsynchronised_cameras_count_like_offline(wildtrack_root, places, clock
             online_count = sum(value for (zone, name, _), value in counts.items()
                                if (zone, name) == (row["zone"], measure))
             assert online_count == row[measure], (row["zone"], measure)
+
+
+def test_retention_deletes_old_published_events_and_bins_and_keeps_the_totals(tmp_path):
+    import time
+
+    from cblrs.runtime.analytics_store import mark_published
+    from cblrs.runtime.retention import RetentionPolicy, apply_retention
+
+    places = Places(lines=(CountingLine("gate", (0.0, -5.0), (0.0, 5.0)),))
+    store = RuntimeStore(tmp_path / "m.db")
+    now = time.time()
+    for start in (now - 3 * 86400, now - 600):  # one walk three days ago, one ten minutes ago
+        walk = Tracks(np.arange(8), start + np.arange(8.0), np.full(8, int(start) % 1000),
+                      np.c_[np.linspace(-4, 3, 8), np.zeros(8)])
+        online = OnlineAnalytics(places)
+        if start > now - 86400:
+            online.resume(store)
+        online.update(walk, start + 7)
+        online.flush()
+        store.commit_group([], walk, None, start + 7, {}, also=online.take_writes())
+    events = read_events(store)
+    assert len(events) == 2
+    mark_published(store, [events[1].id])  # the old one is not published yet
+    deleted = apply_retention(store, RetentionPolicy(max_age_s=86400, max_bytes=None), now)
+    assert [event.id for event in read_events(store)] == [event.id for event in events]
+    assert deleted["count_bins"] >= 1 and deleted.get("events", 0) == 0
+    assert min(start for start, *_ in read_bins(store)) > now - 86400
+    mark_published(store, [events[0].id])
+    deleted = apply_retention(store, RetentionPolicy(max_age_s=86400, max_bytes=None), now)
+    assert deleted["events"] == 1
+    assert [event.id for event in read_events(store)] == [events[1].id]
+    assert count_summary(read_counts(store))["lines"]["gate"]["negative"] == 2  # totals kept
+    store.close()

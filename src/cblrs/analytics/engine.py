@@ -625,9 +625,12 @@ class Analytics:
             self.reset()
             self.clock = -math.inf if state["clock"] is None else float(state["clock"])
             templates = {name: getattr(self, name) for name in self._SLOT_ARRAYS}
+            count = len(state["slots"]["_ids"])
             for name, template in templates.items():
                 value = np.asarray(state["slots"][name], dtype=template.dtype)
-                setattr(self, name, value.reshape((-1, *template.shape[1:])))
+                # The row count is explicit: a site without zones (or lines) has (N, 0)
+                # columns, which -1 cannot infer.
+                setattr(self, name, value.reshape((count, *template.shape[1:])))
             self._slot = {int(track): slot for slot, track in enumerate(self._ids.tolist())}
             self._confirmed = {int(track): bool(value) for track, value in state["confirmed"]}
             self._held = {int(track): [event_from_dict(item) for item in events]

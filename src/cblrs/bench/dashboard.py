@@ -11,6 +11,7 @@ the update period (100 ms at 10 Hz) for the map to stay smooth.
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 import tempfile
@@ -90,8 +91,10 @@ def benchmark_dashboard(
 
     with tempfile.TemporaryDirectory(prefix="cblrs-bench-dashboard-") as folder_name:
         folder = Path(folder_name)
+        # run_as root: the broker reads a private temporary folder (a benchmark only).
         files = write_broker_config(folder / "broker", [], [], port=free_port(),
-                                    allow_anonymous=True, viewer=False, persistence=False)
+                                    allow_anonymous=True, viewer=False, persistence=False,
+                                    run_as="root" if os.geteuid() == 0 else None)
         broker = MosquittoProcess.from_files(files)
         broker.start()
         dashboard = subprocess.Popen(

@@ -122,7 +122,8 @@ def register(subparsers) -> None:
         "writes what is kept)")
     retention.add_argument(
         "--retain-hours", type=float, default=24.0,
-        help="delete inbox and track rows older than this (default 24; 0: no age limit)",
+        help="delete inbox, track, published event and binned count rows older than this "
+        "(default 24; 0: no age limit; the counts' totals are kept)",
     )
     retention.add_argument(
         "--retain-gb", type=float, default=4.0,
@@ -528,9 +529,8 @@ def _clocks_off(clocks: dict[str, Any] | None) -> str:
 
 def show_stats(path: Path, as_json: bool) -> int:
     from cblrs.matching.fusion import clock_report
-    from cblrs.runtime.store import RuntimeStore
-
     from cblrs.runtime.analytics_store import count_summary, read_counts
+    from cblrs.runtime.store import RuntimeStore
 
     with RuntimeStore(path, read_only=True) as store:
         summary = store.summary()

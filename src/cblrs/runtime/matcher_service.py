@@ -76,9 +76,9 @@ from typing import Any
 from cblrs.detections import Tracks
 from cblrs.errors import CblrsError
 from cblrs.matching.fusion import clock_report
+from cblrs.runtime.analytics_service import ServiceReporter
 from cblrs.runtime.confirmations import ConfirmationBuffer, peek_sequence
 from cblrs.runtime.lease import PlaneLease
-from cblrs.runtime.analytics_service import ServiceReporter
 from cblrs.runtime.metrics import ServiceMetrics
 from cblrs.runtime.ordering import Orderer
 from cblrs.runtime.rate_limited import RateLimitedLog

@@ -18,9 +18,10 @@ shrinking. A re-delivery of a message whose inbox row was deleted early by the s
 stored again as ``late`` (its time was released long ago), so it is never tracked twice.
 
 Other tables join by adding a :class:`RetainedTable` (a table name, its time column and the
-condition for rows that may go) to the policy's ``tables``, e.g. analytics events::
+condition for rows that may go) to the policy's ``tables``, as the analytics' events (only
+once published) and binned counts do in :data:`DEFAULT_TABLES`::
 
-    policy = RetentionPolicy(tables=(*DEFAULT_TABLES, RetainedTable("events", "timestamp")))
+    policy = RetentionPolicy(tables=(*DEFAULT_TABLES, RetainedTable("mine", "timestamp")))
 
 Tables missing from a database are skipped. Deletion runs in batches of ``batch_rows`` rows,
 one short transaction each, so the receiver never waits long.
@@ -37,6 +38,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from cblrs.errors import CblrsError
+from cblrs.runtime.analytics_store import RETAINED_BINS, RETAINED_EVENTS
 
 logger = logging.getLogger(__name__)
 
@@ -68,8 +70,12 @@ class RetainedTable:
 DEFAULT_TABLES: tuple[RetainedTable, ...] = (
     RetainedTable("inbox", "timestamp", "status IN ('processed', 'late')"),
     RetainedTable("tracks", "timestamp"),
+    RetainedTable(*RETAINED_EVENTS),
+    RetainedTable(*RETAINED_BINS),
 )
-"""The matcher's own tables: the inbox (never ``pending`` rows) and the track history."""
+"""The matcher's own tables: the inbox (never ``pending`` rows), the track history, the
+analytics events (never one not yet published) and the binned counts; the analytics' totals
+(``counts``, ``od``) are kept for ever (:mod:`cblrs.runtime.analytics_store`)."""
 
 
 @dataclass(frozen=True)
