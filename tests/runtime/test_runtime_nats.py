@@ -322,6 +322,7 @@ def test_analytics_events_flow_on_the_backbone_stored_once(server, transports, t
                      np.tile([1, 2, 3], 8),
                      np.c_[np.repeat(np.linspace(-4, 3, 8), 3), np.tile([0.0, 1.0, 2.0], 8)])
     online.update(walkers, 1e9 + 7)
+    online.flush()
     store.commit_group([], walkers, None, 1e9 + 7, {}, also=online.take_writes())
     stored = read_events(store)
     assert len(stored) == 3

@@ -87,17 +87,17 @@ def test_size_deletes_the_oldest_first_but_never_pending_rows(tmp_path, caplog):
 
 def test_other_tables_join_the_policy(tmp_path):
     with RuntimeStore(tmp_path / "m.db") as store:
-        store.execute_write("CREATE TABLE events (timestamp REAL NOT NULL, kind TEXT)")
+        store.execute_write("CREATE TABLE visits_log (timestamp REAL NOT NULL, kind TEXT)")
         for hours in (48.0, 1.0):
-            store.execute_write("INSERT INTO events VALUES (?, 'zone_entry')",
+            store.execute_write("INSERT INTO visits_log VALUES (?, 'zone_entry')",
                                 (NOW - hours * HOUR,))
         policy = RetentionPolicy(
             max_bytes=None,
-            tables=(*DEFAULT_TABLES, RetainedTable("events", "timestamp"),
+            tables=(*DEFAULT_TABLES, RetainedTable("visits_log", "timestamp"),
                     RetainedTable("not_there_yet", "timestamp")),
         )
-        assert apply_retention(store, policy, NOW) == {"events": 1}
-        assert store.execute_write("DELETE FROM events WHERE timestamp > 0") == 1
+        assert apply_retention(store, policy, NOW) == {"visits_log": 1}
+        assert store.execute_write("DELETE FROM visits_log WHERE timestamp > 0") == 1
 
 
 @pytest.mark.parametrize(
