@@ -272,6 +272,39 @@ def run_counts_command(args: argparse.Namespace) -> tuple[dict[str, Any], str]:
     return result, text
 
 
+def run_resolution_command(args: argparse.Namespace) -> tuple[dict[str, Any], str]:
+    """Entry point of ``cblrs experiment resolution``."""
+    from cblrs.experiments.resolution import (
+        load_named_scene,
+        plot_resolution,
+        resolution_report,
+        run_resolution,
+    )
+
+    sizes = tuple(float(value) for value in parse_numbers(args.sizes, "--sizes"))
+    bits = tuple(int(value) for value in parse_numbers(args.bits, "--bits"))
+    if any(value not in (8, 16) for value in bits):
+        raise UsageError(f"--bits must be 8 and/or 16, got {args.bits!r}.")
+    if any(value <= 0 for value in sizes):
+        raise UsageError(f"--sizes must be positive, got {args.sizes!r}.")
+    if args.frames is not None and args.frames <= 0:
+        raise UsageError(f"--frames must be a positive integer, got {args.frames}.")
+    names = [name.strip() for name in args.scenes.split(",") if name.strip()]
+    known = {"wildtrack", "plaza", "roundabout"}
+    unknown = [name for name in names if name not in known]
+    if unknown or not names:
+        raise UsageError(
+            f"--scenes must name some of {', '.join(sorted(known))}; got {args.scenes!r}."
+        )
+    scenes = {name: load_named_scene(name, args.wildtrack, args.frames) for name in names}
+    result = run_resolution(scenes, sizes, bits)
+    text = resolution_report(result)
+    if args.out is not None:
+        result["figures"] = [str(plot_resolution(result, args.figures or args.out))]
+        _write(args.out, "resolution", result, text)
+    return result, text
+
+
 def run(args: argparse.Namespace) -> int:
     if args.experiment == "targeting":
         result, text = run_targeting_command(args)
@@ -280,8 +313,6 @@ def run(args: argparse.Namespace) -> int:
     elif args.experiment == "counts":
         result, text = run_counts_command(args)
     elif args.experiment == "resolution":
-        from cblrs.experiments.resolution import run_resolution_command
-
         result, text = run_resolution_command(args)
     else:  # pragma: no cover - argparse restricts the choices
         raise UsageError(f"unknown experiment {args.experiment!r}.")

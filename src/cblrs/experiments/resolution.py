@@ -280,32 +280,3 @@ def plot_resolution(result: dict[str, Any], out: str | Path) -> Path:
     figure.savefig(path, dpi=90)
     plt.close(figure)
     return path
-
-
-def run_resolution_command(args: Any) -> tuple[dict[str, Any], str]:
-    """Entry point of ``cblrs experiment resolution``."""
-    from cblrs.cli.common import UsageError
-    from cblrs.cli.experiment import _write, parse_numbers
-
-    sizes = tuple(float(value) for value in parse_numbers(args.sizes, "--sizes"))
-    bits = tuple(int(value) for value in parse_numbers(args.bits, "--bits"))
-    if any(value not in (8, 16) for value in bits):
-        raise UsageError(f"--bits must be 8 and/or 16, got {args.bits!r}.")
-    if any(value <= 0 for value in sizes):
-        raise UsageError(f"--sizes must be positive, got {args.sizes!r}.")
-    if args.frames is not None and args.frames <= 0:
-        raise UsageError(f"--frames must be a positive integer, got {args.frames}.")
-    names = [name.strip() for name in args.scenes.split(",") if name.strip()]
-    known = {"wildtrack", "plaza", "roundabout"}
-    unknown = [name for name in names if name not in known]
-    if unknown or not names:
-        raise UsageError(
-            f"--scenes must name some of {', '.join(sorted(known))}; got {args.scenes!r}."
-        )
-    scenes = {name: load_named_scene(name, args.wildtrack, args.frames) for name in names}
-    result = run_resolution(scenes, sizes, bits)
-    text = resolution_report(result)
-    if args.out is not None:
-        result["figures"] = [str(plot_resolution(result, args.figures or args.out))]
-        _write(args.out, "resolution", result, text)
-    return result, text
