@@ -30,6 +30,10 @@ detections and the tracks:
 
 A camera whose offset exceeds ``tolerance_s`` is reported (an event, logged by the tracker,
 and in :meth:`ClockModel.report`); all offsets are corrected whatever their size.
+
+It stays one module because the two estimators share one state (the queued views, the
+history of tracks, the offsets they both move) that :class:`ClockModel` saves and restores as
+one piece; splitting it would pass that state between modules.
 """
 
 from __future__ import annotations

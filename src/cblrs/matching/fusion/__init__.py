@@ -1,0 +1,102 @@
+"""The fusion tracker: one observation per object per instant, Kalman-tracked on the ground.
+
+Where the paper's matcher compares every detection with every object, camera by camera,
+this tracker uses what the colour code makes possible: every camera's detections land in
+the same metric ground frame, so the views of one person at one instant are noisy
+observations of one point. Per instant:
+
+1. decode all colours to world positions (metres); give each detection a covariance
+   elongated along the ray from its camera (a box edge's pixel error moves a foot point
+   along the viewing direction far more than across it) and remove the learned along-ray
+   bias;
+2. predict every track to the instant with an interacting multiple-model filter: two
+   constant-velocity Kalman filters, one steady and one manoeuvring (white-noise
+   accelerations of a quarter of and twice the class's: a person walking straight
+   hardly accelerates, one turning or stopping does), weighed
+   by how well each has been predicting;
+3. associate: groups of precise detections are assigned across cameras as one observation;
+   the rest camera by camera, most precise camera first, each against the tracks as
+   corrected by the cameras before it (as a Kalman filter processes independent sensors),
+   then once more against the tracks corrected by all other cameras. Each step is a
+   Hungarian assignment on the negative log-likelihood, gated by Mahalanobis distance,
+   a metric cap and class (a track takes at most one detection from each camera). An
+   early wrong choice propagates to the cameras after it, so where tracks compete the
+   cameras are assigned again in the reverse order, and each connected group of tracks
+   and detections where the two assignments differ keeps the more likely one (the sum of
+   the cameras' innovation costs, an unassigned detection costing as much as one at the
+   gate);
+4. let leftovers join a track other cameras saw at this instant when they are consistent
+   with its fused position (the gate must not split one object's views);
+5. fuse each track's detections in information form (inverse covariances) and update the
+   filter once, adding an object-level noise common to all views;
+6. cluster the remaining detections across cameras (at most one per camera per cluster,
+   complete linkage on the Mahalanobis distance) and start a tentative track per cluster;
+7. confirm tracks with enough evidence (camera detections), optionally merge duplicates,
+   delete tracks unseen for too long.
+
+Cameras need not be synchronised. Messages are fused in windows of nearby capture times
+(:mod:`cblrs.matching.timing`: a fraction of the shortest frame period wide, one message per
+camera, released once no camera can still add to it), each detection at its own capture time:
+its gate is widened by how far its class moves in its lag to the window's latest time, and
+once it has a track it is moved along the track's velocity to that time before fusion. Each
+camera's clock offset is estimated from the data and subtracted from its timestamps
+(:mod:`cblrs.matching.clock`): finely from how its views lead or trail the other cameras'
+views of the same walking people, coarsely (seconds: a wrong clock) by searching the lag at
+which its views land on the other cameras' tracks. A window is reported at the capture time
+of each frame it holds, one row per confirmed track and frame.
+
+Measurement noise is ``a**2 + (b * d)**2`` along the ray and ``e**2 + (c * d)**2`` across
+it (``d`` the distance from the camera, along the ray scaled by the camera's height when
+known), and :class:`NoiseModel` re-estimates the four coefficients and a bias online from
+how much the cameras that see one object disagree, so the same defaults serve exact boxes
+and a noisy detector. All parameters are physical (metres, seconds, m/s, m/s^2): the same
+defaults serve 2 fps datasets and 10 or 20 fps video. Everything is online; there is no
+look-ahead.
+
+The package follows these steps: :mod:`~cblrs.matching.fusion.config` (parameters),
+:mod:`~cblrs.matching.fusion.noise` (1), :mod:`~cblrs.matching.fusion.gaussian` (the Gaussian
+algebra all steps share), :mod:`~cblrs.matching.fusion.association` (3, 4),
+:mod:`~cblrs.matching.fusion.birth` (6, 7), :mod:`~cblrs.matching.fusion.clocks` (camera
+clocks), :mod:`~cblrs.matching.fusion.state` (snapshots) and
+:mod:`~cblrs.matching.fusion.tracker` (the tracker, which runs them: 2 and 5 are its own).
+"""
+
+from __future__ import annotations
+
+from cblrs.matching.fusion.association import assign_per_camera
+from cblrs.matching.fusion.birth import cluster_detections
+from cblrs.matching.fusion.clocks import clock_report
+from cblrs.matching.fusion.config import (
+    DEFAULT_CLASS_ACCELERATION_SIGMA,
+    DEFAULT_CLASS_MEASUREMENT_SIGMA_M,
+    FusionConfig,
+)
+from cblrs.matching.fusion.gaussian import (
+    close_pairs,
+    fuse,
+    inverse_cholesky_2x2,
+    largest_sigma,
+    mahalanobis_squared,
+    ray_covariance,
+)
+from cblrs.matching.fusion.noise import NoiseModel
+from cblrs.matching.fusion.state import STATE_VERSION
+from cblrs.matching.fusion.tracker import FusionTracker
+
+__all__ = [
+    "DEFAULT_CLASS_ACCELERATION_SIGMA",
+    "DEFAULT_CLASS_MEASUREMENT_SIGMA_M",
+    "STATE_VERSION",
+    "FusionConfig",
+    "FusionTracker",
+    "NoiseModel",
+    "assign_per_camera",
+    "clock_report",
+    "close_pairs",
+    "cluster_detections",
+    "fuse",
+    "inverse_cholesky_2x2",
+    "largest_sigma",
+    "mahalanobis_squared",
+    "ray_covariance",
+]

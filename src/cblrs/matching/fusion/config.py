@@ -1,0 +1,253 @@
+"""Configuration of the fusion tracker: :class:`FusionConfig` and the per-class defaults.
+
+Every parameter is physical (metres, seconds, m/s, m/s^2), so the same defaults serve 2 fps
+data sets and 10 or 20 fps video.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from cblrs.detections import CLASS_NAMES
+from cblrs.matching.base import (
+    require,
+)
+from cblrs.matching.clock import DEFAULT_MAX_OFFSET_S, DEFAULT_TOLERANCE_S
+from cblrs.matching.timing import (
+    DEFAULT_MAX_WINDOW_S,
+    DEFAULT_WINDOW_FRACTION,
+)
+
+# Vehicles are located less precisely than people (their footprint is metres long and the
+# box bottom only bounds it) and turn harder; everything else falls back to the base values.
+DEFAULT_CLASS_MEASUREMENT_SIGMA_M: dict[str, float] = {
+    "car": 0.7, "truck": 1.0, "bus": 1.2, "bicycle": 0.3, "motorcycle": 0.4,
+}
+DEFAULT_CLASS_ACCELERATION_SIGMA: dict[str, float] = {
+    "car": 5.0, "truck": 2.0, "bus": 2.0, "bicycle": 1.5, "motorcycle": 3.0,
+}
+
+
+def _positive(value: Any) -> bool:
+    return isinstance(value, int | float) and not isinstance(value, bool) and (
+        math.isfinite(value) and value > 0
+    )
+
+
+@dataclass(frozen=True)
+class FusionConfig:
+    """Options of the fusion tracker, all in physical units.
+
+    Attributes:
+        measurement_sigma_m: initial standard deviation of one camera's ground position of
+            an object, metres, independent of distance (the prior of the noise model).
+        sigma_per_distance: initial standard deviation across the ray per metre of distance
+            between camera and object (needs ``camera_positions``): a pixel error covers
+            more ground far away. Dimensionless; learned when ``adapt_noise`` (see
+            :class:`NoiseModel`).
+        along_sigma_per_distance: the same along the ray, per metre of distance scaled by
+            the camera's height (a box bottom off by ``e`` of the box height moves a
+            person's foot point by about ``e x 1.75 m x distance / camera height``).
+            The default, about 4 % of the box height, is on the loose side on purpose:
+            the online model shrinks a too-large noise to the cameras' agreement within a
+            few instants, but grows a too-small one only slowly (residuals beyond three
+            standard deviations of the current model are clipped), and meanwhile it
+            splits one person's views into several tracks.
+        minimum_sigma_m: smallest standard deviation of one camera's ground position, however
+            closely the cameras agree, metres.
+        object_sigma_m: standard deviation of an object's position common to all the views
+            of one instant, metres: a person is not a point (where the views' foot points
+            fall on the body, where the ground truth marks it) and does not move at exactly
+            constant velocity. Cameras' disagreement cannot reveal it, so it is added once to
+            each instant's fused observation rather than to every camera's.
+        adapt_noise: re-estimate the noise model and the along-ray bias online from the
+            disagreement of the cameras that see the same object at the same instant (so the
+            same defaults serve exact boxes and a noisy detector); False keeps the initial
+            values.
+        class_measurement_sigma_m: extra standard deviation (added in quadrature) for classes
+            whose footprint is large (vehicles: the box bottom only bounds it), metres;
+            the gate cap and the cluster radius grow with it.
+        camera_positions: optional ``{camera_id: (x, y)}`` or ``{camera_id: (x, y, height)}``
+            positions of the cameras, metres; without them the measurement noise does not
+            depend on distance nor direction. With heights for every camera, the along-ray
+            noise grows with ``distance / height`` (a box edge's pixel error moves the foot
+            point along the ground by ``~ object height x distance / camera height`` per
+            unit of relative box error), scaled to the cameras' mean height.
+        acceleration_sigma: white-noise acceleration of a person's motion model, m/s^2.
+        class_acceleration_sigma: the same for other classes, ``{class name: m/s^2}``.
+        model_acceleration_factors: the motion model is an interacting multiple-model
+            filter: constant-velocity models whose white-noise accelerations are these
+            multiples of the class's (people mostly walk steadily, sometimes turn or stop:
+            0.25 m/s^2 and 2 m/s^2 for a person); ``(1.0,)`` is a single constant-velocity
+            filter.
+        model_sojourn_s: mean time spent in each of those models, seconds (one per model).
+        initial_velocity_sigma: velocity uncertainty of a new track, m/s.
+        gate_sigmas: Mahalanobis gate on the innovation (standard deviations).
+        max_gate_m: cap on the distance between a track and a detection it takes, metres
+            (larger for a detection whose own noise is larger: ``gate_sigmas`` times its
+            largest standard deviation).
+        cluster_sigmas: two cameras' detections can be one object when their distance is
+            within this many standard deviations of their difference,
+            ``sqrt(sigma_1**2 + sigma_2**2)``, or within ``cluster_radius_m``.
+        cluster_radius_m: smallest such radius for people (two views of one person land
+            apart by body size and calibration error however precise the boxes); grows with
+            the class's size for vehicles.
+        group_radius_m: detections precise enough that their cluster radius under the
+            learned noise is within this are first grouped across cameras and assigned as
+            one observation per object, metres (0: always assign camera by camera).
+        refine_passes: after the cameras are assigned one after the other, each camera's
+            detections are assigned again this many times against the tracks as corrected
+            by all the other cameras (0: one sequential pass only).
+        association_orders: camera orders the sequential assignment is run in (the most
+            precise camera first, then the reverse, then rotations); where the assignments
+            differ, each connected group of tracks and detections keeps the one with the
+            smaller negative log-likelihood (1: the most-precise-first order only).
+        merge_radius_m: two confirmed tracks closer than this, observed at the same instant
+            by disjoint sets of cameras, are one object seen twice; the younger one is dropped.
+        confirm_evidence: camera detections (summed over instants) a track needs before it
+            is reported.
+        tentative_max_age_s: a tentative track unseen this long is dropped, seconds.
+        max_age_s: a confirmed track unseen this long is dropped, seconds.
+        report_coasting_s: keep reporting the prediction of a confirmed track that was
+            missed for at most this long, seconds (0: report only observed tracks).
+        max_window_s: messages are fused in windows of nearby capture times (see
+            :mod:`cblrs.matching.timing`), at most this wide, seconds.
+        window_fraction: window width as a fraction of the shortest camera frame period.
+        max_lag_s: a message whose corrected capture time is older than the tracker's time
+            by more than this cannot be fused any more and is dropped (counted), seconds.
+        estimate_clocks: estimate each camera's clock offset from the data and correct its
+            timestamps (see :mod:`cblrs.matching.clock`); False trusts the timestamps.
+        clock_tolerance_s: a camera whose clock is estimated off by more than this is
+            reported (logged, and in :meth:`FusionTracker.clock_report`), seconds.
+        max_clock_offset_s: largest clock error searched for when a camera's locations stop
+            matching the other cameras' tracks, seconds (0: only the fine estimate).
+    """
+
+    measurement_sigma_m: float = 0.2
+    sigma_per_distance: float = 0.01
+    along_sigma_per_distance: float = 0.03
+    minimum_sigma_m: float = 0.05
+    object_sigma_m: float = 0.1
+    adapt_noise: bool = True
+    class_measurement_sigma_m: Mapping[str, float] = field(
+        default_factory=lambda: dict(DEFAULT_CLASS_MEASUREMENT_SIGMA_M)
+    )
+    camera_positions: Mapping[str, Sequence[float]] | None = None
+    acceleration_sigma: float = 1.0
+    class_acceleration_sigma: Mapping[str, float] = field(
+        default_factory=lambda: dict(DEFAULT_CLASS_ACCELERATION_SIGMA)
+    )
+    model_acceleration_factors: tuple[float, ...] = (0.25, 2.0)
+    model_sojourn_s: tuple[float, ...] = (10.0, 2.0)
+    initial_velocity_sigma: float = 1.5
+    gate_sigmas: float = 4.0
+    max_gate_m: float = 2.0
+    cluster_sigmas: float = 3.5
+    cluster_radius_m: float = 1.0
+    group_radius_m: float = 0.7
+    refine_passes: int = 1
+    association_orders: int = 2
+    merge_radius_m: float = 0.0
+    confirm_evidence: int = 2
+    tentative_max_age_s: float = 1.0
+    max_age_s: float = 2.0
+    report_coasting_s: float = 0.0
+    max_window_s: float = DEFAULT_MAX_WINDOW_S
+    window_fraction: float = DEFAULT_WINDOW_FRACTION
+    max_lag_s: float = 0.5
+    estimate_clocks: bool = True
+    clock_tolerance_s: float = DEFAULT_TOLERANCE_S
+    max_clock_offset_s: float = DEFAULT_MAX_OFFSET_S
+
+    def __post_init__(self) -> None:
+        for name in (
+            "measurement_sigma_m", "minimum_sigma_m", "acceleration_sigma",
+            "initial_velocity_sigma", "gate_sigmas", "max_gate_m", "cluster_sigmas",
+            "cluster_radius_m", "tentative_max_age_s", "max_age_s", "max_window_s",
+            "window_fraction", "max_lag_s", "clock_tolerance_s",
+        ):
+            value = getattr(self, name)
+            require(_positive(value), f"{name} must be a positive number, got {value!r}.")
+        for name in ("sigma_per_distance", "along_sigma_per_distance", "merge_radius_m",
+                     "report_coasting_s", "object_sigma_m", "group_radius_m",
+                     "max_clock_offset_s"):
+            value = getattr(self, name)
+            require(
+                _positive(value) or value == 0,
+                f"{name} must be zero or a positive number, got {value!r}.",
+            )
+        for name in ("model_acceleration_factors", "model_sojourn_s"):
+            values = getattr(self, name)
+            require(
+                isinstance(values, Sequence) and not isinstance(values, str) and len(values) > 0
+                and all(_positive(value) for value in values),
+                f"{name} must be a non-empty list of positive numbers, got {values!r}.",
+            )
+            object.__setattr__(self, name, tuple(float(value) for value in values))
+        require(
+            len(self.model_acceleration_factors) == len(self.model_sojourn_s),
+            "model_acceleration_factors and model_sojourn_s need one entry per model, got "
+            f"{len(self.model_acceleration_factors)} and {len(self.model_sojourn_s)}.",
+        )
+        for name in ("adapt_noise", "estimate_clocks"):
+            value = getattr(self, name)
+            require(isinstance(value, bool), f"{name} must be true or false, got {value!r}.")
+        require(
+            self.window_fraction < 1,
+            f"window_fraction must be below 1 (a fraction of a frame period), "
+            f"got {self.window_fraction!r}.",
+        )
+        require(
+            isinstance(self.refine_passes, int) and not isinstance(self.refine_passes, bool)
+            and self.refine_passes >= 0,
+            f"refine_passes must be a whole number >= 0, got {self.refine_passes!r}.",
+        )
+        require(
+            isinstance(self.association_orders, int)
+            and not isinstance(self.association_orders, bool) and self.association_orders >= 1,
+            f"association_orders must be a whole number >= 1, got {self.association_orders!r}.",
+        )
+        require(
+            isinstance(self.confirm_evidence, int) and not isinstance(self.confirm_evidence, bool)
+            and self.confirm_evidence >= 1,
+            f"confirm_evidence must be a whole number >= 1, got {self.confirm_evidence!r}.",
+        )
+        for name in ("class_measurement_sigma_m", "class_acceleration_sigma"):
+            table = getattr(self, name)
+            require(isinstance(table, Mapping), f"{name} must map class names to numbers.")
+            for class_name, value in table.items():
+                require(
+                    class_name in CLASS_NAMES,
+                    f"{name}: unknown class {class_name!r}; known: {', '.join(CLASS_NAMES)}.",
+                )
+                require(
+                    _positive(value),
+                    f"{name}[{class_name!r}] must be a positive number, got {value!r}.",
+                )
+            object.__setattr__(self, name, {str(k): float(v) for k, v in table.items()})
+        if self.camera_positions is not None:
+            require(
+                isinstance(self.camera_positions, Mapping),
+                "camera_positions must map camera ids to (x, y) metres.",
+            )
+            positions: dict[str, tuple[float, ...]] = {}
+            for name, position in self.camera_positions.items():
+                point = np.asarray(position, dtype=np.float64).reshape(-1)
+                require(
+                    len(point) in (2, 3) and bool(np.isfinite(point).all()),
+                    f"camera position of {name!r} must be finite (x, y) or (x, y, height) "
+                    f"metres, got {position!r}.",
+                )
+                if len(point) == 3:
+                    require(
+                        point[2] > 0,
+                        f"camera height of {name!r} must be above the ground, "
+                        f"got {point[2]:g} m.",
+                    )
+                positions[str(name)] = tuple(float(value) for value in point)
+            object.__setattr__(self, "camera_positions", positions)

@@ -1,0 +1,481 @@
+"""The fusion tracker: one observation per object per instant, Kalman-tracked on the ground.
+
+:class:`FusionTracker` runs the steps of its update in order; each step lives in the module
+named after it (the package docstring, :mod:`cblrs.matching.fusion`, describes them):
+``noise`` (1, measurement noise), ``tracker`` (2, prediction; 5, the filter update),
+``association`` (3, 4), ``birth`` (6, 7), ``clocks`` (camera clocks), ``state`` (snapshots).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+
+from cblrs.detections import CLASS_NAMES, CameraMessage, Tracks
+from cblrs.matching import kalman
+from cblrs.matching.base import (
+    MatcherError,
+    Observations,
+    build_config,
+    camera_index,
+    decode_messages,
+    require,
+)
+from cblrs.matching.clock import ClockModel
+from cblrs.matching.fusion.association import (
+    Association,
+)
+from cblrs.matching.fusion.birth import Births
+from cblrs.matching.fusion.clocks import ClockLearning
+from cblrs.matching.fusion.config import (
+    FusionConfig,
+)
+from cblrs.matching.fusion.gaussian import (
+    fuse,
+    ray_covariance,
+)
+from cblrs.matching.fusion.noise import NoiseModel
+from cblrs.matching.fusion.state import Snapshots
+from cblrs.matching.timing import (
+    Window,
+    WindowBuffer,
+)
+from cblrs.plane import PlaneSet
+
+_REPORTED_FRAMES = 64  # frames remembered to report each track at most once per frame
+
+
+class FusionTracker(Association, Births, ClockLearning, Snapshots):
+    """Multi-camera fusion tracker (the default matcher).
+
+    Args:
+        planes: the planes the cameras' colours refer to.
+        camera_ids: names of the cameras; a camera's index here is ``Tracks.camera_id``.
+        **options: fields of :class:`FusionConfig`.
+
+    Example:
+        >>> from cblrs.plane import PlaneSet, PlaneSpec
+        >>> tracker = FusionTracker(PlaneSet([PlaneSpec(1, (0, 0), 10, 10)]), ["a", "b"])
+        >>> len(tracker.update(0.0, []))
+        0
+    """
+
+    name = "fusion"
+
+    def __init__(self, planes: PlaneSet, camera_ids: Sequence[str], **options: Any):
+        self.config = build_config(FusionConfig, options, self.name)
+        self.planes = planes if isinstance(planes, PlaneSet) else PlaneSet(planes)
+        self.camera_ids = [str(name) for name in camera_ids]
+        self._cameras = camera_index(self.camera_ids)
+        self._camera_xy = np.full((len(self.camera_ids), 2), np.nan)
+        # Along-ray distances are scaled by mean height / camera height when all placed
+        # cameras have a height (1 otherwise).
+        self._along_scale = np.ones(len(self.camera_ids))
+        if self.config.camera_positions is not None:
+            unknown = sorted(set(self.config.camera_positions) - set(self.camera_ids))
+            require(not unknown, f"camera_positions names unknown camera(s): {unknown}.")
+            heights = {}
+            for name, position in self.config.camera_positions.items():
+                self._camera_xy[self._cameras[name]] = position[:2]
+                if len(position) == 3:
+                    heights[self._cameras[name]] = position[2]
+            if heights and len(heights) == len(self.config.camera_positions):
+                index = np.array(list(heights))
+                height = np.array(list(heights.values()))
+                self._along_scale[index] = np.exp(np.mean(np.log(height))) / height
+        config = self.config
+        # Per class id (index into CLASS_NAMES; one extra slot for unknown ids).
+        self._class_extra = np.array(
+            [config.class_measurement_sigma_m.get(name, 0.0) for name in CLASS_NAMES] + [0.0]
+        )
+        # Gate caps and cluster radii scale with the class's size relative to a person.
+        self._class_scale = np.hypot(self._class_extra, config.measurement_sigma_m) / (
+            config.measurement_sigma_m
+        )
+        self._class_acceleration = np.array(
+            [config.class_acceleration_sigma.get(name, config.acceleration_sigma)
+             for name in CLASS_NAMES] + [config.acceleration_sigma]
+        )
+        # How far an object may move per second, to widen the gate of a detection captured
+        # a little before or after the window's time (before its track's velocity is known
+        # to compensate it): the initial velocity uncertainty, scaled like the acceleration.
+        self._class_speed = (
+            config.initial_velocity_sigma * self._class_acceleration / config.acceleration_sigma
+        )
+        self._windows = WindowBuffer(
+            len(self.camera_ids), config.max_window_s, config.window_fraction
+        )
+        self._clock = ClockModel(
+            len(self.camera_ids), config.clock_tolerance_s, config.max_clock_offset_s,
+            estimate=config.estimate_clocks,
+        )
+        self.reset()
+
+    def _class_slot(self, class_id: np.ndarray) -> np.ndarray:
+        class_id = np.asarray(class_id, np.int64)
+        return np.where((class_id >= 0) & (class_id < len(CLASS_NAMES)), class_id,
+                        len(CLASS_NAMES))
+
+    def reset(self) -> None:
+        self._object_covariance = self.config.object_sigma_m**2 * np.eye(2)
+        self._time: float | None = None
+        self._next_id = 1
+        self._ids = np.zeros(0, np.int64)  # -1 while tentative
+        self._class = np.zeros(0, np.int64)
+        self._noise = NoiseModel(
+            self.config.measurement_sigma_m, self.config.along_sigma_per_distance,
+            self.config.sigma_per_distance,
+        )
+        self._state = np.zeros((0, 4))
+        self._covariance = np.zeros((0, 4, 4))
+        models = len(self.config.model_sojourn_s)
+        self._mode_state = np.zeros((0, models, 4))
+        self._mode_covariance = np.zeros((0, models, 4, 4))
+        self._mode_probability = np.zeros((0, models))
+        self._evidence = np.zeros(0, np.int64)
+        self._last_seen = np.zeros(0)
+        # When each camera last saw each track (-inf: never), for corroboration.
+        self._seen_by = np.zeros((0, len(self.camera_ids)))
+        self._windows.reset()
+        self._clock.reset()
+        self._reported: dict[int, set[int]] = {}
+        self._clock_turn = 0
+
+    @property
+    def track_count(self) -> int:
+        """Live tracks, tentative ones included."""
+        return len(self._ids)
+
+    def update(self, timestamp: float, messages: Sequence[CameraMessage]) -> Tracks:
+        """Take the messages of one released group and fuse every window now complete.
+
+        Messages are fused in windows of nearby clock-corrected capture times (see
+        :mod:`cblrs.matching.timing`), each at its own capture time, so the rows returned
+        may belong to earlier groups, and a window waits until no message can still join it;
+        :meth:`flush` fuses what waits at the end of a stream.
+
+        Args:
+            timestamp: every message captured (by the cameras' own clocks) at or before this
+                has been delivered, in this call or earlier (the latest capture time among
+                ``messages`` when groups are released in capture order), seconds.
+            messages: messages from any subset of the cameras, each camera's in capture order.
+
+        Returns:
+            One row per confirmed track and fused window (frame: the window's newest frame).
+        """
+        for message in messages:
+            camera = self._cameras.get(message.camera_id)
+            if camera is None:
+                raise MatcherError(
+                    f"message from unknown camera {message.camera_id!r}; "
+                    f"known: {', '.join(self._cameras)}."
+                )
+            self._windows.add(camera, message)
+        self._windows.advance(float(timestamp))
+        return self._drain(final=False)
+
+    def flush(self) -> Tracks:
+        """Fuse every message still waiting (the stream has ended); the rows of those windows."""
+        return self._drain(final=True)
+
+    def clock_report(self) -> dict[str, dict[str, Any]]:
+        """Per camera: estimated clock offset (seconds, positive: ahead of the others), its
+        uncertainty, whether it is beyond the tolerance, and counters (see
+        :meth:`cblrs.matching.clock.ClockModel.report`)."""
+        return self._clock.report(self.camera_ids)
+
+    def clock_events(self) -> list[dict[str, Any]]:
+        """Clock events since the last call: ``{"camera", "kind", "offset_s", "time_s"}``."""
+        return [
+            {"camera": self.camera_ids[event.camera], "kind": event.kind,
+             "offset_s": event.offset_s, "time_s": event.time_s}
+            for event in self._clock.events()
+        ]
+
+    @property
+    def waiting(self) -> int:
+        """Messages received but not fused yet (their window is not complete)."""
+        return len(self._windows)
+
+    def _drain(self, final: bool) -> Tracks:
+        parts = []
+        while (window := self._windows.next_window(self._clock.offsets, final)) is not None:
+            parts.append(self._fuse_window(window))
+        return parts[0] if len(parts) == 1 else Tracks.concatenate(parts)
+
+    def _fuse_window(self, window: Window) -> Tracks:
+        """Fuse one window: each message at its own corrected capture time."""
+        times = window.times
+        timestamp = float(times.max())
+        if self._time is not None and timestamp < self._time:
+            timestamp = self._time  # late messages are fused at the tracker's time
+        fresh = times >= timestamp - self.config.max_lag_s
+        for camera in window.cameras[~fresh].tolist():
+            self._clock.stale(camera)
+        if not fresh.all():
+            window = Window([m for m, ok in zip(window.messages, fresh.tolist(), strict=True)
+                             if ok], window.cameras[fresh], times[fresh], window.end)
+            times = window.times
+            if not len(times):
+                return Tracks.empty()
+        messages = window.messages
+        # Capture time of each camera's message relative to the window's time (<= 0).
+        lag_of_camera = np.zeros(len(self.camera_ids))
+        lag_of_camera[window.cameras] = times - timestamp
+        raw_time_of_camera = np.zeros(len(self.camera_ids))
+        raw_time_of_camera[window.cameras] = [message.timestamp for message in messages]
+
+        # 1. decode the colours; each detection's ray-shaped covariance (noise model).
+        raw = decode_messages(self.planes, self._cameras, messages)
+        lag = lag_of_camera[raw.camera]
+        # 2. predict every track to the window's time.
+        self._predict(timestamp)
+        covariance = self._measurement_covariance(raw)
+        base_covariance = covariance
+        slot = self._class_slot(raw.class_id)
+        if np.any(lag != 0):
+            # Until a detection is given a track, its motion over its lag is unknown: widen
+            # its gate by how far the class moves in that time.
+            covariance = covariance + ((lag * self._class_speed[slot]) ** 2)[:, None, None] * (
+                np.eye(2)[None])
+        plain = self._class_extra[slot] == 0
+        observed = raw
+        if plain.any():
+            # Box bottoms are not exactly the feet: remove the learned along-ray bias.
+            shift = self._noise.bias(self._distance, self._along_distance)
+            observed = dataclasses.replace(
+                raw, world_xy=raw.world_xy - np.where(plain, shift, 0.0)[:, None]
+                * self._direction
+            )
+
+        # 3. associate (association module); 4. leftovers join tracks seen at this instant.
+        assigned = self._associate(observed, covariance)
+        assigned = self._join_observed(observed, covariance, assigned)
+        matched = assigned >= 0
+        located_xy = observed.world_xy
+        if matched.any() and np.any(lag[matched] != 0):
+            # Each view shows its track where it was at the view's capture time: move it
+            # along the track's velocity to the window's time.
+            rows = assigned[matched]
+            motion = lag[matched, None] * self._state[rows, 2:4]
+            observed = dataclasses.replace(observed, world_xy=observed.world_xy.copy())
+            observed.world_xy[matched] -= motion
+            raw = dataclasses.replace(raw, world_xy=raw.world_xy.copy())
+            raw.world_xy[matched] -= motion
+            covariance = base_covariance.copy()
+            covariance[matched] += (lag[matched] ** 2)[:, None, None] * (
+                self._covariance[rows, 2:4, 2:4])
+        if self.config.adapt_noise:
+            self._noise.learn(raw.world_xy, self._distance, np.where(plain, assigned, -1),
+                              self._direction, self._along_distance)
+        # 5. fuse each track's views and update its filter once.
+        seen_now, report_camera, report_box, cameras_of_track = self._update_tracks(
+            observed, covariance, base_covariance, assigned, timestamp
+        )
+
+        # 6. births from clusters of what no track took (birth module).
+        births = self._birth(_subset(observed, ~matched), covariance[~matched], timestamp)
+        seen_now = np.concatenate([seen_now, np.ones(births, dtype=bool)])
+        report_camera = np.concatenate([report_camera, self._birth_camera])
+        report_box = np.concatenate([report_box, self._birth_box])
+        cameras_of_track = np.concatenate([cameras_of_track, self._birth_cameras])
+
+        # 7. merge duplicates, drop tracks unseen too long, confirm, report.
+        keep = self._merge_duplicates(seen_now, cameras_of_track)
+        keep &= self._alive(timestamp)
+        self._select(keep)
+        seen_now, report_camera, report_box = seen_now[keep], report_camera[keep], report_box[keep]
+
+        report = self._confirm(timestamp, seen_now)
+        self._record_for_clocks(timestamp, seen_now & (self._ids >= 0), located_xy,
+                                observed.camera, raw_time_of_camera)
+        return self._report_instants(report, report_camera, report_box, window, timestamp)
+
+    def _update_tracks(
+        self, observed: Observations, covariance: np.ndarray, base_covariance: np.ndarray,
+        assigned: np.ndarray, timestamp: float,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Step 5: fuse each track's detections in information form and update its filter once.
+
+        Returns per track: seen at this instant, the camera and box of its largest view (-1 /
+        NaN when unseen), and which cameras saw it.
+        """
+        track_count = len(self._ids)
+        seen_now = np.zeros(track_count, dtype=bool)
+        report_camera = np.full(track_count, -1, np.int64)
+        report_box = np.full((track_count, 4), np.nan)
+        cameras_of_track = np.zeros((track_count, len(self.camera_ids)), dtype=bool)
+        matched = assigned >= 0
+        if matched.any():
+            rows = assigned[matched]
+            self._seen_by[rows, observed.camera[matched]] = timestamp
+            self._learn_clocks(observed, base_covariance, matched, rows, timestamp)
+            fused_xy, fused_covariance, seen_now = fuse(
+                rows, track_count, observed.world_xy[matched], covariance[matched]
+            )
+            (self._mode_state[seen_now], self._mode_covariance[seen_now],
+             self._mode_probability[seen_now]) = kalman.update_models(
+                self._mode_state[seen_now], self._mode_covariance[seen_now],
+                self._mode_probability[seen_now], fused_xy[seen_now],
+                fused_covariance[seen_now] + self._object_covariance,
+            )
+            self._state[seen_now], self._covariance[seen_now] = kalman.combine(
+                self._mode_state[seen_now], self._mode_covariance[seen_now],
+                self._mode_probability[seen_now],
+            )
+            self._evidence += np.bincount(rows, minlength=track_count)
+            self._last_seen[seen_now] = timestamp
+            cameras_of_track[rows, observed.camera[matched]] = True
+            report_camera, report_box = self._largest_boxes(observed, matched, rows, track_count)
+        else:
+            self._clock.corroboration(observed.camera, np.zeros(len(observed), dtype=bool))
+        return seen_now, report_camera, report_box, cameras_of_track
+
+    def _confirm(self, timestamp: float, seen_now: np.ndarray) -> np.ndarray:
+        """Step 7: give confirmed ids to tentative tracks with enough evidence; the mask of
+        tracks to report (confirmed, and seen now or coasting briefly)."""
+        newly_confirmed = (self._ids < 0) & (self._evidence >= self.config.confirm_evidence)
+        count = int(newly_confirmed.sum())
+        self._ids[newly_confirmed] = self._next_id + np.arange(count)
+        self._next_id += count
+        return (self._ids >= 0) & (
+            seen_now | (timestamp - self._last_seen <= self.config.report_coasting_s)
+        )
+
+    def _report_instants(
+        self, report: np.ndarray, report_camera: np.ndarray, report_box: np.ndarray,
+        window: Window, timestamp: float,
+    ) -> Tracks:
+        """Rows of the reported tracks at each capture instant of the window.
+
+        An instant is a frame number: the window's messages of one frame (cameras numbering
+        frames alike, as data sets do) are one instant, at their mean corrected capture time;
+        a window holding the frames of cameras at different rates reports each. The state is
+        at the window's latest capture time and is moved back along the track's velocity.
+        A track is reported at most once per frame: cameras whose clocks disagree by about
+        a frame can put one frame's messages in two windows.
+        """
+        frame_list = [int(message.frame) for message in window.messages]
+        distinct = sorted(set(frame_list))
+        frames = np.asarray(frame_list, np.int64)
+        parts = []
+        for frame in distinct:
+            reported = self._reported.get(frame)
+            if reported is None:
+                reported = self._reported[frame] = set()
+                if len(self._reported) > _REPORTED_FRAMES:
+                    del self._reported[next(iter(self._reported))]
+            mask = report & ~np.isin(self._ids, list(reported)) if reported else report
+            order = np.argsort(self._ids[mask], kind="stable")
+            rows = np.flatnonzero(mask)[order]
+            reported.update(self._ids[rows].tolist())
+            instant = float(window.times[frames == frame].mean()) if len(distinct) > 1 else (
+                float(window.times.mean()))
+            position = self._state[rows, :2]
+            if instant != timestamp:
+                position = position + (instant - timestamp) * self._state[rows, 2:4]
+            parts.append(Tracks(
+                frame=np.full(len(rows), frame),
+                timestamp=np.full(len(rows), instant),
+                track_id=self._ids[rows],
+                world_xy=position,
+                camera_id=report_camera[rows],
+                xyxy=report_box[rows],
+                class_id=self._class[rows],
+            ))
+        return parts[0] if len(parts) == 1 else Tracks.concatenate(parts)
+
+    def _predict(self, timestamp: float) -> None:
+        if self._time is not None:
+            # Messages of slightly different timestamps can arrive out of order; a late
+            # one is treated as simultaneous rather than rewinding the filter.
+            dt = max(0.0, timestamp - self._time)
+            if dt > 0 and len(self._ids):
+                acceleration = self._class_acceleration[self._class_slot(self._class)]
+                self._mode_state, self._mode_covariance, self._mode_probability = (
+                    kalman.predict_models(
+                        self._mode_state, self._mode_covariance, self._mode_probability, dt,
+                        acceleration[:, None]
+                        * np.asarray(self.config.model_acceleration_factors)[None],
+                        np.asarray(self.config.model_sojourn_s),
+                    )
+                )
+                self._state, self._covariance = kalman.combine(
+                    self._mode_state, self._mode_covariance, self._mode_probability
+                )
+            self._time = max(self._time, timestamp)
+        else:
+            self._time = timestamp
+
+    def _camera_rays(self, observed: Observations) -> tuple[np.ndarray, np.ndarray]:
+        """(N,) metres from each detection's camera (0 where the camera is not placed) and
+        (N, 2) unit vectors from the camera to the detection ((1, 0) where unknown)."""
+        offset = observed.world_xy - self._camera_xy[observed.camera]
+        distance = np.linalg.norm(offset, axis=1)
+        known = np.isfinite(distance) & (distance > 0)
+        direction = np.zeros_like(offset)
+        direction[:, 0] = 1.0
+        direction[known] = offset[known] / distance[known, None]
+        return np.where(known, distance, 0.0), direction
+
+    def _measurement_covariance(self, observed: Observations) -> np.ndarray:
+        """(N, 2, 2) ground covariance of each detection, elongated along its camera's ray.
+
+        Also sets ``_distance``, ``_direction`` and ``_sigma`` (the largest standard
+        deviation of each detection, for neighbour searches).
+        """
+        self._distance, self._direction = self._camera_rays(observed)
+        self._along_distance = self._distance * self._along_scale[observed.camera]
+        extra = self._class_extra[self._class_slot(observed.class_id)] ** 2
+        along, lateral = self._noise.variances(self._distance, self._along_distance)
+        # The model may learn that cameras agree closely; the floor keeps one camera from
+        # being trusted without limit.
+        floor = self.config.minimum_sigma_m**2
+        along = np.maximum(along, floor) + extra
+        lateral = np.maximum(lateral, floor) + extra
+        self._sigma = np.sqrt(np.maximum(along, lateral))
+        return ray_covariance(self._direction, along, lateral)
+
+    @staticmethod
+    def _largest_boxes(
+        observed: Observations, matched: np.ndarray, rows: np.ndarray, track_count: int
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Camera and box of each track's largest assigned box (the closest, best view)."""
+        boxes = observed.xyxy[matched]
+        area = (boxes[:, 2] - boxes[:, 0]) * (boxes[:, 3] - boxes[:, 1])
+        order = np.lexsort((area, rows))  # by track, then by area ascending
+        last_of_track = np.r_[rows[order][1:] != rows[order][:-1], True]
+        best = order[last_of_track]
+        camera = np.full(track_count, -1, np.int64)
+        box = np.full((track_count, 4), np.nan)
+        camera[rows[best]] = observed.camera[matched][best]
+        box[rows[best]] = boxes[best]
+        return camera, box
+
+    def _alive(self, timestamp: float) -> np.ndarray:
+        age = timestamp - self._last_seen
+        limit = np.where(self._ids >= 0, self.config.max_age_s, self.config.tentative_max_age_s)
+        return age <= limit
+
+    def _select(self, keep: np.ndarray) -> None:
+        self._ids = self._ids[keep]
+        self._class = self._class[keep]
+        self._state = self._state[keep]
+        self._covariance = self._covariance[keep]
+        self._mode_state = self._mode_state[keep]
+        self._mode_covariance = self._mode_covariance[keep]
+        self._mode_probability = self._mode_probability[keep]
+        self._evidence = self._evidence[keep]
+        self._last_seen = self._last_seen[keep]
+        self._seen_by = self._seen_by[keep]
+
+
+def _subset(observed: Observations, mask: np.ndarray) -> Observations:
+    return Observations(
+        world_xy=observed.world_xy[mask], colour=observed.colour[mask],
+        camera=observed.camera[mask], xyxy=observed.xyxy[mask],
+        confidence=observed.confidence[mask], class_id=observed.class_id[mask],
+    )
