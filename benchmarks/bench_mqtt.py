@@ -75,9 +75,9 @@ from cblrs.matching import make_matcher
 from cblrs.plane import PlaneSet, PlaneSpec
 from cblrs.runtime.broker import MosquittoProcess, free_port, write_broker_config
 from cblrs.runtime.matcher_service import MatcherService
+from cblrs.runtime.mqtt_transport import MqttSettings, MqttTransport
 from cblrs.runtime.store import InboxEntry, RuntimeStore
 from cblrs.runtime.topics import detections_filter, detections_topic, tracks_topic
-from cblrs.runtime.transport import MqttSettings, MqttTransport
 from cblrs.runtime.wire import ValidationPolicy, encode_message
 
 PLANE_ID = 1

@@ -22,9 +22,10 @@ import pytest
 from cblrs.datasets import load_scene
 from cblrs.runtime.analytics_store import count_summary, read_counts
 from cblrs.runtime.camera_node import CameraNode, camera_last_will
+from cblrs.runtime.mqtt_transport import MqttTransport
 from cblrs.runtime.sources import scene_source
 from cblrs.runtime.store import RuntimeStore
-from cblrs.runtime.transport import MqttTransport, Will
+from cblrs.runtime.transport import Will
 from cblrs.site import load_site
 from conftest import cblrs_command, wait_until
 

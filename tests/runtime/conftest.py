@@ -33,14 +33,9 @@ from cblrs.runtime.broker import (
     free_port,
     write_broker_config,
 )
-from cblrs.runtime.transport import (
-    InProcessBroker,
-    InProcessTransport,
-    MqttSettings,
-    MqttTransport,
-    Transport,
-    Will,
-)
+from cblrs.runtime.inprocess import InProcessBroker, InProcessTransport
+from cblrs.runtime.mqtt_transport import MqttSettings, MqttTransport
+from cblrs.runtime.transport import Transport, Will
 
 TEST_CAMERAS = ("CVLab1", "CVLab2")
 TEST_MATCHERS = ("matcher1", "matcher2")

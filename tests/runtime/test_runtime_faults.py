@@ -425,7 +425,7 @@ def test_item10_sigterm_to_the_process_group_stops_cleanly_and_resumes(plant, tm
 def test_item10_clean_camera_shutdown_keeps_its_final_offline(plant, tmp_path):
     """A camera's clean end leaves its timestamped "offline" (not its last will) retained, so
     a matcher started afterwards knows the stream ended."""
-    from cblrs.runtime.transport import MqttTransport
+    from cblrs.runtime.mqtt_transport import MqttTransport
     from cblrs.runtime.wire import decode_status
 
     plant = plant()
@@ -474,8 +474,8 @@ def test_item12_logs_have_times_lifecycle_lines_and_rate_limited_rejections(plan
     per 10 s (50 rejections give one line); -v adds cblrs debug lines, -vv paho's packets."""
     import re
 
+    from cblrs.runtime.mqtt_transport import MqttTransport
     from cblrs.runtime.topics import detections_topic
-    from cblrs.runtime.transport import MqttTransport
 
     plant = plant()
     database = tmp_path / "plane1.db"

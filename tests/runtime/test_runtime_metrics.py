@@ -17,6 +17,7 @@ from cblrs.places import CountingLine, Places, Zone
 from cblrs.plane import PlaneSet, PlaneSpec
 from cblrs.runtime.analytics_store import read_events
 from cblrs.runtime.events import decode_event, decode_live
+from cblrs.runtime.inprocess import InProcessBroker, InProcessTransport
 from cblrs.runtime.matcher_service import MatcherService
 from cblrs.runtime.metrics import (
     MetricsServer,
@@ -27,7 +28,6 @@ from cblrs.runtime.metrics import (
 from cblrs.runtime.online_analytics import OnlineAnalytics
 from cblrs.runtime.store import RuntimeStore
 from cblrs.runtime.topics import detections_topic, events_topic, live_topic, status_topic
-from cblrs.runtime.transport import InProcessBroker, InProcessTransport
 from cblrs.runtime.wire import encode_message, encode_status
 
 PLANE = 1

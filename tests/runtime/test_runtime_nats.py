@@ -19,6 +19,7 @@ from cblrs.datasets import load_scene
 from cblrs.matching import make_matcher
 from cblrs.pipeline import render_scene_references, scene_planes, track_scene
 from cblrs.reference import ReferenceImage
+from cblrs.runtime.mqtt_transport import MqttSettings, MqttTransport
 from cblrs.runtime.nats_server import NatsCluster, find_nats_server
 from cblrs.runtime.nats_transport import (
     DETECTIONS_STREAM,
@@ -31,7 +32,7 @@ from cblrs.runtime.nats_transport import (
     topic_to_subject,
 )
 from cblrs.runtime.store import RuntimeStore
-from cblrs.runtime.transport import MqttSettings, MqttTransport, TransportError
+from cblrs.runtime.transport import TransportError
 
 pytestmark = pytest.mark.nats
 

@@ -44,9 +44,10 @@ from cblrs.runtime.analytics_store import count_summary, read_counts, read_event
 from cblrs.runtime.broker import free_port
 from cblrs.runtime.camera_node import CameraNode, camera_last_will
 from cblrs.runtime.events import decode_event
+from cblrs.runtime.mqtt_transport import MqttTransport
 from cblrs.runtime.store import RuntimeStore
 from cblrs.runtime.topics import events_topic, matcher_status_topic
-from cblrs.runtime.transport import MqttTransport, TransportError, Will
+from cblrs.runtime.transport import TransportError, Will
 from cblrs.runtime.wire import decode_status
 from cblrs.site import load_site
 

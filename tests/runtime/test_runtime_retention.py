@@ -120,9 +120,9 @@ def test_the_service_applies_retention_while_it_runs(tmp_path):
 
     from cblrs.matching import make_matcher
     from cblrs.plane import PlaneSet, PlaneSpec
+    from cblrs.runtime.inprocess import InProcessBroker, InProcessTransport
     from cblrs.runtime.matcher_service import MatcherService
     from cblrs.runtime.topics import detections_topic
-    from cblrs.runtime.transport import InProcessBroker, InProcessTransport
     from cblrs.runtime.wire import encode_message
 
     broker = InProcessBroker()

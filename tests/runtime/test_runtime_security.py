@@ -14,8 +14,9 @@ import pytest
 from test_runtime_transport import Collector  # tests/runtime is on sys.path (rootdir-relative)
 
 from cblrs.runtime.broker import BrokerError, MosquittoProcess, free_port, write_broker_config
+from cblrs.runtime.mqtt_transport import MqttTransport
 from cblrs.runtime.topics import detections_topic, status_topic, tracks_topic
-from cblrs.runtime.transport import MqttTransport, TransportError
+from cblrs.runtime.transport import TransportError
 
 pytestmark = pytest.mark.mqtt
 
@@ -218,7 +219,7 @@ def test_broker_config_command_writes_a_working_configuration(tmp_path, capsys):
 
     from cblrs.cli.main import main
     from cblrs.runtime.broker import MosquittoProcess, free_port
-    from cblrs.runtime.transport import MqttSettings
+    from cblrs.runtime.mqtt_transport import MqttSettings
 
     port = free_port()
     out = tmp_path / "broker"

@@ -29,7 +29,9 @@ from cblrs.pipeline import scene_planes
 from cblrs.plane import PlaneSet, PlaneSpec
 from cblrs.reference import render_reference
 from cblrs.runtime.camera_node import CameraNode, camera_last_will
+from cblrs.runtime.inprocess import InProcessBroker, InProcessTransport
 from cblrs.runtime.matcher_service import MatcherService, ServiceClock
+from cblrs.runtime.mqtt_transport import MqttTransport
 from cblrs.runtime.sources import (
     ColourBlobDetector,
     Detector,
@@ -45,7 +47,7 @@ from cblrs.runtime.sources import (
 from cblrs.runtime.store import LATE, PENDING, PROCESSED, RuntimeStore
 from cblrs.runtime.topics import detections_topic, matcher_status_topic, status_topic
 from cblrs.runtime.tracker_process import TrackerProcessError
-from cblrs.runtime.transport import InProcessBroker, InProcessTransport, MqttTransport, Will
+from cblrs.runtime.transport import Will
 from cblrs.runtime.wire import decode_message, decode_status, encode_message, encode_status
 
 PLANE = 1

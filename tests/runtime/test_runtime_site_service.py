@@ -20,8 +20,8 @@ from waiting import wait_until
 from cblrs.cli.main import main
 from cblrs.datasets import load_scene, read_tracks
 from cblrs.evaluation import evaluate
+from cblrs.runtime.mqtt_transport import MqttTransport
 from cblrs.runtime.topics import matcher_status_topic
-from cblrs.runtime.transport import MqttTransport
 from cblrs.runtime.wire import decode_status
 
 pytestmark = [pytest.mark.mqtt, pytest.mark.slow]

@@ -8,16 +8,10 @@ import time
 
 import pytest
 
+from cblrs.runtime.inprocess import InProcessBroker, InProcessTransport
+from cblrs.runtime.mqtt_transport import MqttTransport
 from cblrs.runtime.topics import TopicError, topic_matches
-from cblrs.runtime.transport import (
-    Delivery,
-    InProcessBroker,
-    InProcessTransport,
-    MqttTransport,
-    Transport,
-    TransportError,
-    Will,
-)
+from cblrs.runtime.transport import Delivery, Transport, TransportError, Will
 
 WAIT = 5.0
 """Upper bound for anything to arrive; tests finish as soon as it does."""
@@ -432,7 +426,7 @@ def test_without_broker_persistence_a_restart_loses_the_queue(start_mosquitto):
 
 def test_connect_to_a_closed_port_says_why_at_once():
     from cblrs.runtime.broker import free_port
-    from cblrs.runtime.transport import MqttSettings
+    from cblrs.runtime.mqtt_transport import MqttSettings
 
     transport = MqttTransport("lonely", MqttSettings(port=free_port(), connect_timeout_s=30))
     started = time.monotonic()
@@ -443,7 +437,7 @@ def test_connect_to_a_closed_port_says_why_at_once():
 
 
 def test_connect_to_a_silent_port_fails_within_the_timeout():
-    from cblrs.runtime.transport import MqttSettings
+    from cblrs.runtime.mqtt_transport import MqttSettings
 
     with socket.socket() as silent:  # accepts TCP connections, never speaks MQTT
         silent.bind(("127.0.0.1", 0))
@@ -544,7 +538,7 @@ def test_publishes_keep_their_order_across_broker_restarts(start_mosquitto):
 def test_a_connection_to_itself_is_refused():
     # Reconnecting to a local broker that is down, a client may draw the broker's port as its
     # source port and connect to itself; it would then block the broker's restart.
-    from cblrs.runtime.transport import _socket_options
+    from cblrs.runtime.mqtt_transport import _socket_options
 
     with socket.socket() as sock:
         sock.bind(("127.0.0.1", 0))

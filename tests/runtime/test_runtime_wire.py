@@ -33,6 +33,7 @@ from cblrs.runtime.wire import (
     decode_message_with_plane,
     decode_status,
     decode_tracks,
+    decode_wire,
     encode_message,
     encode_status,
     encode_tracks,
@@ -411,6 +412,19 @@ def test_validation_policy_holds_the_settings():
         with pytest.raises(RejectedMessage) as caught:
             policy.decode(payload, now=NOW)
         assert caught.value.reason is reason
+
+
+def test_the_keyword_decoders_are_the_policy():
+    """decode_message & co. build one ValidationPolicy from their keywords: same answers."""
+    good = raw(document(detections=[detection(colour=[255, 0, 1])]))
+    policy = ValidationPolicy(known_cameras={"CVLab1"}, bits=8, max_age_s=5)
+    keywords = {"known_cameras": {"CVLab1"}, "bits": 8, "max_age_s": 5}
+    assert decode_wire(good, now=NOW, **keywords) == policy.decode_wire(good, now=NOW)
+    by_keywords = decode_message(good, now=NOW, **keywords)
+    assert by_keywords.colour.tolist() == policy.decode(good, now=NOW).colour.tolist()
+    with pytest.raises(RejectedMessage) as caught:
+        decode_message(raw(document(timestamp=NOW - 6)), now=NOW, **keywords)
+    assert caught.value.reason is RejectReason.TOO_OLD
 
 
 @pytest.mark.parametrize(

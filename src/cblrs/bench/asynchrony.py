@@ -127,9 +127,10 @@ def track_service(
     from cblrs.matching import make_matcher
     from cblrs.runtime.camera_node import CameraNode, camera_last_will
     from cblrs.runtime.matcher_service import MatcherService
+    from cblrs.runtime.mqtt_transport import MqttSettings, MqttTransport
     from cblrs.runtime.sources import scene_source
     from cblrs.runtime.store import RuntimeStore
-    from cblrs.runtime.transport import MqttSettings, MqttTransport, Will
+    from cblrs.runtime.transport import Will
 
     names = scene.camera_names
     settings = MqttSettings(port=port)

@@ -200,10 +200,10 @@ def run_once(backbone: str, cameras: int, frames: int, fps: float, paced: bool,
     from cblrs.plane import PlaneSet, PlaneSpec
     from cblrs.runtime.broker import MosquittoProcess, free_port, write_broker_config
     from cblrs.runtime.matcher_service import MatcherService
+    from cblrs.runtime.mqtt_transport import MqttSettings, MqttTransport
     from cblrs.runtime.nats_server import NatsCluster
     from cblrs.runtime.nats_transport import LeaseSettings, NatsSettings, NatsTransport
     from cblrs.runtime.store import RuntimeStore
-    from cblrs.runtime.transport import MqttSettings, MqttTransport
     from cblrs.runtime.wire import ValidationPolicy
 
     total = cameras * frames

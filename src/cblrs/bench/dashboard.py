@@ -27,8 +27,8 @@ from cblrs.bench.analytics import AREA_M, bench_places, crowd_tracks
 from cblrs.bench.machine import describe_machine, json_ready, machine_info
 from cblrs.runtime.broker import MosquittoProcess, free_port, write_broker_config
 from cblrs.runtime.events import encode_live
+from cblrs.runtime.mqtt_transport import MqttSettings, MqttTransport
 from cblrs.runtime.topics import live_topic, tracks_topic
-from cblrs.runtime.transport import MqttSettings, MqttTransport
 from cblrs.runtime.wire import encode_tracks
 
 

@@ -64,7 +64,7 @@ def parse_broker(text: str) -> tuple[str, int]:
 
 def mqtt_settings(args: argparse.Namespace) -> Any:
     """:class:`MqttSettings` from the broker options; the password never comes from argv."""
-    from cblrs.runtime.transport import MqttSettings
+    from cblrs.runtime.mqtt_transport import MqttSettings
 
     host, port = parse_broker(args.broker)
     password = read_password(args)
@@ -428,9 +428,10 @@ def check_delivery_options(args: argparse.Namespace) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from cblrs.runtime.camera_node import CameraNode, camera_last_will
+    from cblrs.runtime.mqtt_transport import MqttTransport
     from cblrs.runtime.spool import Spool
     from cblrs.runtime.topics import validate_camera_id
-    from cblrs.runtime.transport import MqttTransport, Will
+    from cblrs.runtime.transport import Will
 
     validate_camera_id(args.camera)
     if not (args.speed > 0 and args.speed < float("inf")):

@@ -222,10 +222,11 @@ def run(args: argparse.Namespace) -> int:
     check_arguments(args)
     from cblrs.matching import make_matcher
     from cblrs.runtime.matcher_service import MatcherService
+    from cblrs.runtime.mqtt_transport import MqttTransport
     from cblrs.runtime.retention import RetentionPolicy
     from cblrs.runtime.store import RuntimeStore
     from cblrs.runtime.topics import matcher_status_topic, validate_client_id
-    from cblrs.runtime.transport import MqttTransport, Will
+    from cblrs.runtime.transport import Will
     from cblrs.runtime.wire import ValidationPolicy, encode_status
 
     site = None

@@ -31,6 +31,7 @@ import msgspec
 
 from cblrs.detections import CLASS_NAMES
 from cblrs.runtime.events import decode_event, decode_live
+from cblrs.runtime.mqtt_transport import MqttSettings, MqttTransport
 from cblrs.runtime.topics import (
     TopicError,
     events_topic,
@@ -39,7 +40,6 @@ from cblrs.runtime.topics import (
     status_filter,
     tracks_topic,
 )
-from cblrs.runtime.transport import MqttSettings, MqttTransport
 from cblrs.runtime.wire import RejectedMessage, decode_status, decode_tracks
 
 logger = logging.getLogger(__name__)

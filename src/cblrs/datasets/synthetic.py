@@ -6,10 +6,9 @@ detection boxes are the image-space bounding boxes of the projected 3D boxes, an
 truth is the centre of each footprint. Everything is exact and deterministic for a seed, so
 it can check localisation, targeting and tracking without any data set.
 
-Projection of boxes partly behind a camera: the box (a convex polyhedron) is clipped in 3D
-against the camera's near plane (:data:`NEAR_PLANE_M` in front of the camera centre) before
-projecting, so the 2D box is the exact bounding box of the visible part of the solid;
-a box entirely behind the near plane is invisible.
+The boxes' geometry (clipping at the near plane, projection) is in
+:mod:`cblrs.datasets.boxes3d`, the paths objects follow in :mod:`cblrs.datasets.paths`; their
+names are importable from here too.
 
 What a camera reports (:meth:`SyntheticWorld.camera_boxes`): a box is kept when at least
 ``min_visible_fraction`` of its unclipped image box lies inside the image and it is at least
@@ -27,13 +26,31 @@ take a preset with :func:`make_scene` (``roundabout``, ``plaza``).
 from __future__ import annotations
 
 import logging
-import warnings
 from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
 
 from cblrs.camera import Camera
+from cblrs.datasets.boxes3d import (
+    _FACES,
+    CLASS_SIZE_PRIORS,
+    NEAR_PLANE_M,
+    box_corners_3d,
+    class_size,
+    clip_boxes,
+    project_box_3d,
+    project_boxes_3d,
+    project_boxes_3d_unclipped,
+)
+from cblrs.datasets.paths import (
+    LanePath,
+    LoopPath,
+    Path,
+    PathSample,
+    RandomWalkPath,
+    WaypointPath,
+)
 from cblrs.datasets.scene import Scene
 from cblrs.detections import Detections, Tracks, class_id_of
 from cblrs.errors import DatasetError
@@ -44,455 +61,35 @@ logger = logging.getLogger(__name__)
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
 
-NEAR_PLANE_M = 0.1
-"""Camera depth (metres) in front of which boxes are clipped before projection."""
-
-# Corner signs (along the length, across the width, up); the edge list below indexes them.
-_CORNER_SIGNS = np.array(
-    [
-        [1, 1, 0],
-        [1, -1, 0],
-        [-1, -1, 0],
-        [-1, 1, 0],
-        [1, 1, 1],
-        [1, -1, 1],
-        [-1, -1, 1],
-        [-1, 1, 1],
-    ],
-    dtype=np.float64,
-)
-_FACES = ((0, 1, 2, 3), (4, 5, 6, 7), (0, 1, 5, 4), (1, 2, 6, 5), (2, 3, 7, 6), (3, 0, 4, 7))
-_EDGES = np.array(
-    [
-        [0, 1],
-        [1, 2],
-        [2, 3],
-        [3, 0],
-        [4, 5],
-        [5, 6],
-        [6, 7],
-        [7, 4],
-        [0, 4],
-        [1, 5],
-        [2, 6],
-        [3, 7],
-    ]
-)
-
-
-def box_corners_3d(
-    centre_xy: NDArray,
-    size_lwh: NDArray,
-    yaw_deg: NDArray | float,
-    base_z: NDArray | float = 0.0,
-) -> FloatArray:
-    """The eight corners of oriented boxes standing on a horizontal plane.
-
-    Args:
-        centre_xy: (N, 2) footprint centres, metres.
-        size_lwh: (N, 3) or (3,) length (along the heading), width, height in metres.
-        yaw_deg: heading, degrees counter-clockwise from world +x, scalar or (N,).
-        base_z: height of the box bottom, metres, scalar or (N,).
-
-    Returns:
-        (N, 8, 3) corners in world metres; corners 0-3 are the bottom face, 4-7 the top.
-    """
-    centre_xy = np.asarray(centre_xy, dtype=np.float64)
-    if centre_xy.ndim != 2 or centre_xy.shape[1] != 2:
-        raise ValueError(f"centre_xy must have shape (N, 2), got {centre_xy.shape}")
-    count = len(centre_xy)
-    size_lwh = np.broadcast_to(np.asarray(size_lwh, dtype=np.float64), (count, 3))
-    yaw = np.radians(np.broadcast_to(np.asarray(yaw_deg, dtype=np.float64), (count,)))
-    base = np.broadcast_to(np.asarray(base_z, dtype=np.float64), (count,))
-    heading = np.stack([np.cos(yaw), np.sin(yaw)], axis=1)  # (N, 2)
-    across = np.stack([-np.sin(yaw), np.cos(yaw)], axis=1)
-    half_length = size_lwh[:, 0:1, None] / 2.0  # (N, 1, 1)
-    half_width = size_lwh[:, 1:2, None] / 2.0
-    along = _CORNER_SIGNS[None, :, 0:1] * half_length * heading[:, None, :]  # (N, 8, 2)
-    side = _CORNER_SIGNS[None, :, 1:2] * half_width * across[:, None, :]
-    corners = np.empty((count, 8, 3))
-    corners[:, :, :2] = centre_xy[:, None, :] + along + side
-    corners[:, :, 2] = base[:, None] + _CORNER_SIGNS[None, :, 2] * size_lwh[:, 2:3]
-    return corners
-
-
-def _clipped_vertices(camera: Camera, corners: FloatArray) -> tuple[FloatArray, BoolArray]:
-    """Vertices of each box clipped to the near half-space, in world metres.
-
-    Returns:
-        ``(points, keep)``: (N, 20, 3) candidate points (8 corners then 12 edge crossings)
-        and (N, 20) bool, True for points of the clipped polyhedron.
-    """
-    rotation, translation = camera._pose()
-    depth = corners @ rotation[2] + translation[2]  # (N, 8) camera z
-    in_front = depth >= NEAR_PLANE_M
-    start, end = _EDGES[:, 0], _EDGES[:, 1]
-    depth_start, depth_end = depth[:, start], depth[:, end]  # (N, 12)
-    crosses = in_front[:, start] != in_front[:, end]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        fraction = np.where(crosses, (NEAR_PLANE_M - depth_start) / (depth_end - depth_start), 0)
-    crossing = corners[:, start] + fraction[..., None] * (corners[:, end] - corners[:, start])
-    points = np.concatenate([corners, crossing], axis=1)
-    keep = np.concatenate([in_front, crosses], axis=1)
-    return points, keep
-
-
-def project_boxes_3d_unclipped(
-    camera: Camera,
-    centre_xy: NDArray,
-    size_lwh: NDArray,
-    yaw_deg: NDArray | float,
-    base_z: NDArray | float = 0.0,
-) -> tuple[FloatArray, BoolArray]:
-    """Image bounding boxes of 3D boxes, not clipped to the image.
-
-    Same arguments as :func:`project_boxes_3d`. Returns ``(xyxy, in_front)``: (N, 4) pixels
-    (NaN where nothing is in front of the camera) and (N,) bool.
-    """
-    corners = box_corners_3d(centre_xy, size_lwh, yaw_deg, base_z)
-    count = len(corners)
-    xyxy = np.full((count, 4), np.nan)
-    if count == 0:
-        return xyxy, np.zeros(0, dtype=bool)
-    points, keep = _clipped_vertices(camera, corners)
-    pixels = np.full((count, points.shape[1], 2), np.nan)
-    if keep.any():
-        # Points exactly on the near plane can fall a hair short of it after rounding;
-        # project them all and rely on `keep` rather than on project_points' own test.
-        rotation, translation = camera._pose()
-        flat = points[keep]
-        camera_xyz = flat @ rotation.T + translation
-        camera_xyz[:, 2] = np.maximum(camera_xyz[:, 2], NEAR_PLANE_M)
-        world = (camera_xyz - translation) @ rotation
-        projected, _ = camera.project_points(world)
-        pixels[keep] = projected
-    in_front: BoolArray = np.asarray(keep.any(axis=1), dtype=bool)
-    with np.errstate(invalid="ignore"), warnings.catch_warnings():
-        # Rows with nothing in front are all-NaN; they are excluded by `in_front` anyway.
-        warnings.simplefilter("ignore", category=RuntimeWarning)
-        xyxy[in_front, 0:2] = np.nanmin(pixels[in_front], axis=1)
-        xyxy[in_front, 2:4] = np.nanmax(pixels[in_front], axis=1)
-    return xyxy, in_front
-
-
-def clip_boxes(xyxy: NDArray, image_size: tuple[int, int]) -> tuple[FloatArray, BoolArray]:
-    """Clip pixel boxes to an image.
-
-    Args:
-        xyxy: (N, 4) pixels, NaN rows allowed.
-        image_size: (width, height) in pixels.
-
-    Returns:
-        ``(clipped, nonempty)``: (N, 4) boxes within ``[-0.5, width - 0.5] x
-        [-0.5, height - 0.5]`` (the image's pixel area) and (N,) bool, False where the clipped
-        box has no area (or the row was NaN).
-    """
-    xyxy = np.asarray(xyxy, dtype=np.float64)
-    width, height = image_size
-    clipped = xyxy.copy()
-    clipped[:, [0, 2]] = np.clip(clipped[:, [0, 2]], -0.5, width - 0.5)
-    clipped[:, [1, 3]] = np.clip(clipped[:, [1, 3]], -0.5, height - 0.5)
-    with np.errstate(invalid="ignore"):
-        nonempty = (clipped[:, 2] > clipped[:, 0]) & (clipped[:, 3] > clipped[:, 1])
-    return clipped, nonempty
-
-
-def project_boxes_3d(
-    camera: Camera,
-    centre_xy: NDArray,
-    size_lwh: NDArray,
-    yaw_deg: NDArray | float,
-    base_z: NDArray | float = 0.0,
-) -> tuple[FloatArray, BoolArray]:
-    """Image boxes of N oriented 3D boxes, clipped to the image.
-
-    Each box is clipped against the camera's near plane in 3D (see the module docstring),
-    its vertices projected with :meth:`Camera.project_points` (lens distortion included),
-    and the 2D bounding box of the projections clipped to the image.
-
-    Args:
-        camera: a posed camera.
-        centre_xy: (N, 2) footprint centres in world metres.
-        size_lwh: (N, 3) or (3,) length along the heading, width, height in metres.
-        yaw_deg: (N,) or scalar heading, degrees counter-clockwise from world +x.
-        base_z: (N,) or scalar height of the box bottom in metres.
-
-    Returns:
-        ``(xyxy, visible)``: (N, 4) float64 pixels and (N,) bool. ``visible`` is False when
-        the whole box is behind the near plane or its box misses the image; such rows are NaN.
-    """
-    xyxy, in_front = project_boxes_3d_unclipped(camera, centre_xy, size_lwh, yaw_deg, base_z)
-    clipped, nonempty = clip_boxes(xyxy, camera.image_size)
-    visible = in_front & nonempty
-    clipped[~visible] = np.nan
-    return clipped, visible
-
-
-def project_box_3d(
-    camera: Camera,
-    centre_xy: NDArray | tuple[float, float],
-    size_lwh: NDArray | tuple[float, float, float],
-    yaw_deg: float,
-    base_z: float = 0.0,
-) -> tuple[FloatArray, bool]:
-    """Image box of one oriented 3D box standing on the ground, clipped to the image.
-
-    Args:
-        camera: a posed camera.
-        centre_xy: (2,) footprint centre in metres.
-        size_lwh: (3,) length (along the heading), width, height in metres.
-        yaw_deg: heading in degrees counter-clockwise from world +x.
-        base_z: height of the box bottom in metres.
-
-    Returns:
-        ``(xyxy, visible)``: (4,) pixels (x_min, y_min, x_max, y_max), NaN when invisible,
-        and whether any part of the box is seen.
-
-    Example:
-        >>> camera = Camera.from_pose("top", (0, 0, 10), 0, 90, 500, (640, 480))
-        >>> xyxy, visible = project_box_3d(camera, (0, 0), (2, 2, 0.0), 0)
-        >>> visible, xyxy.round(1).tolist()
-        (True, [269.5, 189.5, 369.5, 289.5])
-    """
-    xyxy, visible = project_boxes_3d(
-        camera,
-        np.asarray(centre_xy, dtype=np.float64).reshape(1, 2),
-        np.asarray(size_lwh, dtype=np.float64).reshape(1, 3),
-        float(yaw_deg),
-        float(base_z),
-    )
-    return xyxy[0], bool(visible[0])
-
-
-# ---------------------------------------------------------------------------- objects and paths
-
-CLASS_SIZE_PRIORS: dict[str, tuple[float, float, float]] = {
-    "person": (0.5, 0.5, 1.75),
-    "car": (4.5, 1.8, 1.5),
-    "bicycle": (1.8, 0.6, 1.7),
-    "motorcycle": (2.1, 0.8, 1.5),
-    "bus": (12.0, 2.55, 3.2),
-    "truck": (8.0, 2.5, 3.5),
-}
-"""Typical (length, width, height) in metres of each class in :data:`CLASS_NAMES`."""
-
-
-def class_size(
-    class_name: str, rng: np.random.Generator | None = None, variation: float = 0.06
-) -> tuple[float, float, float]:
-    """Size prior of a class, optionally varied by a relative normal spread (clipped at 2 sigma).
-
-    Args:
-        class_name: one of :data:`CLASS_SIZE_PRIORS`.
-        rng: random generator; None returns the prior itself.
-        variation: relative standard deviation of each dimension.
-
-    Returns:
-        (length, width, height) in metres.
-    """
-    if class_name not in CLASS_SIZE_PRIORS:
-        raise ValueError(
-            f"no size prior for class {class_name!r}; known: {', '.join(CLASS_SIZE_PRIORS)}"
-        )
-    prior = np.asarray(CLASS_SIZE_PRIORS[class_name])
-    if rng is None:
-        return tuple(float(v) for v in prior)  # type: ignore[return-value]
-    factor = 1.0 + variation * np.clip(rng.standard_normal(3), -2.0, 2.0)
-    return tuple(float(v) for v in prior * factor)  # type: ignore[return-value]
-
-
-@dataclass(frozen=True)
-class PathSample:
-    """Positions of one object at given times.
-
-    Attributes:
-        xy: (T, 2) footprint centre in metres (NaN where absent).
-        heading_deg: (T,) direction of travel, degrees counter-clockwise from +x.
-        present: (T,) bool, True while the object is in the world.
-    """
-
-    xy: FloatArray
-    heading_deg: FloatArray
-    present: BoolArray
-
-
-@dataclass(frozen=True)
-class LoopPath:
-    """Constant speed around a circle (a roundabout lane).
-
-    Attributes:
-        centre: (x, y) of the circle, metres.
-        radius: metres.
-        speed: metres per second along the circle.
-        start_angle_deg: where the object is at ``start_s``, degrees from +x.
-        clockwise: direction (False = counter-clockwise, right-hand traffic).
-        start_s: time the object appears, seconds.
-        laps: number of laps before it disappears; None keeps it going.
-    """
-
-    centre: tuple[float, float]
-    radius: float
-    speed: float
-    start_angle_deg: float = 0.0
-    clockwise: bool = False
-    start_s: float = 0.0
-    laps: float | None = None
-
-    def sample(self, times: FloatArray) -> PathSample:
-        elapsed = np.asarray(times, dtype=np.float64) - self.start_s
-        travelled = self.speed * elapsed
-        present = elapsed >= 0
-        if self.laps is not None:
-            present &= travelled <= self.laps * 2 * np.pi * self.radius + 1e-9
-        sign = -1.0 if self.clockwise else 1.0
-        angle = np.radians(self.start_angle_deg) + sign * travelled / self.radius
-        xy = np.column_stack(
-            [
-                self.centre[0] + self.radius * np.cos(angle),
-                self.centre[1] + self.radius * np.sin(angle),
-            ]
-        )
-        heading = np.degrees(angle + sign * np.pi / 2)
-        return _masked(xy, heading, present)
-
-
-@dataclass(frozen=True)
-class WaypointPath:
-    """Constant speed along a polyline; the object exists from the first to the last point.
-
-    Attributes:
-        points: ((x, y), ...) at least two waypoints, metres.
-        speed: metres per second.
-        start_s: time the object is at the first waypoint, seconds.
-    """
-
-    points: tuple[tuple[float, float], ...]
-    speed: float
-    start_s: float = 0.0
-
-    def __post_init__(self) -> None:
-        if len(self.points) < 2:
-            raise ValueError("a waypoint path needs at least two points")
-        if self.speed <= 0:
-            raise ValueError(f"speed must be positive, got {self.speed}")
-
-    def sample(self, times: FloatArray) -> PathSample:
-        points = np.asarray(self.points, dtype=np.float64)
-        segments = np.diff(points, axis=0)
-        lengths = np.hypot(segments[:, 0], segments[:, 1])
-        cumulative = np.concatenate([[0.0], np.cumsum(lengths)])
-        travelled = self.speed * (np.asarray(times, dtype=np.float64) - self.start_s)
-        present = (travelled >= 0) & (travelled <= cumulative[-1])
-        distance = np.clip(travelled, 0.0, cumulative[-1])
-        xy = np.column_stack(
-            [
-                np.interp(distance, cumulative, points[:, 0]),
-                np.interp(distance, cumulative, points[:, 1]),
-            ]
-        )
-        index = np.clip(
-            np.searchsorted(cumulative, distance, side="right") - 1, 0, len(segments) - 1
-        )
-        heading = np.degrees(np.arctan2(segments[index, 1], segments[index, 0]))
-        return _masked(xy, heading, present)
-
-
-def LanePath(
-    start: tuple[float, float], end: tuple[float, float], speed: float, start_s: float = 0.0
-) -> WaypointPath:
-    """A straight lane from ``start`` to ``end`` (metres) at ``speed`` m/s from ``start_s``."""
-    return WaypointPath((tuple(start), tuple(end)), speed, start_s)  # type: ignore[arg-type]
-
-
-@dataclass(frozen=True)
-class RandomWalkPath:
-    """A smooth random walk (a pedestrian wandering) kept inside a rectangle.
-
-    The heading diffuses (``turn_deg_per_sqrt_s`` standard deviation per square root of a
-    second) and is pulled back towards the area centre near the border. The walk is
-    integrated on a fixed 0.1 s grid from its own seed, so it does not depend on the frame
-    rate it is sampled at.
-
-    Attributes:
-        start: (x, y) position at ``start_s``, metres.
-        area: (x_min, y_min, x_max, y_max) the walker stays in, metres.
-        speed: walking speed, metres per second.
-        seed: seed of this walk.
-        turn_deg_per_sqrt_s: heading diffusion.
-        start_s, end_s: when the walker appears and disappears (None: never).
-        start_heading_deg: initial heading; None draws one from the seed.
-    """
-
-    start: tuple[float, float]
-    area: tuple[float, float, float, float]
-    speed: float = 1.3
-    seed: int = 0
-    turn_deg_per_sqrt_s: float = 20.0
-    start_s: float = 0.0
-    end_s: float | None = None
-    start_heading_deg: float | None = None
-
-    _STEP_S = 0.1
-
-    def sample(self, times: FloatArray) -> PathSample:
-        times = np.asarray(times, dtype=np.float64)
-        present = times >= self.start_s
-        if self.end_s is not None:
-            present &= times <= self.end_s
-        horizon = float(times.max() - self.start_s) if len(times) else 0.0
-        steps = max(int(np.ceil(max(horizon, 0.0) / self._STEP_S)) + 2, 2)
-        rng = np.random.default_rng(self.seed)
-        heading = (
-            rng.uniform(-np.pi, np.pi)
-            if self.start_heading_deg is None
-            else np.radians(self.start_heading_deg)
-        )
-        noise = rng.standard_normal(steps) * np.radians(self.turn_deg_per_sqrt_s)
-        noise *= np.sqrt(self._STEP_S)
-        x_min, y_min, x_max, y_max = self.area
-        centre = np.array([(x_min + x_max) / 2, (y_min + y_max) / 2])
-        margin = 0.15 * min(x_max - x_min, y_max - y_min)
-        position = np.array(self.start, dtype=np.float64)
-        track = np.empty((steps, 2))
-        headings = np.empty(steps)
-        for step in range(steps):
-            track[step], headings[step] = position, heading
-            outside = max(
-                x_min + margin - position[0],
-                position[0] - (x_max - margin),
-                y_min + margin - position[1],
-                position[1] - (y_max - margin),
-                0.0,
-            )
-            if outside > 0:
-                # Turn towards the centre, harder the further into the margin.
-                to_centre = np.arctan2(*(centre - position)[::-1])
-                error = np.angle(np.exp(1j * (to_centre - heading)))
-                heading += min(1.0, outside / margin) * 0.5 * error
-            heading += noise[step]
-            position = position + self.speed * self._STEP_S * np.array(
-                [np.cos(heading), np.sin(heading)]
-            )
-            position = np.clip(position, [x_min, y_min], [x_max, y_max])
-        grid = self.start_s + self._STEP_S * np.arange(steps)
-        clamped = np.clip(times, grid[0], grid[-1])
-        xy = np.column_stack(
-            [np.interp(clamped, grid, track[:, 0]), np.interp(clamped, grid, track[:, 1])]
-        )
-        unwrapped = np.unwrap(headings)
-        heading_deg = np.degrees(np.interp(clamped, grid, unwrapped))
-        return _masked(xy, heading_deg, present)
-
-
-def _masked(xy: FloatArray, heading_deg: FloatArray, present: BoolArray) -> PathSample:
-    xy = xy.copy()
-    heading_deg = np.asarray(heading_deg, dtype=np.float64).copy()
-    xy[~present] = np.nan
-    heading_deg[~present] = np.nan
-    return PathSample(xy=xy, heading_deg=heading_deg, present=present)
-
-
-Path = LoopPath | WaypointPath | RandomWalkPath
+__all__ = [
+    "CLASS_SIZE_PRIORS",
+    "NEAR_PLANE_M",
+    "PRESETS",
+    "GroundMarking",
+    "LanePath",
+    "LoopPath",
+    "MovingObject",
+    "ObjectStates",
+    "Path",
+    "PathSample",
+    "RandomWalkPath",
+    "Structure",
+    "SyntheticWorld",
+    "WaypointPath",
+    "WorldSpec",
+    "box_corners_3d",
+    "class_size",
+    "clip_boxes",
+    "make_scene",
+    "make_world",
+    "occluded",
+    "plaza_world",
+    "project_box_3d",
+    "project_boxes_3d",
+    "project_boxes_3d_unclipped",
+    "roundabout_markings",
+    "roundabout_world",
+]
 
 
 @dataclass(frozen=True)
@@ -900,8 +497,6 @@ def occluded(
     return hidden
 
 
-# ---------------------------------------------------------------------------- presets
-
 _IMAGE_SIZE = (1280, 720)
 
 
@@ -1025,7 +620,6 @@ def plaza_world(
 
 
 PRESETS = {"roundabout": roundabout_world, "plaza": plaza_world}
-"""Named synthetic worlds: name -> ``function(seed, duration_s, fps) -> WorldSpec``."""
 
 
 def make_world(

@@ -19,7 +19,9 @@ from cblrs.runtime.broker import (
     free_port,
     write_broker_config,
 )
+from cblrs.runtime.inprocess import InProcessBroker, InProcessTransport
 from cblrs.runtime.lease import LeaseError, PlaneLease
+from cblrs.runtime.mqtt_transport import MqttSettings, MqttTransport
 from cblrs.runtime.retention import RetainedTable, RetentionPolicy, apply_retention
 from cblrs.runtime.spool import Spool, SpoolError
 from cblrs.runtime.topics import (
@@ -32,16 +34,7 @@ from cblrs.runtime.topics import (
     tracks_topic,
     validate_camera_id,
 )
-from cblrs.runtime.transport import (
-    Delivery,
-    InProcessBroker,
-    InProcessTransport,
-    MqttSettings,
-    MqttTransport,
-    Transport,
-    TransportError,
-    Will,
-)
+from cblrs.runtime.transport import Delivery, Transport, TransportError, Will
 from cblrs.runtime.wire import (
     RejectedMessage,
     RejectReason,

@@ -69,8 +69,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from cblrs.errors import CblrsError
+from cblrs.runtime.mqtt_transport import MqttSettings
 from cblrs.runtime.topics import ROOT, validate_client_id
-from cblrs.runtime.transport import MqttSettings
 
 logger = logging.getLogger(__name__)
 

@@ -29,7 +29,7 @@ from typing import Annotated, Any, Literal
 
 import msgspec
 
-from cblrs.runtime.wire import (
+from cblrs.runtime.wire.common import (
     MAX_INT,
     CameraId,
     ClassName,
