@@ -24,6 +24,10 @@ with the height axis mirrored, ``R' = -R diag(1, 1, -1)`` is a proper rotation a
 such a camera (the ground it sees lies behind it) and returns this equivalent description:
 it reprojects every point identically, has positive depths, keeps ground x, y, and records
 ``height_axis = -1`` so that heights stay heights (metres above the ground) in every method.
+
+It stays one module because :class:`Camera` is one value type (intrinsics, distortion, pose)
+whose methods are the projections every stage uses; the file readers are in
+:mod:`cblrs.calibration`.
 """
 
 from __future__ import annotations

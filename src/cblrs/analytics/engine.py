@@ -26,6 +26,10 @@ How a track becomes counts (each rule also in :class:`AnalyticsConfig`):
   cell of each end (person-seconds).
 * **Origin-destination** — per life, the zone of its first visit and of its last visit
   (lives with two or more visits); lives with one visit are counted as unpaired.
+
+It stays one module because :class:`Analytics` keeps one state (per track: last position, zones,
+dwell; per place: counts) that every chunk updates in one vectorised pass; the places, the
+configuration and the tables are in their own modules.
 """
 
 from __future__ import annotations

@@ -21,6 +21,10 @@ truth keeps every object in view of some camera, occluded or not, on the ground 
 Build a world with :class:`WorldSpec` (cameras from :meth:`Camera.from_pose`, objects with
 :class:`LoopPath`, :func:`LanePath`, :class:`WaypointPath` or :class:`RandomWalkPath`), or
 take a preset with :func:`make_scene` (``roundabout``, ``plaza``).
+
+It stays one module because :class:`SyntheticWorld`, the object and structure types it is built
+from and the two presets that build it change together (a new preset is a new combination of
+them); the box geometry and the paths are their own modules.
 """
 
 from __future__ import annotations

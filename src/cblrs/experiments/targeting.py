@@ -17,6 +17,9 @@ Two conditions: "exact" boxes (the projected 3D boxes, as the paper's hand label
 the box height; several draws per position), under which the geometric targeter of
 :mod:`cblrs.geometric_targeting` (which only knows the class prior) is compared with the best
 fixed VTP chosen with hindsight for each tilt.
+
+It stays one module because the experiment, its markdown table and its figure read and write the
+same result dictionary; splitting them would spread one experiment's format over three files.
 """
 
 from __future__ import annotations

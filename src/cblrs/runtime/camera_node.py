@@ -46,6 +46,10 @@ that the stream has ended — only once everything it sent is accounted for (ack
 the broker, or, when it waits for confirmations, confirmed by the matcher). Otherwise it ends
 with an untimestamped "offline", like its last will: the connection ended, the stream did
 not, and the matcher keeps waiting for the rest.
+
+It stays one module because :class:`CameraNode`'s capture loop, spool pump and resend timer
+share the spool, the sequence numbers and the stop signal; the spool, the sources and the
+transports are their own modules.
 """
 
 from __future__ import annotations

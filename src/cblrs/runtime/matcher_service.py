@@ -59,6 +59,10 @@ Lifecycle (this module's share of "nothing acknowledged is lost"):
   reconnection, a timestamped "offline" when it stops;
 * rejections are counted by reason and logged at most once per reason every
   ``log_interval_s`` seconds.
+
+It stays one module because :class:`MatcherService` is the one place where the numbered steps
+meet in a single transaction per delivery (store, track, analytics, confirmations); the steps
+themselves live in their own modules (wire, store, ordering, the matchers, online analytics).
 """
 
 from __future__ import annotations

@@ -38,6 +38,11 @@ Example:
     >>> matcher = NatsTransport("matcher1", settings, durable="cblrs-plane-1")  # doctest: +SKIP
     >>> matcher.subscribe("cblrs/1/+/detections", store_then_ack)          # doctest: +SKIP
     >>> matcher.connect()                                                 # doctest: +SKIP
+
+It stays one module because :class:`NatsTransport` (about 600 lines) is one asyncio state
+machine — connection, JetStream streams and consumers, ordered publishing, acknowledgements,
+leases — whose parts share its event loop and locks; the subject mapping and message ids beside
+it are what only this transport uses.
 """
 
 from __future__ import annotations

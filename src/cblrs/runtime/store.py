@@ -33,6 +33,9 @@ file and a file that is not a SQLite database or holds another program's tables.
 transaction checks that the path still names the file that was opened: a database deleted or
 replaced under a running matcher fails the next commit (:class:`StoreError`), so nothing more
 is acknowledged into a file nobody will ever read.
+
+It stays one module because the schema, the transactions and every query that reads it must
+change together: a newcomer changing a table finds all of its SQL here.
 """
 
 from __future__ import annotations
