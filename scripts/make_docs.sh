@@ -152,13 +152,13 @@ echo "== MQTT runtime: throughput and latency through Mosquitto (about 6 minutes
 if command -v mosquitto > /dev/null; then
     mqtt_repeats=3
     [[ "${QUICK:-0}" == "1" ]] && mqtt_repeats=1
-    python benchmarks/bench_mqtt.py --repeats "$mqtt_repeats" --markdown > "$results/bench_mqtt.md"
+    cblrs bench mqtt --repeats "$mqtt_repeats" --markdown > "$results/bench_mqtt.md"
     # Capture -> tracks at a subscriber, 20 cameras x 10 fps, with and without TCP_NODELAY.
     {
-        python benchmarks/bench_mqtt.py --cameras 20 --fps 10 --runs matcher/paced \
+        cblrs bench mqtt --cameras 20 --fps 10 --runs matcher/paced \
             --repeats "$mqtt_repeats" --paced-seconds 10 --markdown
         echo
-        python benchmarks/bench_mqtt.py --cameras 20 --fps 10 --runs matcher/paced \
+        cblrs bench mqtt --cameras 20 --fps 10 --runs matcher/paced \
             --repeats "$mqtt_repeats" --paced-seconds 10 --nagle --markdown
     } > "$results/bench_mqtt_nagle.md"
 fi

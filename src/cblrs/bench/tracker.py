@@ -1,7 +1,7 @@
-"""Tracker throughput against live tracks and cameras (wraps :mod:`cblrs.matching.benchmark`).
+"""Tracker throughput against live tracks and cameras (wraps :mod:`cblrs.bench.tracker_load`).
 
 Only ``matcher.update`` is timed, on pre-built messages of a synthetic crowd (see
-:func:`cblrs.matching.benchmark.measure_throughput`); medians over repeats, one core.
+:func:`cblrs.bench.tracker_load.measure_throughput`); medians over repeats, one core.
 """
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ from typing import Any
 
 from cblrs.bench.machine import json_ready, machine_info
 from cblrs.bench.report import markdown_table
-from cblrs.matching.benchmark import measure_throughput
+from cblrs.bench.tracker_load import measure_throughput
 
 DEFAULT_TRACKS = (25, 50, 100, 200, 400)
 DEFAULT_CAMERAS = (1, 4, 8)

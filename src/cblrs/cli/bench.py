@@ -19,7 +19,7 @@ def register(subparsers) -> None:
     parser = subparsers.add_parser(
         "bench",
         help="benchmarks: lookup (Table I), render, claims, tracker, pipeline, analytics, "
-        "dashboard, backbone, asynchrony, all",
+        "dashboard, backbone, asynchrony, mqtt, all",
         description="Measure cblrs on this machine; medians over repeated runs.",
     )
     kinds = parser.add_subparsers(dest="benchmark", metavar="BENCHMARK")
@@ -137,6 +137,41 @@ def register(subparsers) -> None:
     asynchrony.set_defaults(repeats=1)
     _common(asynchrony)
     asynchrony.set_defaults(handler=run, benchmark="asynchrony")
+
+    mqtt = kinds.add_parser(
+        "mqtt",
+        help="the MQTT runtime through a local Mosquitto: messages/s and latency from capture "
+        "to a subscriber of the tracks (QoS 1)",
+        description="Simulated cameras publish to a Mosquitto started on a free loopback port; "
+        "receivers: the broker itself (mosquitto_sub), bare paho, cblrs' transport, the full "
+        "matcher service. Medians over --repeats runs, with the machine.",
+        epilog="example: cblrs bench mqtt --cameras 20 --fps 10 --runs matcher/paced "
+        "--paced-seconds 10",
+    )
+    mqtt.add_argument("--cameras", type=int, nargs="+", default=[1, 10, 50],
+                      help="camera counts (default: 1 10 50)")
+    mqtt.add_argument("--runs", nargs="+", default=None, metavar="RECEIVER/RATE",
+                      help="receiver (broker, paho, transport, matcher) / rate (max, paced) "
+                      "pairs (default: all six)")
+    mqtt.add_argument("--publisher", choices=("mosquitto_pub", "paho"), default=None,
+                      help="how the cameras publish (default: mosquitto_pub when installed)")
+    mqtt.add_argument("--repeats", type=int, default=3, help="runs per row (default 3)")
+    mqtt.add_argument("--max-messages", type=int, default=20000,
+                      help="messages per full-speed run, split over the cameras (default 20000)")
+    mqtt.add_argument("--paced-seconds", type=float, default=5.0,
+                      help="length of a paced run, s (default 5)")
+    mqtt.add_argument("--fps", type=float, default=30.0, help="paced frame rate (default 30)")
+    mqtt.add_argument("--people", type=int, default=2,
+                      help="detections per message (default 2)")
+    mqtt.add_argument("--matcher", default="fusion", help="matcher (default fusion)")
+    mqtt.add_argument("--nagle", action="store_true",
+                      help="leave Nagle's algorithm on (no TCP_NODELAY), as before issue 10")
+    mqtt.add_argument("--stages", action="store_true",
+                      help="only time each matcher step in-process (no broker) and exit")
+    mqtt.add_argument("--markdown", action="store_true",
+                      help="print a markdown table (for docs/results/bench_mqtt.md)")
+    mqtt.add_argument("--json", action="store_true", help="print machine-readable JSON")
+    mqtt.set_defaults(handler=_run_mqtt)
 
     every = kinds.add_parser("all", help="every benchmark; writes JSON and markdown to --out")
     every.add_argument("--repeats", type=int, default=5, help="timed runs (default 5)")
@@ -436,3 +471,23 @@ def run(args: argparse.Namespace) -> int:
     else:
         print("\n\n".join(texts))
     return 0
+
+
+def _run_mqtt(args: argparse.Namespace) -> int:
+    import shutil
+    import threading
+
+    # lazy: the MQTT benchmark imports the whole runtime (paho, SQLite store, matcher service)
+    from cblrs.bench.mqtt import DEFAULT_RUNS, check_runs, run_mqtt_benchmark
+
+    if args.runs is None:
+        args.runs = list(DEFAULT_RUNS)
+    problem = check_runs(args.runs)
+    if problem is not None:
+        raise UsageError(problem)
+    if min(args.cameras) <= 0 or args.repeats <= 0 or args.fps <= 0 or args.people < 0:
+        raise UsageError("--cameras, --repeats and --fps must be positive, --people >= 0.")
+    if args.publisher is None:
+        args.publisher = "mosquitto_pub" if shutil.which("mosquitto_pub") else "paho"
+    threading.current_thread().name = "bench"
+    return run_mqtt_benchmark(args)

@@ -1,10 +1,12 @@
-"""Throughput of the matchers on a synthetic load and on WILDTRACK (importable measurements).
+"""The synthetic load of ``cblrs bench tracker``, and the oracle tracks of the README.
 
 The synthetic load is what the central node sees in steady state: ``live_tracks`` people
 walking (constant velocity, bouncing off the borders of an area sized for a realistic
 crowd density) seen by ``cameras`` cameras, each detecting each person with probability
 0.9 and a ground error of 0.1 m, messages carrying colours of a 16-bit plane. Generating the
-messages is excluded from the timing; only ``matcher.update`` is timed.
+messages is excluded from the timing; only ``matcher.update`` is timed
+(:func:`measure_throughput`). :func:`oracle_tracks` tracks a scene with the true associations
+given (what a perfect association would reach under the same filter and noise).
 """
 
 from __future__ import annotations
@@ -12,7 +14,6 @@ from __future__ import annotations
 import statistics
 import time
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 
@@ -119,49 +120,6 @@ def measure_throughput(
         "milliseconds_per_frame": 1000.0 * seconds / len(timed),
         "repeats": repeats,
         "final_tracks": final_tracks,
-    }
-
-
-def measure_dataset(path: str | Path, matcher: str = "fusion", repeats: int = 3) -> dict:
-    """End-to-end tracking time of a WILDTRACK/MultiviewX folder (median of repeats).
-
-    Returns seconds for: loading (``load_seconds``, not part of either total), rendering the
-    reference images, building the messages plus matching with references already
-    rendered (``track_seconds``, "render excluded"), and rendering plus tracking
-    (``total_seconds``, "render included"); also the matcher alone.
-    """
-    from cblrs.datasets import load_scene
-    from cblrs.pipeline import render_scene_references, track_scene
-
-    start = time.perf_counter()
-    scene = load_scene(path)
-    load_seconds = time.perf_counter() - start
-    render, track, match, rows = [], [], [], 0
-    for _ in range(repeats):
-        start = time.perf_counter()
-        references = render_scene_references(scene)
-        render.append(time.perf_counter() - start)
-        start = time.perf_counter()
-        result = track_scene(scene, matcher, references=references)
-        track.append(time.perf_counter() - start)
-        match.append(result.matcher_seconds)
-        rows = len(result.tracks)
-    detections = sum(len(boxes) for per_camera in scene.detections for boxes in per_camera)
-    render_seconds = statistics.median(render)
-    track_seconds = statistics.median(track)
-    return {
-        "matcher": matcher,
-        "dataset": str(path),
-        "frames": len(scene.frames),
-        "cameras": len(scene.cameras),
-        "detections": detections,
-        "rows": rows,
-        "load_seconds": load_seconds,
-        "render_seconds": render_seconds,
-        "track_seconds": track_seconds,
-        "matcher_seconds": statistics.median(match),
-        "total_seconds": render_seconds + track_seconds,
-        "repeats": repeats,
     }
 
 

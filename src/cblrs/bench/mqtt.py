@@ -42,9 +42,9 @@ average at start and end). Not a test: nothing is asserted.
 
 Usage::
 
-    python benchmarks/bench_mqtt.py                 # 1, 10, 50 cameras, 3 repeats
-    python benchmarks/bench_mqtt.py --cameras 50 --repeats 5 --json
-    python benchmarks/bench_mqtt.py --stages        # per-step costs in-process, no broker
+    cblrs bench mqtt                 # 1, 10, 50 cameras, 3 repeats
+    cblrs bench mqtt --cameras 50 --repeats 5 --json
+    cblrs bench mqtt --stages        # per-step costs in-process, no broker
 """
 
 from __future__ import annotations
@@ -56,165 +56,40 @@ import math
 import multiprocessing
 import os
 import platform
-import shutil
 import socket
 import statistics
 import subprocess
-import sys
 import tempfile
 import threading
 import time
 from importlib import metadata
 from pathlib import Path
+from typing import Any
 
 import msgspec
 import numpy as np
 
-from cblrs.detections import CameraMessage
+from cblrs.bench.mqtt_load import (
+    PLANE,
+    PLANE_ID,
+    camera_names,
+    measure_stages,
+    publisher,
+)
 from cblrs.matching import make_matcher
-from cblrs.plane import PlaneSet, PlaneSpec
+from cblrs.plane import PlaneSet
 from cblrs.runtime.broker import MosquittoProcess, free_port, write_broker_config
 from cblrs.runtime.matcher_service import MatcherService
 from cblrs.runtime.mqtt_transport import MqttSettings, MqttTransport
-from cblrs.runtime.store import InboxEntry, RuntimeStore
-from cblrs.runtime.topics import detections_filter, detections_topic, tracks_topic
-from cblrs.runtime.wire import ValidationPolicy, encode_message
+from cblrs.runtime.store import RuntimeStore
+from cblrs.runtime.topics import detections_filter, tracks_topic
+from cblrs.runtime.wire import ValidationPolicy
 
-PLANE_ID = 1
-PLANE = PlaneSpec(PLANE_ID, (0.0, 0.0), 40.0, 40.0)
 RECEIVERS = ("broker", "paho", "transport", "matcher")
+
+
 DEFAULT_RUNS = ("broker/max", "paho/max", "transport/max", "matcher/max", "paho/paced",
                 "matcher/paced")
-
-
-def camera_names(count: int) -> list[str]:
-    return [f"cam{index:03d}" for index in range(count)]
-
-
-def frame_message(camera: str, index: int, frame: int, timestamp: float, people: int) -> bytes:
-    """A message with ``people`` detections whose colours walk across the plane."""
-    rng = np.random.default_rng(index * 100003 + frame)
-    base = np.array(
-        [[5.0 + 3 * person + 0.02 * frame, 5.0 + 2 * person] for person in range(people)]
-    )
-    world = base + rng.normal(0, 0.05, base.shape)
-    colours, _ = PLANE.encode(world.reshape(-1, 2))
-    message = CameraMessage(
-        camera, frame, timestamp, frame,
-        xyxy=np.tile([100.0, 100.0, 140.0, 220.0], (people, 1)),
-        confidence=np.full(people, 0.9),
-        class_id=np.zeros(people, np.int64),
-        colour=colours.astype(np.int64).reshape(-1, 3),
-    )
-    return encode_message(message, PLANE_ID)
-
-
-# --------------------------------------------------------------------------- publishers
-
-
-def publisher(kind: str, port: int, cameras: int, frames: int, fps: float, paced: bool,
-              people: int, results) -> None:
-    """Child process: simulate ``cameras`` cameras; put timing facts on ``results``."""
-    try:
-        if kind == "mosquitto_pub":
-            report = _publish_with_mosquitto_pub(port, cameras, frames, fps, paced, people)
-        else:
-            report = _publish_with_paho(port, cameras, frames, fps, paced, people)
-    except BaseException as error:
-        results.put({"error": repr(error)})
-        raise
-    results.put(report)
-
-
-def _frames(names: list[str], frames: int, fps: float, epoch: float, people: int):
-    return [[frame_message(name, index, frame, epoch + frame / fps, people)
-             for index, name in enumerate(names)] for frame in range(frames)]
-
-
-def _publish_with_mosquitto_pub(port: int, cameras: int, frames: int, fps: float, paced: bool,
-                                people: int) -> dict:
-    names = camera_names(cameras)
-    processes = [
-        subprocess.Popen(
-            ["mosquitto_pub", "-h", "127.0.0.1", "-p", str(port), "-q", "1", "-M", "1000",
-             "-i", f"bench-{name}", "-t", detections_topic(PLANE_ID, name), "-l"],
-            stdin=subprocess.PIPE, bufsize=0,
-        )
-        for name in names
-    ]
-    if not paced:  # as fast as possible: encode up front, then measure transport + receiver
-        epoch = time.time() - frames / fps
-        streams = [b"".join(payload + b"\n" for payload in column)
-                   for column in zip(*_frames(names, frames, fps, epoch, people), strict=True)]
-    time.sleep(1.0 + 0.02 * cameras)  # every mosquitto_pub connected
-    start = time.time()
-    if paced:
-        start += 0.2
-        upcoming = [frame_message(name, index, 0, start, people)
-                    for index, name in enumerate(names)]
-        for frame in range(frames):
-            capture = start + frame / fps
-            delay = capture - time.time()
-            if delay > 0:
-                time.sleep(delay)
-            for process, payload in zip(processes, upcoming, strict=True):
-                assert process.stdin is not None
-                process.stdin.write(payload + b"\n")
-            # Encode the next frame ahead of its capture time, as each real camera would do
-            # on its own device; the loop above then only sends.
-            upcoming = [frame_message(name, index, frame + 1, start + (frame + 1) / fps, people)
-                        for index, name in enumerate(names)]
-    else:
-        def feed(process: subprocess.Popen, stream: bytes) -> None:
-            assert process.stdin is not None
-            process.stdin.write(stream)
-            process.stdin.close()
-
-        threads = [threading.Thread(target=feed, args=pair) for pair in
-                   zip(processes, streams, strict=True)]
-        for thread in threads:
-            thread.start()
-        for thread in threads:
-            thread.join()
-    published = time.time()
-    for process in processes:
-        if process.stdin is not None and not process.stdin.closed:
-            process.stdin.close()
-    flushed = all(process.wait(120) == 0 for process in processes)
-    return {"start": start, "published": published, "flushed": flushed}
-
-
-def _publish_with_paho(port: int, cameras: int, frames: int, fps: float, paced: bool,
-                       people: int) -> dict:
-    settings = MqttSettings(port=port, max_inflight=1000)
-    names = camera_names(cameras)
-    transports = [MqttTransport(f"bench-{name}", settings, persistent=False) for name in names]
-    for transport in transports:
-        transport.connect()
-    payloads = None
-    if not paced:
-        payloads = _frames(names, frames, fps, time.time() - frames / fps, people)
-    start = time.time() + (0.2 if paced else 0.0)
-    upcoming = None
-    for frame in range(frames):
-        if paced:
-            upcoming = [frame_message(name, index, frame, start + frame / fps, people)
-                        for index, name in enumerate(names)]
-            delay = start + frame / fps - time.time()
-            if delay > 0:
-                time.sleep(delay)
-        batch = payloads[frame] if payloads is not None else upcoming
-        assert batch is not None
-        for name, transport, payload in zip(names, transports, batch, strict=True):
-            transport.publish(detections_topic(PLANE_ID, name), payload)
-    published = time.time()
-    flushed = all(transport.flush(120) for transport in transports)
-    for transport in transports:
-        transport.close(timeout=5)
-    return {"start": start, "published": published, "flushed": flushed}
-
-
-# --------------------------------------------------------------------------- receivers
 
 
 class _Timestamp(msgspec.Struct):
@@ -466,75 +341,6 @@ def median_of(runs: list[dict]) -> dict:
     return merged
 
 
-# --------------------------------------------------------------------------- stages
-
-
-def _best_seconds(function, number: int, repeats: int = 5) -> float:
-    """Best mean time of ``function`` over ``repeats`` rounds of ``number`` calls, seconds."""
-    best = math.inf
-    for _ in range(repeats):
-        started = time.perf_counter()
-        for _ in range(number):
-            function()
-        best = min(best, (time.perf_counter() - started) / number)
-    return best
-
-
-def measure_stages(cameras: int, people: int, matcher_name: str, frames: int = 90) -> dict:
-    """In-process cost of each step a message or group takes in the matcher, no MQTT.
-
-    Receiver (service process): decode and validate a payload into its inbox entry, insert
-    entries (one transaction per frame of all cameras). Tracker process: rebuild the
-    messages of a group from their entries and update the matcher; commit a group.
-    """
-    names = camera_names(cameras)
-    policy = ValidationPolicy(known_cameras=frozenset(names), max_future_s=3600.0)
-    epoch = time.time()
-    payloads = _frames(names, frames, 30.0, epoch, people)
-    topic_camera = names[-1]
-    payload = payloads[0][-1]
-    decode = _best_seconds(
-        lambda: InboxEntry.from_wire(policy.decode_wire(
-            payload, topic_camera=topic_camera, now=epoch, topic_plane=PLANE_ID)), 2000)
-    groups = [[InboxEntry.from_wire(policy.decode_wire(item, now=epoch)) for item in group]
-              for group in payloads]
-    matcher = make_matcher(matcher_name, PlaneSet([PLANE]), names)
-    updates = []
-    outputs = []
-    for frame, group in enumerate(groups):
-        started = time.perf_counter()
-        outputs.append(matcher.update(epoch + frame / 30.0, [entry.message() for entry in group]))
-        updates.append(time.perf_counter() - started)
-    steady = updates[frames // 3:]  # after the tracks are born
-    with tempfile.TemporaryDirectory(prefix="cblrs-bench-") as folder:
-        store = RuntimeStore(Path(folder) / "stages.db")
-        rows = [(entry, "pending", epoch) for group in groups for entry in group]
-        started = time.perf_counter()
-        for start in range(0, len(rows), cameras):
-            store.insert_messages(rows[start:start + cameras])
-        insert = (time.perf_counter() - started) / len(rows)
-        started = time.perf_counter()
-        for frame, group in enumerate(groups):
-            store.commit_group([(m.camera_id, m.sequence) for m in group], outputs[frame],
-                               matcher.get_state(), epoch + frame / 30.0, {"groups": 1})
-        commit = (time.perf_counter() - started) / frames
-        stored_bytes = store.used_bytes() / len(rows)  # inbox + track rows, per message
-        store.close()
-    return {
-        "cameras": cameras, "people": people, "matcher": matcher_name,
-        "decode_us_per_message": 1e6 * decode,
-        "insert_us_per_message": 1e6 * insert,
-        "update_ms_per_group": 1e3 * statistics.median(steady),
-        "update_us_per_message": 1e6 * statistics.median(steady) / cameras,
-        "update_worst_ms": 1e3 * max(updates),
-        "commit_ms_per_group": 1e3 * commit,
-        "database_bytes_per_message": stored_bytes,
-    }
-
-
-# --------------------------------------------------------------------------- machine
-
-
 def machine() -> dict:
     model = platform.processor() or platform.machine()
     try:
@@ -599,29 +405,23 @@ def markdown_table(info: dict, rows: list[dict], args: argparse.Namespace) -> st
     return "\n".join(lines)
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--cameras", type=int, nargs="+", default=[1, 10, 50])
-    parser.add_argument("--runs", nargs="+", default=list(DEFAULT_RUNS),
-                        help="receiver/rate pairs, receiver in broker, paho, transport, "
-                        "matcher and rate in max, paced")
-    parser.add_argument("--publisher", choices=("mosquitto_pub", "paho"),
-                        default="mosquitto_pub" if shutil.which("mosquitto_pub") else "paho")
-    parser.add_argument("--repeats", type=int, default=3)
-    parser.add_argument("--max-messages", type=int, default=20000,
-                        help="messages per max-throughput run (split over the cameras)")
-    parser.add_argument("--paced-seconds", type=float, default=5.0)
-    parser.add_argument("--fps", type=float, default=30.0)
-    parser.add_argument("--people", type=int, default=2, help="detections per message")
-    parser.add_argument("--matcher", default="fusion")
-    parser.add_argument("--nagle", action="store_true",
-                        help="leave Nagle's algorithm on (no TCP_NODELAY), as before issue 10")
-    parser.add_argument("--stages", action="store_true",
-                        help="only time each matcher step in-process (no broker) and exit")
-    parser.add_argument("--json", action="store_true")
-    parser.add_argument("--markdown", action="store_true",
-                        help="print a markdown table (for docs/results/bench_mqtt.md)")
-    args = parser.parse_args(argv)
+def check_runs(runs: list[str]) -> str | None:
+    """One sentence on what is wrong with these ``receiver/rate`` pairs, or None."""
+    for run in runs:
+        receiver, _, rate = run.partition("/")
+        if receiver not in RECEIVERS or rate not in ("max", "paced"):
+            return f"bad run {run!r}: expected <{'|'.join(RECEIVERS)}>/<max|paced>."
+        if receiver == "broker" and rate == "paced":
+            return "the broker receiver (mosquitto_sub) measures max throughput only."
+    return None
+
+
+def run_mqtt_benchmark(args: Any) -> int:
+    """Run ``cblrs bench mqtt`` with its parsed options; print rows as they are measured.
+
+    ``args`` carries the options of ``cblrs bench mqtt --help`` (cameras, runs, publisher,
+    repeats, max_messages, paced_seconds, fps, people, matcher, nagle, stages, json, markdown).
+    """
     if args.stages:
         stage_rows = [measure_stages(cameras, args.people, args.matcher)
                       for cameras in args.cameras]
@@ -636,12 +436,9 @@ def main(argv: list[str] | None = None) -> int:
                   f"{row['commit_ms_per_group']:5.2f} ms/group; database "
                   f"{row['database_bytes_per_message']:.0f} bytes/message")
         return 0
-    for run in args.runs:
-        receiver, _, rate = run.partition("/")
-        if receiver not in RECEIVERS or rate not in ("max", "paced"):
-            parser.error(f"bad run {run!r}: expected <{'|'.join(RECEIVERS)}>/<max|paced>")
-        if receiver == "broker" and rate == "paced":
-            parser.error("the broker receiver (mosquitto_sub) measures max throughput only")
+    problem = check_runs(args.runs)
+    if problem is not None:
+        raise ValueError(problem)
     info = machine()
     info["load_start"] = list(os.getloadavg())
     if not (args.json or args.markdown):
@@ -687,8 +484,3 @@ def main(argv: list[str] | None = None) -> int:
         print(f"load average at end {info['load_end'][0]:.2f} (1 min), "
               f"{info['load_end'][1]:.2f} (5 min); medians over {args.repeats} runs")
     return 0
-
-
-if __name__ == "__main__":
-    threading.current_thread().name = "bench"
-    sys.exit(main())

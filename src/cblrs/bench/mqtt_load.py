@@ -1,0 +1,218 @@
+"""The load of ``cblrs bench mqtt``: simulated cameras' messages and the publisher processes.
+
+A publisher child process simulates many cameras, through ``mosquitto_pub -l -q 1`` processes
+(C) or one Python paho client per camera; :func:`measure_stages` times each matcher step
+in-process, without a broker.
+"""
+
+from __future__ import annotations
+
+import math
+import statistics
+import subprocess
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+from cblrs.detections import CameraMessage
+from cblrs.matching import make_matcher
+from cblrs.plane import PlaneSet, PlaneSpec
+from cblrs.runtime.mqtt_transport import MqttSettings, MqttTransport
+from cblrs.runtime.store import InboxEntry, RuntimeStore
+from cblrs.runtime.topics import detections_topic
+from cblrs.runtime.wire import ValidationPolicy, encode_message
+
+PLANE_ID = 1
+
+
+PLANE = PlaneSpec(PLANE_ID, (0.0, 0.0), 40.0, 40.0)
+
+
+def camera_names(count: int) -> list[str]:
+    return [f"cam{index:03d}" for index in range(count)]
+
+
+def frame_message(camera: str, index: int, frame: int, timestamp: float, people: int) -> bytes:
+    """A message with ``people`` detections whose colours walk across the plane."""
+    rng = np.random.default_rng(index * 100003 + frame)
+    base = np.array(
+        [[5.0 + 3 * person + 0.02 * frame, 5.0 + 2 * person] for person in range(people)]
+    )
+    world = base + rng.normal(0, 0.05, base.shape)
+    colours, _ = PLANE.encode(world.reshape(-1, 2))
+    message = CameraMessage(
+        camera, frame, timestamp, frame,
+        xyxy=np.tile([100.0, 100.0, 140.0, 220.0], (people, 1)),
+        confidence=np.full(people, 0.9),
+        class_id=np.zeros(people, np.int64),
+        colour=colours.astype(np.int64).reshape(-1, 3),
+    )
+    return encode_message(message, PLANE_ID)
+
+
+def publisher(kind: str, port: int, cameras: int, frames: int, fps: float, paced: bool,
+              people: int, results) -> None:
+    """Child process: simulate ``cameras`` cameras; put timing facts on ``results``."""
+    try:
+        if kind == "mosquitto_pub":
+            report = _publish_with_mosquitto_pub(port, cameras, frames, fps, paced, people)
+        else:
+            report = _publish_with_paho(port, cameras, frames, fps, paced, people)
+    except BaseException as error:
+        results.put({"error": repr(error)})
+        raise
+    results.put(report)
+
+
+def _frames(names: list[str], frames: int, fps: float, epoch: float, people: int):
+    return [[frame_message(name, index, frame, epoch + frame / fps, people)
+             for index, name in enumerate(names)] for frame in range(frames)]
+
+
+def _publish_with_mosquitto_pub(port: int, cameras: int, frames: int, fps: float, paced: bool,
+                                people: int) -> dict:
+    names = camera_names(cameras)
+    processes = [
+        subprocess.Popen(
+            ["mosquitto_pub", "-h", "127.0.0.1", "-p", str(port), "-q", "1", "-M", "1000",
+             "-i", f"bench-{name}", "-t", detections_topic(PLANE_ID, name), "-l"],
+            stdin=subprocess.PIPE, bufsize=0,
+        )
+        for name in names
+    ]
+    if not paced:  # as fast as possible: encode up front, then measure transport + receiver
+        epoch = time.time() - frames / fps
+        streams = [b"".join(payload + b"\n" for payload in column)
+                   for column in zip(*_frames(names, frames, fps, epoch, people), strict=True)]
+    time.sleep(1.0 + 0.02 * cameras)  # every mosquitto_pub connected
+    start = time.time()
+    if paced:
+        start += 0.2
+        upcoming = [frame_message(name, index, 0, start, people)
+                    for index, name in enumerate(names)]
+        for frame in range(frames):
+            capture = start + frame / fps
+            delay = capture - time.time()
+            if delay > 0:
+                time.sleep(delay)
+            for process, payload in zip(processes, upcoming, strict=True):
+                assert process.stdin is not None
+                process.stdin.write(payload + b"\n")
+            # Encode the next frame ahead of its capture time, as each real camera would do
+            # on its own device; the loop above then only sends.
+            upcoming = [frame_message(name, index, frame + 1, start + (frame + 1) / fps, people)
+                        for index, name in enumerate(names)]
+    else:
+        def feed(process: subprocess.Popen, stream: bytes) -> None:
+            assert process.stdin is not None
+            process.stdin.write(stream)
+            process.stdin.close()
+
+        threads = [threading.Thread(target=feed, args=pair) for pair in
+                   zip(processes, streams, strict=True)]
+        for thread in threads:
+            thread.start()
+        for thread in threads:
+            thread.join()
+    published = time.time()
+    for process in processes:
+        if process.stdin is not None and not process.stdin.closed:
+            process.stdin.close()
+    flushed = all(process.wait(120) == 0 for process in processes)
+    return {"start": start, "published": published, "flushed": flushed}
+
+
+def _publish_with_paho(port: int, cameras: int, frames: int, fps: float, paced: bool,
+                       people: int) -> dict:
+    settings = MqttSettings(port=port, max_inflight=1000)
+    names = camera_names(cameras)
+    transports = [MqttTransport(f"bench-{name}", settings, persistent=False) for name in names]
+    for transport in transports:
+        transport.connect()
+    payloads = None
+    if not paced:
+        payloads = _frames(names, frames, fps, time.time() - frames / fps, people)
+    start = time.time() + (0.2 if paced else 0.0)
+    upcoming = None
+    for frame in range(frames):
+        if paced:
+            upcoming = [frame_message(name, index, frame, start + frame / fps, people)
+                        for index, name in enumerate(names)]
+            delay = start + frame / fps - time.time()
+            if delay > 0:
+                time.sleep(delay)
+        batch = payloads[frame] if payloads is not None else upcoming
+        assert batch is not None
+        for name, transport, payload in zip(names, transports, batch, strict=True):
+            transport.publish(detections_topic(PLANE_ID, name), payload)
+    published = time.time()
+    flushed = all(transport.flush(120) for transport in transports)
+    for transport in transports:
+        transport.close(timeout=5)
+    return {"start": start, "published": published, "flushed": flushed}
+
+
+def _best_seconds(function, number: int, repeats: int = 5) -> float:
+    """Best mean time of ``function`` over ``repeats`` rounds of ``number`` calls, seconds."""
+    best = math.inf
+    for _ in range(repeats):
+        started = time.perf_counter()
+        for _ in range(number):
+            function()
+        best = min(best, (time.perf_counter() - started) / number)
+    return best
+
+
+def measure_stages(cameras: int, people: int, matcher_name: str, frames: int = 90) -> dict:
+    """In-process cost of each step a message or group takes in the matcher, no MQTT.
+
+    Receiver (service process): decode and validate a payload into its inbox entry, insert
+    entries (one transaction per frame of all cameras). Tracker process: rebuild the
+    messages of a group from their entries and update the matcher; commit a group.
+    """
+    names = camera_names(cameras)
+    policy = ValidationPolicy(known_cameras=frozenset(names), max_future_s=3600.0)
+    epoch = time.time()
+    payloads = _frames(names, frames, 30.0, epoch, people)
+    topic_camera = names[-1]
+    payload = payloads[0][-1]
+    decode = _best_seconds(
+        lambda: InboxEntry.from_wire(policy.decode_wire(
+            payload, topic_camera=topic_camera, now=epoch, topic_plane=PLANE_ID)), 2000)
+    groups = [[InboxEntry.from_wire(policy.decode_wire(item, now=epoch)) for item in group]
+              for group in payloads]
+    matcher = make_matcher(matcher_name, PlaneSet([PLANE]), names)
+    updates = []
+    outputs = []
+    for frame, group in enumerate(groups):
+        started = time.perf_counter()
+        outputs.append(matcher.update(epoch + frame / 30.0, [entry.message() for entry in group]))
+        updates.append(time.perf_counter() - started)
+    steady = updates[frames // 3:]  # after the tracks are born
+    with tempfile.TemporaryDirectory(prefix="cblrs-bench-") as folder:
+        store = RuntimeStore(Path(folder) / "stages.db")
+        rows = [(entry, "pending", epoch) for group in groups for entry in group]
+        started = time.perf_counter()
+        for start in range(0, len(rows), cameras):
+            store.insert_messages(rows[start:start + cameras])
+        insert = (time.perf_counter() - started) / len(rows)
+        started = time.perf_counter()
+        for frame, group in enumerate(groups):
+            store.commit_group([(m.camera_id, m.sequence) for m in group], outputs[frame],
+                               matcher.get_state(), epoch + frame / 30.0, {"groups": 1})
+        commit = (time.perf_counter() - started) / frames
+        stored_bytes = store.used_bytes() / len(rows)  # inbox + track rows, per message
+        store.close()
+    return {
+        "cameras": cameras, "people": people, "matcher": matcher_name,
+        "decode_us_per_message": 1e6 * decode,
+        "insert_us_per_message": 1e6 * insert,
+        "update_ms_per_group": 1e3 * statistics.median(steady),
+        "update_us_per_message": 1e6 * statistics.median(steady) / cameras,
+        "update_worst_ms": 1e3 * max(updates),
+        "commit_ms_per_group": 1e3 * commit,
+        "database_bytes_per_message": stored_bytes,
+    }
