@@ -318,6 +318,8 @@ def read_camera_json(path: str | Path) -> list[Camera]:
 
 
 def camera_from_dict(data: dict, source: str = "<dict>") -> Camera:
+    """One camera of a cblrs camera JSON (name, image_size, K, distortion, R, t; or a
+    homography); CalibrationError naming ``source`` and the missing or bad field otherwise."""
     if not isinstance(data, dict):
         raise CalibrationError(f"{source}: each camera must be a JSON object.")
     try:

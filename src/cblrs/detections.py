@@ -23,6 +23,7 @@ MESSAGE_SCHEMA = "cblrs.detections/1"
 
 
 def class_id_of(name: str) -> int:
+    """The index of a class name in :data:`CLASS_NAMES`; ValueError naming the known ones."""
     try:
         return CLASS_NAMES.index(name)
     except ValueError:

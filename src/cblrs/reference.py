@@ -222,6 +222,20 @@ class ReferenceImage:
         return cls(pixels=pixels, planes=planes, camera_name=str(metadata.get("camera", "")))
 
 
+def load_reference(
+    path: str | Path, expected_size: tuple[int, int] | None = None
+) -> ReferenceImage:
+    """Read a reference PNG (as written by :meth:`ReferenceImage.save` or ``cblrs render``).
+
+    The same as :meth:`ReferenceImage.load`.
+
+    Example:
+        >>> reference = load_reference("refs/CVLab1.png")  # doctest: +SKIP
+        >>> world_xy, valid = reference.locate(pixels)  # doctest: +SKIP
+    """
+    return ReferenceImage.load(path, expected_size=expected_size)
+
+
 def nearest_pixel_indices(
     pixels: NDArray, image_size: tuple[int, int]
 ) -> tuple[NDArray[np.int64], BoolArray]:

@@ -101,7 +101,7 @@ def test_eval_usage_errors(tmp_path: Path, capsys, arguments, code, message) -> 
 
 def test_eval_missing_inputs(tmp_path: Path, capsys) -> None:
     truth, tracks = switch_example(tmp_path)
-    assert main(["eval", str(tmp_path / "nowhere"), str(tracks)]) == 2
+    assert main(["eval", str(tmp_path / "nowhere"), str(tracks)]) == 1
     assert "neither a dataset folder nor a ground-truth file" in capsys.readouterr().err
     assert main(["eval", str(truth), str(tmp_path / "missing.txt")]) == 1
     assert "tracks file" in capsys.readouterr().err

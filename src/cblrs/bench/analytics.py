@@ -117,6 +117,7 @@ def benchmark_analytics(
 
 
 def analytics_report(result: dict[str, Any]) -> str:
+    """The markdown table of :func:`benchmark_analytics`'s result."""
     return "\n".join([
         f"### Analytics speed ({result['tracks']} live tracks at {result['rate_hz']:g} Hz for "
         f"{result['hours']:g} h: {result['rows']:,} rows, {result['track_ids']:,} ids, "

@@ -83,6 +83,8 @@ def default_cases(wildtrack: Path | None, duration_s: float = 30.0) -> list[Scen
 
 
 def default_settings(spreads_ms: Sequence[float] = DEFAULT_SPREADS_MS) -> list[Setting]:
+    """The table's rows: clock offsets spread over each of ``spreads_ms``, then one camera
+    whose clock is off by plus and minus ``WRONG_CLOCK_S``."""
     settings = [Setting(f"offsets ±{spread:g} ms", spread, JITTER_MS) for spread in spreads_ms]
     settings.append(Setting(f"one clock {WRONG_CLOCK_S:+g} s", 20.0, JITTER_MS, WRONG_CLOCK_S))
     settings.append(Setting(f"one clock {-WRONG_CLOCK_S:+g} s", 20.0, JITTER_MS,

@@ -160,6 +160,7 @@ def benchmark_dashboard(
 
 
 def dashboard_report(result: dict[str, Any]) -> str:
+    """The markdown table of :func:`benchmark_dashboard`'s result."""
     def ms(value: float | None) -> str:
         return "–" if value is None else f"{value:.2f}"
 

@@ -206,6 +206,8 @@ def track_subscriber(port: int, nagle: bool, ready, stop, results) -> None:
 
 def run_once(receiver_kind: str, publisher_kind: str, cameras: int, frames: int, fps: float,
              paced: bool, people: int, matcher_name: str, nagle: bool = False) -> dict:
+    """One run: a Mosquitto on a free port, the receiver in this process, the publishers in
+    others; the run's counts, rates and latency percentiles (milliseconds)."""
     total = cameras * frames
     with tempfile.TemporaryDirectory(prefix="cblrs-bench-") as folder:
         port = free_port()
@@ -331,6 +333,7 @@ def run_once(receiver_kind: str, publisher_kind: str, cameras: int, frames: int,
 
 
 def median_of(runs: list[dict]) -> dict:
+    """One row from repeated runs: the median of every float, the fewest messages received."""
     merged = dict(runs[0])
     for key, value in runs[0].items():
         if isinstance(value, float):
@@ -342,6 +345,7 @@ def median_of(runs: list[dict]) -> dict:
 
 
 def machine() -> dict:
+    """CPU model, cores, Python, Mosquitto and paho-mqtt versions of this machine."""
     model = platform.processor() or platform.machine()
     try:
         for line in Path("/proc/cpuinfo").read_text().splitlines():

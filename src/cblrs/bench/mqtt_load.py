@@ -32,6 +32,7 @@ PLANE = PlaneSpec(PLANE_ID, (0.0, 0.0), 40.0, 40.0)
 
 
 def camera_names(count: int) -> list[str]:
+    """``count`` camera ids: cam000, cam001, ..."""
     return [f"cam{index:03d}" for index in range(count)]
 
 

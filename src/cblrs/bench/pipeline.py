@@ -107,6 +107,7 @@ def benchmark_pipeline(
 
 
 def pipeline_report(result: dict[str, Any]) -> str:
+    """The markdown table of :func:`benchmark_pipeline`'s result."""
     from cblrs.bench.machine import describe_machine
 
     stages = result["stages_seconds"]

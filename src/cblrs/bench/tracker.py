@@ -45,6 +45,7 @@ def benchmark_tracker(
 
 
 def tracker_report(result: dict[str, Any]) -> str:
+    """The markdown table of :func:`benchmark_tracker`'s result."""
     from cblrs.bench.machine import describe_machine
 
     return "\n".join(

@@ -13,6 +13,8 @@ FloatArray = NDArray[np.float64]
 
 
 def image_size_of(image_size: tuple[int, int], source: str) -> tuple[int, int]:
+    """``image_size`` as positive integers (width, height); CalibrationError naming ``source``
+    otherwise."""
     try:
         width, height = (int(value) for value in image_size)
     except (TypeError, ValueError):

@@ -11,6 +11,7 @@ from cblrs.cli.common import UsageError, add_output_options, format_table, print
 
 
 def register(subparsers) -> None:
+    """Add the ``cblrs analytics`` parser to ``subparsers``."""
     defaults = AnalyticsConfig()
     parser = subparsers.add_parser(
         "analytics",
@@ -57,6 +58,7 @@ def register(subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    """Run ``cblrs analytics`` with its parsed arguments; the exit code."""
     if args.out.exists() and not args.out.is_dir():
         raise UsageError(f"--out {args.out} is a file; give a folder.")
     try:

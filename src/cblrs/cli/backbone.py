@@ -15,6 +15,7 @@ from cblrs.cli.common import UsageError
 
 
 def add_backbone_options(parser: argparse.ArgumentParser, matcher: bool) -> None:
+    """Add ``--backbone URL`` and the NATS options (the matcher's too when ``matcher``)."""
     group = parser.add_argument_group("NATS backbone (instead of MQTT)")
     group.add_argument(
         "--backbone",
@@ -55,6 +56,8 @@ def add_backbone_options(parser: argparse.ArgumentParser, matcher: bool) -> None
 
 
 def uses_nats(args: argparse.Namespace) -> bool:
+    """Whether ``--backbone`` names NATS; UsageError for a URL that is neither nats:// nor
+    mqtt://."""
     backbone = getattr(args, "backbone", None)
     if backbone is None or backbone.startswith("mqtt://"):
         return False

@@ -12,10 +12,17 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from cblrs.cli.common import UsageError, add_output_options, print_json
+from cblrs.cli.common import (
+    InputError,
+    UsageError,
+    add_dataset_argument,
+    add_output_options,
+    print_json,
+)
 
 
 def register(subparsers) -> None:
+    """Add the ``cblrs bench`` parser to ``subparsers``."""
     parser = subparsers.add_parser(
         "bench",
         help="benchmarks: lookup (Table I), render, claims, tracker, pipeline, analytics, "
@@ -73,16 +80,15 @@ def register(subparsers) -> None:
          "next to its annotated boxes: recall, ms/image, HOTA, IDF1"),
     ):
         real = kinds.add_parser(name, help=help_text)
-        real.add_argument(
-            "--dataset", type=Path, default=None,
-            help="data set with images (default: $CBLRS_MULTIVIEWX or ../shared/data/multiviewx)",
+        add_dataset_argument(
+            real, "data set with images (default: $CBLRS_MULTIVIEWX or ../shared/data/multiviewx)"
         )
         real.add_argument(
             "--model", type=Path, default=None,
             help="ONNX detector (default: ../shared/models/yolox_nano.onnx)",
         )
         real.add_argument("--repeats", type=int, default=3, help="timed runs (default 3)")
-        _common(real)
+        _common(real, dataset=False)
         real.set_defaults(handler=run, benchmark=name)
     analytics = kinds.add_parser(
         "analytics", help="analytics on a busy site: offline rows/s, online ms per update"
@@ -145,8 +151,6 @@ def register(subparsers) -> None:
         description="Simulated cameras publish to a Mosquitto started on a free loopback port; "
         "receivers: the broker itself (mosquitto_sub), bare paho, cblrs' transport, the full "
         "matcher service. Medians over --repeats runs, with the machine.",
-        epilog="example: cblrs bench mqtt --cameras 20 --fps 10 --runs matcher/paced "
-        "--paced-seconds 10",
     )
     mqtt.add_argument("--cameras", type=int, nargs="+", default=[1, 10, 50],
                       help="camera counts (default: 1 10 50)")
@@ -181,14 +185,16 @@ def register(subparsers) -> None:
     parser.set_defaults(handler=_usage(parser))
 
 
-def _common(parser: argparse.ArgumentParser, out_required: bool = False) -> None:
-    parser.add_argument(
-        "--calibration",
-        type=Path,
-        default=None,
-        help="WILDTRACK folder (default: $CBLRS_WILDTRACK or ../shared/data/wildtrack; "
-        "a built-in synthetic camera when absent)",
-    )
+def _common(
+    parser: argparse.ArgumentParser, out_required: bool = False, dataset: bool = True
+) -> None:
+    if dataset:
+        add_dataset_argument(
+            parser,
+            "WILDTRACK folder (default: $CBLRS_WILDTRACK or ../shared/data/wildtrack; a "
+            "built-in synthetic camera when absent)",
+            option_aliases=("--calibration",),
+        )
     parser.add_argument(
         "--out", type=Path, required=out_required, help="also write bench_<name>.json/.md here"
     )
@@ -222,7 +228,7 @@ def _run_one(name: str, args: argparse.Namespace) -> tuple[dict[str, Any], str]:
             repeats=repeats,
             seed=args.seed,
             bits=args.bits,
-            calibration=args.calibration,
+            calibration=args.dataset,
         )
         if args.out is not None:
             from cblrs.bench.figures import plot_lookup
@@ -232,7 +238,7 @@ def _run_one(name: str, args: argparse.Namespace) -> tuple[dict[str, Any], str]:
     if name == "render":
         from cblrs.bench.render import benchmark_render
 
-        result = benchmark_render(repeats=repeats, calibration=args.calibration)
+        result = benchmark_render(repeats=repeats, calibration=args.dataset)
         return result, report.render_report(result)
     if name == "claims":
         from cblrs.bench.claims import benchmark_claims, claims_report
@@ -241,12 +247,12 @@ def _run_one(name: str, args: argparse.Namespace) -> tuple[dict[str, Any], str]:
             count=_positive(getattr(args, "claims_n", args.n), "--n"),
             repeats=repeats,
             seed=getattr(args, "seed", 0),
-            calibration=args.calibration,
+            calibration=args.dataset,
         )
         if args.out is not None:
             from cblrs.bench.figures import plot_distortion_error
 
-            path = plot_distortion_error(args.calibration, args.figures or args.out)
+            path = plot_distortion_error(args.dataset, args.figures or args.out)
             result["figures"] = [str(path)]
         return result, claims_report(result)
     if name == "tracker":
@@ -272,10 +278,10 @@ def _run_one(name: str, args: argparse.Namespace) -> tuple[dict[str, Any], str]:
         targetings = tuple(_words(getattr(args, "targeting", "box,geometric"), "--targeting"))
         if any(mode not in ("box", "geometric") for mode in targetings):
             raise UsageError(f"--targeting must list box and/or geometric, got {targetings}.")
-        root = find_wildtrack(args.calibration)
+        root = find_wildtrack(args.dataset)
         if root is None:
             raise UsageError(
-                "the pipeline benchmark needs WILDTRACK; pass --calibration or set CBLRS_WILDTRACK."
+                "the pipeline benchmark needs WILDTRACK; pass --dataset or set CBLRS_WILDTRACK."
             )
         result = benchmark_pipeline(
             root,
@@ -360,7 +366,7 @@ def _asynchrony(args: argparse.Namespace) -> tuple[dict[str, Any], str]:
                 "install it or pass --in-process-only."
             )
     result = benchmark_asynchrony(
-        default_cases(find_wildtrack(args.calibration), args.duration),
+        default_cases(find_wildtrack(args.dataset), args.duration),
         default_settings(spreads), seeds, service=service,
     )
     return result, asynchrony_report(result)
@@ -381,7 +387,7 @@ def _real_frames(args: argparse.Namespace) -> tuple[Path, Path]:
             "--dataset."
         )
     if not model.is_file():
-        raise UsageError(f"model {model} does not exist; give an ONNX detector with --model.")
+        raise InputError(f"model {model} does not exist; give an ONNX detector with --model.")
     return dataset, model
 
 
@@ -446,11 +452,12 @@ def write_outputs(out: Path, name: str, result: dict[str, Any], text: str) -> li
 
 
 def run(args: argparse.Namespace) -> int:
+    """Run ``cblrs bench`` with its parsed arguments; the exit code."""
     if args.benchmark == "all":
         from cblrs.bench.cameras import find_wildtrack
 
         names = ["lookup", "render", "claims", "tracker"]
-        if find_wildtrack(args.calibration) is not None:
+        if find_wildtrack(args.dataset) is not None:
             names.append("pipeline")
         defaults = {"seed": 0, "bits": 8, "claims_n": 20_000}
         for key, value in defaults.items():

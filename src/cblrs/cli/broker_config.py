@@ -11,6 +11,7 @@ from cblrs.runtime.broker import DEFAULT_AUTOSAVE_S, DEFAULT_QUEUE_BYTES, write_
 
 
 def register(subparsers) -> None:
+    """Add the ``cblrs broker-config`` parser to ``subparsers``."""
     parser = subparsers.add_parser(
         "broker-config",
         help="write a Mosquitto configuration (users, ACL, optional TLS) for cameras and matchers",
@@ -90,6 +91,7 @@ def _planes(text: str) -> list[int]:
 
 
 def run(args: argparse.Namespace) -> int:
+    """Run ``cblrs broker-config`` with its parsed arguments; the exit code."""
     cameras = _names(args.cameras, "--cameras")
     matchers = _names(args.matchers, "--matchers")
     if not cameras:

@@ -10,10 +10,11 @@ from typing import Any
 
 import numpy as np
 
-from cblrs.cli.common import UsageError, format_table, print_json
+from cblrs.cli.common import InputError, UsageError, format_table, print_json
 
 
 def register(subparsers) -> None:
+    """Add the ``cblrs calibrate`` parser to ``subparsers``."""
     parser = subparsers.add_parser(
         "calibrate",
         help="calibrate a camera from clicked image <-> world points (CSV u,v,x,y)",
@@ -81,7 +82,7 @@ def _image_size(args: argparse.Namespace) -> tuple[tuple[int, int], np.ndarray |
         import cv2
 
         if not args.image.is_file():
-            raise UsageError(f"--image {args.image} does not exist.")
+            raise InputError(f"--image {args.image} does not exist.")
         frame = cv2.imread(str(args.image), cv2.IMREAD_COLOR)
         if frame is None:
             raise UsageError(f"--image {args.image} is not an image OpenCV can read.")
@@ -127,6 +128,7 @@ def _world_transform(args: argparse.Namespace) -> Any:
 
 
 def run(args: argparse.Namespace) -> int:
+    """Run ``cblrs calibrate`` with its parsed arguments; the exit code."""
     from cblrs.calibrate import Correspondences, calibrate_camera
 
     image_size, frame = _image_size(args)

@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import Any
 
 from cblrs.cli.backbone import add_backbone_options, camera_transport, uses_nats
-from cblrs.cli.common import UsageError, add_output_options, print_json
+from cblrs.cli.common import InputError, UsageError, add_output_options, print_json
 
 logger = logging.getLogger(__name__)
 
@@ -71,7 +71,7 @@ def mqtt_settings(args: argparse.Namespace) -> Any:
     for name in ("ca_file", "cert_file", "key_file"):
         path = getattr(args, name)
         if path is not None and not path.is_file():
-            raise UsageError(f"--{name.replace('_', '-')} {path} does not exist.")
+            raise InputError(f"--{name.replace('_', '-')} {path} does not exist.")
     return MqttSettings(
         host=host,
         port=port,
@@ -130,6 +130,7 @@ def install_stop_handlers(stop) -> None:
 
 
 def register(subparsers) -> None:
+    """Add the ``cblrs camera`` parser to ``subparsers``."""
     parser = subparsers.add_parser(
         "camera",
         help="run an edge camera node: detections -> reference colours -> MQTT",
@@ -287,6 +288,7 @@ def register(subparsers) -> None:
 
 
 def load_reference(args: argparse.Namespace, expected_size: tuple[int, int] | None):
+    """The camera's reference image: from ``--reference``, ``--references`` or ``--site``."""
     from cblrs.reference import ReferenceImage
 
     if getattr(args, "site", None) is not None:
@@ -374,6 +376,7 @@ def build_source(args: argparse.Namespace):
 
 
 def build_detector(args: argparse.Namespace, class_id: int):
+    """The detector ``--detector`` names (onnx, yolo or blob), built from its options."""
     from cblrs.runtime import sources
 
     if args.detector == "blob":
@@ -410,6 +413,8 @@ def build_detector(args: argparse.Namespace, class_id: int):
 
 
 def first_sequence(args: argparse.Namespace) -> int:
+    """The first message's sequence number: ``--first-sequence``, else the time in
+    milliseconds when live (a restarted camera never reuses a number), else 0."""
     if args.first_sequence is not None:
         if args.first_sequence < 0:
             raise UsageError("--first-sequence must be >= 0.")
@@ -418,6 +423,7 @@ def first_sequence(args: argparse.Namespace) -> int:
 
 
 def check_delivery_options(args: argparse.Namespace) -> None:
+    """UsageError unless the spool and delivery options are in range."""
     from cblrs.cli.common import check_non_negative, check_positive
 
     check_positive(args.spool_max_mb, "--spool-max-mb")
@@ -427,6 +433,7 @@ def check_delivery_options(args: argparse.Namespace) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    """Run ``cblrs camera`` with its parsed arguments; the exit code."""
     from cblrs.runtime.camera_node import CameraNode, camera_last_will
     from cblrs.runtime.mqtt_transport import MqttTransport
     from cblrs.runtime.spool import Spool

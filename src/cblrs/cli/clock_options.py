@@ -21,6 +21,8 @@ SYNTHETIC_PREFIX = "synthetic:"
 
 
 def add_clock_options(parser: argparse.ArgumentParser) -> None:
+    """Add the options that simulate unsynchronised cameras (offsets, jitter, frame rates,
+    lost messages, a wrong clock)."""
     group = parser.add_argument_group(
         "unsynchronised cameras (simulated)",
         "Each camera stamps its messages with its own clock, runs at its own frame rate and "
@@ -79,6 +81,7 @@ def clock_simulation(args: argparse.Namespace) -> ClockSimulation | None:
 
 
 def is_synthetic(dataset: Path) -> bool:
+    """Whether ``dataset`` names a synthetic scene (``synthetic:PRESET``)."""
     return str(dataset).startswith(SYNTHETIC_PREFIX)
 
 

@@ -2,19 +2,28 @@
 
 from __future__ import annotations
 
+import argparse
 import json
 import math
 import sys
 from collections.abc import Iterable, Iterator
+from pathlib import Path
 from typing import Any, TypeVar
 
 import numpy as np
+
+from cblrs.errors import CblrsError
 
 T = TypeVar("T")
 
 
 class UsageError(Exception):
     """A mistake in the command line; printed as one sentence, exit code 2."""
+
+
+class InputError(CblrsError):
+    """A file or folder the command line names is missing or unreadable; printed as one
+    sentence, exit code 1 (a runtime failure, like every :class:`~cblrs.errors.CblrsError`)."""
 
 
 def parse_frame_range(text: str) -> tuple[int | None, int | None]:
@@ -84,6 +93,7 @@ def progress(
 
 
 def add_output_options(parser: Any) -> None:
+    """Add ``--json`` and ``--quiet``."""
     parser.add_argument("--json", action="store_true", help="print machine-readable JSON")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
 
@@ -105,3 +115,63 @@ def _cell(value: Any) -> str:
     if isinstance(value, float | np.floating):
         return f"{value:.3f}" if np.isfinite(value) else "-"
     return str(value)
+
+
+# --------------------------------------------------------------------------- data set location
+# One spelling for a data set's folder on every subcommand: ``--dataset PATH``. The spellings of
+# earlier releases (a positional DATASET_DIR on track, eval and site init; --calibration on
+# bench; --wildtrack on experiment) are accepted, hidden from --help, for one more release.
+
+
+def add_dataset_argument(
+    parser: argparse.ArgumentParser,
+    help: str,
+    *,
+    required: bool = False,
+    positional_alias: bool = False,
+    option_aliases: tuple[str, ...] = (),
+    metavar: str = "PATH",
+) -> None:
+    """Add ``--dataset PATH`` (dest ``dataset``) and the hidden old spellings of it.
+
+    Call :func:`resolve_dataset` on the parsed arguments (``cblrs.cli.main`` does) to merge
+    the old spellings into ``args.dataset`` and check ``required``.
+    """
+    parser.add_argument("--dataset", type=Path, default=None, metavar=metavar, help=help)
+    aliases: list[tuple[str, str]] = []
+    if positional_alias:
+        parser.add_argument(
+            "dataset_positional", nargs="?", type=Path, default=None, help=argparse.SUPPRESS
+        )
+        aliases.append(("dataset_positional", "the positional DATASET_DIR"))
+    for option in option_aliases:
+        destination = "dataset_alias_" + option.lstrip("-").replace("-", "_")
+        parser.add_argument(option, dest=destination, type=Path, default=None,
+                            help=argparse.SUPPRESS)
+        aliases.append((destination, option))
+    parser.set_defaults(dataset_aliases=tuple(aliases), dataset_required=required)
+
+
+def resolve_dataset(args: argparse.Namespace) -> None:
+    """Merge the old spellings of ``--dataset`` into ``args.dataset`` (a note on stderr for
+    each used); :class:`UsageError` when two spellings disagree or a required one is missing."""
+    aliases = getattr(args, "dataset_aliases", None)
+    if aliases is None:
+        return
+    chosen = args.dataset
+    for destination, spelling in aliases:
+        value = getattr(args, destination, None)
+        if value is None:
+            continue
+        if chosen is not None and Path(value) != Path(chosen):
+            raise UsageError(
+                f"{spelling} ({value}) and --dataset ({chosen}) name different folders; "
+                "give --dataset only."
+            )
+        if spelling.startswith("--"):
+            print(f"cblrs: note: {spelling} is now spelled --dataset; {spelling} will be "
+                  "removed in a later release.", file=sys.stderr)
+        chosen = value
+    if chosen is None and getattr(args, "dataset_required", False):
+        raise UsageError("the following argument is required: --dataset PATH.")
+    args.dataset = chosen

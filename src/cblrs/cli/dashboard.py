@@ -9,12 +9,13 @@ import sys
 from pathlib import Path
 
 from cblrs.cli.camera import add_mqtt_options, mqtt_settings
-from cblrs.cli.common import UsageError
+from cblrs.cli.common import InputError, UsageError
 
 logger = logging.getLogger(__name__)
 
 
 def register(subparsers) -> None:
+    """Add the ``cblrs dashboard`` parser to ``subparsers``."""
     parser = subparsers.add_parser(
         "dashboard",
         help="serve the live dashboard: site map, tracks, counts, cameras; replay; calibration",
@@ -44,6 +45,7 @@ def register(subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    """Run ``cblrs dashboard`` with its parsed arguments; the exit code."""
     try:
         import uvicorn
 
@@ -57,9 +59,9 @@ def run(args: argparse.Namespace) -> int:
     from cblrs.runtime.transport import TransportError
 
     if not args.site.is_file():
-        raise UsageError(f"--site {args.site} does not exist.")
+        raise InputError(f"--site {args.site} does not exist.")
     if args.frames is not None and not args.frames.is_dir():
-        raise UsageError(f"--frames {args.frames} is not a folder.")
+        raise InputError(f"--frames {args.frames} is not a folder.")
     config = DashboardConfig(args.site, args.plane, database=args.db, frames=args.frames,
                              references=args.references)
     plane = args.plane

@@ -34,6 +34,7 @@ import numpy as np
 
 from cblrs.calibration import default_ground
 from cblrs.cli.common import (
+    InputError,
     UsageError,
     add_output_options,
     format_table,
@@ -101,6 +102,7 @@ class SceneReport:
 
 
 def register(subparsers: Any) -> None:
+    """Add the ``cblrs demo`` parser to ``subparsers``."""
     parser = subparsers.add_parser(
         "demo",
         help="run the whole method on a built-in synthetic world and draw the results",
@@ -158,6 +160,7 @@ def register(subparsers: Any) -> None:
 
 
 def run(args: Any) -> int:
+    """Run ``cblrs demo`` with its parsed arguments; the exit code."""
     if args.duration is not None and not args.duration > 0:
         raise UsageError(f"--duration must be a positive number of seconds, got {args.duration}.")
     frame_range = parse_frame_range(args.frames) if args.frames else None
@@ -165,7 +168,7 @@ def run(args: Any) -> int:
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as error:
-        raise UsageError(f"cannot create the output folder {out}: {error.strerror}.") from None
+        raise InputError(f"cannot create the output folder {out}: {error.strerror}.") from None
     source = detection_source(args)
     if source != "annotations" and not args.dataset:
         raise UsageError("--detector and --detections need --dataset DIR (a real data set).")

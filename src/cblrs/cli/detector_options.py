@@ -79,6 +79,8 @@ def detection_source(args: argparse.Namespace) -> str:
 
 
 def drop_hidden_feet(args: argparse.Namespace, source: str) -> bool:
+    """Whether boxes whose foot point the image cuts off are dropped: ``--hidden-feet``, or
+    by default for real detections (annotated boxes keep theirs)."""
     if args.hidden_feet == "auto":
         return source != "annotations"
     return args.hidden_feet == "drop"

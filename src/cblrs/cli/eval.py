@@ -11,6 +11,7 @@ import numpy as np
 from cblrs.calibration import default_ground
 from cblrs.cli.common import (
     UsageError,
+    add_dataset_argument,
     add_output_options,
     format_table,
     parse_frame_range,
@@ -19,11 +20,13 @@ from cblrs.cli.common import (
 from cblrs.datasets.aicity import read_tracks
 from cblrs.datasets.multiview import load_scene
 from cblrs.detections import Tracks
+from cblrs.errors import DatasetError
 from cblrs.evaluation import Metrics, evaluate
 from cblrs.evaluation.checks import check_predictions
 
 
 def register(subparsers) -> None:
+    """Add the ``cblrs eval`` parser to ``subparsers``."""
     parser = subparsers.add_parser(
         "eval",
         help="HOTA, DetA, AssA, LocA, MOTA, IDF1 of tracks against ground truth",
@@ -35,8 +38,9 @@ def register(subparsers) -> None:
             "within 1 m. Scores are percentages."
         ),
     )
-    parser.add_argument(
-        "dataset", type=Path, metavar="DATASET_DIR", help="dataset folder or ground-truth .txt"
+    add_dataset_argument(
+        parser, "WILDTRACK or MultiviewX folder, or an AI City format ground-truth .txt",
+        required=True, positional_alias=True,
     )
     parser.add_argument("tracks", type=Path, metavar="TRACKS.txt", help="predicted tracks")
     parser.add_argument(
@@ -61,6 +65,7 @@ def register(subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    """Run ``cblrs eval`` with its parsed arguments; the exit code."""
     first, last = parse_frame_range(args.frames) if args.frames else (None, None)
     ground_truth = read_ground_truth(args.dataset)
     predictions = read_tracks(args.tracks)
@@ -110,7 +115,7 @@ def read_ground_truth(path: Path) -> Tracks:
         return load_scene(path).ground_truth
     if path.is_file():
         return read_tracks(path)
-    raise UsageError(f"{path} is neither a dataset folder nor a ground-truth file.")
+    raise DatasetError(f"{path} is neither a dataset folder nor a ground-truth file.")
 
 
 def select_frames(
@@ -132,6 +137,7 @@ def select_frames(
 
 
 def format_summary(metrics: Metrics) -> str:
+    """The scores as a table, with the frame and id counts they were computed on."""
     scores = metrics.to_dict()
     table = format_table(list(scores), [list(scores.values())])
     return (

@@ -13,10 +13,17 @@ import math
 from pathlib import Path
 from typing import Any
 
-from cblrs.cli.common import UsageError, add_output_options, print_json
+from cblrs.cli.common import (
+    InputError,
+    UsageError,
+    add_dataset_argument,
+    add_output_options,
+    print_json,
+)
 
 
 def register(subparsers) -> None:
+    """Add the ``cblrs experiment`` parser to ``subparsers``."""
     parser = subparsers.add_parser(
         "experiment",
         help="rerun the paper's experiments: targeting (IV-B), resolution; clicked "
@@ -35,11 +42,9 @@ def register(subparsers) -> None:
     targeting.add_argument("--yaws", default="0,45,90", help="object yaws, degrees")
     targeting.add_argument("--draws", type=int, default=4, help="noisy draws per position")
     targeting.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
-    targeting.add_argument(
-        "--wildtrack",
-        type=Path,
-        default=None,
-        help="WILDTRACK folder for the annotated-box check (default: found automatically)",
+    add_dataset_argument(
+        targeting, "WILDTRACK folder for the annotated-box check (default: $CBLRS_WILDTRACK or "
+        "../shared/data/wildtrack)", option_aliases=("--wildtrack",),
     )
     targeting.add_argument(
         "--no-wildtrack", action="store_true", help="skip the WILDTRACK annotated-box check"
@@ -70,7 +75,10 @@ def register(subparsers) -> None:
     resolution.add_argument(
         "--scenes", default="wildtrack,plaza", help="scenes: wildtrack and/or plaza (synthetic)"
     )
-    resolution.add_argument("--wildtrack", type=Path, default=None, help="WILDTRACK folder")
+    add_dataset_argument(
+        resolution, "WILDTRACK folder (default: $CBLRS_WILDTRACK or ../shared/data/wildtrack)",
+        option_aliases=("--wildtrack",),
+    )
     resolution.add_argument("--out", type=Path, help="write JSON, markdown and the plot here")
     resolution.add_argument("--figures", type=Path, help="write the PNG here (default: --out)")
     add_output_options(resolution)
@@ -102,7 +110,10 @@ def register(subparsers) -> None:
         default=0.1,
         help="ground accuracy the site states, metres (cblrs calibrate's default, 0.1)",
     )
-    calibration.add_argument("--wildtrack", type=Path, default=None, help="WILDTRACK folder")
+    add_dataset_argument(
+        calibration, "WILDTRACK folder (default: $CBLRS_WILDTRACK or ../shared/data/wildtrack)",
+        option_aliases=("--wildtrack",),
+    )
     calibration.add_argument("--out", type=Path, help="write JSON and markdown here")
     calibration.add_argument(
         "--figures", type=Path, help="write a picture of one clicked calibration here"
@@ -121,7 +132,10 @@ def register(subparsers) -> None:
     counts.add_argument("--jitter", type=float, default=0.05, help="box edge jitter (0.05)")
     counts.add_argument("--sites", type=Path, default=None,
                         help="folder of <scene>.yaml site files (default: the repository's sites/)")
-    counts.add_argument("--wildtrack", type=Path, default=None, help="WILDTRACK folder")
+    add_dataset_argument(
+        counts, "WILDTRACK folder (default: $CBLRS_WILDTRACK or ../shared/data/wildtrack)",
+        option_aliases=("--wildtrack",),
+    )
     counts.add_argument("--out", type=Path, help="write JSON, markdown and figures here")
     counts.add_argument("--figures", type=Path, help="write the PNGs here (default: --out)")
     add_output_options(counts)
@@ -153,6 +167,7 @@ def _write(out: Path, name: str, result: dict[str, Any], text: str) -> None:
 
 
 def run_targeting_command(args: argparse.Namespace) -> tuple[dict[str, Any], str]:
+    """Run ``cblrs experiment targeting``: (result, markdown)."""
     from cblrs.bench.cameras import find_wildtrack
     from cblrs.experiments.targeting import (
         TargetingSetup,
@@ -179,9 +194,9 @@ def run_targeting_command(args: argparse.Namespace) -> tuple[dict[str, Any], str
         noise_draws=args.draws,
         seed=args.seed,
     )
-    root = None if args.no_wildtrack else find_wildtrack(args.wildtrack)
-    if root is None and args.wildtrack is not None and not args.no_wildtrack:
-        raise UsageError(f"{args.wildtrack} is not a WILDTRACK folder (no calibrations/).")
+    root = None if args.no_wildtrack else find_wildtrack(args.dataset)
+    if root is None and args.dataset is not None and not args.no_wildtrack:
+        raise InputError(f"{args.dataset} is not a WILDTRACK folder (no calibrations/).")
     result = run_targeting(setup)
     if root is not None:
         result["wildtrack"] = wildtrack_targeting(root)
@@ -189,7 +204,7 @@ def run_targeting_command(args: argparse.Namespace) -> tuple[dict[str, Any], str
         from cblrs.experiments.resolution import load_named_scene
         from cblrs.experiments.targeting import tracking_effect
 
-        scenes = {name: load_named_scene(name, args.wildtrack, None) for name in tracking_scenes}
+        scenes = {name: load_named_scene(name, args.dataset, None) for name in tracking_scenes}
         result["tracking"] = tracking_effect(scenes)
     text = targeting_report(result)
     if args.out is not None:
@@ -200,6 +215,7 @@ def run_targeting_command(args: argparse.Namespace) -> tuple[dict[str, Any], str
 
 
 def run_calibration_command(args: argparse.Namespace) -> tuple[dict[str, Any], str]:
+    """Run ``cblrs experiment calibration``: (result, markdown)."""
     from cblrs.experiments.calibration import (
         CalibrationSetup,
         calibration_figure,
@@ -223,7 +239,7 @@ def run_calibration_command(args: argparse.Namespace) -> tuple[dict[str, Any], s
     for option, value in (("--click-px", args.click_px), ("--ground-m", args.ground_m)):
         if not (value > 0 and math.isfinite(value)):
             raise UsageError(f"{option} must be a positive number, got {value}.")
-    scene = load_named_scene("wildtrack", args.wildtrack, None)
+    scene = load_named_scene("wildtrack", args.dataset, None)
     setup = CalibrationSetup(
         counts=tuple(int(count) for count in counts),
         seeds=tuple(int(seed) for seed in seeds),
@@ -243,6 +259,7 @@ def run_calibration_command(args: argparse.Namespace) -> tuple[dict[str, Any], s
 
 
 def run_counts_command(args: argparse.Namespace) -> tuple[dict[str, Any], str]:
+    """Run ``cblrs experiment counts``: (result, markdown)."""
     import sys
 
     from cblrs.experiments.counts import SCENES, CountsSetup, counts_report, run_counts
@@ -258,7 +275,7 @@ def run_counts_command(args: argparse.Namespace) -> tuple[dict[str, Any], str]:
     if not (0 <= args.drop <= 1 and args.jitter >= 0):
         raise UsageError("--drop must lie in [0, 1] and --jitter be >= 0.")
     setup = CountsSetup(scenes=scenes, matchers=matchers, seeds=seeds, drop=args.drop,
-                        jitter=args.jitter, sites=args.sites, wildtrack=args.wildtrack)
+                        jitter=args.jitter, sites=args.sites, wildtrack=args.dataset)
     show = not args.quiet and sys.stderr.isatty()
     result = run_counts(setup, report=(lambda line: print(line, file=sys.stderr)) if show
                         else None)
@@ -296,7 +313,7 @@ def run_resolution_command(args: argparse.Namespace) -> tuple[dict[str, Any], st
         raise UsageError(
             f"--scenes must name some of {', '.join(sorted(known))}; got {args.scenes!r}."
         )
-    scenes = {name: load_named_scene(name, args.wildtrack, args.frames) for name in names}
+    scenes = {name: load_named_scene(name, args.dataset, args.frames) for name in names}
     result = run_resolution(scenes, sizes, bits)
     text = resolution_report(result)
     if args.out is not None:
@@ -306,6 +323,7 @@ def run_resolution_command(args: argparse.Namespace) -> tuple[dict[str, Any], st
 
 
 def run(args: argparse.Namespace) -> int:
+    """Run ``cblrs experiment`` with its parsed arguments; the exit code."""
     if args.experiment == "targeting":
         result, text = run_targeting_command(args)
     elif args.experiment == "calibration":

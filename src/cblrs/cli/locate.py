@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from cblrs.calibration import WILDTRACK_CAMERAS
-from cblrs.cli.common import UsageError, add_output_options, format_table, print_json
+from cblrs.cli.common import InputError, UsageError, add_output_options, format_table, print_json
 from cblrs.edge import GROUND_DEPTH_OFFSET_M, box_rejections, location_status
 from cblrs.errors import DatasetError
 from cblrs.locate import ColorLocator
@@ -21,6 +21,7 @@ WITHIN_M = 0.5  # the issue's "within 0.5 m of ground truth"
 
 
 def register(subparsers) -> None:
+    """Add the ``cblrs locate`` parser to ``subparsers``."""
     parser = subparsers.add_parser(
         "locate",
         help="world positions of pixels or boxes from a reference image",
@@ -77,9 +78,9 @@ def read_boxes_file(path: Path) -> tuple[np.ndarray, list[str]]:
     try:
         lines = path.read_text().splitlines()
     except FileNotFoundError:
-        raise UsageError(f"boxes file {path} does not exist.") from None
+        raise InputError(f"boxes file {path} does not exist.") from None
     except (OSError, UnicodeDecodeError) as error:
-        raise UsageError(f"cannot read boxes file {path}: {error}.") from None
+        raise InputError(f"cannot read boxes file {path}: {error}.") from None
     boxes, classes = [], []
     for number, line in enumerate(lines, start=1):
         content = line.split("#", 1)[0].strip()
@@ -158,6 +159,7 @@ def read_wildtrack_frame_boxes(
 
 
 def run(args: argparse.Namespace) -> int:
+    """Run ``cblrs locate`` with its parsed arguments; the exit code."""
     for name in ("vtp", "hpos"):
         value = getattr(args, name)
         if not 0.0 <= value <= 1.0:

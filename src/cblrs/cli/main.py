@@ -5,8 +5,11 @@ Each subcommand lives in its own module of this package and provides::
     def register(subparsers) -> None   # adds its parser, sets `handler=run`
     def run(args) -> int               # does the work, returns the exit code
 
-User mistakes (:class:`cblrs.errors.CblrsError`, :class:`UsageError`) are printed as one
-sentence on stderr with a non-zero exit code; anything else is a bug and keeps its traceback.
+Exit codes, the same for every subcommand: 0 success; 2 a usage error (argparse's own, and
+:class:`~cblrs.cli.common.UsageError`: bad or conflicting options); 1 a runtime failure
+(:class:`cblrs.errors.CblrsError`, e.g. :class:`~cblrs.cli.common.InputError` for a missing
+file, unreadable data, an unreachable broker); 130 interrupted. Errors are printed as one
+sentence on stderr; anything else is a bug and keeps its traceback.
 """
 
 from __future__ import annotations
@@ -17,30 +20,54 @@ import logging
 import sys
 
 from cblrs import __version__
-from cblrs.cli.common import UsageError
+from cblrs.cli.common import UsageError, resolve_dataset
+from cblrs.cli.examples import decorate
 from cblrs.errors import CblrsError
 
-# Subcommand modules, in the order `cblrs --help` lists them.
-SUBCOMMANDS = [
-    "demo",
-    "site",
-    "calibrate",
-    "render",
-    "locate",
-    "show",
-    "track",
-    "eval",
-    "analytics",
-    "broker_config",
-    "camera",
-    "matcher",
-    "dashboard",
-    "bench",
-    "experiment",
-]
+# Subcommand modules, in the order `cblrs --help` lists them, with the one line `cblrs --help`
+# shows for each (tests/cli check it equals the help the module registers). Only the module of
+# the subcommand being run is imported: `cblrs --help` and `cblrs track` do not import the
+# runtime, the dashboard or the benchmarks (see build_parser).
+SUBCOMMANDS = {
+    "demo": "run the whole method on a built-in synthetic world and draw the results",
+    "site": "site files: init from a dataset, check, export as one file",
+    "calibrate": "calibrate a camera from clicked image <-> world points (CSV u,v,x,y)",
+    "render": "render colour reference images from a calibration",
+    "locate": "world positions of pixels or boxes from a reference image",
+    "show": "visualise a reference image with a metric grid",
+    "track": "track a multi-camera dataset and write world tracks (AI City format)",
+    "eval": "HOTA, DetA, AssA, LocA, MOTA, IDF1 of tracks against ground truth",
+    "analytics": "counts per line and direction, zone entries/exits/dwell, OD, heatmap",
+    "broker_config": "write a Mosquitto configuration (users, ACL, optional TLS) for cameras "
+    "and matchers",
+    "camera": "run an edge camera node: detections -> reference colours -> MQTT",
+    "matcher": "run the central matcher of one plane: MQTT -> validate -> track -> SQLite",
+    "dashboard": "serve the live dashboard: site map, tracks, counts, cameras; replay; "
+    "calibration",
+    "bench": "benchmarks: lookup (Table I), render, claims, tracker, pipeline, analytics, "
+    "dashboard, backbone, asynchrony, mqtt, all",
+    "experiment": "rerun the paper's experiments: targeting (IV-B), resolution; clicked "
+    "calibration; count accuracy",
+}
 
 
-def build_parser() -> argparse.ArgumentParser:
+def _command_of(argv: list[str]) -> str | None:
+    """The subcommand ``argv`` runs (its first word that is not an option), or None."""
+    for word in argv:
+        if not word.startswith("-"):
+            return word
+    return None
+
+
+def build_parser(command: str | None = None) -> argparse.ArgumentParser:
+    """The ``cblrs`` parser, its examples and defaults shown.
+
+    Args:
+        command: the subcommand about to run: only its module is imported, the others are
+            listed by their one line ("": none is imported, for ``cblrs --help``; an unknown
+            word builds them all, so argparse names the choices). None builds every
+            subcommand (tests, documentation).
+    """
     parser = argparse.ArgumentParser(
         prog="cblrs",
         description="Privacy-preserving multi-camera localisation with colour reference images.",
@@ -51,8 +78,15 @@ def build_parser() -> argparse.ArgumentParser:
         help="-v: debug messages of cblrs; -vv: also every MQTT packet (paho)",
     )
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for name in SUBCOMMANDS:
-        importlib.import_module(f"cblrs.cli.{name}").register(subparsers)
+    known = {name.replace("_", "-") for name in SUBCOMMANDS}
+    for name, summary in SUBCOMMANDS.items():
+        spelled = name.replace("_", "-")
+        if command is None or command == spelled or (command and command not in known):
+            importlib.import_module(f"cblrs.cli.{name}").register(subparsers)
+        else:
+            # lazy: a stub that only lists the subcommand; its module is not imported
+            subparsers.add_parser(spelled, help=summary, add_help=False)
+    decorate(parser)
     return parser
 
 
@@ -74,13 +108,17 @@ def configure_logging(verbosity: int, quiet: bool = False) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
+    """Run ``cblrs`` with ``argv`` (default: the process's); the exit code."""
+    words = sys.argv[1:] if argv is None else list(argv)
+    command = _command_of(words)
+    parser = build_parser(command if command is not None else "")
+    args = parser.parse_args(words)
     configure_logging(args.verbose, quiet=bool(getattr(args, "quiet", False)))
     if not getattr(args, "handler", None):
         parser.print_help()
         return 2
     try:
+        resolve_dataset(args)
         return int(args.handler(args) or 0)
     except (CblrsError, UsageError) as error:
         print(f"cblrs {args.command}: error: {error}", file=sys.stderr)

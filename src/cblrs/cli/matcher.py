@@ -20,6 +20,7 @@ from cblrs.cli.camera import (
     mqtt_settings,
 )
 from cblrs.cli.common import (
+    InputError,
     UsageError,
     check_non_negative,
     check_positive,
@@ -32,6 +33,7 @@ logger = logging.getLogger(__name__)
 
 
 def register(subparsers) -> None:
+    """Add the ``cblrs matcher`` parser to ``subparsers``."""
     parser = subparsers.add_parser(
         "matcher",
         help="run the central matcher of one plane: MQTT -> validate -> track -> SQLite",
@@ -165,6 +167,7 @@ def register(subparsers) -> None:
 
 
 def parse_options(items: list[str]) -> dict[str, Any]:
+    """``--option KEY=VALUE`` items as matcher options (values parsed as JSON when they are)."""
     options: dict[str, Any] = {}
     for item in items:
         key, separator, value = item.partition("=")
@@ -182,7 +185,7 @@ def read_references(folder: Path) -> tuple[list[str], Any]:
     from cblrs.reference import ReferenceImage
 
     if not folder.is_dir():
-        raise UsageError(f"--references {folder} is not a folder.")
+        raise InputError(f"--references {folder} is not a folder.")
     paths = sorted(path for path in folder.glob("*.png") if not path.stem.endswith("_preview"))
     if not paths:
         raise UsageError(f"{folder} holds no reference PNGs; render them with `cblrs render`.")
@@ -215,6 +218,7 @@ def check_arguments(args: argparse.Namespace) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    """Run ``cblrs matcher`` with its parsed arguments; the exit code."""
     if args.stats is not None:
         return show_stats(args.stats, args.json)
     if args.db is None or (args.references is None and args.site is None):
@@ -529,6 +533,7 @@ def _clocks_off(clocks: dict[str, Any] | None) -> str:
 
 
 def show_stats(path: Path, as_json: bool) -> int:
+    """Print what a matcher database holds (``cblrs matcher --stats``); the exit code."""
     from cblrs.matching.fusion import clock_report
     from cblrs.runtime.analytics_store import count_summary, read_counts
     from cblrs.runtime.store import RuntimeStore

@@ -13,13 +13,21 @@ from typing import Any
 import cv2
 
 from cblrs.calibration import default_ground, read_cameras
-from cblrs.cli.common import UsageError, add_output_options, format_table, print_json, progress
+from cblrs.cli.common import (
+    InputError,
+    UsageError,
+    add_output_options,
+    format_table,
+    print_json,
+    progress,
+)
 from cblrs.errors import PlaneError
 from cblrs.plane import PlaneSet, PlaneSpec
 from cblrs.reference import render_reference
 
 
 def register(subparsers) -> None:
+    """Add the ``cblrs render`` parser to ``subparsers``."""
     parser = subparsers.add_parser(
         "render",
         help="render colour reference images from a calibration",
@@ -82,7 +90,7 @@ def read_planes_file(path: Path, bits: int | None) -> list[PlaneSpec]:
     try:
         data = json.loads(path.read_text())
     except FileNotFoundError:
-        raise UsageError(f"planes file {path} does not exist.") from None
+        raise InputError(f"planes file {path} does not exist.") from None
     except (OSError, UnicodeDecodeError, ValueError) as error:
         raise UsageError(f"planes file {path} is not valid JSON: {error}.") from None
     if isinstance(data, dict):
@@ -99,6 +107,7 @@ def read_planes_file(path: Path, bits: int | None) -> list[PlaneSpec]:
 
 
 def build_planes(args: argparse.Namespace) -> PlaneSet:
+    """The planes of ``--plane`` and ``--planes-file`` (or the data set's default ground)."""
     bits = args.bits or 16
     planes = [
         parse_plane(text, plane_id, bits) for plane_id, text in enumerate(args.plane, start=1)
@@ -154,6 +163,7 @@ def site_cameras_and_planes(args: argparse.Namespace) -> tuple[list, PlaneSet]:
 
 
 def run(args: argparse.Namespace) -> int:
+    """Run ``cblrs render`` with its parsed arguments; the exit code."""
     if args.site is not None:
         cameras, planes = site_cameras_and_planes(args)
     elif args.calibration is None:

@@ -8,12 +8,13 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from cblrs.cli.common import UsageError, add_output_options, print_json
+from cblrs.cli.common import InputError, UsageError, add_output_options, print_json
 from cblrs.reference import ReferenceImage
 from cblrs.viz.reference import reference_overlay
 
 
 def register(subparsers) -> None:
+    """Add the ``cblrs show`` parser to ``subparsers``."""
     parser = subparsers.add_parser(
         "show",
         help="visualise a reference image with a metric grid",
@@ -45,7 +46,7 @@ def register(subparsers) -> None:
 def read_frame(path: Path) -> np.ndarray:
     """A frame as (H, W, 3) uint8 RGB."""
     if not path.is_file():
-        raise UsageError(f"frame {path} does not exist.")
+        raise InputError(f"frame {path} does not exist.")
     image = cv2.imread(str(path), cv2.IMREAD_COLOR)
     if image is None:
         raise UsageError(f"frame {path} is not an image OpenCV can read.")
@@ -53,6 +54,7 @@ def read_frame(path: Path) -> np.ndarray:
 
 
 def run(args: argparse.Namespace) -> int:
+    """Run ``cblrs show`` with its parsed arguments; the exit code."""
     if args.grid < 0 or not np.isfinite(args.grid):
         raise UsageError(f"--grid must be a non-negative number of metres, got {args.grid}.")
     if args.alpha is not None and not 0.0 <= args.alpha <= 1.0:

@@ -6,10 +6,11 @@ import argparse
 import re
 from pathlib import Path
 
-from cblrs.cli.common import UsageError, print_json
+from cblrs.cli.common import UsageError, add_dataset_argument, print_json
 
 
 def register(subparsers) -> None:
+    """Add the ``cblrs site`` parser to ``subparsers``."""
     parser = subparsers.add_parser(
         "site",
         help="site files: init from a dataset, check, export as one file",
@@ -23,7 +24,9 @@ def register(subparsers) -> None:
     init = actions.add_parser(
         "init", help="write a site file for a WILDTRACK, MultiviewX or AI City folder"
     )
-    init.add_argument("dataset", type=Path, metavar="DATASET_DIR")
+    add_dataset_argument(
+        init, "WILDTRACK, MultiviewX or AI City folder", required=True, positional_alias=True
+    )
     init.add_argument("--out", type=Path, required=True, help="site file to write (.yaml/.json)")
     init.add_argument(
         "--inline",
@@ -93,6 +96,7 @@ def _plane(text: str | None) -> tuple[float, float, float, float] | None:
 
 
 def run_init(args: argparse.Namespace) -> int:
+    """Run ``cblrs site init``; the exit code."""
     from cblrs.site import load_site, save_document, site_from_dataset
 
     _writable(args.out, args.force)
@@ -130,6 +134,7 @@ def run_init(args: argparse.Namespace) -> int:
 
 
 def run_check(args: argparse.Namespace) -> int:
+    """Run ``cblrs site check``; the exit code (1 when not ready)."""
     from cblrs.site.check import COMMANDS, check_site, format_check
 
     needed = []
@@ -149,6 +154,7 @@ def run_check(args: argparse.Namespace) -> int:
 
 
 def run_export(args: argparse.Namespace) -> int:
+    """Run ``cblrs site export``; the exit code."""
     from cblrs.site import load_site, save_document
 
     _writable(args.out, args.force)

@@ -12,7 +12,13 @@ from cblrs.cli.clock_options import (
     is_synthetic,
     synthetic_scene,
 )
-from cblrs.cli.common import UsageError, add_output_options, parse_frame_range, print_json
+from cblrs.cli.common import (
+    UsageError,
+    add_dataset_argument,
+    add_output_options,
+    parse_frame_range,
+    print_json,
+)
 from cblrs.cli.detector_options import (
     DETECTIONS_HELP,
     add_detector_options,
@@ -26,6 +32,7 @@ from cblrs.pipeline import render_scene_references, track_scene
 
 
 def register(subparsers) -> None:
+    """Add the ``cblrs track`` parser to ``subparsers``."""
     parser = subparsers.add_parser(
         "track",
         help="track a multi-camera dataset and write world tracks (AI City format)",
@@ -41,9 +48,9 @@ def register(subparsers) -> None:
             "--camera-fps, --drop-messages, --clock-error)."
         ),
     )
-    parser.add_argument(
-        "dataset", type=Path, metavar="DATASET_DIR",
-        help="WILDTRACK or MultiviewX folder, or synthetic:PRESET (plaza, roundabout)",
+    add_dataset_argument(
+        parser, "WILDTRACK or MultiviewX folder, or synthetic:PRESET (plaza, roundabout)",
+        required=True, positional_alias=True,
     )
     parser.add_argument(
         "--out",
@@ -114,6 +121,7 @@ def register(subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    """Run ``cblrs track`` with its parsed arguments; the exit code."""
     for name in ("drop", "jitter", "false_positives"):
         value = getattr(args, name)
         if not value >= 0:
@@ -130,6 +138,7 @@ def run(args: argparse.Namespace) -> int:
             "boxes; leave them out with --detector or --detections."
         )
     clocks = clock_simulation(args)
+    frame_range = parse_frame_range(args.frames) if args.frames else None
     if is_synthetic(args.dataset):
         if args.site is not None or source != "annotations":
             raise UsageError(
@@ -139,8 +148,8 @@ def run(args: argparse.Namespace) -> int:
         scene = synthetic_scene(args.dataset, clocks, args.duration)
     else:
         scene = load_scene(args.dataset)
-    if args.frames:
-        scene = scene.select_frames(*parse_frame_range(args.frames))
+    if frame_range is not None:
+        scene = scene.select_frames(*frame_range)
     options: dict = {}
     started = time.perf_counter()
     if args.site is not None:

@@ -155,6 +155,7 @@ def read_counts(store: Any) -> dict[CountKey, float]:
 
 
 def read_od(store: Any) -> dict[tuple[str, str], int]:
+    """Origin-destination counts stored by the online analytics: {(origin, destination): n}."""
     return {
         (origin, destination): int(value)
         for origin, destination, value in store.query("SELECT origin, destination, value FROM od")
@@ -162,6 +163,7 @@ def read_od(store: Any) -> dict[tuple[str, str], int]:
 
 
 def read_bins(store: Any) -> dict[BinKey, float]:
+    """Binned counts stored by the online analytics: {(start, place, measure, class): value}."""
     return {
         (float(start), place, measure, klass): float(value)
         for start, place, measure, klass, value in store.query(

@@ -149,6 +149,7 @@ class LiveCamera(msgspec.Struct, forbid_unknown_fields=True):
 
 
 class LiveLine(msgspec.Struct, forbid_unknown_fields=True):
+    """One counting line's totals in a live summary (both directions)."""
     line: PlaceName
     positive: Count
     negative: Count

@@ -298,6 +298,7 @@ class OnlineAnalytics:
 
 
 def event_place(event: Event) -> str:
+    """The name of the line or zone an analytics event is about."""
     if isinstance(event, LineCrossing):
         return event.line
     assert isinstance(event, ZoneEntered | ZoneLeft)

@@ -234,6 +234,8 @@ def scene_source(scene: Any, camera: str | int, clocks: Any = None) -> Iterator[
 
 
 def camera_position(names: list[str], camera: str | int) -> int:
+    """Index of ``camera`` (a name, or an index as int or digits) in ``names``; a clear
+    error otherwise."""
     if isinstance(camera, int) or (isinstance(camera, str) and camera.isdigit()):
         index = int(camera)
         if 0 <= index < len(names):

@@ -183,6 +183,7 @@ _decoder = msgspec.json.Decoder()
 
 
 def message_from_row(camera_id: str, sequence: int, timestamp: float, frame: int, body: str):
+    """A :class:`CameraMessage` rebuilt from an inbox row (its columns and JSON body)."""
     data = _decoder.decode(body)
     return CameraMessage(
         camera_id=camera_id,

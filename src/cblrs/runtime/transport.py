@@ -289,6 +289,7 @@ class _HandlerTable:
 
 
 def reason_text(reason: int) -> str:
+    """A readable name for an MQTT reason code (or :data:`LOST`)."""
     if reason == LOST:
         return "not acknowledged before the transport closed"
     try:

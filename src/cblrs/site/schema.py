@@ -387,6 +387,8 @@ def read_document(path: str | Path) -> dict[str, Any]:
 
 
 def parse_document(text: str, source: str, json_only: bool = False) -> dict[str, Any]:
+    """A site document parsed from YAML (or JSON only), as a dict; SiteError naming ``source``
+    otherwise."""
     if json_only:
         try:
             data = json.loads(text)

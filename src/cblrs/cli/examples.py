@@ -1,0 +1,101 @@
+"""One example (or a few) per subcommand, shown at the end of its ``--help``.
+
+Paths are those of the README: the data sets in ``../shared/data``, references in ``refs/``.
+:func:`cblrs.cli.main.build_parser` attaches them and the help formatter (defaults shown).
+"""
+
+from __future__ import annotations
+
+import argparse
+
+WT = "../shared/data/wildtrack"
+MVX = "../shared/data/multiviewx"
+
+EXAMPLES: dict[str, list[str]] = {
+    "": ["cblrs demo", f"cblrs track --dataset {WT} --out tracks.txt --score",
+         "cblrs COMMAND --help"],
+    "demo": ["cblrs demo", f"cblrs demo --dataset {WT}",
+             f"cblrs demo --dataset {MVX} --detector onnx "
+             "--model ../shared/models/yolox_nano.onnx"],
+    "site": [f"cblrs site init --dataset {WT} --out site.yaml", "cblrs site check site.yaml"],
+    "site init": [f"cblrs site init --dataset {WT} --out site.yaml"],
+    "site check": ["cblrs site check site.yaml --for render,matcher"],
+    "site export": ["cblrs site export site.yaml --out site-bundle.yaml"],
+    "calibrate": ["cblrs calibrate gate.csv --image gate.jpg --picture gate_check.png "
+                  "--out gate.json"],
+    "render": [f"cblrs render {WT} --out refs --preview",
+               "cblrs render --site site.yaml --out refs"],
+    "locate": [f"cblrs locate refs/CVLab1.png --dataset {WT} --frame 0",
+               'cblrs locate refs/CVLab1.png --pixels "960,1000;10,10" --json'],
+    "show": ["cblrs show refs/CVLab1.png --out CVLab1_grid.png --grid 1"],
+    "track": [f"cblrs track --dataset {WT} --out tracks.txt --score",
+              f"cblrs track --dataset {WT} --out tracks.txt --drop 0.2 --jitter 0.05 --seed 1",
+              f"cblrs track --dataset {MVX} --out tracks.txt --detector onnx "
+              "--model ../shared/models/yolox_nano.onnx"],
+    "eval": [f"cblrs eval --dataset {WT} tracks.txt"],
+    "analytics": ["cblrs analytics tracks.txt --site sites/wildtrack.yaml --out analytics/"],
+    "broker-config": ["cblrs broker-config --out broker --cameras C1,C2,C3 --matchers matcher1 "
+                      "--planes 1"],
+    "camera": ["cblrs camera --camera Camera1 --reference refs/Camera1.png --images "
+               f"{MVX}/Image_subsets/C1 --fps 2 --detector onnx "
+               "--model ../shared/models/yolox_nano.onnx"],
+    "matcher": ["cblrs matcher --site site.yaml --db plane1.db --http 127.0.0.1:9100",
+                "cblrs matcher --stats plane1.db"],
+    "dashboard": ["cblrs dashboard --site site.yaml --db plane1.db --port 8080"],
+    "bench": ["cblrs bench lookup", "cblrs bench all --out bench-results"],
+    "bench lookup": ["cblrs bench lookup --n 100000 --repeats 5"],
+    "bench render": ["cblrs bench render --repeats 5"],
+    "bench claims": ["cblrs bench claims --out bench-results"],
+    "bench tracker": ["cblrs bench tracker --tracks 50,200 --cameras 4 --matchers fusion"],
+    "bench pipeline": [f"cblrs bench pipeline --dataset {WT}"],
+    "bench camera": [f"cblrs bench camera --dataset {MVX}"],
+    "bench detect": [f"cblrs bench detect --dataset {MVX}"],
+    "bench analytics": ["cblrs bench analytics --tracks 200 --hours 1"],
+    "bench dashboard": ["cblrs bench dashboard --tracks 200 --seconds 20"],
+    "bench backbone": ["cblrs bench backbone --backbones mosquitto,nats --cameras 10"],
+    "bench asynchrony": ["cblrs bench asynchrony --spreads 5,20,50 --in-process-only"],
+    "bench mqtt": ["cblrs bench mqtt --cameras 20 --fps 10 --runs matcher/paced "
+                   "--paced-seconds 10"],
+    "bench all": ["cblrs bench all --out bench-results"],
+    "experiment": ["cblrs experiment targeting --out experiments"],
+    "experiment targeting": ["cblrs experiment targeting --tracking plaza --out experiments"],
+    "experiment resolution": ["cblrs experiment resolution --scenes plaza --out experiments"],
+    "experiment calibration": [f"cblrs experiment calibration --dataset {WT} --out experiments"],
+    "experiment counts": ["cblrs experiment counts --scenes wildtrack,plaza --out experiments"],
+}
+
+
+class HelpFormatter(argparse.HelpFormatter):
+    """Wraps descriptions, keeps the examples' line breaks, and shows each option's default
+    where its help does not already say it."""
+
+    def _fill_text(self, text: str, width: int, indent: str) -> str:
+        if text.startswith("example"):
+            return "".join(indent + line for line in text.splitlines(keepends=True))
+        return super()._fill_text(text, width, indent)
+
+    def _get_help_string(self, action: argparse.Action) -> str | None:
+        text = action.help or ""
+        if (
+            action.option_strings
+            and "default" not in text
+            and action.default not in (None, False, argparse.SUPPRESS)
+            and not isinstance(action, argparse._HelpAction | argparse._VersionAction)
+            and text is not argparse.SUPPRESS
+        ):
+            text += " (default: %(default)s)"
+        return text
+
+
+def decorate(parser: argparse.ArgumentParser, path: tuple[str, ...] = ()) -> None:
+    """Give ``parser`` and every subcommand below it the help formatter and its examples."""
+    parser.formatter_class = HelpFormatter
+    examples = EXAMPLES.get(" ".join(path))
+    if examples and not parser.epilog:
+        parser.epilog = "example" + ("s" if len(examples) > 1 else "") + ":\n" + "\n".join(
+            f"  {line}" for line in examples
+        )
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for name, child in action.choices.items():
+                decorate(child, (*path, name))
