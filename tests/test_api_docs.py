@@ -8,7 +8,9 @@ import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-spec = importlib.util.spec_from_file_location("make_api_docs", ROOT / "scripts" / "make_api_docs.py")
+spec = importlib.util.spec_from_file_location(
+    "make_api_docs", ROOT / "scripts" / "make_api_docs.py"
+)
 make_api_docs = importlib.util.module_from_spec(spec)
 sys.modules["make_api_docs"] = make_api_docs
 spec.loader.exec_module(make_api_docs)

@@ -19,15 +19,18 @@ from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
+from tqdm import tqdm
 
 from cblrs.datasets.clocks import ClockSimulation, camera_clocks
 from cblrs.datasets.scene import Scene
 from cblrs.detections import CameraMessage, Tracks
 from cblrs.edge import Targeter, make_message
 from cblrs.errors import DatasetError
+from cblrs.geometric_targeting import GeometricTargeter
 from cblrs.matching import DEFAULT_MATCHER, Matcher, make_matcher
 from cblrs.plane import PlaneSet
 from cblrs.reference import ReferenceImage, render_reference
+from cblrs.runtime.ordering import Orderer
 
 logger = logging.getLogger(__name__)
 
@@ -107,7 +110,6 @@ def scene_targeters(
         if targeting == "box":
             return None
         if targeting == "geometric":
-            from cblrs.geometric_targeting import GeometricTargeter
 
             return [GeometricTargeter(camera) for camera in scene.cameras]
         raise ValueError(f"targeting must be 'box' or 'geometric', got {targeting!r}")
@@ -235,7 +237,6 @@ def ordered_windows(
     Yields:
         ``(timestamp, messages)`` per window, in time order (the input to ``update``).
     """
-    from cblrs.runtime.ordering import Orderer
 
     # Nothing here is ever silent for long: the timeout is only for live cameras.
     orderer = Orderer(camera_ids, timeout_s=1e9)
@@ -306,7 +307,6 @@ def track_scene(
     )
     captured = np.unique([message.frame for message in messages])
     if progress:
-        from tqdm import tqdm
 
         messages = tqdm(
             messages, desc="tracking", leave=False, disable=not sys.stderr.isatty(),

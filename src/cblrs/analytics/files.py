@@ -19,6 +19,7 @@ from cblrs.analytics.site import (
 )
 from cblrs.analytics.tables import AnalyticsResult, analyse_tracks, json_safe, write_result
 from cblrs.datasets.aicity import apply_track_metadata, read_track_metadata, read_tracks
+from cblrs.viz.analytics import plot_counts_over_time, plot_dwell, plot_heatmap, plot_od, plot_site
 
 logger = logging.getLogger(__name__)
 
@@ -129,13 +130,6 @@ def write_plots(
     site: SitePlaces | None = None,
 ) -> list[Path]:
     """counts_over_time.png, dwell.png, heatmap.png, od.png (two zones or more), places.png."""
-    from cblrs.viz.analytics import (
-        plot_counts_over_time,
-        plot_dwell,
-        plot_heatmap,
-        plot_od,
-        plot_site,
-    )
 
     out = Path(out)
     figures = {
@@ -147,6 +141,7 @@ def write_plots(
     if config.heatmap is not None:
         background = None
         if site is not None and site.map_image is not None and site.map_extent is not None:
+            # lazy: OpenCV takes ~80 ms to import; only this path needs it
             import cv2
 
             picture = cv2.imread(str(site.map_image), cv2.IMREAD_COLOR)

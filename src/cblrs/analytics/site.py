@@ -15,6 +15,7 @@ import numpy as np
 from cblrs.analytics.config import AnalyticsError
 from cblrs.detections import Tracks
 from cblrs.places import Places, bounding_box
+from cblrs.site import load_site
 
 Bounds = tuple[float, float, float, float]
 
@@ -46,7 +47,6 @@ def load_site_places(path: str | Path) -> SitePlaces:
     Raises:
         cblrs.site.SiteError: the file is missing, malformed or invalid (one sentence).
     """
-    from cblrs.site import load_site
 
     site = load_site(path)
     planes = tuple(
@@ -56,6 +56,7 @@ def load_site_places(path: str | Path) -> SitePlaces:
     )
     image, extent = None, None
     if site.map is not None and site.map.image is not None and site.map.image.is_file():
+        # lazy: OpenCV takes ~80 ms to import; only this path needs it
         import cv2
 
         picture = cv2.imread(str(site.map.image), cv2.IMREAD_UNCHANGED)

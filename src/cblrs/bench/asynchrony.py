@@ -22,13 +22,24 @@ from typing import Any
 
 import numpy as np
 
-from cblrs.bench.machine import json_ready, machine_info
+from cblrs.bench.machine import describe_machine, json_ready, machine_info
 from cblrs.bench.report import markdown_table
+from cblrs.calibration import default_ground
+from cblrs.datasets import load_scene
 from cblrs.datasets.clocks import ClockSimulation, camera_clocks
 from cblrs.datasets.scene import Scene
+from cblrs.datasets.synthetic import make_scene
 from cblrs.detections import Tracks
 from cblrs.evaluation import evaluate
+from cblrs.matching import make_matcher
 from cblrs.pipeline import camera_positions, render_scene_references, scene_planes, track_scene
+from cblrs.runtime.broker import MosquittoProcess, free_port, write_broker_config
+from cblrs.runtime.camera_node import CameraNode, camera_last_will
+from cblrs.runtime.matcher_service import MatcherService
+from cblrs.runtime.mqtt_transport import MqttSettings, MqttTransport
+from cblrs.runtime.sources import scene_source
+from cblrs.runtime.store import RuntimeStore
+from cblrs.runtime.transport import Will
 
 logger = logging.getLogger(__name__)
 
@@ -64,9 +75,6 @@ class Setting:
 
 def default_cases(wildtrack: Path | None, duration_s: float = 30.0) -> list[SceneCase]:
     """WILDTRACK (2 fps, when present) and the synthetic plaza at 10 + 15 fps and at 20 fps."""
-    from cblrs.calibration import default_ground
-    from cblrs.datasets import load_scene
-    from cblrs.datasets.synthetic import make_scene
 
     cases = []
     if wildtrack is not None:
@@ -126,13 +134,6 @@ def track_service(
     threads interleaving as they will) with the epoch of ``clocks``; the matcher service stores
     and tracks them. Returns the stored tracks after a flushed stop.
     """
-    from cblrs.matching import make_matcher
-    from cblrs.runtime.camera_node import CameraNode, camera_last_will
-    from cblrs.runtime.matcher_service import MatcherService
-    from cblrs.runtime.mqtt_transport import MqttSettings, MqttTransport
-    from cblrs.runtime.sources import scene_source
-    from cblrs.runtime.store import RuntimeStore
-    from cblrs.runtime.transport import Will
 
     names = scene.camera_names
     settings = MqttSettings(port=port)
@@ -193,7 +194,6 @@ def benchmark_asynchrony(
     folder = Path(tempfile.mkdtemp(prefix="cblrs-async-"))
     try:
         if service:
-            from cblrs.runtime.broker import MosquittoProcess, free_port, write_broker_config
 
             files = write_broker_config(folder / "broker", [], [], port=free_port(),
                                         allow_anonymous=True, viewer=False, persistence=False)
@@ -269,7 +269,6 @@ def _identical(first: Tracks, second: Tracks) -> bool:
 def asynchrony_report(result: dict[str, Any]) -> str:
     """The asynchrony table: per scene and setting, mean HOTA and its drop against
     synchronised input, in process and through the services."""
-    from cblrs.bench.machine import describe_machine
 
     groups: dict[tuple[str, str], list[dict[str, Any]]] = {}
     for row in result["rows"]:

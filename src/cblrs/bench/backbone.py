@@ -21,6 +21,7 @@ Not a test: nothing is asserted; ``lost`` is messages published minus messages s
 from __future__ import annotations
 
 import asyncio
+import gc
 import math
 import multiprocessing
 import os
@@ -34,8 +35,21 @@ from typing import Any
 
 import msgspec
 import numpy as np
+import paho.mqtt.client as mqtt
+from paho.mqtt.enums import CallbackAPIVersion
 
 from cblrs.bench.machine import describe_machine, machine_info
+from cblrs.detections import CameraMessage
+from cblrs.matching import make_matcher
+from cblrs.plane import PlaneSet, PlaneSpec
+from cblrs.runtime.broker import MosquittoProcess, free_port, write_broker_config
+from cblrs.runtime.matcher_service import MatcherService
+from cblrs.runtime.mqtt_transport import MqttSettings, MqttTransport
+from cblrs.runtime.nats_server import NatsCluster, find_nats_server
+from cblrs.runtime.nats_transport import LeaseSettings, NatsSettings, NatsTransport
+from cblrs.runtime.store import RuntimeStore
+from cblrs.runtime.topics import detections_topic
+from cblrs.runtime.wire import ValidationPolicy, encode_message
 
 PLANE_ID = 1
 BACKBONES = ("mosquitto", "nats", "nats-r3")
@@ -46,10 +60,6 @@ def _camera_names(count: int) -> list[str]:
 
 
 def _payload(camera: str, index: int, frame: int, timestamp: float, people: int) -> bytes:
-    from cblrs.detections import CameraMessage
-    from cblrs.plane import PlaneSpec
-    from cblrs.runtime.wire import encode_message
-
     plane = PlaneSpec(PLANE_ID, (0.0, 0.0), 40.0, 40.0)
     rng = np.random.default_rng(index * 100003 + frame)
     world = np.array([[5.0 + 3 * p + 0.02 * frame, 5.0 + 2 * p] for p in range(people)])
@@ -68,7 +78,6 @@ def _payload(camera: str, index: int, frame: int, timestamp: float, people: int)
 def _publish(port: int, mqtt_version: str, cameras: int, frames: int, fps: float, paced: bool,
              people: int, results: Any) -> None:
     """Child process: one mosquitto_pub per camera; reports the first publish time."""
-    from cblrs.runtime.topics import detections_topic
 
     names = _camera_names(cameras)
     processes = [
@@ -141,8 +150,6 @@ def _subscribe(kind: str, address: str, ready: Any, stop: Any, results: Any) -> 
             latencies.append(now - update.tracks[0].timestamp)
 
     if kind == "mosquitto":
-        import paho.mqtt.client as mqtt
-        from paho.mqtt.enums import CallbackAPIVersion
 
         client = mqtt.Client(callback_api_version=CallbackAPIVersion.VERSION2,
                              client_id="bench-viewer", protocol=mqtt.MQTTv5)
@@ -155,6 +162,7 @@ def _subscribe(kind: str, address: str, ready: Any, stop: Any, results: Any) -> 
         stop.wait()
         client.loop_stop()
     else:
+        # optional extra: pip install cblrs[nats]
         import nats
 
         async def main() -> None:
@@ -194,17 +202,6 @@ class _Probe:
 def run_once(backbone: str, cameras: int, frames: int, fps: float, paced: bool,
              people: int) -> dict[str, Any]:
     """One run on fresh servers; returns rates, latencies and losses."""
-    import gc
-
-    from cblrs.matching import make_matcher
-    from cblrs.plane import PlaneSet, PlaneSpec
-    from cblrs.runtime.broker import MosquittoProcess, free_port, write_broker_config
-    from cblrs.runtime.matcher_service import MatcherService
-    from cblrs.runtime.mqtt_transport import MqttSettings, MqttTransport
-    from cblrs.runtime.nats_server import NatsCluster
-    from cblrs.runtime.nats_transport import LeaseSettings, NatsSettings, NatsTransport
-    from cblrs.runtime.store import RuntimeStore
-    from cblrs.runtime.wire import ValidationPolicy
 
     total = cameras * frames
     names = _camera_names(cameras)
@@ -296,7 +293,6 @@ def benchmark_backbone(
 ) -> dict[str, Any]:
     """Every backbone x camera count x rate, ``repeats`` times; medians per row."""
     info = machine_info()
-    from cblrs.runtime.nats_server import find_nats_server
 
     server = find_nats_server()
     info["nats_server"] = subprocess.run([server, "--version"], capture_output=True,

@@ -14,8 +14,15 @@ from typing import Any
 
 import numpy as np
 
-from cblrs.bench.machine import json_ready, machine_info
+from cblrs.bench.machine import describe_machine, json_ready, machine_info
 from cblrs.bench.report import markdown_table
+from cblrs.datasets import load_scene
+from cblrs.datasets.images import read_image, scene_image_paths
+from cblrs.detectors import OnnxDetector, TiledDetector, plan_tiles, whole_frame_plan
+from cblrs.edge import make_message
+from cblrs.pipeline import render_scene_references
+from cblrs.runtime.wire import encode_message
+from cblrs.targeting import target_pixels
 
 
 def benchmark_camera(
@@ -33,15 +40,8 @@ def benchmark_camera(
         Per stage the median milliseconds per frame (and microseconds per detection for the
         per-detection stages), for the whole frame and for the tiled detector.
     """
+    # lazy: OpenCV takes ~80 ms to import; only this path needs it
     import cv2
-
-    from cblrs.datasets import load_scene
-    from cblrs.datasets.images import read_image, scene_image_paths
-    from cblrs.detectors import OnnxDetector, TiledDetector, plan_tiles, whole_frame_plan
-    from cblrs.edge import make_message
-    from cblrs.pipeline import render_scene_references
-    from cblrs.runtime.wire import encode_message
-    from cblrs.targeting import target_pixels
 
     scene = load_scene(dataset)
     last = int(scene.frames[min(frames, len(scene.frames)) - 1])
@@ -126,7 +126,6 @@ def benchmark_camera(
 
 def camera_report(result: dict[str, Any]) -> str:
     """Markdown: per stage, whole frame vs tiled."""
-    from cblrs.bench.machine import describe_machine
 
     modes = list(result["modes"])
     header = ["stage"] + [f"{mode}" for mode in modes]

@@ -10,6 +10,7 @@ import numpy as np
 
 from cblrs.calibration import WILDTRACK_GROUND, read_wildtrack_cameras
 from cblrs.camera import Camera
+from cblrs.errors import CalibrationError
 from cblrs.plane import PlaneSpec
 
 SYNTHETIC_GROUND = (-25.0, 0.0, 50.0, 50.0)
@@ -75,7 +76,6 @@ def benchmark_camera(calibration: str | Path | None = None, distorted: bool = Fa
     root = find_wildtrack(calibration)
     if root is None:
         if calibration is not None:
-            from cblrs.errors import CalibrationError
 
             raise CalibrationError(f"{calibration} is not a WILDTRACK folder (no calibrations/).")
         return BenchCamera(synthetic_camera(distorted), SYNTHETIC_GROUND, "built-in synthetic")

@@ -25,6 +25,7 @@ import yaml
 
 from cblrs.bench.analytics import AREA_M, bench_places, crowd_tracks
 from cblrs.bench.machine import describe_machine, json_ready, machine_info
+from cblrs.dashboard.browser import chromium_page
 from cblrs.runtime.broker import MosquittoProcess, free_port, write_broker_config
 from cblrs.runtime.events import encode_live
 from cblrs.runtime.mqtt_transport import MqttSettings, MqttTransport
@@ -87,7 +88,6 @@ def benchmark_dashboard(
     Raises:
         cblrs.dashboard.browser.BrowserUnavailable: no Chromium or Playwright here.
     """
-    from cblrs.dashboard.browser import chromium_page
 
     with tempfile.TemporaryDirectory(prefix="cblrs-bench-dashboard-") as folder_name:
         folder = Path(folder_name)

@@ -16,6 +16,12 @@ import numpy as np
 
 from cblrs.bench.machine import describe_machine, json_ready, machine_info
 from cblrs.bench.report import markdown_table
+from cblrs.calibration import default_ground
+from cblrs.datasets import load_scene
+from cblrs.detectors import OnnxDetector, box_iou
+from cblrs.detectors.offline import detect_scene
+from cblrs.evaluation.metrics import evaluate
+from cblrs.pipeline import render_scene_references, track_scene
 
 SCORES = ("HOTA", "DetA", "AssA", "DetRe", "DetPr", "LocA", "MOTA", "IDF1")
 
@@ -29,9 +35,8 @@ def box_recall(
 ) -> tuple[float, list[float | None]]:
     """Share of annotated boxes a found box overlaps with IoU >= ``threshold`` (one-to-one),
     overall and per annotated box height bin (:data:`HEIGHT_BINS`; None for an empty bin)."""
+    # lazy: scipy.optimize takes ~0.3 s to import; only this path needs it
     from scipy.optimize import linear_sum_assignment
-
-    from cblrs.detectors import box_iou
 
     heights: list[np.ndarray] = []
     hits: list[np.ndarray] = []
@@ -58,12 +63,6 @@ def benchmark_detection(dataset: str | Path, model: str | Path) -> dict[str, Any
     Returns:
         Per source: recall, boxes per image, ms per image, and per matcher the scores.
     """
-    from cblrs.calibration import default_ground
-    from cblrs.datasets import load_scene
-    from cblrs.detectors import OnnxDetector
-    from cblrs.detectors.offline import detect_scene
-    from cblrs.evaluation.metrics import evaluate
-    from cblrs.pipeline import render_scene_references, track_scene
 
     scene = load_scene(dataset)
     references = render_scene_references(scene)

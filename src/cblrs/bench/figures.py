@@ -7,11 +7,18 @@ from typing import Any
 
 import numpy as np
 
+from cblrs.bench.cameras import benchmark_camera
+from cblrs.bench.lookup import EXTRA_ONE_POINT, METHODS, PAPER_DEVICE
+from cblrs.locate import ColorLocator, HomographyLocator
+from cblrs.reference import render_reference
+
 
 def _pyplot():
+    # lazy: matplotlib takes ~0.4 s to import; only the plotting path needs it
     import matplotlib
 
     matplotlib.use("Agg")
+    # lazy: matplotlib takes ~0.4 s to import; only the plotting path needs it
     import matplotlib.pyplot as plt
 
     return plt
@@ -19,7 +26,6 @@ def _pyplot():
 
 def plot_lookup(result: dict[str, Any], out: str | Path) -> Path:
     """ns per point, one point at a time and batched, per method, beside the paper's figures."""
-    from cblrs.bench.lookup import EXTRA_ONE_POINT, METHODS, PAPER_DEVICE
 
     plt = _pyplot()
     out = Path(out)
@@ -70,9 +76,6 @@ def plot_distortion_error(
 ) -> Path:
     """Per-pixel error (cm) of a plain homography and of the 16-bit colour lookup on the
     distorted benchmark camera, against the exact ray-plane intersection."""
-    from cblrs.bench.cameras import benchmark_camera
-    from cblrs.locate import ColorLocator, HomographyLocator
-    from cblrs.reference import render_reference
 
     plt = _pyplot()
     out = Path(out)

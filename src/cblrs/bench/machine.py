@@ -16,6 +16,7 @@ import numpy as np
 
 def machine_info() -> dict[str, Any]:
     """CPU model, core count, OS, Python, numpy and OpenCV versions of this machine."""
+    # lazy: OpenCV takes ~80 ms to import; only this path needs it
     import cv2
 
     cpu_model = platform.processor() or platform.machine()

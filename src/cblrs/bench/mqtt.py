@@ -68,6 +68,8 @@ from typing import Any
 
 import msgspec
 import numpy as np
+import paho.mqtt.client as mqtt
+from paho.mqtt.enums import CallbackAPIVersion
 
 from cblrs.bench.mqtt_load import (
     PLANE,
@@ -141,9 +143,6 @@ class _Receiver:
 
 
 def _start_paho(port: int, receiver: _Receiver):
-    import paho.mqtt.client as mqtt
-    from paho.mqtt.enums import CallbackAPIVersion
-
     client = mqtt.Client(callback_api_version=CallbackAPIVersion.VERSION2,
                          client_id="bench-paho", protocol=mqtt.MQTTv5)
     client.manual_ack_set(True)
@@ -177,8 +176,6 @@ _update_decoder = msgspec.json.Decoder(_TrackUpdate)
 def track_subscriber(port: int, nagle: bool, ready, stop, results) -> None:
     """Child process: a paho client on the tracks topic; capture -> arrival latency of each
     track update (its rows carry the frame's capture time)."""
-    import paho.mqtt.client as mqtt
-    from paho.mqtt.enums import CallbackAPIVersion
 
     latencies: list[float] = []
     client = mqtt.Client(callback_api_version=CallbackAPIVersion.VERSION2,

@@ -8,22 +8,22 @@ libraries and everything run before).
 
 from __future__ import annotations
 
+import resource
 import statistics
+import sys
 import time
 import tracemalloc
 from pathlib import Path
 from typing import Any
 
-from cblrs.bench.machine import json_ready, machine_info
+from cblrs.bench.machine import describe_machine, json_ready, machine_info
 from cblrs.bench.report import markdown_table
+from cblrs.datasets import load_scene
+from cblrs.evaluation import evaluate
+from cblrs.pipeline import render_scene_references, track_scene
 
 
 def _max_rss_bytes() -> int | None:
-    try:
-        import resource
-        import sys
-    except ImportError:  # pragma: no cover - not on Unix
-        return None
     usage = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     return int(usage if sys.platform == "darwin" else usage * 1024)
 
@@ -42,9 +42,6 @@ def benchmark_pipeline(
         JSON-ready dict: ``stages`` (seconds per stage, median), ``metrics`` per targeting,
         ``memory`` (tracemalloc peak and max RSS in bytes), ``detections``, ``frames``.
     """
-    from cblrs.datasets import load_scene
-    from cblrs.evaluation import evaluate
-    from cblrs.pipeline import render_scene_references, track_scene
 
     if repeats <= 0:
         raise ValueError("repeats must be positive")
@@ -108,7 +105,6 @@ def benchmark_pipeline(
 
 def pipeline_report(result: dict[str, Any]) -> str:
     """The markdown table of :func:`benchmark_pipeline`'s result."""
-    from cblrs.bench.machine import describe_machine
 
     stages = result["stages_seconds"]
     rows = [[stage, seconds] for stage, seconds in stages.items()]

@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 from typing import Any
 
+from cblrs.bench.lookup import EXTRA_ONE_POINT, METHODS, PAPER_DEVICE
 from cblrs.bench.machine import describe_machine
 
 
@@ -37,7 +38,6 @@ def _bytes(count: float) -> str:
 
 def lookup_report(result: dict[str, Any]) -> str:
     """Table I next to the paper's i5-4690K figures, batched figures, sizes."""
-    from cblrs.bench.lookup import EXTRA_ONE_POINT, METHODS, PAPER_DEVICE
 
     paper = result["paper"]["table_i_seconds"][PAPER_DEVICE]
     count = result["n"]

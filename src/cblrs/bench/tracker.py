@@ -9,7 +9,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from cblrs.bench.machine import json_ready, machine_info
+from cblrs.bench.machine import describe_machine, json_ready, machine_info
 from cblrs.bench.report import markdown_table
 from cblrs.bench.tracker_load import measure_throughput
 
@@ -46,7 +46,6 @@ def benchmark_tracker(
 
 def tracker_report(result: dict[str, Any]) -> str:
     """The markdown table of :func:`benchmark_tracker`'s result."""
-    from cblrs.bench.machine import describe_machine
 
     return "\n".join(
         [
@@ -82,9 +81,11 @@ def tracker_report(result: dict[str, Any]) -> str:
 
 def plot_tracker(result: dict[str, Any], out: str | Path) -> Path:
     """Detections/s and ms/frame against live tracks, one line per matcher and camera count."""
+    # lazy: matplotlib takes ~0.4 s to import; only the plotting path needs it
     import matplotlib
 
     matplotlib.use("Agg")
+    # lazy: matplotlib takes ~0.4 s to import; only the plotting path needs it
     import matplotlib.pyplot as plt
 
     out = Path(out)

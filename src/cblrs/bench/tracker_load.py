@@ -17,8 +17,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from cblrs.detections import CameraMessage
-from cblrs.matching import make_matcher
+from cblrs.detections import CameraMessage, Tracks
+from cblrs.edge import make_message
+from cblrs.matching import kalman, make_matcher
+from cblrs.matching.fusion import fuse, ray_covariance
 from cblrs.plane import PlaneSet, PlaneSpec
 
 SQUARE_METRES_PER_PERSON = 10.0
@@ -153,10 +155,6 @@ def oracle_tracks(
     Returns:
         :class:`Tracks` with the ground-truth identities.
     """
-    from cblrs.detections import Tracks
-    from cblrs.edge import make_message
-    from cblrs.matching import kalman
-    from cblrs.matching.fusion import fuse, ray_covariance
 
     anisotropic = lateral_sigma_m is not None or lateral_per_distance is not None
     lateral_base = sigma_m if lateral_sigma_m is None else lateral_sigma_m

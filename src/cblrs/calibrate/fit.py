@@ -22,6 +22,7 @@ from cblrs.calibrate.refine import PointNoise, Refined, normalised_errors
 from cblrs.calibrate.robust import OUTLIER_DISTANCE, consensus, homography_distances
 from cblrs.calibrate.select import ORDER, HeldOut, choose, cross_validate
 from cblrs.calibrate.uncertainty import Coverage, ErrorMap, coverage, error_map, ground_error
+from cblrs.calibration import camera_to_dict
 from cblrs.camera import Camera
 from cblrs.errors import CalibrationError
 
@@ -121,7 +122,6 @@ class CalibrationFit:
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready summary (the camera in cblrs camera JSON form under ``camera``)."""
-        from cblrs.calibration import camera_to_dict
 
         inliers = self.inliers
         return {

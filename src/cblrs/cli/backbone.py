@@ -68,6 +68,7 @@ def uses_nats(args: argparse.Namespace) -> bool:
 
 def nats_settings(args: argparse.Namespace, **options: Any) -> Any:
     """:class:`NatsSettings` from ``--backbone``, the login options and ``options``."""
+    # lazy: a subcommand imports the library when it runs, so its --help starts fast
     from cblrs.cli.camera import read_password
     from cblrs.runtime.nats_transport import NatsSettings
 
@@ -94,6 +95,7 @@ def matcher_transport(
         rebuild: the store is empty, so the consumer replays the plane's stream from the
             start (the store is rebuilt from the stream).
     """
+    # lazy: a subcommand imports the library when it runs, so its --help starts fast
     from cblrs.runtime.nats_transport import LeaseSettings, NatsTransport
 
     if args.lease_ttl <= 0 or args.lease_wait < 0 or args.retention_hours <= 0:
@@ -116,6 +118,7 @@ def matcher_transport(
 
 def camera_transport(args: argparse.Namespace, client_id: str) -> Any:
     """A camera's NATS transport: JetStream publishes, one at a time so they stay in order."""
+    # lazy: a subcommand imports the library when it runs, so its --help starts fast
     from cblrs.runtime.nats_transport import NatsTransport
 
     return NatsTransport(client_id, nats_settings(args, publish_window=1))

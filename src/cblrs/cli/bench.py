@@ -8,6 +8,10 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
+import shutil
+import sys
+import threading
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -217,10 +221,12 @@ def _positive(value: int, name: str) -> int:
 
 
 def _run_one(name: str, args: argparse.Namespace) -> tuple[dict[str, Any], str]:
+    # lazy: a subcommand imports the library when it runs, so its --help starts fast
     from cblrs.bench import report
 
     repeats = _positive(args.repeats, "--repeats")
     if name == "lookup":
+        # lazy: a subcommand imports the library when it runs, so its --help starts fast
         from cblrs.bench.lookup import benchmark_lookup
 
         result = benchmark_lookup(
@@ -231,16 +237,19 @@ def _run_one(name: str, args: argparse.Namespace) -> tuple[dict[str, Any], str]:
             calibration=args.dataset,
         )
         if args.out is not None:
+            # lazy: a subcommand imports the library when it runs, so its --help starts fast
             from cblrs.bench.figures import plot_lookup
 
             result["figures"] = [str(plot_lookup(result, args.figures or args.out))]
         return result, report.lookup_report(result)
     if name == "render":
+        # lazy: a subcommand imports the library when it runs, so its --help starts fast
         from cblrs.bench.render import benchmark_render
 
         result = benchmark_render(repeats=repeats, calibration=args.dataset)
         return result, report.render_report(result)
     if name == "claims":
+        # lazy: a subcommand imports the library when it runs, so its --help starts fast
         from cblrs.bench.claims import benchmark_claims, claims_report
 
         result = benchmark_claims(
@@ -250,12 +259,14 @@ def _run_one(name: str, args: argparse.Namespace) -> tuple[dict[str, Any], str]:
             calibration=args.dataset,
         )
         if args.out is not None:
+            # lazy: a subcommand imports the library when it runs, so its --help starts fast
             from cblrs.bench.figures import plot_distortion_error
 
             path = plot_distortion_error(args.dataset, args.figures or args.out)
             result["figures"] = [str(path)]
         return result, claims_report(result)
     if name == "tracker":
+        # lazy: a subcommand imports the library when it runs, so its --help starts fast
         from cblrs.bench.tracker import benchmark_tracker, plot_tracker, tracker_report
 
         frames = _positive(getattr(args, "frames", 30), "--frames")
@@ -271,6 +282,7 @@ def _run_one(name: str, args: argparse.Namespace) -> tuple[dict[str, Any], str]:
             result["figures"] = [str(plot_tracker(result, args.figures or args.out))]
         return result, tracker_report(result)
     if name == "pipeline":
+        # lazy: a subcommand imports the library when it runs, so its --help starts fast
         from cblrs.bench.cameras import find_wildtrack
         from cblrs.bench.pipeline import benchmark_pipeline, pipeline_report
 
@@ -294,15 +306,18 @@ def _run_one(name: str, args: argparse.Namespace) -> tuple[dict[str, Any], str]:
     if name in ("camera", "detect"):
         dataset, model = _real_frames(args)
         if name == "camera":
+            # lazy: a subcommand imports the library when it runs, so its --help starts fast
             from cblrs.bench.camera_cost import benchmark_camera, camera_report
 
             result = benchmark_camera(dataset, model, repeats=repeats)
             return result, camera_report(result)
+        # lazy: a subcommand imports the library when it runs, so its --help starts fast
         from cblrs.bench.detection import benchmark_detection, detection_report
 
         result = benchmark_detection(dataset, model)
         return result, detection_report(result)
     if name == "analytics":
+        # lazy: a subcommand imports the library when it runs, so its --help starts fast
         from cblrs.bench.analytics import analytics_report, benchmark_analytics
 
         for option in ("hours", "rate", "online_minutes"):
@@ -316,6 +331,7 @@ def _run_one(name: str, args: argparse.Namespace) -> tuple[dict[str, Any], str]:
     if name == "backbone":
         return _run_backbone(args, repeats)
     if name == "dashboard":
+        # lazy: a subcommand imports the library when it runs, so its --help starts fast
         from cblrs.bench.dashboard import benchmark_dashboard, dashboard_report
         from cblrs.dashboard.browser import browser_problem
         from cblrs.runtime.broker import find_mosquitto
@@ -334,6 +350,7 @@ def _run_one(name: str, args: argparse.Namespace) -> tuple[dict[str, Any], str]:
 
 
 def _asynchrony(args: argparse.Namespace) -> tuple[dict[str, Any], str]:
+    # lazy: a subcommand imports the library when it runs, so its --help starts fast
     from cblrs.bench.asynchrony import (
         asynchrony_report,
         benchmark_asynchrony,
@@ -358,6 +375,7 @@ def _asynchrony(args: argparse.Namespace) -> tuple[dict[str, Any], str]:
         raise UsageError(f"--duration must be positive, got {args.duration}.")
     service = not args.in_process_only
     if service:
+        # lazy: a subcommand imports the library when it runs, so its --help starts fast
         from cblrs.runtime.broker import find_mosquitto
 
         if find_mosquitto() is None:
@@ -374,7 +392,6 @@ def _asynchrony(args: argparse.Namespace) -> tuple[dict[str, Any], str]:
 
 def _real_frames(args: argparse.Namespace) -> tuple[Path, Path]:
     """The data set with images and the ONNX model of ``bench camera`` / ``bench detect``."""
-    import os
 
     shared = Path(__file__).resolve().parents[3].parent / "shared"
     dataset = args.dataset or Path(
@@ -392,9 +409,7 @@ def _real_frames(args: argparse.Namespace) -> tuple[Path, Path]:
 
 
 def _run_backbone(args: argparse.Namespace, repeats: int) -> tuple[dict[str, Any], str]:
-    import shutil
-    import sys
-
+    # lazy: a subcommand imports the library when it runs, so its --help starts fast
     from cblrs.bench.backbone import BACKBONES, backbone_report, benchmark_backbone
     from cblrs.runtime.broker import find_mosquitto
     from cblrs.runtime.nats_server import find_nats_server
@@ -454,6 +469,7 @@ def write_outputs(out: Path, name: str, result: dict[str, Any], text: str) -> li
 def run(args: argparse.Namespace) -> int:
     """Run ``cblrs bench`` with its parsed arguments; the exit code."""
     if args.benchmark == "all":
+        # lazy: a subcommand imports the library when it runs, so its --help starts fast
         from cblrs.bench.cameras import find_wildtrack
 
         names = ["lookup", "render", "claims", "tracker"]
@@ -481,9 +497,6 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _run_mqtt(args: argparse.Namespace) -> int:
-    import shutil
-    import threading
-
     # lazy: the MQTT benchmark imports the whole runtime (paho, SQLite store, matcher service)
     from cblrs.bench.mqtt import DEFAULT_RUNS, check_runs, run_mqtt_benchmark
 

@@ -79,6 +79,7 @@ def register(subparsers) -> None:
 
 def _image_size(args: argparse.Namespace) -> tuple[tuple[int, int], np.ndarray | None]:
     if args.image is not None:
+        # lazy: OpenCV takes ~80 ms to import; only this path needs it
         import cv2
 
         if not args.image.is_file():
@@ -103,6 +104,7 @@ def _world_transform(args: argparse.Namespace) -> Any:
             raise UsageError("--site and --metres-per-pixel are for --world map.")
         return None
     if args.site is not None:
+        # lazy: a subcommand imports the library when it runs, so its --help starts fast
         from cblrs.site import load_site
 
         site = load_site(args.site)
@@ -118,6 +120,7 @@ def _world_transform(args: argparse.Namespace) -> Any:
         )
     if not (math.isfinite(args.metres_per_pixel) and args.metres_per_pixel > 0):
         raise UsageError("--metres-per-pixel must be a positive number.")
+    # lazy: a subcommand imports the library when it runs, so its --help starts fast
     from cblrs.site import SiteMap
 
     try:
@@ -129,6 +132,7 @@ def _world_transform(args: argparse.Namespace) -> Any:
 
 def run(args: argparse.Namespace) -> int:
     """Run ``cblrs calibrate`` with its parsed arguments; the exit code."""
+    # lazy: a subcommand imports the library when it runs, so its --help starts fast
     from cblrs.calibrate import Correspondences, calibrate_camera
 
     image_size, frame = _image_size(args)
@@ -151,6 +155,7 @@ def run(args: argparse.Namespace) -> int:
         args.out.write_text(json.dumps(summary["camera"], indent=2) + "\n")
         summary["out"] = str(args.out)
     if args.picture is not None:
+        # lazy: a subcommand imports the library when it runs, so its --help starts fast
         from cblrs.viz.calibration import calibration_picture
         from cblrs.viz.overlay import save_image
 
@@ -161,6 +166,7 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         print_json(summary)
         return 0
+    # lazy: a subcommand imports the library when it runs, so its --help starts fast
     from cblrs.viz.calibration import summary_lines
 
     rows = [

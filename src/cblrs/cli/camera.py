@@ -64,6 +64,7 @@ def parse_broker(text: str) -> tuple[str, int]:
 
 def mqtt_settings(args: argparse.Namespace) -> Any:
     """:class:`MqttSettings` from the broker options; the password never comes from argv."""
+    # lazy: a subcommand imports the library when it runs, so its --help starts fast
     from cblrs.runtime.mqtt_transport import MqttSettings
 
     host, port = parse_broker(args.broker)
@@ -103,6 +104,7 @@ def connect_or_queue(transport: Any, where: str = "in memory") -> None:
 
     A refused login is an error; an absent broker is not: messages wait (``where``) meanwhile.
     """
+    # lazy: a subcommand imports the library when it runs, so its --help starts fast
     from cblrs.runtime.transport import TransportError
 
     try:
@@ -289,9 +291,11 @@ def register(subparsers) -> None:
 
 def load_reference(args: argparse.Namespace, expected_size: tuple[int, int] | None):
     """The camera's reference image: from ``--reference``, ``--references`` or ``--site``."""
+    # lazy: a subcommand imports the library when it runs, so its --help starts fast
     from cblrs.reference import ReferenceImage
 
     if getattr(args, "site", None) is not None:
+        # lazy: a subcommand imports the library when it runs, so its --help starts fast
         from cblrs.site import load_site
 
         reference = load_site(args.site).render_reference(args.camera)
@@ -305,6 +309,7 @@ def load_reference(args: argparse.Namespace, expected_size: tuple[int, int] | No
     if args.reference is not None:
         path = args.reference
     else:
+        # lazy: a subcommand imports the library when it runs, so its --help starts fast
         from cblrs.cli.render import file_name
 
         path = args.references / f"{file_name(args.camera, 0)}.png"
@@ -323,6 +328,7 @@ def _frames_range(text: str | None) -> tuple[int | None, int | None]:
 
 def build_source(args: argparse.Namespace):
     """``(frames iterator, expected image size or None)`` for the chosen source."""
+    # lazy: a subcommand imports the library when it runs, so its --help starts fast
     from cblrs.detections import class_id_of
     from cblrs.runtime import sources
 
@@ -342,6 +348,7 @@ def build_source(args: argparse.Namespace):
         raise UsageError(str(error)) from None
     kind = chosen[0]
     if kind == "dataset":
+        # lazy: a subcommand imports the library when it runs, so its --help starts fast
         from cblrs.datasets import load_scene
 
         scene = load_scene(args.dataset)
@@ -377,6 +384,7 @@ def build_source(args: argparse.Namespace):
 
 def build_detector(args: argparse.Namespace, class_id: int):
     """The detector ``--detector`` names (onnx, yolo or blob), built from its options."""
+    # lazy: a subcommand imports the library when it runs, so its --help starts fast
     from cblrs.runtime import sources
 
     if args.detector == "blob":
@@ -393,6 +401,7 @@ def build_detector(args: argparse.Namespace, class_id: int):
             class_id,
         )
     if args.detector == "onnx":
+        # lazy: a subcommand imports the library when it runs, so its --help starts fast
         from cblrs.detectors import onnx_camera_detector
 
         if args.model is None:
@@ -424,6 +433,7 @@ def first_sequence(args: argparse.Namespace) -> int:
 
 def check_delivery_options(args: argparse.Namespace) -> None:
     """UsageError unless the spool and delivery options are in range."""
+    # lazy: a subcommand imports the library when it runs, so its --help starts fast
     from cblrs.cli.common import check_non_negative, check_positive
 
     check_positive(args.spool_max_mb, "--spool-max-mb")
@@ -434,6 +444,7 @@ def check_delivery_options(args: argparse.Namespace) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Run ``cblrs camera`` with its parsed arguments; the exit code."""
+    # lazy: a subcommand imports the library when it runs, so its --help starts fast
     from cblrs.runtime.camera_node import CameraNode, camera_last_will
     from cblrs.runtime.mqtt_transport import MqttTransport
     from cblrs.runtime.spool import Spool

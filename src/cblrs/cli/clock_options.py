@@ -88,6 +88,7 @@ def is_synthetic(dataset: Path) -> bool:
 def synthetic_scene(dataset: Path, simulation: ClockSimulation | None, duration_s: float) -> Scene:
     """The synthetic world named ``synthetic:PRESET``, rendered at a rate every camera's
     frame rate divides (the preset's own rate without ``--camera-fps``)."""
+    # lazy: a subcommand imports the library when it runs, so its --help starts fast
     from cblrs.datasets.synthetic import PRESETS, make_scene, make_world
 
     preset = str(dataset)[len(SYNTHETIC_PREFIX):]

@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 import numpy as np
+from tqdm import tqdm
 
 from cblrs.errors import CblrsError
 
@@ -86,7 +87,6 @@ def progress(
     iterable: Iterable[T], description: str, quiet: bool = False, total: int | None = None
 ) -> Iterator[T]:
     """A tqdm progress bar on stderr, shown only on a terminal and without --quiet."""
-    from tqdm import tqdm
 
     disable = quiet or not sys.stderr.isatty()
     yield from tqdm(iterable, desc=description, total=total, disable=disable, leave=False)

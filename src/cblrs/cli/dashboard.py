@@ -47,13 +47,16 @@ def register(subparsers) -> None:
 def run(args: argparse.Namespace) -> int:
     """Run ``cblrs dashboard`` with its parsed arguments; the exit code."""
     try:
+        # optional extra: pip install cblrs[dashboard]
         import uvicorn
 
+        # lazy: a subcommand imports the library when it runs, so its --help starts fast
         from cblrs.dashboard.app import DashboardConfig, create_app
     except ImportError:
         raise UsageError(
             "the dashboard needs Starlette and uvicorn: pip install cblrs[dashboard]."
         ) from None
+    # lazy: a subcommand imports the library when it runs, so its --help starts fast
     from cblrs.dashboard.feed import LiveFeed
     from cblrs.dashboard.replay import StoreReplay
     from cblrs.runtime.transport import TransportError

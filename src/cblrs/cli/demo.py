@@ -179,6 +179,7 @@ def run(args: Any) -> int:
             "--site needs --dataset (the synthetic scenes bring their own cameras)."
         )
     if args.dataset:
+        # lazy: a subcommand imports the library when it runs, so its --help starts fast
         from cblrs.datasets import load_scene
         from cblrs.pipeline import render_scene_references
 
@@ -187,6 +188,7 @@ def run(args: Any) -> int:
             scene = scene.select_frames(*frame_range)
         site_options: dict[str, Any] = {}
         if args.site:
+            # lazy: a subcommand imports the library when it runs, so its --help starts fast
             from cblrs.site import load_site
 
             site = load_site(args.site)
@@ -201,6 +203,7 @@ def run(args: Any) -> int:
         scene, detector_summary = real_detections(args, scene, references, source, args.quiet)
         images = None
         if source == "detector":
+            # lazy: a subcommand imports the library when it runs, so its --help starts fast
             from cblrs.datasets.images import scene_image_paths
 
             images = scene_image_paths(args.dataset, len(scene.cameras), scene.frames)
@@ -277,6 +280,7 @@ def scene_notes(report: SceneReport) -> str:
 
 def synthetic_scene(preset: str, seed: int = 0, duration_s: float | None = None):
     """The scene and the world spec of a synthetic preset."""
+    # lazy: a subcommand imports the library when it runs, so its --help starts fast
     from cblrs.datasets.synthetic import SyntheticWorld, make_world
 
     world = make_world(preset, seed=seed, duration_s=duration_s)
@@ -314,6 +318,7 @@ def run_scene(
         detector: what the detector did (model, tiles, timings), kept in metrics.json.
         area: the annotated ground area, for scoring (see :func:`cblrs.evaluate`).
     """
+    # lazy: a subcommand imports the library when it runs, so its --help starts fast
     from cblrs.datasets.aicity import write_tracks
     from cblrs.evaluation.metrics import evaluate
     from cblrs.pipeline import render_scene_references, scene_targeters, track_scene
@@ -404,6 +409,7 @@ def draw_trajectories(
 ) -> Path:
     """``trajectories.png``: paper | fusion | ground truth, bird's-eye view (the annotated
     ``area``, if given, shaded)."""
+    # lazy: a subcommand imports the library when it runs, so its --help starts fast
     from cblrs.datasets.synthetic import GroundMarking
     from cblrs.viz.trajectories import plot_trajectories
 
@@ -429,6 +435,7 @@ def draw_trajectories(
 
 
 def _footprint_marking(structure: Any) -> Any:
+    # lazy: a subcommand imports the library when it runs, so its --help starts fast
     from cblrs.datasets.synthetic import GroundMarking
 
     corners = structure.corners()[:4, :2]
@@ -463,6 +470,7 @@ def draw_overlays(
     over ``images`` (the real frames), the annotated positions as green rings and the
     reference's colours and metric grid faintly.
     """
+    # lazy: a subcommand imports the library when it runs, so its --help starts fast
     from cblrs.edge import make_message
     from cblrs.viz.overlay import camera_overlay, draw_boxes_3d, save_image, world_frame
 
@@ -473,6 +481,7 @@ def draw_overlays(
     truth = scene.ground_truth[scene.ground_truth.frame == frame]
     corners = colours = None
     if world is not None:
+        # lazy: a subcommand imports the library when it runs, so its --help starts fast
         from cblrs.datasets.synthetic import SyntheticWorld
 
         synthetic = SyntheticWorld(world)
@@ -513,6 +522,7 @@ def draw_overlays(
             )
             highlight, _ = camera.world_to_pixel(truth.world_xy)
         elif images is not None:
+            # lazy: a subcommand imports the library when it runs, so its --help starts fast
             from cblrs.datasets.images import read_image
 
             background = read_image(images[index][number])[..., ::-1]

@@ -93,10 +93,12 @@ def real_detections(
     if source == "annotations":
         return scene, None
     if source == "detections":
+        # lazy: a subcommand imports the library when it runs, so its --help starts fast
         from cblrs.datasets.detection_folder import read_detection_folder
 
         scene = read_detection_folder(scene, args.detections, dataset_root=args.dataset)
         return scene, {"detections": str(args.detections)}
+    # lazy: a subcommand imports the library when it runs, so its --help starts fast
     from cblrs.detectors.offline import detect_scene
 
     run = detect_scene(

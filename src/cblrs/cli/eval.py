@@ -89,6 +89,7 @@ def run(args: argparse.Namespace) -> int:
 
 def inside_site(site_path: Path, ground_truth: Tracks, predictions: Tracks):
     """Ground truth and predictions restricted to the site's planes, and a sentence saying so."""
+    # lazy: a subcommand imports the library when it runs, so its --help starts fast
     from cblrs.site import load_site
 
     site = load_site(site_path)

@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -168,6 +169,7 @@ def _write(out: Path, name: str, result: dict[str, Any], text: str) -> None:
 
 def run_targeting_command(args: argparse.Namespace) -> tuple[dict[str, Any], str]:
     """Run ``cblrs experiment targeting``: (result, markdown)."""
+    # lazy: a subcommand imports the library when it runs, so its --help starts fast
     from cblrs.bench.cameras import find_wildtrack
     from cblrs.experiments.targeting import (
         TargetingSetup,
@@ -201,6 +203,7 @@ def run_targeting_command(args: argparse.Namespace) -> tuple[dict[str, Any], str
     if root is not None:
         result["wildtrack"] = wildtrack_targeting(root)
     if tracking_scenes:
+        # lazy: a subcommand imports the library when it runs, so its --help starts fast
         from cblrs.experiments.resolution import load_named_scene
         from cblrs.experiments.targeting import tracking_effect
 
@@ -216,6 +219,7 @@ def run_targeting_command(args: argparse.Namespace) -> tuple[dict[str, Any], str
 
 def run_calibration_command(args: argparse.Namespace) -> tuple[dict[str, Any], str]:
     """Run ``cblrs experiment calibration``: (result, markdown)."""
+    # lazy: a subcommand imports the library when it runs, so its --help starts fast
     from cblrs.experiments.calibration import (
         CalibrationSetup,
         calibration_figure,
@@ -260,8 +264,8 @@ def run_calibration_command(args: argparse.Namespace) -> tuple[dict[str, Any], s
 
 def run_counts_command(args: argparse.Namespace) -> tuple[dict[str, Any], str]:
     """Run ``cblrs experiment counts``: (result, markdown)."""
-    import sys
 
+    # lazy: a subcommand imports the library when it runs, so its --help starts fast
     from cblrs.experiments.counts import SCENES, CountsSetup, counts_report, run_counts
 
     scenes = tuple(name.strip() for name in args.scenes.split(",") if name.strip())
@@ -281,6 +285,7 @@ def run_counts_command(args: argparse.Namespace) -> tuple[dict[str, Any], str]:
                         else None)
     text = counts_report(result)
     if args.out is not None:
+        # lazy: a subcommand imports the library when it runs, so its --help starts fast
         from cblrs.experiments.counts import plot_counts
 
         result["figures"] = [str(path) for path in plot_counts(result, setup,
@@ -291,6 +296,7 @@ def run_counts_command(args: argparse.Namespace) -> tuple[dict[str, Any], str]:
 
 def run_resolution_command(args: argparse.Namespace) -> tuple[dict[str, Any], str]:
     """Entry point of ``cblrs experiment resolution``."""
+    # lazy: a subcommand imports the library when it runs, so its --help starts fast
     from cblrs.experiments.resolution import (
         load_named_scene,
         plot_resolution,

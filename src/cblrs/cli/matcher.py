@@ -182,6 +182,7 @@ def parse_options(items: list[str]) -> dict[str, Any]:
 
 def read_references(folder: Path) -> tuple[list[str], Any]:
     """Camera ids (file-name order) and the shared planes of a folder of reference PNGs."""
+    # lazy: a subcommand imports the library when it runs, so its --help starts fast
     from cblrs.reference import ReferenceImage
 
     if not folder.is_dir():
@@ -224,6 +225,7 @@ def run(args: argparse.Namespace) -> int:
     if args.db is None or (args.references is None and args.site is None):
         raise UsageError("give --db FILE and --references DIR or --site SITE (or --stats DB).")
     check_arguments(args)
+    # lazy: a subcommand imports the library when it runs, so its --help starts fast
     from cblrs.matching import make_matcher
     from cblrs.runtime.matcher_service import MatcherService
     from cblrs.runtime.mqtt_transport import MqttTransport
@@ -235,6 +237,7 @@ def run(args: argparse.Namespace) -> int:
 
     site = None
     if args.site is not None:
+        # lazy: a subcommand imports the library when it runs, so its --help starts fast
         from cblrs.site import load_site
 
         site = load_site(args.site)
@@ -291,6 +294,7 @@ def run(args: argparse.Namespace) -> int:
     analytics = make_analytics(site, plane_id, args)
     metrics = server = None
     if args.http is not None:
+        # lazy: a subcommand imports the library when it runs, so its --help starts fast
         from cblrs.runtime.metrics import MetricsServer, ServiceMetrics, parse_address
 
         address = parse_address(args.http)
@@ -386,6 +390,7 @@ def run(args: argparse.Namespace) -> int:
             server.close()
         summary = service.stats()
         if args.out_tracks is not None:
+            # lazy: a subcommand imports the library when it runs, so its --help starts fast
             from cblrs.datasets.aicity import write_tracks
 
             write_tracks(args.out_tracks, store.tracks())
@@ -439,6 +444,7 @@ def make_analytics(site: Any, plane_id: int, args: argparse.Namespace) -> Any:
     """The plane's online analytics: the site's places of this plane (None without)."""
     if site is None or args.no_analytics:
         return None
+    # lazy: a subcommand imports the library when it runs, so its --help starts fast
     from cblrs.runtime.online_analytics import OnlineAnalytics, plane_places
 
     places = plane_places(site.places, plane_id)
@@ -534,6 +540,7 @@ def _clocks_off(clocks: dict[str, Any] | None) -> str:
 
 def show_stats(path: Path, as_json: bool) -> int:
     """Print what a matcher database holds (``cblrs matcher --stats``); the exit code."""
+    # lazy: a subcommand imports the library when it runs, so its --help starts fast
     from cblrs.matching.fusion import clock_report
     from cblrs.runtime.analytics_store import count_summary, read_counts
     from cblrs.runtime.store import RuntimeStore

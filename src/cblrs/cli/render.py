@@ -146,6 +146,7 @@ def file_name(camera_name: str, index: int) -> str:
 
 def site_cameras_and_planes(args: argparse.Namespace) -> tuple[list, PlaneSet]:
     """The cameras and planes of ``--site`` (with ``--bits`` applied)."""
+    # lazy: a subcommand imports the library when it runs, so its --help starts fast
     from cblrs.site import load_site
 
     if args.calibration is not None:
@@ -188,6 +189,7 @@ def run(args: argparse.Namespace) -> int:
             "bytes": path.stat().st_size,
         }
         if args.preview:
+            # lazy: a subcommand imports the library when it runs, so its --help starts fast
             from cblrs.viz.reference import reference_overlay
 
             preview = reference_overlay(reference, None, grid_m=1.0)

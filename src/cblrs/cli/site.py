@@ -97,6 +97,7 @@ def _plane(text: str | None) -> tuple[float, float, float, float] | None:
 
 def run_init(args: argparse.Namespace) -> int:
     """Run ``cblrs site init``; the exit code."""
+    # lazy: a subcommand imports the library when it runs, so its --help starts fast
     from cblrs.site import load_site, save_document, site_from_dataset
 
     _writable(args.out, args.force)
@@ -135,6 +136,7 @@ def run_init(args: argparse.Namespace) -> int:
 
 def run_check(args: argparse.Namespace) -> int:
     """Run ``cblrs site check``; the exit code (1 when not ready)."""
+    # lazy: a subcommand imports the library when it runs, so its --help starts fast
     from cblrs.site.check import COMMANDS, check_site, format_check
 
     needed = []
@@ -155,6 +157,7 @@ def run_check(args: argparse.Namespace) -> int:
 
 def run_export(args: argparse.Namespace) -> int:
     """Run ``cblrs site export``; the exit code."""
+    # lazy: a subcommand imports the library when it runs, so its --help starts fast
     from cblrs.site import load_site, save_document
 
     _writable(args.out, args.force)

@@ -153,6 +153,7 @@ def run(args: argparse.Namespace) -> int:
     options: dict = {}
     started = time.perf_counter()
     if args.site is not None:
+        # lazy: a subcommand imports the library when it runs, so its --help starts fast
         from cblrs.site import load_site
 
         site = load_site(args.site)
@@ -234,6 +235,7 @@ def run(args: argparse.Namespace) -> int:
 def _score(dataset: Path, scene, result) -> dict:
     """The tracks' scores at the frames some camera captured (the annotated-area rule of
     ``cblrs eval`` for data set folders)."""
+    # lazy: a subcommand imports the library when it runs, so its --help starts fast
     from cblrs.calibration import default_ground
     from cblrs.evaluation import evaluate
 

@@ -30,6 +30,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from cblrs.dashboard import calibration
 from cblrs.dashboard.feed import LiveFeed, sse
 from cblrs.dashboard.replay import ReplayError, StoreReplay
 from cblrs.dashboard.scene import map_image, site_scene
@@ -73,6 +74,7 @@ class DashboardConfig:
 def create_app(config: DashboardConfig) -> Any:
     """The ASGI application (needs the ``dashboard`` extra: Starlette)."""
     try:
+        # optional extra: pip install cblrs[dashboard]
         from starlette.applications import Starlette
         from starlette.responses import (
             FileResponse,
@@ -86,8 +88,6 @@ def create_app(config: DashboardConfig) -> Any:
         raise CblrsError(
             "the dashboard needs Starlette and uvicorn: pip install cblrs[dashboard]"
         ) from None
-
-    from cblrs.dashboard import calibration
 
     scene_cache: dict[str, Any] = {}
 

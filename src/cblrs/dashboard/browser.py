@@ -69,6 +69,7 @@ def chromium_page(
     problem = browser_problem()
     if problem is not None:
         raise BrowserUnavailable(problem)
+    # optional: only the browser benchmark and tests drive Chromium
     from playwright.sync_api import sync_playwright
 
     chromium = find_chromium()

@@ -23,9 +23,13 @@ from typing import Any
 
 import numpy as np
 
+from cblrs.calibrate import Correspondences, calibrate_camera
 from cblrs.errors import CblrsError
+from cblrs.reference import ReferenceImage
 from cblrs.site import Site, load_site, save_document
+from cblrs.site.core import site_from_document
 from cblrs.site.schema import read_document
+from cblrs.viz.reference import reference_overlay
 
 FRAME_SUFFIXES = (".png", ".jpg", ".jpeg")
 
@@ -76,8 +80,6 @@ def frame_path(site: Site, camera: str, frames: Path | None) -> Path | None:
 
 
 def _correspondences(points: Any, site: Site, unit: str) -> Any:
-    from cblrs.calibrate import Correspondences
-
     if not isinstance(points, list) or not all(isinstance(point, dict) for point in points):
         raise CalibrationPageError("points must be a list of {u, v, x, y} pairs.")
     try:
@@ -111,7 +113,6 @@ def fit_points(
     Raises:
         CalibrationPageError: too few or degenerate points, bad values (one sentence).
     """
-    from cblrs.calibrate import calibrate_camera
 
     site.index_of(camera)
     size = _size(image_size)
@@ -179,7 +180,6 @@ def save_points(
         entry["focal_px"] = float(focal_px)
     cameras[index] = entry
     document["cameras"] = cameras
-    from cblrs.site.core import site_from_document
 
     try:
         updated = site_from_document(document, site_path)
@@ -198,10 +198,8 @@ def save_points(
 
 def reference_preview(site: Site, camera: str, references: Path, frames: Path | None) -> bytes:
     """PNG of the camera's saved reference over its frame (if any) with a 1 m grid."""
+    # lazy: OpenCV takes ~80 ms to import; only this path needs it
     import cv2
-
-    from cblrs.reference import ReferenceImage
-    from cblrs.viz.reference import reference_overlay
 
     path = references / f"{camera}.png"
     if not path.is_file():

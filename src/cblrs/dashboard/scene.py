@@ -66,6 +66,7 @@ def site_scene(site: Site, plane_id: int | None = None) -> dict[str, Any]:
     site_map = None
     image = map_image(site)
     if image is not None and site.map is not None:
+        # lazy: OpenCV takes ~80 ms to import; only this path needs it
         import cv2
 
         picture = cv2.imdecode(np.frombuffer(image[0], np.uint8), cv2.IMREAD_UNCHANGED)

@@ -32,6 +32,7 @@ from cblrs.datasets.images import (
 from cblrs.datasets.scene import Scene
 from cblrs.detections import Detections
 from cblrs.errors import DatasetError
+from cblrs.runtime.sources import mot_source
 
 logger = logging.getLogger(__name__)
 
@@ -69,7 +70,6 @@ def read_detection_folder(
         DatasetError: the folder is missing or empty, a file names no camera of the data
             set, a file is malformed, or its frames are none of the data set's.
     """
-    from cblrs.runtime.sources import mot_source
 
     folder = Path(folder)
     if not folder.is_dir():

@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
+from cblrs.datasets.multiview import _annotation_files
 from cblrs.errors import DatasetError
 
 logger = logging.getLogger(__name__)
@@ -35,6 +36,7 @@ def read_image(path: str | Path) -> NDArray[np.uint8]:
     Raises:
         DatasetError: the file is missing or is not an image OpenCV can decode.
     """
+    # lazy: OpenCV takes ~80 ms to import; only this path needs it
     import cv2
 
     path = Path(path)
@@ -100,7 +102,6 @@ def image_frame_offset(image_numbers: set[int], frames: NDArray[np.int64]) -> in
 
 def annotated_frames(root: str | Path) -> NDArray[np.int64]:
     """Every annotated frame number of a data set folder (its annotation file names)."""
-    from cblrs.datasets.multiview import _annotation_files
 
     return np.array([frame for frame, _ in _annotation_files(Path(root))], dtype=np.int64)
 

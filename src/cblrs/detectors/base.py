@@ -81,6 +81,7 @@ def non_maximum_suppression(
     """
     if len(xyxy) == 0:
         return np.zeros(0, dtype=np.int64)
+    # lazy: OpenCV takes ~80 ms to import; only this path needs it
     import cv2
 
     boxes: Any = np.column_stack([xyxy[:, :2], xyxy[:, 2:] - xyxy[:, :2]]).astype(np.float64)

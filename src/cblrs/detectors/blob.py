@@ -37,6 +37,7 @@ class ColourBlobDetector:
 
     def detect(self, image: NDArray[np.uint8]) -> Detections:
         """Boxes ``(x, y, x + w, y + h)`` of each region of at least ``min_area`` pixels."""
+        # lazy: OpenCV takes ~80 ms to import; only this path needs it
         import cv2
 
         if image.ndim != 3 or image.shape[2] != 3:

@@ -13,6 +13,8 @@ import time
 from dataclasses import dataclass, replace
 from pathlib import Path
 
+from tqdm import tqdm
+
 from cblrs.datasets.images import read_image, scene_image_paths
 from cblrs.datasets.scene import Scene
 from cblrs.detections import Detections
@@ -97,7 +99,6 @@ def detect_scene(
     paths = scene_image_paths(root, len(scene.cameras), scene.frames)
     rows = enumerate(paths)
     if progress:
-        from tqdm import tqdm
 
         rows = tqdm(rows, total=len(paths), desc="detecting", leave=False,
                     disable=not sys.stderr.isatty())

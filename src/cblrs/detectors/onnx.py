@@ -70,6 +70,7 @@ def letterbox(
     Returns:
         ``(canvas, scale)``: (height, width, 3) uint8 and model pixels per image pixel.
     """
+    # lazy: OpenCV takes ~80 ms to import; only this path needs it
     import cv2
 
     width, height = size
@@ -247,6 +248,7 @@ def _open_session(path: Path, threads: int | None):
     if not path.is_file():
         raise ModelError(f"model file {path} does not exist (nothing is downloaded at run time).")
     try:
+        # lazy: onnxruntime takes ~80 ms to import; only a detector needs it
         import onnxruntime
     except ImportError:  # pragma: no cover - a core dependency
         raise ImportError("the ONNX detector needs onnxruntime: pip install onnxruntime") from None

@@ -40,6 +40,7 @@ class YoloDetector:
                 "(nothing is downloaded at run time)."
             )
         try:
+            # optional extra: pip install cblrs[yolo]
             from ultralytics import YOLO
         except ImportError:
             raise ImportError(

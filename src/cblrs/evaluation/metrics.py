@@ -149,6 +149,7 @@ def evaluate(
         >>> metrics.to_dict()  # doctest: +SKIP
         {'HOTA': 93.1, 'DetA': 91.0, 'AssA': 95.3, 'LocA': 90.2, 'MOTA': 97.0, 'IDF1': 97.9}
     """
+    # lazy: TrackEval takes ~0.4 s to import; only scoring needs it
     from trackeval.metrics import CLEAR, HOTA, Identity
 
     data = build_trackeval_data(ground_truth, predictions, frames, area)

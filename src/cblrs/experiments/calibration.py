@@ -31,13 +31,21 @@ import logging
 import math
 import time
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
+from tqdm import tqdm
 
+from cblrs.bench.machine import json_ready
 from cblrs.calibrate import Correspondences, calibrate_camera
 from cblrs.datasets.scene import Scene
 from cblrs.errors import CalibrationError
+from cblrs.evaluation import evaluate
+from cblrs.pipeline import camera_positions, render_scene_references, scene_messages, track_scene
+from cblrs.site.core import site_from_document
+from cblrs.viz.calibration import calibration_picture
+from cblrs.viz.overlay import save_image
 
 logger = logging.getLogger(__name__)
 
@@ -175,7 +183,6 @@ def clicked_site(scene: Scene, count: int, seed: int, setup: CalibrationSetup) -
 def localisation_errors(scene: Scene, references: list) -> np.ndarray:
     """Distance (metres) between each annotated box's located target and its annotated
     position, over all frames and cameras; boxes whose target sees no plane are left out."""
-    from cblrs.pipeline import scene_messages
 
     truth = scene.ground_truth
     positions = {
@@ -247,9 +254,6 @@ def _predicted_bins(pairs: np.ndarray) -> list[dict[str, Any]]:
 
 
 def _run(scene: Scene, references: list, positions: dict[str, Any]) -> dict[str, Any]:
-    from cblrs.evaluation import evaluate
-    from cblrs.pipeline import track_scene
-
     result = track_scene(scene, references=references, camera_positions=positions)
     metrics = evaluate(scene.ground_truth, result.tracks).to_dict()
     errors = localisation_errors(scene, references)
@@ -270,9 +274,6 @@ def run_calibration(
         JSON-ready ``{"setup", "lab", "runs": [...], "rows": [...]}``: ``runs`` has one entry per
         (N, seed) with every camera's fit; ``rows`` one per N (means over the seeds).
     """
-    from cblrs.bench.machine import json_ready
-    from cblrs.pipeline import camera_positions, render_scene_references
-    from cblrs.site.core import site_from_document
 
     started = time.perf_counter()
     lab = _run(scene, render_scene_references(scene), camera_positions(scene))
@@ -282,7 +283,6 @@ def run_calibration(
     jobs = [(count, seed) for count in setup.counts for seed in setup.seeds]
     iterator: Any = jobs
     if progress:
-        from tqdm import tqdm
 
         iterator = tqdm(jobs, desc="calibrations", leave=False)
     for count, seed in iterator:
@@ -467,11 +467,6 @@ def calibration_figure(scene: Scene, setup: CalibrationSetup, folder: Any) -> An
     below it, first seed) drawn by :func:`cblrs.viz.calibration.calibration_picture` on a grey
     canvas (WILDTRACK ships no frames): the camera whose fit leaves the largest part of the
     image between its points poorly constrained, to show the shading and the warning."""
-    from pathlib import Path
-
-    from cblrs.site.core import site_from_document
-    from cblrs.viz.calibration import calibration_picture
-    from cblrs.viz.overlay import save_image
 
     count = max([n for n in setup.counts if n <= 10] or [min(setup.counts)])
     document = clicked_site(scene, count, setup.seeds[0], setup)
@@ -483,6 +478,7 @@ def calibration_figure(scene: Scene, setup: CalibrationSetup, folder: Any) -> An
         key=lambda fit: fit.coverage.share if fit.coverage is not None else 0.0,
     )
     path = Path(folder) / "calibration_clicked.png"
+    # lazy: OpenCV takes ~80 ms to import; only this path needs it
     import cv2
 
     image = cv2.resize(calibration_picture(fit, None), (960, 540), interpolation=cv2.INTER_AREA)

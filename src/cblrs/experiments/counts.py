@@ -29,12 +29,17 @@ from typing import Any
 
 import numpy as np
 
-from cblrs.analytics.config import AnalyticsConfig
-from cblrs.analytics.site import SitePlaces, load_site_places
+from cblrs.analytics.config import AnalyticsConfig, HeatmapGrid
+from cblrs.analytics.site import SitePlaces, load_site_places, site_extent
 from cblrs.analytics.tables import AnalyticsResult, analyse_tracks
+from cblrs.datasets import simulate_detections
 from cblrs.datasets.scene import Scene
+from cblrs.datasets.traffic import make_traffic_scene, roundabout_traffic_world, traffic_od
 from cblrs.errors import DatasetError
+from cblrs.experiments.resolution import load_named_scene
+from cblrs.pipeline import render_scene_references, track_scene
 from cblrs.places import Places
+from cblrs.viz.analytics import plot_counts_over_time, plot_heatmap, plot_od, plot_site
 
 logger = logging.getLogger(__name__)
 
@@ -81,11 +86,9 @@ def find_sites(path: str | Path | None = None) -> Path:
 def load_counts_scene(name: str, wildtrack: str | Path | None = None) -> Scene:
     """A scene by name: ``wildtrack`` (the data folder) or a synthetic one."""
     if name == "roundabout-traffic":
-        from cblrs.datasets.traffic import make_traffic_scene
 
         return make_traffic_scene()
     if name in ("wildtrack", "plaza", "roundabout"):
-        from cblrs.experiments.resolution import load_named_scene
 
         return load_named_scene(name, wildtrack, None)
     raise DatasetError(f"unknown scene {name!r}; known: {', '.join(SCENES)}.")
@@ -112,6 +115,7 @@ def match_crossings(
     Returns:
         ``(matched, missed, extra)``.
     """
+    # lazy: scipy.optimize takes ~0.3 s to import; only this path needs it
     from scipy.optimize import linear_sum_assignment
 
     matched = 0
@@ -197,8 +201,6 @@ def run_counts(
     Returns:
         ``{"setup": ..., "scenes": {scene: {"truth": ..., "runs": [...]}}}`` (JSON-ready).
     """
-    from cblrs.datasets import simulate_detections
-    from cblrs.pipeline import render_scene_references, track_scene
 
     sites = find_sites(setup.sites)
     result: dict[str, Any] = {
@@ -250,7 +252,6 @@ def run_counts(
 
 def _built_od_matches(truth: AnalyticsResult) -> bool:
     """The ground truth's OD equals the matrix the traffic world was built with."""
-    from cblrs.datasets.traffic import roundabout_traffic_world, traffic_od
 
     built = traffic_od(roundabout_traffic_world())
     return all(
@@ -355,10 +356,6 @@ def site_for(scene: str, sites: Path | None = None) -> SitePlaces:
 def plot_counts(result: dict[str, Any], setup: CountsSetup, folder: str | Path) -> list[Path]:
     """Figures for the docs: WILDTRACK places, heatmap and counts over time (fusion, exact
     boxes), the roundabout's OD (truth | fusion), and the line errors of every run."""
-    from cblrs.analytics.config import HeatmapGrid
-    from cblrs.analytics.site import site_extent
-    from cblrs.pipeline import track_scene
-    from cblrs.viz.analytics import plot_counts_over_time, plot_heatmap, plot_od, plot_site
 
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
@@ -382,6 +379,7 @@ def plot_counts(result: dict[str, Any], setup: CountsSetup, folder: str | Path) 
         save(plot_heatmap(tables, grid, site.places), "analytics_wildtrack_heatmap.png")
         save(plot_counts_over_time(tables), "analytics_wildtrack_counts.png")
     if "roundabout-traffic" in result["scenes"]:
+        # lazy: matplotlib takes ~0.4 s to import; only the plotting path needs it
         from matplotlib.backends.backend_agg import FigureCanvasAgg
         from matplotlib.figure import Figure
 
@@ -401,6 +399,7 @@ def plot_counts(result: dict[str, Any], setup: CountsSetup, folder: str | Path) 
 
 
 def _plot_errors(result: dict[str, Any]) -> Any:
+    # lazy: matplotlib takes ~0.4 s to import; only the plotting path needs it
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 

@@ -19,8 +19,17 @@ from typing import Any
 
 import numpy as np
 
+from cblrs.bench.cameras import find_wildtrack
+from cblrs.bench.machine import json_ready
+from cblrs.bench.report import markdown_table
+from cblrs.datasets import load_scene
 from cblrs.datasets.scene import Scene
+from cblrs.datasets.synthetic import make_scene
+from cblrs.errors import DatasetError
+from cblrs.evaluation import evaluate
+from cblrs.pipeline import track_scene
 from cblrs.plane import PlaneSpec
+from cblrs.reference import render_reference
 
 logger = logging.getLogger(__name__)
 
@@ -66,16 +75,12 @@ def square_plane(scene: Scene, size_m: float, bits: int) -> PlaneSpec:
 def load_named_scene(name: str, wildtrack: str | Path | None, frames: int | None) -> Scene:
     """``"wildtrack"`` (the data folder) or a synthetic preset (``"plaza"``, ``"roundabout"``)."""
     if name == "wildtrack":
-        from cblrs.bench.cameras import find_wildtrack
-        from cblrs.datasets import load_scene
-        from cblrs.errors import DatasetError
 
         root = find_wildtrack(wildtrack)
         if root is None:
             raise DatasetError("WILDTRACK not found; pass --wildtrack or set CBLRS_WILDTRACK.")
         scene = load_scene(root)
     else:
-        from cblrs.datasets.synthetic import make_scene
 
         scene = make_scene(name)
     if frames is not None:
@@ -85,9 +90,6 @@ def load_named_scene(name: str, wildtrack: str | Path | None, frames: int | None
 
 def track_with_plane(scene: Scene, plane: PlaneSpec) -> dict[str, float]:
     """HOTA & co of the default pipeline with reference images of ``plane``."""
-    from cblrs.evaluation import evaluate
-    from cblrs.pipeline import track_scene
-    from cblrs.reference import render_reference
 
     references = [render_reference(camera, plane) for camera in scene.cameras]
     start = time.perf_counter()
@@ -109,7 +111,6 @@ def run_resolution(
         ``baseline`` (scene plane, 16 bit) and ``rows`` (size, bits, step, metrics and their
         differences to the baseline, in points).
     """
-    from cblrs.bench.machine import json_ready
 
     output: dict[str, Any] = {"step_table": raster_step_table(), "scenes": {}}
     for name, scene in scenes.items():
@@ -183,7 +184,6 @@ def run_resolution(
 
 def resolution_report(result: dict[str, Any]) -> str:
     """Markdown: the step table and, per scene, metrics per plane size and bit depth."""
-    from cblrs.bench.report import markdown_table
 
     lines = [
         "### Raster step: plane size x bits",
@@ -242,9 +242,11 @@ def resolution_report(result: dict[str, Any]) -> str:
 
 def plot_resolution(result: dict[str, Any], out: str | Path) -> Path:
     """HOTA and LocA against the raster step, one line per scene (log step axis)."""
+    # lazy: matplotlib takes ~0.4 s to import; only the plotting path needs it
     import matplotlib
 
     matplotlib.use("Agg")
+    # lazy: matplotlib takes ~0.4 s to import; only the plotting path needs it
     import matplotlib.pyplot as plt
 
     out = Path(out)

@@ -25,6 +25,7 @@ same result dictionary; splitting them would spread one experiment's format over
 from __future__ import annotations
 
 import logging
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -32,9 +33,14 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from cblrs.bench.machine import json_ready
+from cblrs.bench.report import markdown_table
 from cblrs.camera import Camera
+from cblrs.datasets import load_scene
 from cblrs.datasets.synthetic import project_boxes_3d
+from cblrs.evaluation import evaluate
 from cblrs.geometric_targeting import DEFAULT_CLASS_SIZES, GeometricTargeter
+from cblrs.pipeline import render_scene_references, track_scene
 from cblrs.targeting import target_pixels
 
 logger = logging.getLogger(__name__)
@@ -308,14 +314,11 @@ def _summarise(
 
 
 def _json_ready(value: Any) -> Any:
-    from cblrs.bench.machine import json_ready
-
     return json_ready(value)
 
 
 def targeting_report(result: dict[str, Any]) -> str:
     """Markdown: AOD per tilt x VTP (mean over yaws), best VTP per tilt, geometric targeting."""
-    from cblrs.bench.report import markdown_table
 
     setup = result["setup"]
     vtps = setup["vtps"]
@@ -450,9 +453,11 @@ def plot_targeting(result: dict[str, Any], out: str | Path) -> list[Path]:
     Returns:
         The PNG paths written.
     """
+    # lazy: matplotlib takes ~0.4 s to import; only the plotting path needs it
     import matplotlib
 
     matplotlib.use("Agg")
+    # lazy: matplotlib takes ~0.4 s to import; only the plotting path needs it
     import matplotlib.pyplot as plt
 
     out = Path(out)
@@ -558,7 +563,6 @@ def wildtrack_targeting(
         JSON-ready dict: per camera and overall ``median_m`` and ``mean_m`` for
         ``bottom_centre`` and ``geometric``, and the box count.
     """
-    from cblrs.datasets import load_scene
 
     sizes = (class_sizes or DEFAULT_CLASS_SIZES)["person"]
     scene = load_scene(root)
@@ -618,10 +622,6 @@ def tracking_effect(scenes: dict[str, Any]) -> dict[str, Any]:
     Returns:
         JSON-ready dict: per scene, per targeting mode, the metrics and tracking seconds.
     """
-    import time
-
-    from cblrs.evaluation import evaluate
-    from cblrs.pipeline import render_scene_references, track_scene
 
     output: dict[str, Any] = {}
     for name, scene in scenes.items():

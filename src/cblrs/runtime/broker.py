@@ -496,6 +496,7 @@ def _write_certificates(
     certificate per user (CN = user), ECDSA P-256, valid :data:`CERTIFICATE_DAYS` days; the
     CA's key goes to ``ca_directory`` (mode 0700), not beside the broker's files."""
     try:
+        # optional extra: pip install cblrs[tls]
         from cryptography import x509
         from cryptography.hazmat.primitives import hashes, serialization
         from cryptography.hazmat.primitives.asymmetric import ec

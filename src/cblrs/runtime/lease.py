@@ -43,6 +43,7 @@ import msgspec
 
 from cblrs.errors import CblrsError
 from cblrs.runtime.topics import lease_topic
+from cblrs.runtime.transport import TransportError, reason_text, refused
 
 logger = logging.getLogger(__name__)
 
@@ -249,8 +250,6 @@ class PlaneLease:
                                on_result=self._on_result)
 
     def _on_result(self, reason: int) -> None:
-        from cblrs.runtime.transport import reason_text, refused
-
         if refused(reason) and reason != -1:
             with self._condition:
                 self._refused = reason_text(reason)
@@ -290,8 +289,6 @@ class PlaneLease:
                 continue
 
     def _read_once(self, timeout: float) -> LeaseRecord | None:
-        from cblrs.runtime.transport import TransportError
-
         with self._condition:
             start = len(self._log)
         resubscribe = getattr(self.transport, "resubscribe", None)

@@ -22,6 +22,13 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
+import paho.mqtt.client as mqtt
+from paho.mqtt.enums import CallbackAPIVersion
+from paho.mqtt.packettypes import PacketTypes
+from paho.mqtt.properties import Properties
+from paho.mqtt.reasoncodes import ReasonCode
+from paho.mqtt.subscribeoptions import SubscribeOptions
+
 from cblrs.runtime.topics import filters_overlap, topic_matches, validate_filter, validate_topic
 from cblrs.runtime.transport import (
     ACCEPTED,
@@ -219,10 +226,6 @@ class MqttTransport:
         """
         if self._client is not None:
             return
-        import paho.mqtt.client as mqtt
-        from paho.mqtt.enums import CallbackAPIVersion
-        from paho.mqtt.packettypes import PacketTypes
-        from paho.mqtt.properties import Properties
 
         settings = self.settings
         client = mqtt.Client(
@@ -406,8 +409,6 @@ class MqttTransport:
         client = self._client
         if client is None:
             return
-        from paho.mqtt.packettypes import PacketTypes
-        from paho.mqtt.reasoncodes import ReasonCode
 
         was_connected = self._connected.is_set()
         if was_connected:
@@ -473,8 +474,6 @@ class MqttTransport:
             blocking = False
 
     def _hand_over(self) -> None:
-        import paho.mqtt.client as mqtt
-
         client = self._client
         while client is not None:
             with self._condition:
@@ -542,7 +541,6 @@ class MqttTransport:
         self._client = None
 
     def _subscribe_and_wait(self, topic_filter: str, qos: int) -> list:
-
         client = self._require_client()
         result, mid = self._send_subscribe(client, topic_filter, qos)
         if mid is None:
@@ -563,7 +561,6 @@ class MqttTransport:
     def _send_subscribe(self, client, topic_filter: str, qos: int) -> tuple:
         if not self.settings.mqtt5:
             return client.subscribe(topic_filter, qos=qos)
-        from paho.mqtt.subscribeoptions import SubscribeOptions
 
         return client.subscribe(
             topic_filter,
@@ -575,8 +572,6 @@ class MqttTransport:
         return _identifier_properties(topic_filter) if topic_filter in self._identified else None
 
     def _on_log(self, client, userdata, level, text) -> None:
-        import paho.mqtt.client as mqtt
-
         # After a wanted disconnection paho's loop runs once more and reports "Client is not
         # connected" as an error: expected, so debug only.
         if level == mqtt.MQTT_LOG_ERR and not text.startswith("Client is not connected"):
@@ -763,9 +758,6 @@ def _subscription_id(topic_filter: str) -> int:
 
 
 def _identifier_properties(topic_filter: str):
-    from paho.mqtt.packettypes import PacketTypes
-    from paho.mqtt.properties import Properties
-
     properties = Properties(PacketTypes.SUBSCRIBE)
     properties.SubscriptionIdentifier = _subscription_id(topic_filter)
     return properties

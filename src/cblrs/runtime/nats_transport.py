@@ -76,6 +76,7 @@ LEASE_BUCKET = "cblrs_leases"
 
 def _import_nats() -> Any:
     try:
+        # optional extra: pip install cblrs[nats]
         import nats
     except ImportError:
         raise TransportError(
@@ -594,6 +595,7 @@ class NatsTransport:
         return 3 if info.get("cluster") else 1
 
     async def _ensure_streams(self) -> None:
+        # optional extra: pip install cblrs[nats]
         from nats.js.api import RetentionPolicy, StorageType, StreamConfig
         from nats.js.errors import BadRequestError, NotFoundError
 
@@ -619,6 +621,7 @@ class NatsTransport:
                 raise TransportError(f"cannot create the NATS stream {name}: {error}.") from None
 
     async def _start_consumer(self) -> None:
+        # optional extra: pip install cblrs[nats]
         from nats.js.api import AckPolicy, ConsumerConfig, DeliverPolicy
         from nats.js.errors import NotFoundError
 
@@ -745,6 +748,7 @@ class NatsTransport:
         self._publishes.put_nowait(item)
 
     async def _send_publishes(self) -> None:
+        # optional extra: pip install cblrs[nats]
         from nats.js.errors import APIError
 
         assert self._publishes is not None
@@ -779,6 +783,7 @@ class NatsTransport:
     # Internals: lease --------------------------------------------------------------------
 
     async def _acquire_lease(self) -> None:
+        # optional extra: pip install cblrs[nats]
         from nats.js.api import KeyValueConfig
         from nats.js.errors import BucketNotFoundError, KeyWrongLastSequenceError
 
@@ -821,6 +826,7 @@ class NatsTransport:
             return "another matcher", 0.0
 
     async def _renew_lease(self, value: bytes) -> None:
+        # optional extra: pip install cblrs[nats]
         from nats.js.errors import KeyWrongLastSequenceError
 
         lease = self.lease

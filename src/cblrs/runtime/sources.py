@@ -27,6 +27,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from cblrs.datasets.clocks import camera_clocks
 from cblrs.datasets.images import IMAGE_SUFFIXES, read_image
 from cblrs.detections import Detections
 
@@ -218,7 +219,6 @@ def scene_source(scene: Any, camera: str | int, clocks: Any = None) -> Iterator[
     """
     index = camera_position(scene.camera_names, camera)
     if clocks is not None:
-        from cblrs.datasets.clocks import camera_clocks
 
         clock = camera_clocks(scene, clocks)[index]
         for position, recorded in zip(clock.frame_index.tolist(), clock.timestamp.tolist(),
@@ -270,6 +270,7 @@ def video_source(
         DatasetError: the video cannot be opened, has no frame rate, or ends before
             ``last`` (raised when the end is reached; earlier frames were yielded).
     """
+    # lazy: OpenCV takes ~80 ms to import; only this path needs it
     import cv2
 
     target: Any = int(path) if isinstance(path, str) and path.isdigit() else str(path)

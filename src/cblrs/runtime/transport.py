@@ -38,6 +38,7 @@ be imported from this module).
 
 from __future__ import annotations
 
+import importlib
 import itertools
 import logging
 import threading
@@ -293,6 +294,7 @@ def reason_text(reason: int) -> str:
     if reason == LOST:
         return "not acknowledged before the transport closed"
     try:
+        # lazy: only MQTT reason codes need paho here (the in-process transport does not)
         from paho.mqtt.packettypes import PacketTypes
         from paho.mqtt.reasoncodes import ReasonCode
 
@@ -319,7 +321,6 @@ _MOVED = {
 def __getattr__(name: str) -> Any:
     """``from cblrs.runtime.transport import MqttTransport`` and co. keep working."""
     if name in _MOVED:
-        import importlib
 
         return getattr(importlib.import_module(_MOVED[name]), name)
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -9,6 +10,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from cblrs.calibrate import CalibrationFit, Correspondences, calibrate_camera, pose_from_homography
+from cblrs.calibration import read_cameras
 from cblrs.camera import Camera
 from cblrs.errors import CblrsError
 from cblrs.site.schema import CameraModel, SiteError
@@ -28,6 +30,7 @@ def resolve_camera(site: Site, index: int) -> SiteCamera:
         SiteError: the geometry cannot be had (missing file, unreadable calibration, clicked
             points that cannot calibrate); one sentence naming the file and the camera.
     """
+    # here, not at the top: cblrs.site.core and this module use each other
     from cblrs.site.core import SiteCamera
 
     spec = site.model.cameras[index]
@@ -75,8 +78,6 @@ def _sentence(error: Exception) -> str:
 
 
 def _from_file(site: Site, spec: CameraModel, where: str) -> Camera:
-    from cblrs.calibration import read_cameras
-
     assert spec.calibration is not None
     reference = spec.calibration
     path = site.folder / reference.file
@@ -236,8 +237,6 @@ def _point_rows(points: Correspondences) -> list[list[Any]]:
 
 def relative_path(target: Path, folder: Path) -> str:
     """``target`` relative to ``folder`` when possible (POSIX separators), else absolute."""
-    import os
-
     try:
         return Path(os.path.relpath(target.resolve(), folder.resolve())).as_posix()
     except ValueError:

@@ -21,6 +21,7 @@ from cblrs.camera import Camera
 from cblrs.errors import CblrsError
 from cblrs.places import PlaceError, Places
 from cblrs.plane import PlaneSet, PlaneSpec
+from cblrs.reference import render_reference
 from cblrs.site.schema import (
     CameraModel,
     SiteError,
@@ -170,8 +171,6 @@ class Site:
 
     def render_reference(self, name: str, bits: int | None = None) -> Any:
         """The reference image of one camera for the site's planes (bits overridable)."""
-        from cblrs.reference import render_reference
-
         planes = self.require_planes("rendering a reference image")
         if bits is not None and bits != planes.bits:
             planes = PlaneSet([replace(plane, bits=bits) for plane in planes])
@@ -204,6 +203,7 @@ class Site:
     def export(self) -> dict[str, Any]:
         """The site as one self-contained document: calibration files and CSV points inlined,
         the map image embedded (base64). Loading it gives the same cameras, bit for bit."""
+        # here, not at the top: cblrs.site.cameras and this module use each other
         from cblrs.site.cameras import inline_camera
 
         data = self.model.model_dump(mode="json", exclude_none=True, exclude_unset=True)

@@ -7,8 +7,9 @@ from typing import Any
 
 import numpy as np
 
-from cblrs.calibration import calibration_layout, read_cameras
+from cblrs.calibration import MULTIVIEWX_GROUND, WILDTRACK_GROUND, calibration_layout, read_cameras
 from cblrs.camera import Camera
+from cblrs.datasets.multiview import GROUND_MARGIN_M as margin
 from cblrs.plane import PlaneSpec
 from cblrs.site.cameras import camera_entry, relative_path
 from cblrs.site.schema import SITE_VERSION, SiteError
@@ -88,8 +89,6 @@ def site_from_dataset(
 
 def dataset_ground(layout: str, cameras: list[Camera]) -> tuple[float, float, float, float]:
     """The ground plane ``cblrs track`` uses for a layout, or the ground AI City cameras see."""
-    from cblrs.calibration import MULTIVIEWX_GROUND, WILDTRACK_GROUND
-    from cblrs.datasets.multiview import GROUND_MARGIN_M as margin
 
     known = {"wildtrack": WILDTRACK_GROUND, "multiviewx": MULTIVIEWX_GROUND}.get(layout)
     if known is not None:

@@ -27,6 +27,7 @@ import math
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
+import yaml
 from pydantic import (
     AfterValidator,
     BaseModel,
@@ -395,7 +396,6 @@ def parse_document(text: str, source: str, json_only: bool = False) -> dict[str,
         except ValueError as error:
             raise SiteError(f"{source} is not valid JSON: {error}.") from None
     else:
-        import yaml
 
         try:
             data = yaml.safe_load(text)
@@ -433,7 +433,6 @@ def dump_document(data: dict[str, Any], path: str | Path) -> str:
     floats keep every digit (``repr``), so reading it back gives the same numbers."""
     if Path(path).suffix.lower() == ".json":
         return json.dumps(data, indent=2) + "\n"
-    import yaml
 
     class _Dumper(yaml.SafeDumper):
         pass

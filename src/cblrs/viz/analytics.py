@@ -27,6 +27,7 @@ LINE_COLOUR = "#d62728"
 def _axes(ax: Axes | None, size: tuple[float, float]) -> tuple[Figure, Axes]:
     if ax is not None:
         return ax.figure, ax  # type: ignore[return-value]
+    # lazy: matplotlib takes ~0.4 s to import; only the plotting path needs it
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
@@ -37,6 +38,7 @@ def _axes(ax: Axes | None, size: tuple[float, float]) -> tuple[Figure, Axes]:
 
 def draw_places(ax: Axes, places: Places, labels: bool = True) -> None:
     """Zones as translucent polygons, lines as red segments with an arrow to the positive side."""
+    # lazy: matplotlib takes ~0.4 s to import; only the plotting path needs it
     from matplotlib.patches import Polygon
 
     for index, zone in enumerate(places.zones):
@@ -100,6 +102,7 @@ def plot_counts_over_time(result: AnalyticsResult, axes: list[Axes] | None = Non
     zone_names = [row["zone"] for row in result.zones]
     panels = [name for name, present in (("lines", line_names), ("zones", zone_names)) if present]
     if axes is None:
+        # lazy: matplotlib takes ~0.4 s to import; only the plotting path needs it
         from matplotlib.backends.backend_agg import FigureCanvasAgg
         from matplotlib.figure import Figure
 

@@ -13,6 +13,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from cblrs.locate import LUTLocator
 from cblrs.reference import ReferenceImage
 
 UInt8Image = NDArray[np.uint8]
@@ -50,7 +51,6 @@ def colourise_reference(reference: ReferenceImage) -> UInt8Image:
 
 def reference_world_map(reference: ReferenceImage) -> NDArray[np.float64]:
     """World position of every pixel: (H, W, 2) metres, NaN where no plane is seen."""
-    from cblrs.locate import LUTLocator
 
     return LUTLocator.from_reference(reference).table.astype(np.float64)
 

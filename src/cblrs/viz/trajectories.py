@@ -145,6 +145,7 @@ def _draw_cameras(
 
 
 def _draw_markings(ax: Axes, markings: Sequence[Any]) -> None:
+    # lazy: matplotlib takes ~0.4 s to import; only the plotting path needs it
     from matplotlib.patches import Polygon
 
     for marking in markings:
@@ -156,6 +157,7 @@ def _draw_markings(ax: Axes, markings: Sequence[Any]) -> None:
 
 
 def _rectangle(area: tuple[float, float, float, float], colour: tuple[float, ...]):
+    # lazy: matplotlib takes ~0.4 s to import; only the plotting path needs it
     from matplotlib.patches import Rectangle
 
     x_min, y_min, x_max, y_max = area
@@ -206,6 +208,7 @@ def _draw_tracks(ax: Axes, tracks: Tracks, coloured: bool, line_width: float) ->
 
 
 def _legend_handles(show_ground_truth: bool, show_cameras: bool) -> list:
+    # lazy: matplotlib takes ~0.4 s to import; only the plotting path needs it
     from matplotlib.lines import Line2D
 
     handles = []
