@@ -46,7 +46,7 @@ cblrs experiment resolution --scenes "$scenes" --out "$results" --figures "$figu
 
 if [[ -d "$wildtrack/calibrations" ]]; then
     echo "== experiment: clicked calibration (N points per camera vs the lab calibration)" >&2
-    cblrs experiment calibration --wildtrack "$wildtrack" --out "$results" --figures "$figures" \
+    cblrs experiment calibration --dataset "$wildtrack" --out "$results" --figures "$figures" \
         --quiet > /dev/null
 fi
 
@@ -56,8 +56,8 @@ if [[ -d "$wildtrack/calibrations" ]]; then
     {
         echo "### WILDTRACK tracking (all 200 annotated frames, 7 cameras, annotated boxes as detections)"
         echo
-        echo "Commands: \`cblrs track $wildtrack --out T.txt --matcher M [detector options]\` then"
-        echo "\`cblrs eval $wildtrack T.txt --json\`."
+        echo "Commands: \`cblrs track --dataset $wildtrack --out T.txt --matcher M [detector options]\` then"
+        echo "\`cblrs eval --dataset $wildtrack T.txt --json\`."
         echo
         echo "| matcher | detector | HOTA | DetA | AssA | LocA | MOTA | IDF1 |"
         echo "|---|---|---|---|---|---|---|---|"
@@ -67,9 +67,9 @@ if [[ -d "$wildtrack/calibrations" ]]; then
                 options=""
                 [[ "$detector" != "exact" ]] && options="$detector"
                 # shellcheck disable=SC2086
-                cblrs track "$wildtrack" --out "$scratch/t.txt" --matcher "$matcher" $options \
+                cblrs track --dataset "$wildtrack" --out "$scratch/t.txt" --matcher "$matcher" $options \
                     --quiet > /dev/null
-                cblrs eval "$wildtrack" "$scratch/t.txt" --json | python -c "
+                cblrs eval --dataset "$wildtrack" "$scratch/t.txt" --json | python -c "
 import json, sys
 m = json.load(sys.stdin)
 print('| $matcher | ${detector} | ' + ' | '.join(f'{m[k]:.2f}' for k in
@@ -82,8 +82,8 @@ print('| $matcher | ${detector} | ' + ' | '.join(f'{m[k]:.2f}' for k in
         echo "| matcher | frames | HOTA | DetA | AssA | LocA | MOTA | IDF1 |"
         echo "|---|---|---|---|---|---|---|---|"
         for frames in 0:495 500:995; do
-            cblrs track "$wildtrack" --out "$scratch/t.txt" --frames "$frames" --quiet > /dev/null
-            cblrs eval "$wildtrack" "$scratch/t.txt" --frames "$frames" --json | python -c "
+            cblrs track --dataset "$wildtrack" --out "$scratch/t.txt" --frames "$frames" --quiet > /dev/null
+            cblrs eval --dataset "$wildtrack" "$scratch/t.txt" --frames "$frames" --json | python -c "
 import json, sys
 m = json.load(sys.stdin)
 print('| fusion | $frames | ' + ' | '.join(f'{m[k]:.2f}' for k in

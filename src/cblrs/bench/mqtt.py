@@ -181,7 +181,7 @@ def track_subscriber(port: int, nagle: bool, ready, stop, results) -> None:
     client = mqtt.Client(callback_api_version=CallbackAPIVersion.VERSION2,
                          client_id="bench-tracks", protocol=mqtt.MQTTv5)
     if not nagle:
-        client.on_socket_open = lambda c, u, sock: sock.setsockopt(
+        client.on_socket_open = lambda c, u, sock: sock.setsockopt(  # type: ignore[attr-defined]
             socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
 
     def on_message(client, userdata, message) -> None:
@@ -351,7 +351,7 @@ def machine() -> dict:
                 break
     except OSError:
         pass
-    versions = {}
+    versions: dict[str, str | None] = {}
     for package in ("paho-mqtt", "msgspec", "numpy"):
         try:
             versions[package] = metadata.version(package)

@@ -84,7 +84,7 @@ def run(args: argparse.Namespace) -> int:
         client_id = args.client_id or f"cblrs-dashboard-{socket.gethostname()}-{plane}"
         if not logging.getLogger().isEnabledFor(logging.DEBUG):
             # A refusal is said once, below, as one sentence; not also as a log line.
-            logging.getLogger("cblrs.runtime.transport").setLevel(logging.ERROR)
+            logging.getLogger("cblrs.runtime.mqtt_transport").setLevel(logging.ERROR)
         feed = LiveFeed(settings, plane, client_id[:64])
         try:
             feed.start()

@@ -44,7 +44,7 @@ from cblrs.runtime.transport import (
     refused,
 )
 
-_paho_logger = logging.getLogger("cblrs.runtime.transport.paho")
+_paho_logger = logging.getLogger("cblrs.runtime.mqtt_transport.paho")
 
 logger = logging.getLogger(__name__)
 

@@ -94,10 +94,6 @@ class Will:
     retain: bool = True
 
 
-
-Handler = Callable[[Delivery], None]
-
-
 Handler = Callable[[Delivery], None]
 PublishResult = Callable[[int], None]
 

@@ -26,11 +26,12 @@ from cblrs.matching.fusion.gaussian import (
     largest_sigma,
     mahalanobis_squared,
 )
+from cblrs.matching.fusion.table import TrackTable
 
 _UNASSIGNABLE = 1.0e9
 
 
-class Association:
+class Association(TrackTable):
     """The association steps of :class:`~cblrs.matching.fusion.tracker.FusionTracker`.
 
     A mixin: it reads the tracker's track table (``_state``, ``_covariance``, ``_ids``,

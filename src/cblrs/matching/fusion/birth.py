@@ -21,9 +21,10 @@ from cblrs.matching.fusion.gaussian import (
     largest_sigma,
     mahalanobis_squared,
 )
+from cblrs.matching.fusion.table import TrackTable
 
 
-class Births:
+class Births(TrackTable):
     """The birth and merge steps of :class:`~cblrs.matching.fusion.tracker.FusionTracker`.
 
     A mixin: :meth:`_birth` appends rows to the tracker's track table; :meth:`_merge_duplicates`

@@ -17,13 +17,14 @@ from cblrs.matching.base import (
 )
 from cblrs.matching.clock import ClockModel
 from cblrs.matching.fusion.state import STATE_VERSION
+from cblrs.matching.fusion.table import TrackTable
 
 logger = logging.getLogger(__name__)
 
 _CORROBORATION_S = 2.0  # a track seen by another camera this recently corroborates a view
 
 
-class ClockLearning:
+class ClockLearning(TrackTable):
     """The clock-learning steps of :class:`~cblrs.matching.fusion.tracker.FusionTracker` (a mixin).
     """
 

@@ -13,11 +13,12 @@ import numpy as np
 from cblrs.matching.base import (
     MatcherError,
 )
+from cblrs.matching.fusion.table import TrackTable
 
 STATE_VERSION = "cblrs.fusion-tracker/5"
 
 
-class Snapshots:
+class Snapshots(TrackTable):
     """Saving and restoring a fusion tracker's state (a mixin of FusionTracker).
     """
 

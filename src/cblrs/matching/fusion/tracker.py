@@ -114,11 +114,6 @@ class FusionTracker(Association, Births, ClockLearning, Snapshots):
         )
         self.reset()
 
-    def _class_slot(self, class_id: np.ndarray) -> np.ndarray:
-        class_id = np.asarray(class_id, np.int64)
-        return np.where((class_id >= 0) & (class_id < len(CLASS_NAMES)), class_id,
-                        len(CLASS_NAMES))
-
     def reset(self) -> None:
         self._object_covariance = self.config.object_sigma_m**2 * np.eye(2)
         self._time: float | None = None
@@ -438,22 +433,6 @@ class FusionTracker(Association, Births, ClockLearning, Snapshots):
         lateral = np.maximum(lateral, floor) + extra
         self._sigma = np.sqrt(np.maximum(along, lateral))
         return ray_covariance(self._direction, along, lateral)
-
-    @staticmethod
-    def _largest_boxes(
-        observed: Observations, matched: np.ndarray, rows: np.ndarray, track_count: int
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """Camera and box of each track's largest assigned box (the closest, best view)."""
-        boxes = observed.xyxy[matched]
-        area = (boxes[:, 2] - boxes[:, 0]) * (boxes[:, 3] - boxes[:, 1])
-        order = np.lexsort((area, rows))  # by track, then by area ascending
-        last_of_track = np.r_[rows[order][1:] != rows[order][:-1], True]
-        best = order[last_of_track]
-        camera = np.full(track_count, -1, np.int64)
-        box = np.full((track_count, 4), np.nan)
-        camera[rows[best]] = observed.camera[matched][best]
-        box[rows[best]] = boxes[best]
-        return camera, box
 
     def _alive(self, timestamp: float) -> np.ndarray:
         age = timestamp - self._last_seen

@@ -255,7 +255,8 @@ def decode_message(
         RejectedMessage: for every kind of bad input, and nothing else.
     """
     return ValidationPolicy(
-        known_cameras=known_cameras, bits=bits, max_age_s=max_age_s,
+        known_cameras=None if known_cameras is None else frozenset(known_cameras),
+        bits=bits, max_age_s=max_age_s,
         max_future_s=max_future_s, max_bytes=max_bytes,
     ).decode(payload, topic_camera, now)
 
@@ -277,7 +278,8 @@ def decode_message_with_plane(
     ``topic_plane``, when given, must equal the payload's plane (else TOPIC_MISMATCH).
     """
     return ValidationPolicy(
-        known_cameras=known_cameras, bits=bits, max_age_s=max_age_s,
+        known_cameras=None if known_cameras is None else frozenset(known_cameras),
+        bits=bits, max_age_s=max_age_s,
         max_future_s=max_future_s, max_bytes=max_bytes,
     ).decode_with_plane(
         payload, topic_camera, now, topic_plane
@@ -305,7 +307,8 @@ def decode_wire(
         RejectedMessage: for every kind of bad input, and nothing else.
     """
     return ValidationPolicy(
-        known_cameras=known_cameras, bits=bits, max_age_s=max_age_s,
+        known_cameras=None if known_cameras is None else frozenset(known_cameras),
+        bits=bits, max_age_s=max_age_s,
         max_future_s=max_future_s, max_bytes=max_bytes,
     ).decode_wire(
         payload, topic_camera, now, topic_plane
