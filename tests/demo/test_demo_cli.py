@@ -132,7 +132,7 @@ def test_demo_on_real_data(wildtrack_root, tmp_path, capsys):
 def test_demo_output_folder_that_is_a_file(tmp_path, capsys):
     target = tmp_path / "taken"
     target.write_text("not a folder")
-    assert main(["demo", "--out", str(target), "--quiet"]) == 2
+    assert main(["demo", "--out", str(target), "--quiet"]) == 1
     assert f"cannot create the output folder {target}" in capsys.readouterr().err
 
 

@@ -134,5 +134,6 @@ def test_cli_writes_figures(tmp_path, capsys):
 def test_cli_errors(capsys, argv, message):
     if "--wildtrack" not in argv:
         argv = ["--no-wildtrack", *argv]
-    assert main(["experiment", "targeting", *argv]) == 2
+    # A folder that is not WILDTRACK is a runtime failure (1), the rest usage errors (2).
+    assert main(["experiment", "targeting", *argv]) == (1 if "--wildtrack" in argv else 2)
     assert message in capsys.readouterr().err

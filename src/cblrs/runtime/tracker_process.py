@@ -101,9 +101,16 @@ class TrackerProcess:
         """Send a batch of released groups (blocks while the pipe is full).
 
         Raises:
-            OSError: the process has gone.
+            TrackerProcessError: the process has gone (its pipe is closed).
         """
-        self._requests.send(batch)
+        try:
+            self._requests.send(batch)
+        except OSError as error:
+            self.process.join(1.0)  # for its exit code
+            raise TrackerProcessError(
+                f"the tracker process exited (code {self.process.exitcode}) before taking "
+                f"the next groups ({error.strerror or error})"
+            ) from None
 
     def finish(self, flush: bool = False) -> None:
         """Ask the process to stop after the batches already sent (a no-op once it has gone).
@@ -154,7 +161,13 @@ def run(
     # A service that dies closes the pipe, which ends this process too.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
-    store = RuntimeStore(shared.path, write_lock=shared.write_lock)
+    try:
+        store = RuntimeStore(shared.path, write_lock=shared.write_lock)
+    except CblrsError as error:
+        # The database vanished or changed before this process opened it (the receiver has
+        # seen it too and stops the service, saying why): one line, no traceback.
+        logger.warning("tracker process: %s", error)
+        raise SystemExit(1) from None
     stop_checkpoints = threading.Event()
     checkpoints = threading.Thread(
         target=checkpoint_regularly, args=(shared.path, stop_checkpoints), daemon=True
