@@ -288,6 +288,7 @@ class Camera:
 
     @property
     def has_distortion(self) -> bool:
+        """Whether any lens distortion coefficient is non-zero."""
         return bool(np.any(self.distortion != 0))
 
     @property

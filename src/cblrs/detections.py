@@ -98,10 +98,12 @@ class Detections(_Columns):
 
     @classmethod
     def empty(cls) -> Detections:
+        """No detections (every column of length 0)."""
         return cls(xyxy=np.zeros((0, 4)))
 
     @classmethod
     def concatenate(cls, parts: list[Detections]) -> Detections:
+        """All rows of ``parts``, in order, as one object."""
         if not parts:
             return cls.empty()
         return cls(
@@ -151,6 +153,7 @@ class CameraMessage(_Columns):
 
     @classmethod
     def empty(cls, camera_id: str, sequence: int, timestamp: float, frame: int) -> CameraMessage:
+        """A message of a frame without detections (cameras send these too)."""
         return cls(
             camera_id,
             sequence,
@@ -211,10 +214,12 @@ class Tracks(_Columns):
 
     @classmethod
     def empty(cls) -> Tracks:
+        """No track rows (every column of length 0)."""
         return cls(np.zeros(0, np.int64), np.zeros(0), np.zeros(0, np.int64), np.zeros((0, 2)))
 
     @classmethod
     def concatenate(cls, parts: list[Tracks]) -> Tracks:
+        """All rows of ``parts``, in order, as one object."""
         if not parts:
             return cls.empty()
         return cls(

@@ -66,9 +66,11 @@ class HomographyLocator:
 
     @classmethod
     def from_camera(cls, camera: Camera, height_m: float = 0.0, bounds=None) -> HomographyLocator:
+        """The locator of a calibrated camera on the plane at ``height_m`` metres."""
         return cls(camera.plane_homography(height_m), camera.image_size, bounds)
 
     def locate(self, pixels: NDArray) -> tuple[FloatArray, BoolArray]:
+        """(N, 2) world metres and a validity mask for (N, 2) pixels (batched)."""
         pixels = np.asarray(pixels, dtype=np.float64)
         world_xy, valid = homography_pixel_to_world(self.homography, pixels)
         width, height = self.image_size
@@ -91,6 +93,7 @@ class HomographyLocator:
         return world_xy, valid
 
     def locate_one(self, x: float, y: float) -> tuple[float, float] | None:
+        """World (x, y) of one pixel, or None where it sees no plane."""
         width, height = self.image_size
         if not (-0.5 <= x < width - 0.5 and -0.5 <= y < height - 0.5):
             return None
@@ -194,12 +197,14 @@ class LUTLocator:
 
     @classmethod
     def load(cls, path: str | Path) -> LUTLocator:
+        """A lookup table saved with ``numpy.save``; ReferenceImageError if it cannot be read."""
         try:
             return cls(np.load(path, allow_pickle=False))
         except (OSError, ValueError) as error:
             raise ReferenceImageError(f"cannot read LUT {path}: {error}.") from None
 
     def locate(self, pixels: NDArray) -> tuple[FloatArray, BoolArray]:
+        """(N, 2) world metres and a validity mask for (N, 2) pixels (batched)."""
         indices, inside = nearest_pixel_indices(pixels, self.image_size)
         world_xy = self._flat[indices].astype(np.float64)
         valid = inside & np.isfinite(world_xy[:, 0])
@@ -207,6 +212,7 @@ class LUTLocator:
         return world_xy, valid
 
     def locate_one(self, x: float, y: float) -> tuple[float, float] | None:
+        """World (x, y) of one pixel, or None where it sees no plane."""
         width, height = self.image_size
         # Written as one chained test so NaN (every comparison False) falls out too.
         if not (-0.5 <= x < width - 0.5 and -0.5 <= y < height - 0.5):
@@ -233,12 +239,15 @@ class ColorLocator:
 
     @classmethod
     def load(cls, path: str | Path, expected_size: tuple[int, int] | None = None) -> ColorLocator:
+        """The locator of a reference PNG (see :func:`cblrs.reference.load_reference`)."""
         return cls(ReferenceImage.load(path, expected_size=expected_size))
 
     def locate(self, pixels: NDArray) -> tuple[FloatArray, BoolArray]:
+        """(N, 2) world metres and a validity mask for (N, 2) pixels: their colours decoded."""
         return self.reference.locate(pixels)
 
     def locate_one(self, x: float, y: float) -> tuple[float, float] | None:
+        """World (x, y) of one pixel from its colour, or None where B = 0 (no plane)."""
         width, height = self.image_size
         # Written as one chained test so NaN (every comparison False) falls out too.
         if not (-0.5 <= x < width - 0.5 and -0.5 <= y < height - 0.5):

@@ -158,6 +158,7 @@ class Zone:
         return np.where(self.contains(points), distance, -distance)
 
     def to_dict(self) -> dict[str, Any]:
+        """The zone as site-file data (name, polygon, classes)."""
         data: dict[str, Any] = {"name": self.name, "polygon": self.polygon.tolist()}
         if self.plane_id is not None:
             data["plane_id"] = self.plane_id
@@ -267,6 +268,7 @@ class CountingLine:
         return (points - self.start) @ along / float(along @ along)
 
     def to_dict(self) -> dict[str, Any]:
+        """The line as site-file data (name, end points, directions, classes)."""
         data: dict[str, Any] = {
             "name": self.name,
             "start": self.start.tolist(),
@@ -301,15 +303,18 @@ class Places:
 
     @property
     def names(self) -> list[str]:
+        """Every zone's and line's name."""
         return [zone.name for zone in self.zones] + [line.name for line in self.lines]
 
     def zone(self, name: str) -> Zone:
+        """The zone called ``name``; PlaceError naming the known ones otherwise."""
         for zone in self.zones:
             if zone.name == name:
                 return zone
         raise PlaceError(f"no zone named {name!r} (zones: {', '.join(self.names) or 'none'}).")
 
     def line(self, name: str) -> CountingLine:
+        """The counting line called ``name``; PlaceError naming the known ones otherwise."""
         for line in self.lines:
             if line.name == name:
                 return line
@@ -319,9 +324,11 @@ class Places:
     def from_iterables(
         cls, zones: Iterable[Zone] = (), lines: Iterable[CountingLine] = ()
     ) -> Places:
+        """Places from any iterables of zones and lines."""
         return cls(tuple(zones), tuple(lines))
 
     def to_dict(self) -> dict[str, list[dict[str, Any]]]:
+        """The places as site-file data: ``{"zones": [...], "lines": [...]}``."""
         return {
             "zones": [zone.to_dict() for zone in self.zones],
             "lines": [line.to_dict() for line in self.lines],

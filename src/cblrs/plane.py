@@ -71,6 +71,7 @@ class PlaneSpec:
 
     @property
     def max_value(self) -> int:
+        """The largest channel value: 255 (8 bits) or 65535 (16 bits)."""
         return (1 << self.bits) - 1
 
     @property
@@ -80,6 +81,7 @@ class PlaneSpec:
 
     @property
     def dtype(self) -> type[np.unsignedinteger]:
+        """The image dtype of this bit depth: uint8 or uint16."""
         return np.uint8 if self.bits == 8 else np.uint16
 
     def contains(self, world_xy: NDArray) -> BoolArray:
@@ -132,12 +134,14 @@ class PlaneSpec:
         return world_xy, valid
 
     def to_dict(self) -> dict:
+        """JSON-ready fields (the inverse of :meth:`from_dict`)."""
         data = asdict(self)
         data["origin"] = list(self.origin)
         return data
 
     @classmethod
     def from_dict(cls, data: dict) -> PlaneSpec:
+        """A plane from :meth:`to_dict` data; PlaneError for a missing or bad field."""
         known = {"plane_id", "origin", "width", "length", "bits", "height", "name"}
         unknown = set(data) - known
         if unknown:
@@ -211,6 +215,7 @@ class PlaneSet(Sequence[PlaneSpec]):
         return hash(self._planes)
 
     def by_id(self, plane_id: int) -> PlaneSpec:
+        """The plane with this id; PlaneError naming the known ids otherwise."""
         try:
             return self._by_id[int(plane_id)]
         except KeyError:
@@ -220,6 +225,7 @@ class PlaneSet(Sequence[PlaneSpec]):
 
     @property
     def ids(self) -> list[int]:
+        """The planes' ids, in order."""
         return [plane.plane_id for plane in self._planes]
 
     def decode(self, colours: NDArray) -> tuple[FloatArray, BoolArray, NDArray[np.int64]]:
@@ -241,10 +247,12 @@ class PlaneSet(Sequence[PlaneSpec]):
         return world_xy, valid, plane_ids
 
     def to_list(self) -> list[dict]:
+        """JSON-ready list of the planes (the inverse of :meth:`from_list`)."""
         return [plane.to_dict() for plane in self._planes]
 
     @classmethod
     def from_list(cls, items: list[dict]) -> PlaneSet:
+        """Planes from :meth:`to_list` data."""
         if not isinstance(items, list):
             raise PlaneError("plane specifications must be a list.")
         return cls(PlaneSpec.from_dict(item) for item in items)

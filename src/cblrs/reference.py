@@ -70,6 +70,7 @@ class ReferenceImage:
 
     @property
     def bits(self) -> int:
+        """Bits per colour channel (8 or 16)."""
         return self.planes.bits
 
     @cached_property
@@ -108,6 +109,7 @@ class ReferenceImage:
 
     # ------------------------------------------------------------------ files
     def metadata(self) -> dict:
+        """What the PNG's ``tEXt`` chunk carries: format, size, planes."""
         width, height = self.image_size
         return {
             "format": FORMAT,
@@ -118,6 +120,7 @@ class ReferenceImage:
         }
 
     def to_png_bytes(self) -> bytes:
+        """The reference as PNG bytes (8 or 16 bit, its plane spec in a ``tEXt`` chunk)."""
         ok, encoded = cv2.imencode(".png", np.ascontiguousarray(self.pixels[..., ::-1]))
         if not ok:
             raise ReferenceImageError("OpenCV could not encode the reference image as PNG.")
@@ -158,6 +161,7 @@ class ReferenceImage:
     def from_png_bytes(
         cls, data: bytes, expected_size: tuple[int, int] | None = None, source: str = "<bytes>"
     ) -> ReferenceImage:
+        """A reference from PNG bytes, validated like :meth:`load`."""
         if not data.startswith(_PNG_SIGNATURE):
             raise ReferenceImageError(f"{source} is not a PNG file.")
         chunks = _read_chunks(data, source)

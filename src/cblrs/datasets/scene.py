@@ -61,6 +61,7 @@ class Scene:
 
     @property
     def camera_names(self) -> list[str]:
+        """The cameras' names, in the order ``camera_id`` columns index them."""
         return [camera.name for camera in self.cameras]
 
     @property
