@@ -147,6 +147,7 @@ class LiveFeed:
             self.transport.subscribe(topic, handler, qos=1 if topic.endswith("events") else 0)
 
     def close(self) -> None:
+        """Disconnect from the broker."""
         self.transport.close(timeout=1.0)
 
     @property

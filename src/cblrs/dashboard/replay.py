@@ -57,6 +57,7 @@ class StoreReplay:
             raise ReplayError(f"cannot replay {self.path}: {error}.") from None
 
     def close(self) -> None:
+        """Close the database."""
         self._store.close()
 
     def info(self) -> dict[str, Any]:

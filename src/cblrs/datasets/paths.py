@@ -52,6 +52,7 @@ class LoopPath:
     laps: float | None = None
 
     def sample(self, times: FloatArray) -> PathSample:
+        """Position, heading and presence at each of ``times`` (seconds)."""
         elapsed = np.asarray(times, dtype=np.float64) - self.start_s
         travelled = self.speed * elapsed
         present = elapsed >= 0
@@ -90,6 +91,7 @@ class WaypointPath:
             raise ValueError(f"speed must be positive, got {self.speed}")
 
     def sample(self, times: FloatArray) -> PathSample:
+        """Position, heading and presence at each of ``times`` (seconds)."""
         points = np.asarray(self.points, dtype=np.float64)
         segments = np.diff(points, axis=0)
         lengths = np.hypot(segments[:, 0], segments[:, 1])
@@ -148,6 +150,7 @@ class RandomWalkPath:
     _STEP_S = 0.1
 
     def sample(self, times: FloatArray) -> PathSample:
+        """Position, heading and presence at each of ``times`` (seconds)."""
         times = np.asarray(times, dtype=np.float64)
         present = times >= self.start_s
         if self.end_s is not None:

@@ -129,6 +129,7 @@ class ClockModel:
         self.reset()
 
     def reset(self) -> None:
+        """Forget everything learnt or tracked: back to the state of a new instance."""
         count = self.camera_count
         self.offsets = np.zeros(count)
         # Within-cell sums per (camera, ground cell), sorted by their packed key.
@@ -624,6 +625,7 @@ class ClockModel:
 
     # -------------------------------------------------------------------------- state
     def get_state(self) -> dict[str, Any]:
+        """The state as JSON-ready data, restored by :meth:`set_state`."""
         return {
             "offsets": self.offsets.tolist(),
             "keys": self._keys.tolist(),
@@ -648,6 +650,7 @@ class ClockModel:
         }
 
     def set_state(self, state: dict[str, Any]) -> None:
+        """Restore a state saved by :meth:`get_state`."""
         self.reset()
         self.offsets = np.asarray(state["offsets"], np.float64).reshape(self.camera_count)
         self._keys = np.asarray(state["keys"], np.int64).reshape(-1)

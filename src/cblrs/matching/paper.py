@@ -91,6 +91,7 @@ class PaperMatcher:
         self.reset()
 
     def reset(self) -> None:
+        """Forget everything learnt or tracked: back to the state of a new instance."""
         self._ids = np.zeros(0, np.int64)
         self._colour = np.zeros((0, 3), np.int64)  # latest colour of each object
         self._world_xy = np.zeros((0, 2))  # its decoded position
@@ -100,12 +101,15 @@ class PaperMatcher:
 
     @property
     def object_count(self) -> int:
+        """Objects the matcher currently remembers."""
         return len(self._ids)
 
     def _points(self, colour: np.ndarray, world_xy: np.ndarray) -> np.ndarray:
         return colour.astype(np.float64) if self.config.space == "colour" else world_xy
 
     def update(self, timestamp: float, messages: Sequence[CameraMessage]) -> Tracks:
+        """Match one instant's messages to the objects; their rows (see
+        :class:`~cblrs.matching.base.Matcher`)."""
         if not messages:
             return Tracks.empty()
         touched: dict[int, tuple[int, np.ndarray, int]] = {}  # row -> (camera, box, class)
@@ -155,6 +159,7 @@ class PaperMatcher:
         )
 
     def get_state(self) -> dict:
+        """The state as JSON-ready data, restored by :meth:`set_state`."""
         return {
             "version": STATE_VERSION,
             "config": asdict(self.config),
@@ -168,6 +173,7 @@ class PaperMatcher:
         }
 
     def set_state(self, state: dict) -> None:
+        """Restore a state saved by :meth:`get_state`."""
         if not isinstance(state, dict) or state.get("version") != STATE_VERSION:
             raise MatcherError(f"not a saved paper-matcher state (expected {STATE_VERSION}).")
         if state.get("camera_ids") != self.camera_ids:

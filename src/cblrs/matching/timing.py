@@ -78,6 +78,7 @@ class PeriodEstimator:
         self.reset()
 
     def reset(self) -> None:
+        """Forget everything learnt or tracked: back to the state of a new instance."""
         self._times: list[list[float]] = [[] for _ in range(self.camera_count)]
         self._period = np.full(self.camera_count, np.nan)
         self._last = np.full(self.camera_count, -np.inf)
@@ -116,9 +117,11 @@ class PeriodEstimator:
         return float(min(max_width_s, fraction * known.min()))
 
     def get_state(self) -> list[list[float]]:
+        """The state as JSON-ready data, restored by :meth:`set_state`."""
         return [list(times) for times in self._times]
 
     def set_state(self, state: Sequence[Sequence[float]]) -> None:
+        """Restore a state saved by :meth:`get_state`."""
         self.reset()
         for camera, times in enumerate(state):
             for timestamp in times:
@@ -251,6 +254,7 @@ class WindowBuffer:
         self.reset()
 
     def reset(self) -> None:
+        """Forget everything learnt or tracked: back to the state of a new instance."""
         self._messages: list[CameraMessage] = []
         self._cameras: list[int] = []
         self._watermark = -math.inf
@@ -345,6 +349,7 @@ class WindowBuffer:
         return window
 
     def get_state(self) -> dict[str, Any]:
+        """The state as JSON-ready data, restored by :meth:`set_state`."""
         return {
             "messages": [
                 [camera, message.camera_id, message.sequence, message.timestamp, message.frame,
@@ -358,6 +363,7 @@ class WindowBuffer:
         }
 
     def set_state(self, state: dict[str, Any]) -> None:
+        """Restore a state saved by :meth:`get_state`."""
         self.reset()
         for row in state["messages"]:
             camera, camera_id, sequence, timestamp, frame, xyxy, confidence, class_id, colour = row

@@ -202,6 +202,7 @@ class InProcessTransport:
 
     @property
     def connected(self) -> bool:
+        """Whether the connection to the broker is up now."""
         return self._connected
 
     def add_connect_hook(self, hook: Callable[[bool], None]) -> None:
@@ -217,6 +218,7 @@ class InProcessTransport:
                 session.will = None
 
     def connect(self) -> None:
+        """Connect (see :class:`~cblrs.runtime.transport.Transport`)."""
         if self._connected:
             return
         self._thread = threading.Thread(
@@ -242,6 +244,7 @@ class InProcessTransport:
         retain: bool = False,
         on_result: PublishResult | None = None,
     ) -> None:
+        """Publish a message (see :class:`~cblrs.runtime.transport.Transport`)."""
         validate_topic(topic)
         if qos not in (0, 1):
             raise TransportError(f"QoS must be 0 or 1, got {qos}.")
@@ -252,6 +255,8 @@ class InProcessTransport:
             on_result(ACCEPTED if routed else NO_MATCHING_SUBSCRIBERS)
 
     def subscribe(self, topic_filter: str, handler: Handler, qos: int = 1) -> None:
+        """Subscribe a handler to a topic filter (see
+        :class:`~cblrs.runtime.transport.Transport`)."""
         validate_filter(topic_filter)
         if qos not in (0, 1):
             raise TransportError(f"QoS must be 0 or 1, got {qos}.")
@@ -271,12 +276,16 @@ class InProcessTransport:
 
     def flush(self, timeout: float) -> bool:
         # Publishing hands the message to the broker synchronously: nothing is ever pending.
+        """Wait until every publish made so far is answered; False on timeout (see
+        :class:`~cblrs.runtime.transport.Transport`)."""
         return True
 
     def pending(self) -> int:
+        """Publishes not yet answered: always 0, the in-process broker answers at once."""
         return 0
 
     def close(self, unclean: bool = False, timeout: float = 5.0) -> None:
+        """Disconnect and stop its threads (see :class:`~cblrs.runtime.transport.Transport`)."""
         if not self._connected:
             return
         self._connected = False

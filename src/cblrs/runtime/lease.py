@@ -152,6 +152,7 @@ class PlaneLease:
 
     @property
     def held(self) -> bool:
+        """Whether this matcher holds the plane's lease now."""
         return self._held and self._lost is None
 
     def acquire(self) -> None:

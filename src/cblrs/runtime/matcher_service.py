@@ -749,6 +749,7 @@ class MatcherService:
             return not self._inbox and not len(self._orderer) and not self._inflight
 
     def failed(self) -> bool:
+        """The error that stopped the service, or None."""
         return self._failure is not None
 
     def health(self) -> tuple[bool, str]:

@@ -305,18 +305,22 @@ class MetricsServer:
 
     @property
     def port(self) -> int:
+        """The port it listens on (the one chosen when 0 was asked)."""
         return int(self._server.server_address[1])
 
     @property
     def url(self) -> str:
+        """The base URL of /metrics, /healthz and /readyz."""
         host = self._server.server_address[0]
         return f"http://{host if isinstance(host, str) else host.decode()}:{self.port}"
 
     def start(self) -> MetricsServer:
+        """Start serving in a background thread."""
         self._thread.start()
         return self
 
     def close(self) -> None:
+        """Stop serving."""
         if self._thread.is_alive():  # shutdown() waits for serve_forever, so only if it runs
             self._server.shutdown()
             self._thread.join(5)

@@ -78,15 +78,19 @@ class MosquittoProcess:
 
     @classmethod
     def from_files(cls, files: BrokerFiles, **options) -> MosquittoProcess:
+        """The process for a configuration written by
+        :func:`~cblrs.runtime.broker.write_broker_config`."""
         host = "127.0.0.1" if files.bind in ("0.0.0.0", "::") else files.bind
         return cls(files.config, files.port, host=host, **options)
 
     @property
     def running(self) -> bool:
+        """Whether the broker process is alive."""
         return self._process is not None and self._process.poll() is None
 
     @property
     def pid(self) -> int | None:
+        """The broker's process id (None before start)."""
         return None if self._process is None else self._process.pid
 
     def start(self) -> MosquittoProcess:
@@ -148,10 +152,12 @@ class MosquittoProcess:
         self._process = None
 
     def restart(self) -> None:
+        """Stop the broker and start it again on the same port."""
         self.stop()
         self.start()
 
     def log_tail(self, lines: int = 15) -> str:
+        """The last lines of the broker's log (for error messages)."""
         try:
             text = self.log_path.read_text(errors="replace")
         except OSError:

@@ -100,14 +100,17 @@ class MqttSettings:
 
     @property
     def mqtt5(self) -> bool:
+        """Whether MQTT 5 is spoken (else 3.1.1)."""
         return self.protocol != "3.1.1"
 
     @property
     def tls(self) -> bool:
+        """Whether the connection uses TLS."""
         return self.ca_file is not None
 
     @property
     def address(self) -> str:
+        """``host:port`` of the broker, for messages."""
         return f"{self.host}:{self.port}"
 
 
@@ -197,6 +200,7 @@ class MqttTransport:
 
     @property
     def connected(self) -> bool:
+        """Whether the connection to the broker is up now."""
         return self._connected.is_set()
 
     def add_connect_hook(self, hook: Callable[[bool], None]) -> None:
@@ -406,6 +410,7 @@ class MqttTransport:
             return len(self._backlog) + len(self._handed)
 
     def close(self, unclean: bool = False, timeout: float = 5.0) -> None:
+        """Disconnect and stop its threads (see :class:`~cblrs.runtime.transport.Transport`)."""
         client = self._client
         if client is None:
             return

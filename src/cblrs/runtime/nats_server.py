@@ -176,10 +176,12 @@ class NatsServerProcess:
 
     @property
     def running(self) -> bool:
+        """Whether the server process is alive."""
         return self._process is not None and self._process.poll() is None
 
     @property
     def pid(self) -> int | None:
+        """The server's process id (None before start)."""
         return None if self._process is None else self._process.pid
 
     def launch(self) -> NatsServerProcess:
@@ -223,6 +225,7 @@ class NatsServerProcess:
         return self
 
     def start(self) -> NatsServerProcess:
+        """Start the server and wait until it accepts clients."""
         return self.launch().wait_ready()
 
     def stop(self, timeout_s: float = 10.0) -> None:
@@ -248,6 +251,7 @@ class NatsServerProcess:
         self._process = None
 
     def log_tail(self, lines: int = 12) -> str:
+        """The last lines of the server's log (for error messages)."""
         try:
             text = self.log_path.read_text(errors="replace")
         except OSError:

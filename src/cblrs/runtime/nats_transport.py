@@ -337,6 +337,7 @@ class NatsTransport:
 
     @property
     def connected(self) -> bool:
+        """Whether the connection to the broker is up now."""
         return self._connected.is_set()
 
     def open(self) -> None:
@@ -380,6 +381,7 @@ class NatsTransport:
         self._run(self._start(), None)
 
     def publish(self, topic: str, payload: bytes, qos: int = 1, retain: bool = False) -> None:
+        """Publish a message (see :class:`~cblrs.runtime.transport.Transport`)."""
         validate_topic(topic)
         if qos not in (0, 1):
             raise TransportError(f"QoS must be 0 or 1, got {qos}.")
@@ -395,6 +397,8 @@ class NatsTransport:
                                                           message_id(subject, data)))
 
     def subscribe(self, topic_filter: str, handler: Handler, qos: int = 1) -> None:
+        """Subscribe a handler to a topic filter (see
+        :class:`~cblrs.runtime.transport.Transport`)."""
         validate_filter(topic_filter)
         if qos not in (0, 1):
             raise TransportError(f"QoS must be 0 or 1, got {qos}.")
@@ -416,6 +420,8 @@ class NatsTransport:
                 self._run(self._subscribe_core(topic_filter), self.settings.connect_timeout_s)
 
     def flush(self, timeout: float) -> bool:
+        """Wait until every publish made so far is answered; False on timeout (see
+        :class:`~cblrs.runtime.transport.Transport`)."""
         deadline = time.monotonic() + timeout
         with self._condition:
             while self._pending:
@@ -431,6 +437,7 @@ class NatsTransport:
             return self._pending
 
     def close(self, unclean: bool = False, timeout: float = 5.0) -> None:
+        """Disconnect and stop its threads (see :class:`~cblrs.runtime.transport.Transport`)."""
         if self._loop is None:
             return
         if not unclean:

@@ -99,6 +99,7 @@ class OnlineAnalytics:
         return self.engine.places
 
     def reset(self) -> None:
+        """Forget everything learnt or tracked: back to the state of a new instance."""
         self.engine.reset()
         self._waiting = Tracks.empty()
         self._watermark = -math.inf

@@ -54,6 +54,7 @@ class NoiseModel:
         self.reset()
 
     def reset(self) -> None:
+        """Forget everything learnt or tracked: back to the state of a new instance."""
         self.normal = np.zeros((4, 4))
         self.moment = np.zeros(4)
         weight = self.prior_pairs / len(self.prior_distances_m)
@@ -242,6 +243,7 @@ class NoiseModel:
         return float(np.sqrt(self.coefficients[3]))
 
     def get_state(self) -> dict:
+        """The state as JSON-ready data, restored by :meth:`set_state`."""
         return {
             "normal": self.normal.tolist(),
             "moment": self.moment.tolist(),
@@ -252,6 +254,7 @@ class NoiseModel:
         }
 
     def set_state(self, state: dict) -> None:
+        """Restore a state saved by :meth:`get_state`."""
         self.normal = np.asarray(state["normal"], np.float64).reshape(4, 4)
         self.moment = np.asarray(state["moment"], np.float64).reshape(4)
         self.coefficients = np.asarray(state["coefficients"], np.float64).reshape(4)

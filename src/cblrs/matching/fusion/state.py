@@ -23,6 +23,7 @@ class Snapshots(TrackTable):
     """
 
     def get_state(self) -> dict:
+        """The state as JSON-ready data, restored by :meth:`set_state`."""
         return {
             "version": STATE_VERSION,
             "camera_ids": list(self.camera_ids),
@@ -47,6 +48,7 @@ class Snapshots(TrackTable):
         }
 
     def set_state(self, state: dict) -> None:
+        """Restore a state saved by :meth:`get_state`."""
         if not isinstance(state, dict) or state.get("version") != STATE_VERSION:
             raise MatcherError(f"not a saved fusion-tracker state (expected {STATE_VERSION}).")
         if state.get("camera_ids") != self.camera_ids:

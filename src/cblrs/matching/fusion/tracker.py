@@ -115,6 +115,7 @@ class FusionTracker(Association, Births, ClockLearning, Snapshots):
         self.reset()
 
     def reset(self) -> None:
+        """Forget everything learnt or tracked: back to the state of a new instance."""
         self._object_covariance = self.config.object_sigma_m**2 * np.eye(2)
         self._time: float | None = None
         self._next_id = 1
