@@ -171,15 +171,23 @@ def test_acl_and_credentials_files(mosquitto_auth):
     )
     assert "topic read cblrs/1/+/detections" in acl and "topic read cblrs/2/+/detections" in acl
     assert "topic write cblrs/1/tracks" in acl
-    credentials = json.loads(files.credentials_file.read_text())
-    assert set(credentials["passwords"]) == {"CVLab1", "CVLab2", "matcher1", "matcher2", "viewer"}
-    assert credentials["roles"]["CVLab1"] == "camera" and credentials["roles"]["viewer"] == "viewer"
-    assert len(set(credentials["passwords"].values())) == 5
-    for path in (files.credentials_file, files.password_file):
-        assert stat.S_IMODE(os.stat(path).st_mode) == 0o600
-    hashed = files.password_file.read_text()
-    for password in credentials["passwords"].values():
-        assert password not in hashed and password not in files.config.read_text()
+    credentials = files.credentials()
+    assert set(credentials) == {"CVLab1", "CVLab2", "matcher1", "matcher2", "viewer"}
+    assert files.roles["CVLab1"] == "camera" and files.roles["viewer"] == "viewer"
+    assert len(set(credentials.values())) == 5
+    assert stat.S_IMODE(os.stat(files.password_file).st_mode) == 0o600
+    # No clear password anywhere in the broker's folder: only hashes.
+    for path in files.directory.rglob("*"):
+        if path.is_file() and path.suffix != ".db":
+            text = path.read_bytes()
+            for password in credentials.values():
+                assert password.encode() not in text, path
+    # Each client's secrets sit in a 0700 folder of its own, outside the broker's.
+    for user, client in files.clients.items():
+        assert files.directory not in client.directory.parents
+        assert stat.S_IMODE(os.stat(client.directory).st_mode) == 0o700
+        assert stat.S_IMODE(os.stat(client.password_file).st_mode) == 0o600
+        assert [path.name for path in client.directory.iterdir()] == [f"{user}.password"]
     config = files.config.read_text()
     assert "allow_anonymous false" in config and "persistence_location" in config
 
@@ -229,20 +237,21 @@ def test_broker_config_command_writes_a_working_configuration(tmp_path, capsys):
     assert main([*arguments, "--matchers", "matcher1", "--planes", "1,2", "--port", str(port)]) == 0
     printed = capsys.readouterr().out
     assert f"mosquitto -c {out / 'mosquitto.conf'}" in printed
-    assert f"--password-file {out / 'secrets' / 'CVLab1.password'}" in printed
+    clients = tmp_path / "broker-clients"
+    assert f"--password-file {clients / 'CVLab1' / 'CVLab1.password'}" in printed
     # Running it again would silently replace every password: refused without --force.
     assert main([*arguments, "--port", str(port)]) == 2
     assert "use --force" in capsys.readouterr().err
 
-    password = (out / "secrets" / "matcher1.password").read_text().strip()
-    assert stat.S_IMODE(os.stat(out / "secrets" / "matcher1.password").st_mode) == 0o600
+    password = (clients / "matcher1" / "matcher1.password").read_text().strip()
+    assert stat.S_IMODE(os.stat(clients / "matcher1" / "matcher1.password").st_mode) == 0o600
     with MosquittoProcess(out / "mosquitto.conf", port):
         settings = MqttSettings(port=port, username="matcher1", password=password)
         matcher = MqttTransport("matcher1", settings, persistent=False)
         matcher.connect()
         collector = Collector()
         matcher.subscribe("cblrs/2/+/detections", collector)
-        camera_password = (out / "secrets" / "CVLab2.password").read_text().strip()
+        camera_password = (clients / "CVLab2" / "CVLab2.password").read_text().strip()
         camera = MqttTransport(
             "CVLab2", replace(settings, username="CVLab2", password=camera_password)
         )
@@ -347,8 +356,8 @@ def test_a_broker_configured_as_root_does_not_run_as_root(tmp_path):
         for path in (files.directory, files.config, files.password_file, files.acl_file,
                      files.persistence_directory):
             assert path.stat().st_uid == service, path
-        for path in (files.credentials_file, files.directory / "secrets"):
-            assert path.stat().st_uid == 0, f"{path} must stay with its owner"
+        for client in files.clients.values():
+            assert client.directory.stat().st_uid == 0, f"{client} must stay with its owner"
         with MosquittoProcess.from_files(files) as broker:  # it reads them as that user
             assert broker.running
     finally:

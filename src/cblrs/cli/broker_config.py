@@ -27,7 +27,9 @@ def register(subparsers) -> None:
         "--cameras", required=True, metavar="ID,ID,...", help="camera ids, comma-separated"
     )
     parser.add_argument(
-        "--matchers", default="matcher1", metavar="ID,ID,...", help="matcher ids (default matcher1)"
+        "--matchers", default="matcher1", metavar="ID[=PLANE+PLANE],...",
+        help="matcher ids (default matcher1), each serving every plane of --planes, or "
+        "ID=PLANES for the planes it alone may serve, e.g. m1=1,m2=2+3",
     )
     parser.add_argument(
         "--planes",
@@ -50,6 +52,16 @@ def register(subparsers) -> None:
         help="do not keep queued messages across broker restarts",
     )
     parser.add_argument("--no-viewer", action="store_true", help="no read-only viewer user")
+    parser.add_argument(
+        "--viewers", metavar="ID,ID,...",
+        help="read-only logins, one per dashboard (default: viewer); a login is one client "
+        "at a time",
+    )
+    parser.add_argument(
+        "--clients-dir", type=Path,
+        help="folder of the per-client folders of secrets (default: OUT-clients, beside OUT, "
+        "never inside it); copy each client's folder to that client only",
+    )
     parser.add_argument(
         "--queue-mb", type=float, default=DEFAULT_QUEUE_BYTES / 2**20,
         help="bytes of queued messages the broker holds per client, MiB (default 64; beyond "
@@ -90,10 +102,29 @@ def _planes(text: str) -> list[int]:
         raise UsageError(f"--planes {text!r} must be integers, e.g. 1 or 1,2.") from None
 
 
+def parse_matchers(text: str) -> list[str] | dict[str, list[int]]:
+    """``m1,m2`` (every plane of --planes) or ``m1=1,m2=2+3`` (the planes of each)."""
+    entries = _names(text, "--matchers")
+    if not any("=" in entry for entry in entries):
+        return entries
+    planes: dict[str, list[int]] = {}
+    for entry in entries:
+        name, _, served = entry.partition("=")
+        try:
+            planes[name.strip()] = [int(plane) for plane in served.split("+")]
+        except ValueError:
+            raise UsageError(
+                f"--matchers: {entry!r} must be ID=PLANE[+PLANE...], e.g. matcher1=1+2."
+            ) from None
+    if len(planes) != len(entries):
+        raise UsageError(f"--matchers lists a name twice: {text!r}.")
+    return planes
+
+
 def run(args: argparse.Namespace) -> int:
     """Run ``cblrs broker-config`` with its parsed arguments; the exit code."""
     cameras = _names(args.cameras, "--cameras")
-    matchers = _names(args.matchers, "--matchers")
+    matchers = parse_matchers(args.matchers)
     if not cameras:
         raise UsageError("--cameras needs at least one camera id.")
     planes = _planes(args.planes)
@@ -115,10 +146,12 @@ def run(args: argparse.Namespace) -> int:
         persistence=not args.no_persistence,
         bind=args.bind,
         viewer=not args.no_viewer,
+        viewers=_names(args.viewers, "--viewers") if args.viewers else None,
         queue_bytes=int(args.queue_mb * 2**20),
         autosave_s=args.autosave,
         run_as=args.run_as,
         ca_directory=args.ca_dir,
+        clients_directory=args.clients_dir,
     )
     if args.json:
         print_json({**files.to_dict(), "start": ["mosquitto", "-c", str(files.config)]})
@@ -134,10 +167,10 @@ def run(args: argparse.Namespace) -> int:
             "--password-file",
             str(files.password_files[user]),
         ]
+        client = files.clients[user]
         if files.tls:
-            cert, key = files.client_certificates[user]
-            options += ["--ca-file", str(files.ca_file), "--cert-file", str(cert)]
-            options += ["--key-file", str(key)]
+            options += ["--ca-file", str(client.ca_file), "--cert-file", str(client.cert_file)]
+            options += ["--key-file", str(client.key_file)]
         return " ".join(shlex.quote(option) for option in options)
 
     lines = [
@@ -145,15 +178,16 @@ def run(args: argparse.Namespace) -> int:
         f"  config        {files.config}",
         f"  passwords     {files.password_file} (hashed)",
         f"  acl           {files.acl_file}",
-        f"  credentials   {files.credentials_file} (mode 0600, clear text: keep it private)",
-        f"  per user      {files.directory / 'secrets'}/<user>.password (mode 0600)",
+        f"  clients       {files.clients_directory}/<user>/ (its password"
+        + (", certificate and key" if files.tls else "") + "; 0700): copy each folder to "
+        "that client only, then delete it here",
     ]
     if files.persistence_directory is not None:
         lines.append(f"  persistence   {files.persistence_directory}")
     if files.tls and files.ca_file is not None:
         lines.append(
-            f"  TLS           {files.ca_file.parent} (CA, server and client certificates, "
-            "valid 365 days)"
+            f"  TLS           {files.ca_file.parent} (CA and server certificates, valid 365 "
+            "days; client certificates are in the clients' folders)"
         )
         lines.append(f"  CA key        {files.ca_key_file} (keep it offline; not needed to run)")
     lines.append(
@@ -161,20 +195,29 @@ def run(args: argparse.Namespace) -> int:
         f"saved every {args.autosave} s"
         + (f"; runs as user {files.run_as}" if files.run_as else "")
     )
+    matcher_names = [user for user, role in files.roles.items() if role == "matcher"]
+    viewer_names = [user for user, role in files.roles.items() if role == "viewer"]
     lines += [
+        "",
+        "Logins: each login is one client at a time (the broker uses it as the client id): "
+        "a second client with the same login takes over the first one's session (both log "
+        "it and count it). Never share a login; give each dashboard its own viewer login "
+        "(--viewers).",
         "",
         "Start the broker:",
         f"  mosquitto -c {shlex.quote(str(files.config))}",
         "",
         "Before the cameras, create the matcher's session so the broker keeps its messages:",
         f"  cblrs matcher --prepare --references REFS --db DB "
-        f"{client_options(matchers[0]) if matchers else ''}".rstrip(),
+        f"{client_options(matcher_names[0]) if matcher_names else ''}".rstrip(),
         "",
         "Users: " + ", ".join(f"{user} ({role})" for user, role in files.roles.items()),
         "Connect a camera / matcher with (copy only that user's files to its machine):",
         f"  cblrs camera ... --camera {cameras[0]} {client_options(cameras[0])}",
     ]
-    if matchers:
-        lines.append(f"  cblrs matcher ... {client_options(matchers[0])}")
+    if matcher_names:
+        lines.append(f"  cblrs matcher ... {client_options(matcher_names[0])}")
+    if viewer_names:
+        lines.append(f"  cblrs dashboard ... {client_options(viewer_names[0])}")
     print("\n".join(lines))
     return 0

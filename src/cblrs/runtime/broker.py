@@ -1,22 +1,30 @@
 """Mosquitto configuration for the runtime: users, ACL, TLS, persistence; and a process wrapper.
 
-:func:`write_broker_config` writes everything a broker needs into one directory::
+:func:`write_broker_config` writes what a broker needs into one directory, and what each
+client needs into a folder of its own (see :mod:`cblrs.runtime.credentials`)::
 
-    mosquitto.conf     listener, allow_anonymous false, password_file, acl_file, persistence,
-                       queue and message limits
-    passwords          PBKDF2-SHA512 hashes in Mosquitto's ``$7$`` format, computed here (no
-                       clear password on any command line)
-    acl                a camera publishes only its own detections and status and reads only
-                       its confirmations and the matchers' status; matchers read detections,
-                       publish tracks, analytics events, live summaries and confirmations and
-                       hold their plane's lease; the viewer (the dashboard) reads tracks,
-                       events, live summaries and status, and writes nothing
-    credentials.json   the generated passwords (mode 0600)
-    secrets/<user>.password   one user's password (mode 0600): copy it to that client only
-    data/              persistence (queued QoS 1 messages survive a broker restart)
-    tls/               the CA certificate, the server's certificate and key, client
-                       certificates (with ``tls=True``); the CA's private key goes to a
-                       separate folder (``<out>-ca/`` by default), never the broker's
+    <out>/mosquitto.conf  listener, allow_anonymous false, password_file, acl_file,
+                          persistence, queue and message limits
+    <out>/passwords       PBKDF2-SHA512 hashes in Mosquitto's ``$7$`` format, computed here
+                          (no clear password on any command line, none stored here)
+    <out>/acl             a camera publishes only its own detections and status and reads
+                          only its confirmations and the matchers' status; a matcher reads
+                          the detections of its planes, publishes their tracks, analytics
+                          events, live summaries and confirmations and holds their lease; a
+                          viewer (a dashboard) reads tracks, events, live summaries and
+                          status, and writes nothing
+    <out>/data/           persistence (queued QoS 1 messages survive a broker restart)
+    <out>/tls/            the CA certificate, the server's certificate and key (``tls=True``)
+    <out>-clients/<user>/ one client's password, and with TLS its certificate, key and the CA
+                          certificate (0700/0600): copy that folder to that client only
+    <out>-ca/             the CA's private key (TLS), never in the broker's folder
+
+**One login, one client.** The listener uses the login as the MQTT client id
+(``use_username_as_clientid``): nobody takes over another user's session with its client id.
+The flip side is that two clients with one login share one session and take it from each
+other, so no login may be shared: every dashboard gets its own viewer login (``viewers``);
+a transport that loses its session to another client says so loudly and counts it
+(:attr:`~cblrs.runtime.mqtt_transport.MqttTransport.takeovers`).
 
 Policies (the broker is a short buffer; each camera's disk spool is the long one, see
 :mod:`cblrs.runtime.spool`):
@@ -54,20 +62,26 @@ are one generated folder whose files name each other; running Mosquitto is in
 
 from __future__ import annotations
 
-import base64
-import datetime
-import hashlib
-import ipaddress
-import json
 import logging
 import os
 import pwd
-import secrets
 import stat
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from cblrs.runtime.credentials import (
+    ClientFiles,
+    CredentialsError,
+    check_outside,
+    default_side_folder,
+    mosquitto_hash,
+    new_authority,
+    new_password,
+    write_client_folder,
+    write_private,
+)
+from cblrs.runtime.credentials import issue_certificate as _issue
 from cblrs.runtime.mosquitto import BrokerError, MosquittoProcess, find_mosquitto, free_port
 from cblrs.runtime.mqtt_transport import MqttSettings
 from cblrs.runtime.topics import ROOT, validate_client_id
@@ -81,19 +95,17 @@ __all__ = [
     "find_mosquitto",
     "free_port",
     "hash_password",
+    "matcher_planes",
     "write_broker_config",
 ]
 
 VIEWER = "viewer"
-CERTIFICATE_DAYS = 365
-"""Validity of generated certificates (CA, server, clients), days from generation."""
 DEFAULT_QUEUE_BYTES = 64 * 1024 * 1024
 DEFAULT_AUTOSAVE_S = 1
 MAX_PACKET_BYTES = 1024 * 1024
 SERVICE_USER = "mosquitto"
-PBKDF2_ITERATIONS = 101
-"""Mosquitto's own default for ``$7$`` hashes; the generated passwords are random 144-bit
-tokens, so the iteration count is not what protects them."""
+hash_password = mosquitto_hash
+"""A Mosquitto ``$7$`` password hash (:func:`cblrs.runtime.credentials.mosquitto_hash`)."""
 
 
 @dataclass(frozen=True)
@@ -101,20 +113,19 @@ class BrokerFiles:
     """Where :func:`write_broker_config` put things.
 
     Attributes:
-        directory: the output folder.
+        directory: the broker's folder (nothing secret but its own key and the hashes).
         config: ``mosquitto.conf``.
         port: the listener port.
         bind: the listener address.
         tls: whether the listener speaks TLS.
         password_file: hashed passwords (None for an anonymous broker).
         acl_file: access control list (None for an anonymous broker).
-        credentials_file: ``credentials.json`` with the clear-text passwords, mode 0600.
         persistence_directory: where mosquitto stores its database.
-        ca_file: CA certificate clients use to verify the broker (TLS only).
-        client_certificates: user -> (certificate, key) paths (TLS only).
+        ca_file: CA certificate that signed the broker's (TLS only).
         roles: user -> "camera" | "matcher" | "viewer".
-        password_files: user -> a 0600 file holding only that user's password (for
-            ``cblrs camera/matcher --password-file``; copy it to that client's machine).
+        clients: user -> its folder of secrets (see :class:`ClientFiles`): copy each to that
+            client only.
+        clients_directory: the folder holding every client's folder (outside ``directory``).
         ca_key_file: the CA's private key (TLS only), outside the broker's folder.
         run_as: the user Mosquitto runs as when started as root.
     """
@@ -126,20 +137,30 @@ class BrokerFiles:
     tls: bool
     password_file: Path | None
     acl_file: Path | None
-    credentials_file: Path | None
     persistence_directory: Path | None
     ca_file: Path | None = None
-    client_certificates: dict[str, tuple[Path, Path]] = field(default_factory=dict)
     roles: dict[str, str] = field(default_factory=dict)
-    password_files: dict[str, Path] = field(default_factory=dict)
+    clients: dict[str, ClientFiles] = field(default_factory=dict)
+    clients_directory: Path | None = None
     ca_key_file: Path | None = None
     run_as: str | None = None
 
+    @property
+    def password_files(self) -> dict[str, Path]:
+        """user -> the 0600 file holding only that user's password (in its client folder)."""
+        return {user: files.password_file for user, files in self.clients.items()
+                if files.password_file is not None}
+
+    @property
+    def client_certificates(self) -> dict[str, tuple[Path, Path]]:
+        """user -> (certificate, key) paths in its client folder (TLS only)."""
+        return {user: (files.cert_file, files.key_file) for user, files in self.clients.items()
+                if files.cert_file is not None and files.key_file is not None}
+
     def credentials(self) -> dict[str, str]:
-        """user -> password, read from the 0600 credentials file."""
-        if self.credentials_file is None:
-            return {}
-        return json.loads(self.credentials_file.read_text())["passwords"]
+        """user -> password, read from the clients' folders (while they are still here)."""
+        return {user: password for user, files in self.clients.items()
+                if (password := files.password()) is not None}
 
     def settings(self, user: str | None = None, host: str | None = None, **options) -> MqttSettings:
         """Connection settings for ``user`` (None: anonymous), with its certificate under TLS.
@@ -147,23 +168,21 @@ class BrokerFiles:
         Extra keyword arguments go to :class:`MqttSettings` (timeouts, inflight window).
         """
         host = host or ("127.0.0.1" if self.bind in ("0.0.0.0", "::") else self.bind)
-        password = None
+        password = cert_file = key_file = None
         if user is not None:
-            credentials = self.credentials()
-            if user not in credentials:
-                raise BrokerError(f"no user {user!r} in {self.credentials_file}.")
-            password = credentials[user]
-        cert_file = key_file = None
-        if self.tls and user in self.client_certificates:
-            cert_file, key_file = self.client_certificates[user]
+            if user not in self.clients:
+                raise BrokerError(f"no user {user!r} in {self.clients_directory}.")
+            client = self.clients[user]
+            password = client.password()
+            cert_file, key_file = client.cert_file, client.key_file
         return MqttSettings(
             host=host,
             port=self.port,
             username=user,
             password=password,
             ca_file=self.ca_file if self.tls else None,
-            cert_file=cert_file,
-            key_file=key_file,
+            cert_file=cert_file if self.tls else None,
+            key_file=key_file if self.tls else None,
             **options,
         )
 
@@ -176,15 +195,11 @@ class BrokerFiles:
             "tls": self.tls,
             "password_file": _optional(self.password_file),
             "acl_file": _optional(self.acl_file),
-            "credentials_file": _optional(self.credentials_file),
             "persistence_directory": _optional(self.persistence_directory),
             "ca_file": _optional(self.ca_file),
-            "client_certificates": {
-                user: {"certificate": str(cert), "key": str(key)}
-                for user, (cert, key) in self.client_certificates.items()
-            },
             "roles": dict(self.roles),
-            "password_files": {user: str(path) for user, path in self.password_files.items()},
+            "clients": {user: files.to_dict() for user, files in self.clients.items()},
+            "clients_directory": _optional(self.clients_directory),
             "ca_key_file": _optional(self.ca_key_file),
             "run_as": self.run_as,
         }
@@ -194,10 +209,31 @@ def _optional(path: Path | None) -> str | None:
     return None if path is None else str(path)
 
 
+def matcher_planes(
+    matchers: Sequence[str] | Mapping[str, Sequence[int]], plane_ids: Sequence[int]
+) -> dict[str, list[int]]:
+    """matcher -> the planes it may serve: ``matchers`` as given when a mapping, else every
+    matcher serves every plane of ``plane_ids``.
+
+    Raises:
+        BrokerError: a plane id outside 1..65535, or a matcher without planes.
+    """
+    if isinstance(matchers, Mapping):
+        planes = {name: [int(plane) for plane in served] for name, served in matchers.items()}
+    else:
+        planes = {name: [int(plane) for plane in plane_ids] for name in matchers}
+    for name, served in planes.items():
+        if not served:
+            raise BrokerError(f"matcher {name} serves no plane; give it at least one.")
+        if any(not 1 <= plane <= 65535 for plane in served):
+            raise BrokerError(f"plane ids must be 1..65535, got {served}.")
+    return planes
+
+
 def write_broker_config(
     directory: str | os.PathLike,
     cameras: Sequence[str],
-    matchers: Sequence[str],
+    matchers: Sequence[str] | Mapping[str, Sequence[int]],
     *,
     port: int,
     plane_ids: Sequence[int] = (1,),
@@ -205,28 +241,33 @@ def write_broker_config(
     persistence: bool = True,
     bind: str = "127.0.0.1",
     viewer: bool = True,
+    viewers: Sequence[str] | None = None,
     allow_anonymous: bool = False,
     passwords: dict[str, str] | None = None,
     queue_bytes: int = DEFAULT_QUEUE_BYTES,
     autosave_s: int = DEFAULT_AUTOSAVE_S,
     run_as: str | None = None,
     ca_directory: str | os.PathLike | None = None,
+    clients_directory: str | os.PathLike | None = None,
 ) -> BrokerFiles:
-    """Write a Mosquitto configuration for a set of cameras and matchers.
+    """Write a Mosquitto configuration for a set of cameras, matchers and viewers.
 
     Args:
-        directory: output folder (created; existing files of the same names are replaced).
+        directory: the broker's folder (created; files of the same names are replaced).
         cameras: camera ids; each becomes a user that may publish only
             ``cblrs/+/<camera>/detections`` and ``cblrs/+/<camera>/status``.
-        matchers: matcher ids; each may read detections and status of the planes
-            ``plane_ids`` and publish their tracks and its own matcher status.
+        matchers: matcher ids (each serving every plane of ``plane_ids``), or matcher id ->
+            the planes it serves; a matcher may read the detections and status of its
+            planes and publish their tracks, events, live summaries and confirmations.
         port: listener port.
-        plane_ids: planes the matchers serve.
+        plane_ids: planes the matchers serve (when ``matchers`` is not a mapping).
         tls: make the listener TLS-only with generated certificates; clients must present a
             certificate signed by the generated CA as well as their password.
         persistence: keep queued QoS 1 messages and sessions across broker restarts.
         bind: listener address (use ``0.0.0.0`` to accept other machines).
         viewer: add a read-only ``viewer`` user for tracks and status.
+        viewers: read-only logins, one per dashboard (default ``["viewer"]`` when
+            ``viewer``); a login is one client at a time (see the module docstring).
         allow_anonymous: no users, no ACL (local experiments and benchmarks only).
         passwords: fixed passwords for some users (default: random, from ``secrets``).
         queue_bytes: bytes of queued messages held per client (see the module docstring).
@@ -234,6 +275,7 @@ def write_broker_config(
         run_as: the user Mosquitto switches to when started as root (default: the
             ``mosquitto`` user when generated as root; the files it reads are handed to it).
         ca_directory: where the CA's private key goes with ``tls`` (default ``<out>-ca``).
+        clients_directory: where each client's folder goes (default ``<out>-clients``).
 
     Returns:
         The paths written.
@@ -244,22 +286,34 @@ def write_broker_config(
     directory = Path(directory).resolve()
     for name in cameras:
         validate_client_id(name, "camera id")
-    for name in matchers:
+    if not plane_ids or any(not 1 <= int(plane) <= 65535 for plane in plane_ids):
+        raise BrokerError(f"plane ids must be 1..65535, got {list(plane_ids)}.")
+    planes_of = matcher_planes(matchers, plane_ids)
+    for name in planes_of:
         validate_client_id(name, "matcher id")
-    users = list(cameras) + list(matchers) + ([VIEWER] if viewer else [])
+    viewer_names = list(viewers) if viewers is not None else ([VIEWER] if viewer else [])
+    for name in viewer_names:
+        validate_client_id(name, "viewer id")
+    users = list(cameras) + list(planes_of) + viewer_names
     if len(set(users)) != len(users):
         raise BrokerError(f"camera, matcher and viewer names must be distinct, got {users}.")
-    if not allow_anonymous and not (cameras or matchers):
+    if not allow_anonymous and not (cameras or planes_of):
         raise BrokerError("give at least one camera or matcher (or allow anonymous access).")
-    planes = [int(plane) for plane in plane_ids]
-    if not planes or any(not 1 <= plane <= 65535 for plane in planes):
-        raise BrokerError(f"plane ids must be 1..65535, got {list(plane_ids)}.")
     if not 0 < port < 65536:
         raise BrokerError(f"port must be 1..65535, got {port}.")
     if queue_bytes <= 0:
         raise BrokerError(f"the queue limit must be positive, got {queue_bytes} bytes.")
     if autosave_s < 1:
         raise BrokerError(f"autosave interval must be at least 1 s, got {autosave_s}.")
+    try:
+        clients_folder = check_outside(
+            Path(clients_directory) if clients_directory is not None
+            else default_side_folder(directory, "clients"), directory, "clients'")
+        ca_keys = check_outside(
+            Path(ca_directory) if ca_directory is not None
+            else default_side_folder(directory, "ca"), directory, "CA's key")
+    except CredentialsError as error:
+        raise BrokerError(str(error)) from None
     if run_as is None and os.geteuid() == 0:
         run_as = SERVICE_USER
     if run_as is not None and run_as != "root" and os.geteuid() == 0:
@@ -275,9 +329,8 @@ def write_broker_config(
                 "package does: apt install mosquitto) or choose another."
             ) from None
     roles = {name: "camera" for name in cameras}
-    roles.update({name: "matcher" for name in matchers})
-    if viewer:
-        roles[VIEWER] = "viewer"
+    roles.update({name: "matcher" for name in planes_of})
+    roles.update({name: "viewer" for name in viewer_names})
 
     lines = [
         "# Written by cblrs broker-config. Start with:",
@@ -300,26 +353,18 @@ def write_broker_config(
     ]
     if run_as is not None:
         lines.append(f"user {run_as}")
-    password_file = acl_file = credentials_file = None
-    password_files: dict[str, Path] = {}
+    password_file = acl_file = None
+    chosen_passwords: dict[str, str | None] = {}
     if not allow_anonymous:
         password_file = directory / "passwords"
         acl_file = directory / "acl"
-        credentials_file = directory / "credentials.json"
         chosen = dict(passwords or {})
-        credentials = {user: chosen.get(user) or secrets.token_urlsafe(18) for user in users}
+        credentials = {user: chosen.get(user) or new_password() for user in users}
         _write_passwords(password_file, credentials)
-        _write_private(
-            credentials_file,
-            json.dumps({"passwords": credentials, "roles": roles}, indent=2) + "\n",
-        )
-        secrets_directory = directory / "secrets"
-        secrets_directory.mkdir(exist_ok=True)
-        os.chmod(secrets_directory, 0o700)
-        for user, password in credentials.items():
-            password_files[user] = secrets_directory / f"{user}.password"
-            _write_private(password_files[user], password + "\n")
-        acl_file.write_text(_acl(cameras, matchers, planes, viewer))
+        chosen_passwords = dict(credentials)
+        stale = [directory / "credentials.json", directory / "secrets"]
+        _remove_stale(stale)  # clear passwords left by an older cblrs
+        acl_file.write_text(_acl(cameras, planes_of, viewer_names))
         lines += [
             f"password_file {password_file}",
             f"acl_file {acl_file}",
@@ -342,21 +387,24 @@ def write_broker_config(
     lines.append("protocol mqtt")
     if not allow_anonymous:
         # A listener option (outside a listener block it would open a default one on 1883):
-        # the session is the user's, so nobody takes over a matcher's queue with its client id.
+        # the session is the user's, so nobody takes over a matcher's queue with its client
+        # id; and so each login is one client (a dashboard gets a viewer login of its own).
         lines.append("use_username_as_clientid true")
-    ca_file = None
-    client_certificates: dict[str, tuple[Path, Path]] = {}
-    ca_key_file = None
+    ca_file = ca_key_file = None
+    authority = None
     if tls:
         tls_directory = directory / "tls"
-        ca_keys = Path(ca_directory) if ca_directory is not None else directory.with_name(
-            directory.name + "-ca")
-        ca_keys = ca_keys.resolve()
-        if ca_keys == directory or directory in ca_keys.parents:
-            raise BrokerError(f"the CA's key folder {ca_keys} must lie outside {directory}.")
-        ca_file, server_cert, server_key, client_certificates, ca_key_file = _write_certificates(
-            tls_directory, users, bind, ca_keys
-        )
+        authority = new_authority("cblrs broker CA", tls_directory / "ca.crt", ca_keys)
+        ca_file, ca_key_file = authority.certificate_file, authority.key_file
+        stale_key = tls_directory / "ca.key"
+        if stale_key.exists():  # from a configuration written before the key moved out
+            stale_key.unlink()
+        _remove_stale(list(tls_directory.glob("client-*")))  # keys of an older cblrs
+        certificate, key = _issue(authority, "localhost", server=True, client=False,
+                                  hosts=[bind])
+        server_cert = tls_directory / "server.crt"
+        server_cert.write_bytes(certificate)
+        server_key = write_private(tls_directory / "server.key", key)
         lines += [
             f"cafile {ca_file}",
             f"certfile {server_cert}",
@@ -367,6 +415,11 @@ def write_broker_config(
             "use_identity_as_username true",
             "tls_version tlsv1.2",
         ]
+    clients: dict[str, ClientFiles] = {}
+    if not allow_anonymous:
+        for user in users:
+            clients[user] = write_client_folder(
+                clients_folder, user, chosen_passwords.get(user), authority)
     config = directory / "mosquitto.conf"
     config.write_text("\n".join(lines) + "\n")
     if owner is not None and os.geteuid() == 0:
@@ -380,15 +433,24 @@ def write_broker_config(
         tls=tls,
         password_file=password_file,
         acl_file=acl_file,
-        credentials_file=credentials_file,
         persistence_directory=persistence_directory,
         ca_file=ca_file,
-        client_certificates=client_certificates,
         roles=roles,
-        password_files=password_files,
+        clients=clients,
+        clients_directory=clients_folder if clients else None,
         ca_key_file=ca_key_file,
         run_as=run_as,
     )
+
+
+def _remove_stale(paths: list[Path]) -> None:
+    import shutil
+
+    for path in paths:
+        if path.is_dir():
+            shutil.rmtree(path)
+        elif path.exists():
+            path.unlink()
 
 
 def _hand_over(owner: pwd.struct_passwd, directory: Path, paths: list[Path | None]) -> None:
@@ -426,7 +488,8 @@ def _check_reachable(user: str, directory: Path) -> None:
             )
 
 
-def _acl(cameras: Sequence[str], matchers: Sequence[str], planes: list[int], viewer: bool) -> str:
+def _acl(cameras: Sequence[str], planes_of: Mapping[str, Sequence[int]],
+         viewers: Sequence[str]) -> str:
     """Mosquitto ACL: default deny; each user gets only the topics of its role."""
     lines = ["# Written by cblrs broker-config; anything not granted here is denied.", ""]
     for camera in cameras:
@@ -438,7 +501,7 @@ def _acl(cameras: Sequence[str], matchers: Sequence[str], planes: list[int], vie
             f"topic read {ROOT}/+/matchers/+/status",
             "",
         ]
-    for matcher in matchers:
+    for matcher, planes in planes_of.items():
         lines.append(f"user {matcher}")
         for plane in planes:
             lines += [
@@ -452,9 +515,9 @@ def _acl(cameras: Sequence[str], matchers: Sequence[str], planes: list[int], vie
                 f"topic readwrite {ROOT}/{plane}/lease",
             ]
         lines.append("")
-    if viewer:
+    for viewer in viewers:
         lines += [
-            f"user {VIEWER}",
+            f"user {viewer}",
             f"topic read {ROOT}/+/tracks",
             f"topic read {ROOT}/+/events",
             f"topic read {ROOT}/+/live",
@@ -466,143 +529,9 @@ def _acl(cameras: Sequence[str], matchers: Sequence[str], planes: list[int], vie
     return "\n".join(lines)
 
 
-def _write_private(path: Path, text: str) -> None:
-    descriptor = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
-    with os.fdopen(descriptor, "w") as handle:
-        handle.write(text)
-    os.chmod(path, 0o600)
-
-
 def _write_passwords(path: Path, credentials: dict[str, str]) -> None:
     """Mosquitto's password file, hashed here (``$7$``: PBKDF2-SHA512, 12-byte salt): no
     clear password ever appears on a command line (``mosquitto_passwd -b`` shows it in
     ``ps``)."""
-    lines = [f"{user}:{hash_password(password)}" for user, password in credentials.items()]
-    _write_private(path, "\n".join(lines) + "\n")
-
-
-def hash_password(password: str, salt: bytes | None = None) -> str:
-    """A Mosquitto ``$7$`` password hash (what ``mosquitto_passwd`` writes)."""
-    salt = secrets.token_bytes(12) if salt is None else salt
-    digest = hashlib.pbkdf2_hmac("sha512", password.encode(), salt, PBKDF2_ITERATIONS)
-    return (f"$7${PBKDF2_ITERATIONS}${base64.b64encode(salt).decode()}$"
-            f"{base64.b64encode(digest).decode()}")
-
-
-def _write_certificates(
-    directory: Path, users: Sequence[str], bind: str, ca_directory: Path
-) -> tuple[Path, Path, Path, dict[str, tuple[Path, Path]], Path]:
-    """A CA, a server certificate (SAN localhost, 127.0.0.1, the bind address) and one client
-    certificate per user (CN = user), ECDSA P-256, valid :data:`CERTIFICATE_DAYS` days; the
-    CA's key goes to ``ca_directory`` (mode 0700), not beside the broker's files."""
-    try:
-        # optional extra: pip install cblrs[tls]
-        from cryptography import x509
-        from cryptography.hazmat.primitives import hashes, serialization
-        from cryptography.hazmat.primitives.asymmetric import ec
-        from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
-    except ImportError as error:
-        raise BrokerError(
-            "TLS certificates need the cryptography package: pip install cryptography."
-        ) from error
-    directory.mkdir(parents=True, exist_ok=True)
-    now = datetime.datetime.now(datetime.UTC) - datetime.timedelta(minutes=5)
-    until = now + datetime.timedelta(days=CERTIFICATE_DAYS)
-
-    def name(common_name: str) -> x509.Name:
-        return x509.Name(
-            [
-                x509.NameAttribute(NameOID.ORGANIZATION_NAME, "cblrs"),
-                x509.NameAttribute(NameOID.COMMON_NAME, common_name),
-            ]
-        )
-
-    def save(stem: str, certificate, key) -> tuple[Path, Path]:
-        cert_path = directory / f"{stem}.crt"
-        key_path = directory / f"{stem}.key"
-        cert_path.write_bytes(certificate.public_bytes(serialization.Encoding.PEM))
-        _write_private(
-            key_path,
-            key.private_bytes(
-                serialization.Encoding.PEM,
-                serialization.PrivateFormat.PKCS8,
-                serialization.NoEncryption(),
-            ).decode(),
-        )
-        return cert_path, key_path
-
-    ca_key = ec.generate_private_key(ec.SECP256R1())
-    ca_name = name("cblrs broker CA")
-    ca_certificate = (
-        x509.CertificateBuilder()
-        .subject_name(ca_name)
-        .issuer_name(ca_name)
-        .public_key(ca_key.public_key())
-        .serial_number(x509.random_serial_number())
-        .not_valid_before(now)
-        .not_valid_after(until)
-        .add_extension(x509.BasicConstraints(ca=True, path_length=0), critical=True)
-        .add_extension(
-            x509.KeyUsage(
-                digital_signature=True, content_commitment=False, key_encipherment=False,
-                data_encipherment=False, key_agreement=False, key_cert_sign=True,
-                crl_sign=True, encipher_only=False, decipher_only=False,
-            ),
-            critical=True,
-        )
-        .sign(ca_key, hashes.SHA256())
-    )
-    ca_file = directory / "ca.crt"
-    ca_file.write_bytes(ca_certificate.public_bytes(serialization.Encoding.PEM))
-    ca_directory.mkdir(parents=True, exist_ok=True)
-    os.chmod(ca_directory, 0o700)
-    ca_key_file = ca_directory / "ca.key"
-    _write_private(
-        ca_key_file,
-        ca_key.private_bytes(
-            serialization.Encoding.PEM,
-            serialization.PrivateFormat.PKCS8,
-            serialization.NoEncryption(),
-        ).decode(),
-    )
-    stale = directory / "ca.key"
-    if stale.exists():  # from a configuration written before the key moved out
-        stale.unlink()
-
-    def issue(common_name: str, server: bool):
-        key = ec.generate_private_key(ec.SECP256R1())
-        builder = (
-            x509.CertificateBuilder()
-            .subject_name(name(common_name))
-            .issuer_name(ca_name)
-            .public_key(key.public_key())
-            .serial_number(x509.random_serial_number())
-            .not_valid_before(now)
-            .not_valid_after(until)
-            .add_extension(x509.BasicConstraints(ca=False, path_length=None), critical=True)
-            .add_extension(
-                x509.ExtendedKeyUsage(
-                    [ExtendedKeyUsageOID.SERVER_AUTH if server else ExtendedKeyUsageOID.CLIENT_AUTH]
-                ),
-                critical=False,
-            )
-        )
-        if server:
-            alternative: list[x509.GeneralName] = [
-                x509.DNSName("localhost"),
-                x509.IPAddress(ipaddress.ip_address("127.0.0.1")),
-            ]
-            try:
-                address = ipaddress.ip_address(bind)
-                if str(address) not in ("127.0.0.1", "0.0.0.0", "::"):
-                    alternative.append(x509.IPAddress(address))
-            except ValueError:
-                alternative.append(x509.DNSName(bind))
-            builder = builder.add_extension(
-                x509.SubjectAlternativeName(alternative), critical=False
-            )
-        return builder.sign(ca_key, hashes.SHA256()), key
-
-    server_cert, server_key = save("server", *issue("localhost", server=True))
-    clients = {user: save(f"client-{user}", *issue(user, server=False)) for user in users}
-    return ca_file, server_cert, server_key, clients, ca_key_file
+    lines = [f"{user}:{mosquitto_hash(password)}" for user, password in credentials.items()]
+    write_private(path, "\n".join(lines) + "\n")

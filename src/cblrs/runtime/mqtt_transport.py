@@ -48,6 +48,9 @@ _paho_logger = logging.getLogger("cblrs.runtime.mqtt_transport.paho")
 
 logger = logging.getLogger(__name__)
 
+SESSION_TAKEN_OVER = 0x8E
+"""MQTT 5 DISCONNECT reason: another connection with the same client id took the session."""
+
 
 
 
@@ -167,6 +170,10 @@ class MqttTransport:
         """Successful connections so far (1 after the first, more after reconnections)."""
         self.disconnections = 0
         """Connections lost or closed so far."""
+        self.takeovers = 0
+        """Times another client logged in with this login and took this one's session (the
+        broker closes the older connection, MQTT 5 reason 0x8E): a login shared by two
+        clients, or a stolen one."""
         self._handlers = _HandlerTable()
         self._qos: dict[str, int] = {}
         self._subscribed: set[str] = set()
@@ -635,7 +642,14 @@ class MqttTransport:
         self.disconnections += 1
         with self._condition:
             self._hold = bool(self._handed)
-        if reason_code.is_failure:
+        if int(getattr(reason_code, "value", 0)) == SESSION_TAKEN_OVER:
+            self.takeovers += 1
+            logger.error(
+                "%s: another client logged in as %s and took over this session (%d times "
+                "so far): a login must not be shared (give each client its own) and may have "
+                "been stolen; reconnecting", self.client_id,
+                self.settings.username or self.client_id, self.takeovers)
+        elif reason_code.is_failure:
             logger.warning("%s: disconnected from %s: %s; reconnecting", self.client_id,
                            self.settings.address, reason_code)
         else:
