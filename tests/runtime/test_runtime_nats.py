@@ -22,11 +22,13 @@ from cblrs.reference import ReferenceImage
 from cblrs.runtime.mqtt_transport import MqttSettings, MqttTransport
 from cblrs.runtime.nats_server import NatsCluster, find_nats_server
 from cblrs.runtime.nats_transport import (
-    DETECTIONS_STREAM,
     LeaseSettings,
     NatsSettings,
     NatsTransport,
+    detections_stream,
     message_id,
+    site_subject,
+    site_topic,
     stream_of,
     subject_to_topic,
     topic_to_subject,
@@ -54,17 +56,48 @@ def test_topics_map_to_subjects_as_the_mqtt_listener_does(topic, subject):
 
 
 @pytest.mark.parametrize(
-    ("subject", "stream"),
+    ("subject", "site", "stream"),
     [
-        ("cblrs.1.CVLab1.detections", "CBLRS"),
-        ("cblrs.1.CVLab1.status", "CBLRS"),
-        ("cblrs.3.tracks", "CBLRS_TRACKS"),
-        ("cblrs.1.matchers.m1.status", None),
-        ("other.1.x.detections", None),
+        ("cblrs.1.CVLab1.detections", None, "CBLRS_P1"),
+        ("cblrs.1.*.detections", None, "CBLRS_P1"),
+        ("cblrs.1.CVLab1.status", None, "CBLRS_P1"),
+        ("cblrs.3.tracks", None, "CBLRS_P3_TRACKS"),
+        ("cblrs.3.events", None, "CBLRS_P3_TRACKS"),
+        ("cblrs.3.live", None, None),
+        ("cblrs.1.matchers.m1.status", None, None),
+        ("cblrs.*.*.detections", None, None),
+        ("cblrs.0.c.detections", None, None),
+        ("cblrs.01.c.detections", None, None),
+        ("other.1.x.detections", None, None),
+        ("cblrs.north.2.c.detections", "north", "CBLRS_north_P2"),
+        ("cblrs.north.2.tracks", "north", "CBLRS_north_P2_TRACKS"),
+        ("cblrs.south.2.c.detections", "north", None),
+        ("cblrs.2.c.detections", "north", None),
     ],
 )
-def test_streams_capture_detections_status_and_tracks(subject, stream):
-    assert stream_of(subject) == stream
+def test_each_plane_of_each_site_has_its_streams(subject, site, stream):
+    assert stream_of(subject, site) == stream
+
+
+@pytest.mark.parametrize(
+    ("topic", "site", "subject"),
+    [
+        ("cblrs/1/cam.a/detections", None, "cblrs.1.cam//a.detections"),
+        ("cblrs/1/cam.a/detections", "north", "cblrs.north.1.cam//a.detections"),
+        ("cblrs/+/+/status", "north", "cblrs.north.*.*.status"),
+        ("cblrs/#", "north", "cblrs.north.>"),
+    ],
+)
+def test_a_site_prefixes_every_subject(topic, site, subject):
+    assert site_subject(topic, site) == subject
+    if "+" not in topic and "#" not in topic:
+        assert site_topic(subject, site) == topic
+
+
+@pytest.mark.parametrize("site", ["", "1", "12north", "a.b", "a_b", "a*", "x" * 33, "a b"])
+def test_unusable_site_ids_are_refused(site):
+    with pytest.raises(TransportError, match=r"site id .* is not usable"):
+        NatsSettings(site=site)
 
 
 @pytest.mark.parametrize(
@@ -260,7 +293,7 @@ def test_mqtt_cameras_through_nats_to_the_matcher(server, wildtrack_root, tmp_pa
 
         def consumer_exists() -> bool:
             try:
-                probe.call(probe.jetstream.consumer_info(DETECTIONS_STREAM, "cblrs-plane-1"), 5)
+                probe.call(probe.jetstream.consumer_info(detections_stream(1), "cblrs-plane-1"), 5)
                 return True
             except Exception:
                 return False
@@ -345,7 +378,7 @@ def test_analytics_events_flow_on_the_backbone_stored_once(server, transports, t
     async def stored_in_stream() -> int:
         client = await nats.connect(server.url)
         try:
-            info = await client.jetstream().stream_info("CBLRS_TRACKS",
+            info = await client.jetstream().stream_info("CBLRS_P5_TRACKS",
                                                         subjects_filter="cblrs.5.events")
             return int((info.state.subjects or {}).get("cblrs.5.events", 0))
         finally:

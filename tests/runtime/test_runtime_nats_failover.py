@@ -36,10 +36,10 @@ from cblrs.reference import ReferenceImage
 from cblrs.runtime.camera_node import CameraNode
 from cblrs.runtime.nats_server import NatsCluster, find_nats_server
 from cblrs.runtime.nats_transport import (
-    DETECTIONS_STREAM,
-    TRACKS_STREAM,
     NatsSettings,
     NatsTransport,
+    detections_stream,
+    tracks_stream,
 )
 from cblrs.runtime.sources import scene_source
 from cblrs.runtime.store import RuntimeStore
@@ -130,8 +130,8 @@ def counter(database, name: str) -> int:
 def wait_for_consumer(probe: NatsTransport, timeout: float = 60) -> None:
     def ready() -> bool:
         try:
-            probe.call(probe.jetstream.consumer_info(DETECTIONS_STREAM, f"cblrs-plane-{PLANE}"),
-                       5)
+            probe.call(probe.jetstream.consumer_info(detections_stream(PLANE),
+                                                     f"cblrs-plane-{PLANE}"), 5)
             return True
         except Exception:
             return False
@@ -141,17 +141,30 @@ def wait_for_consumer(probe: NatsTransport, timeout: float = 60) -> None:
 
 def stream_leader(probe: NatsTransport) -> str | None:
     try:
-        return probe.call(probe.jetstream.stream_info(DETECTIONS_STREAM), 5).cluster.leader
+        return probe.call(probe.jetstream.stream_info(detections_stream(PLANE)), 5).cluster.leader
     except Exception:
         return None
 
 
+def _get_message(probe: NatsTransport, sequence: int):
+    """One stored track update; asked again while the stream settles after a leader change
+    (a replica can answer "bad request" for a moment)."""
+    for attempt in range(20):
+        try:
+            return probe.call(probe.jetstream.get_msg(tracks_stream(PLANE), sequence), 10)
+        except Exception:
+            if attempt == 19:
+                raise
+            time.sleep(0.25)
+    raise AssertionError("unreachable")
+
+
 def track_updates_per_group(probe: NatsTransport) -> dict[float, int]:
     """How many stored updates the CBLRS_TRACKS stream holds per capture timestamp."""
-    info = probe.call(probe.jetstream.stream_info(TRACKS_STREAM), 10)
+    info = probe.call(probe.jetstream.stream_info(tracks_stream(PLANE)), 10)
     counts: dict[float, int] = {}
     for sequence in range(info.state.first_seq, info.state.last_seq + 1):
-        message = probe.call(probe.jetstream.get_msg(TRACKS_STREAM, sequence), 10)
+        message = _get_message(probe, sequence)
         update = decode_tracks(message.data)
         if len(update.tracks):
             timestamp = float(update.tracks.timestamp[0])

@@ -3,7 +3,10 @@
 ``--backbone nats://host:port[,host:port...]`` switches a camera or a matcher from MQTT to
 NATS JetStream (:mod:`cblrs.runtime.nats_transport`); cameras may also stay on MQTT and
 publish to the NATS server's MQTT listener (``--broker HOST:MQTTPORT``; the default
-``--mqtt-version auto`` falls back to 3.1.1, the version NATS speaks).
+``--mqtt-version auto`` falls back to 3.1.1, the version NATS speaks). The login and TLS
+options (``--username``, ``--password-file``, ``--ca-file``, ``--cert-file``, ``--key-file``)
+serve both backbones; ``--site-id`` prefixes every NATS subject so several sites share one
+cluster.
 """
 
 from __future__ import annotations
@@ -23,6 +26,12 @@ def add_backbone_options(parser: argparse.ArgumentParser, matcher: bool) -> None
         help="nats://host:port[,host:port...]: use NATS JetStream (give every node of a "
         "cluster); default: MQTT at --broker",
     )
+    group.add_argument(
+        "--site-id",
+        metavar="ID",
+        help="NATS: the site's id, a prefix of every subject (cblrs.ID.PLANE...) so several "
+        "sites share one cluster; plane ids are then unique per site (default: none)",
+    )
     if not matcher:
         return
     group.add_argument(
@@ -31,7 +40,7 @@ def add_backbone_options(parser: argparse.ArgumentParser, matcher: bool) -> None
         default=10.0,
         metavar="SECONDS",
         help="NATS: the plane lease outlives a dead matcher by this long (default 10; set "
-        "when the lease bucket is created)",
+        "when the lease bucket is created, by --prepare with the admin's login)",
     )
     group.add_argument(
         "--lease-wait",
@@ -71,13 +80,18 @@ def nats_settings(args: argparse.Namespace, **options: Any) -> Any:
     # lazy: a subcommand imports the library when it runs, so its --help starts fast
     from cblrs.cli.camera import read_password
     from cblrs.runtime.nats_transport import NatsSettings
+    from cblrs.runtime.transport import TransportError
 
     try:
         return NatsSettings.from_url(
-            args.backbone, username=args.username, password=read_password(args), **options
+            args.backbone, username=args.username, password=read_password(args),
+            ca_file=args.ca_file, cert_file=args.cert_file, key_file=args.key_file,
+            site=args.site_id, **options
         )
     except ValueError as error:
         raise UsageError(f"--backbone: {error}") from None
+    except TransportError as error:
+        raise UsageError(f"--site-id: {error}") from None
 
 
 def matcher_transport(
@@ -96,29 +110,33 @@ def matcher_transport(
             start (the store is rebuilt from the stream).
     """
     # lazy: a subcommand imports the library when it runs, so its --help starts fast
-    from cblrs.runtime.nats_transport import LeaseSettings, NatsTransport
+    from cblrs.runtime.nats_transport import LeaseSettings, NatsTransport, lease_key
 
     if args.lease_ttl <= 0 or args.lease_wait < 0 or args.retention_hours <= 0:
         raise UsageError("--lease-ttl and --retention-hours must be > 0, --lease-wait >= 0.")
+    # --prepare (with the admin's login) creates the plane's streams, consumer and the
+    # lease bucket; a matcher's own login may not (see docs/security.md).
     settings = nats_settings(
         args, replicas=args.replicas, retention_s=args.retention_hours * 3600.0,
-        publish_window=64,
+        manage=True if args.prepare else None,
     )
+    where = f"plane {plane_id}" + (f" of site {args.site_id}" if args.site_id else "")
     return NatsTransport(
         matcher_id,
         settings,
         durable=f"cblrs-plane-{plane_id}",
         replay=rebuild,
-        lease=LeaseSettings(f"plane-{plane_id}", args.lease_ttl, args.lease_wait,
-                            f"plane {plane_id}"),
+        lease=LeaseSettings(lease_key(plane_id, args.site_id), args.lease_ttl, args.lease_wait,
+                            where),
         will=will,
         on_failure=on_failure,
     )
 
 
 def camera_transport(args: argparse.Namespace, client_id: str) -> Any:
-    """A camera's NATS transport: JetStream publishes, one at a time so they stay in order."""
+    """A camera's NATS transport: JetStream publishes in order, a window of them awaiting the
+    stream's acknowledgement at once."""
     # lazy: a subcommand imports the library when it runs, so its --help starts fast
     from cblrs.runtime.nats_transport import NatsTransport
 
-    return NatsTransport(client_id, nats_settings(args, publish_window=1))
+    return NatsTransport(client_id, nats_settings(args))

@@ -11,6 +11,12 @@ JetStream lacks multi-filter consumers).
     server_name, listen (clients), http (monitoring), jetstream { store_dir },
     cluster { name, listen, routes } (with several nodes), mqtt { listen } (optional)
 
+and, given the :class:`~cblrs.runtime.nats_auth.NatsSecurity` of
+:func:`~cblrs.runtime.nats_auth.write_nats_security`, its users and permissions
+(``authorization``), TLS on the client, MQTT and route ports, and monitoring on loopback
+only (its pages list connections and subscriptions). :func:`write_nats_backbone` writes a
+whole secured cluster's files at once (``cblrs broker-config --backbone nats``).
+
 Example:
     >>> cluster = NatsCluster.create(tmp_path, nodes=3, mqtt=True).start()  # doctest: +SKIP
     >>> cluster.urls                        # doctest: +SKIP
@@ -32,7 +38,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from cblrs.errors import CblrsError
-from cblrs.runtime.broker import free_port
+from cblrs.runtime.mosquitto import free_port
+from cblrs.runtime.nats_auth import NatsSecurity
 
 logger = logging.getLogger(__name__)
 
@@ -122,41 +129,62 @@ class NatsNodeConfig:
 
 def write_nats_config(
     node: NatsNodeConfig,
-    routes: Sequence[int] = (),
+    routes: Sequence[int | str] = (),
     cluster_name: str = "cblrs",
     max_file_store: str = "4G",
+    security: NatsSecurity | None = None,
 ) -> Path:
     """Write ``node``'s configuration file (JetStream on, optional cluster and MQTT).
 
     Args:
         node: the node.
-        routes: the route ports of every node of the cluster (its own is skipped).
+        routes: every node's route, as a port on ``node.host`` or ``host:port`` (its own is
+            skipped).
         cluster_name: the cluster's name.
         max_file_store: JetStream file storage limit of the node.
+        security: users, permissions and TLS (None: anyone may connect and do anything,
+            for local trials only).
     """
     node.directory.mkdir(parents=True, exist_ok=True)
+    monitor_host = node.host if security is None else "127.0.0.1"
     lines = [
+        "# Written by cblrs. Start with:",
+        f"#   nats-server -c {node.config_path}",
         f'server_name: "{node.name}"',
         f'listen: "{node.host}:{node.port}"',
-        f'http: "{node.host}:{node.monitor_port}"',
+        f'http: "{monitor_host}:{node.monitor_port}"',
         "jetstream {",
         f'  store_dir: "{node.store_directory}"',
         "  max_memory_store: 256M",
         f"  max_file_store: {max_file_store}",
         "}",
     ]
+    if security is not None:
+        lines += security.authorization_lines() + security.tls_lines()
     if node.cluster_port is not None:
-        others = [port for port in routes if port != node.cluster_port]
+        own = {node.cluster_port, f"{node.host}:{node.cluster_port}"}
+        others = [route if isinstance(route, str) else f"{node.host}:{route}"
+                  for route in routes if route not in own]
         lines += [
             "cluster {",
             f'  name: "{cluster_name}"',
             f'  listen: "{node.host}:{node.cluster_port}"',
-            "  routes: [" + ", ".join(f'"nats-route://{node.host}:{p}"' for p in others) + "]",
-            "}",
+            "  routes: [" + ", ".join(f'"nats-route://{route}"' for route in others) + "]",
         ]
+        if security is not None:
+            lines += security.tls_lines("  ", route=True)
+        lines.append("}")
     if node.mqtt_port is not None:
-        lines += ["mqtt {", f'  listen: "{node.host}:{node.mqtt_port}"', "}"]
-    node.config_path.write_text("\n".join(lines) + "\n")
+        lines += ["mqtt {", f'  listen: "{node.host}:{node.mqtt_port}"']
+        if security is not None:
+            lines += security.tls_lines("  ")
+        lines.append("}")
+    if security is None:
+        node.config_path.write_text("\n".join(lines) + "\n")
+    else:  # password hashes only, yet nobody else needs to read them
+        from cblrs.runtime.credentials import write_private
+
+        write_private(node.config_path, "\n".join(lines) + "\n")
     return node.config_path
 
 
@@ -269,12 +297,18 @@ class NatsCluster:
     def __init__(self, nodes: Sequence[NatsNodeConfig]):
         self.configs = list(nodes)
         self.nodes = [NatsServerProcess(node) for node in self.configs]
+        self.security: NatsSecurity | None = None
 
     @classmethod
     def create(
-        cls, directory: str | Path, nodes: int = 1, *, mqtt: bool = False, host: str = "127.0.0.1"
+        cls, directory: str | Path, nodes: int = 1, *, mqtt: bool = False,
+        host: str = "127.0.0.1", security: NatsSecurity | None = None,
     ) -> NatsCluster:
         """Configure ``nodes`` servers under ``directory`` on free ports (each its own store).
+
+        Args:
+            security: users, permissions and TLS of every node (see
+                :func:`~cblrs.runtime.nats_auth.write_nats_security`); None: open servers.
 
         Raises:
             NatsServerError: no usable ``nats-server`` binary.
@@ -297,8 +331,10 @@ class NatsCluster:
         ]
         routes = [config.cluster_port for config in configs if config.cluster_port is not None]
         for config in configs:
-            write_nats_config(config, routes)
-        return cls(configs)
+            write_nats_config(config, routes, security=security)
+        cluster = cls(configs)
+        cluster.security = security
+        return cluster
 
     @property
     def urls(self) -> list[str]:

@@ -48,11 +48,14 @@ it are what only this transport uses.
 from __future__ import annotations
 
 import asyncio
+import bisect
 import functools
 import json
 import logging
 import os
+import re
 import socket
+import ssl
 import threading
 import time
 from collections import deque
@@ -62,16 +65,26 @@ from typing import Any
 
 import msgspec
 
-from cblrs.runtime.topics import topic_matches, validate_filter, validate_topic
+from cblrs.runtime.topics import (
+    MAX_PLANE_ID,
+    ROOT,
+    topic_matches,
+    validate_filter,
+    validate_topic,
+)
 from cblrs.runtime.transport import Handler, TransportError, Will, _HandlerTable, _Incoming
 
 logger = logging.getLogger(__name__)
 
-DETECTIONS_STREAM = "CBLRS"
-DETECTIONS_SUBJECTS = ("cblrs.*.*.detections", "cblrs.*.*.status")
-TRACKS_STREAM = "CBLRS_TRACKS"
-TRACKS_SUBJECTS = ("cblrs.*.tracks", "cblrs.*.events")
+LEGACY_DETECTIONS_STREAM = "CBLRS"
+"""The one stream of every plane that cblrs before per-plane streams created (still used by a
+deployment that has it; see :meth:`NatsTransport._resolve_stream`)."""
+LEGACY_TRACKS_STREAM = "CBLRS_TRACKS"
 LEASE_BUCKET = "cblrs_leases"
+SITE_PATTERN = r"[A-Za-z][A-Za-z0-9-]{0,31}"
+"""Site ids: a letter, then letters, digits or ``-`` (never a plane's decimal token, never a
+character a stream name forbids)."""
+_SITE = re.compile(SITE_PATTERN)
 
 
 def _import_nats() -> Any:
@@ -115,13 +128,88 @@ def subject_matches(pattern: str, subject: str) -> bool:
     )
 
 
-def stream_of(subject: str) -> str | None:
-    """The cblrs stream that stores ``subject``, or None (a plain NATS subject)."""
-    for stream, patterns in ((DETECTIONS_STREAM, DETECTIONS_SUBJECTS),
-                             (TRACKS_STREAM, TRACKS_SUBJECTS)):
-        if any(subject_matches(pattern, subject) for pattern in patterns):
-            return stream
+def validate_site(site: str) -> str:
+    """Return ``site`` if it is a usable site id (see :data:`SITE_PATTERN`), else raise."""
+    if not isinstance(site, str) or not _SITE.fullmatch(site):
+        raise TransportError(
+            f"site id {site!r} is not usable: use a letter, then up to 31 letters, digits or "
+            "'-'."
+        )
+    return site
+
+
+def subject_root(site: str | None = None) -> str:
+    """``cblrs`` (no site: the layout of a cluster with one site) or ``cblrs.<site>``."""
+    return ROOT if site is None else f"{ROOT}.{site}"
+
+
+@functools.lru_cache(maxsize=4096)
+def site_subject(topic: str, site: str | None = None) -> str:
+    """The subject of an MQTT topic (or filter) for ``site``: ``cblrs/1/c/detections`` is
+    ``cblrs.<site>.1.c.detections`` (``cblrs.1.c.detections`` without a site)."""
+    subject = topic_to_subject(topic)
+    if site is None:
+        return subject
+    head, dot, rest = subject.partition(".")
+    return f"{ROOT}.{site}{dot}{rest}" if head == ROOT else subject
+
+
+@functools.lru_cache(maxsize=4096)
+def site_topic(subject: str, site: str | None = None) -> str:
+    """The MQTT topic of a subject of ``site`` (inverse of :func:`site_subject`)."""
+    if site is not None and subject.startswith(f"{ROOT}.{site}."):
+        subject = ROOT + subject[len(ROOT) + len(site) + 1:]
+    return subject_to_topic(subject)
+
+
+def detections_stream(plane_id: int, site: str | None = None) -> str:
+    """The stream of one plane's detections and camera status: ``CBLRS_P<plane>`` or
+    ``CBLRS_<site>_P<plane>``."""
+    return f"CBLRS_P{plane_id}" if site is None else f"CBLRS_{site}_P{plane_id}"
+
+
+def tracks_stream(plane_id: int, site: str | None = None) -> str:
+    """The stream of one plane's track updates and analytics events."""
+    return detections_stream(plane_id, site) + "_TRACKS"
+
+
+def stream_subjects(stream: str, plane_id: int, site: str | None = None) -> list[str]:
+    """The subjects ``stream`` (one of a plane's two) stores."""
+    root = subject_root(site)
+    if stream == tracks_stream(plane_id, site):
+        return [f"{root}.{plane_id}.tracks", f"{root}.{plane_id}.events"]
+    return [f"{root}.{plane_id}.*.detections", f"{root}.{plane_id}.*.status"]
+
+
+def lease_key(plane_id: int, site: str | None = None) -> str:
+    """The plane's key in the lease bucket: ``plane-<plane>`` or ``<site>.plane-<plane>``."""
+    return f"plane-{plane_id}" if site is None else f"{site}.plane-{plane_id}"
+
+
+def _classify(subject: str, site: str | None) -> tuple[str, int] | None:
+    """``("detections" | "tracks", plane)`` for a subject (or filter) a plane's stream holds."""
+    root = subject_root(site) + "."
+    if not subject.startswith(root):
+        return None
+    tokens = subject[len(root):].split(".")
+    plane = tokens[0]
+    if not plane.isdigit() or plane != str(int(plane)) or not 1 <= int(plane) <= MAX_PLANE_ID:
+        return None
+    if len(tokens) == 3 and tokens[2] in ("detections", "status"):
+        return "detections", int(plane)
+    if len(tokens) == 2 and tokens[1] in ("tracks", "events"):
+        return "tracks", int(plane)
     return None
+
+
+def stream_of(subject: str, site: str | None = None) -> str | None:
+    """The stream that stores ``subject`` (a plane's detections or tracks stream), or None
+    (a plain NATS subject, e.g. a matcher's status or the live summary)."""
+    kind = _classify(subject, site)
+    if kind is None:
+        return None
+    maker = detections_stream if kind[0] == "detections" else tracks_stream
+    return maker(kind[1], site)
 
 
 class _MessageKey(msgspec.Struct):
@@ -205,6 +293,14 @@ class NatsSettings:
         servers: ``nats://host:port`` of one or more nodes (the client fails over).
         username: user name (None: none).
         password: password; from the environment or a 0600 file, never the repository.
+        ca_file: CA certificate that signed the servers' (TLS; None: no TLS).
+        cert_file: this client's certificate, when the servers require one.
+        key_file: the certificate's private key.
+        site: the site id every subject is prefixed with (``cblrs.<site>.<plane>...``), so
+            several sites share one cluster; None: ``cblrs.<plane>...``.
+        manage: create missing streams and the lease bucket (an administrator's right);
+            None: when there is no username (a local server without users). Without it a
+            missing stream or bucket is one sentence saying who creates it.
         connect_timeout_s: how long ``connect()`` waits for a server.
         reconnect_wait_s: delay between reconnection attempts.
         replicas: stream replicas; None: 3 on a cluster, else 1.
@@ -214,13 +310,20 @@ class NatsSettings:
         max_ack_pending: deliveries awaiting acknowledgement, at most.
         pull_batch: messages asked for per pull request.
         heartbeat_s: idle heartbeat of pull requests (a silent consumer is asked again).
-        publish_timeout_s: wait for a stream's acknowledgement before retrying.
-        publish_window: stream publishes awaiting acknowledgement at once; 1 keeps order.
+        publish_timeout_s: wait for a stream's acknowledgement before sending again.
+        publish_window: stream publishes sent and awaiting acknowledgement at once; they
+            leave in order on one connection, and what is not acknowledged is sent again in
+            that order.
     """
 
     servers: tuple[str, ...] = ("nats://127.0.0.1:4222",)
     username: str | None = None
     password: str | None = field(default=None, repr=False)
+    ca_file: str | os.PathLike | None = None
+    cert_file: str | os.PathLike | None = None
+    key_file: str | os.PathLike | None = None
+    site: str | None = None
+    manage: bool | None = None
     connect_timeout_s: float = 5.0
     reconnect_wait_s: float = 0.25
     replicas: int | None = None
@@ -231,7 +334,43 @@ class NatsSettings:
     pull_batch: int = 500
     heartbeat_s: float = 1.0
     publish_timeout_s: float = 2.0
-    publish_window: int = 1
+    publish_window: int = 256
+
+    def __post_init__(self) -> None:
+        if self.site is not None:
+            validate_site(self.site)
+        if self.publish_window < 1:
+            raise ValueError(f"publish_window must be at least 1, got {self.publish_window}.")
+
+    @property
+    def manages(self) -> bool:
+        """Whether this client creates missing streams and buckets (see ``manage``)."""
+        return self.username is None if self.manage is None else self.manage
+
+    @property
+    def inbox_prefix(self) -> str:
+        """Where answers to this client go: ``_INBOX.<user>`` with a username (its
+        permissions let only it read there), else ``_INBOX``."""
+        if self.username is None:
+            return "_INBOX"
+        return f"_INBOX.{self.username.replace('.', '//')}"
+
+    def tls_context(self) -> ssl.SSLContext | None:
+        """The TLS context of ``ca_file``/``cert_file``/``key_file`` (None without TLS).
+
+        Raises:
+            TransportError: a file is missing or unreadable.
+        """
+        if self.ca_file is None:
+            return None
+        try:
+            context = ssl.create_default_context(cafile=str(self.ca_file))
+            if self.cert_file is not None:
+                context.load_cert_chain(str(self.cert_file),
+                                        None if self.key_file is None else str(self.key_file))
+        except (OSError, ssl.SSLError) as error:
+            raise TransportError(f"cannot use the TLS files for NATS: {error}.") from None
+        return context
 
     @classmethod
     def from_url(cls, url: str, **options: Any) -> NatsSettings:
@@ -269,9 +408,9 @@ class NatsTransport:
     Args:
         client_id: the connection name (and the lease holder's name).
         settings: servers, credentials, stream and consumer settings.
-        durable: name of the durable consumer that serves the subscriptions falling in the
-            ``CBLRS`` stream (one per plane: ``cblrs-plane-<plane>``); None: subscriptions
-            are plain NATS subscriptions (live only).
+        durable: name of the durable consumer that serves the subscriptions falling in a
+            plane's detections stream (one per plane: ``cblrs-plane-<plane>``); None:
+            subscriptions are plain NATS subscriptions (live only).
         replay: on connect, rebuild the durable consumer so that it delivers the stream's
             messages from the first one again (a matcher rebuilding an empty store).
         lease: hold this lease while connected (see :class:`LeaseSettings`).
@@ -301,7 +440,14 @@ class NatsTransport:
         self.on_failure = on_failure
         self.persistent = persistent
         self.refused_publishes = 0
-        """Stream publishes refused for good (e.g. a stream limit); retried ones don't count."""
+        """Stream publishes refused for good (a stream limit, a subject this login may not
+        publish on); retried ones don't count."""
+        self.reordered = 0
+        """Publishes stored after a later one of this client: sent again after a failure
+        (e.g. a stream leader lost) while a later one in the window was stored."""
+        self.refused_subscriptions: list[str] = []
+        """Subjects the servers refused this login (permissions; in lower case), latest
+        last."""
         self.lease_lost = False
         self._lease_paused = False
         self._held: list[_Incoming] = []
@@ -318,8 +464,25 @@ class NatsTransport:
         self._connected_at = time.time()
         self._condition = threading.Condition()
         self._pending = 0
-        self._publishes: asyncio.Queue | None = None
-        self._senders: list[asyncio.Task] = []
+        self._outgoing: deque[_Outgoing] = deque()
+        self._resend: list[_Outgoing] = []  # failed publishes, by order, sent first
+        self._in_flight: dict[str, _Outgoing] = {}  # reply token -> publish
+        self._abandoned: dict[str, _Outgoing] = {}  # tokens given up on (timeout), by token
+        self._publish_wake: asyncio.Event | None = None
+        self._publisher: asyncio.Task | None = None
+        self._ack_prefix = ""
+        self._next_order = 0
+        self._stored_order = -1
+        self._retry_at = 0.0
+        self._retry_delay = 0.05
+        self._streams: dict[str, str] = {}  # a plane's stream name -> the stream used
+        self._stream_locks: dict[str, asyncio.Lock] = {}
+        self._consumer_stream = ""
+        self._warned_no_stream: set[str] = set()
+        self.refused_subjects: deque[str] = deque(maxlen=64)
+        """Subjects the servers refused a publish (or request) of this login on, in lower
+        case, latest last."""
+        self._site = self.settings.site
         self._acks: deque[str] = deque()
         self._ack_scheduled = False
         self._ack_task: asyncio.Future | None = None
@@ -386,15 +549,15 @@ class NatsTransport:
         if qos not in (0, 1):
             raise TransportError(f"QoS must be 0 or 1, got {qos}.")
         loop = self._require_loop()
-        subject = topic_to_subject(topic)
+        subject = site_subject(topic, self._site)
         data = bytes(payload)
-        if qos == 0 or stream_of(subject) is None:
+        if qos == 0 or stream_of(subject, self._site) is None:
             loop.call_soon_threadsafe(self._publish_core, subject, data)
             return
         with self._condition:
             self._pending += 1
-        loop.call_soon_threadsafe(self._enqueue_publish, (subject, data,
-                                                          message_id(subject, data)))
+        loop.call_soon_threadsafe(self._enqueue_publish, subject, data,
+                                  message_id(subject, data))
 
     def subscribe(self, topic_filter: str, handler: Handler, qos: int = 1) -> None:
         """Subscribe a handler to a topic filter (see
@@ -406,8 +569,9 @@ class NatsTransport:
         self._handlers.add(topic_filter, handler)
         if not new:
             return
-        subject = topic_to_subject(topic_filter)
-        if self.durable is not None and stream_of(subject) == DETECTIONS_STREAM:
+        subject = site_subject(topic_filter, self._site)
+        kind = _classify(subject, self._site)
+        if self.durable is not None and kind is not None and kind[0] == "detections":
             if self._started:
                 # Widening a consumer's filter later would skip what it had passed already.
                 raise TransportError(
@@ -500,7 +664,12 @@ class NatsTransport:
         settings = self.settings
 
         async def on_error(error: Exception) -> None:
-            logger.debug("%s: NATS: %s", self.client_id, error)
+            text = str(error)
+            denied = _PERMISSION.search(text)
+            if denied is not None:
+                self._permission_denied(denied[1].lower(), denied[2])
+            else:
+                logger.debug("%s: NATS: %s", self.client_id, error)
 
         async def on_disconnected() -> None:
             self._connected.clear()
@@ -514,31 +683,59 @@ class NatsTransport:
             logger.info("%s: reconnected to %s", self.client_id,
                         self._nc.connected_url.netloc if self._nc else "?")
 
-        try:
-            self._nc = await nats.connect(
-                servers=list(settings.servers),
-                name=self.client_id,
-                user=settings.username,
-                password=settings.password,
-                connect_timeout=max(1, round(settings.connect_timeout_s)),
-                reconnect_time_wait=settings.reconnect_wait_s,
-                max_reconnect_attempts=-1,
-                allow_reconnect=True,
-                error_cb=on_error,
-                disconnected_cb=on_disconnected,
-                reconnected_cb=on_reconnected,
-                pending_size=64 * 1024 * 1024,
-            )
-        except Exception as error:
+        tls = settings.tls_context()
+        refusals: list[str] = []
+
+        async def on_first_error(error: Exception) -> None:
+            # nats-py keeps retrying a first connection; a refused login or TLS handshake
+            # will not get better, so it ends the attempt (an absent server is waited for).
+            text = str(error) or type(error).__name__
+            lowered = text.lower()
+            if "authorization" in lowered:
+                refusals.append(f"the servers refused the login {settings.username or '(none)'}"
+                                " (wrong or missing user name and password)")
+            elif isinstance(error, ssl.SSLError) or "tls" in lowered or "ssl" in lowered \
+                    or "certificate" in lowered:
+                refusals.append(f"TLS failed ({text}); the servers require TLS with a client "
+                                "certificate signed by their CA (--ca-file, --cert-file, "
+                                "--key-file)")
+            await on_error(error)
+
+        connecting = asyncio.ensure_future(nats.connect(
+            servers=list(settings.servers),
+            name=self.client_id,
+            user=settings.username,
+            password=settings.password,
+            tls=tls,
+            inbox_prefix=settings.inbox_prefix,
+            connect_timeout=max(1, round(settings.connect_timeout_s)),
+            reconnect_time_wait=settings.reconnect_wait_s,
+            max_reconnect_attempts=-1,
+            allow_reconnect=True,
+            error_cb=on_first_error,
+            disconnected_cb=on_disconnected,
+            reconnected_cb=on_reconnected,
+            pending_size=64 * 1024 * 1024,
+        ))
+        while not connecting.done() and not refusals:
+            await asyncio.wait({connecting}, timeout=0.05)
+        if refusals and not connecting.done():
+            connecting.cancel()
+            await asyncio.gather(connecting, return_exceptions=True)
+        error = None if not connecting.done() or connecting.cancelled() \
+            else connecting.exception()
+        if refusals or error is not None:
+            reason = refusals[0] if refusals else (str(error) or type(error).__name__)
             raise TransportError(
                 f"{self.client_id}: cannot connect to NATS at {', '.join(settings.servers)}: "
-                f"{error or type(error).__name__}."
-            ) from None
+                f"{reason}."
+            )
+        self._nc = connecting.result()
+        self._nc._error_cb = on_error
         self._js = self._nc.jetstream(timeout=settings.publish_timeout_s * 2)
         self._connected_at = time.time()
         self._connected.set()
         try:
-            await self._ensure_streams()
             if self.lease is not None:
                 await self._acquire_lease()
         except BaseException as error:
@@ -550,9 +747,10 @@ class NatsTransport:
                 f"{self.client_id}: NATS JetStream did not answer ({error or type(error).__name__}"
                 "); is JetStream enabled and does the cluster have a leader?"
             ) from None
-        self._publishes = asyncio.Queue()
-        self._senders = [asyncio.get_running_loop().create_task(self._send_publishes())
-                         for _ in range(max(1, settings.publish_window))]
+        self._publish_wake = asyncio.Event()
+        self._ack_prefix = self._nc.new_inbox() + "."
+        await self._nc.subscribe(self._ack_prefix + "*", cb=self._on_publish_answer)
+        self._publisher = asyncio.get_running_loop().create_task(self._publish_loop())
 
     async def _start(self) -> None:
         for topic_filter in list(self._core):
@@ -562,7 +760,7 @@ class NatsTransport:
 
     async def _close(self, release: bool) -> None:
         self._closing = True
-        tasks = [task for task in (self._pull_task, self._lease_task, *self._senders) if task]
+        tasks = [task for task in (self._pull_task, self._lease_task, self._publisher) if task]
         for task in tasks:
             task.cancel()
         await asyncio.gather(*tasks, return_exceptions=True)
@@ -585,13 +783,48 @@ class NatsTransport:
         self._connected.clear()
 
     async def _subscribe_core(self, topic_filter: str) -> None:
+        site = self._site
+
         async def deliver(msg: Any) -> None:
             self._handlers.dispatch(_Incoming(
-                subject_to_topic(msg.subject), msg.data, False, False, 0, _no_ack,
+                site_topic(msg.subject, site), msg.data, False, False, 0, _no_ack,
                 (topic_filter,)))
 
-        self._core[topic_filter] = await self._nc.subscribe(
-            topic_to_subject(topic_filter), cb=deliver)
+        subject = site_subject(topic_filter, site)
+        self._core[topic_filter] = await self._nc.subscribe(subject, cb=deliver)
+        try:
+            # Two round trips: the servers' -ERR for a refused subscription was seen after
+            # the first PONG in ~4 % of tries here, never after the second (1500 tries).
+            for _ in range(2):
+                await self._nc.flush(timeout=self.settings.connect_timeout_s)
+        except Exception:  # the refusal is still logged when the -ERR comes
+            return
+        if subject.lower() in self.refused_subscriptions:
+            raise TransportError(
+                f"{self.client_id}: the NATS servers refused the subscription to {subject}: "
+                f"the login {self.settings.username} may not read it."
+            )
+
+    def _permission_denied(self, operation: str, subject: str) -> None:
+        """The servers refused ``operation`` ("publish" or "subscription") on ``subject``.
+
+        nats-py hands the servers' error over in lower case, so subjects are compared in
+        lower case (camera ids that differ only in case would be confused here).
+        """
+        if operation.startswith("sub"):
+            self.refused_subscriptions.append(subject)
+            logger.error("%s: the NATS servers refused the subscription to %s (permissions "
+                         "of the login %s)", self.client_id, subject, self.settings.username)
+            return
+        self.refused_subjects.append(subject)
+        reason = f"the login {self.settings.username} may not publish on {subject}"
+        waiting = [*self._in_flight.values(), *self._abandoned.values(), *self._resend]
+        refused = [item for item in waiting if item.subject.lower() == subject and not item.done]
+        for item in refused:
+            self._finish(item, refused=reason)
+        if not refused:
+            logger.error("%s: the NATS servers refused a publish on %s (permissions of the "
+                         "login %s)", self.client_id, subject, self.settings.username)
 
     # Internals: streams ------------------------------------------------------------------
 
@@ -601,31 +834,60 @@ class NatsTransport:
         info = self._nc._server_info or {}
         return 3 if info.get("cluster") else 1
 
-    async def _ensure_streams(self) -> None:
+    async def _resolve_stream(self, kind: str, plane_id: int) -> str:
+        """The stream that stores a plane's ``kind`` ("detections" or "tracks").
+
+        Its own stream (created if missing when this client manages streams); but a
+        deployment made by cblrs before per-plane streams has one ``CBLRS`` stream (and
+        ``CBLRS_TRACKS``) for every plane, which keeps serving it (with a warning once):
+        the server refuses a new stream whose subjects overlap an existing one's.
+        """
+        maker = detections_stream if kind == "detections" else tracks_stream
+        name = maker(plane_id, self._site)
+        if name in self._streams:
+            return self._streams[name]
+        lock = self._stream_locks.setdefault(name, asyncio.Lock())
+        async with lock:
+            if name not in self._streams:
+                self._streams[name] = await self._find_or_create(name, kind, plane_id)
+        return self._streams[name]
+
+    async def _find_or_create(self, name: str, kind: str, plane_id: int) -> str:
         # optional extra: pip install cblrs[nats]
         from nats.js.api import RetentionPolicy, StorageType, StreamConfig
         from nats.js.errors import BadRequestError, NotFoundError
 
-        replicas = await self._replicas()
-        for name, subjects in ((DETECTIONS_STREAM, DETECTIONS_SUBJECTS),
-                               (TRACKS_STREAM, TRACKS_SUBJECTS)):
+        if not self.settings.manages:
+            return name  # runtime logins may not look streams up; the admin made them
+        try:
+            await self._js.stream_info(name)
+            return name
+        except NotFoundError:
+            pass
+        if self._site is None:
+            legacy = LEGACY_DETECTIONS_STREAM if kind == "detections" else LEGACY_TRACKS_STREAM
             try:
-                await self._js.stream_info(name)
-                continue
+                await self._js.stream_info(legacy)
+                logger.warning(
+                    "%s: the NATS stream %s made by an older cblrs holds every plane's %s; "
+                    "using it (to give each plane its own stream %s, see docs/security.md, "
+                    "'Per-plane streams')", self.client_id, legacy, kind, name)
+                return legacy
             except NotFoundError:
                 pass
-            config = StreamConfig(
-                name=name, subjects=list(subjects), retention=RetentionPolicy.LIMITS,
-                storage=StorageType.FILE, max_age=self.settings.retention_s,
-                duplicate_window=self.settings.duplicate_window_s, num_replicas=replicas,
-                allow_direct=True,
-            )
-            try:
-                await self._js.add_stream(config)
-            except BadRequestError as error:
-                if "already in use" in str(error) or "already exists" in str(error):
-                    continue  # another client created it meanwhile
+        config = StreamConfig(
+            name=name, subjects=stream_subjects(name, plane_id, self._site),
+            retention=RetentionPolicy.LIMITS, storage=StorageType.FILE,
+            max_age=self.settings.retention_s, duplicate_window=self.settings.duplicate_window_s,
+            num_replicas=await self._replicas(), allow_direct=True,
+        )
+        try:
+            await self._js.add_stream(config)
+            logger.info("%s: created the NATS stream %s", self.client_id, name)
+        except BadRequestError as error:
+            if "already in use" not in str(error) and "already exists" not in str(error):
                 raise TransportError(f"cannot create the NATS stream {name}: {error}.") from None
+        return name
 
     async def _start_consumer(self) -> None:
         # optional extra: pip install cblrs[nats]
@@ -633,30 +895,95 @@ class NatsTransport:
         from nats.js.errors import NotFoundError
 
         assert self.durable is not None
-        subjects = sorted({topic_to_subject(topic_filter) for topic_filter in self._bound})
-        config = ConsumerConfig(
-            durable_name=self.durable, ack_policy=AckPolicy.EXPLICIT,
-            deliver_policy=DeliverPolicy.ALL, ack_wait=self.settings.ack_wait_s,
-            max_ack_pending=self.settings.max_ack_pending, max_deliver=-1,
-            filter_subjects=subjects if len(subjects) > 1 else None,
-            filter_subject=subjects[0] if len(subjects) == 1 else None,
-        )
-        if self.replay:
-            try:
-                await self._js.delete_consumer(DETECTIONS_STREAM, self.durable)
-                logger.info("%s: consumer %s reset to replay the stream", self.client_id,
-                            self.durable)
-            except NotFoundError:
-                pass
-            self.replay = False
-        try:
-            await self._js.add_consumer(DETECTIONS_STREAM, config)
-        except Exception as error:
+        subjects = sorted({site_subject(topic_filter, self._site)
+                           for topic_filter in self._bound})
+        planes = {kind[1] for subject in subjects if (kind := _classify(subject, self._site))}
+        if len(planes) != 1:
             raise TransportError(
-                f"{self.client_id}: cannot set up the consumer {self.durable}: {error}."
-            ) from None
+                f"{self.client_id}: the consumer {self.durable} serves one plane's stream; "
+                f"its subscriptions span planes {sorted(planes)}."
+            )
+        plane = planes.pop()
+        stream = await self._resolve_stream("detections", plane)
+        self._consumer_stream = stream
+        # A plane's own stream needs no filter when the subscriptions cover it; the legacy
+        # stream of every plane does.
+        filters: list[str] | None = subjects
+        if stream != LEGACY_DETECTIONS_STREAM and \
+                set(subjects) == set(stream_subjects(stream, plane, self._site)):
+            filters = None
+        if not self.settings.manages:
+            await self._check_consumer(stream)
+        else:
+            config = ConsumerConfig(
+                name=self.durable, durable_name=self.durable, ack_policy=AckPolicy.EXPLICIT,
+                deliver_policy=DeliverPolicy.ALL, ack_wait=self.settings.ack_wait_s,
+                max_ack_pending=self.settings.max_ack_pending, max_deliver=-1,
+                filter_subjects=filters if filters and len(filters) > 1 else None,
+                filter_subject=filters[0] if filters and len(filters) == 1 else None,
+            )
+            if self.replay:
+                try:
+                    await self._js.delete_consumer(stream, self.durable)
+                    logger.info("%s: consumer %s reset to replay the stream", self.client_id,
+                                self.durable)
+                except NotFoundError:
+                    pass
+                self.replay = False
+            try:
+                await self._js.add_consumer(stream, config)
+            except Exception as error:
+                raise TransportError(
+                    f"{self.client_id}: cannot set up the consumer {self.durable}: {error}."
+                ) from None
         self._pull_wake = asyncio.Event()
         self._pull_task = asyncio.get_running_loop().create_task(self._pull())
+
+    async def _check_consumer(self, stream: str) -> None:
+        """Without the right to create consumers: the admin's consumer must exist; a replay
+        resets it to the stream's first message (the one management call a matcher may make
+        on its own consumer, which cannot point it anywhere else)."""
+        from nats.js.errors import NotFoundError
+
+        assert self.durable is not None
+        try:
+            await self._js.consumer_info(stream, self.durable,
+                                         timeout=self.settings.connect_timeout_s)
+        except NotFoundError:
+            raise TransportError(
+                f"{self.client_id}: the NATS consumer {self.durable} of stream {stream} does "
+                "not exist; the backbone's admin creates the plane's streams and consumer "
+                "(cblrs matcher --prepare with the admin's login)."
+            ) from None
+        except Exception as failure:
+            raise TransportError(
+                f"{self.client_id}: cannot read the NATS consumer {self.durable} of stream "
+                f"{stream} ({self._denial_or(failure)})."
+            ) from None
+        if self.replay:
+            request = json.dumps({"seq": 1}).encode()
+            problem: dict[str, Any] | None
+            try:
+                answer = await self._nc.request(
+                    f"$JS.API.CONSUMER.RESET.{stream}.{self.durable}", request,
+                    timeout=self.settings.connect_timeout_s)
+                problem = json.loads(answer.data or b"{}").get("error")
+            except Exception as failure:
+                problem = {"description": self._denial_or(failure)}
+            if problem:
+                raise TransportError(
+                    f"{self.client_id}: cannot reset the consumer {self.durable} to replay "
+                    f"the stream: {problem.get('description', problem)}."
+                )
+            logger.info("%s: consumer %s reset to replay the stream", self.client_id,
+                        self.durable)
+            self.replay = False
+
+    def _denial_or(self, error: Exception) -> str:
+        """Why a request failed: the permission the servers refused, if they did."""
+        if self.refused_subjects:
+            return f"the login {self.settings.username} may not use {self.refused_subjects[-1]}"
+        return str(error) or type(error).__name__
 
     # Internals: pulling ------------------------------------------------------------------
 
@@ -665,7 +992,7 @@ class NatsTransport:
         nc, settings = self._nc, self.settings
         inbox = nc.new_inbox()
         await nc.subscribe(inbox, cb=self._on_pulled)
-        request_subject = f"$JS.API.CONSUMER.MSG.NEXT.{DETECTIONS_STREAM}.{self.durable}"
+        request_subject = f"$JS.API.CONSUMER.MSG.NEXT.{self._consumer_stream}.{self.durable}"
         batch = max(1, settings.pull_batch)
         expires_s = max(5.0, 5 * settings.heartbeat_s)
         assert self._pull_wake is not None
@@ -707,7 +1034,7 @@ class NatsTransport:
             self._pull_wake.set()  # type: ignore[union-attr]
         reply = msg.reply
         delivered, stamp = _ack_metadata(reply)
-        topic = subject_to_topic(msg.subject)
+        topic = site_topic(msg.subject, self._site)
         retain = topic.endswith("/status") and stamp < self._connected_at
         if self.lease_lost:
             return
@@ -750,42 +1077,139 @@ class NatsTransport:
             self._core_publishes.add(task)
             task.add_done_callback(self._core_publishes.discard)
 
-    def _enqueue_publish(self, item: tuple[str, bytes, str | None]) -> None:
-        assert self._publishes is not None
-        self._publishes.put_nowait(item)
+    def _enqueue_publish(self, subject: str, data: bytes, identifier: str | None) -> None:
+        self._outgoing.append(_Outgoing(subject, data, identifier, self._next_order))
+        self._next_order += 1
+        assert self._publish_wake is not None
+        self._publish_wake.set()
 
-    async def _send_publishes(self) -> None:
-        # optional extra: pip install cblrs[nats]
-        from nats.js.errors import APIError
-
-        assert self._publishes is not None
-        while True:
-            subject, data, identifier = await self._publishes.get()
-            headers = {"Nats-Msg-Id": identifier} if identifier else None
-            delay = 0.05
-            while True:
+    async def _publish_loop(self) -> None:
+        """Send stream publishes in order, up to ``publish_window`` awaiting their answer;
+        send again, in their order and before anything newer, those that failed."""
+        settings = self.settings
+        wake = self._publish_wake
+        assert wake is not None
+        counter = 0
+        # Not "while True": Python 3.11's wait_for can swallow a cancellation that arrives
+        # as the event is set, and close() must end this loop all the same.
+        while not self._closing:
+            now = time.monotonic()
+            expired = [token for token, item in self._in_flight.items()
+                       if now - item.sent_at > settings.publish_timeout_s]
+            for token in expired:
+                item = self._in_flight.pop(token)
+                self._abandoned[token] = item
+                self._retry(item, "no acknowledgement in time")
+            # After a failure, nothing is sent again until every publish in flight is
+            # answered or given up: then all that failed go again in their order, before
+            # anything newer (a later publish stored first would overtake them).
+            while (len(self._in_flight) < settings.publish_window and now >= self._retry_at
+                   and (self._resend or self._outgoing) and self._nc.is_connected
+                   and not (self._resend and self._in_flight)):
+                item = self._resend.pop(0) if self._resend else self._outgoing.popleft()
+                if item.done:
+                    continue
+                if item.subject.lower() in self.refused_subjects:  # permissions do not change
+                    self._finish(item, refused=f"the login {settings.username} may not publish "
+                                 f"on {item.subject}")
+                    continue
+                if settings.manages:
+                    kind = _classify(item.subject, self._site)
+                    if kind is not None:
+                        try:
+                            await self._resolve_stream(*kind)
+                        except Exception as error:
+                            self._retry(item, str(error))
+                            break
+                token = str(counter)
+                counter += 1
+                headers = {"Nats-Msg-Id": item.identifier} if item.identifier else None
+                item.sent_at = time.monotonic()
+                self._in_flight[token] = item
                 try:
-                    await self._js.publish(subject, data, timeout=self.settings.publish_timeout_s,
+                    await self._nc.publish(item.subject, item.data, reply=self._ack_prefix + token,
                                            headers=headers)
+                except Exception as error:  # reconnecting: nats-py refuses while closed
+                    self._in_flight.pop(token, None)
+                    self._retry(item, str(error) or type(error).__name__)
                     break
-                except APIError as error:
-                    if error.code in (503, None) or (error.code or 0) >= 500:
-                        pass  # no stream leader yet: retry
-                    else:
-                        self.refused_publishes += 1
-                        logger.warning("%s: stream refused a publish on %s: %s",
-                                       self.client_id, subject, error)
-                        break
-                except asyncio.CancelledError:
-                    raise
-                except Exception as error:  # timeout, no responders, reconnecting
-                    logger.debug("%s: publish on %s retried: %s", self.client_id, subject,
-                                 error or type(error).__name__)
-                await asyncio.sleep(delay)
-                delay = min(1.0, delay * 2)
-            with self._condition:
-                self._pending -= 1
-                self._condition.notify_all()
+            wake.clear()
+            waits = [1.0]
+            if self._in_flight:
+                oldest = min(item.sent_at for item in self._in_flight.values())
+                waits.append(oldest + settings.publish_timeout_s - time.monotonic())
+            if self._resend and self._retry_at > time.monotonic():
+                waits.append(self._retry_at - time.monotonic())
+            try:
+                await asyncio.wait_for(wake.wait(), max(0.001, min(waits)))
+            except TimeoutError:
+                pass
+
+    async def _on_publish_answer(self, msg: Any) -> None:
+        """A stream's answer to one of our publishes (or the servers' "no responders")."""
+        token = msg.subject[len(self._ack_prefix):]
+        item = self._in_flight.pop(token, None) or self._abandoned.pop(token, None)
+        if item is None or item.done:
+            return
+        headers = msg.headers or {}
+        if headers.get("Status") == "503" or not msg.data:
+            if item.subject not in self._warned_no_stream:
+                self._warned_no_stream.add(item.subject)
+                logger.warning("%s: no NATS stream answered a publish on %s (no stream "
+                               "leader at the moment, or the plane is not prepared: cblrs "
+                               "matcher --prepare with the admin's login); sending it again",
+                               self.client_id, item.subject)
+            self._retry(item, "no stream answered")
+            return
+        try:
+            answer = json.loads(msg.data)
+        except ValueError:
+            self._retry(item, "an unreadable answer")
+            return
+        error = answer.get("error")
+        if error:
+            code = error.get("code") or 0
+            if code == 503 or code >= 500:
+                self._retry(item, error.get("description", "no stream leader"))
+            else:
+                self._finish(item, refused=error.get("description", str(error)))
+            return
+        if item.resent and not answer.get("duplicate") and item.order < self._stored_order:
+            self.reordered += 1
+            logger.warning("%s: a publish on %s sent again was stored after a later one "
+                           "(%d so far)", self.client_id, item.subject, self.reordered)
+        self._stored_order = max(self._stored_order, item.order)
+        self._retry_delay = 0.05
+        self._finish(item)
+
+    def _retry(self, item: _Outgoing, reason: str) -> None:
+        """Send ``item`` again after a pause, before anything newer and in its order."""
+        if item.done:
+            return
+        logger.debug("%s: publish on %s sent again: %s", self.client_id, item.subject, reason)
+        item.resent = True
+        if item not in self._resend:
+            bisect.insort(self._resend, item, key=lambda entry: entry.order)
+        self._retry_at = time.monotonic() + self._retry_delay
+        self._retry_delay = min(1.0, self._retry_delay * 2)
+        if self._publish_wake is not None:
+            self._publish_wake.set()
+
+    def _finish(self, item: _Outgoing, refused: str | None = None) -> None:
+        if item.done:
+            return
+        item.done = True
+        if item.resent and item in self._resend:
+            self._resend.remove(item)
+        if refused is not None:
+            self.refused_publishes += 1
+            logger.warning("%s: the NATS servers refused a publish on %s for good: %s",
+                           self.client_id, item.subject, refused)
+        with self._condition:
+            self._pending -= 1
+            self._condition.notify_all()
+        if self._publish_wake is not None:
+            self._publish_wake.set()
 
     # Internals: lease --------------------------------------------------------------------
 
@@ -799,9 +1223,20 @@ class NatsTransport:
         try:
             kv = await self._js.key_value(LEASE_BUCKET)
         except BucketNotFoundError:
+            if not self.settings.manages:
+                raise TransportError(
+                    f"the NATS lease bucket {LEASE_BUCKET} does not exist; the backbone's admin "
+                    "creates it (cblrs matcher --prepare with the admin's login)."
+                ) from None
             kv = await self._js.create_key_value(KeyValueConfig(
-                bucket=LEASE_BUCKET, history=1, ttl=lease.ttl_s,
+                bucket=LEASE_BUCKET, history=1, ttl=lease.ttl_s, direct=True,
                 replicas=await self._replicas()))
+        except TransportError:
+            raise
+        except Exception as error:
+            raise TransportError(
+                f"cannot open the NATS lease bucket {LEASE_BUCKET}: {self._denial_or(error)}."
+            ) from None
         self._lease_kv = kv
         value = json.dumps({"holder": self.lease_holder, "since": time.time()}).encode()
         deadline = time.monotonic() + lease.wait_s
@@ -819,6 +1254,11 @@ class NatsTransport:
                         "has died"
                     ) from None
                 await asyncio.sleep(min(0.5, max(0.05, deadline - time.monotonic())))
+            except Exception as error:
+                raise TransportError(
+                    f"cannot take the lease {lease.key} of {lease.what or 'the plane'}: "
+                    f"{self._denial_or(error)}."
+                ) from None
         logger.info("%s: holds %s", self.client_id, lease.key)
         self._lease_task = asyncio.get_running_loop().create_task(self._renew_lease(value))
 
@@ -886,6 +1326,22 @@ class NatsTransport:
 
 def _no_ack() -> None:
     pass
+
+
+_PERMISSION = re.compile(r'permissions violation for (publish|subscription) to "([^"]+)"', re.I)
+
+
+@dataclass(eq=False)
+class _Outgoing:
+    """One stream publish: its place in this client's order, and whether it is settled."""
+
+    subject: str
+    data: bytes
+    identifier: str | None
+    order: int
+    sent_at: float = 0.0
+    resent: bool = False
+    done: bool = False
 
 
 async def _cancel_tasks() -> None:

