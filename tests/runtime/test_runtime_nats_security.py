@@ -231,7 +231,8 @@ def test_nobody_but_the_admin_deletes_or_creates_a_stream(backbone, clients, use
          "$js.api.stream.create.evil"),
         (client.jetstream.delete_consumer(stream, "cblrs-plane-1"),
          f"$js.api.consumer.delete.{stream.lower()}.cblrs-plane-1"),
-        (client.jetstream.delete_key_value("cblrs_leases"), "$js.api.stream.delete.kv_cblrs_leases"),
+        (client.jetstream.delete_key_value("cblrs_leases"),
+         "$js.api.stream.delete.kv_cblrs_leases"),
     ):
         with pytest.raises(Exception):  # noqa: B017 - the servers answer nothing: a timeout
             client.call(attempt, 3)
@@ -346,7 +347,8 @@ def test_the_servers_folder_holds_hashes_and_each_client_its_own_secrets(backbon
         assert f'user: "{user}", password: "$2a$' in config
     for path in security.directory.rglob("*"):
         if path.is_file():
-            assert not any(password.encode() in path.read_bytes() for password in passwords.values())
+            text = path.read_bytes()
+            assert not any(password.encode() in text for password in passwords.values())
             if path.suffix == ".key":
                 assert stat.S_IMODE(os.stat(path).st_mode) == 0o600
     assert stat.S_IMODE(os.stat(cluster.configs[0].config_path).st_mode) == 0o600
