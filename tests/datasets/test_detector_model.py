@@ -6,14 +6,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from cblrs.datasets.crowds import make_distorted_scene
+from cblrs.datasets.crowds import distorted_world
 from cblrs.datasets.detector_model import DetectorModel, covered_fraction, realistic_detections
+from cblrs.datasets.synthetic import SyntheticWorld
 from cblrs.errors import DatasetError
 
 
 @pytest.fixture(scope="module")
 def scene():
-    return make_distorted_scene(seed=2, people=40)
+    return SyntheticWorld(distorted_world(seed=2, people=40, duration_s=12.0)).scene()
 
 
 def test_covered_fraction_counts_nearer_boxes_only():

@@ -99,7 +99,7 @@ def covered_fraction(xyxy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     # An occluder of the lower part: nearer, covering at least half the box's width, with
     # its top between the box's middle and bottom.
     middle = (y1 + y2) / 2
-    lower = nearer & (width >= 0.5 * (x2 - x1)[:, None]) & (y1[None, :] > middle[:, None]) & (
+    lower = nearer & (width >= 0.5 * (x2 - x1)[:, None]) & (y1[None, :] >= middle[:, None]) & (
         y1[None, :] < y2[:, None])
     has = lower.any(axis=1)
     tops = np.where(lower, y1[None, :], np.inf).min(axis=1)
