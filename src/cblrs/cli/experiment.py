@@ -147,7 +147,7 @@ def register(subparsers) -> None:
         help="identity where it is hard: traffic, crowds, distortion, detectors (issue 19)",
         description="Track issue 19's cases (scenes x seeds x kinds of boxes) with fusion's "
         "defaults and print one table: HOTA, AssA, IDF1, MOTA, ids, line and OD errors; "
-        "held-out checks last. Example: cblrs experiment tracking --scenes roundabout,crowd",
+        "held-out checks last.",
     )
     tracking.add_argument(
         "--scenes", default="", help="only these scenes (comma-separated: roundabout, "
@@ -158,8 +158,10 @@ def register(subparsers) -> None:
     tracking.add_argument("--sites", type=Path, default=None,
                           help="folder of <scene>.yaml site files (default: the repository's "
                           "sites/)")
-    tracking.add_argument("--wildtrack", type=Path, default=None,
-                          help="WILDTRACK folder (default ../shared/data/wildtrack)")
+    add_dataset_argument(
+        tracking, "WILDTRACK folder (default: $CBLRS_WILDTRACK or ../shared/data/wildtrack)",
+        option_aliases=("--wildtrack",),
+    )
     tracking.add_argument("--multiviewx", type=Path, default=None,
                           help="MultiviewX folder (default ../shared/data/multiviewx)")
     tracking.add_argument("--model", type=Path, default=None,
@@ -340,7 +342,7 @@ def run_tracking_command(args: argparse.Namespace) -> tuple[dict[str, Any], str]
                   and not (args.no_held_out and case.held_out))
     if not cases:
         raise UsageError("no case left to run; check --scenes and --no-held-out.")
-    setup = TrackingSetup(cases=cases, wildtrack=args.wildtrack, multiviewx=args.multiviewx,
+    setup = TrackingSetup(cases=cases, wildtrack=args.dataset, multiviewx=args.multiviewx,
                           model=args.model, sites=args.sites)
     show = not args.quiet and sys.stderr.isatty()
     result = run_tracking(setup, report=(lambda line: print(line, file=sys.stderr)) if show
