@@ -70,6 +70,8 @@ EXAMPLES: dict[str, list[str]] = {
     "experiment resolution": ["cblrs experiment resolution --scenes plaza --out experiments"],
     "experiment calibration": [f"cblrs experiment calibration --dataset {WT} --out experiments"],
     "experiment counts": ["cblrs experiment counts --scenes wildtrack,plaza --out experiments"],
+    "experiment tracking": ["cblrs experiment tracking --out experiments",
+                            "cblrs experiment tracking --scenes roundabout,crowd --no-held-out"],
 }
 
 

@@ -1,5 +1,6 @@
 """``cblrs experiment``: the paper's experiments rerun — targeting (IV-B), resolution, clicked
-calibration — and the count accuracy of the analytics (counts).
+calibration — the count accuracy of the analytics (counts) and identity where it is hard
+(tracking).
 
 Each prints a markdown table (or ``--json``); ``--out DIR`` also writes
 ``DIR/experiment_<name>.json``, ``.md`` and the figures.
@@ -141,6 +142,33 @@ def register(subparsers) -> None:
     counts.add_argument("--figures", type=Path, help="write the PNGs here (default: --out)")
     add_output_options(counts)
     counts.set_defaults(handler=run, experiment="counts")
+    tracking = kinds.add_parser(
+        "tracking",
+        help="identity where it is hard: traffic, crowds, distortion, detectors (issue 19)",
+        description="Track issue 19's cases (scenes x seeds x kinds of boxes) with fusion's "
+        "defaults and print one table: HOTA, AssA, IDF1, MOTA, ids, line and OD errors; "
+        "held-out checks last.",
+    )
+    tracking.add_argument(
+        "--scenes", default="", help="only these scenes (comma-separated: roundabout, "
+        "crossroads, crowd, distorted, wildtrack, multiviewx; default all)",
+    )
+    tracking.add_argument("--no-held-out", action="store_true",
+                          help="skip the held-out checks")
+    tracking.add_argument("--sites", type=Path, default=None,
+                          help="folder of <scene>.yaml site files (default: the repository's "
+                          "sites/)")
+    add_dataset_argument(
+        tracking, "WILDTRACK folder (default: $CBLRS_WILDTRACK or ../shared/data/wildtrack)",
+        option_aliases=("--wildtrack",),
+    )
+    tracking.add_argument("--multiviewx", type=Path, default=None,
+                          help="MultiviewX folder (default ../shared/data/multiviewx)")
+    tracking.add_argument("--model", type=Path, default=None,
+                          help="ONNX detector (default ../shared/models/yolox_nano.onnx)")
+    tracking.add_argument("--out", type=Path, help="write JSON and markdown here")
+    add_output_options(tracking)
+    tracking.set_defaults(handler=run, experiment="tracking")
 
     def usage(args: argparse.Namespace) -> int:
         parser.print_help()
@@ -294,6 +322,37 @@ def run_counts_command(args: argparse.Namespace) -> tuple[dict[str, Any], str]:
     return result, text
 
 
+def run_tracking_command(args: argparse.Namespace) -> tuple[dict[str, Any], str]:
+    """Run ``cblrs experiment tracking``: (result, markdown)."""
+    # lazy: a subcommand imports the library when it runs, so its --help starts fast
+    from cblrs.experiments.tracking import (
+        SCENES,
+        TrackingSetup,
+        default_cases,
+        run_tracking,
+        tracking_report,
+    )
+
+    names = tuple(name.strip() for name in args.scenes.split(",") if name.strip())
+    unknown = [name for name in names if name not in SCENES]
+    if unknown:
+        raise UsageError(f"--scenes must list some of {', '.join(SCENES)}; got {args.scenes!r}.")
+    cases = tuple(case for case in default_cases()
+                  if (not names or case.scene in names)
+                  and not (args.no_held_out and case.held_out))
+    if not cases:
+        raise UsageError("no case left to run; check --scenes and --no-held-out.")
+    setup = TrackingSetup(cases=cases, wildtrack=args.dataset, multiviewx=args.multiviewx,
+                          model=args.model, sites=args.sites)
+    show = not args.quiet and sys.stderr.isatty()
+    result = run_tracking(setup, report=(lambda line: print(line, file=sys.stderr)) if show
+                          else None)
+    text = tracking_report(result)
+    if args.out is not None:
+        _write(args.out, "tracking", result, text)
+    return result, text
+
+
 def run_resolution_command(args: argparse.Namespace) -> tuple[dict[str, Any], str]:
     """Entry point of ``cblrs experiment resolution``."""
     # lazy: a subcommand imports the library when it runs, so its --help starts fast
@@ -338,6 +397,8 @@ def run(args: argparse.Namespace) -> int:
         result, text = run_counts_command(args)
     elif args.experiment == "resolution":
         result, text = run_resolution_command(args)
+    elif args.experiment == "tracking":
+        result, text = run_tracking_command(args)
     else:  # pragma: no cover - argparse restricts the choices
         raise UsageError(f"unknown experiment {args.experiment!r}.")
     if args.json:
