@@ -72,6 +72,7 @@ EXAMPLES: dict[str, list[str]] = {
     "experiment counts": ["cblrs experiment counts --scenes wildtrack,plaza --out experiments"],
     "experiment tracking": ["cblrs experiment tracking --out experiments",
                             "cblrs experiment tracking --scenes roundabout,crowd --no-held-out"],
+    "experiment pseudo": [f"cblrs experiment pseudo --dataset {WT} --out experiments"],
 }
 
 
