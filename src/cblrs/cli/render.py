@@ -148,8 +148,11 @@ def file_name(camera_name: str, index: int) -> str:
     return stem or f"camera{index + 1}"
 
 
-def site_cameras_and_planes(args: argparse.Namespace) -> tuple[list, PlaneSet]:
-    """The cameras and planes of ``--site`` (with ``--bits`` applied)."""
+def site_cameras_and_planes(
+    args: argparse.Namespace,
+) -> tuple[list, list[PlaneSet], PlaneSet]:
+    """The cameras of ``--site``, each one's planes (its own plane, or all) and all the site's
+    planes (``--bits`` applied)."""
     # lazy: a subcommand imports the library when it runs, so its --help starts fast
     from cblrs.site import load_site
 
@@ -166,21 +169,28 @@ def site_cameras_and_planes(args: argparse.Namespace) -> tuple[list, PlaneSet]:
             f"{args.site} is a pseudo site (key {site.pseudo_key_id}); render from the real "
             "site with --key: cblrs render --site SITE --key KEY --out DIR."
         )
-    planes = site.require_planes("render")
-    if args.bits is not None and args.bits != planes.bits:
-        planes = PlaneSet([replace(plane, bits=args.bits) for plane in planes])
-    return [camera.camera for camera in site.require_cameras("render")], planes
+
+    def with_bits(planes: PlaneSet) -> PlaneSet:
+        if args.bits is not None and args.bits != planes.bits:
+            return PlaneSet([replace(plane, bits=args.bits) for plane in planes])
+        return planes
+
+    all_planes = with_bits(site.require_planes("render"))
+    cameras = site.require_cameras("render")
+    per_camera = [with_bits(site.camera_planes(camera.name)) for camera in cameras]
+    return [camera.camera for camera in cameras], per_camera, all_planes
 
 
 def run(args: argparse.Namespace) -> int:
     """Run ``cblrs render`` with its parsed arguments; the exit code."""
     if args.site is not None:
-        cameras, planes = site_cameras_and_planes(args)
+        cameras, camera_planes, all_planes = site_cameras_and_planes(args)
     elif args.calibration is None:
         raise UsageError("give a CALIBRATION file or folder, or --site SITE.")
     else:
         cameras = read_cameras(args.calibration, distorted=args.distorted)
-        planes = build_planes(args)
+        all_planes = build_planes(args)
+        camera_planes = [all_planes] * len(cameras)
     key = None
     if args.key is not None:
         # lazy: a subcommand imports the library when it runs, so its --help starts fast
@@ -191,6 +201,7 @@ def run(args: argparse.Namespace) -> int:
     rows = []
     for index, camera in enumerate(progress(cameras, "render", args.quiet)):
         start = time.perf_counter()
+        planes = camera_planes[index]
         if key is None:
             reference = render_reference(camera, planes)
         else:
@@ -202,6 +213,7 @@ def run(args: argparse.Namespace) -> int:
             "camera": camera.name,
             "path": str(path),
             "coverage": reference.coverage(),
+            "planes": planes.ids,
             "step_cm": [100.0 * step for step in reference.planes[0].step],
             "render_ms": milliseconds,
             "bytes": path.stat().st_size,
@@ -219,8 +231,8 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         print_json(
             {
-                "bits": planes.bits,
-                "planes": (planes if key is None else key.pseudo_planes(planes)).to_list(),
+                "bits": all_planes.bits,
+                "planes": (all_planes if key is None else key.pseudo_planes(all_planes)).to_list(),
                 "pseudo_key_id": None if key is None else key.key_id,
                 "distorted": args.distorted,
                 "cameras": rows,
