@@ -9,7 +9,9 @@ import json
 import os
 import socket
 import ssl
+from pathlib import Path
 import stat
+import time
 
 import pytest
 from test_runtime_transport import Collector  # tests/runtime is on sys.path (rootdir-relative)
@@ -403,3 +405,100 @@ def test_write_nats_security_refuses(tmp_path, cameras, matchers, options, messa
     with pytest.raises(NatsSecurityError, match=message):
         write_nats_security(tmp_path / "servers", cameras, matchers, tls=False, **options)
 
+
+
+# -- the whole recipe, as the commands print it ---------------------------------------------
+
+
+def test_the_generated_backbone_runs_cameras_matcher_and_viewer_end_to_end(
+    wildtrack_root, tmp_path
+):
+    """``cblrs broker-config --backbone nats`` -> nats-server -> the admin's ``cblrs matcher
+    --prepare`` -> ``cblrs matcher`` with its own login -> two ``cblrs camera --backbone``
+    (TLS, site prefix): every message stored and tracked once, tracks at a viewer; the
+    matcher's login alone could not have prepared the plane."""
+    import subprocess
+    import sys
+
+    from cblrs.datasets import load_scene
+    from cblrs.pipeline import render_scene_references
+    from cblrs.runtime.mosquitto import free_port
+    from cblrs.runtime.nats_server import NatsNodeConfig, NatsServerProcess
+    from cblrs.runtime.store import RuntimeStore
+
+    if find_nats_server() is None:
+        pytest.skip("no nats-server")
+    scene = load_scene(wildtrack_root).select_frames(0, 45)
+    references = tmp_path / "references"
+    names = scene.camera_names[:2]
+    for camera, reference in zip(scene.cameras, render_scene_references(scene), strict=False):
+        if camera.name in names:
+            reference.save(references / f"{camera.name}.png")
+    out = tmp_path / "backbone"
+    port, mqtt_port, monitor_port = free_port(), free_port(), free_port()
+    cli = [sys.executable, "-m", "cblrs.cli.main"]
+    environment = {**os.environ, "PYTHONUNBUFFERED": "1"}
+
+    def run(*arguments: str, timeout: float = 120) -> subprocess.CompletedProcess:
+        return subprocess.run([*cli, *arguments], capture_output=True, text=True,
+                              timeout=timeout, env=environment)
+
+    written = run("broker-config", "--backbone", "nats", "--out", str(out), "--cameras",
+                  ",".join(names), "--matchers", "matcher1=1", "--site-id", SITE, "--port",
+                  str(port), "--mqtt-port", str(mqtt_port), "--monitor-port", str(monitor_port),
+                  "--json")
+    assert written.returncode == 0, written.stderr
+    files = json.loads(written.stdout)
+    node = files["nodes"][0]
+    server = NatsServerProcess(NatsNodeConfig(
+        "n1", Path(node["config"]).parent, node["port"], node["monitor_port"],
+        mqtt_port=node["mqtt_port"])).start()
+    clients = files["clients"]
+
+    def login(user: str) -> list[str]:
+        client = clients[user]
+        return ["--backbone", files["url"], "--site-id", SITE, "--username", user,
+                "--password-file", client["password_file"], "--ca-file", client["ca_file"],
+                "--cert-file", client["cert_file"], "--key-file", client["key_file"]]
+
+    try:
+        database = tmp_path / "plane1.db"
+        matcher_options = ["matcher", "--references", str(references), "--db", str(database),
+                           "--client-id", "matcher1", "--window", "5"]
+        refused = run(*matcher_options, "--prepare", *login("matcher1"))
+        assert refused.returncode == 1
+        assert "cannot create the lease bucket cblrs_leases: the login matcher1 may not use " \
+            "$js.api.stream.create.kv_cblrs_leases; only the backbone's admin may" in \
+            refused.stderr, refused.stderr
+        assert "Traceback" not in refused.stderr
+        prepared = run(*matcher_options, "--prepare", *login("admin"))
+        assert prepared.returncode == 0, prepared.stderr
+        matcher = subprocess.Popen(
+            [*cli, *matcher_options, "--until-cameras-offline", "--idle-exit", "60", "--json",
+             *login("matcher1")], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+            env=environment)
+        epoch = time.time() - 300
+        cameras = [
+            subprocess.Popen(
+                [*cli, "camera", "--dataset", str(wildtrack_root), "--camera", name,
+                 "--references", str(references), "--frames", "0:45", "--epoch", str(epoch),
+                 "--spool", str(tmp_path / f"{name}.spool"), "--json", *login(name)],
+                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=environment)
+            for name in names
+        ]
+        for camera in cameras:
+            output, error = camera.communicate(timeout=120)
+            assert camera.returncode == 0, error
+        output, error = matcher.communicate(timeout=120)
+        assert matcher.returncode == 0, error
+    finally:
+        for process in [*locals().get("cameras", []), locals().get("matcher")]:
+            if process is not None and process.poll() is None:
+                process.kill()
+                process.communicate()
+        server.stop()
+    summary = json.loads(output)
+    assert summary["processed"] == len(scene.frames) * len(names), (summary, error)
+    assert summary["late"] == 0 and summary["duplicates"] == 0
+    with RuntimeStore(database, read_only=True) as store:
+        assert len(store.tracks()) > 0

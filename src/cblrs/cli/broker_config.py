@@ -1,4 +1,5 @@
-"""``cblrs broker-config``: a Mosquitto configuration with users, ACL and optional TLS."""
+"""``cblrs broker-config``: a Mosquitto configuration with users, ACL and optional TLS, or
+(``--backbone nats``) a NATS server or cluster with users, permissions and TLS."""
 
 from __future__ import annotations
 
@@ -14,13 +15,20 @@ def register(subparsers) -> None:
     """Add the ``cblrs broker-config`` parser to ``subparsers``."""
     parser = subparsers.add_parser(
         "broker-config",
-        help="write a Mosquitto configuration (users, ACL, optional TLS) for cameras and matchers",
+        help="write a Mosquitto or NATS configuration (users, permissions, TLS) for cameras, "
+        "matchers and viewers",
         description=(
-            "Write mosquitto.conf, a hashed password file, an ACL and generated credentials for "
-            "a set of cameras and matchers. A camera may publish only its own topics and read "
-            "nothing; matchers read the detections of their planes and publish tracks; an "
-            "optional read-only 'viewer' user sees tracks. No anonymous access."
+            "Write mosquitto.conf, a hashed password file and an ACL (or, with --backbone nats, "
+            "one nats-server configuration per node with users and permissions), and each "
+            "client's credentials into a folder of its own. A camera may publish only its own "
+            "topics; a matcher reads the detections of its planes and publishes their tracks; "
+            "read-only viewers see tracks; on NATS an admin login alone manages streams. No "
+            "anonymous access. See docs/security.md."
         ),
+    )
+    parser.add_argument(
+        "--backbone", choices=("mosquitto", "nats"), default="mosquitto",
+        help="which broker to configure (default mosquitto)",
     )
     parser.add_argument("--out", required=True, type=Path, help="output folder")
     parser.add_argument(
@@ -84,6 +92,20 @@ def register(subparsers) -> None:
     parser.add_argument(
         "--force", action="store_true", help="overwrite an existing configuration (new passwords)"
     )
+    nats = parser.add_argument_group("NATS (--backbone nats)")
+    nats.add_argument(
+        "--nodes", default="127.0.0.1", metavar="HOST,HOST,...",
+        help="one address per node (several make a cluster; default 127.0.0.1)",
+    )
+    nats.add_argument("--site-id", metavar="ID", help="the site's subject prefix (cblrs.ID...)")
+    nats.add_argument("--admin", default="admin", help="the admin's login (default admin)")
+    nats.add_argument("--no-tls", action="store_true",
+                      help="NATS without TLS (default: TLS with client certificates)")
+    nats.add_argument("--no-mqtt", action="store_true", help="no MQTT listener on the nodes")
+    nats.add_argument("--mqtt-port", type=int, default=1883, help="MQTT listener (default 1883)")
+    nats.add_argument("--cluster-port", type=int, default=6222, help="routes (default 6222)")
+    nats.add_argument("--monitor-port", type=int, default=8222,
+                      help="monitoring pages, on loopback only (default 8222)")
     add_output_options(parser)
     parser.set_defaults(handler=run)
 
@@ -128,6 +150,8 @@ def run(args: argparse.Namespace) -> int:
     if not cameras:
         raise UsageError("--cameras needs at least one camera id.")
     planes = _planes(args.planes)
+    if args.backbone == "nats":
+        return _run_nats(args, cameras, matchers, planes)
     port = args.port if args.port is not None else (8883 if args.tls else 1883)
     if not (args.queue_mb > 0 and args.queue_mb < float("inf")):
         raise UsageError(f"--queue-mb must be a positive number, got {args.queue_mb}.")
@@ -219,5 +243,86 @@ def run(args: argparse.Namespace) -> int:
         lines.append(f"  cblrs matcher ... {client_options(matcher_names[0])}")
     if viewer_names:
         lines.append(f"  cblrs dashboard ... {client_options(viewer_names[0])}")
+    print("\n".join(lines))
+    return 0
+
+
+def _run_nats(args: argparse.Namespace, cameras: list[str],
+              matchers: list[str] | dict[str, list[int]], planes: list[int]) -> int:
+    """``cblrs broker-config --backbone nats``: the nodes' configurations and credentials."""
+    # lazy: a subcommand imports the library when it runs, so its --help starts fast
+    from cblrs.runtime.broker import matcher_planes
+    from cblrs.runtime.nats_server import write_nats_backbone
+
+    hosts = _names(args.nodes, "--nodes")
+    if (args.out / "n1" / "n1.conf").exists() and not args.force:
+        raise UsageError(f"{args.out / 'n1' / 'n1.conf'} exists; use --force to overwrite it "
+                         "(this generates new passwords).")
+    files = write_nats_backbone(
+        args.out, cameras, matcher_planes(matchers, planes), hosts=hosts,
+        port=args.port or 4222, cluster_port=args.cluster_port,
+        monitor_port=args.monitor_port,
+        mqtt_port=None if args.no_mqtt else args.mqtt_port, site=args.site_id,
+        viewers=_names(args.viewers, "--viewers") if args.viewers else
+        ([] if args.no_viewer else ["viewer"]),
+        admin=args.admin, tls=not args.no_tls, ca_directory=args.ca_dir,
+        clients_directory=args.clients_dir,
+    )
+    security = files.security
+    if args.json:
+        print_json({**files.to_dict(), "start": [["nats-server", "-c", str(node.config_path)]
+                                                 for node in files.nodes]})
+        return 0
+
+    def client_options(user: str) -> str:
+        client = security.clients[user]
+        options = ["--backbone", files.url, "--username", user,
+                   "--password-file", str(client.password_file)]
+        if security.site:
+            options += ["--site-id", security.site]
+        if security.tls:
+            options += ["--ca-file", str(client.ca_file), "--cert-file", str(client.cert_file),
+                        "--key-file", str(client.key_file)]
+        return " ".join(shlex.quote(option) for option in options)
+
+    roles = security.roles
+    first = {role: next((user for user, kind in roles.items() if kind == role), None)
+             for role in ("camera", "matcher", "viewer", "admin")}
+    matcher = first["matcher"]
+    served = matcher_planes(matchers, planes).get(matcher, planes) if matcher else planes
+    lines = [
+        f"Wrote a NATS backbone ({len(files.nodes)} node{'s' if len(files.nodes) > 1 else ''}"
+        f"{', TLS' if security.tls else ''}{', site ' + security.site if security.site else ''}"
+        f") to {security.directory}",
+        *(f"  {node.name:<12}  {node.config_path}" for node in files.nodes),
+        "  users         bcrypt hashes inside each node's configuration (mode 0600)",
+        f"  clients       {security.clients_directory}/<user>/ (password"
+        + (", certificate and key" if security.tls else "") + "; 0700): copy each folder to "
+        "that client only, then delete it here",
+    ]
+    if security.tls:
+        lines.append(f"  CA keys       {security.ca_key_directory} (keep them offline; not "
+                     "needed to run)")
+    lines += [
+        "",
+        "Logins: on NATS a login may be shared by several clients (a viewer's by several "
+        "dashboards); a matcher's login serves its planes one matcher at a time (the plane "
+        "lease refuses a second).",
+        "",
+        "Start every node:",
+        *(f"  nats-server -c {shlex.quote(str(node.config_path))}" for node in files.nodes),
+        "",
+        "Then, as the admin, create each plane's streams, consumer and the lease bucket "
+        "(runtime logins may not):",
+        f"  cblrs matcher --prepare --references REFS --db DB --client-id {matcher or 'matcher1'}"
+        f" {client_options(args.admin)}",
+        "",
+        "Users: " + ", ".join(f"{user} ({role})" for user, role in roles.items()),
+        "Connect (copy only that user's folder to its machine):",
+        f"  cblrs camera ... --camera {cameras[0]} {client_options(cameras[0])}",
+    ]
+    if matcher is not None:
+        lines.append(f"  cblrs matcher ... {client_options(matcher)}   (planes "
+                     f"{', '.join(map(str, served))})")
     print("\n".join(lines))
     return 0

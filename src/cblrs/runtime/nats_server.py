@@ -39,7 +39,7 @@ from pathlib import Path
 
 from cblrs.errors import CblrsError
 from cblrs.runtime.mosquitto import free_port
-from cblrs.runtime.nats_auth import NatsSecurity
+from cblrs.runtime.nats_auth import NatsSecurity, NatsSecurityError, write_nats_security
 
 logger = logging.getLogger(__name__)
 
@@ -376,3 +376,89 @@ class NatsCluster:
 
     def __exit__(self, *exc_info) -> None:
         self.stop()
+
+
+@dataclass(frozen=True)
+class NatsBackboneFiles:
+    """What :func:`write_nats_backbone` wrote: the security files and one configuration per
+    node."""
+
+    security: NatsSecurity
+    nodes: list[NatsNodeConfig]
+
+    @property
+    def url(self) -> str:
+        """Every node's client address (what ``--backbone`` takes)."""
+        return "nats://" + ",".join(f"{node.host}:{node.port}" for node in self.nodes)
+
+    def to_dict(self) -> dict:
+        return {
+            **self.security.to_dict(),
+            "url": self.url,
+            "nodes": [{"name": node.name, "config": str(node.config_path), "host": node.host,
+                       "port": node.port, "cluster_port": node.cluster_port,
+                       "mqtt_port": node.mqtt_port, "monitor_port": node.monitor_port}
+                      for node in self.nodes],
+        }
+
+
+def write_nats_backbone(
+    directory: str | Path,
+    cameras: Sequence[str],
+    matchers: dict[str, list[int]],
+    *,
+    hosts: Sequence[str] = ("127.0.0.1",),
+    port: int = 4222,
+    cluster_port: int = 6222,
+    mqtt_port: int | None = 1883,
+    monitor_port: int = 8222,
+    site: str | None = None,
+    viewers: Sequence[str] = ("viewer",),
+    admin: str = "admin",
+    tls: bool = True,
+    ca_directory: str | Path | None = None,
+    clients_directory: str | Path | None = None,
+) -> NatsBackboneFiles:
+    """Write a secured NATS backbone: users, permissions and certificates
+    (:func:`~cblrs.runtime.nats_auth.write_nats_security`) and one configuration per node
+    (``<directory>/<node>/<node>.conf``, node ``n<i>`` on ``hosts[i]``; several hosts make a
+    cluster whose routes use TLS).
+
+    Args:
+        directory: the servers' folder.
+        cameras: camera ids.
+        matchers: matcher id -> the planes it serves.
+        hosts: one address per node (each node listens on its own).
+        port: client port of every node.
+        cluster_port: route port (several nodes only).
+        mqtt_port: MQTT listener port (None: none).
+        monitor_port: monitoring port (on loopback only).
+        site: the site id of the subjects.
+        viewers: read-only logins.
+        admin: the administrator's login.
+        tls: TLS on every port (clients present certificates).
+        ca_directory: where the CAs' keys go (default ``<directory>-ca``).
+        clients_directory: where the clients' folders go (default ``<directory>-clients``).
+
+    Raises:
+        NatsSecurityError: see :func:`~cblrs.runtime.nats_auth.write_nats_security`.
+    """
+    directory = Path(directory).resolve()
+    if not hosts or len(set(hosts)) != len(hosts):
+        raise NatsSecurityError(f"give each node its own host, got {list(hosts)}.")
+    security = write_nats_security(
+        directory, cameras, matchers, site=site, viewers=viewers, admin=admin, tls=tls,
+        hosts=hosts, ca_directory=ca_directory, clients_directory=clients_directory)
+    clustered = len(hosts) > 1
+    nodes = [
+        NatsNodeConfig(
+            name=f"n{index + 1}", directory=directory / f"n{index + 1}", port=port,
+            monitor_port=monitor_port, cluster_port=cluster_port if clustered else None,
+            mqtt_port=mqtt_port, host=host,
+        )
+        for index, host in enumerate(hosts)
+    ]
+    routes = [f"{host}:{cluster_port}" for host in hosts]
+    for node in nodes:
+        write_nats_config(node, routes if clustered else (), security=security)
+    return NatsBackboneFiles(security, nodes)

@@ -864,6 +864,8 @@ class NatsTransport:
             return name
         except NotFoundError:
             pass
+        except Exception as error:
+            raise self._refused_management(f"read the stream {name}", error) from None
         if self._site is None:
             legacy = LEGACY_DETECTIONS_STREAM if kind == "detections" else LEGACY_TRACKS_STREAM
             try:
@@ -887,7 +889,20 @@ class NatsTransport:
         except BadRequestError as error:
             if "already in use" not in str(error) and "already exists" not in str(error):
                 raise TransportError(f"cannot create the NATS stream {name}: {error}.") from None
+        except Exception as error:
+            raise self._refused_management(f"create the stream {name}", error) from None
         return name
+
+    def _refused_management(self, what: str, error: Exception) -> TransportError:
+        """One sentence for a management call that failed (refused, or no answer)."""
+        if self.refused_subjects:
+            return TransportError(
+                f"{self.client_id}: cannot {what}: the login {self.settings.username} may not "
+                f"use {self.refused_subjects[-1]}; only the backbone's admin may (cblrs matcher "
+                "--prepare with the admin's login)."
+            )
+        return TransportError(f"{self.client_id}: cannot {what}: "
+                              f"{str(error) or type(error).__name__}.")
 
     async def _start_consumer(self) -> None:
         # optional extra: pip install cblrs[nats]
@@ -906,6 +921,8 @@ class NatsTransport:
         plane = planes.pop()
         stream = await self._resolve_stream("detections", plane)
         self._consumer_stream = stream
+        if self.settings.manages:  # the admin's --prepare: the plane's tracks stream too
+            await self._resolve_stream("tracks", plane)
         # A plane's own stream needs no filter when the subscriptions cover it; the legacy
         # stream of every plane does.
         filters: list[str] | None = subjects
@@ -1228,9 +1245,13 @@ class NatsTransport:
                     f"the NATS lease bucket {LEASE_BUCKET} does not exist; the backbone's admin "
                     "creates it (cblrs matcher --prepare with the admin's login)."
                 ) from None
-            kv = await self._js.create_key_value(KeyValueConfig(
-                bucket=LEASE_BUCKET, history=1, ttl=lease.ttl_s, direct=True,
-                replicas=await self._replicas()))
+            try:
+                kv = await self._js.create_key_value(KeyValueConfig(
+                    bucket=LEASE_BUCKET, history=1, ttl=lease.ttl_s, direct=True,
+                    replicas=await self._replicas()))
+            except Exception as error:
+                raise self._refused_management(f"create the lease bucket {LEASE_BUCKET}",
+                                               error) from None
         except TransportError:
             raise
         except Exception as error:
