@@ -9,9 +9,9 @@ import json
 import os
 import socket
 import ssl
-from pathlib import Path
 import stat
 import time
+from pathlib import Path
 
 import pytest
 from test_runtime_transport import Collector  # tests/runtime is on sys.path (rootdir-relative)
