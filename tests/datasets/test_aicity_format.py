@@ -51,6 +51,19 @@ def test_write_format_and_order(tmp_path: Path) -> None:
     assert np.isnan(back.xyxy[1]).all()
 
 
+def test_a_tracks_file_is_readable_by_its_owner_only(tmp_path: Path) -> None:
+    import os
+    import stat
+
+    path = tmp_path / "tracks.txt"
+    path.write_text("old")
+    os.chmod(path, 0o644)  # an earlier file readable by everyone
+    write_tracks(path, Tracks.empty())
+    assert stat.S_IMODE(os.stat(path).st_mode) == 0o600
+    write_tracks(tmp_path / "new.txt", Tracks.empty())
+    assert stat.S_IMODE(os.stat(tmp_path / "new.txt").st_mode) == 0o600
+
+
 def test_empty(tmp_path: Path) -> None:
     path = tmp_path / "empty.txt"
     write_tracks(path, Tracks.empty())

@@ -402,3 +402,39 @@ def _run_as():
     from broker_user import RUN_AS
 
     return RUN_AS
+
+
+# -- issue 18, item 5: one login, one client ------------------------------------------------
+
+
+def test_a_second_client_with_the_same_login_is_logged_and_counted(mosquitto_auth, caplog):
+    """The broker uses the login as the client id, so nobody can pick another user's session;
+    the price is that a login shared by two clients is one session they take from each other:
+    the client that loses it says so at ERROR and counts it (the matcher's /metrics shows
+    cblrs_session_takeovers)."""
+    from waiting import wait_until
+
+    first = connect(mosquitto_auth, "matcher1")
+    intruder = MqttTransport("anything", mosquitto_auth.settings("matcher1"), persistent=False)
+    with caplog.at_level("ERROR", logger="cblrs.runtime.mqtt_transport"):
+        intruder.connect()
+        # Two clients with one login take the session from each other until one leaves;
+        # Mosquitto 2.0.11 closes the older one without MQTT 5's reason 0x8E, so a
+        # connection closed within seconds of being accepted is what both see.
+        wait_until(lambda: first.takeovers + intruder.takeovers >= 2, 3 * WAIT,
+                   "the take-overs to be noticed")
+        intruder.close()
+    assert "another client logged in as matcher1 and took over this session" in caplog.text
+    wait_until(lambda: first.connected, WAIT, "the first client to keep the session")
+    first.close()
+
+
+def test_each_dashboard_gets_its_own_viewer_login(tmp_path):
+    files = write_broker_config(tmp_path / "b", ["CVLab1"], {"matcher1": [1], "matcher2": [2]},
+                                port=1883, viewers=["wall", "desk"], run_as=_run_as())
+    assert files.roles == {"CVLab1": "camera", "matcher1": "matcher", "matcher2": "matcher",
+                           "wall": "viewer", "desk": "viewer"}
+    acl = files.acl_file.read_text()
+    assert "user wall\ntopic read cblrs/+/tracks" in acl and "user desk\n" in acl
+    matcher1 = acl[acl.index("user matcher1"):acl.index("user matcher2")]
+    assert "cblrs/1/+/detections" in matcher1 and "cblrs/2/" not in matcher1

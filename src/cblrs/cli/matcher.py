@@ -347,6 +347,7 @@ def run(args: argparse.Namespace) -> int:
 
         def exposition() -> bytes:
             metrics.set_buffered(service.buffered())
+            metrics.set_takeovers(int(getattr(transport, "takeovers", 0)))
             return metrics.exposition()
 
         try:

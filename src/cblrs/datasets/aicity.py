@@ -31,6 +31,7 @@ import hashlib
 import io
 import json
 import logging
+import os
 import warnings
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -94,7 +95,11 @@ def write_tracks(
     ]
     text = "".join(lines)
     try:
-        path.write_text(text)
+        # People's positions: readable by the owner only (also when the file existed).
+        descriptor = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+        with os.fdopen(descriptor, "w") as handle:
+            handle.write(text)
+        os.chmod(path, 0o600)
     except OSError as error:
         raise DatasetError(f"cannot write {path}: {error.strerror or error}.") from None
     logger.debug("wrote %d rows to %s", len(tracks), path)

@@ -794,6 +794,7 @@ class MatcherService:
             "track_ids": summary["track_ids"],
             "released_timestamp": self._orderer.released,
             "offline_cameras": sorted(c for c, off in self._offline.items() if off),
+            "session_takeovers": int(getattr(self.transport, "takeovers", 0)),
             "clocks": clock_report(self.store.matcher_state(), self.camera_ids),
         }
 

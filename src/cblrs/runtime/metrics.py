@@ -105,6 +105,9 @@ class ServiceMetrics:
                             registry=registry)
         self.buffered = Gauge("cblrs_buffered_messages", "Messages in the ordering buffer",
                               labels, registry=registry)
+        self.takeovers = Gauge("cblrs_session_takeovers",
+                               "Times another client with the matcher's login took its broker "
+                               "session (a shared or stolen login)", labels, registry=registry)
         self.lag = Gauge("cblrs_tracker_lag_seconds",
                          "Wall clock minus the capture time of the last tracked group", labels,
                          registry=registry)
@@ -206,6 +209,9 @@ class ServiceMetrics:
 
     def set_buffered(self, messages: int) -> None:
         self.buffered.labels(self.plane).set(messages)
+
+    def set_takeovers(self, takeovers: int) -> None:
+        self.takeovers.labels(self.plane).set(takeovers)
 
     def set_unpublished(self, events: int) -> None:
         self.unpublished.labels(self.plane).set(events)

@@ -29,6 +29,7 @@ from paho.mqtt.properties import Properties
 from paho.mqtt.reasoncodes import ReasonCode
 from paho.mqtt.subscribeoptions import SubscribeOptions
 
+from cblrs.runtime.rate_limited import RateLimitedLog
 from cblrs.runtime.topics import filters_overlap, topic_matches, validate_filter, validate_topic
 from cblrs.runtime.transport import (
     ACCEPTED,
@@ -50,6 +51,10 @@ logger = logging.getLogger(__name__)
 
 SESSION_TAKEN_OVER = 0x8E
 """MQTT 5 DISCONNECT reason: another connection with the same client id took the session."""
+SHORT_CONNECTION_S = 10.0
+"""A connection the broker closes this soon after accepting it counts as a take-over:
+Mosquitto 2.0.11 closes the older of two clients with one client id without the MQTT 5 reason
+0x8E, and two such clients then take the session from each other many times a second."""
 
 
 
@@ -172,8 +177,11 @@ class MqttTransport:
         """Connections lost or closed so far."""
         self.takeovers = 0
         """Times another client logged in with this login and took this one's session (the
-        broker closes the older connection, MQTT 5 reason 0x8E): a login shared by two
+        broker closes the older connection: MQTT 5 reason 0x8E, or a connection lost less
+        than :data:`SHORT_CONNECTION_S` after it was accepted): a login shared by two
         clients, or a stolen one."""
+        self._connected_at = 0.0
+        self._takeover_log = RateLimitedLog(logger, interval_s=10.0)
         self._handlers = _HandlerTable()
         self._qos: dict[str, int] = {}
         self._subscribed: set[str] = set()
@@ -604,6 +612,7 @@ class MqttTransport:
             self._answered.set()
             return
         self._refusal = None
+        self._connected_at = time.monotonic()
         if not flags.session_present:
             self._subscribed.clear()
 
@@ -642,13 +651,17 @@ class MqttTransport:
         self.disconnections += 1
         with self._condition:
             self._hold = bool(self._handed)
-        if int(getattr(reason_code, "value", 0)) == SESSION_TAKEN_OVER:
+        lived = time.monotonic() - self._connected_at
+        if int(getattr(reason_code, "value", 0)) == SESSION_TAKEN_OVER or (
+                reason_code.is_failure and lived < SHORT_CONNECTION_S):
             self.takeovers += 1
-            logger.error(
-                "%s: another client logged in as %s and took over this session (%d times "
-                "so far): a login must not be shared (give each client its own) and may have "
-                "been stolen; reconnecting", self.client_id,
-                self.settings.username or self.client_id, self.takeovers)
+            self._takeover_log.log(
+                logging.ERROR, "takeover",
+                "%s: another client logged in as %s and took over this session (the broker "
+                "closed this connection %.1f s after accepting it; %d times so far): a login "
+                "must not be shared (give each client its own) and may have been stolen; "
+                "reconnecting", self.client_id, self.settings.username or self.client_id,
+                lived, self.takeovers)
         elif reason_code.is_failure:
             logger.warning("%s: disconnected from %s: %s; reconnecting", self.client_id,
                            self.settings.address, reason_code)
