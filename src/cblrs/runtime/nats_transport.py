@@ -6,25 +6,36 @@ behaviour the services rely on, on a NATS server or cluster with JetStream:
 * **topics** stay MQTT topics for the services; on the wire they are NATS subjects, mapped
   exactly as the NATS server's MQTT listener maps them (``/`` -> ``.``, ``.`` -> ``//``,
   ``+`` -> ``*``, ``#`` -> ``>``), so a camera publishing MQTT 3.1.1 to that listener on
-  ``cblrs/<plane>/<camera>/detections`` lands on ``cblrs.<plane>.<camera>.detections``;
-* **streams** (created on first connect, replicated over up to three nodes): ``CBLRS`` keeps
-  every camera's detections and status (``cblrs.*.*.detections``, ``cblrs.*.*.status``) for
-  ``retention_s``; ``CBLRS_TRACKS`` keeps the matchers' track updates (``cblrs.*.tracks``)
-  and later analytics events (``cblrs.*.events``);
-* **durable consumer** (``durable=``): the subscriptions that fall in ``CBLRS`` are served by
-  one durable pull consumer with explicit acknowledgements: ``delivery.ack()`` acknowledges
+  ``cblrs/<plane>/<camera>/detections`` lands on ``cblrs.<plane>.<camera>.detections``.
+  With a site id (``NatsSettings.site``) every subject starts ``cblrs.<site>.``, so several
+  sites share one cluster;
+* **streams**, two per plane (replicated over up to three nodes), each with its own leader:
+  ``CBLRS_P<plane>`` (``CBLRS_<site>_P<plane>``) keeps the plane's detections and camera
+  status for ``retention_s``; ``CBLRS_P<plane>_TRACKS`` its track updates and analytics
+  events. A client that manages streams (``NatsSettings.manage``: an admin, or a server
+  without users) creates them when first needed; a deployment made before per-plane streams
+  keeps its one ``CBLRS`` stream (see :meth:`NatsTransport._resolve_stream`);
+* **security**: a login's permissions (:mod:`cblrs.runtime.nats_auth`) are enforced by the
+  servers; answers come to the login's own inbox prefix; a refused login, TLS handshake,
+  publish or subscription is one sentence (``refused_publishes``, ``refused_subjects``);
+* **durable consumer** (``durable=``): the subscriptions that fall in the plane's detections
+  stream are served by one durable pull consumer with explicit acknowledgements (a runtime
+  login only reads it and resets it to replay): ``delivery.ack()`` acknowledges
   (the matcher does so after its SQLite commit, as on MQTT), un-acknowledged messages come
   again after ``ack_wait_s`` or to the next holder, flagged ``duplicate``; a status message
   older than the connection is flagged ``retain`` (history, like an MQTT retained message);
   other subscriptions are plain NATS subscriptions;
 * **publishes** to a stream are JetStream publishes, each with a ``Nats-Msg-Id``
   (``<plane>.<camera>.<sequence>`` for detections, ``<plane>.<timestamp>`` for a track
-  update), retried with the same id until the stream acknowledges them, so a retry after a
+  update), sent again with the same id until the stream acknowledges them, so a retry after a
   leader change or a lost connection is stored once; ``flush`` waits for those
-  acknowledgements. With ``publish_window=1`` (cameras) publishes stay in order even across
-  retries. Publishes made while the servers are away wait in memory;
-* **plane lease** (``lease=``): a key with a time to live in the replicated key-value bucket
-  ``cblrs_leases``; :meth:`connect` refuses (one sentence) when another client holds it, the
+  acknowledgements. They are pipelined: up to ``publish_window`` leave in order on the one
+  connection before their acknowledgements come back; after a failure nothing more is sent
+  until the window settles, then what was not acknowledged goes again in its order (a
+  publish stored after a later one, possible only when a leader dies between two of them, is
+  counted in ``reordered``). Publishes made while the servers are away wait in memory;
+* **plane lease** (``lease=``): a key (``plane-<plane>``, ``<site>.plane-<plane>``) with a
+  time to live in the replicated key-value bucket ``cblrs_leases``; :meth:`connect` refuses (one sentence) when another client holds it, the
   transport renews it every third of its TTL and deletes it on a clean close. Losing it
   (another holder took it) stops deliveries and calls ``on_failure``.
 
@@ -39,10 +50,10 @@ Example:
     >>> matcher.subscribe("cblrs/1/+/detections", store_then_ack)          # doctest: +SKIP
     >>> matcher.connect()                                                 # doctest: +SKIP
 
-It stays one module because :class:`NatsTransport` (about 600 lines) is one asyncio state
-machine — connection, JetStream streams and consumers, ordered publishing, acknowledgements,
-leases — whose parts share its event loop and locks; the subject mapping and message ids beside
-it are what only this transport uses.
+It stays one module because :class:`NatsTransport` (about 900 lines) is one asyncio state
+machine — connection, JetStream streams and consumers, the ordered publishing window,
+acknowledgements, leases — whose parts share its event loop and state; the subject mapping,
+stream names and message ids beside it are what only this transport uses.
 """
 
 from __future__ import annotations
