@@ -36,8 +36,9 @@ behaviour the services rely on, on a NATS server or cluster with JetStream:
   counted in ``reordered``). Publishes made while the servers are away wait in memory;
 * **plane lease** (``lease=``): a key (``plane-<plane>``, ``<site>.plane-<plane>``) with a
   time to live in the replicated key-value bucket ``cblrs_leases``; :meth:`connect` refuses
-  (one sentence) when another client holds it, the transport renews it every third of its TTL and deletes it on a clean close. Losing it
-  (another holder took it) stops deliveries and calls ``on_failure``.
+  (one sentence) when another client holds it, the transport renews it every third of its
+  TTL and deletes it on a clean close. Losing it (another holder took it) stops deliveries
+  and calls ``on_failure``.
 
 NATS has no last will: the will is published on a clean ``close()`` only.
 
