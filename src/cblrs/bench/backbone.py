@@ -7,7 +7,10 @@ NATS), then simulated cameras publish ``cblrs.detections/1`` messages (2 detecti
 
 * Publishers: one ``mosquitto_pub -q 1`` process per camera (other processes than the
   matcher), MQTT 5 to Mosquitto and MQTT 3.1.1 to the NATS server's MQTT listener (node 1 of
-  the cluster): cameras unchanged, as a deployment would run them.
+  the cluster): cameras unchanged, as a deployment would run them. ``nats-native`` and
+  ``nats-r3-native`` publish with cblrs's own NATS transport instead (JetStream publishes
+  acknowledged by the stream, ``publish_window`` of them in flight per camera), one
+  transport per camera in up to four publisher processes.
 * ``max``: every camera publishes as fast as it can; figure: messages received, stored in
   SQLite and acknowledged per second (first publish to last stored), and tracked per second.
 * ``paced``: every camera publishes one message per frame at 30 fps; figure: capture ->
@@ -52,7 +55,8 @@ from cblrs.runtime.topics import detections_topic
 from cblrs.runtime.wire import ValidationPolicy, encode_message
 
 PLANE_ID = 1
-BACKBONES = ("mosquitto", "nats", "nats-r3")
+BACKBONES = ("mosquitto", "nats", "nats-r3", "nats-native", "nats-r3-native")
+PUBLISHER_PROCESSES = 4
 
 
 def _camera_names(count: int) -> list[str]:
@@ -124,6 +128,41 @@ def _publish(port: int, mqtt_version: str, cameras: int, frames: int, fps: float
             assert process.stdin is not None
             process.stdin.close()
     flushed = all(process.wait(300) == 0 for process in processes)
+    results.put({"start": start, "flushed": flushed})
+
+
+def _publish_nats(url: str, names: list[str], frames: int, fps: float, paced: bool,
+                  people: int, window: int, start_at: float, results: Any) -> None:
+    """Child process: one NATS transport per camera of ``names``, JetStream publishes in
+    order with ``window`` awaiting acknowledgement; reports whether all were acknowledged."""
+    transports = [NatsTransport(f"bench-{name}", NatsSettings.from_url(
+        url, publish_window=window, publish_timeout_s=10.0)) for name in names]
+    for transport in transports:
+        transport.connect()
+    topics = [detections_topic(PLANE_ID, name) for name in names]
+    if not paced:
+        epoch = time.time() - frames / fps
+        streams = [[_payload(name, index, frame, epoch + frame / fps, people)
+                    for frame in range(frames)] for index, name in enumerate(names)]
+    delay = start_at - time.time()
+    if delay > 0:
+        time.sleep(delay)
+    start = time.time()
+    if not paced:
+        for frame in range(frames):
+            for transport, topic, stream in zip(transports, topics, streams, strict=True):
+                transport.publish(topic, stream[frame])
+    else:
+        for frame in range(frames):
+            delay = start + frame / fps - time.time()
+            if delay > 0:
+                time.sleep(delay)
+            for index, (transport, topic) in enumerate(zip(transports, topics, strict=True)):
+                transport.publish(topic, _payload(names[index], index, frame,
+                                                  start + frame / fps, people))
+    flushed = all(transport.flush(300) for transport in transports)
+    for transport in transports:
+        transport.close()
     results.put({"start": start, "flushed": flushed})
 
 
@@ -200,7 +239,7 @@ class _Probe:
 
 
 def run_once(backbone: str, cameras: int, frames: int, fps: float, paced: bool,
-             people: int) -> dict[str, Any]:
+             people: int, publish_window: int = 256) -> dict[str, Any]:
     """One run on fresh servers; returns rates, latencies and losses."""
 
     total = cameras * frames
@@ -218,8 +257,8 @@ def run_once(backbone: str, cameras: int, frames: int, fps: float, paced: bool,
             transport: Any = MqttTransport("bench-matcher", MqttSettings(port=port))
             publish_port, version, address = port, "mqttv5", f"127.0.0.1:{port}"
         else:
-            servers = NatsCluster.create(Path(folder) / "nats", 3 if backbone == "nats-r3" else 1,
-                                         mqtt=True).start()
+            nodes = 3 if backbone.startswith("nats-r3") else 1
+            servers = NatsCluster.create(Path(folder) / "nats", nodes, mqtt=True).start()
             settings = NatsSettings.from_url(servers.url, publish_window=64)
             transport = NatsTransport("bench-matcher", settings, durable="cblrs-plane-1",
                                       lease=LeaseSettings("plane-1", 10.0, 30.0))
@@ -248,11 +287,23 @@ def run_once(backbone: str, cameras: int, frames: int, fps: float, paced: bool,
             service.start()
             ready.wait(30)
             results = context.Queue()
-            publisher = context.Process(target=_publish, args=(
-                publish_port, version, cameras, frames, fps, paced, people, results))
-            publisher.start()
-            report = results.get(timeout=900)
-            publisher.join(60)
+            if backbone.endswith("-native"):
+                groups = [names[index::PUBLISHER_PROCESSES]
+                          for index in range(min(PUBLISHER_PROCESSES, cameras))]
+                start_at = time.time() + 3.0 + 0.05 * cameras  # every transport connected
+                publishers = [context.Process(target=_publish_nats, args=(
+                    servers.url, group, frames, fps, paced, people, publish_window, start_at,
+                    results)) for group in groups]
+            else:
+                publishers = [context.Process(target=_publish, args=(
+                    publish_port, version, cameras, frames, fps, paced, people, results))]
+            for publisher in publishers:
+                publisher.start()
+            reports = [results.get(timeout=900) for _ in publishers]
+            report = {"start": min(item["start"] for item in reports),
+                      "flushed": all(item["flushed"] for item in reports)}
+            for publisher in publishers:
+                publisher.join(60)
             deadline = time.time() + 120
             while (probe.stored < total or not service.drained()) and time.time() < deadline:
                 time.sleep(0.005)
@@ -290,8 +341,10 @@ def benchmark_backbone(
     fps: float = 30.0,
     people: int = 2,
     progress: Any = None,
+    publish_window: int = 256,
 ) -> dict[str, Any]:
-    """Every backbone x camera count x rate, ``repeats`` times; medians per row."""
+    """Every backbone x camera count x rate, ``repeats`` times; medians per row
+    (``publish_window``: NATS-native cameras' publishes awaiting acknowledgement)."""
     info = machine_info()
 
     server = find_nats_server()
@@ -302,7 +355,7 @@ def benchmark_backbone(
         for backbone in backbones:
             for paced in (False, True):
                 frames = int(paced_seconds * fps) if paced else max(1, max_messages // count)
-                runs = [run_once(backbone, count, frames, fps, paced, people)
+                runs = [run_once(backbone, count, frames, fps, paced, people, publish_window)
                         for _ in range(repeats)]
                 row = dict(runs[0])
                 for key, value in runs[0].items():
@@ -314,7 +367,8 @@ def benchmark_backbone(
                 if progress is not None:
                     progress(row)
     info["load_average_end"] = round(__import__("os").getloadavg()[0], 2)
-    return {"machine": info, "repeats": repeats, "fps": fps, "people": people, "rows": rows}
+    return {"machine": info, "repeats": repeats, "fps": fps, "people": people, "rows": rows,
+            "publish_window": publish_window}
 
 
 def backbone_report(result: dict[str, Any]) -> str:
@@ -327,7 +381,9 @@ def backbone_report(result: dict[str, Any]) -> str:
     lines = [
         f"Matcher service (fusion) with SQLite store, {result['people']} detections per message, "
         f"{result['fps']:g} fps when paced; publishers: one mosquitto_pub per camera (MQTT 5 to "
-        f"Mosquitto, MQTT 3.1.1 to NATS's MQTT listener); latency at a separate subscriber of "
+        f"Mosquitto, MQTT 3.1.1 to NATS's MQTT listener), or for *-native cblrs's NATS "
+        f"transport per camera ({result.get('publish_window', 256)} publishes in flight each); "
+        f"latency at a separate subscriber of "
         f"the tracks. {describe_machine(info)}; {info.get('nats_server')}; load "
         f"{info['load_average_1min']} at start, {info['load_average_end']} at end; medians of "
         f"{result['repeats']} runs.",

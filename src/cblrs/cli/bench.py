@@ -122,7 +122,12 @@ def register(subparsers) -> None:
         help="message backbones: Mosquitto, NATS, NATS R3 (stored+acked msg/s, latency at a "
         "subscriber of the tracks)",
     )
-    backbone.add_argument("--backbones", default="mosquitto,nats,nats-r3", help="backbones")
+    backbone.add_argument("--backbones", default="mosquitto,nats,nats-r3",
+                          help="backbones: mosquitto, nats, nats-r3 (cameras on NATS's MQTT "
+                          "listener), nats-native, nats-r3-native (cameras publish NATS)")
+    backbone.add_argument("--publish-window", type=int, default=256,
+                          help="NATS-native cameras: publishes awaiting acknowledgement at "
+                          "once (1: one at a time; default 256)")
     backbone.add_argument("--cameras", default="1,10,50", help="camera counts")
     backbone.add_argument("--repeats", type=int, default=3, help="runs per row (default 3)")
     backbone.add_argument("--max-messages", type=int, default=20_000,
@@ -435,6 +440,7 @@ def _run_backbone(args: argparse.Namespace, repeats: int) -> tuple[dict[str, Any
     result = benchmark_backbone(
         backbones, _integers(args.cameras, "--cameras"), repeats,
         _positive(args.max_messages, "--max-messages"), args.paced_seconds, progress=progress,
+        publish_window=_positive(args.publish_window, "--publish-window"),
     )
     return result, backbone_report(result)
 
