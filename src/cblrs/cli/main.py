@@ -39,8 +39,8 @@ SUBCOMMANDS = {
     "eval": "HOTA, DetA, AssA, LocA, MOTA, IDF1 of tracks against ground truth",
     "analytics": "counts per line and direction, zone entries/exits/dwell, OD, heatmap",
     "pseudo": "pseudo coordinates: make a key, a pseudo site for the matcher, map tracks back",
-    "broker_config": "write a Mosquitto configuration (users, ACL, optional TLS) for cameras "
-    "and matchers",
+    "broker_config": "write a Mosquitto or NATS configuration (users, permissions, TLS) for "
+    "cameras, matchers and viewers",
     "camera": "run an edge camera node: detections -> reference colours -> MQTT",
     "matcher": "run the central matcher of one plane: MQTT -> validate -> track -> SQLite",
     "dashboard": "serve the live dashboard: site map, tracks, counts, cameras; replay; "
