@@ -74,9 +74,11 @@ def run_cli(args: list[str], capsys) -> tuple[int, str]:
     return code, capsys.readouterr().err
 
 
-def small_tracks(tmp_path: Path, shift: float = 0.0, rate: float | None = 10.0) -> Path:
+def small_tracks(tmp_path: Path, shift: float = 0.0, rate: float | None = 10.0,
+                 first_frame: int = 0) -> Path:
     x = np.linspace(-2, 8, 30) + shift
-    tracks = Tracks(np.arange(30), np.arange(30) / 10.0, np.ones(30, int),
+    frames = np.arange(30) + first_frame
+    tracks = Tracks(frames, frames / 10.0, np.ones(30, int),
                     np.c_[x, np.full(30, 17.0 + shift)], class_id=np.zeros(30, int))
     path = tmp_path / "t.txt"
     write_tracks(path, tracks, frames_per_second=rate)
@@ -90,6 +92,8 @@ def small_tracks(tmp_path: Path, shift: float = 0.0, rate: float | None = 10.0) 
         ("other site", "lie outside every plane of site wildtrack: are these tracks from another"),
         ("missing tracks", "does not exist"),
         ("garbage tracks", "expected 9 columns"),
+        # Issue 21: negative frame numbers were taken silently (and changed the counts).
+        ("negative frame", "t.txt:1: frame_id must not be negative in '-1 1 -5 "),
         ("no rate", "carries no time: no .meta.json sidecar (cblrs track and cblrs matcher "
                     "--out-tracks write one)"),
         ("stale sidecar", "belongs to another version of t.txt"),
@@ -110,6 +114,8 @@ def test_bad_input_gets_one_sentence_and_a_non_zero_exit(case, message, tmp_path
     elif case == "garbage tracks":
         tracks = tmp_path / "garbage.txt"
         tracks.write_text("this is not a tracks file\n")
+    elif case == "negative frame":
+        tracks = small_tracks(tmp_path, first_frame=-5)
     elif case == "no rate":
         tracks = small_tracks(tmp_path, rate=None)
         tracks.with_name("t.txt.meta.json").unlink()

@@ -307,7 +307,8 @@ def read_tracks(path: str | Path, frames_per_second: float | None = None) -> Tra
 
     Raises:
         DatasetError: the file is missing, or a row (named ``file:line``) has the wrong
-            number of columns, a non-numeric or non-finite value, or a fractional id.
+            number of columns, a non-numeric or non-finite value, a fractional id or a
+            negative frame number.
     """
     path = Path(path)
     if frames_per_second is not None and not frames_per_second > 0:
@@ -326,6 +327,12 @@ def read_tracks(path: str | Path, frames_per_second: float | None = None) -> Tra
         if fractional.any():
             _raise_at_row(text, path, int(np.flatnonzero(fractional)[0]),
                           f"{COLUMNS[column]} must be an integer")
+    negative = values[:, 2] < 0
+    if negative.any():
+        # A frame number counts frames from the start of a recording; a negative one is a
+        # shifted or corrupted file, and its rows would be timed before the recording began.
+        _raise_at_row(text, path, int(np.flatnonzero(negative)[0]),
+                      "frame_id must not be negative")
     frame = values[:, 2].astype(np.int64)
     x, y, width, height = values[:, 3], values[:, 4], values[:, 5], values[:, 6]
     xyxy = np.stack([x, y, x + width, y + height], axis=1)
