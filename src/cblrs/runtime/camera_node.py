@@ -66,6 +66,7 @@ from typing import Any
 
 import numpy as np
 
+from cblrs.datasets.images import SkippedImages
 from cblrs.detections import Detections
 from cblrs.edge import box_rejections, make_message
 from cblrs.reference import ReferenceImage
@@ -127,6 +128,8 @@ class CameraReport:
         resent: messages sent again (see the module docstring).
         boxes_rejected: boxes dropped before sending, by reason.
         frames_too_large: frames dropped because their message exceeded the size limit.
+        frames_skipped: frames skipped because their image file was unusable, by reason
+            (``empty``, ``truncated``, ``undecodable``; each logged).
         unconfirmed: messages still in the spool at the end (sent again on the next start).
         dropped_from_spool: messages the full spool dropped (ever, for a spool file).
         flushed: every message of the spool acknowledged by the broker at the end (none
@@ -153,6 +156,7 @@ class CameraReport:
     resent: int = 0
     boxes_rejected: dict[str, int] = field(default_factory=dict)
     frames_too_large: int = 0
+    frames_skipped: dict[str, int] = field(default_factory=dict)
     unconfirmed: int = 0
     dropped_from_spool: int = 0
     flushed: bool = False
@@ -295,10 +299,16 @@ class CameraNode:
         started: float | None = None
         final = False
         failing = True  # until the source is read to its end (or the node was stopped)
+        skipped = SkippedImages(f"camera {self.camera_id}")
         try:
             for frame, capture_time in self._timed(frames, report):
                 if self._stop.is_set():
                     break
+                if frame.unusable is not None:
+                    # An unusable image: no message (a frame seen empty would be a claim).
+                    skipped.skip(frame.unusable)
+                    report.frames_skipped = dict(skipped.counts)
+                    continue
                 payload = self._encode(frame, sequence, capture_time, report)
                 sequence += 1
                 if payload is None:
