@@ -10,7 +10,13 @@ from typing import Any
 
 import numpy as np
 
-from cblrs.cli.common import InputError, UsageError, format_table, print_json
+from cblrs.cli.common import (
+    InputError,
+    UsageError,
+    add_output_options,
+    format_table,
+    print_json,
+)
 
 
 def register(subparsers) -> None:
@@ -87,7 +93,7 @@ def register(subparsers) -> None:
     parser.add_argument("--out", type=Path, help="write the camera (cblrs camera JSON)")
     parser.add_argument("--picture", type=Path, help="write the picture of the fit (PNG)")
     parser.add_argument("--grid", type=float, metavar="M", help="grid spacing of the picture")
-    parser.add_argument("--json", action="store_true", help="print machine-readable JSON")
+    add_output_options(parser)
     parser.set_defaults(handler=run)
 
 
