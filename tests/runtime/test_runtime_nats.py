@@ -386,3 +386,43 @@ def test_analytics_events_flow_on_the_backbone_stored_once(server, transports, t
 
     assert asyncio.run(stored_in_stream()) == 3
     store.close()
+
+
+def test_a_deployment_with_the_old_single_stream_keeps_using_it(tmp_path, caplog):
+    """Before per-plane streams one ``CBLRS`` stream held every plane; a server that has it
+    keeps serving cameras and matchers through it (the per-plane stream's subjects would
+    overlap it), and the transport says so once."""
+    if find_nats_server() is None:
+        pytest.skip("no nats-server")
+    from nats.js.api import StreamConfig
+
+    cluster = NatsCluster.create(tmp_path / "legacy", 1).start()
+    created: list[NatsTransport] = []
+    try:
+        settings = NatsSettings.from_url(cluster.url)
+        admin = NatsTransport("old-cblrs", settings)
+        created.append(admin)
+        admin.connect()
+        admin.call(admin.jetstream.add_stream(StreamConfig(
+            name="CBLRS", subjects=["cblrs.*.*.detections", "cblrs.*.*.status"])), 10)
+        received: list[bytes] = []
+        matcher = NatsTransport("m", settings, durable="cblrs-plane-3")
+        created.append(matcher)
+        matcher.subscribe("cblrs/3/+/detections",
+                          lambda delivery: (received.append(delivery.payload), delivery.ack()))
+        with caplog.at_level("WARNING", logger="cblrs.runtime.nats_transport"):
+            matcher.connect()
+        assert "the NATS stream CBLRS made by an older cblrs holds every plane" in caplog.text
+        camera = NatsTransport("c", settings)
+        created.append(camera)
+        camera.connect()
+        camera.publish("cblrs/3/c/detections", _detections("c", 1, 3))
+        camera.publish("cblrs/4/c/detections", _detections("c", 1, 4))  # another plane
+        assert camera.flush(10) and camera.refused_publishes == 0
+        wait_until(lambda: received, 10, "the detections through the old stream")
+        info = admin.call(admin.jetstream.stream_info("CBLRS"), 10)
+        assert info.state.messages == 2 and received == [_detections("c", 1, 3)]
+    finally:
+        for transport in created:
+            transport.close(timeout=1)
+        cluster.stop()
