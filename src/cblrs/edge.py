@@ -42,7 +42,7 @@ from typing import Protocol
 import numpy as np
 
 from cblrs.detections import CLASS_NAMES, CameraMessage, Detections
-from cblrs.reference import ReferenceImage
+from cblrs.reference import Reference
 from cblrs.targeting import TargetingPosition, target_pixels, targeting_for
 
 # Half the typical footprint depth seen along a viewing ray, metres (a 4.5 x 1.8 m car shows
@@ -154,7 +154,7 @@ def make_message(
     timestamp: float,
     frame: int,
     detections: Detections,
-    reference: ReferenceImage,
+    reference: Reference,
     targeting: dict[str, TargetingPosition] | None = None,
     targeter: Targeter | None = None,
     drop_hidden_feet: bool = False,
@@ -280,7 +280,7 @@ def depth_offsets(
 
 
 def _push_away(
-    reference: ReferenceImage,
+    reference: Reference,
     xyxy: np.ndarray,
     pixels: np.ndarray,
     colours: np.ndarray,

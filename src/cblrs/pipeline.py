@@ -29,7 +29,7 @@ from cblrs.errors import DatasetError
 from cblrs.geometric_targeting import GeometricTargeter
 from cblrs.matching import DEFAULT_MATCHER, Matcher, make_matcher
 from cblrs.plane import PlaneSet
-from cblrs.reference import ReferenceImage, render_reference
+from cblrs.reference import OnDemandReference, Reference, ReferenceImage, render_reference
 from cblrs.runtime.ordering import Orderer
 
 logger = logging.getLogger(__name__)
@@ -41,7 +41,8 @@ class TrackingResult:
 
     Attributes:
         tracks: one row per (frame, track), world metres, the scene's native frame numbers.
-        references: the reference image of each camera (scene camera order).
+        references: the reference of each camera (scene camera order; rendered where read
+            unless rendered images were given).
         message_count: camera messages sent (one per camera and frame).
         detection_count: detections in those messages (with or without a location).
         matcher_seconds: time spent inside the matcher's ``update`` calls.
@@ -57,7 +58,7 @@ class TrackingResult:
     """
 
     tracks: Tracks
-    references: list[ReferenceImage]
+    references: list[Reference]
     message_count: int
     detection_count: int
     matcher_seconds: float
@@ -85,6 +86,17 @@ def render_scene_references(scene: Scene, bits: int = 16) -> list[ReferenceImage
     """
     planes = scene_planes(scene, bits)
     return [render_reference(camera, planes) for camera in scene.cameras]
+
+
+def scene_references(scene: Scene, bits: int = 16) -> list[OnDemandReference]:
+    """Every camera's reference of the scene's ground plane, rendered where it is read.
+
+    The colours are those of :func:`render_scene_references`' images; only the pixels the
+    cameras read are rendered and nothing of the size of a frame is kept (a 16-bit
+    1920 x 1080 image is 12 MB), which is what a simulated run of cameras needs.
+    """
+    planes = scene_planes(scene, bits)
+    return [OnDemandReference(camera, planes) for camera in scene.cameras]
 
 
 def camera_positions(scene: Scene) -> dict[str, tuple[float, float, float]]:
@@ -123,7 +135,7 @@ def scene_targeters(
 
 def scene_messages(
     scene: Scene,
-    references: Sequence[ReferenceImage],
+    references: Sequence[Reference],
     targeters: Sequence[Targeter] | None = None,
     drop_hidden_feet: bool = False,
 ) -> Iterator[tuple[float, list[CameraMessage]]]:
@@ -188,7 +200,7 @@ def flush_matcher(matcher: Matcher) -> Tracks:
 
 def camera_messages(
     scene: Scene,
-    references: Sequence[ReferenceImage],
+    references: Sequence[Reference],
     targeters: Sequence[Targeter] | None = None,
     clocks: ClockSimulation | None = None,
     drop_hidden_feet: bool = False,
@@ -251,7 +263,7 @@ def ordered_windows(
 def track_scene(
     scene: Scene,
     matcher: str | Matcher = DEFAULT_MATCHER,
-    references: Sequence[ReferenceImage] | None = None,
+    references: Sequence[Reference] | None = None,
     bits: int = 16,
     progress: bool = False,
     targeting: str | Sequence[Targeter] = "box",
@@ -264,8 +276,9 @@ def track_scene(
     Args:
         scene: cameras, per-frame detections and the ground plane.
         matcher: a matcher name (``"fusion"``, ``"paper"``) or a ready matcher instance.
-        references: reference images per camera; rendered when None.
-        bits: bit depth for rendering (ignored when ``references`` are given).
+        references: reference images per camera; when None, each camera's is rendered
+            where it is read (:func:`scene_references`).
+        bits: bit depth of the references (ignored when ``references`` are given).
         progress: show a progress bar on stderr (terminals only).
         targeting: ``"box"`` (fixed per-class targeting positions, the default),
             ``"geometric"`` (a :class:`cblrs.geometric_targeting.GeometricTargeter` per
@@ -290,7 +303,7 @@ def track_scene(
     start = time.perf_counter()
     render_seconds = 0.0
     if references is None:
-        references = render_scene_references(scene, bits)
+        references = scene_references(scene, bits)
         render_seconds = time.perf_counter() - start
     references = list(references)
     if isinstance(matcher, str):

@@ -226,6 +226,107 @@ class ReferenceImage:
         return cls(pixels=pixels, planes=planes, camera_name=str(metadata.get("camera", "")))
 
 
+class OnDemandReference:
+    """A camera's reference image that renders only the pixels read.
+
+    :meth:`colours_at` returns exactly what :func:`render_reference`'s image holds at those
+    pixels (the same arithmetic, point by point) without rendering or keeping the whole
+    frame: a simulated camera that reads a few target pixels a frame needs neither the
+    tens of megabytes of a full-resolution 16-bit image nor the time to render it. The whole
+    image is rendered on first use of :attr:`pixels` (for saving or drawing) and kept.
+
+    Args:
+        camera: the camera; planes above the ground need a posed camera.
+        planes: one plane or several.
+
+    Example:
+        >>> camera = Camera.from_pose("c", (0, -10, 8), 90, 35, 900, (640, 360))
+        >>> plane = PlaneSpec(1, (-20, -5), 40, 40, bits=8)
+        >>> reference = OnDemandReference(camera, plane)
+        >>> pixels = np.array([[320.0, 300.0]])
+        >>> bool((reference.colours_at(pixels)[0]
+        ...       == render_reference(camera, plane).colours_at(pixels)[0]).all())
+        True
+    """
+
+    def __init__(self, camera: Camera, planes: PlaneSet | PlaneSpec | list[PlaneSpec]):
+        if isinstance(planes, PlaneSpec):
+            planes = PlaneSet([planes])
+        elif not isinstance(planes, PlaneSet):
+            planes = PlaneSet(planes)
+        self.camera = camera
+        self.planes = planes
+        self.camera_name = camera.name
+
+    @property
+    def image_size(self) -> tuple[int, int]:
+        """(width, height) in pixels."""
+        return self.camera.image_size
+
+    @property
+    def bits(self) -> int:
+        """Bits per colour channel (8 or 16)."""
+        return self.planes.bits
+
+    @cached_property
+    def image(self) -> ReferenceImage:
+        """The whole reference image, rendered on first use."""
+        return render_reference(self.camera, self.planes)
+
+    @property
+    def pixels(self) -> NDArray[np.unsignedinteger]:
+        """(H, W, 3) uint8 or uint16 RGB array of the whole image (rendered on first use)."""
+        return self.image.pixels
+
+    def coverage(self) -> float:
+        """Fraction of pixels that see a plane (renders the whole image)."""
+        return self.image.coverage()
+
+    def pixel_indices(self, pixels: NDArray) -> tuple[NDArray[np.int64], BoolArray]:
+        """Flat indices of the nearest pixel centres and an inside-the-image mask."""
+        return nearest_pixel_indices(pixels, self.image_size)
+
+    def colours_at(self, pixels: NDArray) -> tuple[NDArray[np.int64], BoolArray]:
+        """Colours (N, 3) at pixel positions (N, 2); pixels outside the image read (0, 0, 0).
+
+        The same as :meth:`ReferenceImage.colours_at` on the rendered image.
+        """
+        indices, inside = self.pixel_indices(pixels)
+        rows, columns = np.divmod(indices[inside], self.image_size[0])
+        if self.camera.has_distortion:
+            grid_x, grid_y = self.camera.undistorted_grid()
+            map_x = grid_x[rows, columns].astype(np.float64)
+            map_y = grid_y[rows, columns].astype(np.float64)
+        else:
+            map_x, map_y = columns.astype(np.float64), rows.astype(np.float64)
+        channels = _plane_codes(self.camera, self.planes, map_x, map_y, (len(map_x),))
+        colours = np.zeros((len(indices), 3), dtype=np.int64)
+        colours[inside] = np.column_stack(channels)
+        return colours, inside & (colours[:, 2] != 0)
+
+    def locate(self, pixels: NDArray) -> tuple[FloatArray, BoolArray]:
+        """World positions (N, 2) metres of pixels (N, 2), with a validity mask."""
+        colours, _ = self.colours_at(pixels)
+        world_xy, valid, _ = self.planes.decode(colours)
+        return world_xy, valid
+
+    def metadata(self) -> dict:
+        """What the PNG's ``tEXt`` chunk carries (see :meth:`ReferenceImage.metadata`)."""
+        return self.image.metadata()
+
+    def to_png_bytes(self) -> bytes:
+        """The whole reference as PNG bytes (see :meth:`ReferenceImage.to_png_bytes`)."""
+        return self.image.to_png_bytes()
+
+    def save(self, path: str | Path) -> Path:
+        """Write the whole image and its plane specification to a PNG file."""
+        return self.image.save(path)
+
+
+# What a camera reads colours from: a rendered image, or one that renders the pixels read.
+Reference = ReferenceImage | OnDemandReference
+
+
 def load_reference(
     path: str | Path, expected_size: tuple[int, int] | None = None
 ) -> ReferenceImage:
@@ -298,9 +399,28 @@ def render_reference(
         # halves the work of the first multiply-adds.
         map_x = np.arange(width, dtype=np.float64)[None, :]
         map_y = np.arange(height, dtype=np.float64)[:, None]
+    channels = _plane_codes(camera, planes, map_x, map_y, (height, width))
+    pixels = cast(NDArray[np.unsignedinteger], cv2.merge(channels))
+    return ReferenceImage(pixels=pixels, planes=planes, camera_name=camera.name)
+
+
+def _plane_codes(
+    camera: Camera,
+    planes: PlaneSet,
+    map_x: FloatArray,
+    map_y: FloatArray,
+    shape: tuple[int, ...],
+) -> list[NDArray[np.unsignedinteger]]:
+    """The R, G and B channels seen at ideal pinhole pixels ``(map_x, map_y)``.
+
+    ``map_x`` and ``map_y`` broadcast to ``shape``: a whole frame's grid for
+    :func:`render_reference`, a few target pixels for :class:`OnDemandReference`. Every
+    value is computed elementwise by the same operations in the same order, so a pixel gets
+    the same colour either way.
+    """
     dtype = np.uint8 if planes.bits == 8 else np.uint16
-    channels = [np.zeros((height, width), dtype=dtype) for _ in range(3)]
-    best_scale = np.zeros((height, width), dtype=np.float64)  # 1 / depth; larger is nearer
+    channels = [np.zeros(shape, dtype=dtype) for _ in range(3)]
+    best_scale = np.zeros(shape, dtype=np.float64)  # 1 / depth; larger is nearer
     for plane in planes:
         # Fold "world -> colour code" into the inverse homography so that one projective
         # division gives the (fractional) R and G codes directly.
@@ -326,8 +446,7 @@ def render_reference(
         np.copyto(channels[0], np.rint(code_x), where=hit, casting="unsafe")
         np.copyto(channels[1], np.rint(code_y), where=hit, casting="unsafe")
         channels[2][hit] = plane.plane_id
-    pixels = cast(NDArray[np.unsignedinteger], cv2.merge(channels))
-    return ReferenceImage(pixels=pixels, planes=planes, camera_name=camera.name)
+    return channels
 
 
 def _insert_chunk(png: bytes, kind: bytes, body: bytes) -> bytes:

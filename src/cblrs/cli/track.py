@@ -28,7 +28,7 @@ from cblrs.cli.detector_options import (
 )
 from cblrs.datasets import load_scene, simulate_detections, write_tracks
 from cblrs.matching import DEFAULT_MATCHER, MATCHERS
-from cblrs.pipeline import render_scene_references, track_scene
+from cblrs.pipeline import scene_references, track_scene
 
 
 def register(subparsers) -> None:
@@ -165,7 +165,7 @@ def run(args: argparse.Namespace) -> int:
                 name: positions[name] for name in scene.camera_names if name in positions
             }
     else:
-        references = render_scene_references(scene, args.bits or 16)
+        references = scene_references(scene, args.bits or 16)
     render_seconds = time.perf_counter() - started
     scene, detector_summary = real_detections(args, scene, references, source, args.quiet)
     if simulated:
