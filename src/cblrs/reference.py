@@ -269,6 +269,10 @@ class OnDemandReference:
         return self.planes.bits
 
     @cached_property
+    def _matrices(self) -> list[FloatArray]:
+        return _code_matrices(self.camera, self.planes)
+
+    @cached_property
     def image(self) -> ReferenceImage:
         """The whole reference image, rendered on first use."""
         return render_reference(self.camera, self.planes)
@@ -299,7 +303,7 @@ class OnDemandReference:
             map_y = grid_y[rows, columns].astype(np.float64)
         else:
             map_x, map_y = columns.astype(np.float64), rows.astype(np.float64)
-        channels = _plane_codes(self.camera, self.planes, map_x, map_y, (len(map_x),))
+        channels = _plane_codes(self.planes, self._matrices, map_x, map_y, (len(map_x),))
         colours = np.zeros((len(indices), 3), dtype=np.int64)
         colours[inside] = np.column_stack(channels)
         return colours, inside & (colours[:, 2] != 0)
@@ -399,19 +403,43 @@ def render_reference(
         # halves the work of the first multiply-adds.
         map_x = np.arange(width, dtype=np.float64)[None, :]
         map_y = np.arange(height, dtype=np.float64)[:, None]
-    channels = _plane_codes(camera, planes, map_x, map_y, (height, width))
+    channels = _plane_codes(
+        planes, _code_matrices(camera, planes), map_x, map_y, (height, width)
+    )
     pixels = cast(NDArray[np.unsignedinteger], cv2.merge(channels))
     return ReferenceImage(pixels=pixels, planes=planes, camera_name=camera.name)
 
 
+def _code_matrices(camera: Camera, planes: PlaneSet) -> list[FloatArray]:
+    """Per plane the 3x3 matrix from ideal pinhole pixels to (fractional) colour codes.
+
+    It folds "world -> colour code" into the inverse homography, so that one projective
+    division gives the R and G codes directly.
+    """
+    matrices = []
+    for plane in planes:
+        step_x, step_y = plane.step
+        to_code = np.array(
+            [
+                [1.0 / step_x, 0.0, -plane.origin[0] / step_x],
+                [0.0, 1.0 / step_y, -plane.origin[1] / step_y],
+                [0.0, 0.0, 1.0],
+            ]
+        )
+        matrices.append(to_code @ np.linalg.inv(camera.plane_homography(plane.height)))
+    return matrices
+
+
 def _plane_codes(
-    camera: Camera,
     planes: PlaneSet,
+    matrices: list[FloatArray],
     map_x: FloatArray,
     map_y: FloatArray,
     shape: tuple[int, ...],
 ) -> list[NDArray[np.unsignedinteger]]:
     """The R, G and B channels seen at ideal pinhole pixels ``(map_x, map_y)``.
+
+    ``matrices`` are :func:`_code_matrices`' for the camera.
 
     ``map_x`` and ``map_y`` broadcast to ``shape``: a whole frame's grid for
     :func:`render_reference`, a few target pixels for :class:`OnDemandReference`. Every
@@ -421,18 +449,7 @@ def _plane_codes(
     dtype = np.uint8 if planes.bits == 8 else np.uint16
     channels = [np.zeros(shape, dtype=dtype) for _ in range(3)]
     best_scale = np.zeros(shape, dtype=np.float64)  # 1 / depth; larger is nearer
-    for plane in planes:
-        # Fold "world -> colour code" into the inverse homography so that one projective
-        # division gives the (fractional) R and G codes directly.
-        step_x, step_y = plane.step
-        to_code = np.array(
-            [
-                [1.0 / step_x, 0.0, -plane.origin[0] / step_x],
-                [0.0, 1.0 / step_y, -plane.origin[1] / step_y],
-                [0.0, 0.0, 1.0],
-            ]
-        )
-        matrix = to_code @ np.linalg.inv(camera.plane_homography(plane.height))
+    for plane, matrix in zip(planes, matrices, strict=True):
         scale = matrix[2, 0] * map_x + matrix[2, 1] * map_y + matrix[2, 2]
         with np.errstate(divide="ignore", invalid="ignore"):
             inverse_scale = 1.0 / scale
