@@ -24,7 +24,7 @@ from tqdm import tqdm
 from cblrs.datasets.clocks import ClockSimulation, camera_clocks
 from cblrs.datasets.scene import Scene
 from cblrs.detections import CameraMessage, Tracks
-from cblrs.edge import Targeter, make_message
+from cblrs.edge import Targeter, make_messages
 from cblrs.errors import DatasetError
 from cblrs.geometric_targeting import GeometricTargeter
 from cblrs.matching import DEFAULT_MATCHER, Matcher, make_matcher
@@ -152,21 +152,23 @@ def scene_messages(
         raise DatasetError(
             f"need one reference image per camera ({len(scene.cameras)}), got {len(references)}."
         )
-    names = scene.camera_names
-    order = np.argsort(scene.timestamps, kind="stable")
-    for sequence, index in enumerate(order.tolist()):
-        timestamp = float(scene.timestamps[index])
-        frame = int(scene.frames[index])
-        messages = [
-            make_message(
-                name, sequence, timestamp, frame, detections, reference, targeter=targeter,
-                drop_hidden_feet=drop_hidden_feet,
-            )
-            for name, detections, reference, targeter in zip(
-                names, scene.detections[index], references, chosen, strict=True
-            )
-        ]
-        yield timestamp, messages
+    order = np.argsort(scene.timestamps, kind="stable").tolist()
+    frames = [
+        (sequence, float(scene.timestamps[index]), int(scene.frames[index]))
+        for sequence, index in enumerate(order)
+    ]
+    # Each camera's frames at once (the same messages as frame by frame, one lookup).
+    per_camera = [
+        make_messages(
+            name, frames, [scene.detections[index][camera] for index in order], reference,
+            targeter=targeter, drop_hidden_feet=drop_hidden_feet,
+        )
+        for camera, (name, reference, targeter) in enumerate(
+            zip(scene.camera_names, references, chosen, strict=True)
+        )
+    ]
+    for position, (_, timestamp, _) in enumerate(frames):
+        yield timestamp, [messages[position] for messages in per_camera]
 
 
 def run_matcher(
@@ -226,16 +228,20 @@ def camera_messages(
     for camera_index, (clock, reference, targeter) in enumerate(
         zip(camera_clocks(scene, clocks), references, chosen, strict=True)
     ):
-        for sequence, (index, recorded) in enumerate(
-            zip(clock.frame_index.tolist(), clock.timestamp.tolist(), strict=True)
-        ):
-            timestamp = epoch + recorded
-            message = make_message(
-                clock.camera, sequence, timestamp, int(scene.frames[index]),
-                scene.detections[index][camera_index], reference, targeter=targeter,
-                drop_hidden_feet=drop_hidden_feet,
+        indices = clock.frame_index.tolist()
+        frames = [
+            (sequence, epoch + recorded, int(scene.frames[index]))
+            for sequence, (index, recorded) in enumerate(
+                zip(indices, clock.timestamp.tolist(), strict=True)
             )
-            timed.append((timestamp, camera_index, message))
+        ]
+        messages = make_messages(
+            clock.camera, frames, [scene.detections[index][camera_index] for index in indices],
+            reference, targeter=targeter, drop_hidden_feet=drop_hidden_feet,
+        )
+        timed.extend(
+            (message.timestamp, camera_index, message) for message in messages
+        )
     timed.sort(key=lambda item: (item[0], item[1]))
     return [message for _, _, message in timed]
 
