@@ -44,8 +44,8 @@ SUBCOMMANDS = {
     "matcher": "run the central matcher of one plane: MQTT -> validate -> track -> SQLite",
     "dashboard": "serve the live dashboard: site map, tracks, counts, cameras; replay; "
     "calibration",
-    "bench": "benchmarks: lookup (Table I), render, claims, tracker, pipeline, analytics, "
-    "dashboard, backbone, asynchrony, mqtt, all",
+    "bench": "benchmarks: lookup (Table I), render, claims, tracker, pipeline, track, "
+    "analytics, dashboard, backbone, asynchrony, mqtt, all",
     "experiment": "rerun the paper's experiments: targeting (IV-B), resolution; clicked "
     "calibration; count accuracy",
 }
