@@ -19,14 +19,12 @@ from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
-from tqdm import tqdm
 
 from cblrs.datasets.clocks import ClockSimulation, camera_clocks
 from cblrs.datasets.scene import Scene
 from cblrs.detections import CameraMessage, Tracks
 from cblrs.edge import Targeter, make_messages
 from cblrs.errors import DatasetError
-from cblrs.geometric_targeting import GeometricTargeter
 from cblrs.matching import DEFAULT_MATCHER, Matcher, make_matcher
 from cblrs.plane import PlaneSet
 from cblrs.reference import OnDemandReference, Reference, ReferenceImage, render_reference
@@ -122,6 +120,8 @@ def scene_targeters(
         if targeting == "box":
             return None
         if targeting == "geometric":
+            # lazy: it needs the synthetic world's class sizes; the box targeting does not
+            from cblrs.geometric_targeting import GeometricTargeter
 
             return [GeometricTargeter(camera) for camera in scene.cameras]
         raise ValueError(f"targeting must be 'box' or 'geometric', got {targeting!r}")
@@ -325,11 +325,11 @@ def track_scene(
         scene, references, scene_targeters(scene, targeting), clocks, drop_hidden_feet
     )
     captured = np.unique([message.frame for message in messages])
-    if progress:
+    if progress and sys.stderr.isatty():
+        # lazy: tqdm reads its version through importlib.metadata (~20 ms); only a bar needs it
+        from tqdm import tqdm
 
-        messages = tqdm(
-            messages, desc="tracking", leave=False, disable=not sys.stderr.isatty(),
-        )
+        messages = tqdm(messages, desc="tracking", leave=False)
     tracks, matcher_seconds, message_count, detection_count = run_matcher(
         matcher, ordered_windows(messages, scene.camera_names)
     )
