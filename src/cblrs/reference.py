@@ -238,6 +238,7 @@ class OnDemandReference:
     Args:
         camera: the camera; planes above the ground need a posed camera.
         planes: one plane or several.
+        encode_as: as for :func:`render_reference` (pseudo-coordinate references).
 
     Example:
         >>> camera = Camera.from_pose("c", (0, -10, 8), 90, 35, 900, (640, 360))
@@ -249,13 +250,17 @@ class OnDemandReference:
         True
     """
 
-    def __init__(self, camera: Camera, planes: PlaneSet | PlaneSpec | list[PlaneSpec]):
-        if isinstance(planes, PlaneSpec):
-            planes = PlaneSet([planes])
-        elif not isinstance(planes, PlaneSet):
-            planes = PlaneSet(planes)
+    def __init__(
+        self,
+        camera: Camera,
+        planes: PlaneSet | PlaneSpec | list[PlaneSpec],
+        encode_as: tuple[NDArray, PlaneSet] | None = None,
+    ):
+        self._rendered_planes, self.planes, self._encode_matrix = _planes_to_encode(
+            planes, encode_as
+        )
+        self._encode_as = encode_as
         self.camera = camera
-        self.planes = planes
         self.camera_name = camera.name
 
     @property
@@ -269,13 +274,13 @@ class OnDemandReference:
         return self.planes.bits
 
     @cached_property
-    def _matrices(self) -> list[FloatArray]:
-        return _code_matrices(self.camera, self.planes)
+    def _matrices(self) -> list[_CodeMatrices]:
+        return _code_matrices(self.camera, self._rendered_planes, self.planes, self._encode_matrix)
 
     @cached_property
     def image(self) -> ReferenceImage:
         """The whole reference image, rendered on first use."""
-        return render_reference(self.camera, self.planes)
+        return render_reference(self.camera, self._rendered_planes, self._encode_as)
 
     @property
     def pixels(self) -> NDArray[np.unsignedinteger]:
@@ -303,7 +308,9 @@ class OnDemandReference:
             map_y = grid_y[rows, columns].astype(np.float64)
         else:
             map_x, map_y = columns.astype(np.float64), rows.astype(np.float64)
-        channels = _plane_codes(self.planes, self._matrices, map_x, map_y, (len(map_x),))
+        channels = _plane_codes(
+            self._rendered_planes, self._matrices, map_x, map_y, (len(map_x),)
+        )
         colours = np.zeros((len(indices), 3), dtype=np.int64)
         colours[inside] = np.column_stack(channels)
         return colours, inside & (colours[:, 2] != 0)
@@ -370,7 +377,9 @@ def nearest_pixel_indices(
 
 
 def render_reference(
-    camera: Camera, planes: PlaneSet | PlaneSpec | list[PlaneSpec]
+    camera: Camera,
+    planes: PlaneSet | PlaneSpec | list[PlaneSpec],
+    encode_as: tuple[NDArray, PlaneSet] | None = None,
 ) -> ReferenceImage:
     """Render a camera's reference image for one or several planes.
 
@@ -381,6 +390,11 @@ def render_reference(
     Args:
         camera: the camera; planes above the ground need a posed camera.
         planes: one plane or several.
+        encode_as: ``(matrix, encoded_planes)``: colour each hit point ``p`` (found on
+            ``planes``, as without it) by its image ``matrix @ p`` (a (3, 3) homogeneous
+            affine map of ground points) encoded in the plane of ``encoded_planes`` with the
+            same id; the image then carries ``encoded_planes``. Pseudo-coordinate references
+            (:mod:`cblrs.privacy`) are rendered so.
 
     Returns:
         The reference image, (H, W, 3) in the planes' bit depth.
@@ -391,10 +405,7 @@ def render_reference(
         >>> render_reference(camera, plane).pixels.shape
         (360, 640, 3)
     """
-    if isinstance(planes, PlaneSpec):
-        planes = PlaneSet([planes])
-    elif not isinstance(planes, PlaneSet):
-        planes = PlaneSet(planes)
+    planes, encoded_planes, encode_matrix = _planes_to_encode(planes, encode_as)
     width, height = camera.image_size
     if camera.has_distortion:
         map_x, map_y = (grid.astype(np.float64) for grid in camera.undistorted_grid())
@@ -403,53 +414,98 @@ def render_reference(
         # halves the work of the first multiply-adds.
         map_x = np.arange(width, dtype=np.float64)[None, :]
         map_y = np.arange(height, dtype=np.float64)[:, None]
-    channels = _plane_codes(
-        planes, _code_matrices(camera, planes), map_x, map_y, (height, width)
-    )
+    matrices = _code_matrices(camera, planes, encoded_planes, encode_matrix)
+    channels = _plane_codes(planes, matrices, map_x, map_y, (height, width))
     pixels = cast(NDArray[np.unsignedinteger], cv2.merge(channels))
-    return ReferenceImage(pixels=pixels, planes=planes, camera_name=camera.name)
+    return ReferenceImage(pixels=pixels, planes=encoded_planes, camera_name=camera.name)
 
 
-def _code_matrices(camera: Camera, planes: PlaneSet) -> list[FloatArray]:
-    """Per plane the 3x3 matrix from ideal pinhole pixels to (fractional) colour codes.
+def _planes_to_encode(
+    planes: PlaneSet | PlaneSpec | list[PlaneSpec],
+    encode_as: tuple[NDArray, PlaneSet] | None,
+) -> tuple[PlaneSet, PlaneSet, NDArray[np.float64] | None]:
+    """``(planes, encoded_planes, encode_matrix)`` of :func:`render_reference`'s arguments."""
+    if isinstance(planes, PlaneSpec):
+        planes = PlaneSet([planes])
+    elif not isinstance(planes, PlaneSet):
+        planes = PlaneSet(planes)
+    if encode_as is None:
+        return planes, planes, None
+    encode_matrix, encoded_planes = np.asarray(encode_as[0], np.float64), encode_as[1]
+    if sorted(encoded_planes.ids) != sorted(planes.ids) or encoded_planes.bits != planes.bits:
+        raise PlaneError("the encoded planes must have the ids and bits of the planes.")
+    return planes, encoded_planes, encode_matrix
 
-    It folds "world -> colour code" into the inverse homography, so that one projective
-    division gives the R and G codes directly.
+
+@dataclass(frozen=True)
+class _CodeMatrices:
+    """What turns ideal pinhole pixels into one plane's colour codes.
+
+    ``matrix`` maps a pixel to the plane's (fractional) R and G codes and the projective
+    scale: it folds "world -> colour code" into the inverse homography, so that one projective
+    division gives the codes directly. With pseudo coordinates, ``encoded`` maps it to the
+    codes of the transformed point in its encoded plane (same scale), whose largest code is
+    ``encoded_limit``.
     """
+
+    matrix: FloatArray
+    encoded: FloatArray | None = None
+    encoded_limit: float = 0.0
+
+
+def _to_code(plane: PlaneSpec) -> FloatArray:
+    """(3, 3) from plane metres to (fractional) colour codes."""
+    step_x, step_y = plane.step
+    return np.array(
+        [
+            [1.0 / step_x, 0.0, -plane.origin[0] / step_x],
+            [0.0, 1.0 / step_y, -plane.origin[1] / step_y],
+            [0.0, 0.0, 1.0],
+        ]
+    )
+
+
+def _code_matrices(
+    camera: Camera,
+    planes: PlaneSet,
+    encoded_planes: PlaneSet | None = None,
+    encode_matrix: NDArray[np.float64] | None = None,
+) -> list[_CodeMatrices]:
+    """Per plane of ``planes`` its :class:`_CodeMatrices` for ``camera``."""
     matrices = []
     for plane in planes:
-        step_x, step_y = plane.step
-        to_code = np.array(
-            [
-                [1.0 / step_x, 0.0, -plane.origin[0] / step_x],
-                [0.0, 1.0 / step_y, -plane.origin[1] / step_y],
-                [0.0, 0.0, 1.0],
-            ]
-        )
-        matrices.append(to_code @ np.linalg.inv(camera.plane_homography(plane.height)))
+        to_plane = np.linalg.inv(camera.plane_homography(plane.height))
+        if encode_matrix is None or encoded_planes is None:
+            matrices.append(_CodeMatrices(_to_code(plane) @ to_plane))
+            continue
+        encoded = encoded_planes.by_id(plane.plane_id)
+        matrices.append(_CodeMatrices(
+            _to_code(plane) @ to_plane,
+            _to_code(encoded) @ encode_matrix @ to_plane,
+            encoded.max_value + 0.5,
+        ))
     return matrices
 
 
 def _plane_codes(
     planes: PlaneSet,
-    matrices: list[FloatArray],
+    matrices: list[_CodeMatrices],
     map_x: FloatArray,
     map_y: FloatArray,
     shape: tuple[int, ...],
 ) -> list[NDArray[np.unsignedinteger]]:
     """The R, G and B channels seen at ideal pinhole pixels ``(map_x, map_y)``.
 
-    ``matrices`` are :func:`_code_matrices`' for the camera.
-
-    ``map_x`` and ``map_y`` broadcast to ``shape``: a whole frame's grid for
-    :func:`render_reference`, a few target pixels for :class:`OnDemandReference`. Every
-    value is computed elementwise by the same operations in the same order, so a pixel gets
-    the same colour either way.
+    ``matrices`` are :func:`_code_matrices`' for the camera. ``map_x`` and ``map_y``
+    broadcast to ``shape``: a whole frame's grid for :func:`render_reference`, a few target
+    pixels for :class:`OnDemandReference`. Every value is computed elementwise by the same
+    operations in the same order, so a pixel gets the same colour either way.
     """
     dtype = np.uint8 if planes.bits == 8 else np.uint16
     channels = [np.zeros(shape, dtype=dtype) for _ in range(3)]
     best_scale = np.zeros(shape, dtype=np.float64)  # 1 / depth; larger is nearer
-    for plane, matrix in zip(planes, matrices, strict=True):
+    for plane, codes in zip(planes, matrices, strict=True):
+        matrix = codes.matrix
         scale = matrix[2, 0] * map_x + matrix[2, 1] * map_y + matrix[2, 2]
         with np.errstate(divide="ignore", invalid="ignore"):
             inverse_scale = 1.0 / scale
@@ -459,6 +515,17 @@ def _plane_codes(
         with np.errstate(invalid="ignore"):
             hit = (scale > best_scale) & (code_x >= -0.5) & (code_x < limit)
             hit &= (code_y >= -0.5) & (code_y < limit)
+        if codes.encoded is not None:
+            # The hit test above stays on the real plane; the colour is the code of the
+            # transformed point in its encoded plane (the same projective division).
+            encoded = codes.encoded
+            with np.errstate(divide="ignore", invalid="ignore"):
+                code_x = (encoded[0, 0] * map_x + encoded[0, 1] * map_y
+                          + encoded[0, 2]) * inverse_scale
+                code_y = (encoded[1, 0] * map_x + encoded[1, 1] * map_y
+                          + encoded[1, 2]) * inverse_scale
+                hit &= (code_x >= -0.5) & (code_x < codes.encoded_limit)
+                hit &= (code_y >= -0.5) & (code_y < codes.encoded_limit)
         np.copyto(best_scale, scale, where=hit)
         np.copyto(channels[0], np.rint(code_x), where=hit, casting="unsafe")
         np.copyto(channels[1], np.rint(code_y), where=hit, casting="unsafe")

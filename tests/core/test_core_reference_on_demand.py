@@ -77,7 +77,9 @@ def test_on_demand_reads_no_pixels_for_no_points():
 
 
 @pytest.mark.parametrize("view", [0, 4])
-def test_on_demand_equals_rendered_on_wildtrack(view, wildtrack_cameras, wildtrack_distorted_cameras):
+def test_on_demand_equals_rendered_on_wildtrack(
+    view, wildtrack_cameras, wildtrack_distorted_cameras
+):
     """WILDTRACK's cameras at full resolution, without and with their lens model."""
     plane = wildtrack_plane(16)
     for camera in (wildtrack_cameras[view], wildtrack_distorted_cameras[view]):

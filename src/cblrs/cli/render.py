@@ -63,6 +63,10 @@ def register(subparsers) -> None:
     parser.add_argument(
         "--preview", action="store_true", help="also write <camera>_preview.png with a 1 m grid"
     )
+    parser.add_argument(
+        "--key", type=Path, help="pseudo-coordinate key (cblrs pseudo keygen): the colours "
+        "encode the key's pseudo frame, not the site's (see docs/privacy.md)"
+    )
     add_output_options(parser)
     # Let `--plane -3,-9,12,36` through: argparse (before Python 3.13) takes any word that
     # starts with "-" and is not a plain negative number for an option.
@@ -157,6 +161,11 @@ def site_cameras_and_planes(args: argparse.Namespace) -> tuple[list, PlaneSet]:
             "the planes and each camera's calibration."
         )
     site = load_site(args.site)
+    if site.pseudo_key_id is not None:
+        raise UsageError(
+            f"{args.site} is a pseudo site (key {site.pseudo_key_id}); render from the real "
+            "site with --key: cblrs render --site SITE --key KEY --out DIR."
+        )
     planes = site.require_planes("render")
     if args.bits is not None and args.bits != planes.bits:
         planes = PlaneSet([replace(plane, bits=args.bits) for plane in planes])
@@ -172,11 +181,20 @@ def run(args: argparse.Namespace) -> int:
     else:
         cameras = read_cameras(args.calibration, distorted=args.distorted)
         planes = build_planes(args)
+    key = None
+    if args.key is not None:
+        # lazy: a subcommand imports the library when it runs, so its --help starts fast
+        from cblrs.privacy import PseudoKey, render_pseudo_reference
+
+        key = PseudoKey.load(args.key)
     args.out.mkdir(parents=True, exist_ok=True)
     rows = []
     for index, camera in enumerate(progress(cameras, "render", args.quiet)):
         start = time.perf_counter()
-        reference = render_reference(camera, planes)
+        if key is None:
+            reference = render_reference(camera, planes)
+        else:
+            reference = render_pseudo_reference(camera, planes, key)
         milliseconds = (time.perf_counter() - start) * 1000.0
         stem = file_name(camera.name, index)
         path = reference.save(args.out / f"{stem}.png")
@@ -184,7 +202,7 @@ def run(args: argparse.Namespace) -> int:
             "camera": camera.name,
             "path": str(path),
             "coverage": reference.coverage(),
-            "step_cm": [100.0 * step for step in planes[0].step],
+            "step_cm": [100.0 * step for step in reference.planes[0].step],
             "render_ms": milliseconds,
             "bytes": path.stat().st_size,
         }
@@ -202,7 +220,8 @@ def run(args: argparse.Namespace) -> int:
         print_json(
             {
                 "bits": planes.bits,
-                "planes": planes.to_list(),
+                "planes": (planes if key is None else key.pseudo_planes(planes)).to_list(),
+                "pseudo_key_id": None if key is None else key.key_id,
                 "distorted": args.distorted,
                 "cameras": rows,
             }
@@ -219,7 +238,8 @@ def run(args: argparse.Namespace) -> int:
         for row in rows
     ]
     print(format_table(["camera", "coverage %", "step cm", "ms", "file"], table))
-    print(f"{len(rows)} reference image(s) in {args.out}")
+    print(f"{len(rows)} reference image(s) in {args.out}"
+          + ("" if key is None else f", colours in the pseudo frame of key {key.key_id}"))
     return 0
 
 

@@ -125,6 +125,11 @@ class Site:
         return self.model.name
 
     @property
+    def pseudo_key_id(self) -> str | None:
+        """The key id of a pseudo site (coordinates in a keyed pseudo frame), else None."""
+        return self.model.pseudo.key_id if self.model.pseudo is not None else None
+
+    @property
     def camera_names(self) -> list[str]:
         return [camera.name for camera in self.model.cameras]
 
@@ -232,7 +237,7 @@ class Site:
         return _ordered(data)
 
 
-_TOP_ORDER = ("version", "name", "map", "planes", "cameras", "places")
+_TOP_ORDER = ("version", "name", "pseudo", "map", "planes", "cameras", "places")
 
 
 def _ordered(data: dict[str, Any]) -> dict[str, Any]:

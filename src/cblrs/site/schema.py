@@ -8,6 +8,7 @@ A site file is YAML (``.yaml``/``.yml``) or JSON (``.json``) holding::
     cameras: [{name, image_size, <one geometry>, ...}]
     map: {image, metres_per_pixel | scale: {pixels, metres}, origin_px, y_up}
     places: {zones: [...], lines: [...]}        # cblrs.places
+    pseudo: {key_id}                            # a pseudo site (cblrs.privacy)
 
 Every section but ``version`` may be left out; each command checks what it needs. A camera's
 geometry is exactly one of: ``calibration`` (a file: cblrs camera JSON, an AI City
@@ -289,11 +290,19 @@ class CameraModel(_Strict):
         return next(key for key in GEOMETRY_KEYS if getattr(self, key) is not None)
 
 
+class PseudoModel(_Strict):
+    """Marks a pseudo site (:mod:`cblrs.privacy`): every coordinate is in the pseudo frame of
+    the key named here; the key itself is never in a site file."""
+
+    key_id: Annotated[str, Field(pattern=r"^[0-9a-f]{8}$")]
+
+
 class SiteModel(_Strict):
     """The whole site file."""
 
     version: Literal[1]
     name: str = ""
+    pseudo: PseudoModel | None = None
     planes: list[PlaneModel] = Field(default_factory=list)
     cameras: list[CameraModel] = Field(default_factory=list)
     map: MapModel | None = None
@@ -351,6 +360,7 @@ def _camera_name(loc: tuple[int | str, ...], data: Any) -> str | None:
 
 
 _MODELS_BY_SECTION: dict[str, type[BaseModel]] = {
+    "pseudo": PseudoModel,
     "planes": PlaneModel,
     "cameras": CameraModel,
     "map": MapModel,
@@ -368,7 +378,8 @@ def _allowed_keys(loc: tuple[int | str, ...]) -> str:
             model = CalibrationRefModel
         elif len(loc) == 5 and loc[0] == "cameras" and loc[2] == "points":
             model = PointModel
-    keys = [key for key in model.model_fields if key not in ("image_data",)]
+    # Keys only cblrs writes (an export's embedded map, a pseudo site's mark) are not offered.
+    keys = [key for key in model.model_fields if key not in ("image_data", "pseudo")]
     return f" (allowed: {', '.join(keys)})"
 
 
