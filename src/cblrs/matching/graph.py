@@ -59,5 +59,7 @@ def component_labels(
             if np.array_equal(jumped, root):
                 break
             root = jumped
-    _, labels = np.unique(root, return_inverse=True)
-    return labels.astype(np.int64).reshape(node_count)
+    # Roots are the components' lowest nodes: numbering them in node order numbers the
+    # components by their lowest node.
+    number = np.cumsum(root == np.arange(node_count)) - 1
+    return number[root].astype(np.int64, copy=False)
