@@ -11,11 +11,13 @@ clock around start and reaping), CPU seconds (user + system) and peak resident m
 (``ru_maxrss``). It prints the medians, the ratios of ``cblrs track`` to each baseline taken
 round by round (so a drift of the machine's speed cancels), the load of the machine, and the
 scores of the three outputs against the ground truth (outside the timing), so that a fast
-baseline cannot hide a poor one.
+baseline cannot hide a poor one; and, from fresh processes of
+:mod:`cblrs.bench.track_stages`, where the CPU time of ``cblrs track`` goes.
 """
 
 from __future__ import annotations
 
+import json
 import os
 import statistics
 import subprocess
@@ -33,6 +35,7 @@ from cblrs.errors import CblrsError
 CBLRS = "cblrs track"
 BASELINES = ("norfair merged", "norfair every-box")
 _BASELINE_SCRIPT = Path(__file__).with_name("norfair_baseline.py")
+_STAGES_SCRIPT = Path(__file__).with_name("track_stages.py")
 
 
 class BenchmarkError(CblrsError):
@@ -125,6 +128,7 @@ def benchmark_track(
                 progress(f"round {round_index + 1}/{repeats}: " + ", ".join(
                     f"{name} {runs[name][-1]['wall_s']:.2f} s" for name in names))
         scores = _scores(root, out)
+    stages = _stages(root, repeats)
     medians = {
         name: {key: statistics.median(run[key] for run in runs[name])
                for key in ("wall_s", "cpu_s", "peak_mib")}
@@ -148,8 +152,25 @@ def benchmark_track(
         "medians": medians,
         "ratios": ratios,
         "scores": scores,
+        "stages_cpu_s": stages,
         "load_average": {"start": load_start, "end": os.getloadavg()[0]},
     })
+
+
+def _stages(root: Path, repeats: int) -> dict[str, float]:
+    """Median CPU seconds of each stage of ``cblrs track`` (:mod:`cblrs.bench.track_stages`)."""
+    runs = []
+    for _ in range(repeats):
+        done = subprocess.run([sys.executable, str(_STAGES_SCRIPT), str(root)],
+                              capture_output=True, text=True, stdin=subprocess.DEVNULL)
+        if done.returncode != 0:
+            lines = done.stderr.strip().splitlines()
+            raise BenchmarkError(
+                f"the stage timing exited with {done.returncode}"
+                + (f": {lines[-1]}" if lines else ".")
+            )
+        runs.append(json.loads(done.stdout))
+    return {stage: statistics.median(run[stage] for run in runs) for stage in runs[0]}
 
 
 def _scores(root: Path, out: Path) -> dict[str, dict[str, float]]:
@@ -197,6 +218,13 @@ def track_report(result: dict[str, Any]) -> str:
         markdown_table(["command", "wall s", "CPU s", "peak MiB", "HOTA", "IDF1", "ids"], rows),
         "",
         markdown_table(["cblrs track / baseline", "wall", "CPU", "peak memory"], ratio_rows),
+        "",
+        "Where the CPU time of `cblrs track` goes (median of the same number of fresh "
+        "processes, `python src/cblrs/bench/track_stages.py WILDTRACK`):",
+        "",
+        markdown_table(["stage", "CPU s"], [[stage, seconds] for stage, seconds
+                                             in result["stages_cpu_s"].items()]
+                       + [["total", sum(result["stages_cpu_s"].values())]]),
         "",
         "Ratios: median over rounds of cblrs / baseline in the same round (range in brackets). "
         "Command: `cblrs bench track --dataset WILDTRACK`.",
