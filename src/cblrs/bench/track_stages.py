@@ -2,7 +2,8 @@
 
 Run as a script (``python src/cblrs/bench/track_stages.py WILDTRACK``), not as a module of the
 package: importing ``cblrs.bench`` first would load what the stages are meant to time. It
-imports the libraries the tracker needs, then cblrs's own modules, then runs the stages of
+imports the libraries the tracker needs, then the cblrs modules ``cblrs track`` runs (not the
+command line's own, which the library must not import), then runs the stages of
 ``cblrs track`` (load, the cameras' messages, ordering, tracking, writing) as
 :func:`cblrs.pipeline.track_scene` does, and prints the CPU seconds of each
 (``time.process_time``) as JSON. ``cblrs bench track`` runs it and reports the medians.
@@ -28,7 +29,6 @@ def measure(root: Path) -> dict[str, float]:
 
     seconds["numpy, SciPy, OpenCV imports"] = time.process_time() - start
     start = time.process_time()
-    import cblrs.cli.track  # noqa: F401
     from cblrs.datasets import load_scene, write_tracks
     from cblrs.matching import make_matcher
     from cblrs.pipeline import (
