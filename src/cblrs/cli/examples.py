@@ -76,6 +76,8 @@ EXAMPLES: dict[str, list[str]] = {
     "experiment counts": ["cblrs experiment counts --scenes wildtrack,plaza --out experiments"],
     "experiment tracking": ["cblrs experiment tracking --out experiments",
                             "cblrs experiment tracking --scenes roundabout,crowd --no-held-out"],
+    "experiment planes": ["cblrs experiment planes --out experiments",
+                          "cblrs experiment planes --seeds '' --people 20 --cars 6"],
     "experiment pseudo": [f"cblrs experiment pseudo --dataset {WT} --out experiments"],
 }
 

@@ -50,7 +50,7 @@ SUBCOMMANDS = {
     "bench": "benchmarks: lookup (Table I), render, claims, tracker, pipeline, analytics, "
     "dashboard, backbone, asynchrony, mqtt, all",
     "experiment": "rerun the paper's experiments: targeting (IV-B), resolution; clicked "
-    "calibration; count accuracy; pseudo-coordinate recovery",
+    "calibration; count accuracy; pseudo-coordinate recovery; identities across planes",
 }
 
 
