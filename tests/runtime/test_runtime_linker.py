@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 import sqlite3
+import time
 from collections import Counter
 from dataclasses import replace
 
@@ -102,6 +103,8 @@ def test_live_equals_offline_through_duplicates_bad_updates_and_a_restart(city, 
         if index % 97 == 0:  # a redelivery, and something that is not an update
             matchers[plane].publish(tracks_topic(plane), payload)
             matchers[plane].publish(tracks_topic(plane), b'{"schema": "cblrs.tracks/1"')
+            matchers[plane].publish(tracks_topic(plane), encode_tracks(
+                Tracks.empty(), plane, timestamp=time.time() + 3600.0))
     wait_until(lambda: service.stats().get("updates", 0) >= half, 30, "the first half")
     service.close()  # a stop, not the end: the next start resumes
     service.store.close()
@@ -115,6 +118,7 @@ def test_live_equals_offline_through_duplicates_bad_updates_and_a_restart(city, 
     counters = store.counters()
     assert counters["updates"] == len(updates) and counters.get("late_rows", 0) == 0
     assert counters["duplicates"] >= half // 97 and counters["rejected.malformed_json"] >= 1
+    assert counters["rejected.in_future"] == counters["rejected.malformed_json"]
     # The global rows equal the offline link of the same rows.
     offline, handovers, _ = link_tracks(scenes.spec.planes, scenes.spec.links, per_plane)
     live = store.rows()

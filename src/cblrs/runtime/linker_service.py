@@ -74,6 +74,9 @@ DEFAULT_DELAY_S = 0.5
 its update's time)."""
 DEFAULT_MAX_WAIT_S = 30.0
 """A plane silent this long while others go on is left out of the watermark."""
+MAX_FUTURE_S = 60.0
+"""An update timed further ahead of the linker's clock than this is refused (one bad clock
+would otherwise move a plane's watermark ahead and make every later row late)."""
 
 
 class LinkerFailed(CblrsError):
@@ -283,6 +286,10 @@ class LinkerService:
                     if time_of is None:
                         raise RejectedMessage(RejectReason.MISSING_FIELD,
                                               "an empty update without its time")
+                    if time_of > received_at + MAX_FUTURE_S:
+                        raise RejectedMessage(RejectReason.IN_FUTURE,
+                                              f"update time {time_of} is ahead of this host's "
+                                              f"clock by {time_of - received_at:.0f} s")
                 except (RejectedMessage, TopicError) as error:
                     reason = error.reason.value if isinstance(error, RejectedMessage) else (
                         "topic")
