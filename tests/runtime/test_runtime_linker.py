@@ -50,10 +50,10 @@ def updates_of(scenes, per_plane):
     """Every plane's updates, one per frame (empty ones too), in capture order."""
     updates = []
     for plane_id, rows in per_plane.items():
-        for index, time in enumerate(scenes.timestamps.tolist()):
+        for index, seconds in enumerate(scenes.timestamps.tolist()):
             chosen = rows[rows.frame == index]
-            updates.append((EPOCH + time, plane_id, encode_tracks(
-                chosen, plane_id, sequence=index, timestamp=EPOCH + time)))
+            updates.append((EPOCH + seconds, plane_id, encode_tracks(
+                chosen, plane_id, sequence=index, timestamp=EPOCH + seconds)))
     updates.sort(key=lambda item: (item[0], item[1]))
     return updates
 
