@@ -90,12 +90,8 @@ def register(subparsers) -> None:
         default=2.0,
         help="ordering window, seconds: how long a timestamp waits for a silent camera",
     )
-    parser.add_argument(
-        "--out-tracks",
-        type=Path,
-        help="also write tracks (AI City format; its .meta.json sidecar keeps the capture "
-        "times, for cblrs analytics)",
-    )
+    parser.add_argument("--out-tracks", type=Path, help="also write tracks (AI City format; "
+                        "its .meta.json keeps the capture times, for cblrs analytics)")
     parser.add_argument(
         "--no-publish-tracks", action="store_true", help="do not publish on cblrs/<plane>/tracks"
     )
