@@ -191,7 +191,9 @@ def finish(processes, cameras, probe, database, case, epoch, report, record_prop
     out, err = final.communicate(timeout=120)
     assert final.returncode == 0, err[-2000:]
     summary = json.loads(out)
-    assert summary["processed"] == len(case["scene"].frames) * len(case["scene"].cameras)
+    assert summary["processed"] == len(case["scene"].frames) * len(case["scene"].cameras), {
+        name: summary[name] for name in ("received", "accepted", "duplicates", "late",
+                                         "processed")}
     report.update(assert_exactly_once(database, case, undisturbed_tracks(case, epoch)))
     updates = track_updates_per_group(probe)
     report["duplicated_track_updates"] = sum(count - 1 for count in updates.values())

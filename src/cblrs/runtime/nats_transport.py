@@ -326,6 +326,9 @@ class NatsTransport:
         self._core_publishes: set[asyncio.Future] = set()
         self._pull_task: asyncio.Task | None = None
         self._pull_wake: asyncio.Event | None = None
+        self._consumer_config: Any = None
+        self._resume_at: int | None = None  # restart the consumer here (see _redeliver...)
+        self._redeliver = False  # after a reconnection: before the next pull request
         self._outstanding = 0
         self._last_activity = 0.0
         self._lease_task: asyncio.Task | None = None
@@ -509,6 +512,7 @@ class NatsTransport:
         async def on_reconnected() -> None:
             self._connected.set()
             self._outstanding = 0  # pull requests die with the connection: ask again
+            self._redeliver = self._pull_task is not None  # deliveries may have died too
             if self._pull_wake is not None:
                 self._pull_wake.set()
             logger.info("%s: reconnected to %s", self.client_id,
@@ -634,7 +638,7 @@ class NatsTransport:
 
         assert self.durable is not None
         subjects = sorted({topic_to_subject(topic_filter) for topic_filter in self._bound})
-        config = ConsumerConfig(
+        self._consumer_config = ConsumerConfig(
             durable_name=self.durable, ack_policy=AckPolicy.EXPLICIT,
             deliver_policy=DeliverPolicy.ALL, ack_wait=self.settings.ack_wait_s,
             max_ack_pending=self.settings.max_ack_pending, max_deliver=-1,
@@ -649,14 +653,56 @@ class NatsTransport:
             except NotFoundError:
                 pass
             self.replay = False
+        else:
+            # What an earlier holder was handed and never acknowledged (it died, or the
+            # deliveries died with a server) comes now, not after ack_wait.
+            await self._redeliver_unacknowledged()
         try:
-            await self._js.add_consumer(DETECTIONS_STREAM, config)
+            await self._js.add_consumer(DETECTIONS_STREAM, self._consumer_config)
         except Exception as error:
             raise TransportError(
                 f"{self.client_id}: cannot set up the consumer {self.durable}: {error}."
             ) from None
+        self._resume_at = None
         self._pull_wake = asyncio.Event()
         self._pull_task = asyncio.get_running_loop().create_task(self._pull())
+
+    async def _redeliver_unacknowledged(self) -> None:
+        """Restart the durable consumer at its first unacknowledged message.
+
+        JetStream counts a message as delivered once it has sent it: a message in flight to
+        a matcher that died, or lost with the server that carried it, comes again only after
+        ``ack_wait`` (30 s), behind everything newer, so the matcher would hold it late. Here
+        the consumer is created anew from its acknowledgement floor: every message after the
+        floor comes again at once, in stream order (the matcher's store recognises those it
+        already holds). Called before the first pull and after every reconnection; without
+        unacknowledged messages it changes nothing.
+        """
+        # optional extra: pip install cblrs[nats]
+        from nats.js.api import DeliverPolicy
+        from nats.js.errors import NotFoundError
+
+        assert self.durable is not None
+        if self._resume_at is None:
+            try:
+                info = await self._js.consumer_info(DETECTIONS_STREAM, self.durable)
+            except NotFoundError:
+                return  # a new consumer: add_consumer delivers from the first message
+            if not info.num_ack_pending:
+                return
+            self._resume_at = info.ack_floor.stream_seq + 1
+            logger.info("%s: %d messages were handed out and not acknowledged; delivering "
+                        "again from stream sequence %d", self.client_id, info.num_ack_pending,
+                        self._resume_at)
+        try:
+            await self._js.delete_consumer(DETECTIONS_STREAM, self.durable)
+        except NotFoundError:
+            pass
+        # Kept until the consumer exists again: a failure between the deletion and the
+        # creation must not make the next attempt start from the stream's first message.
+        self._consumer_config = replace(
+            self._consumer_config, deliver_policy=DeliverPolicy.BY_START_SEQUENCE,
+            opt_start_seq=self._resume_at)
 
     # Internals: pulling ------------------------------------------------------------------
 
@@ -670,6 +716,19 @@ class NatsTransport:
         expires_s = max(5.0, 5 * settings.heartbeat_s)
         assert self._pull_wake is not None
         while not self._closing and not self.lease_lost:
+            if self._redeliver and nc.is_connected:
+                try:
+                    await self._redeliver_unacknowledged()
+                    if self._resume_at is not None:
+                        await self._js.add_consumer(DETECTIONS_STREAM, self._consumer_config)
+                        self._resume_at = None
+                    self._redeliver = False
+                except asyncio.CancelledError:
+                    raise
+                except Exception as error:  # the cluster is not ready yet: pull nothing
+                    logger.debug("%s: consumer not restarted yet: %s", self.client_id, error)
+                    await asyncio.sleep(settings.reconnect_wait_s)
+                    continue
             now = time.monotonic()
             if now - self._last_activity > 3 * settings.heartbeat_s:
                 self._outstanding = 0  # nothing, not even heartbeats: the requests are gone
