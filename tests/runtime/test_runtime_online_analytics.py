@@ -206,8 +206,11 @@ def test_online_counts_equal_offline_and_survive_sigkill(case, site_file, start_
     out, err = second.communicate(timeout=120)
     for thread in threads:
         thread.join(30)
-    wait_until(lambda: len({decode_event(p).key for p in received}) >= 1, 10, "events")
-    time.sleep(1.0)  # the last events' deliveries
+    with RuntimeStore(database, read_only=True) as store:
+        committed = {event.body["key"] for event in read_events(store)}
+    assert committed, "no event was committed"
+    wait_until(lambda: {decode_event(p).key for p in list(received)} >= committed, 30,
+               "every committed event at the viewer")
     viewer.close()
     spy.close()
     assert second.returncode == 0, err

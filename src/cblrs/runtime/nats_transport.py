@@ -329,6 +329,8 @@ class NatsTransport:
         self._consumer_config: Any = None
         self._resume_at: int | None = None  # restart the consumer here (see _redeliver...)
         self._redeliver = False  # after a reconnection: before the next pull request
+        self._last_delivery = 0  # the consumer's sequence of the last delivery
+        self._caught_up = False  # the consumer had nothing more to deliver at last look
         self._outstanding = 0
         self._last_activity = 0.0
         self._lease_task: asyncio.Task | None = None
@@ -342,6 +344,15 @@ class NatsTransport:
     def connected(self) -> bool:
         """Whether the connection to the broker is up now."""
         return self._connected.is_set()
+
+    @property
+    def caught_up(self) -> bool:
+        """Whether the plane's durable consumer has delivered everything its stream holds
+        (at the last delivery or check): while not, a camera's silence may only mean its
+        messages are still on their way. Without a durable consumer: :attr:`connected`."""
+        if self._pull_task is None:
+            return self.connected
+        return self.connected and self._caught_up and not self._redeliver
 
     def open(self) -> None:
         """Connect, create the streams if missing and take the lease; deliver nothing yet.
@@ -507,6 +518,7 @@ class NatsTransport:
 
         async def on_disconnected() -> None:
             self._connected.clear()
+            self._caught_up = False
             logger.info("%s: disconnected from NATS", self.client_id)
 
         async def on_reconnected() -> None:
@@ -664,6 +676,7 @@ class NatsTransport:
                 f"{self.client_id}: cannot set up the consumer {self.durable}: {error}."
             ) from None
         self._resume_at = None
+        self._last_delivery = 0
         self._pull_wake = asyncio.Event()
         self._pull_task = asyncio.get_running_loop().create_task(self._pull())
 
@@ -704,6 +717,16 @@ class NatsTransport:
             self._consumer_config, deliver_policy=DeliverPolicy.BY_START_SEQUENCE,
             opt_start_seq=self._resume_at)
 
+    async def _check_caught_up(self) -> None:
+        """Nothing came for a while: ask the consumer whether it has anything left."""
+        try:
+            info = await self._js.consumer_info(DETECTIONS_STREAM, self.durable)
+        except Exception as error:  # not ready yet: ask again at the next idle beat
+            logger.debug("%s: consumer info: %s", self.client_id, error)
+            return
+        if not self._redeliver:
+            self._caught_up = info.num_pending == 0
+
     # Internals: pulling ------------------------------------------------------------------
 
     async def _pull(self) -> None:
@@ -722,6 +745,7 @@ class NatsTransport:
                     if self._resume_at is not None:
                         await self._js.add_consumer(DETECTIONS_STREAM, self._consumer_config)
                         self._resume_at = None
+                        self._last_delivery = 0
                     self._redeliver = False
                 except asyncio.CancelledError:
                     raise
@@ -745,7 +769,8 @@ class NatsTransport:
             try:
                 await asyncio.wait_for(self._pull_wake.wait(), settings.heartbeat_s)
             except TimeoutError:
-                pass
+                if not self._caught_up and nc.is_connected and not self._redeliver:
+                    await self._check_caught_up()
 
     async def _on_pulled(self, msg: Any) -> None:
         self._last_activity = time.monotonic()
@@ -765,7 +790,18 @@ class NatsTransport:
         if self._outstanding <= self.settings.pull_batch // 2:
             self._pull_wake.set()  # type: ignore[union-attr]
         reply = msg.reply
-        delivered, stamp = _ack_metadata(reply)
+        delivered, stamp, consumer_sequence, pending = _ack_metadata(reply)
+        if self._last_delivery and consumer_sequence > self._last_delivery + 1:
+            # Deliveries in between were lost on the way (a server or route died): they
+            # would come again only after ack_wait, behind newer ones.
+            logger.info("%s: deliveries %d-%d of the consumer were lost on the way",
+                        self.client_id, self._last_delivery + 1, consumer_sequence - 1)
+            self._redeliver = True
+            self._caught_up = False
+            self._pull_wake.set()  # type: ignore[union-attr]
+        elif not self._redeliver:
+            self._caught_up = pending == 0
+        self._last_delivery = consumer_sequence
         topic = subject_to_topic(msg.subject)
         retain = topic.endswith("/status") and stamp < self._connected_at
         if self.lease_lost:
@@ -955,8 +991,9 @@ async def _cancel_tasks() -> None:
     await asyncio.gather(*tasks, return_exceptions=True)
 
 
-def _ack_metadata(reply: str) -> tuple[int, float]:
-    """``(times delivered, stream timestamp in seconds)`` from a JetStream ack subject.
+def _ack_metadata(reply: str) -> tuple[int, float, int, int]:
+    """``(times delivered, stream timestamp in seconds, consumer sequence, messages still
+    pending)`` from a JetStream ack subject (consumer sequence 0 and pending 1 when unreadable).
 
     ``$JS.ACK.<stream>.<consumer>.<delivered>.<sseq>.<cseq>.<ns>.<pending>`` or, with a
     domain and account hash, two tokens more after ``$JS.ACK``.
@@ -964,9 +1001,10 @@ def _ack_metadata(reply: str) -> tuple[int, float]:
     tokens = reply.split(".")
     offset = 2 if len(tokens) == 9 else 4
     try:
-        return int(tokens[offset + 2]), int(tokens[offset + 5]) / 1e9
+        return (int(tokens[offset + 2]), int(tokens[offset + 5]) / 1e9,
+                int(tokens[offset + 4]), int(tokens[offset + 6]))
     except (IndexError, ValueError):
-        return 1, time.time()
+        return 1, time.time(), 0, 1
 
 
 def with_servers(settings: NatsSettings, url: str) -> NatsSettings:
