@@ -20,7 +20,9 @@ behaviour the services rely on, on a NATS server or cluster with JetStream:
 * **publishes** to a stream are JetStream publishes, each with a ``Nats-Msg-Id``
   (``<plane>.<camera>.<sequence>`` for detections, ``<plane>.<timestamp>`` for a track
   update), retried with the same id until the stream acknowledges them, so a retry after a
-  leader change or a lost connection is stored once; ``flush`` waits for those
+  leader change or a lost connection is stored once (a camera's own re-send of an
+  unconfirmed message carries a suffix, ``publish(..., resend=)``, so that it reaches the
+  matcher, which confirms it); ``flush`` waits for those
   acknowledgements. With ``publish_window=1`` (cameras) publishes stay in order even across
   retries. Publishes made while the servers are away wait in memory;
 * **plane lease** (``lease=``): a key with a time to live in the replicated key-value bucket
@@ -394,8 +396,18 @@ class NatsTransport:
         self._started = True
         self._run(self._start(), None)
 
-    def publish(self, topic: str, payload: bytes, qos: int = 1, retain: bool = False) -> None:
-        """Publish a message (see :class:`~cblrs.runtime.transport.Transport`)."""
+    def publish(self, topic: str, payload: bytes, qos: int = 1, retain: bool = False,
+                *, resend: str | None = None) -> None:
+        """Publish a message (see :class:`~cblrs.runtime.transport.Transport`).
+
+        Args:
+            resend: this is the sender's own re-send of a message it published before (a
+                camera that got no confirmation), distinguished by this token: its
+                ``Nats-Msg-Id`` gets ``.<resend>`` so that the stream stores it again rather
+                than dropping it as the duplicate of the first publish — the matcher, which
+                may have stored the first one without ever confirming it, must see it to
+                confirm it. (The transport's own retries of one publish keep one id.)
+        """
         validate_topic(topic)
         if qos not in (0, 1):
             raise TransportError(f"QoS must be 0 or 1, got {qos}.")
@@ -405,10 +417,12 @@ class NatsTransport:
         if qos == 0 or stream_of(subject) is None:
             loop.call_soon_threadsafe(self._publish_core, subject, data)
             return
+        identifier = message_id(subject, data)
+        if identifier is not None and resend is not None:
+            identifier = f"{identifier}.{resend}"
         with self._condition:
             self._pending += 1
-        loop.call_soon_threadsafe(self._enqueue_publish, (subject, data,
-                                                          message_id(subject, data)))
+        loop.call_soon_threadsafe(self._enqueue_publish, (subject, data, identifier))
 
     def subscribe(self, topic_filter: str, handler: Handler, qos: int = 1) -> None:
         """Subscribe a handler to a topic filter (see
