@@ -104,7 +104,8 @@ from cblrs.runtime.wire import RejectedMessage, ValidationPolicy, decode_status,
 
 logger = logging.getLogger(__name__)
 
-COUNTER_NAMES = ("received", "accepted", "duplicates", "late", "processed", "groups", "tracks")
+COUNTER_NAMES = ("received", "accepted", "duplicates", "conflicts", "late", "processed",
+                 "groups", "tracks")
 """Counters every summary shows (rejections add ``rejected.<reason>``)."""
 
 
@@ -554,6 +555,13 @@ class MatcherService:
             late = self._orderer.is_late(wire.timestamp)
             accepted.append((InboxEntry.from_wire(wire), LATE if late else PENDING, received_at))
         inserted = self.store.insert_messages(accepted, counters)
+        if counters.get("conflicts"):
+            self._rejections.log(
+                logging.ERROR, "conflicts",
+                "plane %d: %d messages repeat a stored camera and sequence number with other "
+                "content (another run of a camera reusing its numbers: give it another "
+                "--first-sequence); the stored ones are kept, these are counted as conflicts",
+                self.plane_id, counters["conflicts"])
         # Acknowledge only now: everything above is durably stored (or rejected on purpose).
         for delivery in acknowledge:
             delivery.ack()
