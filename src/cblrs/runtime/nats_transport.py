@@ -74,6 +74,9 @@ DETECTIONS_SUBJECTS = ("cblrs.*.*.detections", "cblrs.*.*.status")
 TRACKS_STREAM = "CBLRS_TRACKS"
 TRACKS_SUBJECTS = ("cblrs.*.tracks", "cblrs.*.events")
 LEASE_BUCKET = "cblrs_leases"
+_GIVE_UP_S = 120.0
+"""How long the consumer's restart or state may stay unanswerable before the transport goes
+on without it (a cluster still recovering answers within that; a refusal never does)."""
 
 
 def _import_nats() -> Any:
@@ -330,9 +333,11 @@ class NatsTransport:
         self._pull_wake: asyncio.Event | None = None
         self._consumer_config: Any = None
         self._resume_at: int | None = None  # restart the consumer here (see _redeliver...)
+        self._floor: int | None = None  # where it was last restarted from
         self._redeliver = False  # after a reconnection: before the next pull request
         self._last_delivery = 0  # the consumer's sequence of the last delivery
         self._caught_up = False  # the consumer had nothing more to deliver at last look
+        self._check_failing_since: float | None = None
         self._outstanding = 0
         self._last_activity = 0.0
         self._lease_task: asyncio.Task | None = None
@@ -682,7 +687,13 @@ class NatsTransport:
         else:
             # What an earlier holder was handed and never acknowledged (it died, or the
             # deliveries died with a server) comes now, not after ack_wait.
-            await self._redeliver_unacknowledged()
+            try:
+                await self._redeliver_unacknowledged()
+            except Exception as error:  # e.g. not permitted: they come after ack_wait
+                logger.warning("%s: could not restart the consumer %s at its "
+                               "acknowledgement floor (%s); unacknowledged messages come "
+                               "again after %g s", self.client_id, self.durable,
+                               error or type(error).__name__, self.settings.ack_wait_s)
         try:
             await self._js.add_consumer(DETECTIONS_STREAM, self._consumer_config)
         except Exception as error:
@@ -714,17 +725,26 @@ class NatsTransport:
             try:
                 info = await self._js.consumer_info(DETECTIONS_STREAM, self.durable)
             except NotFoundError:
-                return  # a new consumer: add_consumer delivers from the first message
-            if not info.num_ack_pending:
-                return
-            self._resume_at = info.ack_floor.stream_seq + 1
-            logger.info("%s: %d messages were handed out and not acknowledged; delivering "
-                        "again from stream sequence %d", self.client_id, info.num_ack_pending,
-                        self._resume_at)
-        try:
-            await self._js.delete_consumer(DETECTIONS_STREAM, self.durable)
-        except NotFoundError:
-            pass
+                if self._floor is None:
+                    return  # a new consumer: add_consumer delivers from the first message
+                info = None  # deleted here before, its creation failed: create it now
+            if info is not None:
+                if not info.num_ack_pending:
+                    return
+                self._floor = info.ack_floor.stream_seq + 1
+                logger.info("%s: %d messages were handed out and not acknowledged; "
+                            "delivering again from stream sequence %d", self.client_id,
+                            info.num_ack_pending, self._floor)
+                try:
+                    await self._js.delete_consumer(DETECTIONS_STREAM, self.durable)
+                except NotFoundError:
+                    pass
+            self._resume_at = self._floor
+        else:
+            try:
+                await self._js.delete_consumer(DETECTIONS_STREAM, self.durable)
+            except NotFoundError:
+                pass
         # Kept until the consumer exists again: a failure between the deletion and the
         # creation must not make the next attempt start from the stream's first message.
         self._consumer_config = replace(
@@ -737,7 +757,16 @@ class NatsTransport:
             info = await self._js.consumer_info(DETECTIONS_STREAM, self.durable)
         except Exception as error:  # not ready yet: ask again at the next idle beat
             logger.debug("%s: consumer info: %s", self.client_id, error)
+            self._check_failing_since = self._check_failing_since or time.monotonic()
+            if time.monotonic() - self._check_failing_since > _GIVE_UP_S:
+                # Unanswerable (e.g. not permitted): connected counts as caught up.
+                logger.warning("%s: cannot ask the consumer %s what it holds (%s); a silent "
+                               "camera is given up by the window alone", self.client_id,
+                               self.durable, error or type(error).__name__)
+                self._caught_up = True
+                self._check_failing_since = None
             return
+        self._check_failing_since = None
         if not self._redeliver:
             self._caught_up = info.num_pending == 0
 
@@ -752,6 +781,7 @@ class NatsTransport:
         batch = max(1, settings.pull_batch)
         expires_s = max(5.0, 5 * settings.heartbeat_s)
         assert self._pull_wake is not None
+        failing_since: float | None = None
         while not self._closing and not self.lease_lost:
             if self._redeliver and nc.is_connected:
                 try:
@@ -765,8 +795,19 @@ class NatsTransport:
                     raise
                 except Exception as error:  # the cluster is not ready yet: pull nothing
                     logger.debug("%s: consumer not restarted yet: %s", self.client_id, error)
-                    await asyncio.sleep(settings.reconnect_wait_s)
-                    continue
+                    failing_since = failing_since or time.monotonic()
+                    if (self._resume_at is None
+                            and time.monotonic() - failing_since > _GIVE_UP_S):
+                        # Never deleted: the consumer still serves, only later.
+                        logger.warning("%s: could not restart the consumer %s for %.0f s "
+                                       "(%s); unacknowledged messages come again after %g s",
+                                       self.client_id, self.durable, _GIVE_UP_S,
+                                       error or type(error).__name__, settings.ack_wait_s)
+                        self._redeliver = False
+                    else:
+                        await asyncio.sleep(settings.reconnect_wait_s)
+                        continue
+                failing_since = None
             now = time.monotonic()
             if now - self._last_activity > 3 * settings.heartbeat_s:
                 self._outstanding = 0  # nothing, not even heartbeats: the requests are gone
