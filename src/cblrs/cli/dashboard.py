@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import socket
 import sys
 from pathlib import Path
 
 from cblrs.cli.camera import add_mqtt_options, mqtt_settings
-from cblrs.cli.common import InputError, UsageError
+from cblrs.cli.common import InputError, UsageError, add_output_options
 
 logger = logging.getLogger(__name__)
 
@@ -45,6 +46,7 @@ def register(subparsers) -> None:
                         help="where the calibration page writes references (default: "
                         "references/ beside the site file)")
     add_mqtt_options(parser)
+    add_output_options(parser)
     parser.set_defaults(broker=None, handler=run)
 
 
@@ -121,8 +123,13 @@ def run(args: argparse.Namespace) -> int:
         where.append(f"replay of {args.db}")
     if feed is None and args.db is None:
         where.append("no --broker nor --db: site map and calibration page only")
-    print(f"dashboard on http://{host}:{port}/ ({', '.join(where)}); Ctrl-C stops it",
-          flush=True)
+    if args.json:
+        print(json.dumps({"url": f"http://{host}:{port}/", "site": str(args.site),
+                          "plane": plane, "broker": args.broker,
+                          "db": None if args.db is None else str(args.db)}), flush=True)
+    else:
+        print(f"dashboard on http://{host}:{port}/ ({', '.join(where)}); Ctrl-C stops it",
+              flush=True)
     server = uvicorn.Server(uvicorn.Config(create_app(config), log_level="warning",
                                            access_log=False, lifespan="off"))
     try:
