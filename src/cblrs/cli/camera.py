@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import os
 import signal
@@ -453,25 +452,6 @@ def first_sequence(args: argparse.Namespace) -> int:
     return int(time.time() * 1000) if args.live else 0
 
 
-def run_identity(args: argparse.Namespace, plane_id: int) -> str:
-    """What makes this run's messages its own (the spool refuses to mix two runs): the
-    source and its options, the epoch and first sequence number as given (a live camera's
-    numbers come from the clock: its runs never share one), the plane."""
-    source = {
-        name: str(value) if isinstance(value, Path) else value
-        for name in ("detections", "dataset", "video", "images", "frames", "fps", "format",
-                     "aicity_camera", "frame_step", "class_name", "detector", "model",
-                     "weights", "confidence", "live", "realtime", "speed", "hidden_feet")
-        if (value := getattr(args, name, None)) is not None
-    }
-    for name in ("detections", "dataset", "video", "images", "model", "weights"):
-        if name in source:  # the same file however it was named
-            source[name] = str(Path(source[name]).expanduser().resolve())
-    return json.dumps({"camera": args.camera, "plane": plane_id, "source": source,
-                       "epoch": args.epoch, "first_sequence": args.first_sequence},
-                      sort_keys=True)
-
-
 def check_delivery_options(args: argparse.Namespace) -> None:
     """UsageError unless the spool and delivery options are in range."""
     # lazy: a subcommand imports the library when it runs, so its --help starts fast
@@ -488,7 +468,7 @@ def run(args: argparse.Namespace) -> int:
     # lazy: a subcommand imports the library when it runs, so its --help starts fast
     from cblrs.runtime.camera_node import CameraNode, camera_last_will
     from cblrs.runtime.mqtt_transport import MqttTransport
-    from cblrs.runtime.spool import Spool
+    from cblrs.runtime.spool import Spool, run_identity
     from cblrs.runtime.topics import validate_camera_id
     from cblrs.runtime.transport import Will
 
@@ -511,7 +491,7 @@ def run(args: argparse.Namespace) -> int:
     folder = Path(os.environ.get(SPOOL_ENVIRONMENT) or DEFAULT_SPOOL_FOLDER).expanduser()
     spool_path = args.spool if args.spool is not None else folder / f"{plane_id}-{args.camera}.db"
     spool = Spool(spool_path, max_bytes=int(args.spool_max_mb * 2**20),
-                  run=run_identity(args, plane_id))
+                  run=run_identity(vars(args), plane_id))
     if len(spool):
         logger.info("camera %s: %d unconfirmed messages from an earlier run are sent first",
                     args.camera, len(spool))

@@ -37,6 +37,7 @@ time (a lock on ``<file>-lock``); its mode is 0600.
 from __future__ import annotations
 
 import fcntl
+import json
 import logging
 import os
 import sqlite3
@@ -68,6 +69,25 @@ CREATE TABLE IF NOT EXISTS outbox (
 CREATE INDEX IF NOT EXISTS outbox_state ON outbox (state, sequence);
 CREATE TABLE IF NOT EXISTS counters (name TEXT PRIMARY KEY, value INTEGER NOT NULL);
 """
+
+
+RUN_OPTIONS = ("camera", "detections", "dataset", "video", "images", "frames", "fps", "format",
+               "aicity_camera", "frame_step", "class_name", "detector", "model", "weights",
+               "confidence", "live", "realtime", "speed", "hidden_feet", "epoch",
+               "first_sequence")
+"""The ``cblrs camera`` options that shape its messages (its run's identity)."""
+_RUN_FILES = ("detections", "dataset", "video", "images", "model", "weights")
+
+
+def run_identity(options: dict[str, Any], plane_id: int) -> str:
+    """A run's identity for :class:`Spool`: the :data:`RUN_OPTIONS` given (files by their
+    resolved path) and the plane. A live camera's sequence numbers come from the clock, so
+    its runs never share one; a replay's start at 0 unless ``first_sequence`` is given."""
+    chosen = {name: options[name] for name in RUN_OPTIONS if options.get(name) is not None}
+    for name in _RUN_FILES:
+        if name in chosen:  # the same file however it was named
+            chosen[name] = str(Path(chosen[name]).expanduser().resolve())
+    return json.dumps({"plane": plane_id, **chosen}, sort_keys=True, default=str)
 
 
 class SpoolError(CblrsError):
