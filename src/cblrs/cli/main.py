@@ -48,7 +48,7 @@ SUBCOMMANDS = {
     "dashboard": "serve the live dashboard: site map, tracks, counts, cameras; replay; "
     "calibration",
     "bench": "benchmarks: lookup (Table I), render, claims, tracker, pipeline, analytics, "
-    "dashboard, backbone, asynchrony, mqtt, all",
+    "linker, dashboard, backbone, asynchrony, mqtt, all",
     "experiment": "rerun the paper's experiments: targeting (IV-B), resolution; clicked "
     "calibration; count accuracy; pseudo-coordinate recovery; identities across planes",
 }
