@@ -239,6 +239,7 @@ def run_once(receiver_kind: str, publisher_kind: str, cameras: int, frames: int,
         subscriber_stop = multiprocessing.Event()
         receiver = _Receiver(total, paced)
         probe = Probe()
+        cpu: dict[str, float] = {}
         service = store = client = transport = subscriber = None
         try:
             if receiver_kind == "broker":
@@ -282,6 +283,7 @@ def run_once(receiver_kind: str, publisher_kind: str, cameras: int, frames: int,
                         raise RuntimeError("the tracks subscriber did not subscribe")
                 gc.freeze()  # as cblrs matcher does before starting its service
                 service.start()
+                service_cpu = time.process_time()
             results: multiprocessing.Queue = multiprocessing.Queue()
             process = multiprocessing.Process(
                 target=publisher,
@@ -300,6 +302,10 @@ def run_once(receiver_kind: str, publisher_kind: str, cameras: int, frames: int,
                 while (probe.stored < total or not service.drained()) and time.time() < deadline:
                     time.sleep(0.005)
                 receiver.count, receiver.last = probe.stored, probe.last_stored
+                # Where the CPU went: this process (receiver, ordering, publishing, and this
+                # benchmark's own waiting) and the tracker process (from /proc, Linux).
+                cpu["service"] = time.process_time() - service_cpu
+                cpu["tracker"] = _process_cpu_seconds(service)
                 service.close(flush=True)
                 stats = service.stats()
                 if subscriber_process is not None:
@@ -335,6 +341,8 @@ def run_once(receiver_kind: str, publisher_kind: str, cameras: int, frames: int,
         row["receipt_p99_ms"] = 1000 * float(np.percentile(receiver.receipt, 99))
     if service is not None:
         row["tracked_per_s"] = total / max(probe.last_group - report["start"], 1e-9)
+        row["service_cpu_us_per_message"] = 1e6 * cpu.get("service", math.nan) / total
+        row["tracker_cpu_us_per_message"] = 1e6 * cpu.get("tracker", math.nan) / total
         row["late"], row["rejected"] = stats["late"], stats["rejected"]
         if paced:  # in max runs capture times are synthetic: latencies would mean nothing
             row["receipt_p50_ms"] = 1000 * float(np.percentile(probe.receipt, 50))
@@ -351,6 +359,17 @@ def run_once(receiver_kind: str, publisher_kind: str, cameras: int, frames: int,
                 row["subscriber_p99_ms"] = 1000 * float(np.percentile(subscriber_latencies, 99))
                 row["subscriber_updates"] = len(subscriber_latencies)
     return row
+
+
+def _process_cpu_seconds(service: MatcherService) -> float:
+    """User + system CPU seconds of the service's tracker process so far (NaN if unknown)."""
+    tracker = getattr(service, "_tracker", None)
+    pid = getattr(getattr(tracker, "process", None), "pid", None)
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except (OSError, IndexError):
+        return math.nan
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
 def median_of(runs: list[dict]) -> dict:
@@ -516,6 +535,10 @@ def run_mqtt_benchmark(args: Any) -> int:
                     f"{row['messages'] - row['received']:4d} {row['late']:4d}",
                     flush=True,
                 )
+                if receiver == "matcher":
+                    print(f"{'':20s} CPU per message: service process "
+                          f"{row['service_cpu_us_per_message']:.0f} us, tracker process "
+                          f"{row['tracker_cpu_us_per_message']:.0f} us", flush=True)
                 if "last_member_p50_ms" in row:
                     print(f"{'':20s} capture -> last member received p50/p99 "
                           f"{row['last_member_p50_ms']:.1f}/{row['last_member_p99_ms']:.1f} ms,"
