@@ -42,7 +42,7 @@ from cblrs.reference import ReferenceImage
 from cblrs.runtime.inprocess import InProcessBroker, InProcessTransport
 from cblrs.runtime.matcher_service import MatcherService
 from cblrs.runtime.nats_server import NatsCluster, find_nats_server
-from cblrs.runtime.nats_transport import DETECTIONS_STREAM, NatsSettings, NatsTransport
+from cblrs.runtime.nats_transport import NatsSettings, NatsTransport, detections_stream
 from cblrs.runtime.store import PENDING, PROCESSED, RuntimeStore
 from cblrs.runtime.topics import detections_topic
 from cblrs.runtime.wire import encode_message
@@ -186,7 +186,7 @@ def test_item2_a_restarted_matcher_gets_its_pending_messages_at_once(case, nats,
         def held() -> int:
             try:
                 return probe.call(probe.jetstream.consumer_info(
-                    DETECTIONS_STREAM, "cblrs-plane-1"), 5).num_ack_pending
+                    detections_stream(1), "cblrs-plane-1"), 5).num_ack_pending
             except Exception:  # no consumer yet
                 return -1
 

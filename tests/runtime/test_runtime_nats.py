@@ -262,9 +262,9 @@ def test_a_new_holder_gets_the_unacknowledged_messages_at_once(server, transport
     successor.connect()
     wait_until(lambda: len(again) >= 2, 30, "the unacknowledged messages")
     assert again == [_detections("c", 1, 6), _detections("c", 2, 6)]
-    info = successor.call(successor.jetstream.consumer_info(DETECTIONS_STREAM, durable), 10)
+    info = successor.call(successor.jetstream.consumer_info(detections_stream(6), durable), 10)
     wait_until(lambda: successor.call(successor.jetstream.consumer_info(
-        DETECTIONS_STREAM, durable), 10).num_ack_pending == 0, 30, "the acknowledgements")
+        detections_stream(6), durable), 10).num_ack_pending == 0, 30, "the acknowledgements")
     assert info.num_pending == 0
 
 
