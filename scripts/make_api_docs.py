@@ -41,8 +41,11 @@ def build(out: Path) -> list[str]:
         pdoc.pdoc(*library_modules(), output_directory=out)
     # Passing a package and its submodules both is how every module gets a page (a package
     # with an __all__ lists only those names); pdoc notes the repeats, which are harmless.
+    # ResourceWarnings are not pdoc's: the garbage collector reports, during the build, a file
+    # some earlier code in this process left open (e.g. a test's subprocess pipe).
     return [str(warning.message) for warning in caught
-            if "has already been added" not in str(warning.message)]
+            if "has already been added" not in str(warning.message)
+            and not issubclass(warning.category, ResourceWarning)]
 
 
 def main() -> int:
