@@ -30,6 +30,7 @@ from cblrs.matching.fusion.birth import Births
 from cblrs.matching.fusion.clocks import ClockLearning
 from cblrs.matching.fusion.config import FusionConfig
 from cblrs.matching.fusion.gaussian import fuse, ray_covariance
+from cblrs.matching.fusion.motion import MotionCheck
 from cblrs.matching.fusion.noise import NoiseModel
 from cblrs.matching.fusion.state import STATE_VERSION, table_from_state, table_state
 from cblrs.matching.fusion.table import FusionContext, Measured, TrackTable, largest_boxes
@@ -113,6 +114,7 @@ class FusionTracker:
                        config.sigma_per_distance),
         )
         self.association = Association(self.context)
+        self.motion = MotionCheck(self.context)
         self.births = Births(self.context)
         self.clock_learning = ClockLearning(self.context, self._clock)
         self.reset()
@@ -278,6 +280,8 @@ class FusionTracker:
         assigned = self.association.associate(self.tracks, self.measured, observed, covariance)
         assigned = self.association.join_observed(self.tracks, self.measured, observed,
                                                   covariance, assigned)
+        # 4b. vehicles cannot turn on the spot (motion module).
+        assigned = self.motion.check(self.tracks, observed, covariance, assigned, timestamp)
         matched = assigned >= 0
         located_xy = observed.world_xy
         if matched.any() and np.any(lag[matched] != 0):
@@ -311,10 +315,16 @@ class FusionTracker:
 
         # 7. merge duplicates, drop tracks unseen too long, confirm, report.
         keep = self.births.merge_duplicates(self.tracks, seen_now, cameras_of_track)
-        keep &= self._alive(timestamp)
+        keep &= self._alive(timestamp, seen_now)
         self.tracks = self.tracks.select(keep)
         seen_now, report_camera, report_box = seen_now[keep], report_camera[keep], report_box[keep]
 
+        # A vehicle track that turned further than it can is another vehicle from now on.
+        turned = self.motion.split(self.tracks, seen_now, timestamp) & (self.tracks.ids >= 0)
+        if turned.any():
+            count = int(turned.sum())
+            self.tracks.ids[turned] = self._next_id + np.arange(count)
+            self._next_id += count
         report = self._confirm(timestamp, seen_now)
         self.clock_learning.record(self.tracks, timestamp, seen_now & (self.tracks.ids >= 0),
                                    located_xy,
@@ -354,6 +364,9 @@ class FusionTracker:
                 self.tracks.mode_state[seen_now], self.tracks.mode_covariance[seen_now],
                 self.tracks.mode_probability[seen_now],
             )
+            velocity_covariance = self.tracks.covariance[seen_now, 2:4, 2:4]
+            self.tracks.velocity_sigma[seen_now] = np.sqrt(np.maximum(
+                velocity_covariance[:, 0, 0] + velocity_covariance[:, 1, 1], 0.0))
             self.tracks.evidence += np.bincount(rows, minlength=track_count)
             self.tracks.last_seen[seen_now] = timestamp
             cameras_of_track[rows, observed.camera[matched]] = True
@@ -470,11 +483,35 @@ class FusionTracker:
                                  np.sqrt(np.maximum(along, lateral)))
         return ray_covariance(direction, along, lateral)
 
-    def _alive(self, timestamp: float) -> np.ndarray:
+    def _departed(self) -> np.ndarray:
+        """(T,) bool: tracks predicted off every plane and moving away from the nearest.
+
+        No camera can locate anything off the planes (the reference images end there): a
+        track that is missed there while its velocity (as known when last seen, three
+        standard deviations) points outwards has left the scene. Kept coasting, it would
+        take the next object entering nearby (a car arriving on the opposite lane of the
+        arm its own car left by). One standing at the border, whose views flicker on and
+        off the plane, is not moving away and stays.
+        """
+        position, velocity = self.tracks.state[:, :2], self.tracks.state[:, 2:4]
+        departed = np.ones(len(position), dtype=bool)
+        for plane in self.planes:
+            low = np.array(plane.origin, np.float64)
+            high = low + (plane.width, plane.length)
+            outward = position - np.clip(position, low, high)
+            distance = np.hypot(outward[:, 0], outward[:, 1])
+            speed_out = np.einsum("ij,ij->i", velocity, outward) / np.maximum(distance, 1e-12)
+            departed &= (distance > 0) & (speed_out > 3.0 * self.tracks.velocity_sigma)
+        return departed
+
+    def _alive(self, timestamp: float, seen_now: np.ndarray) -> np.ndarray:
         age = timestamp - self.tracks.last_seen
         limit = np.where(self.tracks.ids >= 0, self.config.max_age_s,
                          self.config.tentative_max_age_s)
-        return age <= limit
+        alive = age <= limit
+        if self.config.end_off_plane and len(alive):
+            alive &= seen_now | ~self._departed()
+        return alive
 
 
 def _subset(observed: Observations, mask: np.ndarray) -> Observations:
