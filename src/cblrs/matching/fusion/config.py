@@ -122,6 +122,10 @@ class FusionConfig:
             by disjoint sets of cameras, are one object seen twice; the younger one is dropped.
         confirm_evidence: camera detections (summed over instants) a track needs before it
             is reported.
+        confirm_cameras: a new track is confirmed only once this many cameras have seen it,
+            where at least that many cameras cover its position (learned from where each
+            camera locates detections, :mod:`~cblrs.matching.fusion.coverage`); where fewer
+            do, as many as cover it (at least one). 1: any one camera confirms.
         tentative_max_age_s: a tentative track unseen this long is dropped, seconds.
         max_age_s: a confirmed track unseen this long is dropped, seconds.
         end_off_plane: a track missed at an instant whose prediction lies off every plane,
@@ -171,6 +175,7 @@ class FusionConfig:
     association_orders: int = 2
     merge_radius_m: float = 0.0
     confirm_evidence: int = 2
+    confirm_cameras: int = 2
     tentative_max_age_s: float = 1.0
     max_age_s: float = 2.0
     end_off_plane: bool = True
@@ -234,6 +239,11 @@ class FusionConfig:
             isinstance(self.confirm_evidence, int) and not isinstance(self.confirm_evidence, bool)
             and self.confirm_evidence >= 1,
             f"confirm_evidence must be a whole number >= 1, got {self.confirm_evidence!r}.",
+        )
+        require(
+            isinstance(self.confirm_cameras, int) and not isinstance(self.confirm_cameras, bool)
+            and self.confirm_cameras >= 1,
+            f"confirm_cameras must be a whole number >= 1, got {self.confirm_cameras!r}.",
         )
         for name in ("class_measurement_sigma_m", "class_acceleration_sigma",
                      "class_turn_radius_m"):

@@ -29,6 +29,7 @@ from cblrs.matching.fusion.association import Association
 from cblrs.matching.fusion.birth import Births
 from cblrs.matching.fusion.clocks import ClockLearning
 from cblrs.matching.fusion.config import FusionConfig
+from cblrs.matching.fusion.coverage import Coverage
 from cblrs.matching.fusion.gaussian import fuse, ray_covariance
 from cblrs.matching.fusion.motion import MotionCheck
 from cblrs.matching.fusion.noise import NoiseModel
@@ -115,6 +116,7 @@ class FusionTracker:
         )
         self.association = Association(self.context)
         self.motion = MotionCheck(self.context)
+        self.coverage = Coverage(self.planes, len(self.camera_ids))
         self.births = Births(self.context)
         self.clock_learning = ClockLearning(self.context, self._clock)
         self.reset()
@@ -129,6 +131,7 @@ class FusionTracker:
         self._windows.reset()
         self._clock.reset()
         self.clock_learning.reset()
+        self.coverage.reset()
         self._reported: dict[int, set[int]] = {}
 
     def get_state(self) -> dict:
@@ -167,6 +170,28 @@ class FusionTracker:
             self.clock_learning.turn = int(state["clock_turn"])
         except (KeyError, TypeError, ValueError, IndexError) as error:
             raise MatcherError(f"the saved fusion-tracker state is incomplete: {error}.") from None
+
+    def set_views(self, references: Sequence[Any]) -> None:
+        """Tell the tracker which ground each camera sees, from its reference image.
+
+        Multi-view confirmation (``confirm_cameras``) then knows where several cameras see
+        the ground from the start, instead of learning it from their detections.
+
+        Args:
+            references: :class:`~cblrs.reference.ReferenceImage` objects whose
+                ``camera_name`` is one of this tracker's cameras (others are ignored).
+        """
+        for reference in references:
+            camera = self._cameras.get(reference.camera_name)
+            if camera is None:
+                continue
+            # Every 4th pixel each way: plenty for metre-sized cells.
+            colours = reference.pixels[::4, ::4].reshape(-1, 3)
+            located = []
+            for plane in reference.planes:
+                world_xy, valid = plane.decode(colours)
+                located.append(world_xy[valid])
+            self.coverage.set_view(camera, np.concatenate(located))
 
     @property
     def track_count(self) -> int:
@@ -276,6 +301,8 @@ class FusionTracker:
                 * self.measured.direction
             )
 
+        # Where each camera locates things (coverage module, for multi-view confirmation).
+        self.coverage.learn(observed.world_xy, observed.camera)
         # 3. associate (association module); 4. leftovers join tracks seen at this instant.
         assigned = self.association.associate(self.tracks, self.measured, observed, covariance)
         assigned = self.association.join_observed(self.tracks, self.measured, observed,
@@ -380,6 +407,14 @@ class FusionTracker:
         tracks to report (confirmed, and seen now or coasting briefly)."""
         tracks = self.tracks
         newly_confirmed = (tracks.ids < 0) & (tracks.evidence >= self.config.confirm_evidence)
+        if self.config.confirm_cameras > 1 and newly_confirmed.any():
+            # Multi-view confirmation: where several cameras see the ground, a track one
+            # camera alone keeps seeing is more likely that camera's false positive.
+            candidates = np.flatnonzero(newly_confirmed)
+            cameras_seen = np.isfinite(tracks.seen_by[candidates]).sum(axis=1)
+            covering = self.coverage.covering(tracks.state[candidates, :2])
+            needed = np.clip(covering, 1, self.config.confirm_cameras)
+            newly_confirmed[candidates[cameras_seen < needed]] = False
         count = int(newly_confirmed.sum())
         self.tracks.ids[newly_confirmed] = self._next_id + np.arange(count)
         self._next_id += count
