@@ -532,7 +532,7 @@ class FusionTracker:
         departed = np.ones(len(position), dtype=bool)
         for plane in self.planes:
             low = np.array(plane.origin, np.float64)
-            high = low + (plane.width, plane.length)
+            high = low + np.array([plane.width, plane.length])
             outward = position - np.clip(position, low, high)
             distance = np.hypot(outward[:, 0], outward[:, 1])
             speed_out = np.einsum("ij,ij->i", velocity, outward) / np.maximum(distance, 1e-12)
