@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import socket
 import sys
 from pathlib import Path
 
 from cblrs.cli.camera import add_mqtt_options, mqtt_settings
-from cblrs.cli.common import InputError, UsageError
+from cblrs.cli.common import InputError, UsageError, add_output_options
 
 logger = logging.getLogger(__name__)
 
@@ -33,6 +34,10 @@ def register(subparsers) -> None:
     parser.add_argument("--site", type=Path, required=True, help="the site file")
     parser.add_argument("--plane", type=int, help="plane shown (default: the site's first)")
     parser.add_argument("--db", type=Path, help="a matcher's database to replay (read-only)")
+    parser.add_argument(
+        "--key", type=Path, help="the site's pseudo-coordinate key (docs/privacy.md): the "
+        "matcher works on a pseudo site; show its tracks and events on this real site's map"
+    )
     parser.add_argument("--host", default="127.0.0.1", help="address to serve on")
     parser.add_argument("--port", type=int, default=8080, help="port (0: a free one)")
     parser.add_argument("--frames", type=Path, help="folder of camera frames <camera>.png|jpg "
@@ -41,6 +46,7 @@ def register(subparsers) -> None:
                         help="where the calibration page writes references (default: "
                         "references/ beside the site file)")
     add_mqtt_options(parser)
+    add_output_options(parser)
     parser.set_defaults(broker=None, handler=run)
 
 
@@ -67,6 +73,16 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"--frames {args.frames} is not a folder.")
     config = DashboardConfig(args.site, args.plane, database=args.db, frames=args.frames,
                              references=args.references)
+    if args.key is not None:
+        if config.site.pseudo_key_id is not None:
+            raise UsageError(
+                f"{args.site} is a pseudo site; --key goes with the real site (its map), to "
+                "show a pseudo matcher's tracks where they are."
+            )
+        # lazy: a subcommand imports the library when it runs, so its --help starts fast
+        from cblrs.privacy import PseudoKey
+
+        config.to_site = PseudoKey.load(args.key).to_site
     plane = args.plane
     if plane is None:
         planes = config.site.planes
@@ -85,7 +101,7 @@ def run(args: argparse.Namespace) -> int:
         if not logging.getLogger().isEnabledFor(logging.DEBUG):
             # A refusal is said once, below, as one sentence; not also as a log line.
             logging.getLogger("cblrs.runtime.mqtt_transport").setLevel(logging.ERROR)
-        feed = LiveFeed(settings, plane, client_id[:64])
+        feed = LiveFeed(settings, plane, client_id[:64], to_site=config.to_site)
         try:
             feed.start()
         except TransportError as error:
@@ -107,8 +123,13 @@ def run(args: argparse.Namespace) -> int:
         where.append(f"replay of {args.db}")
     if feed is None and args.db is None:
         where.append("no --broker nor --db: site map and calibration page only")
-    print(f"dashboard on http://{host}:{port}/ ({', '.join(where)}); Ctrl-C stops it",
-          flush=True)
+    if args.json:
+        print(json.dumps({"url": f"http://{host}:{port}/", "site": str(args.site),
+                          "plane": plane, "broker": args.broker,
+                          "db": None if args.db is None else str(args.db)}), flush=True)
+    else:
+        print(f"dashboard on http://{host}:{port}/ ({', '.join(where)}); Ctrl-C stops it",
+              flush=True)
     server = uvicorn.Server(uvicorn.Config(create_app(config), log_level="warning",
                                            access_log=False, lifespan="off"))
     try:

@@ -23,7 +23,7 @@ EXAMPLES: dict[str, list[str]] = {
     "site export": ["cblrs site export site.yaml --out site-bundle.yaml"],
     "calibrate": ["cblrs calibrate gate.csv --image gate.jpg --picture gate_check.png "
                   "--out gate.json"],
-    "render": [f"cblrs render {WT} --out refs --preview",
+    "render": [f"cblrs render --dataset {WT} --out refs --preview",
                "cblrs render --site site.yaml --out refs",
                "cblrs render --site site.yaml --key site.key --out refs   # pseudo colours"],
     "locate": [f"cblrs locate refs/CVLab1.png --dataset {WT} --frame 0",
@@ -42,6 +42,8 @@ EXAMPLES: dict[str, list[str]] = {
     "pseudo site": ["cblrs pseudo site site.yaml --key site.key --out pseudo-site.yaml"],
     "pseudo unmap": ["cblrs pseudo unmap pseudo-tracks.txt --key site.key --out tracks.txt"],
     "analytics": ["cblrs analytics tracks.txt --site sites/wildtrack.yaml --out analytics/"],
+    "link": ["cblrs link --site street.yaml --plane 1=plane1.db --plane 2=plane2.db "
+             "--plane 3=plane3.db --plane 4=plane4.db --out site-tracks.txt --analytics site/"],
     "broker-config": ["cblrs broker-config --out broker --cameras C1,C2,C3 --matchers matcher1 "
                       "--planes 1"],
     "camera": ["cblrs camera --camera Camera1 --reference refs/Camera1.png --images "
@@ -49,6 +51,8 @@ EXAMPLES: dict[str, list[str]] = {
                "--model ../shared/models/yolox_nano.onnx"],
     "matcher": ["cblrs matcher --site site.yaml --db plane1.db --http 127.0.0.1:9100",
                 "cblrs matcher --stats plane1.db"],
+    "linker": ["cblrs linker --site street.yaml --db linker.db --backbone nats://n1:4222,"
+               "n2:4222,n3:4222", "cblrs linker --stats linker.db"],
     "dashboard": ["cblrs dashboard --site site.yaml --db plane1.db --port 8080"],
     "bench": ["cblrs bench lookup", "cblrs bench all --out bench-results"],
     "bench lookup": ["cblrs bench lookup --n 100000 --repeats 5"],
@@ -59,6 +63,7 @@ EXAMPLES: dict[str, list[str]] = {
     "bench camera": [f"cblrs bench camera --dataset {MVX}"],
     "bench detect": [f"cblrs bench detect --dataset {MVX}"],
     "bench analytics": ["cblrs bench analytics --tracks 200 --hours 1"],
+    "bench linker": ["cblrs bench linker --planes 8 --people 50 --seconds 120"],
     "bench dashboard": ["cblrs bench dashboard --tracks 200 --seconds 20"],
     "bench backbone": ["cblrs bench backbone --backbones mosquitto,nats --cameras 10"],
     "bench asynchrony": ["cblrs bench asynchrony --spreads 5,20,50 --in-process-only"],
@@ -72,6 +77,9 @@ EXAMPLES: dict[str, list[str]] = {
     "experiment counts": ["cblrs experiment counts --scenes wildtrack,plaza --out experiments"],
     "experiment tracking": ["cblrs experiment tracking --out experiments",
                             "cblrs experiment tracking --scenes roundabout,crowd --no-held-out"],
+    "experiment planes": ["cblrs experiment planes --out experiments",
+                          "cblrs experiment planes --seeds '' --people 20 --cars 6"],
+    "experiment pseudo": [f"cblrs experiment pseudo --dataset {WT} --out experiments"],
 }
 
 

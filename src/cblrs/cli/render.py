@@ -32,13 +32,18 @@ def register(subparsers) -> None:
         "render",
         help="render colour reference images from a calibration",
         description=(
-            "Render one colour reference PNG per camera. CALIBRATION is a WILDTRACK or "
-            "MultiviewX folder, an AI City calibration.json (or a folder of them) or a cblrs "
-            "camera JSON file."
+            "Render one colour reference PNG per camera, from a data set (--dataset, a "
+            "WILDTRACK or MultiviewX folder), a site file (--site) or CALIBRATION: an AI City "
+            "calibration.json (or a folder of them), a cblrs camera JSON file or a data set "
+            "folder."
         ),
     )
     parser.add_argument(
         "calibration", metavar="CALIBRATION", nargs="?", help="calibration file or folder"
+    )
+    parser.add_argument(
+        "--dataset", type=Path, metavar="PATH",
+        help="a WILDTRACK or MultiviewX folder: its cameras and ground (as CALIBRATION)",
     )
     parser.add_argument(
         "--site", type=Path, help="a site file: its cameras and planes (instead of CALIBRATION)"
@@ -148,13 +153,16 @@ def file_name(camera_name: str, index: int) -> str:
     return stem or f"camera{index + 1}"
 
 
-def site_cameras_and_planes(args: argparse.Namespace) -> tuple[list, PlaneSet]:
-    """The cameras and planes of ``--site`` (with ``--bits`` applied)."""
+def site_cameras_and_planes(
+    args: argparse.Namespace,
+) -> tuple[list, list[PlaneSet], PlaneSet]:
+    """The cameras of ``--site``, each one's planes (its own plane, or all) and all the site's
+    planes (``--bits`` applied)."""
     # lazy: a subcommand imports the library when it runs, so its --help starts fast
     from cblrs.site import load_site
 
     if args.calibration is not None:
-        raise UsageError("give CALIBRATION or --site, not both.")
+        raise UsageError("give --dataset (or CALIBRATION) or --site, not both.")
     if args.plane or args.planes_file is not None or args.distorted:
         raise UsageError(
             "--plane, --planes-file and --distorted do not go with --site: the site file gives "
@@ -166,21 +174,36 @@ def site_cameras_and_planes(args: argparse.Namespace) -> tuple[list, PlaneSet]:
             f"{args.site} is a pseudo site (key {site.pseudo_key_id}); render from the real "
             "site with --key: cblrs render --site SITE --key KEY --out DIR."
         )
-    planes = site.require_planes("render")
-    if args.bits is not None and args.bits != planes.bits:
-        planes = PlaneSet([replace(plane, bits=args.bits) for plane in planes])
-    return [camera.camera for camera in site.require_cameras("render")], planes
+
+    def with_bits(planes: PlaneSet) -> PlaneSet:
+        if args.bits is not None and args.bits != planes.bits:
+            return PlaneSet([replace(plane, bits=args.bits) for plane in planes])
+        return planes
+
+    all_planes = with_bits(site.require_planes("render"))
+    cameras = site.require_cameras("render")
+    per_camera = [with_bits(site.camera_planes(camera.name)) for camera in cameras]
+    return [camera.camera for camera in cameras], per_camera, all_planes
 
 
 def run(args: argparse.Namespace) -> int:
     """Run ``cblrs render`` with its parsed arguments; the exit code."""
+    if args.dataset is not None:
+        # The data set's folder is spelled --dataset on every subcommand; CALIBRATION also
+        # takes calibration files, so it stays.
+        if args.calibration is not None and Path(args.calibration) != args.dataset:
+            raise UsageError("CALIBRATION and --dataset name different folders; give one.")
+        if not args.dataset.is_dir():
+            raise InputError(f"--dataset {args.dataset} is not a folder.")
+        args.calibration = str(args.dataset)
     if args.site is not None:
-        cameras, planes = site_cameras_and_planes(args)
+        cameras, camera_planes, all_planes = site_cameras_and_planes(args)
     elif args.calibration is None:
-        raise UsageError("give a CALIBRATION file or folder, or --site SITE.")
+        raise UsageError("give --dataset DIR, a CALIBRATION file or folder, or --site SITE.")
     else:
         cameras = read_cameras(args.calibration, distorted=args.distorted)
-        planes = build_planes(args)
+        all_planes = build_planes(args)
+        camera_planes = [all_planes] * len(cameras)
     key = None
     if args.key is not None:
         # lazy: a subcommand imports the library when it runs, so its --help starts fast
@@ -191,6 +214,7 @@ def run(args: argparse.Namespace) -> int:
     rows = []
     for index, camera in enumerate(progress(cameras, "render", args.quiet)):
         start = time.perf_counter()
+        planes = camera_planes[index]
         if key is None:
             reference = render_reference(camera, planes)
         else:
@@ -202,6 +226,7 @@ def run(args: argparse.Namespace) -> int:
             "camera": camera.name,
             "path": str(path),
             "coverage": reference.coverage(),
+            "planes": planes.ids,
             "step_cm": [100.0 * step for step in reference.planes[0].step],
             "render_ms": milliseconds,
             "bytes": path.stat().st_size,
@@ -219,8 +244,8 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         print_json(
             {
-                "bits": planes.bits,
-                "planes": (planes if key is None else key.pseudo_planes(planes)).to_list(),
+                "bits": all_planes.bits,
+                "planes": (all_planes if key is None else key.pseudo_planes(all_planes)).to_list(),
                 "pseudo_key_id": None if key is None else key.key_id,
                 "distorted": args.distorted,
                 "cameras": rows,

@@ -54,6 +54,8 @@ class DashboardConfig:
         frames: folder of camera frames for the calibration page.
         references: where the calibration page writes rendered references.
         broker: the broker's address, for the page's header.
+        to_site: the key's pseudo -> site mapping when the matcher works on a pseudo site
+            (replayed positions are mapped with it); None otherwise.
     """
 
     site_path: Path
@@ -63,6 +65,7 @@ class DashboardConfig:
     frames: Path | None = None
     references: Path | None = None
     broker: str = ""
+    to_site: Any = None
     site: Site = field(init=False)
 
     def __post_init__(self) -> None:
@@ -142,7 +145,7 @@ def create_app(config: DashboardConfig) -> Any:
     def open_replay() -> StoreReplay:
         if config.database is None:
             raise ReplayError("this dashboard has no stored run (--db).")
-        return StoreReplay(config.database)
+        return StoreReplay(config.database, config.to_site)
 
     async def replay_info(request: Any) -> Any:
         try:
@@ -211,6 +214,7 @@ def create_app(config: DashboardConfig) -> Any:
                 calibration.fit_points, config.site, str(data.get("camera")),
                 data.get("points"), data.get("image_size"), str(data.get("model", "auto")),
                 _optional_float(data.get("focal_px")), str(data.get("unit", "metres")),
+                data.get("left_handed") is True,
             )
         except (CblrsError, ValueError, AttributeError) as error:
             return refusal(error)
@@ -224,7 +228,7 @@ def create_app(config: DashboardConfig) -> Any:
                 calibration.save_points, config.site_path, str(data.get("camera")),
                 data.get("points"), data.get("image_size"), config.references,
                 str(data.get("model", "auto")), _optional_float(data.get("focal_px")),
-                str(data.get("unit", "metres")),
+                str(data.get("unit", "metres")), data.get("left_handed") is True,
             )
         except (CblrsError, ValueError, AttributeError) as error:
             return refusal(error)

@@ -5,9 +5,10 @@ A site file is YAML (``.yaml``/``.yml``) or JSON (``.json``) holding::
     version: 1
     name: my-site
     planes: [{id, name, origin: [x, y], size: [width, length], bits, height}]
-    cameras: [{name, image_size, <one geometry>, ...}]
+    cameras: [{name, image_size, <one geometry>, plane, ...}]
     map: {image, metres_per_pixel | scale: {pixels, metres}, origin_px, y_up}
     places: {zones: [...], lines: [...]}        # cblrs.places
+    links: [{planes: [a, b], portals, transit_s, max_distance_m}]   # cblrs.linking
     pseudo: {key_id}                            # a pseudo site (cblrs.privacy)
 
 Every section but ``version`` may be left out; each command checks what it needs. A camera's
@@ -232,7 +233,13 @@ class CameraModel(_Strict):
     # How far clicks and the points' ground positions may be off (one standard deviation).
     click_px: float | None = Field(default=None, gt=0)
     ground_m: float | None = Field(default=None, gt=0)
+    # What a plausible fit of clicked points is (cblrs.calibrate.plausible).
+    left_handed: bool = False
+    max_height_m: float | None = Field(default=None, gt=0)
     frame: str | None = None
+    # The plane whose matcher the camera publishes to (its reference holds only that plane);
+    # absent: every plane of the site (a site of one plane needs no more).
+    plane: int | None = Field(default=None, ge=1, le=65535)
 
     @model_validator(mode="before")
     @classmethod
@@ -276,9 +283,12 @@ class CameraModel(_Strict):
             or self.points_unit != "metres"
             or self.click_px is not None
             or self.ground_m is not None
+            or self.left_handed
+            or self.max_height_m is not None
         ):
             raise ValueError(
-                "model, points_unit, click_px and ground_m are for cameras given by points"
+                "model, points_unit, click_px, ground_m, left_handed and max_height_m are for "
+                "cameras given by points"
             )
         return self
 
@@ -288,6 +298,49 @@ class CameraModel(_Strict):
         if self.points_file is not None:
             return "points"
         return next(key for key in GEOMETRY_KEYS if getattr(self, key) is not None)
+
+
+def _polygon(value: Any) -> list[list[float]]:
+    what = "a polygon: a list of at least 3 [x, y] points in metres"
+    if isinstance(value, str | bytes | dict) or not hasattr(value, "__len__") or len(value) < 3:
+        raise ValueError(f"expected {what}")
+    return [_numbers(point, 2, what) for point in value]
+
+
+Polygon = Annotated[list[list[float]], BeforeValidator(_polygon)]
+
+
+class LinkModel(_Strict):
+    """Where tracks pass from one plane to another (:mod:`cblrs.linking`).
+
+    Without ``portals`` the two planes overlap (same height, rectangles that intersect) and a
+    track is handed over where both planes' cameras see it; with them, ``portals[0]`` (on the
+    first plane) and ``portals[1]`` (on the second) are where tracks leave one plane and appear
+    on the other, ``transit_s`` seconds later (stairs, a tunnel, a street without cameras).
+    """
+
+    planes: Annotated[list[int], _vector(2)]
+    portals: list[Polygon] | None = None
+    transit_s: Annotated[list[float], _vector(2)] = Field(default_factory=lambda: [0.0, 30.0])
+    max_distance_m: float = Field(default=1.5, gt=0)
+
+    @model_validator(mode="after")
+    def _consistent(self) -> LinkModel:
+        first, second = self.planes
+        if min(first, second) < 1:
+            raise ValueError("planes must be two plane ids (whole numbers from 1)")
+        if first == second:
+            raise ValueError(f"a link joins two different planes, got {first} twice")
+        if self.portals is not None and len(self.portals) != 2:
+            raise ValueError(
+                "portals must be two polygons: where tracks leave or enter the first plane, "
+                "then the second"
+            )
+        low, high = self.transit_s
+        if not 0 <= low <= high:
+            raise ValueError(f"transit_s must be [min, max] seconds with 0 <= min <= max, "
+                             f"got {self.transit_s}")
+        return self
 
 
 class PseudoModel(_Strict):
@@ -307,6 +360,7 @@ class SiteModel(_Strict):
     cameras: list[CameraModel] = Field(default_factory=list)
     map: MapModel | None = None
     places: dict[str, Any] | None = None
+    links: list[LinkModel] = Field(default_factory=list)
 
 
 # ---------------------------------------------------------------------------- errors
@@ -364,6 +418,7 @@ _MODELS_BY_SECTION: dict[str, type[BaseModel]] = {
     "planes": PlaneModel,
     "cameras": CameraModel,
     "map": MapModel,
+    "links": LinkModel,
 }
 
 

@@ -328,6 +328,10 @@ Cblrs.fetchJSON("/api/site").then((scene) => {
   state.view = new Cblrs.MapView($("map"), scene);
   window.addEventListener("resize", () => { state.view.resize(); state.dirty = true; });
   resetCounts();
+  // Which rule made the counts, beside them (rules differ by ~10 % on real tracks).
+  const rules = [...new Set(scene.lines.map((line) => line.rule))];
+  $("line-rule").textContent = rules.length === 1 ? `counted when: ${rules[0]}`
+    : scene.lines.map((line) => `${line.name}: ${line.rule}`).join("; ");
   $("live-button").disabled = !scene.live;
   $("replay-button").disabled = !scene.replay;
   $("live-button").onclick = () => connect("/api/stream", "live");
