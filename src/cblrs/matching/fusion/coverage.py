@@ -74,12 +74,15 @@ class Coverage:
 
     def learn(self, world_xy: np.ndarray, camera: np.ndarray) -> None:
         """Count located detections: (N, 2) metres, (N,) camera index."""
-        if len(world_xy) == 0:
+        learning = ~self.has_view[camera]  # a camera whose view was told learns nothing
+        if not learning.any():
             return
-        column, row, inside = self._cells(world_xy)
-        # Saturating counts: a cell only needs to reach covering_count.
-        np.add.at(self.counts, (camera[inside], column[inside], row[inside]), 1)
-        np.minimum(self.counts, 1_000_000, out=self.counts)
+        column, row, inside = self._cells(world_xy[learning])
+        flat = np.ravel_multi_index(
+            (camera[learning][inside], column[inside], row[inside]), self.counts.shape)
+        cells, added = np.unique(flat, return_counts=True)
+        # Saturating: a cell only needs to reach covering_count.
+        self.counts.flat[cells] = np.minimum(self.counts.flat[cells] + added, 1_000_000)
 
     def covering(self, world_xy: np.ndarray) -> np.ndarray:
         """(T,) int64: how many cameras cover each position (0 off the grid)."""
