@@ -44,6 +44,8 @@ SUBCOMMANDS = {
     "matcher": "run the central matcher of one plane: MQTT -> validate -> track -> SQLite",
     "dashboard": "serve the live dashboard: site map, tracks, counts, cameras; replay; "
     "calibration",
+    "dashboard_users": "the dashboard's users: add, passwd, set-role, remove, list, token, "
+    "revoke",
     "bench": "benchmarks: lookup (Table I), render, claims, tracker, pipeline, analytics, "
     "dashboard, backbone, asynchrony, mqtt, all",
     "experiment": "rerun the paper's experiments: targeting (IV-B), resolution; clicked "

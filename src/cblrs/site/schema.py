@@ -39,6 +39,7 @@ from pydantic import (
 )
 
 from cblrs.errors import CblrsError
+from cblrs.names import check_name
 
 SITE_VERSION = 1
 
@@ -95,6 +96,15 @@ def _image_size(value: Any) -> list[int]:
 ImageSize = Annotated[list[int], BeforeValidator(_image_size)]
 
 
+def _optional_name(what: str) -> AfterValidator:
+    """A validator of a name that may be empty ("" or None: no name)."""
+
+    def check(name: str | None) -> str | None:
+        return name if not name else check_name(name, what)
+
+    return AfterValidator(check)
+
+
 class _Strict(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
@@ -106,7 +116,7 @@ class PlaneModel(_Strict):
     """A colour-coded plane (:class:`cblrs.plane.PlaneSpec`), metres."""
 
     id: int = Field(ge=1, le=65535)
-    name: str = ""
+    name: Annotated[str, _optional_name("plane name")] = ""
     origin: Vector2
     size: Vector2
     bits: Literal[8, 16] = 16
@@ -169,7 +179,7 @@ class CalibrationRefModel(_Strict):
 class PointModel(_Strict):
     """One clicked correspondence: pixel (u, v) <-> world (x, y)."""
 
-    name: str | None = None
+    name: Annotated[str | None, _optional_name("point name")] = None
     u: float
     v: float
     x: float
@@ -204,7 +214,7 @@ def _camera_name_text(name: str) -> str:
             f"camera name {name!r} must be non-empty without '/', '+', '#' or spaces "
             "(it is part of MQTT topics)"
         )
-    return name
+    return check_name(name, "camera name")
 
 
 MODELS = ("auto", "homography", "pose", "focal", "k1")
@@ -293,7 +303,7 @@ class SiteModel(_Strict):
     """The whole site file."""
 
     version: Literal[1]
-    name: str = ""
+    name: Annotated[str, _optional_name("site name")] = ""
     planes: list[PlaneModel] = Field(default_factory=list)
     cameras: list[CameraModel] = Field(default_factory=list)
     map: MapModel | None = None

@@ -150,28 +150,34 @@ async function refit() {
 }
 
 function render() {
+  const { el, fill } = Cblrs;
   const result = cal.result;
   const summary = $c("summary");
-  if (cal.error) summary.innerHTML = `<span class="error">${cal.error}</span>`;
+  if (cal.error) fill(summary, [el("span", { className: "error" }, cal.error)]);
   else if (!result) summary.textContent = `${cal.pairs.length} pairs: four or more give a fit.`;
   else {
     const position = result.position ? result.position.map((v) => v.toFixed(2)).join(", ") : "–";
-    summary.innerHTML = `<span class="ok">model ${result.model}</span> · RMS ` +
-      `<b id="rms">${result.rms_px.toFixed(2)}</b> px · median ${result.median_error_m.toFixed(3)} m` +
+    fill(summary, [
+      el("span", { className: "ok" }, `model ${result.model}`), " · RMS ",
+      el("b", { id: "rms" }, result.rms_px.toFixed(2)),
+      ` px · median ${result.median_error_m.toFixed(3)} m` +
       ` · max ${result.max_error_m.toFixed(3)} m · focal ${result.focal_px ? result.focal_px.toFixed(0) : "–"} px` +
-      ` · camera at (${position})` + predicted(result.predicted_error) +
-      result.warnings.map((w) => `<div class="error">${w}</div>`).join("");
+      ` · camera at (${position})` + predicted(result.predicted_error),
+      ...result.warnings.map((warning) => el("div", { className: "error" }, warning)),
+    ]);
   }
   const perPoint = result ? result.per_point : [];
-  $c("pairs").querySelector("tbody").innerHTML = cal.pairs.map((pair, index) => {
+  fill($c("pairs").querySelector("tbody"), cal.pairs.map((pair, index) => {
     const point = perPoint[index];
-    return `<tr><td>${pair.name}</td><td>${pair.u.toFixed(1)}, ${pair.v.toFixed(1)}</td>` +
-      `<td>${pair.x.toFixed(2)}, ${pair.y.toFixed(2)}</td>` +
-      `<td class="error-px">${point ? point.error_px.toFixed(2) : "–"}</td>` +
-      `<td>${point && point.error_m !== null ? point.error_m.toFixed(3) : "–"}</td>` +
-      `<td>${point && !point.inlier ? "outlier" : ""}</td>` +
-      `<td><button class="mode" data-remove="${index}" type="button">×</button></td></tr>`;
-  }).join("");
+    return el("tr", {}, el("td", {}, pair.name),
+      el("td", {}, `${pair.u.toFixed(1)}, ${pair.v.toFixed(1)}`),
+      el("td", {}, `${pair.x.toFixed(2)}, ${pair.y.toFixed(2)}`),
+      el("td", { className: "error-px" }, point ? point.error_px.toFixed(2) : "–"),
+      el("td", {}, point && point.error_m !== null ? point.error_m.toFixed(3) : "–"),
+      el("td", {}, point && !point.inlier ? "outlier" : ""),
+      el("td", {}, el("button", { className: "mode", type: "button", dataset: { remove: index } },
+        "×")));
+  }));
   $c("save").disabled = !result;
   redraw();
 }
@@ -209,14 +215,14 @@ $c("save").onclick = async () => {
       body: JSON.stringify(request()),
     });
     cal.saved = saved;
-    $c("saved").innerHTML = `<span class="ok">saved to ${saved.site}</span> (previous file: ` +
-      `${saved.backup}); reference ${saved.reference}`;
+    Cblrs.fill($c("saved"), [Cblrs.el("span", { className: "ok" }, `saved to ${saved.site}`),
+      ` (previous file: ${saved.backup}); reference ${saved.reference}`]);
     const image = $c("reference");
     image.onload = () => { cal.referenceLoaded = true; };
     image.src = `/api/calibrate/reference/${encodeURIComponent(cal.camera)}?t=${Date.now()}`;
     image.classList.remove("hidden");
   } catch (error) {
-    $c("saved").innerHTML = `<span class="error">${error.message}</span>`;
+    Cblrs.fill($c("saved"), [Cblrs.el("span", { className: "error" }, error.message)]);
   }
 };
 $c("frame-file").onchange = (event) => {
@@ -255,7 +261,8 @@ function chooseCamera(name) {
   refit();
 }
 
-Promise.all([Cblrs.fetchJSON("/api/site"), Cblrs.fetchJSON("/api/calibrate/cameras")])
+Cblrs.loadSession()
+  .then(() => Promise.all([Cblrs.fetchJSON("/api/site"), Cblrs.fetchJSON("/api/calibrate/cameras")]))
   .then(([scene, data]) => {
     cal.scene = scene;
     cal.cameras = data.cameras;
@@ -268,12 +275,14 @@ Promise.all([Cblrs.fetchJSON("/api/site"), Cblrs.fetchJSON("/api/calibrate/camer
       completePair();
     });
     window.addEventListener("resize", () => { cal.map.resize(); redraw(); });
-    $c("camera").innerHTML = data.cameras.map((camera) =>
-      `<option value="${camera.name}">${camera.name}</option>`).join("");
+    Cblrs.fill($c("camera"), data.cameras.map((camera) =>
+      Cblrs.el("option", { value: camera.name }, camera.name)));
     $c("camera").onchange = (event) => chooseCamera(event.target.value);
     const wanted = new URLSearchParams(location.search).get("camera");
     chooseCamera(wanted && data.cameras.some((c) => c.name === wanted) ? wanted : data.cameras[0].name);
     $c("camera").value = cal.camera;
     cal.ready = true;
   })
-  .catch((error) => { $c("summary").innerHTML = `<span class="error">${error.message}</span>`; });
+  .catch((error) => {
+    Cblrs.fill($c("summary"), [Cblrs.el("span", { className: "error" }, error.message)]);
+  });
