@@ -160,6 +160,7 @@ class Authenticator:
         origin: the one origin pages are served from (e.g. behind a TLS proxy:
             ``https://dashboard.example.org``); None: the request's own scheme and host.
         loopback: bound to a loopback address: requests must name a loopback host.
+        limiter: the login back-off (default: :class:`LoginLimiter` on ``clock``).
     """
 
     def __init__(
@@ -172,6 +173,7 @@ class Authenticator:
         origin: str | None = None,
         loopback: bool = True,
         clock: Callable[[], float] = time.monotonic,
+        limiter: LoginLimiter | None = None,
     ):
         if users_path is None and run_token is None:
             raise ValueError("the dashboard needs a users file or a run token")
@@ -182,7 +184,7 @@ class Authenticator:
         self.origin = origin.rstrip("/") if origin else None
         self.loopback = loopback
         self.clock = clock
-        self.limiter = LoginLimiter(clock=clock)
+        self.limiter = limiter if limiter is not None else LoginLimiter(clock=clock)
         self.cookie_name = "__Host-cblrs_session" if self.secure else "cblrs_session"
         self._sessions: dict[str, Identity] = {}
         self._lock = threading.Lock()

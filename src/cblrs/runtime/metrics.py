@@ -289,6 +289,17 @@ def check_exposure(host: str, token: str | None) -> None:
         )
 
 
+def request_allowed(path: str, client: str, authorization: str, token: str | None) -> bool:
+    """Whether a request for ``path`` from address ``client`` with this ``Authorization``
+    header is answered: always without a token; with one, health checks from loopback
+    clients, and anything that carries the token."""
+    if token is None:
+        return True
+    if path != "/metrics" and is_loopback_host(client):
+        return True
+    return _authorized(authorization, token)
+
+
 def _authorized(header: str, token: str) -> bool:
     """Whether an Authorization header carries ``token`` (bearer, or basic-auth password)."""
     scheme, _, value = header.strip().partition(" ")
@@ -341,20 +352,14 @@ class MetricsServer:
         }
 
         class Handler(BaseHTTPRequestHandler):
-            def allowed(self, path: str) -> bool:
-                if token is None:
-                    return True
-                if path != "/metrics" and is_loopback_host(self.client_address[0]):
-                    return True  # health checks from this machine need no token
-                return _authorized(self.headers.get("Authorization", ""), token)
-
             def do_GET(self) -> None:
                 path = self.path.split("?", 1)[0]
                 route = routes.get(path)
                 headers = {}
                 if route is None:
                     status, kind, body = 404, "text/plain; charset=utf-8", b"not found\n"
-                elif not self.allowed(path):
+                elif not request_allowed(path, self.client_address[0],
+                                         self.headers.get("Authorization", ""), token):
                     status, kind = 401, "text/plain; charset=utf-8"
                     body = b"the metrics need the token (bearer or basic-auth password)\n"
                     headers["WWW-Authenticate"] = 'Basic realm="cblrs metrics"'
