@@ -18,6 +18,7 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import NamedTuple
 
+import numpy as np
 import pytest
 import yaml
 
@@ -30,6 +31,7 @@ from cblrs.runtime.broker import (
     free_port,
     write_broker_config,
 )
+from cblrs.site import load_site
 
 REPO = Path(__file__).resolve().parents[2]
 ADMIN = ("alice", "alice-admin-password")
@@ -130,6 +132,40 @@ def users_file(tmp_path_factory) -> Path:
     return path
 
 
+def site_copy(site: Path, path: Path, change: Callable[[dict], object] | None = None) -> Path:
+    """Write a copy of ``site`` to ``path`` (calibration paths made absolute, so that the copy
+    finds them from its own folder), after ``change(document)`` if given."""
+    document = yaml.safe_load(site.read_text())
+    for camera in document["cameras"]:
+        if "calibration" in camera:
+            camera["calibration"]["file"] = str((site.parent
+                                                 / camera["calibration"]["file"]).resolve())
+    if change is not None:
+        change(document)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(yaml.safe_dump(document, sort_keys=False))
+    return path
+
+
+def calibration_points(site_path: Path, camera: str = "CVLab1", count: int = 8) -> dict:
+    """A save request for ``camera``: ground points it sees and their pixels (from the
+    site's own calibration), as the calibration page would send them."""
+    truth = load_site(site_path).camera(camera).camera
+    grid = np.array([(x, y) for x in np.arange(-4.0, 10.0, 1.5)
+                     for y in np.arange(-10.0, 28.0, 1.5)])
+    pixels, valid = truth.world_to_pixel(grid)
+    width, height = truth.image_size
+    inside = valid & (pixels[:, 0] > 50) & (pixels[:, 0] < width - 50) \
+        & (pixels[:, 1] > 50) & (pixels[:, 1] < height - 50)
+    grid, pixels = grid[inside], pixels[inside]
+    chosen = np.linspace(0, len(grid) - 1, count).astype(int)
+    points = [{"u": float(u), "v": float(v), "x": float(x), "y": float(y), "name": f"p{i + 1}"}
+              for i, ((u, v), (x, y)) in enumerate(zip(pixels[chosen], grid[chosen],
+                                                      strict=True))]
+    return {"camera": camera, "image_size": [int(width), int(height)], "points": points,
+            "model": "auto", "unit": "metres"}
+
+
 @pytest.fixture
 def start_dashboard() -> Iterator[Callable[..., Served]]:
     """``start(*arguments)`` -> :class:`Served`: `cblrs dashboard --port 0 ...`, once serving."""
@@ -190,7 +226,7 @@ def login(page, url: str, user: tuple[str, str], path: str = "") -> None:
     """Log ``page`` in on the dashboard at ``url`` through its login form, then open
     ``path`` (the form sends the browser there)."""
     page.goto(f"{url}{path}")
-    wait_until(lambda: "/login" in page.url, 20, "the redirect to the login page")
+    page.wait_for_url(lambda address: "/login" in address, timeout=60_000)
     page.fill("#user-name", user[0])
     page.fill("#password", user[1])
     # the page fixture skipped the test already when Playwright is missing

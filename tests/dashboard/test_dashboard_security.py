@@ -18,7 +18,6 @@ from collections.abc import Iterator
 from pathlib import Path
 from urllib.parse import urlsplit
 
-import numpy as np
 import pytest
 import yaml
 
@@ -27,7 +26,7 @@ from cblrs.dashboard.app import STATIC, DashboardConfig, create_app
 from cblrs.dashboard.auth import Authenticator, LoginLimiter, LoginRefused
 from cblrs.dashboard.users import Role
 from cblrs.site import load_site
-from conftest import ADMIN, VIEWER, cblrs_command
+from conftest import ADMIN, VIEWER, calibration_points, cblrs_command, site_copy
 
 EVIL = "http://evil.example"
 
@@ -81,37 +80,10 @@ class Browser:
         return call(self.url, path, "POST", headers, body)
 
 
-def calibration_points(site_path: Path, camera: str = "CVLab1", count: int = 8) -> dict:
-    """A save request for ``camera``: ground points it sees and their pixels (from the
-    site's own calibration), as the calibration page would send them."""
-    truth = load_site(site_path).camera(camera).camera
-    grid = np.array([(x, y) for x in np.arange(-4.0, 10.0, 1.5)
-                     for y in np.arange(-10.0, 28.0, 1.5)])
-    pixels, valid = truth.world_to_pixel(grid)
-    width, height = truth.image_size
-    inside = valid & (pixels[:, 0] > 50) & (pixels[:, 0] < width - 50) \
-        & (pixels[:, 1] > 50) & (pixels[:, 1] < height - 50)
-    grid, pixels = grid[inside], pixels[inside]
-    chosen = np.linspace(0, len(grid) - 1, count).astype(int)
-    points = [{"u": float(u), "v": float(v), "x": float(x), "y": float(y), "name": f"p{i + 1}"}
-              for i, ((u, v), (x, y)) in enumerate(zip(pixels[chosen], grid[chosen],
-                                                      strict=True))]
-    return {"camera": camera, "image_size": [width, height], "points": points, "model": "auto",
-            "unit": "metres"}
-
-
 @pytest.fixture
 def own_site(wildtrack_site, tmp_path) -> Path:
-    """A copy of the WILDTRACK site that this test may rewrite (calibration paths made
-    absolute, so that the copy finds them from its own folder)."""
-    document = yaml.safe_load(wildtrack_site.read_text())
-    for camera in document["cameras"]:
-        camera["calibration"]["file"] = str((wildtrack_site.parent
-                                             / camera["calibration"]["file"]).resolve())
-    path = tmp_path / "site" / "site.yaml"
-    path.parent.mkdir()
-    path.write_text(yaml.safe_dump(document, sort_keys=False))
-    return path
+    """A copy of the WILDTRACK site that this test may rewrite."""
+    return site_copy(wildtrack_site, tmp_path / "site" / "site.yaml")
 
 
 @pytest.fixture
