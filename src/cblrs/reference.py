@@ -265,7 +265,9 @@ def nearest_pixel_indices(
 
 
 def render_reference(
-    camera: Camera, planes: PlaneSet | PlaneSpec | list[PlaneSpec]
+    camera: Camera,
+    planes: PlaneSet | PlaneSpec | list[PlaneSpec],
+    encode_as: tuple[NDArray, PlaneSet] | None = None,
 ) -> ReferenceImage:
     """Render a camera's reference image for one or several planes.
 
@@ -276,6 +278,11 @@ def render_reference(
     Args:
         camera: the camera; planes above the ground need a posed camera.
         planes: one plane or several.
+        encode_as: ``(matrix, encoded_planes)``: colour each hit point ``p`` (found on
+            ``planes``, as without it) by its image ``matrix @ p`` (a (3, 3) homogeneous
+            affine map of ground points) encoded in the plane of ``encoded_planes`` with the
+            same id; the image then carries ``encoded_planes``. Pseudo-coordinate references
+            (:mod:`cblrs.privacy`) are rendered so.
 
     Returns:
         The reference image, (H, W, 3) in the planes' bit depth.
@@ -290,6 +297,11 @@ def render_reference(
         planes = PlaneSet([planes])
     elif not isinstance(planes, PlaneSet):
         planes = PlaneSet(planes)
+    encoded_planes, encode_matrix = planes, np.eye(3)
+    if encode_as is not None:
+        encode_matrix, encoded_planes = np.asarray(encode_as[0], np.float64), encode_as[1]
+        if sorted(encoded_planes.ids) != sorted(planes.ids) or encoded_planes.bits != planes.bits:
+            raise PlaneError("the encoded planes must have the ids and bits of the planes.")
     width, height = camera.image_size
     if camera.has_distortion:
         map_x, map_y = (grid.astype(np.float64) for grid in camera.undistorted_grid())
@@ -312,7 +324,8 @@ def render_reference(
                 [0.0, 0.0, 1.0],
             ]
         )
-        matrix = to_code @ np.linalg.inv(camera.plane_homography(plane.height))
+        to_plane = np.linalg.inv(camera.plane_homography(plane.height))
+        matrix = to_code @ to_plane
         scale = matrix[2, 0] * map_x + matrix[2, 1] * map_y + matrix[2, 2]
         with np.errstate(divide="ignore", invalid="ignore"):
             inverse_scale = 1.0 / scale
@@ -322,12 +335,32 @@ def render_reference(
         with np.errstate(invalid="ignore"):
             hit = (scale > best_scale) & (code_x >= -0.5) & (code_x < limit)
             hit &= (code_y >= -0.5) & (code_y < limit)
+        if encode_as is not None:
+            # The hit test above stays on the real plane; the colour is the code of the
+            # transformed point in its encoded plane (the same projective division).
+            encoded = encoded_planes.by_id(plane.plane_id)
+            encoded_x, encoded_y = encoded.step
+            to_encoded = np.array(
+                [
+                    [1.0 / encoded_x, 0.0, -encoded.origin[0] / encoded_x],
+                    [0.0, 1.0 / encoded_y, -encoded.origin[1] / encoded_y],
+                    [0.0, 0.0, 1.0],
+                ]
+            ) @ encode_matrix @ to_plane
+            with np.errstate(divide="ignore", invalid="ignore"):
+                code_x = (to_encoded[0, 0] * map_x + to_encoded[0, 1] * map_y
+                          + to_encoded[0, 2]) * inverse_scale
+                code_y = (to_encoded[1, 0] * map_x + to_encoded[1, 1] * map_y
+                          + to_encoded[1, 2]) * inverse_scale
+                encoded_limit = encoded.max_value + 0.5
+                hit &= (code_x >= -0.5) & (code_x < encoded_limit)
+                hit &= (code_y >= -0.5) & (code_y < encoded_limit)
         np.copyto(best_scale, scale, where=hit)
         np.copyto(channels[0], np.rint(code_x), where=hit, casting="unsafe")
         np.copyto(channels[1], np.rint(code_y), where=hit, casting="unsafe")
         channels[2][hit] = plane.plane_id
     pixels = cast(NDArray[np.unsignedinteger], cv2.merge(channels))
-    return ReferenceImage(pixels=pixels, planes=planes, camera_name=camera.name)
+    return ReferenceImage(pixels=pixels, planes=encoded_planes, camera_name=camera.name)
 
 
 def _insert_chunk(png: bytes, kind: bytes, body: bytes) -> bytes:

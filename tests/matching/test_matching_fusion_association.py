@@ -126,10 +126,13 @@ def test_more_camera_orders_never_explain_an_instant_less_likely():
         covariance = tracker._measurement_covariance(observed)
         costs = {}
         for orders in (1, 3):
-            tracker.config = dataclasses.replace(tracker.config, association_orders=orders)
-            assigned = tracker._associate(observed, covariance)
-            track_cost, detection_cost = tracker._joint_cost(
-                observed, covariance, assigned, list(range(len(CAMERAS)))
+            tracker.context.config = dataclasses.replace(tracker.config,
+                                                         association_orders=orders)
+            assigned = tracker.association.associate(tracker.tracks, tracker.measured,
+                                                     observed, covariance)
+            track_cost, detection_cost = tracker.association.joint_cost(
+                tracker.tracks, tracker.measured, observed, covariance, assigned,
+                list(range(len(CAMERAS))),
             )
             costs[orders] = track_cost.sum() + detection_cost.sum()
         assert costs[3] <= costs[1] + 1e-6

@@ -6,11 +6,11 @@ import numpy as np
 
 from cblrs.detections import CLASS_NAMES
 from cblrs.matching.base import Observations
-from cblrs.matching.fusion.table import TrackTable
+from cblrs.matching.fusion.table import FusionContext, TrackTable, largest_boxes
 
 
 def test_class_slot_sends_unknown_ids_to_the_last_slot():
-    slots = TrackTable()._class_slot(np.array([0, len(CLASS_NAMES) - 1, -1, len(CLASS_NAMES), 99]))
+    slots = FusionContext.class_slot(np.array([0, len(CLASS_NAMES) - 1, -1, len(CLASS_NAMES), 99]))
     assert slots.tolist() == [0, len(CLASS_NAMES) - 1] + [len(CLASS_NAMES)] * 3
 
 
@@ -23,7 +23,24 @@ def test_largest_boxes_picks_each_tracks_biggest_view():
     )
     matched = np.array([True, True, True, False])
     rows = np.array([1, 1, 0])  # detections 0 and 1 went to track 1, detection 2 to track 0
-    camera, box = TrackTable._largest_boxes(observed, matched, rows, track_count=3)
+    camera, box = largest_boxes(observed, matched, rows, track_count=3)
     assert camera.tolist() == [2, 1, -1]
     assert box[0].tolist() == [0, 0, 20, 20] and box[1].tolist() == [0, 0, 30, 30]
     assert np.isnan(box[2]).all()
+
+
+def test_track_table_selects_and_extends_every_column_alike():
+    tracks = TrackTable.empty(models=2, cameras=3)
+    assert len(tracks) == 0 and tracks.mode_state.shape == (0, 2, 4)
+    one = TrackTable(
+        ids=np.array([5, -1]), class_id=np.array([0, 2]), state=np.arange(8.0).reshape(2, 4),
+        covariance=np.ones((2, 4, 4)), mode_state=np.zeros((2, 2, 4)),
+        mode_covariance=np.zeros((2, 2, 4, 4)), mode_probability=np.full((2, 2), 0.5),
+        evidence=np.array([3, 1]), last_seen=np.array([1.0, 2.0]),
+        seen_by=np.full((2, 3), -np.inf),
+    )
+    both = tracks.extend(one).extend(one)
+    assert len(both) == 4 and both.ids.tolist() == [5, -1, 5, -1]
+    kept = both.select(np.array([False, True, True, False]))
+    assert kept.ids.tolist() == [-1, 5] and kept.state[0].tolist() == [4.0, 5.0, 6.0, 7.0]
+    assert all(len(column) == 2 for column in kept.columns())

@@ -250,6 +250,40 @@ def test_occluded_function_table():
     assert occluded(np.zeros((0, 4)), np.zeros(0), np.zeros(0, bool), 0.75).tolist() == []
 
 
+def _occluded_one_box_at_a_time(xyxy, depth, occluders, max_fraction, samples=12):
+    """The definition, box by box: the share of a samples x samples grid inside each box
+    that the union of nearer boxes covers."""
+    hidden = np.zeros(len(xyxy), dtype=bool)
+    rows = np.flatnonzero(occluders & np.isfinite(xyxy).all(axis=1) & np.isfinite(depth))
+    fractions = (np.arange(samples) + 0.5) / samples
+    for row in rows:
+        nearer = rows[depth[rows] < depth[row]]
+        x0, y0, x1, y1 = xyxy[row]
+        grid_x, grid_y = x0 + fractions * (x1 - x0), y0 + fractions * (y1 - y0)
+        covered = np.zeros((samples, samples), dtype=bool)
+        for other in nearer:
+            inside_x = (grid_x >= xyxy[other, 0]) & (grid_x <= xyxy[other, 2])
+            inside_y = (grid_y >= xyxy[other, 1]) & (grid_y <= xyxy[other, 3])
+            covered |= inside_y[:, None] & inside_x[None, :]
+        hidden[row] = covered.mean() > max_fraction
+    return hidden
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_occluded_equals_its_definition_on_random_crowds(seed):
+    rng = np.random.default_rng(seed)
+    count = int(rng.integers(2, 40))
+    corner = rng.uniform(0, 300, size=(count, 2))
+    boxes = np.column_stack([corner, corner + rng.uniform(5, 120, size=(count, 2))])
+    boxes[rng.random(count) < 0.1] = np.nan
+    depth = rng.uniform(1, 50, count)
+    depth[:3] = depth[0]  # ties: a box at the same depth hides nothing
+    occluders = rng.random(count) < 0.9
+    for fraction in (0.3, 0.75):
+        expected = _occluded_one_box_at_a_time(boxes, depth, occluders, fraction)
+        np.testing.assert_array_equal(occluded(boxes, depth, occluders, fraction), expected)
+
+
 @pytest.mark.parametrize(
     ("change", "message"),
     [

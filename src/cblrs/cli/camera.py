@@ -156,6 +156,10 @@ def register(subparsers) -> None:
         "the planes)",
     )
     parser.add_argument(
+        "--key", type=Path, help="with --site: render the reference in the pseudo frame of this "
+        "key file (docs/privacy.md); an edge device is better given only its rendered PNG"
+    )
+    parser.add_argument(
         "--plane", type=int, help="plane id to publish for (default: the reference's only plane)"
     )
     source = parser.add_argument_group("source (exactly one)")
@@ -298,7 +302,22 @@ def load_reference(args: argparse.Namespace, expected_size: tuple[int, int] | No
         # lazy: a subcommand imports the library when it runs, so its --help starts fast
         from cblrs.site import load_site
 
-        reference = load_site(args.site).render_reference(args.camera)
+        site = load_site(args.site)
+        if site.pseudo_key_id is not None:
+            raise UsageError(
+                f"{args.site} is a pseudo site; give the camera its reference rendered from the "
+                "real site with the key (cblrs render --site SITE --key KEY), or --site SITE "
+                "--key KEY."
+            )
+        if getattr(args, "key", None) is None:
+            reference = site.render_reference(args.camera)
+        else:
+            from cblrs.privacy import PseudoKey, render_pseudo_reference
+
+            reference = render_pseudo_reference(
+                site.camera(args.camera).camera, site.require_planes("a camera"),
+                PseudoKey.load(args.key),
+            )
         if expected_size is not None and reference.image_size != tuple(expected_size):
             raise UsageError(
                 f"{args.site.name}: camera {args.camera!r} is {reference.image_size[0]}x"
@@ -306,6 +325,8 @@ def load_reference(args: argparse.Namespace, expected_size: tuple[int, int] | No
                 f"{expected_size[1]}."
             )
         return reference
+    if getattr(args, "key", None) is not None:
+        raise UsageError("--key goes with --site; a --reference PNG already holds its colours.")
     if args.reference is not None:
         path = args.reference
     else:

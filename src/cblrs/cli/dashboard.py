@@ -39,6 +39,10 @@ def register(subparsers) -> None:
     parser.add_argument("--site", type=Path, required=True, help="the site file")
     parser.add_argument("--plane", type=int, help="plane shown (default: the site's first)")
     parser.add_argument("--db", type=Path, help="a matcher's database to replay (read-only)")
+    parser.add_argument(
+        "--key", type=Path, help="the site's pseudo-coordinate key (docs/privacy.md): the "
+        "matcher works on a pseudo site; show its tracks and events on this real site's map"
+    )
     parser.add_argument("--host", default="127.0.0.1", help="address to serve on (beyond "
                         "loopback only with --users)")
     parser.add_argument("--port", type=int, default=8080, help="port (0: a free one)")
@@ -90,6 +94,16 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"--frames {args.frames} is not a folder.")
     config = DashboardConfig(args.site, args.plane, database=args.db, frames=args.frames,
                              references=args.references)
+    if args.key is not None:
+        if config.site.pseudo_key_id is not None:
+            raise UsageError(
+                f"{args.site} is a pseudo site; --key goes with the real site (its map), to "
+                "show a pseudo matcher's tracks where they are."
+            )
+        # lazy: a subcommand imports the library when it runs, so its --help starts fast
+        from cblrs.privacy import PseudoKey
+
+        config.to_site = PseudoKey.load(args.key).to_site
     plane = args.plane
     if plane is None:
         planes = config.site.planes
@@ -108,7 +122,7 @@ def run(args: argparse.Namespace) -> int:
         if not logging.getLogger().isEnabledFor(logging.DEBUG):
             # A refusal is said once, below, as one sentence; not also as a log line.
             logging.getLogger("cblrs.runtime.mqtt_transport").setLevel(logging.ERROR)
-        feed = LiveFeed(settings, plane, client_id[:64])
+        feed = LiveFeed(settings, plane, client_id[:64], to_site=config.to_site)
         try:
             feed.start()
         except TransportError as error:

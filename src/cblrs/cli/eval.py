@@ -54,6 +54,12 @@ def register(subparsers) -> None:
         help="score only inside the site file's planes (what its cameras can locate)",
     )
     parser.add_argument(
+        "--key",
+        type=Path,
+        help="the tracks are in pseudo coordinates (cblrs track --key, a pseudo-site matcher): "
+        "map them back to the site with this key file before scoring",
+    )
+    parser.add_argument(
         "--whole-plane",
         action="store_true",
         help="WILDTRACK / MultiviewX: also score predictions outside the annotated area that "
@@ -69,6 +75,11 @@ def run(args: argparse.Namespace) -> int:
     first, last = parse_frame_range(args.frames) if args.frames else (None, None)
     ground_truth = read_ground_truth(args.dataset)
     predictions = read_tracks(args.tracks)
+    if args.key is not None:
+        # lazy: a subcommand imports the library when it runs, so its --help starts fast
+        from cblrs.privacy import PseudoKey, tracks_to_site
+
+        predictions = tracks_to_site(predictions, PseudoKey.load(args.key))
     frames = select_frames(ground_truth, first, last, args.frames)
     note = ""
     if args.site is not None:
@@ -93,6 +104,11 @@ def inside_site(site_path: Path, ground_truth: Tracks, predictions: Tracks):
     from cblrs.site import load_site
 
     site = load_site(site_path)
+    if site.pseudo_key_id is not None:
+        raise UsageError(
+            f"{site_path} is a pseudo site; score inside the real site's planes (--site SITE, "
+            "with --key for pseudo tracks)."
+        )
     planes = site.require_planes("eval --site")
 
     def inside(tracks: Tracks) -> np.ndarray:

@@ -24,15 +24,23 @@ EXAMPLES: dict[str, list[str]] = {
     "calibrate": ["cblrs calibrate gate.csv --image gate.jpg --picture gate_check.png "
                   "--out gate.json"],
     "render": [f"cblrs render {WT} --out refs --preview",
-               "cblrs render --site site.yaml --out refs"],
+               "cblrs render --site site.yaml --out refs",
+               "cblrs render --site site.yaml --key site.key --out refs   # pseudo colours"],
     "locate": [f"cblrs locate refs/CVLab1.png --dataset {WT} --frame 0",
                'cblrs locate refs/CVLab1.png --pixels "960,1000;10,10" --json'],
     "show": ["cblrs show refs/CVLab1.png --out CVLab1_grid.png --grid 1"],
     "track": [f"cblrs track --dataset {WT} --out tracks.txt --score",
+              f"cblrs track --dataset {WT} --key site.key --out pseudo-tracks.txt",
               f"cblrs track --dataset {WT} --out tracks.txt --drop 0.2 --jitter 0.05 --seed 1",
               f"cblrs track --dataset {MVX} --out tracks.txt --detector onnx "
               "--model ../shared/models/yolox_nano.onnx"],
-    "eval": [f"cblrs eval --dataset {WT} tracks.txt"],
+    "eval": [f"cblrs eval --dataset {WT} tracks.txt",
+             f"cblrs eval --dataset {WT} pseudo-tracks.txt --key site.key"],
+    "pseudo": ["cblrs pseudo keygen --out site.key",
+               "cblrs pseudo site site.yaml --key site.key --out pseudo-site.yaml"],
+    "pseudo keygen": ["cblrs pseudo keygen --out site.key"],
+    "pseudo site": ["cblrs pseudo site site.yaml --key site.key --out pseudo-site.yaml"],
+    "pseudo unmap": ["cblrs pseudo unmap pseudo-tracks.txt --key site.key --out tracks.txt"],
     "analytics": ["cblrs analytics tracks.txt --site sites/wildtrack.yaml --out analytics/"],
     "broker-config": ["cblrs broker-config --out broker --cameras C1,C2,C3 --matchers matcher1 "
                       "--planes 1"],
@@ -77,6 +85,9 @@ EXAMPLES: dict[str, list[str]] = {
     "experiment resolution": ["cblrs experiment resolution --scenes plaza --out experiments"],
     "experiment calibration": [f"cblrs experiment calibration --dataset {WT} --out experiments"],
     "experiment counts": ["cblrs experiment counts --scenes wildtrack,plaza --out experiments"],
+    "experiment tracking": ["cblrs experiment tracking --out experiments",
+                            "cblrs experiment tracking --scenes roundabout,crowd --no-held-out"],
+    "experiment pseudo": [f"cblrs experiment pseudo --dataset {WT} --out experiments"],
 }
 
 

@@ -1,5 +1,6 @@
 """``cblrs experiment``: the paper's experiments rerun — targeting (IV-B), resolution, clicked
-calibration — and the count accuracy of the analytics (counts).
+calibration — the count accuracy of the analytics (counts), identity where it is hard
+(tracking) and what pseudo coordinates do not hide (pseudo).
 
 Each prints a markdown table (or ``--json``); ``--out DIR`` also writes
 ``DIR/experiment_<name>.json``, ``.md`` and the figures.
@@ -28,7 +29,7 @@ def register(subparsers) -> None:
     parser = subparsers.add_parser(
         "experiment",
         help="rerun the paper's experiments: targeting (IV-B), resolution; clicked "
-        "calibration; count accuracy",
+        "calibration; count accuracy; pseudo-coordinate recovery",
         description="Rerun the paper's experiments on the synthetic world and WILDTRACK.",
     )
     kinds = parser.add_subparsers(dest="experiment", metavar="EXPERIMENT")
@@ -141,6 +142,53 @@ def register(subparsers) -> None:
     counts.add_argument("--figures", type=Path, help="write the PNGs here (default: --out)")
     add_output_options(counts)
     counts.set_defaults(handler=run, experiment="counts")
+    tracking = kinds.add_parser(
+        "tracking",
+        help="identity where it is hard: traffic, crowds, distortion, detectors (issue 19)",
+        description="Track issue 19's cases (scenes x seeds x kinds of boxes) with fusion's "
+        "defaults and print one table: HOTA, AssA, IDF1, MOTA, ids, line and OD errors; "
+        "held-out checks last.",
+    )
+    tracking.add_argument(
+        "--scenes", default="", help="only these scenes (comma-separated: roundabout, "
+        "crossroads, crowd, distorted, wildtrack, multiviewx; default all)",
+    )
+    tracking.add_argument("--no-held-out", action="store_true",
+                          help="skip the held-out checks")
+    tracking.add_argument("--sites", type=Path, default=None,
+                          help="folder of <scene>.yaml site files (default: the repository's "
+                          "sites/)")
+    add_dataset_argument(
+        tracking, "WILDTRACK folder (default: $CBLRS_WILDTRACK or ../shared/data/wildtrack)",
+        option_aliases=("--wildtrack",),
+    )
+    tracking.add_argument("--multiviewx", type=Path, default=None,
+                          help="MultiviewX folder (default ../shared/data/multiviewx)")
+    tracking.add_argument("--model", type=Path, default=None,
+                          help="ONNX detector (default ../shared/models/yolox_nano.onnx)")
+    tracking.add_argument("--out", type=Path, help="write JSON and markdown here")
+    add_output_options(tracking)
+    tracking.set_defaults(handler=run, experiment="tracking")
+
+    pseudo = kinds.add_parser(
+        "pseudo",
+        help="what pseudo coordinates do not hide: recovering the key's transform from the "
+        "database with landmarks, camera masts or a map of where people walk",
+    )
+    pseudo.add_argument("--landmarks", default="2,3,5,10", help="numbers of landmarks k")
+    pseudo.add_argument("--sigmas", default="0.1,0.5,2",
+                        help="landmark position errors per axis, metres")
+    pseudo.add_argument("--mast-sigmas", default="0.5,2",
+                        help="errors of the adversary's camera-mast positions, metres")
+    pseudo.add_argument("--draws", type=int, default=200, help="draws per landmark row")
+    pseudo.add_argument("--keys", type=int, default=5, help="keys per walkway row")
+    pseudo.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    add_dataset_argument(
+        pseudo, "WILDTRACK folder (default: $CBLRS_WILDTRACK or ../shared/data/wildtrack)",
+    )
+    pseudo.add_argument("--out", type=Path, help="write JSON and markdown here")
+    add_output_options(pseudo)
+    pseudo.set_defaults(handler=run, experiment="pseudo")
 
     def usage(args: argparse.Namespace) -> int:
         parser.print_help()
@@ -294,6 +342,37 @@ def run_counts_command(args: argparse.Namespace) -> tuple[dict[str, Any], str]:
     return result, text
 
 
+def run_tracking_command(args: argparse.Namespace) -> tuple[dict[str, Any], str]:
+    """Run ``cblrs experiment tracking``: (result, markdown)."""
+    # lazy: a subcommand imports the library when it runs, so its --help starts fast
+    from cblrs.experiments.tracking import (
+        SCENES,
+        TrackingSetup,
+        default_cases,
+        run_tracking,
+        tracking_report,
+    )
+
+    names = tuple(name.strip() for name in args.scenes.split(",") if name.strip())
+    unknown = [name for name in names if name not in SCENES]
+    if unknown:
+        raise UsageError(f"--scenes must list some of {', '.join(SCENES)}; got {args.scenes!r}.")
+    cases = tuple(case for case in default_cases()
+                  if (not names or case.scene in names)
+                  and not (args.no_held_out and case.held_out))
+    if not cases:
+        raise UsageError("no case left to run; check --scenes and --no-held-out.")
+    setup = TrackingSetup(cases=cases, wildtrack=args.dataset, multiviewx=args.multiviewx,
+                          model=args.model, sites=args.sites)
+    show = not args.quiet and sys.stderr.isatty()
+    result = run_tracking(setup, report=(lambda line: print(line, file=sys.stderr)) if show
+                          else None)
+    text = tracking_report(result)
+    if args.out is not None:
+        _write(args.out, "tracking", result, text)
+    return result, text
+
+
 def run_resolution_command(args: argparse.Namespace) -> tuple[dict[str, Any], str]:
     """Entry point of ``cblrs experiment resolution``."""
     # lazy: a subcommand imports the library when it runs, so its --help starts fast
@@ -328,6 +407,35 @@ def run_resolution_command(args: argparse.Namespace) -> tuple[dict[str, Any], st
     return result, text
 
 
+def run_pseudo_command(args: argparse.Namespace) -> tuple[dict[str, Any], str]:
+    """Run ``cblrs experiment pseudo``: (result, markdown)."""
+    # lazy: a subcommand imports the library when it runs, so its --help starts fast
+    from cblrs.experiments.pseudo import PseudoAttackSetup, pseudo_attack_report, run_pseudo_attack
+    from cblrs.experiments.resolution import load_named_scene
+
+    landmarks = parse_numbers(args.landmarks, "--landmarks")
+    if not all(isinstance(count, int) and count >= 2 for count in landmarks):
+        raise UsageError(f"--landmarks must be whole numbers >= 2, got {args.landmarks!r}.")
+    sigmas = parse_numbers(args.sigmas, "--sigmas")
+    mast_sigmas = parse_numbers(args.mast_sigmas, "--mast-sigmas")
+    if not all(value >= 0 for value in (*sigmas, *mast_sigmas)):
+        raise UsageError("--sigmas and --mast-sigmas must be numbers >= 0.")
+    if args.draws < 1 or args.keys < 1:
+        raise UsageError("--draws and --keys must be at least 1.")
+    setup = PseudoAttackSetup(
+        landmarks=tuple(int(count) for count in landmarks),
+        sigmas_m=tuple(float(value) for value in sigmas),
+        mast_sigmas_m=tuple(float(value) for value in mast_sigmas),
+        draws=args.draws, keys=args.keys, seed=args.seed,
+    )
+    scene = load_named_scene("wildtrack", args.dataset, None)
+    result = run_pseudo_attack(scene, setup)
+    text = pseudo_attack_report(result)
+    if args.out is not None:
+        _write(args.out, "pseudo", result, text)
+    return result, text
+
+
 def run(args: argparse.Namespace) -> int:
     """Run ``cblrs experiment`` with its parsed arguments; the exit code."""
     if args.experiment == "targeting":
@@ -338,6 +446,10 @@ def run(args: argparse.Namespace) -> int:
         result, text = run_counts_command(args)
     elif args.experiment == "resolution":
         result, text = run_resolution_command(args)
+    elif args.experiment == "tracking":
+        result, text = run_tracking_command(args)
+    elif args.experiment == "pseudo":
+        result, text = run_pseudo_command(args)
     else:  # pragma: no cover - argparse restricts the choices
         raise UsageError(f"unknown experiment {args.experiment!r}.")
     if args.json:

@@ -38,6 +38,7 @@ SUBCOMMANDS = {
     "track": "track a multi-camera dataset and write world tracks (AI City format)",
     "eval": "HOTA, DetA, AssA, LocA, MOTA, IDF1 of tracks against ground truth",
     "analytics": "counts per line and direction, zone entries/exits/dwell, OD, heatmap",
+    "pseudo": "pseudo coordinates: make a key, a pseudo site for the matcher, map tracks back",
     "broker_config": "write a Mosquitto configuration (users, ACL, optional TLS) for cameras "
     "and matchers",
     "camera": "run an edge camera node: detections -> reference colours -> MQTT",
@@ -49,7 +50,7 @@ SUBCOMMANDS = {
     "bench": "benchmarks: lookup (Table I), render, claims, tracker, pipeline, analytics, "
     "dashboard, backbone, asynchrony, mqtt, all",
     "experiment": "rerun the paper's experiments: targeting (IV-B), resolution; clicked "
-    "calibration; count accuracy",
+    "calibration; count accuracy; pseudo-coordinate recovery",
 }
 
 

@@ -188,9 +188,11 @@ def parse_options(items: list[str]) -> dict[str, Any]:
     return options
 
 
-def read_references(folder: Path) -> tuple[list[str], Any]:
-    """Camera ids (file-name order) and the shared planes of a folder of reference PNGs."""
+def read_references(folder: Path) -> tuple[list[str], Any, dict[str, list[int]]]:
+    """Camera ids (file-name order), the planes of a folder of reference PNGs, and each
+    camera's plane ids (a site's cameras may each hold only their own plane)."""
     # lazy: a subcommand imports the library when it runs, so its --help starts fast
+    from cblrs.plane import PlaneSet
     from cblrs.reference import ReferenceImage
 
     if not folder.is_dir():
@@ -198,15 +200,22 @@ def read_references(folder: Path) -> tuple[list[str], Any]:
     paths = sorted(path for path in folder.glob("*.png") if not path.stem.endswith("_preview"))
     if not paths:
         raise UsageError(f"{folder} holds no reference PNGs; render them with `cblrs render`.")
-    names, planes = [], None
+    names: list[str] = []
+    known: dict[int, Any] = {}
+    camera_planes: dict[str, list[int]] = {}
     for path in paths:
         reference = ReferenceImage.load(path)
-        names.append(reference.camera_name or path.stem)
-        if planes is None:
-            planes = reference.planes
-        elif reference.planes != planes:
-            raise UsageError(f"{path} was rendered for other planes than {paths[0]}.")
-    return names, planes
+        name = reference.camera_name or path.stem
+        names.append(name)
+        camera_planes[name] = reference.planes.ids
+        for plane in reference.planes:
+            if known.setdefault(plane.plane_id, plane) != plane:
+                raise UsageError(f"{path} was rendered for other planes than {paths[0]}.")
+    try:
+        planes = PlaneSet(known.values())
+    except CblrsError as error:
+        raise UsageError(f"the references in {folder} do not fit together: {error}") from None
+    return names, planes, camera_planes
 
 
 def check_arguments(args: argparse.Namespace) -> None:
@@ -250,8 +259,10 @@ def run(args: argparse.Namespace) -> int:
 
         site = load_site(args.site)
     if args.references is not None:
-        names, planes = read_references(args.references)
-        if site is not None and site.planes is not None and site.planes != planes:
+        names, planes, camera_planes = read_references(args.references)
+        site_planes = {} if site is None or site.planes is None else {
+            plane.plane_id: plane for plane in site.planes}
+        if site_planes and any(site_planes.get(plane.plane_id) != plane for plane in planes):
             raise UsageError(
                 f"the references in {args.references} were rendered for other planes than "
                 f"{args.site.name}'s; render them with `cblrs render --site {args.site}`."
@@ -260,12 +271,7 @@ def run(args: argparse.Namespace) -> int:
         assert site is not None
         planes = site.require_planes("the matcher")
         names = [camera.name for camera in site.require_cameras("the matcher")]
-    if args.cameras:
-        wanted = [name.strip() for name in args.cameras.split(",") if name.strip()]
-        unknown = sorted(set(wanted) - set(names))
-        if unknown:
-            raise UsageError(f"no reference image for camera(s) {', '.join(unknown)}.")
-        names = wanted
+        camera_planes = {name: site.camera_planes(name).ids for name in names}
     plane_id = args.plane
     if plane_id is None:
         if len(planes.ids) != 1:
@@ -273,6 +279,15 @@ def run(args: argparse.Namespace) -> int:
         plane_id = planes.ids[0]
     elif plane_id not in planes.ids:
         raise UsageError(f"--plane {plane_id} is not in the references (planes {planes.ids}).")
+    # The plane's cameras: those whose reference holds it (a site camera may hold only its own).
+    names = [name for name in names if plane_id in camera_planes[name]]
+    if args.cameras:
+        wanted = [name.strip() for name in args.cameras.split(",") if name.strip()]
+        unknown = sorted(set(wanted) - set(names))
+        if unknown:
+            raise UsageError(f"no reference image of plane {plane_id} for camera(s) "
+                             f"{', '.join(unknown)}.")
+        names = wanted
     options = parse_options(args.option)
     positions = site_positions(site, names)
     if site is not None and args.matcher == "fusion" and "camera_positions" not in options:

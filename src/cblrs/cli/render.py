@@ -63,6 +63,10 @@ def register(subparsers) -> None:
     parser.add_argument(
         "--preview", action="store_true", help="also write <camera>_preview.png with a 1 m grid"
     )
+    parser.add_argument(
+        "--key", type=Path, help="pseudo-coordinate key (cblrs pseudo keygen): the colours "
+        "encode the key's pseudo frame, not the site's (see docs/privacy.md)"
+    )
     add_output_options(parser)
     # Let `--plane -3,-9,12,36` through: argparse (before Python 3.13) takes any word that
     # starts with "-" and is not a plain negative number for an option.
@@ -144,8 +148,11 @@ def file_name(camera_name: str, index: int) -> str:
     return stem or f"camera{index + 1}"
 
 
-def site_cameras_and_planes(args: argparse.Namespace) -> tuple[list, PlaneSet]:
-    """The cameras and planes of ``--site`` (with ``--bits`` applied)."""
+def site_cameras_and_planes(
+    args: argparse.Namespace,
+) -> tuple[list, list[PlaneSet], PlaneSet]:
+    """The cameras of ``--site``, each one's planes (its own plane, or all) and all the site's
+    planes (``--bits`` applied)."""
     # lazy: a subcommand imports the library when it runs, so its --help starts fast
     from cblrs.site import load_site
 
@@ -157,26 +164,48 @@ def site_cameras_and_planes(args: argparse.Namespace) -> tuple[list, PlaneSet]:
             "the planes and each camera's calibration."
         )
     site = load_site(args.site)
-    planes = site.require_planes("render")
-    if args.bits is not None and args.bits != planes.bits:
-        planes = PlaneSet([replace(plane, bits=args.bits) for plane in planes])
-    return [camera.camera for camera in site.require_cameras("render")], planes
+    if site.pseudo_key_id is not None:
+        raise UsageError(
+            f"{args.site} is a pseudo site (key {site.pseudo_key_id}); render from the real "
+            "site with --key: cblrs render --site SITE --key KEY --out DIR."
+        )
+
+    def with_bits(planes: PlaneSet) -> PlaneSet:
+        if args.bits is not None and args.bits != planes.bits:
+            return PlaneSet([replace(plane, bits=args.bits) for plane in planes])
+        return planes
+
+    all_planes = with_bits(site.require_planes("render"))
+    cameras = site.require_cameras("render")
+    per_camera = [with_bits(site.camera_planes(camera.name)) for camera in cameras]
+    return [camera.camera for camera in cameras], per_camera, all_planes
 
 
 def run(args: argparse.Namespace) -> int:
     """Run ``cblrs render`` with its parsed arguments; the exit code."""
     if args.site is not None:
-        cameras, planes = site_cameras_and_planes(args)
+        cameras, camera_planes, all_planes = site_cameras_and_planes(args)
     elif args.calibration is None:
         raise UsageError("give a CALIBRATION file or folder, or --site SITE.")
     else:
         cameras = read_cameras(args.calibration, distorted=args.distorted)
-        planes = build_planes(args)
+        all_planes = build_planes(args)
+        camera_planes = [all_planes] * len(cameras)
+    key = None
+    if args.key is not None:
+        # lazy: a subcommand imports the library when it runs, so its --help starts fast
+        from cblrs.privacy import PseudoKey, render_pseudo_reference
+
+        key = PseudoKey.load(args.key)
     args.out.mkdir(parents=True, exist_ok=True)
     rows = []
     for index, camera in enumerate(progress(cameras, "render", args.quiet)):
         start = time.perf_counter()
-        reference = render_reference(camera, planes)
+        planes = camera_planes[index]
+        if key is None:
+            reference = render_reference(camera, planes)
+        else:
+            reference = render_pseudo_reference(camera, planes, key)
         milliseconds = (time.perf_counter() - start) * 1000.0
         stem = file_name(camera.name, index)
         path = reference.save(args.out / f"{stem}.png")
@@ -184,7 +213,8 @@ def run(args: argparse.Namespace) -> int:
             "camera": camera.name,
             "path": str(path),
             "coverage": reference.coverage(),
-            "step_cm": [100.0 * step for step in planes[0].step],
+            "planes": planes.ids,
+            "step_cm": [100.0 * step for step in reference.planes[0].step],
             "render_ms": milliseconds,
             "bytes": path.stat().st_size,
         }
@@ -201,8 +231,9 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         print_json(
             {
-                "bits": planes.bits,
-                "planes": planes.to_list(),
+                "bits": all_planes.bits,
+                "planes": (all_planes if key is None else key.pseudo_planes(all_planes)).to_list(),
+                "pseudo_key_id": None if key is None else key.key_id,
                 "distorted": args.distorted,
                 "cameras": rows,
             }
@@ -219,7 +250,8 @@ def run(args: argparse.Namespace) -> int:
         for row in rows
     ]
     print(format_table(["camera", "coverage %", "step cm", "ms", "file"], table))
-    print(f"{len(rows)} reference image(s) in {args.out}")
+    print(f"{len(rows)} reference image(s) in {args.out}"
+          + ("" if key is None else f", colours in the pseudo frame of key {key.key_id}"))
     return 0
 
 

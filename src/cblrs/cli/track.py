@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import time
+from dataclasses import replace
 from pathlib import Path
 
 from cblrs.cli.clock_options import (
@@ -28,7 +29,10 @@ from cblrs.cli.detector_options import (
 )
 from cblrs.datasets import load_scene, simulate_detections, write_tracks
 from cblrs.matching import DEFAULT_MATCHER, MATCHERS
-from cblrs.pipeline import render_scene_references, track_scene
+from cblrs.pipeline import camera_positions, render_scene_references, scene_planes, track_scene
+from cblrs.plane import PlaneSet
+from cblrs.privacy.frame import positions_to_pseudo, render_pseudo_reference, tracks_to_site
+from cblrs.privacy.key import PseudoKey
 
 
 def register(subparsers) -> None:
@@ -110,6 +114,12 @@ def register(subparsers) -> None:
         "dataset's calibration (e.g. a calibration from clicked points)",
     )
     parser.add_argument(
+        "--key",
+        type=Path,
+        help="pseudo coordinates (docs/privacy.md): render the references with this key file, "
+        "so the matcher sees and writes pseudo coordinates only (--score maps them back)",
+    )
+    parser.add_argument(
         "--score", action="store_true",
         help="also score the tracks against the scene's ground truth (as cblrs eval, at the "
         "frames of which some camera's message arrived)",
@@ -152,20 +162,40 @@ def run(args: argparse.Namespace) -> int:
         scene = scene.select_frames(*frame_range)
     options: dict = {}
     started = time.perf_counter()
+    key = _load_key(args)
     if args.site is not None:
         # lazy: a subcommand imports the library when it runs, so its --help starts fast
         from cblrs.site import load_site
 
         site = load_site(args.site)
+        if site.pseudo_key_id is not None:
+            raise UsageError(
+                f"{args.site} is a pseudo site; track with the real site and --key instead."
+            )
         scene = site.scene(scene)
-        references = [site.render_reference(name, args.bits) for name in scene.camera_names]
+        if key is None:
+            references = [site.render_reference(name, args.bits) for name in scene.camera_names]
+        else:
+            site_planes = site.require_planes("track")
+            planes = PlaneSet([replace(plane, bits=args.bits or site_planes.bits)
+                               for plane in site_planes])
+            references = [render_pseudo_reference(site.camera(name).camera, planes, key)
+                          for name in scene.camera_names]
         if args.matcher == "fusion":
             positions = site.camera_positions()
             options["camera_positions"] = {
                 name: positions[name] for name in scene.camera_names if name in positions
             }
-    else:
+    elif key is None:
         references = render_scene_references(scene, args.bits or 16)
+    else:
+        references = [render_pseudo_reference(camera, scene_planes(scene, args.bits or 16), key)
+                      for camera in scene.cameras]
+        if args.matcher == "fusion":
+            options["camera_positions"] = camera_positions(scene)
+    if key is not None and "camera_positions" in options:
+        # The matcher works in the pseudo frame: its cameras are where the key puts them.
+        options["camera_positions"] = positions_to_pseudo(options["camera_positions"], key)
     render_seconds = time.perf_counter() - started
     scene, detector_summary = real_detections(args, scene, references, source, args.quiet)
     if simulated:
@@ -204,8 +234,12 @@ def run(args: argparse.Namespace) -> int:
         summary["captured_frames"] = len(result.captured_frames)
     if result.clocks is not None:
         summary["clocks"] = result.clocks
+    if key is not None:
+        summary["pseudo_key_id"] = key.key_id
     if args.score:
-        summary["scores"] = _score(args.dataset, scene, result)
+        scored = result if key is None else replace(
+            result, tracks=tracks_to_site(result.tracks, key))
+        summary["scores"] = _score(args.dataset, scene, scored)
     if args.json:
         print_json(summary)
     else:
@@ -230,6 +264,11 @@ def run(args: argparse.Namespace) -> int:
             print("  ".join(f"{key} {scores[key]:.2f}"
                             for key in ("HOTA", "DetA", "AssA", "LocA", "MOTA", "IDF1")))
     return 0
+
+
+def _load_key(args: argparse.Namespace):
+    """The ``--key`` file's key, or None."""
+    return None if args.key is None else PseudoKey.load(args.key)
 
 
 def _score(dataset: Path, scene, result) -> dict:

@@ -64,6 +64,8 @@ class DashboardConfig:
         frames: folder of camera frames for the calibration page.
         references: where the calibration page writes rendered references.
         broker: the broker's address, for the page's header.
+        to_site: the key's pseudo -> site mapping when the matcher works on a pseudo site
+            (replayed positions are mapped with it); None otherwise.
     """
 
     site_path: Path
@@ -73,6 +75,7 @@ class DashboardConfig:
     frames: Path | None = None
     references: Path | None = None
     broker: str = ""
+    to_site: Any = None
     site: Site = field(init=False)
 
     def __post_init__(self) -> None:
@@ -228,7 +231,7 @@ def create_app(config: DashboardConfig, auth: Any) -> Any:
     def open_replay() -> StoreReplay:
         if config.database is None:
             raise ReplayError("this dashboard has no stored run (--db).")
-        return StoreReplay(config.database)
+        return StoreReplay(config.database, config.to_site)
 
     @requires(viewer)
     async def replay_info(request: Any) -> Any:

@@ -25,9 +25,11 @@ import logging
 import threading
 import time
 from collections import OrderedDict, deque
+from collections.abc import Callable
 from typing import Any
 
 import msgspec
+import numpy as np
 
 from cblrs.detections import CLASS_NAMES
 from cblrs.runtime.events import decode_event, decode_live
@@ -52,13 +54,19 @@ QUEUE_LIMIT = 256
 _encoder = msgspec.json.Encoder()
 
 
-def tracks_frame(update: Any) -> dict[str, Any]:
-    """A decoded track update as the page's ``tracks`` message (positions to the centimetre)."""
+ToSite = Callable[[Any], Any]
+"""Maps (N, 2) pseudo positions to site metres (:meth:`cblrs.privacy.PseudoKey.to_site`)."""
+
+
+def tracks_frame(update: Any, to_site: ToSite | None = None) -> dict[str, Any]:
+    """A decoded track update as the page's ``tracks`` message (positions to the centimetre;
+    mapped to the site by ``to_site`` when the matcher works in pseudo coordinates)."""
     tracks = update.tracks
+    world_xy = tracks.world_xy if to_site is None else to_site(tracks.world_xy)
     rows = [
         [track, round(x, 2), round(y, 2), CLASS_NAMES[klass] if 0 <= klass < len(CLASS_NAMES)
          else None]
-        for track, (x, y), klass in zip(tracks.track_id.tolist(), tracks.world_xy.tolist(),
+        for track, (x, y), klass in zip(tracks.track_id.tolist(), world_xy.tolist(),
                                         tracks.class_id.tolist(), strict=True)
     ]
     timestamp = update.timestamp
@@ -118,8 +126,12 @@ class LiveFeed:
         client_id: the MQTT client id (a clean session: nothing queues while away).
     """
 
-    def __init__(self, settings: MqttSettings, plane_id: int, client_id: str):
+    def __init__(
+        self, settings: MqttSettings, plane_id: int, client_id: str,
+        to_site: ToSite | None = None,
+    ):
         self.plane_id = int(plane_id)
+        self.to_site = to_site
         self.settings = settings
         self.transport = MqttTransport(client_id, settings, persistent=False)
         self._lock = threading.Lock()
@@ -193,7 +205,7 @@ class LiveFeed:
             return
         finally:
             delivery.ack()
-        frame = tracks_frame(update)
+        frame = tracks_frame(update, self.to_site)
         with self._lock:
             self._last_tracks = frame
             self.counters["tracks"] += 1
@@ -209,6 +221,8 @@ class LiveFeed:
             delivery.ack()
         item = {"type": "event", **msgspec.to_builtins(event)}
         item.pop("schema", None)
+        if self.to_site is not None and item.get("world_xy") is not None:
+            item["world_xy"] = self.to_site(np.array([item["world_xy"]]))[0].tolist()
         with self._lock:
             if event.key in self._events:  # QoS 1 may deliver it again
                 return

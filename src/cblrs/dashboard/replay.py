@@ -14,9 +14,11 @@ import asyncio
 import math
 import time
 from collections import defaultdict
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Callable
 from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 from cblrs.detections import CLASS_NAMES
 from cblrs.errors import CblrsError
@@ -41,13 +43,16 @@ class StoreReplay:
 
     Args:
         path: the matcher's SQLite file (``cblrs matcher --db``).
+        to_site: maps (N, 2) pseudo positions to site metres, for the database of a matcher
+            on a pseudo site (:meth:`cblrs.privacy.PseudoKey.to_site`); None: as stored.
 
     Raises:
         ReplayError: the file is missing or not a matcher database.
     """
 
-    def __init__(self, path: str | Path):
+    def __init__(self, path: str | Path, to_site: Callable[[Any], Any] | None = None):
         self.path = Path(path)
+        self.to_site = to_site
         try:
             self._store = RuntimeStore(self.path, read_only=True)
             self._store.query("SELECT 1 FROM tracks LIMIT 1")
@@ -101,7 +106,7 @@ class StoreReplay:
         start = info["start"] if start is None else max(float(start), info["start"])
         yield {"type": "hello", "mode": "replay", "speed": speed, **info}
         yield self.counts_before(start)
-        events = [stored.body for stored in read_events(self._store)
+        events = [self._event(stored.body) for stored in read_events(self._store)
                   if stored.body["timestamp"] >= start]
         events.sort(key=lambda body: body["timestamp"])
         event_index = 0
@@ -130,6 +135,12 @@ class StoreReplay:
             yield {"type": "event", **body}
         yield {"type": "end", "t": last_sent_t}
 
+    def _event(self, body: dict[str, Any]) -> dict[str, Any]:
+        """An event body, its position mapped to the site for a pseudo-coordinate database."""
+        if self.to_site is None or body.get("world_xy") is None:
+            return body
+        return {**body, "world_xy": self.to_site(np.array([body["world_xy"]]))[0].tolist()}
+
     async def _frames(self, start: float) -> AsyncIterator[tuple[float, list[list[Any]]]]:
         """``(capture time, rows)`` per instant from ``start`` on, read in chunks."""
         after = 0
@@ -145,6 +156,10 @@ class StoreReplay:
                 break
             after = rows[-1][0]
             rows.sort(key=lambda row: (row[1], row[0]))
+            if self.to_site is not None and rows:
+                moved = self.to_site(np.array([[row[3], row[4]] for row in rows]))
+                rows = [(*row[:3], float(x), float(y), row[5])
+                        for row, (x, y) in zip(rows, moved, strict=True)]
             for _, timestamp, track, x, y, klass in rows:
                 if pending_t is not None and timestamp != pending_t:
                     yield pending_t, pending

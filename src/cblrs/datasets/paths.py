@@ -1,4 +1,5 @@
-"""Paths the objects of the synthetic world move along: loops, lanes, waypoints, random walks.
+"""Paths the objects of the synthetic world move along: loops, lanes, waypoints, random walks,
+simulated samples.
 
 Each path gives, for an array of times, the ground position, the heading and whether the object
 is present (:class:`PathSample`).
@@ -208,5 +209,48 @@ def _masked(xy: FloatArray, heading_deg: FloatArray, present: BoolArray) -> Path
     return PathSample(xy=xy, heading_deg=heading_deg, present=present)
 
 
-Path = LoopPath | WaypointPath | RandomWalkPath
+
+
+@dataclass(frozen=True, eq=False)
+class SampledPath:
+    """Positions simulated on a fixed time grid (a car in a queue, a pedestrian waiting).
+
+    Between grid points the position is interpolated linearly; the heading is that of the
+    motion, kept through stops. The object is present from the first to the last sample.
+
+    Attributes:
+        start_s: time of the first sample, seconds.
+        step_s: time between samples, seconds.
+        xy: ((x, y), ...) positions on the grid, metres (at least two).
+    """
+
+    start_s: float
+    step_s: float
+    xy: tuple[tuple[float, float], ...]
+
+    def __post_init__(self) -> None:
+        if len(self.xy) < 2 or self.step_s <= 0:
+            raise ValueError("a sampled path needs two samples and a positive step")
+
+    def sample(self, times: FloatArray) -> PathSample:
+        """Position, heading and presence at each of ``times`` (seconds)."""
+        times = np.asarray(times, dtype=np.float64)
+        points = np.asarray(self.xy, dtype=np.float64)
+        grid = self.start_s + self.step_s * np.arange(len(points))
+        present = (times >= grid[0] - 1e-9) & (times <= grid[-1] + 1e-9)
+        xy = np.column_stack([np.interp(times, grid, points[:, 0]),
+                              np.interp(times, grid, points[:, 1])])
+        step = np.diff(points, axis=0)
+        moving = np.hypot(step[:, 0], step[:, 1]) > 1e-6
+        heading = np.degrees(np.arctan2(step[:, 1], step[:, 0]))
+        # Hold the last heading of motion through stops (the first motion before it).
+        index = np.where(moving, np.arange(len(step)), -1)
+        index = np.maximum.accumulate(index)
+        first = int(np.argmax(moving)) if moving.any() else 0
+        heading = heading[np.where(index >= 0, index, first)]
+        segment = np.clip(np.searchsorted(grid, times, side="right") - 1, 0, len(step) - 1)
+        return _masked(xy, heading[segment], present)
+
+
+Path = LoopPath | WaypointPath | RandomWalkPath | SampledPath
 """Any of the paths: an object with ``sample(times) -> PathSample``."""

@@ -320,7 +320,14 @@ class SyntheticWorld:
         flat_xy = np.nan_to_num(states.xy.reshape(-1, 2))
         flat_yaw = np.nan_to_num(states.yaw_deg.reshape(-1))
         flat_sizes = np.broadcast_to(sizes[None], (frames, count, 3)).reshape(-1, 3)
-        unclipped, in_front = project_boxes_3d_unclipped(camera, flat_xy, flat_sizes, flat_yaw)
+        # Only objects present at a frame are projected (in a long world most are absent).
+        present_rows = np.flatnonzero(flat_present)
+        unclipped = np.full((len(flat_present), 4), np.nan)
+        in_front = np.zeros(len(flat_present), dtype=bool)
+        if len(present_rows):
+            unclipped[present_rows], in_front[present_rows] = project_boxes_3d_unclipped(
+                camera, flat_xy[present_rows], flat_sizes[present_rows], flat_yaw[present_rows]
+            )
         clipped, nonempty = clip_boxes(unclipped, camera.image_size)
         in_front &= flat_present & nonempty
         with np.errstate(invalid="ignore"):
@@ -486,18 +493,18 @@ def occluded(
     if len(rows) < 2:
         return hidden
     fractions = (np.arange(samples) + 0.5) / samples
-    for row in rows:
-        nearer = rows[depth[rows] < depth[row]]
-        if len(nearer) == 0:
-            continue
-        x0, y0, x1, y1 = xyxy[row]
-        grid_x = x0 + fractions * (x1 - x0)
-        grid_y = y0 + fractions * (y1 - y0)
-        boxes = xyxy[nearer]
-        covers_x = (grid_x[None, :] >= boxes[:, 0:1]) & (grid_x[None, :] <= boxes[:, 2:3])
-        covers_y = (grid_y[None, :] >= boxes[:, 1:2]) & (grid_y[None, :] <= boxes[:, 3:4])
-        covered = (covers_y[:, :, None] & covers_x[:, None, :]).any(axis=0)
-        hidden[row] = covered.mean() > max_fraction
+    boxes = xyxy[rows]
+    # Every box against every other at once: (R, S) sample coordinates inside each box,
+    # (R, S, R) whether box o covers them, only where o is nearer than the box itself.
+    grid_x = boxes[:, 0:1] + fractions[None, :] * (boxes[:, 2:3] - boxes[:, 0:1])
+    grid_y = boxes[:, 1:2] + fractions[None, :] * (boxes[:, 3:4] - boxes[:, 1:2])
+    nearer = depth[rows][None, :] < depth[rows][:, None]
+    covers_x = (grid_x[:, :, None] >= boxes[None, None, :, 0]) & (
+        grid_x[:, :, None] <= boxes[None, None, :, 2]) & nearer[:, None, :]
+    covers_y = (grid_y[:, :, None] >= boxes[None, None, :, 1]) & (
+        grid_y[:, :, None] <= boxes[None, None, :, 3])
+    covered = (covers_y[:, :, None, :] & covers_x[:, None, :, :]).any(axis=3)
+    hidden[rows] = covered.reshape(len(rows), -1).mean(axis=1) > max_fraction
     return hidden
 
 

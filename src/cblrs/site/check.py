@@ -52,6 +52,7 @@ def check_site(path: str | Path) -> dict[str, Any]:
         return report
     report["valid"] = True
     report["name"] = site.name
+    report["pseudo_key_id"] = site.pseudo_key_id
     report["planes"] = site.planes.to_list() if site.planes is not None else []
     if site.map is not None:
         report["map"] = {
@@ -157,6 +158,13 @@ def _missing(site: Site, cameras: list[dict[str, Any]]) -> dict[str, list[str]]:
         missing["camera"].append("no camera has a usable geometry")
     if not site.places.zones and not site.places.lines:
         missing["analytics"].append("no places (places: {zones: [...], lines: [...]})")
+    if site.pseudo_key_id is not None:
+        # The pseudo plane is a larger square: colours of this file's cameras would cover
+        # more than the real plane. References come from the real site and the key.
+        for command in ("render", "camera", "track"):
+            missing[command].append(
+                f"a pseudo site (key {site.pseudo_key_id}): use the real site with --key"
+            )
     return {command: reasons for command, reasons in missing.items() if reasons}
 
 
@@ -169,6 +177,9 @@ def format_check(report: dict[str, Any]) -> str:
         lines.extend(f"  {problem}" for problem in report["problems"])
         return "\n".join(lines)
     lines.append(f"{name}: valid site {report.get('name') or ''!r}".rstrip())
+    if report.get("pseudo_key_id"):
+        lines.append(f"  pseudo site: coordinates in the pseudo frame of key "
+                     f"{report['pseudo_key_id']} (for the matcher and a keyless dashboard)")
     planes = report["planes"]
     if planes:
         for plane in planes:

@@ -19,6 +19,7 @@ from numpy.typing import NDArray
 
 from cblrs.camera import Camera
 from cblrs.errors import CblrsError
+from cblrs.linking.links import LinkError, PlaneLink, build_links
 from cblrs.places import PlaceError, Places
 from cblrs.plane import PlaneSet, PlaneSpec
 from cblrs.reference import render_reference
@@ -101,6 +102,7 @@ class Site:
         planes: the planes (None when the file has none).
         map: the site map (None when the file has none).
         places: zones and counting lines (empty when the file has none).
+        links: where tracks pass from one plane to another (empty when the file has none).
     """
 
     path: Path | None
@@ -108,6 +110,7 @@ class Site:
     planes: PlaneSet | None
     map: SiteMap | None
     places: Places
+    links: tuple[PlaneLink, ...] = ()
     _resolved: dict[str, SiteCamera] = field(default_factory=dict, repr=False)
 
     # ------------------------------------------------------------------ basics
@@ -125,6 +128,11 @@ class Site:
         return self.model.name
 
     @property
+    def pseudo_key_id(self) -> str | None:
+        """The key id of a pseudo site (coordinates in a keyed pseudo frame), else None."""
+        return self.model.pseudo.key_id if self.model.pseudo is not None else None
+
+    @property
     def camera_names(self) -> list[str]:
         return [camera.name for camera in self.model.cameras]
 
@@ -134,6 +142,21 @@ class Site:
         except ValueError:
             known = ", ".join(self.camera_names) or "none"
             raise SiteError(f"{self.source} has no camera {name!r} (cameras: {known}).") from None
+
+    def camera_plane(self, name: str) -> int | None:
+        """The plane a camera publishes to (its ``plane``), or None: every plane of the site."""
+        return self.model.cameras[self.index_of(name)].plane
+
+    def cameras_on(self, plane_id: int) -> list[str]:
+        """Names of the cameras that publish to ``plane_id`` (those without a ``plane`` too)."""
+        return [camera.name for camera in self.model.cameras
+                if camera.plane is None or camera.plane == plane_id]
+
+    def camera_planes(self, name: str) -> PlaneSet:
+        """The planes a camera's reference image holds: its own plane, or every plane."""
+        planes = self.require_planes("rendering a reference image")
+        plane_id = self.camera_plane(name)
+        return planes if plane_id is None else PlaneSet([planes.by_id(plane_id)])
 
     # ------------------------------------------------------------------ cameras
     def camera(self, name: str) -> SiteCamera:
@@ -170,8 +193,9 @@ class Site:
         return self.cameras()
 
     def render_reference(self, name: str, bits: int | None = None) -> Any:
-        """The reference image of one camera for the site's planes (bits overridable)."""
-        planes = self.require_planes("rendering a reference image")
+        """The reference image of one camera for its planes (bits overridable): its own plane
+        when it has one (``plane``), else every plane of the site."""
+        planes = self.camera_planes(name)
         if bits is not None and bits != planes.bits:
             planes = PlaneSet([replace(plane, bits=bits) for plane in planes])
         return render_reference(self.camera(name).camera, planes)
@@ -232,7 +256,7 @@ class Site:
         return _ordered(data)
 
 
-_TOP_ORDER = ("version", "name", "map", "planes", "cameras", "places")
+_TOP_ORDER = ("version", "name", "pseudo", "map", "planes", "cameras", "places", "links")
 
 
 def _ordered(data: dict[str, Any]) -> dict[str, Any]:
@@ -294,7 +318,16 @@ def site_from_document(data: dict[str, Any], path: Path | None) -> Site:
             text = str(error)
             prefix = "" if text.startswith("places") else "places: "
             raise SiteError(f"{source}: {prefix}{text}") from None
-    return Site(path=path, model=model, planes=planes, map=site_map, places=places)
+    links: tuple[PlaneLink, ...] = ()
+    if model.links:
+        if planes is None:
+            raise SiteError(f"{source}: links: the site has no planes to link.")
+        try:
+            links = build_links([link.model_dump(exclude_unset=True) for link in model.links],
+                                planes)
+        except LinkError as error:
+            raise SiteError(f"{source}: {error}") from None
+    return Site(path=path, model=model, planes=planes, map=site_map, places=places, links=links)
 
 
 def parse_site(text: str, source: str = "site.yaml", folder: Path | None = None) -> Site:
@@ -313,6 +346,13 @@ def _check_names(model: SiteModel, source: str) -> None:
                 f"(cameras[{seen[camera.name]}] has it too)."
             )
         seen[camera.name] = index
+    plane_ids = {plane.id for plane in model.planes}
+    for index, camera in enumerate(model.cameras):
+        if camera.plane is not None and camera.plane not in plane_ids:
+            raise SiteError(
+                f"{source}: cameras[{index}].plane ({camera.name}): no plane {camera.plane} "
+                f"(planes: {sorted(plane_ids) or 'none'})."
+            )
     ids: dict[int, int] = {}
     for index, plane in enumerate(model.planes):
         if plane.id in ids:

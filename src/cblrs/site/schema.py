@@ -5,9 +5,11 @@ A site file is YAML (``.yaml``/``.yml``) or JSON (``.json``) holding::
     version: 1
     name: my-site
     planes: [{id, name, origin: [x, y], size: [width, length], bits, height}]
-    cameras: [{name, image_size, <one geometry>, ...}]
+    cameras: [{name, image_size, <one geometry>, plane, ...}]
     map: {image, metres_per_pixel | scale: {pixels, metres}, origin_px, y_up}
     places: {zones: [...], lines: [...]}        # cblrs.places
+    links: [{planes: [a, b], portals, transit_s, max_distance_m}]   # cblrs.linking
+    pseudo: {key_id}                            # a pseudo site (cblrs.privacy)
 
 Every section but ``version`` may be left out; each command checks what it needs. A camera's
 geometry is exactly one of: ``calibration`` (a file: cblrs camera JSON, an AI City
@@ -242,6 +244,9 @@ class CameraModel(_Strict):
     click_px: float | None = Field(default=None, gt=0)
     ground_m: float | None = Field(default=None, gt=0)
     frame: str | None = None
+    # The plane whose matcher the camera publishes to (its reference holds only that plane);
+    # absent: every plane of the site (a site of one plane needs no more).
+    plane: int | None = Field(default=None, ge=1, le=65535)
 
     @model_validator(mode="before")
     @classmethod
@@ -299,15 +304,67 @@ class CameraModel(_Strict):
         return next(key for key in GEOMETRY_KEYS if getattr(self, key) is not None)
 
 
+def _polygon(value: Any) -> list[list[float]]:
+    what = "a polygon: a list of at least 3 [x, y] points in metres"
+    if isinstance(value, str | bytes | dict) or not hasattr(value, "__len__") or len(value) < 3:
+        raise ValueError(f"expected {what}")
+    return [_numbers(point, 2, what) for point in value]
+
+
+Polygon = Annotated[list[list[float]], BeforeValidator(_polygon)]
+
+
+class LinkModel(_Strict):
+    """Where tracks pass from one plane to another (:mod:`cblrs.linking`).
+
+    Without ``portals`` the two planes overlap (same height, rectangles that intersect) and a
+    track is handed over where both planes' cameras see it; with them, ``portals[0]`` (on the
+    first plane) and ``portals[1]`` (on the second) are where tracks leave one plane and appear
+    on the other, ``transit_s`` seconds later (stairs, a tunnel, a street without cameras).
+    """
+
+    planes: Annotated[list[int], _vector(2)]
+    portals: list[Polygon] | None = None
+    transit_s: Annotated[list[float], _vector(2)] = Field(default_factory=lambda: [0.0, 30.0])
+    max_distance_m: float = Field(default=1.5, gt=0)
+
+    @model_validator(mode="after")
+    def _consistent(self) -> LinkModel:
+        first, second = self.planes
+        if min(first, second) < 1:
+            raise ValueError("planes must be two plane ids (whole numbers from 1)")
+        if first == second:
+            raise ValueError(f"a link joins two different planes, got {first} twice")
+        if self.portals is not None and len(self.portals) != 2:
+            raise ValueError(
+                "portals must be two polygons: where tracks leave or enter the first plane, "
+                "then the second"
+            )
+        low, high = self.transit_s
+        if not 0 <= low <= high:
+            raise ValueError(f"transit_s must be [min, max] seconds with 0 <= min <= max, "
+                             f"got {self.transit_s}")
+        return self
+
+
+class PseudoModel(_Strict):
+    """Marks a pseudo site (:mod:`cblrs.privacy`): every coordinate is in the pseudo frame of
+    the key named here; the key itself is never in a site file."""
+
+    key_id: Annotated[str, Field(pattern=r"^[0-9a-f]{8}$")]
+
+
 class SiteModel(_Strict):
     """The whole site file."""
 
     version: Literal[1]
     name: Annotated[str, _optional_name("site name")] = ""
+    pseudo: PseudoModel | None = None
     planes: list[PlaneModel] = Field(default_factory=list)
     cameras: list[CameraModel] = Field(default_factory=list)
     map: MapModel | None = None
     places: dict[str, Any] | None = None
+    links: list[LinkModel] = Field(default_factory=list)
 
 
 # ---------------------------------------------------------------------------- errors
@@ -361,9 +418,11 @@ def _camera_name(loc: tuple[int | str, ...], data: Any) -> str | None:
 
 
 _MODELS_BY_SECTION: dict[str, type[BaseModel]] = {
+    "pseudo": PseudoModel,
     "planes": PlaneModel,
     "cameras": CameraModel,
     "map": MapModel,
+    "links": LinkModel,
 }
 
 
@@ -378,7 +437,8 @@ def _allowed_keys(loc: tuple[int | str, ...]) -> str:
             model = CalibrationRefModel
         elif len(loc) == 5 and loc[0] == "cameras" and loc[2] == "points":
             model = PointModel
-    keys = [key for key in model.model_fields if key not in ("image_data",)]
+    # Keys only cblrs writes (an export's embedded map, a pseudo site's mark) are not offered.
+    keys = [key for key in model.model_fields if key not in ("image_data", "pseudo")]
     return f" (allowed: {', '.join(keys)})"
 
 

@@ -4,7 +4,7 @@ Groups of precise detections are assigned across cameras as one observation; the
 by camera, most precise first, then in the reverse order where tracks compete, keeping the
 more likely assignment of each contested group. Leftovers then join a track other cameras saw
 at this instant when they are consistent with its fused position. To try another association,
-change this module: :meth:`Association._associate` and :meth:`Association._join_observed` are
+change this module: :meth:`Association.associate` and :meth:`Association.join_observed` are
 what the tracker calls.
 """
 
@@ -26,19 +26,57 @@ from cblrs.matching.fusion.gaussian import (
     largest_sigma,
     mahalanobis_squared,
 )
-from cblrs.matching.fusion.table import TrackTable
+from cblrs.matching.fusion.table import FusionContext, Measured, TrackTable
 
 _UNASSIGNABLE = 1.0e9
 
 
-class Association(TrackTable):
-    """The association steps of :class:`~cblrs.matching.fusion.tracker.FusionTracker`.
+class Association:
+    """Steps 3 and 4 of :class:`~cblrs.matching.fusion.tracker.FusionTracker`'s update.
 
-    A mixin: it reads the tracker's track table (``_state``, ``_covariance``, ``_ids``,
-    ``_class``...), its configuration and the per-detection ``_sigma``/``_direction`` set by
-    the measurement step, and returns each detection's track row (-1: none); it does not
-    change the track table.
+    Inputs: the tracks predicted to the window's time, the window's detections (positions and
+    covariances) and their :class:`Measured` rays; output: each detection's track row (-1:
+    none). It changes neither the tracks nor its inputs.
+
+    Args:
+        context: the tracker's configuration, cameras and noise model.
     """
+
+    def __init__(self, context: FusionContext):
+        self.context = context
+
+    def associate(
+        self, tracks: TrackTable, measured: Measured, observed: Observations,
+        covariance: np.ndarray,
+    ) -> np.ndarray:
+        """Track row of each detection (-1: none); one detection per camera per track."""
+        return _Run(self.context, tracks, measured)._associate(observed, covariance)
+
+    def join_observed(
+        self, tracks: TrackTable, measured: Measured, observed: Observations,
+        covariance: np.ndarray, assigned: np.ndarray,
+    ) -> np.ndarray:
+        """``assigned`` with leftovers joined to tracks other cameras saw at this instant."""
+        return _Run(self.context, tracks, measured)._join_observed(observed, covariance,
+                                                                     assigned)
+
+    def joint_cost(
+        self, tracks: TrackTable, measured: Measured, observed: Observations,
+        covariance: np.ndarray, assigned: np.ndarray, order: list[int],
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Negative log-likelihood of an assignment: (T,) per track, (N,) per unassigned
+        detection (see :meth:`_Run._joint_cost`)."""
+        return _Run(self.context, tracks, measured)._joint_cost(observed, covariance,
+                                                                  assigned, order)
+
+
+class _Run:
+    """One association: the stage's inputs held for its steps, which call each other."""
+
+    def __init__(self, context: FusionContext, tracks: TrackTable, measured: Measured):
+        self.context = context
+        self.tracks = tracks
+        self.measured = measured
 
     def _associate(self, observed: Observations, covariance: np.ndarray) -> np.ndarray:
         """Track row of each detection (-1: none); one detection per camera per track.
@@ -48,14 +86,14 @@ class Association(TrackTable):
         cameras deciding one by one could each pick differently and blend them. The rest
         is assigned camera by camera.
         """
-        count, track_count = len(observed), len(self._ids)
+        count, track_count = len(observed), len(self.tracks.ids)
         if count == 0 or track_count == 0:
             return np.full(count, -1, np.int64)
         assigned = self._associate_groups(observed, covariance)
         rest = np.flatnonzero(assigned < 0)
         if len(rest) == 0:
             return assigned
-        taken = np.zeros((track_count, len(self.camera_ids)), dtype=bool)
+        taken = np.zeros((track_count, self.context.camera_count), dtype=bool)
         taken[assigned[assigned >= 0], observed.camera[assigned >= 0]] = True
         # A detection whose gate component holds one track and at most one detection per
         # camera is assigned alike in every camera order: it takes that track directly (if
@@ -80,17 +118,17 @@ class Association(TrackTable):
                 return assigned
         rest_camera = observed.camera[rest]
         cameras = np.unique(rest_camera)
-        precision = np.array([np.median(self._sigma[rest[rest_camera == one]])
+        precision = np.array([np.median(self.measured.sigma[rest[rest_camera == one]])
                               for one in cameras.tolist()])
         order = cameras[np.argsort(precision, kind="stable")].tolist()
         best = self._associate_in_order(observed, covariance, assigned, rest, taken, order)
-        if self.config.association_orders > 1 and len(order) > 1:
+        if self.context.config.association_orders > 1 and len(order) > 1:
             # The camera order is a heuristic and an early wrong choice propagates to the
             # cameras after it. Assign again in other orders (the reverse first, then
             # rotations) and keep, in each group of tracks and detections where the
             # assignments differ, the one that explains them more likely.
             orders = [order[::-1]] + [order[k:] + order[:k] for k in range(1, len(order))]
-            orders = orders[: self.config.association_orders - 1] if contested.any() else []
+            orders = orders[: self.context.config.association_orders - 1] if contested.any() else []
             if orders:
                 # Uncontested detections keep their track; only the others are reassigned.
                 settled = rest[~contested & (best[rest] >= 0)]
@@ -138,7 +176,7 @@ class Association(TrackTable):
         contested = np.zeros(len(rest), dtype=bool)
         if len(rows) == 0:
             return contested, rows, columns, cost
-        track_count = len(self._ids)
+        track_count = len(self.tracks.ids)
         node_count = len(rest) + track_count
         graph = coo_matrix(
             (np.ones(len(rows)), (rows, len(rest) + columns)), shape=(node_count, node_count)
@@ -147,7 +185,7 @@ class Association(TrackTable):
         size = int(label.max()) + 1
         tracks_in = np.bincount(label[len(rest):], minlength=size)
         detection_label = label[: len(rest)]
-        camera_count = len(self.camera_ids)
+        camera_count = self.context.camera_count
         per_camera = np.bincount(
             detection_label * camera_count + observed.camera[rest],
             minlength=size * camera_count,
@@ -161,13 +199,13 @@ class Association(TrackTable):
     ) -> tuple[np.ndarray, np.ndarray]:
         """Negative log-likelihood of an assignment, split into (T,) per track (its cameras'
         innovations in turn) and (N,) per unassigned detection (as if at the gate)."""
-        state, state_covariance = self._state.copy(), self._covariance.copy()
-        track_count = len(self._ids)
+        state, state_covariance = self.tracks.state.copy(), self.tracks.covariance.copy()
+        track_count = len(self.tracks.ids)
         unassigned = assigned < 0
-        spare = covariance + self._object_covariance
+        spare = covariance + self.context.object_covariance
         detection_cost = np.where(
             unassigned,
-            self.config.gate_sigmas**2
+            self.context.config.gate_sigmas**2
             + np.log(spare[:, 0, 0] * spare[:, 1, 1] - spare[:, 0, 1] * spare[:, 1, 0]),
             0.0,
         )
@@ -178,7 +216,7 @@ class Association(TrackTable):
                 continue
             tracks = assigned[mine]
             innovation = (state_covariance[tracks, :2, :2] + covariance[mine]
-                          + self._object_covariance)
+                          + self.context.object_covariance)
             determinant = (innovation[:, 0, 0] * innovation[:, 1, 1]
                            - innovation[:, 0, 1] * innovation[:, 1, 0])
             track_cost += np.bincount(
@@ -199,14 +237,14 @@ class Association(TrackTable):
     ) -> np.ndarray:
         """Camera-by-camera assignment of the detections ``rest`` in the given camera order."""
         assigned = assigned.copy()
-        track_count = len(self._ids)
+        track_count = len(self.tracks.ids)
         rest_camera = observed.camera[rest]
         # Cameras are processed one after the other, as a Kalman filter processes
         # independent sensors: each camera's detections are assigned against the tracks
         # as already corrected by the cameras before it, most precise camera first. A
         # camera that sees two people side by side along its ray cannot tell them apart,
         # but one looking across that ray can, and its correction is then used.
-        state, state_covariance = self._state, self._covariance
+        state, state_covariance = self.tracks.state, self.tracks.covariance
         grouped = assigned >= 0
         if grouped.any():
             state, state_covariance = state.copy(), state_covariance.copy()
@@ -232,21 +270,21 @@ class Association(TrackTable):
             assigned[mine] = chosen
             ok = chosen >= 0
             if ok.any():
-                if state is self._state:
+                if state is self.tracks.state:
                     state, state_covariance = state.copy(), state_covariance.copy()
                 tracks = chosen[ok]
                 state[tracks], state_covariance[tracks] = kalman.update(
                     state[tracks], state_covariance[tracks], observed.world_xy[mine[ok]],
                     covariance[mine[ok]],
                 )
-        for _ in range(self.config.refine_passes if len(order) > 1 else 0):
+        for _ in range(self.context.config.refine_passes if len(order) > 1 else 0):
             for one in order:
                 # Revisit each camera against the tracks corrected by all other cameras.
                 others = (assigned >= 0) & (observed.camera != one)
                 position, fused_covariance, present = fuse(
                     assigned[others], track_count, observed.world_xy[others], covariance[others]
                 )
-                state, state_covariance = self._state.copy(), self._covariance.copy()
+                state, state_covariance = self.tracks.state.copy(), self.tracks.covariance.copy()
                 state[present], state_covariance[present] = kalman.update(
                     state[present], state_covariance[present], position[present],
                     fused_covariance[present],
@@ -271,8 +309,8 @@ class Association(TrackTable):
         near the edge of its gate is left to its own object instead of being forced onto
         the track. It is the cost :meth:`_joint_cost` charges an unassigned detection.
         """
-        spare = covariance + self._object_covariance
-        return self.config.gate_sigmas**2 + np.log(
+        spare = covariance + self.context.object_covariance
+        return self.context.config.gate_sigmas**2 + np.log(
             spare[:, 0, 0] * spare[:, 1, 1] - spare[:, 0, 1] * spare[:, 1, 0]
         )
 
@@ -290,20 +328,21 @@ class Association(TrackTable):
         uncertain (coasting) track must not reach across a crowd. Only pairs within it are
         evaluated further, so the cost grows with the pairs, not N x T.
         """
-        cap = self.config.max_gate_m * self._class_scale[self._class_slot(class_id)]
+        context = self.context
+        cap = context.config.max_gate_m * context.class_scale[context.class_slot(class_id)]
         # A detection reaches as far as its own noise along its ray allows (a far view is
         # metres uncertain along the ray); the Mahalanobis gate still bounds it across.
-        cap = np.maximum(cap, self.config.gate_sigmas * largest_sigma(covariance))
-        state = self._state if state is None else state
-        state_covariance = self._covariance if state_covariance is None else state_covariance
+        cap = np.maximum(cap, self.context.config.gate_sigmas * largest_sigma(covariance))
+        state = self.tracks.state if state is None else state
+        state_covariance = self.tracks.covariance if state_covariance is None else state_covariance
         rows, columns = close_pairs(world_xy, state[:, :2], cap)
-        rows, columns = _same_class(rows, columns, class_id, self._class)
+        rows, columns = _same_class(rows, columns, class_id, self.tracks.class_id)
         innovation = (state_covariance[columns, :2, :2] + covariance[rows]
-                      + self._object_covariance)
+                      + self.context.object_covariance)
         determinant = (innovation[:, 0, 0] * innovation[:, 1, 1]
                        - innovation[:, 0, 1] * innovation[:, 1, 0])
         mahalanobis = mahalanobis_squared(world_xy[rows] - state[columns, :2], innovation)
-        inside = mahalanobis <= self.config.gate_sigmas**2
+        inside = mahalanobis <= self.context.config.gate_sigmas**2
         # Negative log-likelihood of the innovation (constant dropped).
         cost = mahalanobis[inside] + np.log(determinant[inside])
         return rows[inside], columns[inside], cost
@@ -317,18 +356,19 @@ class Association(TrackTable):
         to tracks with one Hungarian assignment.
         """
         assigned = np.full(len(observed), -1, np.int64)
-        if self.config.group_radius_m <= 0:
+        if self.context.config.group_radius_m <= 0:
             return assigned
-        slot = self._class_slot(observed.class_id)
-        sigma = np.sqrt(self._noise.variance(self._distance, self._along_distance)
-                        + self._class_extra[slot] ** 2)
-        limit = self.config.group_radius_m * self._class_scale[slot]
-        precise = np.flatnonzero(self.config.cluster_sigmas * np.sqrt(2.0) * sigma <= limit)
+        slot = self.context.class_slot(observed.class_id)
+        sigma = np.sqrt(
+            self.context.noise.variance(self.measured.distance, self.measured.along_distance)
+            + self.context.class_extra[slot] ** 2)
+        limit = self.context.config.group_radius_m * self.context.class_scale[slot]
+        precise = np.flatnonzero(self.context.config.cluster_sigmas * np.sqrt(2.0) * sigma <= limit)
         if len(precise) < 2:
             return assigned
         labels = cluster_detections(
-            observed.world_xy[precise], observed.camera[precise], self._sigma[precise],
-            self.config.cluster_sigmas, observed.class_id[precise],
+            observed.world_xy[precise], observed.camera[precise], self.measured.sigma[precise],
+            self.context.config.cluster_sigmas, observed.class_id[precise],
             covariance=covariance[precise],
         )
         size = np.bincount(labels)
@@ -366,37 +406,38 @@ class Association(TrackTable):
         leftover = np.flatnonzero(~matched)
         if len(leftover) == 0 or not matched.any():
             return assigned
-        track_count = len(self._ids)
+        track_count = len(self.tracks.ids)
         tracks = assigned[matched]
         fused, fused_covariance, present = fuse(
             tracks, track_count, observed.world_xy[matched], covariance[matched]
         )
         seen = np.flatnonzero(present)
         fused, fused_covariance = fused[seen], fused_covariance[seen]
-        taken = np.zeros((track_count, len(self.camera_ids)), dtype=bool)
+        taken = np.zeros((track_count, self.context.camera_count), dtype=bool)
         taken[tracks, observed.camera[matched]] = True
 
-        slots = self._class_slot(observed.class_id[leftover])
-        floor = self.config.cluster_radius_m * self._class_scale[slots]
+        slots = self.context.class_slot(observed.class_id[leftover])
+        floor = self.context.config.cluster_radius_m * self.context.class_scale[slots]
         fused_largest = float(np.max(fused_covariance[:, 0, 0] + fused_covariance[:, 1, 1]))
         largest = np.maximum(
             floor,
-            self.config.cluster_sigmas * np.sqrt(self._sigma[leftover] ** 2 + fused_largest),
+            self.context.config.cluster_sigmas
+            * np.sqrt(self.measured.sigma[leftover] ** 2 + fused_largest),
         )
         rows, columns = close_pairs(observed.world_xy[leftover], fused, largest)
         rows, columns = _same_class(rows, columns, observed.class_id[leftover],
-                                    self._class[seen])
+                                    self.tracks.class_id[seen])
         difference = observed.world_xy[leftover[rows]] - fused[columns]
         distance = np.linalg.norm(difference, axis=1)
         normalised = np.sqrt(mahalanobis_squared(
             difference, covariance[leftover[rows]] + fused_covariance[columns]
         ))
         allowed = (
-            (normalised <= self.config.cluster_sigmas) | (distance <= floor[rows])
+            (normalised <= self.context.config.cluster_sigmas) | (distance <= floor[rows])
         ) & ~taken[seen[columns], observed.camera[leftover[rows]]]
         joined = assign_per_camera(
             rows[allowed], columns[allowed], normalised[allowed], observed.camera[leftover],
-            len(self.camera_ids),
+            self.context.camera_count,
         )
         assigned = assigned.copy()
         ok = joined >= 0

@@ -7,6 +7,8 @@ confirmed tracks that turn out to be one object are merged (the younger is dropp
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
@@ -21,79 +23,99 @@ from cblrs.matching.fusion.gaussian import (
     largest_sigma,
     mahalanobis_squared,
 )
-from cblrs.matching.fusion.table import TrackTable
+from cblrs.matching.fusion.table import FusionContext, TrackTable, largest_boxes
 
 
-class Births(TrackTable):
-    """The birth and merge steps of :class:`~cblrs.matching.fusion.tracker.FusionTracker`.
+@dataclass
+class Born:
+    """The tracks a birth step starts, and what the tracker reports of them.
 
-    A mixin: :meth:`_birth` appends rows to the tracker's track table; :meth:`_merge_duplicates`
-    returns a keep-mask over it.
+    Attributes:
+        tracks: the new rows (tentative, id -1).
+        cameras: (B, C) bool, the cameras whose detections started each.
+        camera: (B,) int64 camera of each one's largest box.
+        box: (B, 4) that box, pixels.
     """
 
-    def _birth(self, leftovers: Observations, covariance: np.ndarray, timestamp: float) -> int:
+    tracks: TrackTable
+    cameras: np.ndarray
+    camera: np.ndarray
+    box: np.ndarray
+
+
+class Births:
+    """Steps 6 and 7 (births, duplicate merging) of
+    :class:`~cblrs.matching.fusion.tracker.FusionTracker`'s update.
+
+    :meth:`birth` returns new rows for the tracker to append; :meth:`merge_duplicates` returns
+    a keep-mask over the tracks. Neither changes its inputs.
+
+    Args:
+        context: the tracker's configuration, cameras and per-class scales.
+    """
+
+    def __init__(self, context: FusionContext):
+        self.context = context
+
+    def birth(self, leftovers: Observations, covariance: np.ndarray, timestamp: float) -> Born:
         """Start a tentative track per cross-camera cluster of unassigned detections."""
         sigma = largest_sigma(covariance)
         labels = cluster_detections(
             leftovers.world_xy, leftovers.camera, sigma,
-            self.config.cluster_sigmas, leftovers.class_id,
-            self.config.cluster_radius_m
-            * self._class_scale[self._class_slot(leftovers.class_id)],
+            self.context.config.cluster_sigmas, leftovers.class_id,
+            self.context.config.cluster_radius_m
+            * self.context.class_scale[self.context.class_slot(leftovers.class_id)],
             covariance=covariance,
         )
         count = int(labels.max()) + 1 if len(labels) else 0
-        camera_count = len(self.camera_ids)
-        self._birth_cameras = np.zeros((count, camera_count), dtype=bool)
-        self._birth_camera = np.full(count, -1, np.int64)
-        self._birth_box = np.full((count, 4), np.nan)
+        camera_count = self.context.camera_count
+        cameras = np.zeros((count, camera_count), dtype=bool)
         if count == 0:
-            return 0
+            return Born(TrackTable.empty(self.context.models, camera_count), cameras,
+                        np.full(count, -1, np.int64), np.full((count, 4), np.nan))
         position, position_covariance, _ = fuse(
             labels, count, leftovers.world_xy, covariance
         )
         state = np.zeros((count, 4))
         state[:, :2] = position
         covariance = kalman.initial_covariance(
-            count, position_covariance + self._object_covariance,
-            self.config.initial_velocity_sigma,
+            count, position_covariance + self.context.object_covariance,
+            self.context.config.initial_velocity_sigma,
         )
-        self._birth_cameras[labels, leftovers.camera] = True
-        self._birth_camera, self._birth_box = self._largest_boxes(
-            leftovers, np.ones(len(labels), dtype=bool), labels, count
-        )
-        self._ids = np.concatenate([self._ids, np.full(count, -1, np.int64)])
+        cameras[labels, leftovers.camera] = True
+        camera, box = largest_boxes(leftovers, np.ones(len(labels), dtype=bool), labels, count)
         cluster_class = np.zeros(count, np.int64)
         cluster_class[labels] = leftovers.class_id  # one class per cluster
-        self._class = np.concatenate([self._class, cluster_class])
-        self._state = np.concatenate([self._state, state])
-        self._covariance = np.concatenate([self._covariance, covariance])
-        models = len(self.config.model_sojourn_s)
-        self._mode_state = np.concatenate(
-            [self._mode_state, np.repeat(state[:, None], models, axis=1)])
-        self._mode_covariance = np.concatenate(
-            [self._mode_covariance, np.repeat(covariance[:, None], models, axis=1)])
-        self._mode_probability = np.concatenate([
-            self._mode_probability,
-            np.tile(kalman.stationary_probability(np.asarray(self.config.model_sojourn_s)),
-                    (count, 1)),
-        ])
-        self._evidence = np.concatenate([self._evidence, np.bincount(labels, minlength=count)])
-        self._last_seen = np.concatenate([self._last_seen, np.full(count, timestamp)])
-        self._seen_by = np.concatenate([
-            self._seen_by, np.where(self._birth_cameras, timestamp, -np.inf)])
-        return count
+        models = self.context.models
+        config = self.context.config
+        born = TrackTable(
+            ids=np.full(count, -1, np.int64),
+            class_id=cluster_class,
+            state=state,
+            covariance=covariance,
+            mode_state=np.repeat(state[:, None], models, axis=1),
+            mode_covariance=np.repeat(covariance[:, None], models, axis=1),
+            mode_probability=np.tile(
+                kalman.stationary_probability(np.asarray(config.model_sojourn_s)), (count, 1)),
+            evidence=np.bincount(labels, minlength=count),
+            last_seen=np.full(count, timestamp),
+            seen_by=np.where(cameras, timestamp, -np.inf),
+        )
+        return Born(born, cameras, camera, box)
 
-    def _merge_duplicates(self, seen_now: np.ndarray, cameras_of_track: np.ndarray) -> np.ndarray:
+    def merge_duplicates(
+        self, tracks: TrackTable, seen_now: np.ndarray, cameras_of_track: np.ndarray
+    ) -> np.ndarray:
         """Keep-mask dropping the younger of two confirmed tracks that are one object."""
-        keep = np.ones(len(self._ids), dtype=bool)
-        if self.config.merge_radius_m <= 0:
+        keep = np.ones(len(tracks.ids), dtype=bool)
+        if self.context.config.merge_radius_m <= 0:
             return keep
-        candidates = np.flatnonzero(seen_now & (self._ids >= 0))
+        candidates = np.flatnonzero(seen_now & (tracks.ids >= 0))
         if len(candidates) < 2:
             return keep
-        position = self._state[candidates, :2]
+        position = tracks.state[candidates, :2]
         first, second = close_pairs(
-            position, position, np.full(len(candidates), self.config.merge_radius_m),
+            position, position, np.full(len(candidates), self.context.config.merge_radius_m),
             strict=True,
         )
         upper = first < second
@@ -101,7 +123,7 @@ class Births(TrackTable):
         disjoint = ~(cameras_of_track[first] & cameras_of_track[second]).any(axis=1)
         for one, other in zip(first[disjoint].tolist(), second[disjoint].tolist(), strict=True):
             if keep[one] and keep[other]:
-                younger = one if self._ids[one] > self._ids[other] else other
+                younger = one if tracks.ids[one] > tracks.ids[other] else other
                 keep[younger] = False
         return keep
 

@@ -1,81 +1,173 @@
-"""The fusion tracker's state, as its stages see it: one row per track, numpy columns.
+"""What the fusion tracker's stages share, as explicit values passed to each stage.
 
-:class:`TrackTable` declares what :class:`~cblrs.matching.fusion.tracker.FusionTracker` holds
-(set in its ``__init__`` and ``reset``), so that the stages written as its mixins
-(:mod:`~cblrs.matching.fusion.association`, :mod:`~cblrs.matching.fusion.birth`,
-:mod:`~cblrs.matching.fusion.clocks`, :mod:`~cblrs.matching.fusion.state`) can be read, and
-type-checked, on their own. It also holds the two helpers every stage uses.
+* :class:`TrackTable`: one row per track, numpy columns (the tracker owns it; a stage reads
+  it, or returns new rows, and never keeps it);
+* :class:`FusionContext`: the tracker's constants — configuration, cameras, per-class
+  scales — and its learned noise model, given to each stage when it is built;
+* :class:`Measured`: per detection of the window being fused, its ray from its camera and
+  its noise (the measurement step's output, the association's input).
+
+Every stage (:mod:`~cblrs.matching.fusion.association`, :mod:`~cblrs.matching.fusion.birth`,
+:mod:`~cblrs.matching.fusion.clocks`) is a small object built from a context and called by
+:class:`~cblrs.matching.fusion.tracker.FusionTracker` with these values, so a test can build
+one alone and a new stage is a part one can swap.
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from cblrs.detections import CLASS_NAMES
 from cblrs.matching.base import Observations
-from cblrs.matching.clock import ClockModel
 from cblrs.matching.fusion.config import FusionConfig
 from cblrs.matching.fusion.noise import NoiseModel
-from cblrs.matching.timing import WindowBuffer
 
 
+@dataclass
 class TrackTable:
-    """Declarations of the tracker's attributes (no values here) and the shared helpers."""
+    """The tracks, one row each (tentative tracks have id -1).
+
+    Attributes:
+        ids: (T,) int64 confirmed ids, -1 while tentative.
+        class_id: (T,) int64 class ids.
+        state: (T, 4) x, y, vx, vy (m, m/s), the motion models combined.
+        covariance: (T, 4, 4) of ``state``.
+        mode_state: (T, M, 4) per motion model.
+        mode_covariance: (T, M, 4, 4) per motion model.
+        mode_probability: (T, M).
+        evidence: (T,) int64 detections taken so far.
+        last_seen: (T,) seconds.
+        seen_by: (T, C) when each camera last saw the track (-inf: never).
+    """
+
+    ids: np.ndarray
+    class_id: np.ndarray
+    state: np.ndarray
+    covariance: np.ndarray
+    mode_state: np.ndarray
+    mode_covariance: np.ndarray
+    mode_probability: np.ndarray
+    evidence: np.ndarray
+    last_seen: np.ndarray
+    seen_by: np.ndarray
+
+    @classmethod
+    def empty(cls, models: int, cameras: int) -> TrackTable:
+        """No tracks, for ``models`` motion models and ``cameras`` cameras."""
+        return cls(
+            ids=np.zeros(0, np.int64), class_id=np.zeros(0, np.int64), state=np.zeros((0, 4)),
+            covariance=np.zeros((0, 4, 4)), mode_state=np.zeros((0, models, 4)),
+            mode_covariance=np.zeros((0, models, 4, 4)),
+            mode_probability=np.zeros((0, models)), evidence=np.zeros(0, np.int64),
+            last_seen=np.zeros(0), seen_by=np.zeros((0, cameras)),
+        )
+
+    def __len__(self) -> int:
+        return len(self.ids)
+
+    def columns(self) -> tuple[np.ndarray, ...]:
+        """The columns in declaration order."""
+        return (self.ids, self.class_id, self.state, self.covariance, self.mode_state,
+                self.mode_covariance, self.mode_probability, self.evidence, self.last_seen,
+                self.seen_by)
+
+    def select(self, keep: np.ndarray) -> TrackTable:
+        """The rows where ``keep`` (a (T,) mask or indices)."""
+        return TrackTable(*(column[keep] for column in self.columns()))
+
+    def extend(self, other: TrackTable) -> TrackTable:
+        """These rows, then ``other``'s."""
+        return TrackTable(*(np.concatenate([mine, theirs]) for mine, theirs in zip(
+            self.columns(), other.columns(), strict=True)))
+
+
+@dataclass
+class Measured:
+    """Per detection of the window being fused (N rows), from the measurement step.
+
+    Attributes:
+        distance: (N,) metres from the detection's camera (0 where not placed).
+        along_distance: (N,) ``distance`` scaled by the camera's height (noise model input).
+        direction: (N, 2) unit vectors from the camera to the detection.
+        sigma: (N,) the largest standard deviation of each detection, metres.
+    """
+
+    distance: np.ndarray
+    along_distance: np.ndarray
+    direction: np.ndarray
+    sigma: np.ndarray
+
+    @classmethod
+    def empty(cls) -> Measured:
+        """No detections."""
+        return cls(np.zeros(0), np.zeros(0), np.zeros((0, 2)), np.zeros(0))
+
+
+@dataclass
+class FusionContext:
+    """The tracker's constants and learned noise, shared by its stages.
+
+    Attributes:
+        config: the configuration.
+        camera_ids: camera names; a camera's index here is its integer id.
+        camera_xy: (C, 2) metres, NaN where not placed.
+        class_extra: (K + 1,) extra measurement sigma of each class, metres (last: unknown).
+        class_scale: (K + 1,) gate and cluster scale relative to a person.
+        noise: the learned measurement-noise model.
+    """
 
     config: FusionConfig
     camera_ids: list[str]
-    # One row per track (tentative tracks have id -1).
-    _ids: np.ndarray  # (T,) int64
-    _class: np.ndarray  # (T,) int64 class ids
-    _state: np.ndarray  # (T, 4) x, y, vx, vy (m, m/s), the models combined
-    _covariance: np.ndarray  # (T, 4, 4)
-    _mode_state: np.ndarray  # (T, M, 4) per motion model
-    _mode_covariance: np.ndarray  # (T, M, 4, 4)
-    _mode_probability: np.ndarray  # (T, M)
-    _evidence: np.ndarray  # (T,) detections taken so far
-    _last_seen: np.ndarray  # (T,) seconds
-    _seen_by: np.ndarray  # (T, C) when each camera last saw the track (-inf: never)
-    # Per camera and per class.
-    _camera_xy: np.ndarray  # (C, 2) metres, NaN where not placed
-    _class_extra: np.ndarray  # (K + 1,) extra measurement sigma of each class, metres
-    _class_scale: np.ndarray  # (K + 1,) gate and cluster scale relative to a person
-    # Per detection of the window being fused (set by the measurement step).
-    _distance: np.ndarray
-    _along_distance: np.ndarray
-    _direction: np.ndarray
-    _sigma: np.ndarray
-    # Births of the window being fused (set by the birth step).
-    _birth_cameras: np.ndarray
-    _birth_camera: np.ndarray
-    _birth_box: np.ndarray
-    # Models and bookkeeping.
-    _object_covariance: np.ndarray  # (2, 2)
-    _noise: NoiseModel
-    _clock: ClockModel
-    _windows: WindowBuffer
-    _time: float | None
-    _next_id: int
-    _reported: dict[int, set[int]]
-    _clock_turn: int
+    camera_xy: np.ndarray
+    class_extra: np.ndarray
+    class_scale: np.ndarray
+    noise: NoiseModel
+    object_covariance: np.ndarray = field(init=False)
 
-    def _class_slot(self, class_id: np.ndarray) -> np.ndarray:
+    def __post_init__(self) -> None:
+        self.object_covariance = self.config.object_sigma_m**2 * np.eye(2)
+
+    @property
+    def camera_count(self) -> int:
+        """Number of cameras C."""
+        return len(self.camera_ids)
+
+    @property
+    def models(self) -> int:
+        """Number of motion models M."""
+        return len(self.config.model_sojourn_s)
+
+    @staticmethod
+    def class_slot(class_id: np.ndarray) -> np.ndarray:
         """Index into the per-class arrays: the class id, or the last slot for unknown ids."""
         class_id = np.asarray(class_id, np.int64)
         return np.where((class_id >= 0) & (class_id < len(CLASS_NAMES)), class_id,
                         len(CLASS_NAMES))
 
-    @staticmethod
-    def _largest_boxes(
-        observed: Observations, matched: np.ndarray, rows: np.ndarray, track_count: int
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """Camera and box of each track's largest assigned box (the closest, best view)."""
-        boxes = observed.xyxy[matched]
-        area = (boxes[:, 2] - boxes[:, 0]) * (boxes[:, 3] - boxes[:, 1])
-        order = np.lexsort((area, rows))  # by track, then by area ascending
-        last_of_track = np.r_[rows[order][1:] != rows[order][:-1], True]
-        best = order[last_of_track]
-        camera = np.full(track_count, -1, np.int64)
-        box = np.full((track_count, 4), np.nan)
-        camera[rows[best]] = observed.camera[matched][best]
-        box[rows[best]] = boxes[best]
-        return camera, box
+
+def largest_boxes(
+    observed: Observations, matched: np.ndarray, rows: np.ndarray, track_count: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Camera and box of each track's largest assigned box (the closest, best view).
+
+    Args:
+        observed: the window's detections.
+        matched: (N,) bool, the detections that have a track.
+        rows: track row of each matched detection.
+        track_count: T.
+
+    Returns:
+        ``(camera (T,) int64 (-1: none), box (T, 4) pixels (NaN: none))``.
+    """
+    boxes = observed.xyxy[matched]
+    area = (boxes[:, 2] - boxes[:, 0]) * (boxes[:, 3] - boxes[:, 1])
+    order = np.lexsort((area, rows))  # by track, then by area ascending
+    last_of_track = np.r_[rows[order][1:] != rows[order][:-1], True]
+    best = order[last_of_track]
+    camera = np.full(track_count, -1, np.int64)
+    box = np.full((track_count, 4), np.nan)
+    camera[rows[best]] = observed.camera[matched][best]
+    box[rows[best]] = boxes[best]
+    return camera, box

@@ -25,20 +25,14 @@ from cblrs.matching.base import (
     require,
 )
 from cblrs.matching.clock import ClockModel
-from cblrs.matching.fusion.association import (
-    Association,
-)
+from cblrs.matching.fusion.association import Association
 from cblrs.matching.fusion.birth import Births
 from cblrs.matching.fusion.clocks import ClockLearning
-from cblrs.matching.fusion.config import (
-    FusionConfig,
-)
-from cblrs.matching.fusion.gaussian import (
-    fuse,
-    ray_covariance,
-)
+from cblrs.matching.fusion.config import FusionConfig
+from cblrs.matching.fusion.gaussian import fuse, ray_covariance
 from cblrs.matching.fusion.noise import NoiseModel
-from cblrs.matching.fusion.state import Snapshots
+from cblrs.matching.fusion.state import STATE_VERSION, table_from_state, table_state
+from cblrs.matching.fusion.table import FusionContext, Measured, TrackTable, largest_boxes
 from cblrs.matching.timing import (
     Window,
     WindowBuffer,
@@ -48,7 +42,7 @@ from cblrs.plane import PlaneSet
 _REPORTED_FRAMES = 64  # frames remembered to report each track at most once per frame
 
 
-class FusionTracker(Association, Births, ClockLearning, Snapshots):
+class FusionTracker:
     """Multi-camera fusion tracker (the default matcher).
 
     Args:
@@ -112,38 +106,70 @@ class FusionTracker(Association, Births, ClockLearning, Snapshots):
             len(self.camera_ids), config.clock_tolerance_s, config.max_clock_offset_s,
             estimate=config.estimate_clocks,
         )
+        # What the stages share, and the stages themselves, called in order by _fuse_window.
+        self.context = FusionContext(
+            config, self.camera_ids, self._camera_xy, self._class_extra, self._class_scale,
+            NoiseModel(config.measurement_sigma_m, config.along_sigma_per_distance,
+                       config.sigma_per_distance),
+        )
+        self.association = Association(self.context)
+        self.births = Births(self.context)
+        self.clock_learning = ClockLearning(self.context, self._clock)
         self.reset()
 
     def reset(self) -> None:
         """Forget everything learnt or tracked: back to the state of a new instance."""
-        self._object_covariance = self.config.object_sigma_m**2 * np.eye(2)
         self._time: float | None = None
         self._next_id = 1
-        self._ids = np.zeros(0, np.int64)  # -1 while tentative
-        self._class = np.zeros(0, np.int64)
-        self._noise = NoiseModel(
-            self.config.measurement_sigma_m, self.config.along_sigma_per_distance,
-            self.config.sigma_per_distance,
-        )
-        self._state = np.zeros((0, 4))
-        self._covariance = np.zeros((0, 4, 4))
-        models = len(self.config.model_sojourn_s)
-        self._mode_state = np.zeros((0, models, 4))
-        self._mode_covariance = np.zeros((0, models, 4, 4))
-        self._mode_probability = np.zeros((0, models))
-        self._evidence = np.zeros(0, np.int64)
-        self._last_seen = np.zeros(0)
-        # When each camera last saw each track (-inf: never), for corroboration.
-        self._seen_by = np.zeros((0, len(self.camera_ids)))
+        self.context.noise.reset()
+        self.tracks = TrackTable.empty(self.context.models, len(self.camera_ids))
+        self.measured = Measured.empty()
         self._windows.reset()
         self._clock.reset()
+        self.clock_learning.reset()
         self._reported: dict[int, set[int]] = {}
-        self._clock_turn = 0
+
+    def get_state(self) -> dict:
+        """The state as JSON-ready data, restored by :meth:`set_state`."""
+        return {
+            "version": STATE_VERSION,
+            "camera_ids": list(self.camera_ids),
+            "time": self._time,
+            "next_id": self._next_id,
+            "noise": self.context.noise.get_state(),
+            **table_state(self.tracks),
+            "windows": self._windows.get_state(),
+            "clock": self._clock.get_state(),
+            "reported": [[frame, sorted(ids)] for frame, ids in self._reported.items()],
+            "clock_turn": self.clock_learning.turn,
+        }
+
+    def set_state(self, state: dict) -> None:
+        """Restore a state saved by :meth:`get_state`."""
+        if not isinstance(state, dict) or state.get("version") != STATE_VERSION:
+            raise MatcherError(f"not a saved fusion-tracker state (expected {STATE_VERSION}).")
+        if state.get("camera_ids") != self.camera_ids:
+            raise MatcherError(
+                f"the saved state is for cameras {state.get('camera_ids')}, "
+                f"this tracker has {self.camera_ids}."
+            )
+        try:
+            time = state["time"]
+            self._time = None if time is None else float(time)
+            self._next_id = int(state["next_id"])
+            self.context.noise.set_state(state["noise"])
+            self.tracks = table_from_state(state, self.context.models, len(self.camera_ids))
+            self._windows.set_state(state["windows"])
+            self._clock.set_state(state["clock"])
+            self._reported = {int(frame): set(ids) for frame, ids in state["reported"]}
+            self.clock_learning.turn = int(state["clock_turn"])
+        except (KeyError, TypeError, ValueError, IndexError) as error:
+            raise MatcherError(f"the saved fusion-tracker state is incomplete: {error}.") from None
 
     @property
     def track_count(self) -> int:
         """Live tracks, tentative ones included."""
-        return len(self._ids)
+        return len(self.tracks.ids)
 
     def update(self, timestamp: float, messages: Sequence[CameraMessage]) -> Tracks:
         """Take the messages of one released group and fuse every window now complete.
@@ -231,7 +257,7 @@ class FusionTracker(Association, Births, ClockLearning, Snapshots):
         self._predict(timestamp)
         covariance = self._measurement_covariance(raw)
         base_covariance = covariance
-        slot = self._class_slot(raw.class_id)
+        slot = FusionContext.class_slot(raw.class_id)
         if np.any(lag != 0):
             # Until a detection is given a track, its motion over its lag is unknown: widen
             # its gate by how far the class moves in that time.
@@ -241,52 +267,57 @@ class FusionTracker(Association, Births, ClockLearning, Snapshots):
         observed = raw
         if plain.any():
             # Box bottoms are not exactly the feet: remove the learned along-ray bias.
-            shift = self._noise.bias(self._distance, self._along_distance)
+            shift = self.context.noise.bias(self.measured.distance,
+                                            self.measured.along_distance)
             observed = dataclasses.replace(
                 raw, world_xy=raw.world_xy - np.where(plain, shift, 0.0)[:, None]
-                * self._direction
+                * self.measured.direction
             )
 
         # 3. associate (association module); 4. leftovers join tracks seen at this instant.
-        assigned = self._associate(observed, covariance)
-        assigned = self._join_observed(observed, covariance, assigned)
+        assigned = self.association.associate(self.tracks, self.measured, observed, covariance)
+        assigned = self.association.join_observed(self.tracks, self.measured, observed,
+                                                  covariance, assigned)
         matched = assigned >= 0
         located_xy = observed.world_xy
         if matched.any() and np.any(lag[matched] != 0):
             # Each view shows its track where it was at the view's capture time: move it
             # along the track's velocity to the window's time.
             rows = assigned[matched]
-            motion = lag[matched, None] * self._state[rows, 2:4]
+            motion = lag[matched, None] * self.tracks.state[rows, 2:4]
             observed = dataclasses.replace(observed, world_xy=observed.world_xy.copy())
             observed.world_xy[matched] -= motion
             raw = dataclasses.replace(raw, world_xy=raw.world_xy.copy())
             raw.world_xy[matched] -= motion
             covariance = base_covariance.copy()
             covariance[matched] += (lag[matched] ** 2)[:, None, None] * (
-                self._covariance[rows, 2:4, 2:4])
+                self.tracks.covariance[rows, 2:4, 2:4])
         if self.config.adapt_noise:
-            self._noise.learn(raw.world_xy, self._distance, np.where(plain, assigned, -1),
-                              self._direction, self._along_distance)
+            self.context.noise.learn(raw.world_xy, self.measured.distance,
+                                     np.where(plain, assigned, -1), self.measured.direction,
+                                     self.measured.along_distance)
         # 5. fuse each track's views and update its filter once.
         seen_now, report_camera, report_box, cameras_of_track = self._update_tracks(
             observed, covariance, base_covariance, assigned, timestamp
         )
 
         # 6. births from clusters of what no track took (birth module).
-        births = self._birth(_subset(observed, ~matched), covariance[~matched], timestamp)
-        seen_now = np.concatenate([seen_now, np.ones(births, dtype=bool)])
-        report_camera = np.concatenate([report_camera, self._birth_camera])
-        report_box = np.concatenate([report_box, self._birth_box])
-        cameras_of_track = np.concatenate([cameras_of_track, self._birth_cameras])
+        born = self.births.birth(_subset(observed, ~matched), covariance[~matched], timestamp)
+        self.tracks = self.tracks.extend(born.tracks)
+        seen_now = np.concatenate([seen_now, np.ones(len(born.tracks), dtype=bool)])
+        report_camera = np.concatenate([report_camera, born.camera])
+        report_box = np.concatenate([report_box, born.box])
+        cameras_of_track = np.concatenate([cameras_of_track, born.cameras])
 
         # 7. merge duplicates, drop tracks unseen too long, confirm, report.
-        keep = self._merge_duplicates(seen_now, cameras_of_track)
+        keep = self.births.merge_duplicates(self.tracks, seen_now, cameras_of_track)
         keep &= self._alive(timestamp)
-        self._select(keep)
+        self.tracks = self.tracks.select(keep)
         seen_now, report_camera, report_box = seen_now[keep], report_camera[keep], report_box[keep]
 
         report = self._confirm(timestamp, seen_now)
-        self._record_for_clocks(timestamp, seen_now & (self._ids >= 0), located_xy,
+        self.clock_learning.record(self.tracks, timestamp, seen_now & (self.tracks.ids >= 0),
+                                   located_xy,
                                 observed.camera, raw_time_of_camera)
         return self._report_instants(report, report_camera, report_box, window, timestamp)
 
@@ -299,7 +330,7 @@ class FusionTracker(Association, Births, ClockLearning, Snapshots):
         Returns per track: seen at this instant, the camera and box of its largest view (-1 /
         NaN when unseen), and which cameras saw it.
         """
-        track_count = len(self._ids)
+        track_count = len(self.tracks.ids)
         seen_now = np.zeros(track_count, dtype=bool)
         report_camera = np.full(track_count, -1, np.int64)
         report_box = np.full((track_count, 4), np.nan)
@@ -307,25 +338,26 @@ class FusionTracker(Association, Births, ClockLearning, Snapshots):
         matched = assigned >= 0
         if matched.any():
             rows = assigned[matched]
-            self._seen_by[rows, observed.camera[matched]] = timestamp
-            self._learn_clocks(observed, base_covariance, matched, rows, timestamp)
+            self.tracks.seen_by[rows, observed.camera[matched]] = timestamp
+            self.clock_learning.learn(self.tracks, self.measured, observed, base_covariance,
+                                      matched, rows, timestamp)
             fused_xy, fused_covariance, seen_now = fuse(
                 rows, track_count, observed.world_xy[matched], covariance[matched]
             )
-            (self._mode_state[seen_now], self._mode_covariance[seen_now],
-             self._mode_probability[seen_now]) = kalman.update_models(
-                self._mode_state[seen_now], self._mode_covariance[seen_now],
-                self._mode_probability[seen_now], fused_xy[seen_now],
-                fused_covariance[seen_now] + self._object_covariance,
+            (self.tracks.mode_state[seen_now], self.tracks.mode_covariance[seen_now],
+             self.tracks.mode_probability[seen_now]) = kalman.update_models(
+                self.tracks.mode_state[seen_now], self.tracks.mode_covariance[seen_now],
+                self.tracks.mode_probability[seen_now], fused_xy[seen_now],
+                fused_covariance[seen_now] + self.context.object_covariance,
             )
-            self._state[seen_now], self._covariance[seen_now] = kalman.combine(
-                self._mode_state[seen_now], self._mode_covariance[seen_now],
-                self._mode_probability[seen_now],
+            self.tracks.state[seen_now], self.tracks.covariance[seen_now] = kalman.combine(
+                self.tracks.mode_state[seen_now], self.tracks.mode_covariance[seen_now],
+                self.tracks.mode_probability[seen_now],
             )
-            self._evidence += np.bincount(rows, minlength=track_count)
-            self._last_seen[seen_now] = timestamp
+            self.tracks.evidence += np.bincount(rows, minlength=track_count)
+            self.tracks.last_seen[seen_now] = timestamp
             cameras_of_track[rows, observed.camera[matched]] = True
-            report_camera, report_box = self._largest_boxes(observed, matched, rows, track_count)
+            report_camera, report_box = largest_boxes(observed, matched, rows, track_count)
         else:
             self._clock.corroboration(observed.camera, np.zeros(len(observed), dtype=bool))
         return seen_now, report_camera, report_box, cameras_of_track
@@ -333,12 +365,13 @@ class FusionTracker(Association, Births, ClockLearning, Snapshots):
     def _confirm(self, timestamp: float, seen_now: np.ndarray) -> np.ndarray:
         """Step 7: give confirmed ids to tentative tracks with enough evidence; the mask of
         tracks to report (confirmed, and seen now or coasting briefly)."""
-        newly_confirmed = (self._ids < 0) & (self._evidence >= self.config.confirm_evidence)
+        tracks = self.tracks
+        newly_confirmed = (tracks.ids < 0) & (tracks.evidence >= self.config.confirm_evidence)
         count = int(newly_confirmed.sum())
-        self._ids[newly_confirmed] = self._next_id + np.arange(count)
+        self.tracks.ids[newly_confirmed] = self._next_id + np.arange(count)
         self._next_id += count
-        return (self._ids >= 0) & (
-            seen_now | (timestamp - self._last_seen <= self.config.report_coasting_s)
+        return (self.tracks.ids >= 0) & (
+            seen_now | (timestamp - self.tracks.last_seen <= self.config.report_coasting_s)
         )
 
     def _report_instants(
@@ -364,23 +397,23 @@ class FusionTracker(Association, Births, ClockLearning, Snapshots):
                 reported = self._reported[frame] = set()
                 if len(self._reported) > _REPORTED_FRAMES:
                     del self._reported[next(iter(self._reported))]
-            mask = report & ~np.isin(self._ids, list(reported)) if reported else report
-            order = np.argsort(self._ids[mask], kind="stable")
+            mask = report & ~np.isin(self.tracks.ids, list(reported)) if reported else report
+            order = np.argsort(self.tracks.ids[mask], kind="stable")
             rows = np.flatnonzero(mask)[order]
-            reported.update(self._ids[rows].tolist())
+            reported.update(self.tracks.ids[rows].tolist())
             instant = float(window.times[frames == frame].mean()) if len(distinct) > 1 else (
                 float(window.times.mean()))
-            position = self._state[rows, :2]
+            position = self.tracks.state[rows, :2]
             if instant != timestamp:
-                position = position + (instant - timestamp) * self._state[rows, 2:4]
+                position = position + (instant - timestamp) * self.tracks.state[rows, 2:4]
             parts.append(Tracks(
                 frame=np.full(len(rows), frame),
                 timestamp=np.full(len(rows), instant),
-                track_id=self._ids[rows],
+                track_id=self.tracks.ids[rows],
                 world_xy=position,
                 camera_id=report_camera[rows],
                 xyxy=report_box[rows],
-                class_id=self._class[rows],
+                class_id=self.tracks.class_id[rows],
             ))
         return parts[0] if len(parts) == 1 else Tracks.concatenate(parts)
 
@@ -389,18 +422,19 @@ class FusionTracker(Association, Births, ClockLearning, Snapshots):
             # Messages of slightly different timestamps can arrive out of order; a late
             # one is treated as simultaneous rather than rewinding the filter.
             dt = max(0.0, timestamp - self._time)
-            if dt > 0 and len(self._ids):
-                acceleration = self._class_acceleration[self._class_slot(self._class)]
-                self._mode_state, self._mode_covariance, self._mode_probability = (
+            tracks = self.tracks
+            if dt > 0 and len(tracks.ids):
+                acceleration = self._class_acceleration[FusionContext.class_slot(tracks.class_id)]
+                tracks.mode_state, tracks.mode_covariance, tracks.mode_probability = (
                     kalman.predict_models(
-                        self._mode_state, self._mode_covariance, self._mode_probability, dt,
+                        tracks.mode_state, tracks.mode_covariance, tracks.mode_probability, dt,
                         acceleration[:, None]
                         * np.asarray(self.config.model_acceleration_factors)[None],
                         np.asarray(self.config.model_sojourn_s),
                     )
                 )
-                self._state, self._covariance = kalman.combine(
-                    self._mode_state, self._mode_covariance, self._mode_probability
+                tracks.state, tracks.covariance = kalman.combine(
+                    tracks.mode_state, tracks.mode_covariance, tracks.mode_probability
                 )
             self._time = max(self._time, timestamp)
         else:
@@ -420,37 +454,27 @@ class FusionTracker(Association, Births, ClockLearning, Snapshots):
     def _measurement_covariance(self, observed: Observations) -> np.ndarray:
         """(N, 2, 2) ground covariance of each detection, elongated along its camera's ray.
 
-        Also sets ``_distance``, ``_direction`` and ``_sigma`` (the largest standard
+        Also sets ``measured`` (rays and the largest standard
         deviation of each detection, for neighbour searches).
         """
-        self._distance, self._direction = self._camera_rays(observed)
-        self._along_distance = self._distance * self._along_scale[observed.camera]
-        extra = self._class_extra[self._class_slot(observed.class_id)] ** 2
-        along, lateral = self._noise.variances(self._distance, self._along_distance)
+        distance, direction = self._camera_rays(observed)
+        along_distance = distance * self._along_scale[observed.camera]
+        extra = self._class_extra[FusionContext.class_slot(observed.class_id)] ** 2
+        along, lateral = self.context.noise.variances(distance, along_distance)
         # The model may learn that cameras agree closely; the floor keeps one camera from
         # being trusted without limit.
         floor = self.config.minimum_sigma_m**2
         along = np.maximum(along, floor) + extra
         lateral = np.maximum(lateral, floor) + extra
-        self._sigma = np.sqrt(np.maximum(along, lateral))
-        return ray_covariance(self._direction, along, lateral)
+        self.measured = Measured(distance, along_distance, direction,
+                                 np.sqrt(np.maximum(along, lateral)))
+        return ray_covariance(direction, along, lateral)
 
     def _alive(self, timestamp: float) -> np.ndarray:
-        age = timestamp - self._last_seen
-        limit = np.where(self._ids >= 0, self.config.max_age_s, self.config.tentative_max_age_s)
+        age = timestamp - self.tracks.last_seen
+        limit = np.where(self.tracks.ids >= 0, self.config.max_age_s,
+                         self.config.tentative_max_age_s)
         return age <= limit
-
-    def _select(self, keep: np.ndarray) -> None:
-        self._ids = self._ids[keep]
-        self._class = self._class[keep]
-        self._state = self._state[keep]
-        self._covariance = self._covariance[keep]
-        self._mode_state = self._mode_state[keep]
-        self._mode_covariance = self._mode_covariance[keep]
-        self._mode_probability = self._mode_probability[keep]
-        self._evidence = self._evidence[keep]
-        self._last_seen = self._last_seen[keep]
-        self._seen_by = self._seen_by[keep]
 
 
 def _subset(observed: Observations, mask: np.ndarray) -> Observations:
