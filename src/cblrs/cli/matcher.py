@@ -27,6 +27,7 @@ from cblrs.cli.common import (
     format_table,
     print_json,
 )
+from cblrs.cli.metrics_http import add_http_options, http_settings
 from cblrs.errors import CblrsError
 
 logger = logging.getLogger(__name__)
@@ -147,19 +148,7 @@ def register(subparsers) -> None:
         help="rows wait this long (plus the tracker's own lag) behind the newest capture "
         "time before they are counted",
     )
-    online.add_argument(
-        "--http",
-        metavar="HOST:PORT",
-        help="serve Prometheus /metrics, /healthz and /readyz here (e.g. 127.0.0.1:9100; "
-        "beyond loopback only with --http-token-file)",
-    )
-    online.add_argument(
-        "--http-token-file",
-        type=Path,
-        metavar="FILE",
-        help="/metrics needs this token (first line of FILE), as a bearer token or the "
-        "basic-auth password; health checks from loopback do not (docs/security.md)",
-    )
+    add_http_options(online)
     online.add_argument(
         "--live-interval",
         type=float,
@@ -318,20 +307,9 @@ def run(args: argparse.Namespace) -> int:
     metrics = server = None
     if args.http is not None:
         # lazy: a subcommand imports the library when it runs, so its --help starts fast
-        from cblrs.runtime.metrics import (
-            MetricsServer,
-            ServiceMetrics,
-            is_loopback_host,
-            parse_address,
-        )
+        from cblrs.runtime.metrics import MetricsServer, ServiceMetrics
 
-        address = parse_address(args.http)
-        http_token = _http_token(args.http_token_file)
-        if http_token is None and not is_loopback_host(address[0]):
-            raise UsageError(
-                f"--http {args.http} serves the metrics beyond this machine, so it needs "
-                "--http-token-file FILE; without it, serve on 127.0.0.1."
-            )
+        address, http_token = http_settings(args)
         metrics = ServiceMetrics(plane_id, names)
     store = RuntimeStore(args.db)
     if uses_nats(args):
@@ -457,23 +435,6 @@ def run(args: argparse.Namespace) -> int:
 
 class MatcherFailed(CblrsError):
     """The running matcher stopped because of a failure (printed as one sentence)."""
-
-
-def _http_token(path: Path | None) -> str | None:
-    """The metrics token: the first line of ``path`` (None: no token)."""
-    if path is None:
-        return None
-    try:
-        lines = path.read_text(encoding="utf-8").splitlines()
-    except (OSError, UnicodeDecodeError) as error:
-        raise InputError(f"cannot read --http-token-file {path}: "
-                         f"{getattr(error, 'strerror', None) or error}.") from None
-    token = lines[0].strip() if lines else ""
-    if len(token) < 16:
-        raise UsageError(f"--http-token-file {path} holds a token of {len(token)} characters; "
-                         "give at least 16 (e.g. python -c 'import secrets; "
-                         "print(secrets.token_urlsafe(32))').")
-    return token
 
 
 def _first_line(error: BaseException) -> str:
