@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -17,6 +18,7 @@ from cblrs.datasets import (
     read_tracks,
     write_tracks,
 )
+from cblrs.datasets.aicity import metadata_path, metadata_timestamps
 from cblrs.detections import Tracks
 from cblrs.errors import DatasetError
 
@@ -72,9 +74,11 @@ def run_cli(args: list[str], capsys) -> tuple[int, str]:
     return code, capsys.readouterr().err
 
 
-def small_tracks(tmp_path: Path, shift: float = 0.0, rate: float | None = 10.0) -> Path:
+def small_tracks(tmp_path: Path, shift: float = 0.0, rate: float | None = 10.0,
+                 first_frame: int = 0) -> Path:
     x = np.linspace(-2, 8, 30) + shift
-    tracks = Tracks(np.arange(30), np.arange(30) / 10.0, np.ones(30, int),
+    frames = np.arange(30) + first_frame
+    tracks = Tracks(frames, frames / 10.0, np.ones(30, int),
                     np.c_[x, np.full(30, 17.0 + shift)], class_id=np.zeros(30, int))
     path = tmp_path / "t.txt"
     write_tracks(path, tracks, frames_per_second=rate)
@@ -88,7 +92,10 @@ def small_tracks(tmp_path: Path, shift: float = 0.0, rate: float | None = 10.0) 
         ("other site", "lie outside every plane of site wildtrack: are these tracks from another"),
         ("missing tracks", "does not exist"),
         ("garbage tracks", "expected 9 columns"),
-        ("no rate", "carries no frame rate"),
+        # Issue 21: negative frame numbers were taken silently (and changed the counts).
+        ("negative frame", "t.txt:1: frame_id must not be negative in '-1 1 -5 "),
+        ("no rate", "carries no time: no .meta.json sidecar (cblrs track and cblrs matcher "
+                    "--out-tracks write one)"),
         ("stale sidecar", "belongs to another version of t.txt"),
         ("bad yaml", "is not valid YAML"),
         ("unknown key", "colour: unknown key"),
@@ -107,6 +114,8 @@ def test_bad_input_gets_one_sentence_and_a_non_zero_exit(case, message, tmp_path
     elif case == "garbage tracks":
         tracks = tmp_path / "garbage.txt"
         tracks.write_text("this is not a tracks file\n")
+    elif case == "negative frame":
+        tracks = small_tracks(tmp_path, first_frame=-5)
     elif case == "no rate":
         tracks = small_tracks(tmp_path, rate=None)
         tracks.with_name("t.txt.meta.json").unlink()
@@ -194,3 +203,45 @@ def test_the_heatmap_is_drawn_over_the_site_map(tmp_path, capsys):
     blended = 0.6 * lawn + 0.4 * 255
     assert (np.abs(mapped.astype(float) - blended).sum(axis=2) < 40).sum() > 1000
     assert (np.abs(plain.astype(float) - blended).sum(axis=2) < 40).sum() < 100
+
+
+def test_a_sidecar_without_time_is_named(tmp_path, capsys):
+    # A sidecar that carries classes only (no frame rate, no timestamps): the error says what
+    # the sidecar lacks instead of claiming there is none.
+    tracks = Tracks(
+        frame=np.array([0, 1], dtype=np.int64), timestamp=np.array([0.0, 1.0]),
+        track_id=np.array([1, 1], dtype=np.int64), world_xy=np.array([[0.0, 0.0], [1.0, 0.0]]),
+        camera_id=np.array([-1, -1], dtype=np.int64), xyxy=np.full((2, 4), np.nan),
+        class_id=np.array([0, 0], dtype=np.int64),
+    )
+    path = tmp_path / "tracks.txt"
+    write_tracks(path, tracks)
+    site = tmp_path / "site.yaml"
+    site.write_text("version: 1\nplaces:\n  lines:\n"
+                    "    - {name: l, start: [0.5, -1], end: [0.5, 1]}\n")
+    code = main(["analytics", str(path), "--site", str(site), "--out", str(tmp_path / "out")])
+    assert code == 1
+    err = capsys.readouterr().err
+    assert "its sidecar tracks.txt.meta.json has neither a frame rate nor timestamps" in err
+    assert "give --fps" in err
+
+
+def test_timestamps_kept_in_the_sidecar_time_the_rows(tmp_path):
+    # One time per frame (a synchronised matcher) and one per row (frames of different times).
+    rows = 6
+    base = Tracks(
+        frame=np.array([10, 10, 11, 11, 12, 12], dtype=np.int64),
+        timestamp=1.7e9 + np.array([0.0, 0.0, 0.1, 0.1, 0.2, 0.2]),
+        track_id=np.array([1, 2, 1, 2, 1, 2], dtype=np.int64),
+        world_xy=np.zeros((rows, 2)), camera_id=np.full(rows, -1, dtype=np.int64),
+        xyxy=np.full((rows, 4), np.nan),
+    )
+    shifted = base.timestamp + np.array([0, 0.03, 0, 0, 0, 0])
+    for tracks, form in ((base, "frames"), (replace(base, timestamp=shifted), "rows")):
+        path = tmp_path / f"{form}.txt"
+        write_tracks(path, tracks, keep_timestamps=True)
+        assert form in json.loads(metadata_path(path).read_text())["timestamps"]
+        metadata = read_track_metadata(path)
+        assert metadata is not None and metadata.has_timestamps
+        times = metadata_timestamps(read_tracks(path), metadata)
+        np.testing.assert_array_equal(times, tracks.timestamp)

@@ -5,6 +5,7 @@ failures, one sentence and no traceback."""
 from __future__ import annotations
 
 import argparse
+import json
 import subprocess
 import sys
 from pathlib import Path
@@ -126,3 +127,59 @@ def test_help_does_not_import_the_library():
                             timeout=120)
     assert result.returncode == 0, result.stderr
     assert result.stdout.strip().splitlines()[-1] == "HEAVY:"
+
+
+def _leaves(parser: argparse.ArgumentParser, path: tuple[str, ...] = ()):
+    children = [action for action in parser._actions
+                if isinstance(action, argparse._SubParsersAction)]
+    if not children:
+        yield path, parser
+    for action in children:
+        for name, child in action.choices.items():
+            yield from _leaves(child, (*path, name))
+
+
+LEAVES = list(_leaves(build_parser()))
+
+
+@pytest.mark.parametrize(("path", "parser"), LEAVES, ids=[" ".join(p) for p, _ in LEAVES])
+def test_every_subcommand_takes_json_and_quiet(path, parser):
+    # Issue 21: `site init` refused --quiet (as did site check/export, calibrate, dashboard and
+    # bench mqtt) although the README says every subcommand takes it.
+    options = {option for action in parser._actions for option in action.option_strings}
+    assert {"--json", "--quiet"} <= options, " ".join(path)
+
+
+MULTIVIEWX = WILDTRACK.parent / "multiviewx"
+
+
+@pytest.mark.skipif(not MULTIVIEWX.is_dir(), reason="MultiviewX not in ../shared")
+def test_render_takes_the_data_set_as_dataset(tmp_path, capsys):
+    # Issue 21: `cblrs render` was the one subcommand without --dataset.
+    assert main(["render", "--dataset", str(MULTIVIEWX), "--out", str(tmp_path / "new"),
+                 "--bits", "8", "--quiet"]) == 0
+    assert main(["render", str(MULTIVIEWX), "--out", str(tmp_path / "old"), "--bits", "8",
+                 "--quiet"]) == 0
+    new = sorted((tmp_path / "new").iterdir())
+    assert [path.name for path in new] == [f"Camera{index}.png" for index in range(1, 7)]
+    for path in new:
+        assert path.read_bytes() == (tmp_path / "old" / path.name).read_bytes()
+    capsys.readouterr()
+    assert main(["render", str(WILDTRACK), "--dataset", str(MULTIVIEWX), "--out",
+                 str(tmp_path / "x")]) == 2
+    assert "CALIBRATION and --dataset name different folders" in capsys.readouterr().err
+    assert main(["render", "--dataset", str(tmp_path / "nowhere"), "--out",
+                 str(tmp_path / "x")]) == 1
+
+
+def test_bench_mqtt_writes_its_results_to_out(tmp_path, capsys):
+    # Issue 21: `cblrs bench mqtt` refused --out, which every other benchmark takes.
+    assert main(["bench", "mqtt", "--stages", "--cameras", "1", "--out", str(tmp_path),
+                 "--quiet"]) == 0
+    printed = capsys.readouterr().out
+    written = (tmp_path / "bench_mqtt_stages.md").read_text()
+    assert written.strip() == printed.strip() and "1 cameras: decode" in written
+    document = json.loads((tmp_path / "bench_mqtt_stages.json").read_text())
+    assert document["stages"][0]["cameras"] == 1
+    (tmp_path / "file").write_text("")
+    assert main(["bench", "mqtt", "--out", str(tmp_path / "file")]) == 2

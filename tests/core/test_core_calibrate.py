@@ -261,10 +261,12 @@ def test_no_pose_when_none_can_be_had():
     assert pose is None and "left-handed" in reason
 
 
-def test_a_left_handed_world_keeps_the_homography_and_says_why():
+def test_a_left_handed_world_is_refused_unless_said_so():
     points = clicked(TRUTH, 10)
     mirrored = Correspondences(points.image_xy, points.world_xy * [1, -1])
-    fit = calibrate_camera(mirrored, SIZE, "c")
+    with pytest.raises(CalibrationError, match=r"mirrored.*u and v, or x and y, swapped,"):
+        calibrate_camera(mirrored, SIZE, "c")
+    fit = calibrate_camera(mirrored, SIZE, "c", left_handed=True)
     assert fit.model is Model.HOMOGRAPHY and fit.position is None
     assert any(
         "below the ground" in warning and "left-handed" in warning for warning in fit.warnings

@@ -93,7 +93,10 @@ def test_live_dashboard_then_replay(wildtrack_root, wildtrack_site, start_broker
                 transport = MqttTransport(f"dash-{name}", broker.settings(name),
                                           persistent=False, will=Will(*camera_last_will(1, name)))
                 transport.connect()
-                node = CameraNode(transport, 1, name, references[index], epoch=epoch)
+                # clear_retained as `cblrs camera` does: its empty publish is no message (the
+                # page showed it as one rejected message per camera).
+                node = CameraNode(transport, 1, name, references[index], epoch=epoch,
+                                  clear_retained=True)
                 node.run(paced(scene_source(scene, index), PACE_S), connect=False)
                 transport.close()
 
@@ -112,8 +115,10 @@ def test_live_dashboard_then_replay(wildtrack_root, wildtrack_site, start_broker
         cameras = counts(page)["cameras"]
         assert all(cameras[name]["online"] for name in names), cameras
         assert any(cameras[name]["rate_hz"] > 0 for name in names), cameras
+        assert all(cameras[name]["rejected"] == 0 for name in names), cameras
         rows = page.locator("#cameras tbody tr").count()
         assert rows == len(names)
+        assert page.locator("#cameras td.rejected").all_inner_texts() == ["0"] * len(names)
         # Well into the run (for the picture): tens of crossings counted.
         wait_until(lambda: line_total(counts(page)) >= 25 or not any(t.is_alive()
                                                                      for t in threads),

@@ -213,3 +213,33 @@ def test_wildtrack(wildtrack_root: Path) -> None:
     pixels, _ = camera.world_to_pixel(np.array([positions[int(i)] for i in boxes.object_id]))
     feet = np.stack([(boxes.xyxy[:, 0] + boxes.xyxy[:, 2]) / 2, boxes.xyxy[:, 3]], axis=1)
     assert np.median(np.linalg.norm(pixels - feet, axis=1)) < 20.0
+
+
+@pytest.mark.parametrize(
+    ("name", "make", "problem"),
+    [
+        ("whole.jpg", lambda jpeg, png: jpeg, None),
+        ("padded.jpg", lambda jpeg, png: jpeg + b"\x00\x00\n", None),
+        ("cut.jpg", lambda jpeg, png: jpeg[: len(jpeg) // 2], "truncated"),
+        ("empty.jpg", lambda jpeg, png: b"", "empty"),
+        ("whole.png", lambda jpeg, png: png, None),
+        ("cut.png", lambda jpeg, png: png[:-20], "truncated"),
+    ],
+)
+def test_image_problems_are_found_from_the_file_ends(tmp_path, name, make, problem):
+    import cv2
+
+    from cblrs.datasets.images import UnusableImage, image_problem, read_image
+
+    picture = np.random.default_rng(0).integers(0, 255, (64, 80, 3), dtype=np.uint8)
+    jpeg = cv2.imencode(".jpg", picture)[1].tobytes()
+    png = cv2.imencode(".png", picture)[1].tobytes()
+    path = tmp_path / name
+    path.write_bytes(make(jpeg, png))
+    assert image_problem(path) == problem
+    if problem is None:
+        assert read_image(path).shape == (64, 80, 3)
+    else:
+        with pytest.raises(UnusableImage) as caught:
+            read_image(path)
+        assert caught.value.reason == problem and str(path) in str(caught.value)

@@ -169,16 +169,44 @@ def test_detector_option_mistakes(
     assert message in error and error.count("\n") == 1
 
 
-def test_an_unreadable_image_is_one_sentence(multiviewx_real_root, yolox_model, tmp_path, capsys):
+def test_unusable_images_are_skipped_counted_and_said(multiviewx_real_root, yolox_model,
+                                                      tmp_path, capsys, caplog):
+    # Issue 21: one zero-byte image aborted the whole run, and a JPEG cut short was detected
+    # on silently (OpenCV greys what is missing). Both are now skipped, counted and said.
     copy = _dataset_copy(multiviewx_real_root, tmp_path)
-    broken = copy / "Image_subsets" / "C3" / "0001.jpg"
-    broken.write_bytes(b"\xff\xd8 truncated")
+    empty = copy / "Image_subsets" / "C3" / "0001.jpg"
+    empty.write_bytes(b"")
+    cut = copy / "Image_subsets" / "C1" / "0002.jpg"
+    whole = cut.read_bytes()
+    cut.write_bytes(whole[: len(whole) // 2])
+    garbage = copy / "Image_subsets" / "C2" / "0001.jpg"
+    garbage.write_bytes(b"\xff\xd8 not a JPEG at all \xff\xd9")
+    code, out, error = _track(
+        [str(copy), "--out", str(tmp_path / "t.txt"), "--detector", "onnx", "--model",
+         str(yolox_model), "--tiling", "off", "--frames", "1:3", "--json", "--quiet"], capsys,
+    )
+    assert code == 0, error
+    summary = json.loads(out)
+    assert summary["detector"]["images_skipped"] == {"empty": 1, "truncated": 1,
+                                                     "undecodable": 1}
+    assert summary["detector"]["images"] == 3 * 6 - 3
+    said = caplog.text
+    assert f"image {empty} is empty (0 bytes)." in said
+    assert f"image {cut} is cut short" in said
+    assert f"cannot read image {garbage}: not an image file OpenCV can decode." in said
+    assert "image skipped (3 so far)" in said
+    tracks = read_tracks(tmp_path / "t.txt")
+    assert set(np.unique(tracks.frame).tolist()) == {1, 2, 3}
+    # Every image unusable: one sentence, exit 1.
+    for folder in (copy / "Image_subsets").iterdir():
+        for image in folder.iterdir():
+            image.write_bytes(b"")
     code, _, error = _track(
         [str(copy), "--out", str(tmp_path / "t.txt"), "--detector", "onnx", "--model",
-         str(yolox_model), "--tiling", "off", "--quiet"], capsys,
+         str(yolox_model), "--frames", "1:1", "--quiet"], capsys,
     )
-    assert code == 1
-    assert f"cannot read image {broken}: not an image file OpenCV can decode." in error
+    assert code == 1 and f"every one of the 6 images of {copy} is unusable (6 empty)." in error
+    broken = copy / "Image_subsets" / "C3" / "0001.jpg"
     # A missing image is named too.
     broken.unlink()
     code, _, error = _track(

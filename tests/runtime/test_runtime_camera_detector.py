@@ -60,6 +60,49 @@ def test_an_image_folder_shorter_than_requested_is_an_error(tmp_path):
         list(image_folder_source(folder, ColourBlobDetector((1, 2, 3)), 2.0, last=5))
 
 
+def test_camera_command_skips_unusable_images(multiviewx_real_root, yolox_model,
+                                              camera1_reference, mosquitto, tmp_path, capsys,
+                                              caplog):
+    # Issue 21: a zero-byte image ended the camera's run; a JPEG cut short was detected on
+    # silently. Both frames are now skipped (no message: an empty one would claim nobody was
+    # there), counted by reason and said; the other frames are sent.
+    folder = tmp_path / "C1"
+    folder.mkdir()
+    source = multiviewx_real_root / "Image_subsets" / "C1"
+    for index in range(4):
+        (folder / f"{index:04d}.jpg").write_bytes((source / f"{index:04d}.jpg").read_bytes())
+    (folder / "0001.jpg").write_bytes(b"")
+    whole = (folder / "0002.jpg").read_bytes()
+    (folder / "0002.jpg").write_bytes(whole[: 2 * len(whole) // 3])
+    code = main([
+        "camera", "--camera", "Camera1", "--reference", str(camera1_reference),
+        "--images", str(folder), "--fps", "2", "--detector", "onnx", "--model", str(yolox_model),
+        "--tiling", "off", "--epoch", str(time.time()), "--broker",
+        f"127.0.0.1:{mosquitto.port}", "--json", "--confirm-timeout", "0",
+        "--spool", str(tmp_path / "spool.db"),
+    ])
+    captured = capsys.readouterr()
+    report = json.loads(captured.out)
+    assert code == 0, captured.err
+    assert report["frames"] == 4 and report["messages"] == 2 and report["flushed"]
+    assert report["frames_skipped"] == {"empty": 1, "truncated": 1}
+    warnings = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert (f"camera Camera1: image skipped (1 so far): image {folder / '0001.jpg'} is empty "
+            "(0 bytes).") in warnings
+    assert any(f"image skipped (2 so far): image {folder / '0002.jpg'} is cut short" in line
+               for line in warnings)
+    # Without --json the summary line says it too.
+    code = main([
+        "camera", "--camera", "Camera1", "--reference", str(camera1_reference),
+        "--images", str(folder), "--fps", "2", "--detector", "onnx", "--model", str(yolox_model),
+        "--tiling", "off", "--epoch", str(time.time()), "--broker",
+        f"127.0.0.1:{mosquitto.port}", "--confirm-timeout", "0",
+        "--spool", str(tmp_path / "spool2.db"),
+    ])
+    assert code == 0
+    assert "(frames skipped, unusable image: 1 empty, 1 truncated)" in capsys.readouterr().out
+
+
 def test_camera_command_detects_on_real_frames(
     multiviewx_real_root, yolox_model, camera1_reference, mosquitto, capsys
 ):
@@ -84,7 +127,8 @@ def test_camera_command_detects_on_real_frames(
          "is not an ONNX model"),
         (["--video", "CLIP", "--detector", "blob", "--frames", "0:9"],
          "ended after 3 frames, before the requested last frame 9"),
-        (["--images", "BROKEN", "--detector", "blob"], "not an image file OpenCV can decode"),
+        (["--images", "BROKEN", "--detector", "blob"],
+         "every one of the 1 frames had an unusable image (1 truncated): nothing was sent."),
     ],
 )
 def test_camera_command_input_mistakes(
@@ -108,4 +152,6 @@ def test_camera_command_input_mistakes(
     ])
     error = capsys.readouterr().err
     assert code != 0
-    assert message in error and error.count("\n") == 1, error
+    assert message in error, error
+    sentences = [line for line in error.splitlines() if "cblrs camera: error:" in line]
+    assert len(sentences) == 1 and "Traceback" not in error, error

@@ -89,6 +89,10 @@ def test_metrics_live_summary_and_events(tmp_path):
     camera = InProcessTransport(broker, "cameras", persistent=False)
     camera.connect()
     start = time.time() - 100.0
+    for name in ("A", "B"):
+        # What `cblrs camera` does when it starts: clear a retained message (issue 21: the
+        # dashboard showed this as one rejected message per camera).
+        camera.publish(detections_topic(PLANE, name), b"", retain=True)
     for frame in range(FRAMES):
         for name in ("A", "B"):
             payload = encode_message(walker_message(name, frame, start + 0.1 * frame), PLANE)

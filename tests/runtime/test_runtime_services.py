@@ -675,6 +675,55 @@ def test_camera_command_replays_a_mot_file(small_world, mosquitto, tmp_path, cap
     assert report["unconfirmed"] == 4 and not report["confirmed_all"]
 
 
+def test_a_replay_that_starts_late_says_when_its_first_frame_goes_out(small_world, mosquitto,
+                                                                        tmp_path):
+    # Issue 21: data whose times start at 100 s, replayed with the README's recipe
+    # (--realtime --epoch now+5), sent nothing for 105 s without a word. Now the camera says
+    # when its first frame is due, and how to start at once; that --epoch starts at once.
+    _, reference = small_world
+    reference_path = reference.save(tmp_path / "cam1.png")
+    detections = tmp_path / "cam1.txt"
+    detections.write_text("".join(f"{frame},1,150,100,20,100,0.9\n" for frame in (1000, 1001)))
+
+    def camera(epoch: float, spool: str) -> subprocess.Popen:
+        return subprocess.Popen(
+            [sys.executable, "-m", "cblrs.cli.main", "camera", "--camera", "cam1", "--reference",
+             str(reference_path), "--detections", str(detections), "--fps", "10",
+             "--realtime", "--epoch", f"{epoch:.0f}", "--broker", f"127.0.0.1:{mosquitto.port}",
+             "--spool", str(tmp_path / spool), "--confirm-timeout", "0", "--json"],
+            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+    late = camera(time.time() + 5, "late.db")
+    said: list[str] = []
+    reader = threading.Thread(target=lambda: said.extend(late.stderr), daemon=True)
+    reader.start()
+    try:
+        wait_until(lambda: any("first frame" in line for line in said), 60,
+                   "the camera to say when its first frame is due")
+        line = next(line for line in said if "first frame" in line)
+        assert "WARNING" in line, line
+        assert re.search(r"camera cam1: the first frame \(recorded at 100 s\) is due at "
+                         r"\d\d:\d\d:\d\d UTC \(--epoch \+ its time\), in 10\d s; nothing is "
+                         r"sent before; the recording starts at 100 s, so to start it at once "
+                         r"give every camera --epoch \$\(\( \$\(date \+%s\) \+ 5 - 100 \)\)$",
+                         line.strip()), line
+        assert late.poll() is None  # still waiting, as it said
+    finally:
+        late.terminate()
+        late.wait(30)
+        reader.join(10)
+
+    # The suggested epoch: the replay starts within seconds.
+    started = time.monotonic()
+    prompt = camera(time.time() + 5 - 100, "prompt.db")
+    out, err = prompt.communicate(timeout=60)
+    assert prompt.returncode == 0, err
+    assert json.loads(out)["messages"] == 2
+    assert time.monotonic() - started < 30
+    said = [line for line in err.splitlines() if "first frame" in line]
+    assert len(said) == 1 and " INFO " in said[0] and "to start it at once" not in said[0]
+
+
 @pytest.mark.parametrize(
     ("arguments", "message"),
     [

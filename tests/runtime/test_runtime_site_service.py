@@ -4,25 +4,32 @@ Everything runs as a user would run it: ``cblrs site init`` writes the site of W
 real Mosquitto (started by the test on a free loopback port) carries the messages, the
 matcher (``cblrs matcher --site``) and seven cameras (``cblrs camera --site``, one process
 each, each rendering only its own reference) are separate processes, and the tracks the
-matcher stored are scored against ``cblrs track`` on the same boxes.
+matcher stored are scored against ``cblrs track`` on the same boxes. ``cblrs analytics`` reads
+the matcher's ``--out-tracks`` as it is (its sidecar keeps the capture times; issue 21 found it
+refused for want of a frame rate).
 """
 
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
 import threading
 import time
+from pathlib import Path
 
 import pytest
 from waiting import wait_until
 
 from cblrs.cli.main import main
 from cblrs.datasets import load_scene, read_tracks
+from cblrs.datasets.aicity import metadata_path
 from cblrs.evaluation import evaluate
 from cblrs.runtime.mqtt_transport import MqttTransport
 from cblrs.runtime.topics import matcher_status_topic
 from cblrs.runtime.wire import decode_status
+
+REPO = Path(__file__).resolve().parents[2]
 
 pytestmark = [pytest.mark.mqtt, pytest.mark.slow]
 
@@ -120,3 +127,24 @@ def test_service_with_site_scores_like_cblrs_track(wildtrack_root, mosquitto, tm
     service = evaluate(truth, read_tracks(service_tracks))
     assert service.HOTA == pytest.approx(offline.HOTA, abs=0.01)
     assert offline.HOTA > 90.0
+
+    # The matcher's tracks file goes straight into `cblrs analytics` (no --fps): its times are
+    # the capture times, and its counts those of the same file with the frame rate given.
+    sidecar = json.loads(metadata_path(service_tracks).read_text())
+    assert sidecar["frames_per_second"] is None and "timestamps" in sidecar
+    places = REPO / "sites" / "wildtrack.yaml"
+    code = main(["analytics", str(service_tracks), "--site", str(places), "--out",
+                 str(tmp_path / "timed"), "--no-plots", "--json"])
+    assert code == 0
+    timed = json.loads((tmp_path / "timed" / "analytics.json").read_text())
+    code = main(["analytics", str(service_tracks), "--site", str(places), "--fps", "10", "--out",
+                 str(tmp_path / "by-rate"), "--no-plots", "--json"])
+    assert code == 0
+    by_rate = json.loads((tmp_path / "by-rate" / "analytics.json").read_text())
+    assert sum(row["count"] for row in timed["lines"]) > 10
+    assert timed["lines"] == by_rate["lines"]
+    for with_times, with_rate in zip(timed["zones"], by_rate["zones"], strict=True):
+        for measure in ("entries", "appeared", "exits", "visits"):
+            assert with_times[measure] == with_rate[measure]
+    crossings = (tmp_path / "timed" / "crossings.csv").read_text().splitlines()
+    assert float(crossings[1].split(",")[crossings[0].split(",").index("timestamp_s")]) > 1e9

@@ -187,8 +187,8 @@ CASES = [
     (
         "point noise for a camera not given by points",
         _set("cameras[0].ground_m", 0.1),
-        r"^site\.yaml: cameras\[0\] \(a\): model, points_unit, click_px and ground_m are for "
-        r"cameras given by points\.$",
+        r"^site\.yaml: cameras\[0\] \(a\): model, points_unit, click_px, ground_m, "
+        r"left_handed and max_height_m are for cameras given by points\.$",
     ),
     (
         "a ground noise of zero",

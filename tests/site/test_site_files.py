@@ -185,7 +185,7 @@ def test_render_track_and_eval_with_a_site(wildtrack_root, tmp_path, capsys):
     )
     assert "scored inside site.yaml's planes" in capsys.readouterr().out
     assert main(["render", str(wildtrack_root), "--site", str(site), "--out", "x"]) == 2
-    assert "give CALIBRATION or --site, not both" in capsys.readouterr().err
+    assert "give --dataset (or CALIBRATION) or --site, not both" in capsys.readouterr().err
     assert main(["demo", "--site", str(site), "--out", str(tmp_path / "d")]) == 2
     assert "--site needs --dataset" in capsys.readouterr().err
 

@@ -18,7 +18,15 @@ from cblrs.analytics.site import (
     site_extent,
 )
 from cblrs.analytics.tables import AnalyticsResult, analyse_tracks, json_safe, write_result
-from cblrs.datasets.aicity import apply_track_metadata, read_track_metadata, read_tracks
+from cblrs.datasets.aicity import (
+    TrackMetadata,
+    apply_track_metadata,
+    metadata_path,
+    metadata_timestamps,
+    read_track_metadata,
+    read_tracks,
+)
+from cblrs.detections import Tracks
 from cblrs.viz.analytics import plot_counts_over_time, plot_dwell, plot_heatmap, plot_od, plot_site
 
 logger = logging.getLogger(__name__)
@@ -50,7 +58,8 @@ def analyse_file(
             the classes and frame rate).
         site_path: site file (YAML/JSON) with a ``places`` section.
         out: folder for the tables and plots (created).
-        frames_per_second: rate of the file's frame numbers; needed unless the sidecar has it.
+        frames_per_second: rate of the file's frame numbers; needed unless the sidecar has
+            it or keeps the rows' timestamps (the matcher's ``--out-tracks``).
         config: settings; ``interval_s`` is chosen from the data's span when left at its
             default and ``heatmap`` from the site's planes (or its places and the tracks).
         cell_m: heatmap cell, metres (when the grid is chosen here).
@@ -72,17 +81,8 @@ def analyse_file(
         )
     tracks = read_tracks(tracks_path)  # a missing or malformed file is reported first
     metadata = read_track_metadata(tracks_path)
-    rate = frames_per_second
-    if rate is None and metadata is not None:
-        rate = metadata.frames_per_second
-    if rate is None:
-        raise AnalyticsError(
-            f"{tracks_path} carries no frame rate (no .meta.json sidecar from cblrs track): "
-            "give --fps, the frames per second of its frame numbers."
-        )
-    if not (math.isfinite(rate) and rate > 0):
-        raise AnalyticsError(f"--fps must be a positive number, got {rate}.")
-    tracks = apply_track_metadata(replace(tracks, timestamp=tracks.frame / rate), metadata)
+    tracks, rate = _timed(tracks, tracks_path, metadata, frames_per_second)
+    tracks = apply_track_metadata(tracks, metadata)
     if len(tracks) == 0:
         raise AnalyticsError(f"{tracks_path} holds no track rows.")
     outside = check_tracks_on_site(tracks, site)
@@ -113,6 +113,35 @@ def analyse_file(
         "files": [str(path) for path in files],
     }
     return json_safe(summary)
+
+
+def _timed(
+    tracks: Tracks, tracks_path: str | Path, metadata: TrackMetadata | None,
+    frames_per_second: float | None,
+) -> tuple[Tracks, float | None]:
+    """The tracks with their times in seconds and the frame rate used (None: the sidecar's
+    own timestamps, as the matcher's --out-tracks keeps them). ``--fps`` wins over both."""
+    if frames_per_second is None:
+        timestamps = metadata_timestamps(tracks, metadata)
+        if timestamps is not None:
+            return replace(tracks, timestamp=timestamps), None
+    rate = frames_per_second
+    if rate is None and metadata is not None:
+        rate = metadata.frames_per_second
+    if rate is None:
+        where = (
+            "no .meta.json sidecar (cblrs track and cblrs matcher --out-tracks write one)"
+            if metadata is None
+            else f"its sidecar {metadata_path(tracks_path).name} has neither a frame rate "
+            "nor timestamps"
+        )
+        raise AnalyticsError(
+            f"{tracks_path} carries no time: {where}; give --fps, the frames per second of "
+            "its frame numbers."
+        )
+    if not (math.isfinite(rate) and rate > 0):
+        raise AnalyticsError(f"--fps must be a positive number, got {rate}.")
+    return replace(tracks, timestamp=tracks.frame / rate), rate
 
 
 def _heatmap_bounds(site, tracks) -> tuple[float, float, float, float]:

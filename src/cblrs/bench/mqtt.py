@@ -421,21 +421,27 @@ def run_mqtt_benchmark(args: Any) -> int:
     """Run ``cblrs bench mqtt`` with its parsed options; print rows as they are measured.
 
     ``args`` carries the options of ``cblrs bench mqtt --help`` (cameras, runs, publisher,
-    repeats, max_messages, paced_seconds, fps, people, matcher, nagle, stages, json, markdown).
+    repeats, max_messages, paced_seconds, fps, people, matcher, nagle, stages, json, markdown,
+    out: a folder for ``bench_mqtt.json`` and ``bench_mqtt.md``, or None).
     """
+    out = getattr(args, "out", None)
     if args.stages:
         stage_rows = [measure_stages(cameras, args.people, args.matcher)
                       for cameras in args.cameras]
-        if args.json:
-            print(json.dumps({"machine": machine(), "stages": stage_rows}, indent=2))
-        for row in stage_rows if not args.json else []:
-            print(f"{row['cameras']:3d} cameras: decode {row['decode_us_per_message']:5.1f} us/msg"
-                  f", inbox insert {row['insert_us_per_message']:5.1f} us/msg, {args.matcher} "
-                  f"update {row['update_ms_per_group']:5.2f} ms/group "
-                  f"({row['update_us_per_message']:5.0f} us/msg, worst frame "
-                  f"{row['update_worst_ms']:5.1f} ms), commit "
-                  f"{row['commit_ms_per_group']:5.2f} ms/group; database "
-                  f"{row['database_bytes_per_message']:.0f} bytes/message")
+        stages_document = {"machine": machine(), "stages": stage_rows}
+        lines = [
+            f"{row['cameras']:3d} cameras: decode {row['decode_us_per_message']:5.1f} us/msg"
+            f", inbox insert {row['insert_us_per_message']:5.1f} us/msg, {args.matcher} "
+            f"update {row['update_ms_per_group']:5.2f} ms/group "
+            f"({row['update_us_per_message']:5.0f} us/msg, worst frame "
+            f"{row['update_worst_ms']:5.1f} ms), commit "
+            f"{row['commit_ms_per_group']:5.2f} ms/group; database "
+            f"{row['database_bytes_per_message']:.0f} bytes/message"
+            for row in stage_rows
+        ]
+        print(json.dumps(stages_document, indent=2) if args.json else "\n".join(lines))
+        if out is not None:
+            _write_results(Path(out), "mqtt_stages", stages_document, "\n".join(lines))
         return 0
     problem = check_runs(args.runs)
     if problem is not None:
@@ -474,14 +480,24 @@ def run_mqtt_benchmark(args: Any) -> int:
                     flush=True,
                 )
     info["load_end"] = list(os.getloadavg())
+    document = {"machine": info, "publisher": args.publisher, "repeats": args.repeats,
+                "fps": args.fps, "people": args.people, "matcher": args.matcher,
+                "results": rows}
+    if out is not None:
+        _write_results(Path(out), "mqtt", document, markdown_table(info, rows, args))
     if args.markdown:
         print(markdown_table(info, rows, args))
     elif args.json:
-        document = {"machine": info, "publisher": args.publisher, "repeats": args.repeats,
-                    "fps": args.fps, "people": args.people, "matcher": args.matcher,
-                    "results": rows}
         print(json.dumps(document, indent=2).replace("NaN", "null"))
     else:
         print(f"load average at end {info['load_end'][0]:.2f} (1 min), "
               f"{info['load_end'][1]:.2f} (5 min); medians over {args.repeats} runs")
     return 0
+
+
+def _write_results(out: Path, name: str, document: dict[str, Any], text: str) -> None:
+    """``bench_<name>.json`` and ``bench_<name>.md`` in ``out`` (as every benchmark writes)."""
+    out.mkdir(parents=True, exist_ok=True)
+    (out / f"bench_{name}.json").write_text(
+        json.dumps(document, indent=2).replace("NaN", "null") + "\n")
+    (out / f"bench_{name}.md").write_text(text + "\n")

@@ -16,6 +16,7 @@ from scipy.stats import chi2
 
 from cblrs.calibrate.checks import check_spread, image_size_of
 from cblrs.calibrate.models import ModelFailure, fit_model
+from cblrs.calibrate.plausible import MAX_HEIGHT_M, check_handedness, check_in_image, check_scale
 from cblrs.calibrate.points import Correspondences
 from cblrs.calibrate.pose import pose_from_homography
 from cblrs.calibrate.refine import PointNoise, Refined, normalised_errors
@@ -186,6 +187,8 @@ def calibrate_camera(
     warn_px: float | None = None,
     click_px: float = 2.0,
     ground_m: float = 0.1,
+    left_handed: bool = False,
+    max_height_m: float = MAX_HEIGHT_M,
 ) -> CalibrationFit:
     """Fit a camera to clicked points.
 
@@ -206,14 +209,20 @@ def calibrate_camera(
         click_px: how far a click may miss its pixel, one standard deviation per axis.
         ground_m: how far a point's ground position may be off (the site plan's accuracy),
             metres, one standard deviation per axis.
+        left_handed: the world's axes are left-handed on purpose; otherwise mirrored points
+            (``u, v`` or ``x, y`` swapped) are refused.
+        max_height_m: a fit that puts the camera higher is refused (ground positions in
+            centimetres or map pixels read as metres).
 
     Returns:
         The fit, with per-point errors and warnings.
 
     Raises:
-        CalibrationError: too few points, points on one line, a point behind the camera
-            (beyond the horizon) under the fit, a model the points cannot determine, or
-            a ``pose`` without a focal length; each a sentence naming ``points.source``.
+        CalibrationError: too few points, points on one line or outside the image, a point
+            behind the camera (beyond the horizon) under the fit, a model the points cannot
+            determine, a ``pose`` without a focal length, or an implausible camera (mirrored,
+            too high: :mod:`~cblrs.calibrate.plausible`); each a sentence naming
+            ``points.source``.
     """
     model = _model(model, points.source)
     width, height = image_size_of(image_size, points.source)
@@ -223,6 +232,7 @@ def calibrate_camera(
         (click_px, "the click noise must be a positive number of pixels"),
         (ground_m, "the ground noise must be a positive number of metres"),
         (focal_px, "the focal length must be a positive number of pixels"),
+        (max_height_m, "the largest camera height must be a positive number of metres"),
     ):
         if value is not None and not (math.isfinite(value) and value > 0):
             raise CalibrationError(f"{points.source}: {what}, got {value}.")
@@ -234,6 +244,7 @@ def calibrate_camera(
             "a ground homography needs at least 4 (u, v, x, y) correspondences."
         )
     check_spread(points)
+    check_in_image(points, (width, height))
     if model is not Model.AUTO and count < MINIMUM_POINTS[model]:
         fitted = {
             Model.FOCAL: "the pose and the focal length",
@@ -251,6 +262,7 @@ def calibrate_camera(
         )
     warnings: list[str] = []
     homography, inliers = _consensus(points, noise, ransac_px)
+    check_handedness(points, homography, inliers, left_handed)
     used = int(inliers.sum())
     if model is not Model.AUTO and used < MINIMUM_POINTS[model]:
         raise CalibrationError(
@@ -307,6 +319,7 @@ def calibrate_camera(
             )
         else:
             warnings.append(f"{points.source}: no camera position ({reason}).")
+    check_scale(points, None if position is None else position[2], max_height_m)
     error_px, error_m = point_errors(camera, points)
     if used == 4 and chosen is Model.HOMOGRAPHY:
         # 4 points give 8 equations for the homography's 8 unknowns: an exact fit.

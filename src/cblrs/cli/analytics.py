@@ -32,7 +32,8 @@ def register(subparsers) -> None:
                         help="folder for the tables and plots")
     parser.add_argument("--fps", type=float, default=None, metavar="F",
                         help="frames per second of the file's frame numbers "
-                        "(default: from its .meta.json sidecar)")
+                        "(default: from its .meta.json sidecar: the frame rate, or the capture "
+                        "times that cblrs matcher --out-tracks keeps)")
     parser.add_argument("--interval", type=float, default=None, metavar="S",
                         help="time bin of the counts over time, seconds (default: from the span)")
     parser.add_argument("--cell", type=float, default=0.5, metavar="M",

@@ -178,7 +178,10 @@ def register(subparsers) -> None:
                       help="only time each matcher step in-process (no broker) and exit")
     mqtt.add_argument("--markdown", action="store_true",
                       help="print a markdown table (for docs/results/bench_mqtt.md)")
-    mqtt.add_argument("--json", action="store_true", help="print machine-readable JSON")
+    mqtt.add_argument("--out", type=Path,
+                      help="also write bench_mqtt.json and bench_mqtt.md here (with --stages: "
+                      "bench_mqtt_stages.json/.md)")
+    add_output_options(mqtt)
     mqtt.set_defaults(handler=_run_mqtt)
 
     every = kinds.add_parser("all", help="every benchmark; writes JSON and markdown to --out")
@@ -507,6 +510,8 @@ def _run_mqtt(args: argparse.Namespace) -> int:
         raise UsageError(problem)
     if min(args.cameras) <= 0 or args.repeats <= 0 or args.fps <= 0 or args.people < 0:
         raise UsageError("--cameras, --repeats and --fps must be positive, --people >= 0.")
+    if args.out is not None and args.out.exists() and not args.out.is_dir():
+        raise UsageError(f"--out {args.out} is a file; give a folder.")
     if args.publisher is None:
         args.publisher = "mosquitto_pub" if shutil.which("mosquitto_pub") else "paho"
     threading.current_thread().name = "bench"

@@ -10,7 +10,13 @@ from typing import Any
 
 import numpy as np
 
-from cblrs.cli.common import InputError, UsageError, format_table, print_json
+from cblrs.cli.common import (
+    InputError,
+    UsageError,
+    add_output_options,
+    format_table,
+    print_json,
+)
 
 
 def register(subparsers) -> None:
@@ -65,6 +71,20 @@ def register(subparsers) -> None:
     world.add_argument(
         "--map-y-down", action="store_true", help="world y grows down the map (default: up)"
     )
+    plausible = parser.add_argument_group("what a plausible camera is")
+    plausible.add_argument(
+        "--left-handed",
+        action="store_true",
+        help="the world's axes are left-handed (seen from above, x turns clockwise onto y); "
+        "otherwise mirrored points (u,v or x,y swapped) are refused",
+    )
+    plausible.add_argument(
+        "--max-height-m",
+        type=float,
+        default=100.0,
+        help="refuse a fit that puts the camera higher (ground positions in centimetres?), "
+        "metres (default 100)",
+    )
     parser.add_argument(
         "--ransac-px",
         type=float,
@@ -73,7 +93,7 @@ def register(subparsers) -> None:
     parser.add_argument("--out", type=Path, help="write the camera (cblrs camera JSON)")
     parser.add_argument("--picture", type=Path, help="write the picture of the fit (PNG)")
     parser.add_argument("--grid", type=float, metavar="M", help="grid spacing of the picture")
-    parser.add_argument("--json", action="store_true", help="print machine-readable JSON")
+    add_output_options(parser)
     parser.set_defaults(handler=run)
 
 
@@ -148,6 +168,8 @@ def run(args: argparse.Namespace) -> int:
         ransac_px=args.ransac_px,
         click_px=args.click_px,
         ground_m=args.ground_m,
+        left_handed=args.left_handed,
+        max_height_m=args.max_height_m,
     )
     summary = fit.to_dict()
     if args.out is not None:

@@ -538,6 +538,14 @@ def run(args: argparse.Namespace) -> int:
         print_json(summary)
     else:
         print(_summary_line(report, spool_path, args.confirm_timeout))
+    skipped = sum(report.frames_skipped.values())
+    if skipped and skipped == report.frames:
+        raise InputError(
+            f"every one of the {skipped} frames had an unusable image ("
+            + ", ".join(f"{count} {reason}" for reason, count in
+                        sorted(report.frames_skipped.items()))
+            + "): nothing was sent."
+        )
     if report.refusal is not None:
         print(f"cblrs camera: error: {report.refusal}.", file=sys.stderr)
         return 1
@@ -552,6 +560,9 @@ def _summary_line(report: Any, spool_path: Path, confirm_timeout: float) -> str:
         f"{report.bytes / 1024:.1f} kB in {report.elapsed_s:.2f} s; "
     )
     details = []
+    if report.frames_skipped:
+        details.append("frames skipped, unusable image: " + ", ".join(
+            f"{count} {reason}" for reason, count in sorted(report.frames_skipped.items())))
     if report.boxes_rejected:
         details.append("boxes dropped: " + ", ".join(
             f"{count} {reason}" for reason, count in sorted(report.boxes_rejected.items())))

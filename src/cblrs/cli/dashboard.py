@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import re
 import secrets
@@ -12,7 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from cblrs.cli.camera import add_mqtt_options, mqtt_settings
-from cblrs.cli.common import InputError, UsageError, check_positive
+from cblrs.cli.common import InputError, UsageError, add_output_options, check_positive
 
 logger = logging.getLogger(__name__)
 
@@ -67,6 +68,7 @@ def register(subparsers) -> None:
                         help="where the calibration page writes references (default: "
                         "references/ beside the site file)")
     add_mqtt_options(parser)
+    add_output_options(parser)
     parser.set_defaults(broker=None, handler=run)
 
 
@@ -152,7 +154,13 @@ def run(args: argparse.Namespace) -> int:
         where.append("no --users: this link logs in as admin until the dashboard stops")
     else:
         where.append(f"users of {args.users}")
-    print(f"dashboard on {url} ({', '.join(where)}); Ctrl-C stops it", flush=True)
+    if args.json:
+        print(json.dumps({"url": url, "site": str(args.site), "plane": plane,
+                          "broker": args.broker, "users": None if args.users is None
+                          else str(args.users),
+                          "db": None if args.db is None else str(args.db)}), flush=True)
+    else:
+        print(f"dashboard on {url} ({', '.join(where)}); Ctrl-C stops it", flush=True)
     if not auth.loopback and not auth.secure:
         print("cblrs dashboard: warning: passwords and session cookies cross the network in "
               "clear; give --tls-cert and --tls-key, or serve it behind a TLS proxy (--origin "

@@ -523,11 +523,14 @@ def draw_overlays(
             highlight, _ = camera.world_to_pixel(truth.world_xy)
         elif images is not None:
             # lazy: a subcommand imports the library when it runs, so its --help starts fast
-            from cblrs.datasets.images import read_image
+            from cblrs.datasets.images import UnusableImage, read_image
 
-            background = read_image(images[index][number])[..., ::-1]
+            try:
+                background = read_image(images[index][number])[..., ::-1]
+                opacity = 0.35
+            except UnusableImage as error:
+                logger.warning("overlay of %s drawn without its frame: %s", camera.name, error)
             highlight = visible_pixels(camera, truth.world_xy)
-            opacity = 0.35
         image = camera_overlay(
             reference,
             detections,

@@ -112,6 +112,7 @@ def real_detections(
         "tiles": {camera.name: plan.describe() for camera, plan in zip(
             scene.cameras, run.plans, strict=True)},
         "images": run.images,
+        "images_skipped": run.skipped,
         "detector_ms_per_image": round(run.ms_per_image, 2),
         "decode_ms_per_image": round(1000 * run.decode_seconds / max(run.images, 1), 2),
     }

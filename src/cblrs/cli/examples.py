@@ -23,7 +23,7 @@ EXAMPLES: dict[str, list[str]] = {
     "site export": ["cblrs site export site.yaml --out site-bundle.yaml"],
     "calibrate": ["cblrs calibrate gate.csv --image gate.jpg --picture gate_check.png "
                   "--out gate.json"],
-    "render": [f"cblrs render {WT} --out refs --preview",
+    "render": [f"cblrs render --dataset {WT} --out refs --preview",
                "cblrs render --site site.yaml --out refs",
                "cblrs render --site site.yaml --key site.key --out refs   # pseudo colours"],
     "locate": [f"cblrs locate refs/CVLab1.png --dataset {WT} --frame 0",

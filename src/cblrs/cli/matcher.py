@@ -91,7 +91,12 @@ def register(subparsers) -> None:
         default=2.0,
         help="ordering window, seconds: how long a timestamp waits for a silent camera",
     )
-    parser.add_argument("--out-tracks", type=Path, help="also write tracks (AI City format)")
+    parser.add_argument(
+        "--out-tracks",
+        type=Path,
+        help="also write tracks (AI City format; its .meta.json sidecar keeps the capture "
+        "times, for cblrs analytics)",
+    )
     parser.add_argument(
         "--no-publish-tracks", action="store_true", help="do not publish on cblrs/<plane>/tracks"
     )
@@ -406,7 +411,7 @@ def run(args: argparse.Namespace) -> int:
             # lazy: a subcommand imports the library when it runs, so its --help starts fast
             from cblrs.datasets.aicity import write_tracks
 
-            write_tracks(args.out_tracks, store.tracks())
+            write_tracks(args.out_tracks, store.tracks(), keep_timestamps=True)
             summary["out_tracks"] = str(args.out_tracks)
         store.close()
     summary["elapsed_s"] = time.perf_counter() - started

@@ -7,7 +7,7 @@ import argparse
 from pathlib import Path
 from typing import Any
 
-from cblrs.cli.common import UsageError, format_table, print_json
+from cblrs.cli.common import UsageError, add_output_options, format_table, print_json
 
 
 def register(subparsers) -> None:
@@ -32,7 +32,7 @@ def register(subparsers) -> None:
         "--force", action="store_true", help="replace an existing key file (the old key's "
         "references, pseudo sites and tracks can then no longer be mapped back)"
     )
-    keygen.add_argument("--json", action="store_true", help="print a JSON summary")
+    add_output_options(keygen)
     keygen.set_defaults(handler=run_keygen)
 
     site = actions.add_parser(
@@ -42,7 +42,7 @@ def register(subparsers) -> None:
     site.add_argument("--key", type=Path, required=True, help="the key file")
     site.add_argument("--out", type=Path, required=True, help="pseudo site file to write")
     site.add_argument("--force", action="store_true", help="overwrite --out if it exists")
-    site.add_argument("--json", action="store_true", help="print a JSON summary")
+    add_output_options(site)
     site.set_defaults(handler=run_site)
 
     unmap = actions.add_parser(
@@ -51,7 +51,7 @@ def register(subparsers) -> None:
     unmap.add_argument("tracks", type=Path, metavar="TRACKS", help="pseudo tracks file")
     unmap.add_argument("--key", type=Path, required=True, help="the key file")
     unmap.add_argument("--out", type=Path, required=True, help="site tracks file to write")
-    unmap.add_argument("--json", action="store_true", help="print a JSON summary")
+    add_output_options(unmap)
     unmap.set_defaults(handler=run_unmap)
     parser.set_defaults(handler=lambda args: _missing_action(parser))
 

@@ -32,13 +32,18 @@ def register(subparsers) -> None:
         "render",
         help="render colour reference images from a calibration",
         description=(
-            "Render one colour reference PNG per camera. CALIBRATION is a WILDTRACK or "
-            "MultiviewX folder, an AI City calibration.json (or a folder of them) or a cblrs "
-            "camera JSON file."
+            "Render one colour reference PNG per camera, from a data set (--dataset, a "
+            "WILDTRACK or MultiviewX folder), a site file (--site) or CALIBRATION: an AI City "
+            "calibration.json (or a folder of them), a cblrs camera JSON file or a data set "
+            "folder."
         ),
     )
     parser.add_argument(
         "calibration", metavar="CALIBRATION", nargs="?", help="calibration file or folder"
+    )
+    parser.add_argument(
+        "--dataset", type=Path, metavar="PATH",
+        help="a WILDTRACK or MultiviewX folder: its cameras and ground (as CALIBRATION)",
     )
     parser.add_argument(
         "--site", type=Path, help="a site file: its cameras and planes (instead of CALIBRATION)"
@@ -157,7 +162,7 @@ def site_cameras_and_planes(
     from cblrs.site import load_site
 
     if args.calibration is not None:
-        raise UsageError("give CALIBRATION or --site, not both.")
+        raise UsageError("give --dataset (or CALIBRATION) or --site, not both.")
     if args.plane or args.planes_file is not None or args.distorted:
         raise UsageError(
             "--plane, --planes-file and --distorted do not go with --site: the site file gives "
@@ -183,10 +188,18 @@ def site_cameras_and_planes(
 
 def run(args: argparse.Namespace) -> int:
     """Run ``cblrs render`` with its parsed arguments; the exit code."""
+    if args.dataset is not None:
+        # The data set's folder is spelled --dataset on every subcommand; CALIBRATION also
+        # takes calibration files, so it stays.
+        if args.calibration is not None and Path(args.calibration) != args.dataset:
+            raise UsageError("CALIBRATION and --dataset name different folders; give one.")
+        if not args.dataset.is_dir():
+            raise InputError(f"--dataset {args.dataset} is not a folder.")
+        args.calibration = str(args.dataset)
     if args.site is not None:
         cameras, camera_planes, all_planes = site_cameras_and_planes(args)
     elif args.calibration is None:
-        raise UsageError("give a CALIBRATION file or folder, or --site SITE.")
+        raise UsageError("give --dataset DIR, a CALIBRATION file or folder, or --site SITE.")
     else:
         cameras = read_cameras(args.calibration, distorted=args.distorted)
         all_planes = build_planes(args)

@@ -6,7 +6,7 @@ import argparse
 import re
 from pathlib import Path
 
-from cblrs.cli.common import UsageError, add_dataset_argument, print_json
+from cblrs.cli.common import UsageError, add_dataset_argument, add_output_options, print_json
 
 
 def register(subparsers) -> None:
@@ -42,7 +42,7 @@ def register(subparsers) -> None:
     init.add_argument("--bits", type=int, choices=(8, 16), default=16)
     init.add_argument("--name", help="the site's name (default: the folder's)")
     init.add_argument("--force", action="store_true", help="overwrite --out if it exists")
-    init.add_argument("--json", action="store_true", help="print a JSON summary")
+    add_output_options(init)
     init.set_defaults(handler=run_init)
 
     check = actions.add_parser("check", help="validate a site file and say what it is ready for")
@@ -54,7 +54,7 @@ def register(subparsers) -> None:
         help="comma-separated commands (render, camera, matcher, track, analytics) the site "
         "must be ready for; exit 1 otherwise",
     )
-    check.add_argument("--json", action="store_true", help="print the report as JSON")
+    add_output_options(check)
     check.set_defaults(handler=run_check)
 
     export = actions.add_parser(
@@ -65,6 +65,7 @@ def register(subparsers) -> None:
     export.add_argument("site", type=Path, metavar="SITE")
     export.add_argument("--out", type=Path, required=True, help="file to write (.yaml/.json)")
     export.add_argument("--force", action="store_true", help="overwrite --out if it exists")
+    add_output_options(export)
     export.set_defaults(handler=run_export)
 
     def usage(args: argparse.Namespace) -> int:
@@ -166,5 +167,8 @@ def run_export(args: argparse.Namespace) -> int:
     site = load_site(args.site)
     path = save_document(site.export(), args.out)
     load_site(path)
-    print(f"wrote {path}: {len(site.camera_names)} cameras, self-contained")
+    if args.json:
+        print_json({"out": str(path), "cameras": list(site.camera_names)})
+    else:
+        print(f"wrote {path}: {len(site.camera_names)} cameras, self-contained")
     return 0

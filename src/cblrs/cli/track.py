@@ -254,6 +254,10 @@ def run(args: argparse.Namespace) -> int:
                 f"detector {detector_summary['model']} ({detector_summary['tiling']} tiling): "
                 f"{detector_summary['detector_ms_per_image']:.1f} ms per image, "
                 f"{detector_summary['images']} images"
+                + ("; skipped (unusable image file): " + ", ".join(
+                    f"{count} {reason}" for reason, count in
+                    sorted(detector_summary["images_skipped"].items()))
+                   if detector_summary.get("images_skipped") else "")
             )
         for name, report in (result.clocks or {}).items():
             if report["beyond_tolerance"] or report["coarse_corrections"]:

@@ -309,6 +309,7 @@ def create_app(config: DashboardConfig, auth: Any) -> Any:
                 calibration.fit_points, config.site, str(data.get("camera")),
                 data.get("points"), data.get("image_size"), str(data.get("model", "auto")),
                 _optional_float(data.get("focal_px")), str(data.get("unit", "metres")),
+                data.get("left_handed") is True,
             )
         except (CblrsError, ValueError, AttributeError) as error:
             return refusal(error)
@@ -323,7 +324,7 @@ def create_app(config: DashboardConfig, auth: Any) -> Any:
                 calibration.save_points, config.site_path, str(data.get("camera")),
                 data.get("points"), data.get("image_size"), config.references,
                 str(data.get("model", "auto")), _optional_float(data.get("focal_px")),
-                str(data.get("unit", "metres")),
+                str(data.get("unit", "metres")), data.get("left_handed") is True,
             )
         except (CblrsError, ValueError, AttributeError) as error:
             return refusal(error)

@@ -60,6 +60,7 @@ def camera_list(site: Site, frames: Path | None) -> list[dict[str, Any]]:
             "frame": frame_path(site, spec.name, frames) is not None,
             "points": points,
             "points_unit": spec.points_unit,
+            "left_handed": spec.left_handed,
         })
     return cameras
 
@@ -106,6 +107,7 @@ def fit_points(
     model: str = "auto",
     focal_px: float | None = None,
     unit: str = "metres",
+    left_handed: bool = False,
 ) -> dict[str, Any]:
     """Fit the clicked pairs; the fit's summary (:meth:`CalibrationFit.to_dict`) without the
     camera matrices, plus each inlier's reprojected pixel.
@@ -120,7 +122,8 @@ def fit_points(
         raise CalibrationPageError(f"unknown model {model!r}.")
     try:
         pairs = _correspondences(points, site, unit)
-        fit = calibrate_camera(pairs, size, camera, focal_px=focal_px, model=model)
+        fit = calibrate_camera(pairs, size, camera, focal_px=focal_px, model=model,
+                               left_handed=left_handed)
     except CalibrationPageError:
         raise
     except CblrsError as error:
@@ -143,6 +146,7 @@ def save_points(
     model: str = "auto",
     focal_px: float | None = None,
     unit: str = "metres",
+    left_handed: bool = False,
 ) -> dict[str, Any]:
     """Write the pairs into the site file as the camera's geometry and render its reference.
 
@@ -152,6 +156,7 @@ def save_points(
         points: ``[{u, v, x, y, name?}]`` (x, y in ``unit``).
         image_size: ``[width, height]`` of the camera's frames.
         references: folder of the rendered reference PNGs (``<camera>.png``).
+        left_handed: the site's world axes are left-handed (mirrored points are expected).
 
     Returns:
         ``{"site", "backup", "reference", "fit"}``.
@@ -160,7 +165,7 @@ def save_points(
         CalibrationPageError: the fit or the site file refuses the points (nothing written).
     """
     site = load_site(site_path)
-    fit = fit_points(site, camera, points, image_size, model, focal_px, unit)
+    fit = fit_points(site, camera, points, image_size, model, focal_px, unit, left_handed)
     document = read_document(site_path)
     cameras = document.get("cameras") or []
     index = site.index_of(camera)
@@ -178,6 +183,8 @@ def save_points(
         entry["model"] = model
     if focal_px is not None:
         entry["focal_px"] = float(focal_px)
+    if left_handed:
+        entry["left_handed"] = True
     cameras[index] = entry
     document["cameras"] = cameras
 

@@ -18,11 +18,12 @@ The format carries no time: :func:`read_tracks` sets ``timestamp`` to the frame 
 map frames to seconds themselves.
 
 Nor does it carry a class. So that the file stays exactly what TrackEval and the AI City tools
-read, :func:`write_tracks` puts what the format lacks — each track's class and the frame rate
-— in a JSON sidecar ``<file>.meta.json`` (schema ``cblrs.tracks-meta/1``) next to it, with the
-SHA-256 of the tracks file so that a sidecar left over from another file is refused, not
-trusted; :func:`read_track_metadata` reads it and :func:`apply_track_metadata` fills
-``Tracks.class_id``.
+read, :func:`write_tracks` puts what the format lacks — each track's class and the frame rate,
+or, for tracks whose frames have no fixed rate (a live matcher's), the capture time of every
+frame (or row) — in a JSON sidecar ``<file>.meta.json`` (schema ``cblrs.tracks-meta/1``) next
+to it, with the SHA-256 of the tracks file so that a sidecar left over from another file is
+refused, not trusted; :func:`read_track_metadata` reads it, :func:`apply_track_metadata` fills
+``Tracks.class_id`` and :func:`metadata_timestamps` gives the rows' times.
 """
 
 from __future__ import annotations
@@ -52,19 +53,25 @@ _NO_BOX = -1.0
 
 
 def write_tracks(
-    path: str | Path, tracks: Tracks, frames_per_second: float | None = None
+    path: str | Path,
+    tracks: Tracks,
+    frames_per_second: float | None = None,
+    keep_timestamps: bool = False,
 ) -> None:
     """Write tracks as an AI City 2024 text file (rows in the given order).
 
-    When some ``class_id`` is known or ``frames_per_second`` is given, a sidecar
-    ``<path>.meta.json`` keeps them (see the module docstring); otherwise a sidecar left from
-    an earlier file of that name is removed.
+    When some ``class_id`` is known, ``frames_per_second`` is given or ``keep_timestamps`` is
+    set, a sidecar ``<path>.meta.json`` keeps them (see the module docstring); otherwise a
+    sidecar left from an earlier file of that name is removed.
 
     Args:
         path: the output file (overwritten).
         tracks: the rows; ``camera_id``, ``track_id``, ``frame``, ``xyxy`` (pixels, NaN for
-            no box) and ``world_xy`` (metres) are written, ``timestamp`` is not.
+            no box) and ``world_xy`` (metres) are written, ``timestamp`` only to the sidecar
+            with ``keep_timestamps``.
         frames_per_second: the rate of the frame numbers (``timestamp = frame / rate``).
+        keep_timestamps: keep each row's ``timestamp`` (seconds) in the sidecar: one per frame
+            number when each frame has one time, else one per row.
 
     Raises:
         DatasetError: a world position is not finite, or the file cannot be written.
@@ -98,7 +105,7 @@ def write_tracks(
     except OSError as error:
         raise DatasetError(f"cannot write {path}: {error.strerror or error}.") from None
     logger.debug("wrote %d rows to %s", len(tracks), path)
-    _write_metadata(path, text, tracks, frames_per_second)
+    _write_metadata(path, text, tracks, frames_per_second, keep_timestamps)
 
 
 METADATA_SCHEMA = "cblrs.tracks-meta/1"
@@ -112,10 +119,20 @@ class TrackMetadata:
         frames_per_second: rate of the file's frame numbers (None: unknown).
         classes: track id -> class id (index into :data:`CLASS_NAMES`), for tracks whose
             class is known.
+        frame_seconds: frame number -> capture time (seconds), when the sidecar keeps one
+            time per frame.
+        row_seconds: (N,) capture time of each row, when it keeps one per row.
     """
 
     frames_per_second: float | None
     classes: dict[int, int]
+    frame_seconds: dict[int, float] | None = None
+    row_seconds: NDArray[np.float64] | None = None
+
+    @property
+    def has_timestamps(self) -> bool:
+        """The sidecar keeps the rows' capture times."""
+        return self.frame_seconds is not None or self.row_seconds is not None
 
 
 def metadata_path(path: str | Path) -> Path:
@@ -143,11 +160,15 @@ def track_classes(tracks: Tracks) -> dict[int, int]:
 
 
 def _write_metadata(
-    path: Path, text: str, tracks: Tracks, frames_per_second: float | None
+    path: Path,
+    text: str,
+    tracks: Tracks,
+    frames_per_second: float | None,
+    keep_timestamps: bool = False,
 ) -> None:
     sidecar = metadata_path(path)
     classes = track_classes(tracks)
-    if frames_per_second is None and not classes:
+    if frames_per_second is None and not classes and not keep_timestamps:
         sidecar.unlink(missing_ok=True)
         return
     if frames_per_second is not None and not frames_per_second > 0:
@@ -160,10 +181,65 @@ def _write_metadata(
         "frames_per_second": frames_per_second,
         "classes": {str(track): CLASS_NAMES[class_id] for track, class_id in classes.items()},
     }
+    if keep_timestamps:
+        document["timestamps"] = _timestamps_document(tracks)
     try:
         sidecar.write_text(json.dumps(document, indent=1) + "\n")
     except OSError as error:
         raise DatasetError(f"cannot write {sidecar}: {error.strerror or error}.") from None
+
+
+def _timestamps_document(tracks: Tracks) -> dict[str, list[Any]]:
+    """``{"frames": [...], "seconds": [...]}`` when every frame number has one time, else
+    ``{"rows": [...]}`` (JSON keeps a float exactly)."""
+    frames, first = np.unique(tracks.frame, return_index=True)
+    seconds = tracks.timestamp[first]
+    position = np.searchsorted(frames, tracks.frame)
+    if np.array_equal(seconds[position], tracks.timestamp):
+        return {"frames": frames.tolist(), "seconds": seconds.tolist()}
+    return {"rows": tracks.timestamp.tolist()}
+
+
+def _read_timestamps(
+    document: dict[str, Any], rows: int
+) -> tuple[dict[int, float] | None, NDArray[np.float64] | None]:
+    times = document.get("timestamps")
+    if times is None:
+        return None, None
+    if not isinstance(times, dict):
+        raise ValueError("timestamps must be an object")
+    if "rows" in times:
+        row_seconds = np.asarray(times["rows"], dtype=np.float64)
+        if row_seconds.shape != (rows,) or not np.isfinite(row_seconds).all():
+            raise ValueError(f"timestamps.rows must hold {rows} finite numbers")
+        return None, row_seconds
+    if "frames" not in times or "seconds" not in times:
+        raise ValueError("timestamps must hold rows, or frames and seconds")
+    frames, seconds = list(times["frames"]), [float(value) for value in times["seconds"]]
+    if len(frames) != len(seconds):
+        raise ValueError("timestamps.frames and timestamps.seconds differ in length")
+    return dict(zip((int(frame) for frame in frames), seconds, strict=True)), None
+
+
+def metadata_timestamps(
+    tracks: Tracks, metadata: TrackMetadata | None
+) -> NDArray[np.float64] | None:
+    """(N,) the rows' capture times kept in the sidecar, or None when it keeps none.
+
+    Raises:
+        DatasetError: the sidecar has no time for a frame of ``tracks``.
+    """
+    if metadata is None:
+        return None
+    if metadata.row_seconds is not None:
+        return metadata.row_seconds.copy()
+    if metadata.frame_seconds is None:
+        return None
+    try:
+        return np.array([metadata.frame_seconds[frame] for frame in tracks.frame.tolist()],
+                        dtype=np.float64)
+    except KeyError as error:
+        raise DatasetError(f"the tracks' sidecar has no time for frame {error.args[0]}.") from None
 
 
 def read_track_metadata(path: str | Path) -> TrackMetadata | None:
@@ -199,9 +275,11 @@ def read_track_metadata(path: str | Path) -> TrackMetadata | None:
             int(track): class_id_of(str(name))
             for track, name in dict(document.get("classes") or {}).items()
         }
+        frame_seconds, row_seconds = _read_timestamps(document, int(document.get("rows", -1)))
     except (TypeError, ValueError) as error:
         raise DatasetError(f"{sidecar}: {error}.") from None
-    return TrackMetadata(frames_per_second=rate, classes=classes)
+    return TrackMetadata(frames_per_second=rate, classes=classes, frame_seconds=frame_seconds,
+                         row_seconds=row_seconds)
 
 
 def apply_track_metadata(tracks: Tracks, metadata: TrackMetadata | None) -> Tracks:
@@ -229,7 +307,8 @@ def read_tracks(path: str | Path, frames_per_second: float | None = None) -> Tra
 
     Raises:
         DatasetError: the file is missing, or a row (named ``file:line``) has the wrong
-            number of columns, a non-numeric or non-finite value, or a fractional id.
+            number of columns, a non-numeric or non-finite value, a fractional id or a
+            negative frame number.
     """
     path = Path(path)
     if frames_per_second is not None and not frames_per_second > 0:
@@ -248,6 +327,12 @@ def read_tracks(path: str | Path, frames_per_second: float | None = None) -> Tra
         if fractional.any():
             _raise_at_row(text, path, int(np.flatnonzero(fractional)[0]),
                           f"{COLUMNS[column]} must be an integer")
+    negative = values[:, 2] < 0
+    if negative.any():
+        # A frame number counts frames from the start of a recording; a negative one is a
+        # shifted or corrupted file, and its rows would be timed before the recording began.
+        _raise_at_row(text, path, int(np.flatnonzero(negative)[0]),
+                      "frame_id must not be negative")
     frame = values[:, 2].astype(np.int64)
     x, y, width, height = values[:, 3], values[:, 4], values[:, 5], values[:, 6]
     xyxy = np.stack([x, y, x + width, y + height], axis=1)

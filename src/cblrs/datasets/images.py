@@ -10,6 +10,10 @@ shows the instant of annotation file ``NNNN+1.json``. :func:`image_frame_offset`
 the offset from the numbers themselves: 0 when the image numbers are the annotated frame
 numbers, 1 when they are those numbers minus one (and then says so in the log); a frame
 without its image is an error, so images are never paired with the wrong annotations.
+
+An image file that is there but unusable — empty, cut short, undecodable — raises
+:class:`UnusableImage`; a stream of frames skips it, counts it by reason
+(:class:`SkippedImages`) and warns, so one bad file neither ends a run nor passes unnoticed.
 """
 
 from __future__ import annotations
@@ -30,11 +34,62 @@ IMAGE_FOLDER = "Image_subsets"
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp")
 
 
+class UnusableImage(DatasetError):
+    """An image file that cannot give a whole frame: empty, cut short or undecodable.
+
+    Attributes:
+        reason: ``"empty"``, ``"truncated"`` or ``"undecodable"`` (a counter's key).
+    """
+
+    def __init__(self, message: str, reason: str) -> None:
+        super().__init__(message)
+        self.reason = reason
+
+
+# How a whole file of each format ends: JPEG with its end-of-image marker, PNG with its IEND
+# chunk (and its CRC). Cut short by a failed copy or a full disk, it does not — and OpenCV
+# decodes the part it has, greys the rest and says nothing a caller can see.
+_JPEG_START, _JPEG_END = b"\xff\xd8", b"\xff\xd9"
+_PNG_START, _PNG_END = b"\x89PNG\r\n\x1a\n", b"IEND\xaeB`\x82"
+_TAIL_BYTES = 64
+
+
+def image_problem(path: str | Path) -> str | None:
+    """Why an image file cannot give a whole frame (``"empty"``, ``"truncated"``), or None.
+
+    Reads only the file's first and last bytes; whether OpenCV can decode it is
+    :func:`read_image`'s to find out.
+    """
+    path = Path(path)
+    size = path.stat().st_size
+    if size == 0:
+        return "empty"
+    with path.open("rb") as handle:
+        head = handle.read(16)
+        handle.seek(max(0, size - _TAIL_BYTES))
+        tail = handle.read()
+    # Trailing padding after the end marker (some encoders add zeros or a newline) is fine.
+    tail = tail.rstrip(b"\x00\r\n ")
+    if head.startswith(_JPEG_START) and not tail.endswith(_JPEG_END):
+        return "truncated"
+    if head.startswith(_PNG_START) and not tail.endswith(_PNG_END):
+        return "truncated"
+    if head.startswith(b"BM") and len(head) >= 6:
+        declared = int.from_bytes(head[2:6], "little")
+        if 0 < declared and size < declared:
+            return "truncated"
+    return None
+
+
 def read_image(path: str | Path) -> NDArray[np.uint8]:
     """An image file as an (H, W, 3) uint8 BGR array.
 
     Raises:
-        DatasetError: the file is missing or is not an image OpenCV can decode.
+        DatasetError: the file is missing.
+        UnusableImage: the file is empty, cut short (a JPEG without its end marker, a PNG
+            without its last chunk, a BMP shorter than its header says) or not an image
+            OpenCV can decode; callers that read a stream of frames skip it and count
+            ``error.reason``.
     """
     # lazy: OpenCV takes ~80 ms to import; only this path needs it
     import cv2
@@ -42,10 +97,43 @@ def read_image(path: str | Path) -> NDArray[np.uint8]:
     path = Path(path)
     if not path.is_file():
         raise DatasetError(f"image {path} does not exist.")
+    problem = image_problem(path)
+    if problem == "empty":
+        raise UnusableImage(f"image {path} is empty (0 bytes).", problem)
+    if problem == "truncated":
+        raise UnusableImage(
+            f"image {path} is cut short (it lacks the end of its format); part of the frame "
+            "would be grey.", problem,
+        )
     image = cv2.imread(str(path), cv2.IMREAD_COLOR)
     if image is None:
-        raise DatasetError(f"cannot read image {path}: not an image file OpenCV can decode.")
+        raise UnusableImage(
+            f"cannot read image {path}: not an image file OpenCV can decode.", "undecodable"
+        )
     return np.asarray(image, np.uint8)
+
+
+class SkippedImages:
+    """Frames skipped because their image file is unusable: counted by reason, each logged
+    (a warning for the first few, then one every :attr:`every`), for a stream's summary."""
+
+    def __init__(self, what: str, shown: int = 5, every: int = 100) -> None:
+        self.what = what
+        self.shown = shown
+        self.every = every
+        self.counts: dict[str, int] = {}
+
+    def skip(self, error: UnusableImage) -> None:
+        """Count and log one skipped image."""
+        self.counts[error.reason] = self.counts.get(error.reason, 0) + 1
+        total = self.total
+        if total <= self.shown or total % self.every == 0:
+            logger.warning("%s: image skipped (%d so far): %s", self.what, total, error)
+
+    @property
+    def total(self) -> int:
+        """Images skipped, all reasons."""
+        return sum(self.counts.values())
 
 
 def camera_image_folders(root: str | Path, camera_count: int) -> list[Path]:

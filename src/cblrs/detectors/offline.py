@@ -10,12 +10,12 @@ from __future__ import annotations
 import logging
 import sys
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from tqdm import tqdm
 
-from cblrs.datasets.images import read_image, scene_image_paths
+from cblrs.datasets.images import SkippedImages, UnusableImage, read_image, scene_image_paths
 from cblrs.datasets.scene import Scene
 from cblrs.detections import Detections
 from cblrs.detectors import (
@@ -43,6 +43,8 @@ class DetectionRun:
         images: images read and detected.
         decode_seconds: time spent reading and decoding image files.
         detect_seconds: time spent in the detector (tiles, inference, merging).
+        skipped: images skipped because their file was unusable (empty, cut short,
+            undecodable), by reason; their camera has no boxes at that frame.
     """
 
     scene: Scene
@@ -51,6 +53,7 @@ class DetectionRun:
     images: int
     decode_seconds: float
     detect_seconds: float
+    skipped: dict[str, int] = field(default_factory=dict)
 
     @property
     def ms_per_image(self) -> float:
@@ -84,8 +87,8 @@ def detect_scene(
         The scene with detected boxes, the plans and timings.
 
     Raises:
-        DatasetError: missing image folders or images, an unreadable image, or an image
-            whose size differs from the camera's.
+        DatasetError: missing image folders or images, or an image whose size differs from
+            the camera's (an empty, cut short or undecodable image is skipped and counted).
         ModelError: an unusable model.
     """
     detector = (
@@ -104,11 +107,18 @@ def detect_scene(
                     disable=not sys.stderr.isatty())
     detections: list[list[Detections]] = []
     decode_seconds = detect_seconds = 0.0
+    skipped = SkippedImages(f"{root}")
     for _, frame_paths in rows:
         per_camera = []
         for camera, camera_detector, path in zip(scene.cameras, cameras, frame_paths, strict=True):
             started = time.perf_counter()
-            image = read_image(path)
+            try:
+                image = read_image(path)
+            except UnusableImage as error:
+                # Skipped, counted and logged: the camera gives no boxes at this frame.
+                skipped.skip(error)
+                per_camera.append(Detections.empty())
+                continue
             decoded = time.perf_counter()
             if (image.shape[1], image.shape[0]) != camera.image_size:
                 raise DatasetError(
@@ -120,6 +130,12 @@ def detect_scene(
             detect_seconds += time.perf_counter() - decoded
             decode_seconds += decoded - started
         detections.append(per_camera)
+    if skipped.total and skipped.total == len(paths) * len(scene.cameras):
+        raise DatasetError(
+            f"every one of the {skipped.total} images of {root} is unusable ("
+            + ", ".join(f"{count} {reason}" for reason, count in sorted(skipped.counts.items()))
+            + ")."
+        )
     logger.debug(
         "detected %d images: decode %.2f s, detector %.2f s",
         len(paths) * len(scene.cameras), decode_seconds, detect_seconds,
@@ -128,7 +144,8 @@ def detect_scene(
         scene=replace(scene, detections=detections),
         layout=detector.layout,
         plans=[camera.plan for camera in cameras],
-        images=len(paths) * len(scene.cameras),
+        images=len(paths) * len(scene.cameras) - skipped.total,
         decode_seconds=decode_seconds,
         detect_seconds=detect_seconds,
+        skipped=dict(skipped.counts),
     )

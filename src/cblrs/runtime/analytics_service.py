@@ -192,7 +192,9 @@ class ServiceReporter:
         """
         received: Counter[str] = Counter()
         for kind, delivery, _ in batch:
-            if kind != "detections":
+            # An empty payload is a camera clearing a retained message (`cblrs camera` does at
+            # every start), not a message: the service neither counts nor rejects it.
+            if kind != "detections" or not delivery.payload:
                 continue
             try:
                 _, camera = parse_detections_topic(delivery.topic)

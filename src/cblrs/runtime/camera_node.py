@@ -66,6 +66,7 @@ from typing import Any
 
 import numpy as np
 
+from cblrs.datasets.images import SkippedImages
 from cblrs.detections import Detections
 from cblrs.edge import box_rejections, make_message
 from cblrs.reference import ReferenceImage
@@ -93,6 +94,10 @@ logger = logging.getLogger(__name__)
 
 MAX_RESEND_AFTER_S = 300.0
 _REMINDER_S = 60.0
+# A first paced frame due later than _FIRST_WAIT_SAID_S is announced (INFO; a warning when
+# later than _FIRST_WAIT_WARN_S): the replay is silent until then.
+_FIRST_WAIT_SAID_S = 1.0
+_FIRST_WAIT_WARN_S = 10.0
 
 
 def camera_last_will(plane_id: int, camera_id: str) -> tuple[str, bytes]:
@@ -123,6 +128,8 @@ class CameraReport:
         resent: messages sent again (see the module docstring).
         boxes_rejected: boxes dropped before sending, by reason.
         frames_too_large: frames dropped because their message exceeded the size limit.
+        frames_skipped: frames skipped because their image file was unusable, by reason
+            (``empty``, ``truncated``, ``undecodable``; each logged).
         unconfirmed: messages still in the spool at the end (sent again on the next start).
         dropped_from_spool: messages the full spool dropped (ever, for a spool file).
         flushed: every message of the spool acknowledged by the broker at the end (none
@@ -149,6 +156,7 @@ class CameraReport:
     resent: int = 0
     boxes_rejected: dict[str, int] = field(default_factory=dict)
     frames_too_large: int = 0
+    frames_skipped: dict[str, int] = field(default_factory=dict)
     unconfirmed: int = 0
     dropped_from_spool: int = 0
     flushed: bool = False
@@ -291,10 +299,16 @@ class CameraNode:
         started: float | None = None
         final = False
         failing = True  # until the source is read to its end (or the node was stopped)
+        skipped = SkippedImages(f"camera {self.camera_id}")
         try:
             for frame, capture_time in self._timed(frames, report):
                 if self._stop.is_set():
                     break
+                if frame.unusable is not None:
+                    # An unusable image: no message (a frame seen empty would be a claim).
+                    skipped.skip(frame.unusable)
+                    report.frames_skipped = dict(skipped.counts)
+                    continue
                 payload = self._encode(frame, sequence, capture_time, report)
                 sequence += 1
                 if payload is None:
@@ -631,9 +645,36 @@ class CameraNode:
                 # Publish each frame at its capture time: cameras sharing an epoch follow
                 # one wall-clock schedule.
                 delay = capture_time - self._clock()
+                if report.frames == 1:
+                    self._say_first_wait(recorded, capture_time, delay)
                 if delay > 0 and self._stop.wait(delay):
                     return
             yield frame, capture_time
+
+    def _say_first_wait(self, recorded: float, capture_time: float, delay: float) -> None:
+        """Say when the first paced frame goes out if that is not now: a recording that
+        starts at 100 s replayed with ``--epoch now+5`` is silent for 105 s otherwise.
+
+        Args:
+            recorded: the first frame's recorded time (divided by the speed), seconds.
+            capture_time: when it is due, seconds since the Unix epoch.
+            delay: how long until then, seconds.
+        """
+        if delay <= _FIRST_WAIT_SAID_S:
+            return
+        due = time.strftime("%H:%M:%S", time.gmtime(capture_time))
+        hint = ""
+        if delay > _FIRST_WAIT_WARN_S and recorded > _FIRST_WAIT_SAID_S:
+            hint = (
+                f"; the recording starts at {recorded:g} s, so to start it at once give every "
+                f"camera --epoch $(( $(date +%s) + 5 - {recorded:.0f} ))"
+            )
+        logger.log(
+            logging.WARNING if delay > _FIRST_WAIT_WARN_S else logging.INFO,
+            "camera %s: the first frame (recorded at %g s) is due at %s UTC (--epoch + its "
+            "time), in %.0f s; nothing is sent before%s",
+            self.camera_id, recorded, due, delay, hint,
+        )
 
 
 def _select(detections: Detections, keep: np.ndarray) -> Detections:

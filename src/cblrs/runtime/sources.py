@@ -28,7 +28,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cblrs.datasets.clocks import camera_clocks
-from cblrs.datasets.images import IMAGE_SUFFIXES, read_image
+from cblrs.datasets.images import IMAGE_SUFFIXES, UnusableImage, read_image
 from cblrs.detections import Detections
 
 # The detectors live in cblrs.detectors; these names stay importable from here.
@@ -51,11 +51,15 @@ class SourceFrame:
         timestamp: capture time in seconds since the start of the recording, or ``None`` when
             the frame is live (the camera node then stamps it with the wall clock).
         detections: the frame's boxes.
+        unusable: the frame's image file could not be used (empty, cut short, undecodable):
+            the frame is skipped, counted and logged by the camera node; ``detections`` is
+            then empty and means nothing.
     """
 
     frame: int
     timestamp: float | None
     detections: Detections
+    unusable: UnusableImage | None = None
 
 
 # -- detection files ---------------------------------------------------------------------
@@ -322,9 +326,12 @@ def image_folder_source(
     Args:
         first, last: only frames ``first..last`` (inclusive; None: from the start / to the end).
 
+    An image file that is empty, cut short or undecodable gives a frame marked
+    ``unusable`` (the camera node skips and counts it) instead of ending the stream.
+
     Raises:
-        DatasetError: the folder is missing or empty, holds fewer images than ``last``
-            asks for, or an image cannot be read.
+        DatasetError: the folder is missing or empty, or holds fewer images than ``last``
+            asks for.
     """
     folder = Path(folder)
     if not folder.is_dir():
@@ -342,4 +349,9 @@ def image_folder_source(
     for number, path in enumerate(paths):
         if (first is not None and number < first) or (last is not None and number > last):
             continue
-        yield SourceFrame(number, number / fps, detector.detect(read_image(path)))
+        try:
+            image = read_image(path)
+        except UnusableImage as error:
+            yield SourceFrame(number, number / fps, Detections.empty(), unusable=error)
+            continue
+        yield SourceFrame(number, number / fps, detector.detect(image))

@@ -136,9 +136,14 @@ def _fit_points(site: Site, index: int, spec: CameraModel, where: str) -> Calibr
             spec.name,
             focal_px=spec.focal_px,
             model=spec.model,
+            left_handed=spec.left_handed,
             **{
                 key: value
-                for key, value in (("click_px", spec.click_px), ("ground_m", spec.ground_m))
+                for key, value in (
+                    ("click_px", spec.click_px),
+                    ("ground_m", spec.ground_m),
+                    ("max_height_m", spec.max_height_m),
+                )
                 if value is not None
             },
         )

@@ -243,6 +243,9 @@ class CameraModel(_Strict):
     # How far clicks and the points' ground positions may be off (one standard deviation).
     click_px: float | None = Field(default=None, gt=0)
     ground_m: float | None = Field(default=None, gt=0)
+    # What a plausible fit of clicked points is (cblrs.calibrate.plausible).
+    left_handed: bool = False
+    max_height_m: float | None = Field(default=None, gt=0)
     frame: str | None = None
     # The plane whose matcher the camera publishes to (its reference holds only that plane);
     # absent: every plane of the site (a site of one plane needs no more).
@@ -290,9 +293,12 @@ class CameraModel(_Strict):
             or self.points_unit != "metres"
             or self.click_px is not None
             or self.ground_m is not None
+            or self.left_handed
+            or self.max_height_m is not None
         ):
             raise ValueError(
-                "model, points_unit, click_px and ground_m are for cameras given by points"
+                "model, points_unit, click_px, ground_m, left_handed and max_height_m are for "
+                "cameras given by points"
             )
         return self
 

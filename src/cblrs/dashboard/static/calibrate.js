@@ -1,36 +1,83 @@
-// cblrs calibration page: a camera frame beside the site map; click pairs, see the fit live,
-// save to the site file and look at the rendered reference. window.cblrsCalibrate exposes
-// the coordinate transforms and the last fit, so a test can click exact points.
+// cblrs calibration page: a camera frame beside the site map; click pairs (zoomed in where a
+// point must be exact, or with the ground point typed), see the fit live, save to the site
+// file and look at the rendered reference. window.cblrsCalibrate exposes the coordinate
+// transforms and the last fit, so a test can click exact points. Every name and message from
+// the server reaches the page as text (textContent), never as markup.
 "use strict";
 
 const cal = {
   scene: null, cameras: [], camera: null, imageSize: null, frame: null, map: null,
   pairs: [], pendingPixel: null, pendingWorld: null, result: null, error: null,
   fitting: 0, fits: 0, saved: null,
+  // The frame's view: zoom over "whole frame" and the image pixel at the canvas centre.
+  frameView: { zoom: 1, centre: null },
+  mapZoom: 1,
 };
 window.cblrsCalibrate = cal;
 
 const $c = (id) => document.getElementById(id);
+const MAX_FRAME_ZOOM = 40;
+const MAX_MAP_ZOOM = 200;
+const WHEEL_STEP = 1.25;
+const DRAG_PX = 4;  // a press that moves further pans; a shorter one is a click
+
+function element(tag, text, className) {
+  const node = document.createElement(tag);
+  if (text !== undefined && text !== null) node.textContent = String(text);
+  if (className) node.className = className;
+  return node;
+}
 
 // ------------------------------------------------------------------ frame canvas
 const frameCanvas = $c("frame");
 
+function imageSize() { return cal.imageSize || [1920, 1080]; }
+
 function frameTransform() {
   const box = frameCanvas.getBoundingClientRect();
-  const [width, height] = cal.imageSize || [1920, 1080];
-  const scale = Math.min(box.width / width, box.height / height);
-  return { scale, x: (box.width - width * scale) / 2, y: (box.height - height * scale) / 2 };
+  const [width, height] = imageSize();
+  const fit = Math.min(box.width / width, box.height / height);
+  const scale = fit * cal.frameView.zoom;
+  const [cu, cv] = cal.frameView.centre || [width / 2, height / 2];
+  return { scale, fit, x: box.width / 2 - cu * scale, y: box.height / 2 - cv * scale };
 }
 cal.frameToScreen = (u, v) => {
   const t = frameTransform();
   const box = frameCanvas.getBoundingClientRect();
   return [box.left + t.x + u * t.scale, box.top + t.y + v * t.scale];
 };
+cal.screenToFrame = (clientX, clientY) => {
+  const t = frameTransform();
+  const box = frameCanvas.getBoundingClientRect();
+  return [(clientX - box.left - t.x) / t.scale, (clientY - box.top - t.y) / t.scale];
+};
 cal.worldToScreen = (x, y) => {
   const box = $c("sitemap").getBoundingClientRect();
   const [sx, sy] = cal.map.toScreen(x, y);
   return [box.left + sx, box.top + sy];
 };
+// Image pixels per screen pixel at the current zoom (below 1: finer than the image).
+cal.imagePixelsPerScreenPixel = () => 1 / frameTransform().scale;
+
+// Zoom the frame by `factor` keeping the image point under (clientX, clientY) in place.
+cal.zoomFrame = (factor, clientX, clientY) => {
+  const [u, v] = cal.screenToFrame(clientX, clientY);
+  const zoom = Math.min(MAX_FRAME_ZOOM, Math.max(1, cal.frameView.zoom * factor));
+  const box = frameCanvas.getBoundingClientRect();
+  const [width, height] = imageSize();
+  const scale = Math.min(box.width / width, box.height / height) * zoom;
+  cal.frameView.zoom = zoom;
+  cal.frameView.centre = zoom === 1 ? null : clampCentre([
+    u + (box.width / 2 - (clientX - box.left)) / scale,
+    v + (box.height / 2 - (clientY - box.top)) / scale,
+  ]);
+  redraw();
+};
+
+function clampCentre([u, v]) {
+  const [width, height] = imageSize();
+  return [Math.min(width, Math.max(0, u)), Math.min(height, Math.max(0, v))];
+}
 
 function drawFrame() {
   const ratio = window.devicePixelRatio || 1;
@@ -42,7 +89,9 @@ function drawFrame() {
   ctx.fillStyle = "#0f1419";
   ctx.fillRect(0, 0, box.width, box.height);
   const t = frameTransform();
-  const [width, height] = cal.imageSize || [1920, 1080];
+  const [width, height] = imageSize();
+  // Zoomed in, show the image's own pixels (a click then lands on one), not a blur.
+  ctx.imageSmoothingEnabled = t.scale < 2;
   if (cal.frame) ctx.drawImage(cal.frame, t.x, t.y, width * t.scale, height * t.scale);
   else {
     ctx.fillStyle = "#1c242e";
@@ -65,6 +114,8 @@ function drawFrame() {
   });
   if (cal.pendingPixel) marker(ctx, t.x + cal.pendingPixel[0] * t.scale,
     t.y + cal.pendingPixel[1] * t.scale, "?");
+  $c("frame-zoom").textContent = `${cal.frameView.zoom.toFixed(1)}× · 1 screen px = ` +
+    `${(1 / t.scale).toFixed(2)} image px`;
 }
 
 function marker(ctx, x, y, label) {
@@ -78,16 +129,54 @@ function marker(ctx, x, y, label) {
   ctx.fillText(String(label), x + 6, y - 6);
 }
 
-frameCanvas.addEventListener("click", (event) => {
-  const box = frameCanvas.getBoundingClientRect();
-  const t = frameTransform();
-  const u = (event.clientX - box.left - t.x) / t.scale;
-  const v = (event.clientY - box.top - t.y) / t.scale;
-  const [width, height] = cal.imageSize || [1920, 1080];
-  if (u < 0 || v < 0 || u > width || v > height) return;
-  cal.pendingPixel = [u, v];
-  completePair();
+// Wheel zooms, a drag pans, a press without a drag is a click (on both canvases).
+function panAndZoom(canvas, { zoom, pan, click }) {
+  let press = null;
+  canvas.addEventListener("wheel", (event) => {
+    event.preventDefault();
+    zoom(event.deltaY < 0 ? WHEEL_STEP : 1 / WHEEL_STEP, event.clientX, event.clientY);
+  }, { passive: false });
+  canvas.addEventListener("mousedown", (event) => {
+    if (event.button === 0) press = { x: event.clientX, y: event.clientY, dragging: false };
+  });
+  window.addEventListener("mousemove", (event) => {
+    if (!press) return;
+    const dx = event.clientX - press.x, dy = event.clientY - press.y;
+    if (!press.dragging && Math.hypot(dx, dy) < DRAG_PX) return;
+    press.dragging = true;
+    canvas.classList.add("dragging");
+    pan(dx, dy);
+    press.x = event.clientX;
+    press.y = event.clientY;
+  });
+  window.addEventListener("mouseup", (event) => {
+    if (!press) return;
+    const dragged = press.dragging;
+    press = null;
+    canvas.classList.remove("dragging");
+    if (!dragged && event.target === canvas) click(event.clientX, event.clientY);
+  });
+}
+
+panAndZoom(frameCanvas, {
+  zoom: cal.zoomFrame,
+  pan: (dx, dy) => {
+    if (cal.frameView.zoom === 1) return;
+    const t = frameTransform();
+    const [width, height] = imageSize();
+    const [cu, cv] = cal.frameView.centre || [width / 2, height / 2];
+    cal.frameView.centre = clampCentre([cu - dx / t.scale, cv - dy / t.scale]);
+    redraw();
+  },
+  click: (clientX, clientY) => {
+    const [u, v] = cal.screenToFrame(clientX, clientY);
+    const [width, height] = imageSize();
+    if (u < 0 || v < 0 || u > width || v > height) return;
+    cal.pendingPixel = [u, v];
+    completePair();
+  },
 });
+$c("frame-fit").onclick = () => { cal.frameView = { zoom: 1, centre: null }; redraw(); };
 
 // ------------------------------------------------------------------ map canvas
 function drawMap() {
@@ -106,7 +195,58 @@ function drawMap() {
     const [sx, sy] = view.toScreen(cal.pendingWorld[0], cal.pendingWorld[1]);
     marker(ctx, sx, sy, "?");
   }
+  $c("map-zoom").textContent = `${cal.mapZoom.toFixed(1)}× · 1 screen px = ` +
+    `${(100 / view.scale).toFixed(1)} cm`;
 }
+
+// Zoom the map by `factor` keeping the ground point under (clientX, clientY) in place
+// (the shared MapView maps metres to pixels by a scale and an offset: they change here).
+cal.zoomMap = (factor, clientX, clientY) => {
+  const view = cal.map;
+  const box = view.canvas.getBoundingClientRect();
+  const px = clientX - box.left, py = clientY - box.top;
+  const [x, y] = view.toWorld(px, py);
+  const zoom = Math.min(MAX_MAP_ZOOM, Math.max(1, cal.mapZoom * factor));
+  if (zoom === 1) { view.resize(); cal.mapZoom = 1; redraw(); return; }
+  view.scale *= zoom / cal.mapZoom;
+  cal.mapZoom = zoom;
+  view.offsetX = px - x * view.scale;
+  view.offsetY = py + y * view.scale;
+  view.dirtyStatic = true;
+  redraw();
+};
+
+function setupMap() {
+  const mapCanvas = $c("sitemap");
+  cal.map = new Cblrs.MapView(mapCanvas, cal.scene);
+  panAndZoom(mapCanvas, {
+    zoom: cal.zoomMap,
+    pan: (dx, dy) => {
+      if (cal.mapZoom === 1) return;
+      cal.map.offsetX += dx;
+      cal.map.offsetY += dy;
+      cal.map.dirtyStatic = true;
+      redraw();
+    },
+    click: (clientX, clientY) => {
+      const box = mapCanvas.getBoundingClientRect();
+      cal.pendingWorld = cal.map.toWorld(clientX - box.left, clientY - box.top);
+      completePair();
+    },
+  });
+  $c("map-fit").onclick = () => { cal.map.resize(); cal.mapZoom = 1; redraw(); };
+  window.addEventListener("resize", () => { cal.map.resize(); cal.mapZoom = 1; redraw(); });
+}
+
+// A ground point typed in metres (exact, as the site plan gives it) instead of clicked.
+$c("typed").addEventListener("submit", (event) => {
+  event.preventDefault();
+  const x = Number($c("typed-x").value), y = Number($c("typed-y").value);
+  if ($c("typed-x").value === "" || $c("typed-y").value === "" ||
+      !Number.isFinite(x) || !Number.isFinite(y)) return;
+  cal.pendingWorld = [x, y];
+  completePair();
+});
 
 // ------------------------------------------------------------------ pairs and fits
 function completePair() {
@@ -122,7 +262,8 @@ function completePair() {
 function request() {
   const focal = $c("focal").value;
   return { camera: cal.camera, image_size: cal.imageSize, points: cal.pairs,
-    model: $c("model").value, focal_px: focal ? Number(focal) : null, unit: "metres" };
+    model: $c("model").value, focal_px: focal ? Number(focal) : null, unit: "metres",
+    left_handed: $c("left-handed").checked };
 }
 
 async function refit() {
@@ -150,36 +291,64 @@ async function refit() {
 }
 
 function render() {
-  const { el, fill } = Cblrs;
   const result = cal.result;
   const summary = $c("summary");
-  if (cal.error) fill(summary, [el("span", { className: "error" }, cal.error)]);
-  else if (!result) summary.textContent = `${cal.pairs.length} pairs: four or more give a fit.`;
+  summary.replaceChildren();
+  if (cal.error) summary.append(element("span", cal.error, "error"));
+  else if (!result) summary.append(`${cal.pairs.length} pairs: four or more give a fit.`);
   else {
     const position = result.position ? result.position.map((v) => v.toFixed(2)).join(", ") : "–";
-    fill(summary, [
-      el("span", { className: "ok" }, `model ${result.model}`), " · RMS ",
-      el("b", { id: "rms" }, result.rms_px.toFixed(2)),
+    const rms = element("b", result.rms_px.toFixed(2));
+    rms.id = "rms";
+    summary.append(element("span", `model ${result.model}`, "ok"), " · RMS ", rms,
       ` px · median ${result.median_error_m.toFixed(3)} m` +
-      ` · max ${result.max_error_m.toFixed(3)} m · focal ${result.focal_px ? result.focal_px.toFixed(0) : "–"} px` +
-      ` · camera at (${position})` + predicted(result.predicted_error),
-      ...result.warnings.map((warning) => el("div", { className: "error" }, warning)),
-    ]);
+      ` · max ${result.max_error_m.toFixed(3)} m` +
+      ` · focal ${result.focal_px ? result.focal_px.toFixed(0) : "–"} px` +
+      ` · camera at (${position})` + predicted(result.predicted_error));
+    for (const warning of result.warnings) summary.append(element("div", warning, "error"));
   }
   const perPoint = result ? result.per_point : [];
-  fill($c("pairs").querySelector("tbody"), cal.pairs.map((pair, index) => {
-    const point = perPoint[index];
-    return el("tr", {}, el("td", {}, pair.name),
-      el("td", {}, `${pair.u.toFixed(1)}, ${pair.v.toFixed(1)}`),
-      el("td", {}, `${pair.x.toFixed(2)}, ${pair.y.toFixed(2)}`),
-      el("td", { className: "error-px" }, point ? point.error_px.toFixed(2) : "–"),
-      el("td", {}, point && point.error_m !== null ? point.error_m.toFixed(3) : "–"),
-      el("td", {}, point && !point.inlier ? "outlier" : ""),
-      el("td", {}, el("button", { className: "mode", type: "button", dataset: { remove: index } },
-        "×")));
-  }));
+  const body = $c("pairs").querySelector("tbody");
+  body.replaceChildren(...cal.pairs.map((pair, index) => pairRow(pair, index, perPoint[index])));
   $c("save").disabled = !result;
   redraw();
+}
+
+// One pair's row: its ground x, y editable (typed corrections refit at once).
+function pairRow(pair, index, point) {
+  const row = element("tr");
+  const ground = element("td");
+  for (const key of ["x", "y"]) {
+    const input = element("input");
+    input.type = "number";
+    input.step = "any";
+    input.value = String(pair[key]);
+    input.dataset.pair = String(index);
+    input.dataset.key = key;
+    input.title = `${key} of ${pair.name}, metres`;
+    input.addEventListener("change", () => {
+      const value = Number(input.value);
+      if (input.value === "" || !Number.isFinite(value)) { input.value = String(pair[key]); return; }
+      pair[key] = value;
+      refit();
+    });
+    ground.append(input, " ");
+  }
+  const remove = element("button", "×", "mode");
+  remove.type = "button";
+  remove.addEventListener("click", () => { cal.pairs.splice(index, 1); refit(); });
+  const removeCell = element("td");
+  removeCell.append(remove);
+  row.append(
+    element("td", pair.name),
+    element("td", `${pair.u.toFixed(1)}, ${pair.v.toFixed(1)}`),
+    ground,
+    element("td", point ? point.error_px.toFixed(2) : "–", "error-px"),
+    element("td", point && point.error_m !== null ? point.error_m.toFixed(3) : "–"),
+    element("td", point && !point.inlier ? "outlier" : ""),
+    removeCell,
+  );
+  return row;
 }
 
 // The fit's predicted ground error between the points (from its covariance), when known.
@@ -192,13 +361,6 @@ function predicted(coverage) {
 
 function redraw() { drawFrame(); if (cal.map) drawMap(); }
 
-document.addEventListener("click", (event) => {
-  const index = event.target.getAttribute && event.target.getAttribute("data-remove");
-  if (index !== null && index !== undefined) {
-    cal.pairs.splice(Number(index), 1);
-    refit();
-  }
-});
 $c("undo").onclick = () => {
   if (cal.pendingPixel || cal.pendingWorld) cal.pendingPixel = cal.pendingWorld = null;
   else cal.pairs.pop();
@@ -207,22 +369,24 @@ $c("undo").onclick = () => {
 $c("clear").onclick = () => { cal.pairs = []; cal.pendingPixel = cal.pendingWorld = null; refit(); };
 $c("model").onchange = refit;
 $c("focal").onchange = refit;
+$c("left-handed").onchange = refit;
 $c("save").onclick = async () => {
-  $c("saved").textContent = "saving…";
+  const saved = $c("saved");
+  saved.textContent = "saving…";
   try {
-    const saved = await Cblrs.fetchJSON("/api/calibrate/save", {
+    const answer = await Cblrs.fetchJSON("/api/calibrate/save", {
       method: "POST", headers: { "Content-Type": "application/json" },
       body: JSON.stringify(request()),
     });
-    cal.saved = saved;
-    Cblrs.fill($c("saved"), [Cblrs.el("span", { className: "ok" }, `saved to ${saved.site}`),
-      ` (previous file: ${saved.backup}); reference ${saved.reference}`]);
+    cal.saved = answer;
+    saved.replaceChildren(element("span", `saved to ${answer.site}`, "ok"),
+      ` (previous file: ${answer.backup}); reference ${answer.reference}`);
     const image = $c("reference");
     image.onload = () => { cal.referenceLoaded = true; };
     image.src = `/api/calibrate/reference/${encodeURIComponent(cal.camera)}?t=${Date.now()}`;
     image.classList.remove("hidden");
   } catch (error) {
-    Cblrs.fill($c("saved"), [Cblrs.el("span", { className: "error" }, error.message)]);
+    saved.replaceChildren(element("span", error.message, "error"));
   }
 };
 $c("frame-file").onchange = (event) => {
@@ -233,6 +397,7 @@ $c("frame-file").onchange = (event) => {
   image.onload = () => {
     cal.frame = image;
     cal.imageSize = [image.naturalWidth, image.naturalHeight];
+    cal.frameView = { zoom: 1, centre: null };
     $c("frame-note").textContent = `(${file.name}, ${image.naturalWidth}×${image.naturalHeight})`;
     redraw();
   };
@@ -247,6 +412,8 @@ function chooseCamera(name) {
     ({ ...point, name: point.name || `p${index + 1}` })) : [];
   cal.frame = null;
   cal.result = null;
+  cal.frameView = { zoom: 1, centre: null };
+  $c("left-handed").checked = camera.left_handed === true;
   $c("frame-note").textContent = camera.frame ? "" : "(no frame on the server)";
   if (camera.frame) {
     const image = new Image();
@@ -267,22 +434,17 @@ Cblrs.loadSession()
     cal.scene = scene;
     cal.cameras = data.cameras;
     $c("site-name").textContent = `calibration · ${scene.name}`;
-    const mapCanvas = $c("sitemap");
-    cal.map = new Cblrs.MapView(mapCanvas, scene);
-    mapCanvas.addEventListener("click", (event) => {
-      const box = mapCanvas.getBoundingClientRect();
-      cal.pendingWorld = cal.map.toWorld(event.clientX - box.left, event.clientY - box.top);
-      completePair();
-    });
-    window.addEventListener("resize", () => { cal.map.resize(); redraw(); });
-    Cblrs.fill($c("camera"), data.cameras.map((camera) =>
-      Cblrs.el("option", { value: camera.name }, camera.name)));
-    $c("camera").onchange = (event) => chooseCamera(event.target.value);
+    setupMap();
+    const select = $c("camera");
+    select.replaceChildren(...data.cameras.map((camera) => {
+      const option = element("option", camera.name);
+      option.value = camera.name;
+      return option;
+    }));
+    select.onchange = (event) => chooseCamera(event.target.value);
     const wanted = new URLSearchParams(location.search).get("camera");
     chooseCamera(wanted && data.cameras.some((c) => c.name === wanted) ? wanted : data.cameras[0].name);
-    $c("camera").value = cal.camera;
+    select.value = cal.camera;
     cal.ready = true;
   })
-  .catch((error) => {
-    Cblrs.fill($c("summary"), [Cblrs.el("span", { className: "error" }, error.message)]);
-  });
+  .catch((error) => { $c("summary").replaceChildren(element("span", error.message, "error")); });
