@@ -119,7 +119,9 @@ def test_calibration_page_zooms_pans_and_takes_typed_ground_points(multiviewx_si
                                                                     start_dashboard, page):
     truth = load_site(multiviewx_site).camera(CAMERA).camera
     ground, pixels = spread_points(truth)
-    _, url = start_dashboard("--site", str(multiviewx_site))
+    served = start_dashboard("--site", str(multiviewx_site))
+    page.goto(served.link)  # no --users: the run's login link makes this page an admin
+    url = served.url
     page.goto(f"{url}calibrate?camera={CAMERA}")
     wait_until(lambda: page.evaluate("window.cblrsCalibrate.ready && "
                                      "window.cblrsCalibrate.frameLoaded === true"), 20,

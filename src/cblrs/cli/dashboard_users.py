@@ -11,7 +11,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from cblrs.cli.common import InputError, UsageError
+from cblrs.cli.common import InputError, UsageError, add_output_options
 
 
 def register(subparsers) -> None:
@@ -37,6 +37,7 @@ def register(subparsers) -> None:
                          help="the users file (created by add)")
         if name != "list":
             sub.add_argument("name", help="the user's login name")
+        add_output_options(sub)
         if password:
             source = sub.add_mutually_exclusive_group()
             source.add_argument("--password-file", type=Path, metavar="FILE",
@@ -53,8 +54,7 @@ def register(subparsers) -> None:
     role = action("set-role", "change a user's role (ends their sessions)")
     role.add_argument("role", choices=["viewer", "admin"])
     action("remove", "remove a user (ends their sessions)")
-    listing = action("list", "list the users, their roles and token labels")
-    listing.add_argument("--json", action="store_true", help="print JSON")
+    action("list", "list the users, their roles and token labels")
     token = action("token", "make an API token for a user and print it once "
                    "(Authorization: Bearer TOKEN)")
     token.add_argument("--label", required=True, help="what the token is for, e.g. grafana")
@@ -98,18 +98,26 @@ def run(args: argparse.Namespace) -> int:
             said = f"removed {args.name}"
         elif args.action == "token":
             token = users.add_token(args.name, args.label)
-            users.save()
-            print(token)
-            print(f"cblrs dashboard-users: token {args.label!r} of {args.name} written to "
-                  f"{args.users}; it is shown only now.", file=sys.stderr)
-            return 0
+            said = f"token {args.label!r} of {args.name}"
         else:
             users.revoke_token(args.name, args.label)
             said = f"revoked token {args.label!r} of {args.name}"
         users.save()
     except UsersError as error:
         raise UsageError(str(error)) from None
-    print(f"{said} ({args.users})")
+    if args.action == "token":
+        # The token goes to stdout alone (for > FILE); it exists nowhere else.
+        if args.json:
+            print(json.dumps({"user": args.name, "label": args.label, "token": token}))
+        else:
+            print(token)
+        if not args.quiet:
+            print(f"cblrs dashboard-users: {said} written to {args.users}; it is shown only "
+                  "now.", file=sys.stderr)
+    elif args.json:
+        print(json.dumps({"action": args.action, "user": args.name, "users": str(args.users)}))
+    elif not args.quiet:
+        print(f"{said} ({args.users})")
     return 0
 
 
