@@ -15,6 +15,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable
 from dataclasses import dataclass, field
+from enum import StrEnum
 from typing import Any
 
 import numpy as np
@@ -29,6 +30,40 @@ BoolArray = NDArray[np.bool_]
 
 class PlaceError(CblrsError):
     """A zone or counting line is invalid (self-intersecting, degenerate, duplicated)."""
+
+
+class LineRule(StrEnum):
+    """What counts as crossing a counting line.
+
+    ``hysteresis`` (cblrs' default): the track goes from farther than the hysteresis on one
+    side to farther than it on the other, and crosses the segment itself on the way; jitter
+    near the line and passing beyond its ends count nothing.
+
+    ``side_change``: the rule of common tools (supervision's ``LineZone``, the usual
+    tripwire): a crossing whenever the side of the line changes between two positions that
+    both lie within the segment's extent (between the perpendiculars through its ends),
+    however little the track moved.
+    """
+
+    HYSTERESIS = "hysteresis"
+    SIDE_CHANGE = "side_change"
+
+
+def line_rule_text(rule: LineRule | str, hysteresis_m: float) -> str:
+    """A short label of a line's counting rule, to print beside its counts."""
+    if LineRule(rule) is LineRule.SIDE_CHANGE:
+        return "side change within the segment's extent"
+    return f"past {hysteresis_m:g} m each side, through the segment"
+
+
+def _line_rule(value: Any, where: str) -> LineRule | None:
+    if value is None:
+        return None
+    try:
+        return LineRule(value)
+    except ValueError:
+        choices = ", ".join(rule.value for rule in LineRule)
+        raise PlaceError(f"{where}: rule must be one of {choices}, got {value!r}.") from None
 
 
 def _points(value: ArrayLike, what: str, count: int | None = None) -> FloatArray:
@@ -206,6 +241,8 @@ class CountingLine:
         plane_id: the plane the line lies on (``None``: every plane).
         hysteresis_m: how far past the line (metres, each side) a track must go for a
             crossing to count; ``None`` leaves it to the analytics' default.
+        rule: what counts as a crossing (:class:`LineRule`); ``None`` leaves it to the
+            analytics' default.
     """
 
     name: str
@@ -214,6 +251,7 @@ class CountingLine:
     direction: FloatArray | None = None
     plane_id: int | None = None
     hysteresis_m: float | None = None
+    rule: LineRule | None = None
     _normal: FloatArray = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
@@ -239,6 +277,7 @@ class CountingLine:
                 )
             normal = left if side > 0 else -left
         _check_hysteresis(self.hysteresis_m, f"line {self.name!r}")
+        object.__setattr__(self, "rule", _line_rule(self.rule, f"line {self.name!r}"))
         for array in (start, end, normal):
             array.setflags(write=False)
         object.__setattr__(self, "start", start)
@@ -288,6 +327,8 @@ class CountingLine:
             data["plane_id"] = self.plane_id
         if self.hysteresis_m is not None:
             data["hysteresis_m"] = self.hysteresis_m
+        if self.rule is not None:
+            data["rule"] = self.rule.value
         return data
 
 
@@ -391,12 +432,13 @@ class Places:
                     direction=item.get("direction"),
                     plane_id=item.get("plane_id"),
                     hysteresis_m=item.get("hysteresis_m"),
+                    rule=_line_rule(item.get("rule"), where),
                 )
             )
         return cls(tuple(built_zones), tuple(built_lines))
 
 
-_LINE_KEYS = ("name", "start", "end", "direction", "plane_id", "hysteresis_m")
+_LINE_KEYS = ("name", "start", "end", "direction", "plane_id", "hysteresis_m", "rule")
 
 
 def _no_unknown(mapping: dict[str, Any], allowed: set[str], where: str) -> None:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import csv
 import json
 from dataclasses import replace
 from pathlib import Path
@@ -245,3 +246,29 @@ def test_timestamps_kept_in_the_sidecar_time_the_rows(tmp_path):
         assert metadata is not None and metadata.has_timestamps
         times = metadata_timestamps(read_tracks(path), metadata)
         np.testing.assert_array_equal(times, tracks.timestamp)
+
+
+def test_which_rule_counted_is_said_and_common_tools_rule_is_offered(wildtrack_root, tmp_path,
+                                                                     capsys):
+    # Issue 21: on WILDTRACK's ground truth cblrs counted fewer crossings than a plain
+    # sign-change rule without saying which rule it used. Now every count says its rule, and
+    # --line-rule side_change counts as common tools do (supervision's LineZone).
+    from cblrs.datasets import load_scene
+
+    scene = load_scene(wildtrack_root)
+    truth = tmp_path / "truth.txt"
+    write_tracks(truth, scene.ground_truth, frames_per_second=scene.frames_per_second)
+    totals, rules = {}, {}
+    for rule in ("hysteresis", "side_change"):
+        out = tmp_path / rule
+        code = main(["analytics", str(truth), "--site", str(SITES / "wildtrack.yaml"), "--out",
+                     str(out), "--line-rule", rule, "--no-plots"])
+        printed = capsys.readouterr().out
+        assert code == 0
+        rows = list(csv.DictReader((out / "lines.csv").open()))
+        totals[rule] = sum(int(row["count"]) for row in rows if row["class"] == "all")
+        rules[rule] = {row["rule"] for row in rows}
+        assert "counted when" in printed and next(iter(rules[rule])) in printed
+    assert totals == {"hysteresis": 145, "side_change": 154}
+    assert rules == {"hysteresis": {"past 0.5 m each side, through the segment"},
+                     "side_change": {"side change within the segment's extent"}}

@@ -19,7 +19,7 @@ from cblrs.analytics import (
 )
 from cblrs.analytics.tables import analyse_tracks
 from cblrs.detections import Tracks
-from cblrs.places import CountingLine, Places, Zone
+from cblrs.places import CountingLine, PlaceError, Places, Zone
 
 GATE = Places(lines=(CountingLine("gate", (0.0, -5.0), (0.0, 5.0)),))  # + = towards -x
 ROOM = Places(zones=(Zone("room", [[0, 0], [10, 0], [10, 10], [0, 10]]),))
@@ -74,6 +74,76 @@ def test_passing_beyond_the_segment_does_not_count_but_sets_the_side():
     y = [6, 6, 6, 6, 6, 2, 2, 2, 2, 2]
     _, events = run_all(GATE, walk(x, y))
     assert crossings(events) == [("gate", "negative")]
+
+
+SIDE_CHANGE = AnalyticsConfig(line_rule="side_change")
+
+
+@pytest.mark.parametrize(
+    ("case", "x", "y", "hysteresis", "side_change"),
+    [
+        ("a walk through", [3, 2, 1, -1, -2, -3], None, ["positive"], ["positive"]),
+        # Brushing the line by centimetres: the side-change rule counts in and out.
+        ("jitter", [2, 1, 0.1, -0.02, 0.1, 1, 2], None, [], ["positive", "negative"]),
+        # First seen 0.3 m before the line: never farther than the hysteresis on that side.
+        ("starts in the band", [0.3, -0.5, -1.5, -2.5, -3.5], None, [], ["positive"]),
+        # Beyond the segment's end (y = 6 > 5): neither rule.
+        ("beyond the end", [3, 2, 1, -1, -2, -3], [6] * 6, [], []),
+        # Around the north end and back into the extent on the other side: a side change
+        # within the extent (as supervision's LineZone counts it), no crossing of the segment.
+        ("around the end", [2, 2, 1, -1, -2, -2], [2, 6, 6, 6, 6, 2], [], ["positive"]),
+    ],
+)
+def test_the_two_line_rules(case, x, y, hysteresis, side_change):
+    tracks = walk(x, y)
+    _, events = run_all(GATE, tracks)
+    assert [direction for _, direction in crossings(events)] == hysteresis, case
+    _, events = run_all(GATE, tracks, SIDE_CHANGE)
+    assert [direction for _, direction in crossings(events)] == side_change, case
+
+
+def test_the_side_change_rule_is_timed_where_the_line_was_crossed_and_survives_a_restart():
+    tracks = walk([3, 2, 1, -1, -2, -3], np.full(6, 1.0))
+    _, events = run_all(GATE, tracks, SIDE_CHANGE)
+    (event,) = events
+    assert event.timestamp == pytest.approx(1.25) and event.world_xy == pytest.approx((0, 1))
+    # Row by row with a state round trip in between: the same event.
+    engine = Analytics(GATE, SIDE_CHANGE)
+    found = []
+    for index in range(len(tracks)):
+        found += engine.update(tracks[np.array([index])])
+        state = json.loads(json.dumps(engine.get_state()))
+        engine = Analytics(GATE, SIDE_CHANGE)
+        engine.set_state(state)
+    assert found + engine.flush() == events
+    with pytest.raises(AnalyticsError, match="other settings"):
+        Analytics(GATE).set_state(state)
+
+
+def test_a_line_own_rule_overrides_the_default_and_is_said_beside_its_counts():
+    places = Places(lines=(CountingLine("plain", (0, -5), (0, 5), rule="side_change"),
+                           CountingLine("gate", (10, -5), (10, 5))))
+    jitter = walk([2, 1, 0.1, -0.02, 0.1, 1, 2])
+    both = Tracks(jitter.frame, jitter.timestamp, jitter.track_id,
+                  jitter.world_xy, class_id=jitter.class_id)
+    result = analyse_tracks(both, places)
+    counts = {(row["line"], row["direction"]): (row["count"], row["rule"])
+              for row in result.lines if row["class"] == "all"}
+    assert counts[("plain", "positive")] == (1, "side change within the segment's extent")
+    assert counts[("gate", "positive")] == (0, "past 0.5 m each side, through the segment")
+    assert Places.from_dict(places.to_dict()).to_dict() == places.to_dict()
+    with pytest.raises(PlaceError, match=r"places.lines\[0\]: rule must be one of hysteresis, "
+                                         r"side_change, got 'plain'"):
+        Places.from_dict({"lines": [{"name": "l", "start": [0, 0], "end": [1, 0],
+                                     "rule": "plain"}]})
+
+
+def test_a_state_saved_before_line_rules_restores():
+    engine = Analytics(GATE)
+    engine.update(walk([3, 2, 1]))
+    state = json.loads(json.dumps(engine.get_state()))
+    del state["config"]["line_rule"]
+    Analytics(GATE).set_state(state)  # counted with the hysteresis rule: the same settings
 
 
 def test_a_line_own_hysteresis_overrides_the_default():

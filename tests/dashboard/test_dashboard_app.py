@@ -141,6 +141,9 @@ def test_api(wildtrack_site, stored_run, tmp_path):
     assert client.get("/static/dashboard.js").status_code == 200
     site = client.get("/api/site").json()
     assert site["replay"] is True and site["live"] is False and len(site["lines"]) == 3
+    # The rule that made the counts goes beside them.
+    assert {line["rule"] for line in site["lines"]} == {
+        "past 0.5 m each side, through the segment"}
     assert client.get("/api/stream").status_code == 404
     assert client.get("/map").status_code == 404  # the site has no map image
     assert client.get("/api/replay/info").json()["rows"] == 4785

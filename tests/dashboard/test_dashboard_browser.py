@@ -119,6 +119,8 @@ def test_live_dashboard_then_replay(wildtrack_root, wildtrack_site, start_broker
         rows = page.locator("#cameras tbody tr").count()
         assert rows == len(names)
         assert page.locator("#cameras td.rejected").all_inner_texts() == ["0"] * len(names)
+        assert (page.inner_text("#line-rule")
+                == "counted when: past 0.5 m each side, through the segment")
         # Well into the run (for the picture): tens of crossings counted.
         wait_until(lambda: line_total(counts(page)) >= 25 or not any(t.is_alive()
                                                                      for t in threads),

@@ -255,7 +255,8 @@ def test_online_counts_equal_offline_and_survive_sigkill(case, site_file, start_
     stats = subprocess.run([sys.executable, "-m", "cblrs.cli.main", "matcher", "--stats",
                             str(database)], capture_output=True, text=True, check=True).stdout
     north = counts["lines"]["north_flow"]
-    shown = re.search(r"line north_flow \+/-\s+(\d+) / (\d+)", stats)
+    shown = re.search(r"line north_flow \+/-\s+(\d+) / (\d+) \(counted when: past 0\.5 m each "
+                      r"side, through the segment\)", stats)
     assert shown is not None, stats
     assert (int(shown[1]), int(shown[2])) == (north.get("positive", 0), north.get("negative", 0))
 

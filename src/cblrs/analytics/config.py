@@ -8,6 +8,7 @@ from dataclasses import asdict, dataclass
 from typing import Any
 
 from cblrs.errors import CblrsError
+from cblrs.places import LineRule
 
 
 class AnalyticsError(CblrsError):
@@ -89,6 +90,9 @@ class AnalyticsConfig:
         line_hysteresis_m: a crossing counts when a track goes from farther than this on one
             side of a line to farther than this on the other, through the segment (a line's
             own ``hysteresis_m`` overrides it). Jitter across the line counts nothing.
+        line_rule: ``"hysteresis"`` (the rule above, the default) or ``"side_change"``
+            (common tools' rule: any change of side between positions within the
+            segment's extent; :class:`cblrs.places.LineRule`); a line's own ``rule`` wins.
         zone_hysteresis_m: a track is inside a zone once it is this far inside the border,
             and outside once this far outside (a zone's own ``hysteresis_m`` overrides it).
             Entry and exit times are taken where the track crossed the border itself, so
@@ -112,6 +116,7 @@ class AnalyticsConfig:
     """
 
     line_hysteresis_m: float = 0.5
+    line_rule: str = LineRule.HYSTERESIS.value
     zone_hysteresis_m: float = 0.5
     merge_gap_s: float = 2.0
     lost_after_s: float = 2.0
@@ -122,6 +127,9 @@ class AnalyticsConfig:
     heatmap: HeatmapGrid | None = None
 
     def __post_init__(self) -> None:
+        if self.line_rule not in {rule.value for rule in LineRule}:
+            choices = ", ".join(rule.value for rule in LineRule)
+            raise AnalyticsError(f"line_rule must be one of {choices}, got {self.line_rule!r}.")
         for name in ("line_hysteresis_m", "zone_hysteresis_m", "merge_gap_s", "min_track_s"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0):
@@ -135,6 +143,16 @@ class AnalyticsConfig:
         data = asdict(self)
         data["heatmap"] = None if self.heatmap is None else self.heatmap.to_dict()
         return data
+
+    def line_rules(self, places: Any) -> list[tuple[LineRule, float]]:
+        """Each counting line's rule and hysteresis (its own settings, else these)."""
+        return [
+            (
+                LineRule(line.rule or self.line_rule),
+                self.line_hysteresis_m if line.hysteresis_m is None else line.hysteresis_m,
+            )
+            for line in places.lines
+        ]
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> AnalyticsConfig:

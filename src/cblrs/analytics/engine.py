@@ -16,7 +16,10 @@ How a track becomes counts (each rule also in :class:`AnalyticsConfig`):
 * **Lines** — per (track, line) the engine keeps the side the track was last *confirmed* on
   (farther than the hysteresis from the line). A crossing is a change of confirmed side,
   timed and placed where the track last crossed the line itself, and counted only when that
-  point lies on the segment. Jitter inside the band changes nothing.
+  point lies on the segment. Jitter inside the band changes nothing. With the ``side_change``
+  rule (:class:`cblrs.places.LineRule`, common tools' rule) a position is confirmed on its side
+  whenever it lies within the segment's extent, however close to the line, and the change of
+  side counts wherever the line itself was crossed.
 * **Zones** — the same with the signed distance to the zone's border. A visit starts at an
   entry (confirmed outside, then inside) or an appearance (first confirmed state inside),
   and ends at an exit or at the end of the life. An exit followed by a re-entry within
@@ -55,7 +58,7 @@ from cblrs.analytics.config import (
     json_round_trip,
 )
 from cblrs.detections import CLASS_NAMES, Tracks
-from cblrs.places import Places
+from cblrs.places import LineRule, Places
 
 STATE_VERSION = "cblrs.analytics-state/1"
 
@@ -112,11 +115,10 @@ class Analytics:
         self._line_normal = np.array([line.direction for line in lines]).reshape(-1, 2)
         along = np.array([line.end - line.start for line in lines]).reshape(-1, 2)
         self._line_along = along / np.maximum(np.sum(along * along, axis=1, keepdims=True), 1e-12)
-        self._line_band = np.array(
-            [
-                self.config.line_hysteresis_m if line.hysteresis_m is None else line.hysteresis_m
-                for line in lines
-            ]
+        rules = self.config.line_rules(places)
+        self._line_band = np.array([band for _, band in rules])
+        self._line_side_change = np.array(
+            [rule is LineRule.SIDE_CHANGE for rule, _ in rules], dtype=bool
         )
         self._zone_band = np.array(
             [
@@ -334,6 +336,15 @@ class Analytics:
         confirmed = np.where(
             distance > self._line_band, 1, np.where(distance < -self._line_band, -1, 0)
         ).astype(np.int8)
+        # Position along each line: 0 at its start, 1 at its end.
+        along = (xy @ self._line_along.T) - np.sum(
+            self._line_start * self._line_along, axis=1
+        )[None, :]
+        if self._line_side_change.any():
+            # Common tools' rule: the side of any position within the segment's extent.
+            within = (along >= 0) & (along <= 1)
+            plain = np.where(within, np.where(distance >= 0, 1, -1), 0).astype(np.int8)
+            confirmed = np.where(self._line_side_change[None, :], plain, confirmed)
         confirmed[virtual] = self._line_side[slots]
         side = np.take_along_axis(confirmed, _fill_index(confirmed != 0, boundary), axis=0)
         before = side[previous]
@@ -345,9 +356,6 @@ class Analytics:
             fraction = np.where(crossing, d0 / (d0 - d1), 0.0)
         zc_t = time[previous][:, None] + fraction * (time - time[previous])[:, None]
         # Position along each line is linear in the point, so interpolate it directly.
-        along = (xy @ self._line_along.T) - np.sum(
-            self._line_start * self._line_along, axis=1
-        )[None, :]
         zc_along = along[previous] + fraction * (along - along[previous])
         crossing[virtual] = self._line_zc[slots]
         zc_t[virtual] = self._line_zc_t[slots]
@@ -357,7 +365,10 @@ class Analytics:
         at_t = np.take_along_axis(zc_t, last_zc, axis=0)
         at_along = np.take_along_axis(zc_along, last_zc, axis=0)
         changed = ~boundary[:, None] & (side != 0) & (before != 0) & (side != before)
-        counted = changed & has & (at_along >= 0) & (at_along <= 1)
+        # The hysteresis rule counts a crossing of the segment itself; the side-change rule
+        # a change of side seen within the segment's extent, wherever the line was crossed.
+        on_segment = (at_along >= 0) & (at_along <= 1)
+        counted = changed & has & (on_segment | self._line_side_change[None, :])
         names = [line.name for line in self.places.lines]
         for row, line in zip(*(np.nonzero(counted)[axis].tolist() for axis in (0, 1)),
                              strict=True):
@@ -623,7 +634,11 @@ class Analytics:
             raise AnalyticsError(f"not a saved analytics state (expected {STATE_VERSION}).")
         if state.get("places") != json_round_trip(self.places.to_dict()):
             raise AnalyticsError("the saved analytics state is for other places.")
-        if state.get("config") != json_round_trip(self.config.to_dict()):
+        saved = state.get("config")
+        if isinstance(saved, dict) and "line_rule" not in saved:
+            # Saved before lines had a rule: they were all counted with the hysteresis rule.
+            saved = {**saved, "line_rule": LineRule.HYSTERESIS.value}
+        if saved != json_round_trip(self.config.to_dict()):
             raise AnalyticsError("the saved analytics state was made with other settings.")
         try:
             self.reset()

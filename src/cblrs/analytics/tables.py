@@ -20,7 +20,7 @@ from numpy.typing import NDArray
 from cblrs.analytics.config import AnalyticsConfig, Event, LineCrossing, ZoneLeft
 from cblrs.analytics.engine import Analytics
 from cblrs.detections import CLASS_NAMES, Tracks
-from cblrs.places import Places
+from cblrs.places import Places, line_rule_text
 
 DIRECTIONS = ("positive", "negative")
 
@@ -35,8 +35,9 @@ class AnalyticsResult:
     """Every table of one analytics run.
 
     Attributes:
-        lines: per line, direction and class: ``{line, direction, class, count}`` (every line
-            and direction appears, with class ``"all"`` summing the classes).
+        lines: per line, direction and class: ``{line, direction, class, count, rule}``
+            (every line and direction appears, with class ``"all"`` summing the classes;
+            ``rule`` says what counted as a crossing, :func:`cblrs.places.line_rule_text`).
         zones: per zone: entries (crossed in), appeared (first seen inside), exits, visits,
             mean / median dwell of all visits and mean dwell of complete visits (entered and
             exited), person-seconds inside.
@@ -135,7 +136,9 @@ def result_of(engine: Analytics, events: list[Event]) -> AnalyticsResult:
     places, config = engine.places, engine.config
     classes = sorted({key[2] for key in engine.line_counts})
     lines = []
-    for line in places.lines:
+    for line, (rule, band) in zip(places.lines, config.line_rules(places), strict=True):
+        # Which rule made the count goes beside it: rules differ by ~10 % on real tracks.
+        text = line_rule_text(rule, band)
         for direction in DIRECTIONS:
             total = 0
             for class_id in classes:
@@ -143,9 +146,10 @@ def result_of(engine: Analytics, events: list[Event]) -> AnalyticsResult:
                 total += count
                 if count:
                     lines.append({"line": line.name, "direction": direction,
-                                  "class": class_name(class_id), "count": count})
+                                  "class": class_name(class_id), "count": count,
+                                  "rule": text})
             lines.append({"line": line.name, "direction": direction, "class": "all",
-                          "count": total})
+                          "count": total, "rule": text})
     visits_by_zone: dict[str, list[ZoneLeft]] = {zone.name: [] for zone in places.zones}
     for visit in engine.visits:
         visits_by_zone[visit.zone].append(visit)
@@ -226,7 +230,7 @@ def write_result(result: AnalyticsResult, out: str | Path) -> list[Path]:
                 writer.writerow({key: _cell(row[key]) for key in columns})
         written.append(path)
 
-    table("lines.csv", result.lines, ["line", "direction", "class", "count"])
+    table("lines.csv", result.lines, ["line", "direction", "class", "count", "rule"])
     table("zones.csv", result.zones, list(result.zones[0]) if result.zones else ["zone"])
     table("counts_over_time.csv", result.counts_over_time,
           ["bin_start_s", "place", "kind", "class", "count"])

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from typing import Any
 
 from cblrs.analytics.config import AnalyticsConfig, AnalyticsError
 from cblrs.analytics.files import analyse_file
@@ -41,6 +42,13 @@ def register(subparsers) -> None:
     parser.add_argument("--line-hysteresis", type=float, default=defaults.line_hysteresis_m,
                         metavar="M", help="metres past a line on each side for a crossing "
                         f"(default {defaults.line_hysteresis_m:g}; a line's own setting wins)")
+    parser.add_argument("--line-rule", choices=("hysteresis", "side_change"),
+                        default=defaults.line_rule,
+                        help="what counts as crossing a line: hysteresis (default: from "
+                        "beyond --line-hysteresis on one side to beyond it on the other, "
+                        "through the segment) or side_change (common tools' rule, e.g. "
+                        "supervision's LineZone: any change of side within the segment's "
+                        "extent); a line's own rule: wins")
     parser.add_argument("--zone-hysteresis", type=float, default=defaults.zone_hysteresis_m,
                         metavar="M", help="metres past a zone border to count as in or out "
                         f"(default {defaults.zone_hysteresis_m:g})")
@@ -64,7 +72,8 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError(f"--out {args.out} is a file; give a folder.")
     try:
         config = AnalyticsConfig(
-            line_hysteresis_m=args.line_hysteresis, zone_hysteresis_m=args.zone_hysteresis,
+            line_hysteresis_m=args.line_hysteresis, line_rule=args.line_rule,
+            zone_hysteresis_m=args.zone_hysteresis,
             merge_gap_s=args.merge_gap, lost_after_s=args.lost_after,
             min_track_s=args.min_track,
             **({} if args.interval is None else {"interval_s": args.interval}),
@@ -81,11 +90,11 @@ def run(args: argparse.Namespace) -> int:
     print(f"{summary['rows']} rows, {summary['track_ids']} track ids, "
           f"{summary['seconds']:.1f} s on site {summary['site']}")
     if summary["lines"]:
-        rows: dict[str, dict[str, int]] = {}
+        rows: dict[str, dict[str, Any]] = {}
         for row in summary["lines"]:
-            rows.setdefault(row["line"], {})[row["direction"]] = row["count"]
-        print(format_table(["line", "positive", "negative"],
-                           [[name, c.get("positive", 0), c.get("negative", 0)]
+            rows.setdefault(row["line"], {"rule": row["rule"]})[row["direction"]] = row["count"]
+        print(format_table(["line", "positive", "negative", "counted when"],
+                           [[name, c.get("positive", 0), c.get("negative", 0), c["rule"]]
                             for name, c in rows.items()]))
     if summary["zones"]:
         print(format_table(

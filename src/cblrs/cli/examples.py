@@ -42,6 +42,8 @@ EXAMPLES: dict[str, list[str]] = {
     "pseudo site": ["cblrs pseudo site site.yaml --key site.key --out pseudo-site.yaml"],
     "pseudo unmap": ["cblrs pseudo unmap pseudo-tracks.txt --key site.key --out tracks.txt"],
     "analytics": ["cblrs analytics tracks.txt --site sites/wildtrack.yaml --out analytics/"],
+    "link": ["cblrs link --site street.yaml --plane 1=plane1.db --plane 2=plane2.db "
+             "--plane 3=plane3.db --plane 4=plane4.db --out site-tracks.txt --analytics site/"],
     "broker-config": ["cblrs broker-config --out broker --cameras C1,C2,C3 --matchers matcher1 "
                       "--planes 1"],
     "camera": ["cblrs camera --camera Camera1 --reference refs/Camera1.png --images "
@@ -49,6 +51,8 @@ EXAMPLES: dict[str, list[str]] = {
                "--model ../shared/models/yolox_nano.onnx"],
     "matcher": ["cblrs matcher --site site.yaml --db plane1.db --http 127.0.0.1:9100",
                 "cblrs matcher --stats plane1.db"],
+    "linker": ["cblrs linker --site street.yaml --db linker.db --backbone nats://n1:4222,"
+               "n2:4222,n3:4222", "cblrs linker --stats linker.db"],
     "dashboard": ["cblrs dashboard --site site.yaml --db plane1.db --port 8080",
                   "cblrs dashboard --site site.yaml --users users.yaml --host 0.0.0.0 "
                   "--tls-cert dash.crt --tls-key dash.key"],
@@ -87,6 +91,8 @@ EXAMPLES: dict[str, list[str]] = {
     "experiment counts": ["cblrs experiment counts --scenes wildtrack,plaza --out experiments"],
     "experiment tracking": ["cblrs experiment tracking --out experiments",
                             "cblrs experiment tracking --scenes roundabout,crowd --no-held-out"],
+    "experiment planes": ["cblrs experiment planes --out experiments",
+                          "cblrs experiment planes --seeds '' --people 20 --cars 6"],
     "experiment pseudo": [f"cblrs experiment pseudo --dataset {WT} --out experiments"],
 }
 

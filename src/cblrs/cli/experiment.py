@@ -1,6 +1,7 @@
 """``cblrs experiment``: the paper's experiments rerun — targeting (IV-B), resolution, clicked
 calibration — the count accuracy of the analytics (counts), identity where it is hard
-(tracking) and what pseudo coordinates do not hide (pseudo).
+(tracking), what pseudo coordinates do not hide (pseudo) and identities across the planes of
+a city (planes).
 
 Each prints a markdown table (or ``--json``); ``--out DIR`` also writes
 ``DIR/experiment_<name>.json``, ``.md`` and the figures.
@@ -29,7 +30,7 @@ def register(subparsers) -> None:
     parser = subparsers.add_parser(
         "experiment",
         help="rerun the paper's experiments: targeting (IV-B), resolution; clicked "
-        "calibration; count accuracy; pseudo-coordinate recovery",
+        "calibration; count accuracy; pseudo-coordinate recovery; identities across planes",
         description="Rerun the paper's experiments on the synthetic world and WILDTRACK.",
     )
     kinds = parser.add_subparsers(dest="experiment", metavar="EXPERIMENT")
@@ -189,6 +190,26 @@ def register(subparsers) -> None:
     pseudo.add_argument("--out", type=Path, help="write JSON and markdown here")
     add_output_options(pseudo)
     pseudo.set_defaults(handler=run, experiment="pseudo")
+
+    planes = kinds.add_parser(
+        "planes",
+        help="identities and origin-destination across the planes of a synthetic street "
+        "(4 planes, 16 cameras): single plane vs unlinked vs linked",
+    )
+    planes.add_argument("--seed", type=int, default=0, help="the world's seed (default 0)")
+    planes.add_argument("--seeds", default="1,2,3", help="simulated-detector seeds")
+    planes.add_argument("--drop", type=float, default=0.2, help="simulated detector drop (0.2)")
+    planes.add_argument("--jitter", type=float, default=0.05, help="box edge jitter (0.05)")
+    planes.add_argument("--people", type=int, default=40, help="people with a trip (40)")
+    planes.add_argument("--cars", type=int, default=12, help="cars (12)")
+    planes.add_argument("--spawn", type=float, default=40.0, metavar="SECONDS",
+                        help="trips start within this many seconds (40)")
+    planes.add_argument("--max-trip", type=float, default=110.0, metavar="METRES",
+                        help="no trip is longer (110)")
+    planes.add_argument("--fps", type=float, default=10.0, help="frame rate of the world (10)")
+    planes.add_argument("--out", type=Path, help="write JSON and markdown here")
+    add_output_options(planes)
+    planes.set_defaults(handler=run, experiment="planes")
 
     def usage(args: argparse.Namespace) -> int:
         parser.print_help()
@@ -436,6 +457,32 @@ def run_pseudo_command(args: argparse.Namespace) -> tuple[dict[str, Any], str]:
     return result, text
 
 
+def run_planes_command(args: argparse.Namespace) -> tuple[dict[str, Any], str]:
+    """Run ``cblrs experiment planes``: (result, markdown)."""
+    # lazy: a subcommand imports the library when it runs, so its --help starts fast
+    from cblrs.experiments.planes import PlanesSetup, planes_report, run_planes
+
+    seeds = parse_numbers(args.seeds, "--seeds") if args.seeds.strip() else ()
+    if not all(isinstance(seed, int) for seed in seeds):
+        raise UsageError(f"--seeds must be whole numbers, got {args.seeds!r}.")
+    if not (0 <= args.drop <= 1 and args.jitter >= 0):
+        raise UsageError("--drop must lie in [0, 1] and --jitter be >= 0.")
+    if args.people < 0 or args.cars < 0 or args.spawn < 0:
+        raise UsageError("--people, --cars and --spawn must be >= 0.")
+    if not (args.max_trip > 0 and args.fps > 0):
+        raise UsageError("--max-trip and --fps must be > 0.")
+    setup = PlanesSetup(seed=args.seed, detector_seeds=tuple(int(seed) for seed in seeds),
+                        drop=args.drop, jitter=args.jitter, people=args.people, cars=args.cars,
+                        spawn_s=args.spawn, max_trip_m=args.max_trip, fps=args.fps)
+    show = not args.quiet and sys.stderr.isatty()
+    result = run_planes(setup, report=(lambda line: print(line, file=sys.stderr)) if show
+                        else None)
+    text = planes_report(result)
+    if args.out is not None:
+        _write(args.out, "planes", result, text)
+    return result, text
+
+
 def run(args: argparse.Namespace) -> int:
     """Run ``cblrs experiment`` with its parsed arguments; the exit code."""
     if args.experiment == "targeting":
@@ -450,6 +497,8 @@ def run(args: argparse.Namespace) -> int:
         result, text = run_tracking_command(args)
     elif args.experiment == "pseudo":
         result, text = run_pseudo_command(args)
+    elif args.experiment == "planes":
+        result, text = run_planes_command(args)
     else:  # pragma: no cover - argparse restricts the choices
         raise UsageError(f"unknown experiment {args.experiment!r}.")
     if args.json:

@@ -38,11 +38,13 @@ SUBCOMMANDS = {
     "track": "track a multi-camera dataset and write world tracks (AI City format)",
     "eval": "HOTA, DetA, AssA, LocA, MOTA, IDF1 of tracks against ground truth",
     "analytics": "counts per line and direction, zone entries/exits/dwell, OD, heatmap",
+    "link": "global ids across planes from the planes' tracks (matcher databases or files)",
     "pseudo": "pseudo coordinates: make a key, a pseudo site for the matcher, map tracks back",
     "broker_config": "write a Mosquitto configuration (users, ACL, optional TLS) for cameras "
     "and matchers",
     "camera": "run an edge camera node: detections -> reference colours -> MQTT",
     "matcher": "run the central matcher of one plane: MQTT -> validate -> track -> SQLite",
+    "linker": "run the site's linker: every plane's tracks -> global ids and site counts",
     "dashboard": "serve the live dashboard: site map, tracks, counts, cameras; replay; "
     "calibration",
     "dashboard_users": "the dashboard's users: add, passwd, set-role, remove, list, token, "
@@ -50,7 +52,7 @@ SUBCOMMANDS = {
     "bench": "benchmarks: lookup (Table I), render, claims, tracker, pipeline, analytics, "
     "dashboard, backbone, asynchrony, mqtt, all",
     "experiment": "rerun the paper's experiments: targeting (IV-B), resolution; clicked "
-    "calibration; count accuracy; pseudo-coordinate recovery",
+    "calibration; count accuracy; pseudo-coordinate recovery; identities across planes",
 }
 
 

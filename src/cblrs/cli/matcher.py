@@ -91,12 +91,8 @@ def register(subparsers) -> None:
         default=2.0,
         help="ordering window, seconds: how long a timestamp waits for a silent camera",
     )
-    parser.add_argument(
-        "--out-tracks",
-        type=Path,
-        help="also write tracks (AI City format; its .meta.json sidecar keeps the capture "
-        "times, for cblrs analytics)",
-    )
+    parser.add_argument("--out-tracks", type=Path, help="also write tracks (AI City format; "
+                        "its .meta.json keeps the capture times, for cblrs analytics)")
     parser.add_argument(
         "--no-publish-tracks", action="store_true", help="do not publish on cblrs/<plane>/tracks"
     )
@@ -560,7 +556,7 @@ def show_stats(path: Path, as_json: bool) -> int:
     """Print what a matcher database holds (``cblrs matcher --stats``); the exit code."""
     # lazy: a subcommand imports the library when it runs, so its --help starts fast
     from cblrs.matching.fusion import clock_report
-    from cblrs.runtime.analytics_store import count_summary, read_counts
+    from cblrs.runtime.analytics_store import count_summary, line_rules, read_counts
     from cblrs.runtime.store import RuntimeStore
 
     with RuntimeStore(path, read_only=True) as store:
@@ -570,6 +566,7 @@ def show_stats(path: Path, as_json: bool) -> int:
         )
         try:
             summary["analytics"] = count_summary(read_counts(store))
+            summary["analytics"]["line_rules"] = line_rules(store)
         except Exception:  # a file written before the analytics tables: none to show
             summary["analytics"] = {"lines": {}, "zones": {}}
     if as_json:
@@ -586,9 +583,11 @@ def show_stats(path: Path, as_json: bool) -> int:
     rows += [[f"clock offset {name} (s)", f"{report['offset_s']:+.3f}"
               + (" beyond tolerance" if report["beyond_tolerance"] else "")]
              for name, report in (summary["clocks"] or {}).items()]
+    rules = summary["analytics"].get("line_rules") or {}
     for line, row in sorted(summary["analytics"]["lines"].items()):
+        rule = f" (counted when: {rules[line]})" if line in rules else ""
         rows.append([f"line {line} +/-", f"{row.get('positive', 0):.0f} / "
-                     f"{row.get('negative', 0):.0f}"])
+                     f"{row.get('negative', 0):.0f}{rule}"])
     for zone, row in sorted(summary["analytics"]["zones"].items()):
         rows.append([f"zone {zone} entries/exits/visits",
                      f"{row.get('entries', 0):.0f} / {row.get('exits', 0):.0f} / "

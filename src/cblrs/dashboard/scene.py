@@ -16,7 +16,9 @@ from typing import Any
 
 import numpy as np
 
+from cblrs.analytics.config import AnalyticsConfig
 from cblrs.errors import CblrsError
+from cblrs.places import line_rule_text
 from cblrs.site import Site
 
 logger = logging.getLogger(__name__)
@@ -35,7 +37,7 @@ def site_scene(site: Site, plane_id: int | None = None) -> dict[str, Any]:
 
     Returns:
         ``{"name", "plane", "planes": [{id, name, x, y, width, length}], "zones": [{name,
-        polygon}], "lines": [{name, start, end, normal}], "cameras": [{name, position, fov,
+        polygon}], "lines": [{name, start, end, normal, rule}], "cameras": [{name, position, fov,
         note}], "bounds": [x_min, y_min, x_max, y_max], "map": {extent, y_up} | None}``.
     """
     planes = list(site.planes or [])
@@ -45,9 +47,14 @@ def site_scene(site: Site, plane_id: int | None = None) -> dict[str, Any]:
         for zone in site.places.zones
         if zone.plane_id in (None, plane)
     ]
+    # What the matcher counts as a crossing (its default settings and the lines' own), said
+    # beside the counts.
+    rules = dict(zip((line.name for line in site.places.lines),
+                     (line_rule_text(rule, band)
+                      for rule, band in AnalyticsConfig().line_rules(site.places)), strict=True))
     lines = [
         {"name": line.name, "start": line.start.tolist(), "end": line.end.tolist(),
-         "normal": np.asarray(line.direction).tolist()}
+         "normal": np.asarray(line.direction).tolist(), "rule": rules[line.name]}
         for line in site.places.lines
         if line.plane_id in (None, plane)
     ]

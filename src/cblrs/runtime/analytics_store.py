@@ -31,6 +31,9 @@ from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
+from cblrs.analytics.config import AnalyticsConfig
+from cblrs.places import LineRule, Places, line_rule_text
+
 ANALYTICS_SCHEMA = """
 CREATE TABLE IF NOT EXISTS events (
     id INTEGER PRIMARY KEY AUTOINCREMENT,
@@ -142,6 +145,20 @@ def read_state(store: Any) -> dict[str, Any] | None:
     """The engine state a store holds (None before the first batch)."""
     rows = store.query("SELECT value FROM meta WHERE key = ?", (STATE_KEY,))
     return json.loads(rows[0][0]) if rows else None
+
+
+def line_rules(store: Any) -> dict[str, str]:
+    """What counted as a crossing of each line (:func:`cblrs.places.line_rule_text`), from
+    the settings and places of the store's saved state; empty before the first batch."""
+    state = read_state(store)
+    engine = (state or {}).get("engine") or {}
+    if "places" not in engine or "config" not in engine:
+        return {}
+    places = Places.from_dict(engine["places"])
+    config = AnalyticsConfig.from_dict({"line_rule": LineRule.HYSTERESIS.value,
+                                        **engine["config"]})
+    return {line.name: line_rule_text(rule, band)
+            for line, (rule, band) in zip(places.lines, config.line_rules(places), strict=True)}
 
 
 def read_counts(store: Any) -> dict[CountKey, float]:

@@ -34,9 +34,9 @@ from cblrs.runtime.wire.common import (
     CameraId,
     ClassName,
     Count,
-    PlaneId,
     RejectedMessage,
     RejectReason,
+    SitePlaneId,
     _decode_typed,
 )
 
@@ -53,7 +53,7 @@ class WireEvent(msgspec.Struct, forbid_unknown_fields=True, omit_defaults=True):
     """A ``cblrs.events/1`` payload (see the module docstring)."""
 
     schema: str
-    plane: PlaneId
+    plane: SitePlaneId
     id: Count
     kind: Literal["line_crossed", "zone_entered", "zone_left"]
     timestamp: float
@@ -184,7 +184,7 @@ class LiveSummary(msgspec.Struct, forbid_unknown_fields=True):
     """
 
     schema: str
-    plane: PlaneId
+    plane: SitePlaneId
     sent_at: float
     clock: float | None
     cameras: list[LiveCamera]

@@ -10,8 +10,14 @@ Layout (one subtree per plane, so a broker cluster can be split by plane id)::
     cblrs/<plane>/live                       matcher -> viewers, counts and camera health (1 Hz)
     cblrs/<plane>/matchers/<matcher>/status  retained availability of a matcher
     cblrs/<plane>/lease                      retained: which matcher instance holds the plane
+    cblrs/0/tracks                           linker -> viewers, global tracks of the site
+    cblrs/0/events                           linker -> viewers, the site's analytics events
+    cblrs/0/live                             linker -> viewers, the site's counts (1 Hz)
+                                             (events_topic(0), live_topic(0))
+    cblrs/0/linkers/<linker>/status          retained availability of a linker
 
-``<plane>`` is the decimal plane id (the B channel of the reference colours).
+``<plane>`` is the decimal plane id (the B channel of the reference colours); 0, the B
+channel's "no plane", names the whole site (:data:`SITE_PLANE`).
 """
 
 from __future__ import annotations
@@ -30,6 +36,8 @@ Anchored with ``\\Z``, not ``$``: ``$`` also matches before a trailing newline, 
 
 _ID = re.compile(ID_PATTERN)
 MAX_PLANE_ID = 65535
+SITE_PLANE = 0
+"""The "plane" of the whole site in topics: the linker's global tracks and analytics."""
 
 
 class TopicError(CblrsError):
@@ -101,13 +109,47 @@ def tracks_topic(plane_id: int) -> str:
 
 
 def events_topic(plane_id: int) -> str:
-    """``cblrs/<plane>/events``: analytics events (line crossings, zone entries and exits)."""
-    return f"{ROOT}/{_plane(plane_id)}/events"
+    """``cblrs/<plane>/events``: analytics events (line crossings, zone entries and exits);
+    plane 0: the site's (counted by the linker on the global tracks)."""
+    return f"{ROOT}/{_plane_or_site(plane_id)}/events"
 
 
 def live_topic(plane_id: int) -> str:
-    """``cblrs/<plane>/live``: the matcher's live summary (counts, occupancy, camera health)."""
-    return f"{ROOT}/{_plane(plane_id)}/live"
+    """``cblrs/<plane>/live``: the matcher's live summary (counts, occupancy, camera health);
+    plane 0: the linker's summary of the site."""
+    return f"{ROOT}/{_plane_or_site(plane_id)}/live"
+
+
+def _plane_or_site(plane_id: int) -> str:
+    return str(SITE_PLANE) if plane_id == SITE_PLANE and not isinstance(plane_id, bool) else (
+        _plane(plane_id))
+
+
+def site_tracks_topic() -> str:
+    """``cblrs/0/tracks``: the linker's global tracks (ids across planes)."""
+    return f"{ROOT}/{SITE_PLANE}/tracks"
+
+
+def linker_status_topic(linker_id: str) -> str:
+    """``cblrs/0/linkers/<linker>/status``: retained availability of a linker."""
+    return f"{ROOT}/{SITE_PLANE}/linkers/{validate_client_id(linker_id, 'linker id')}/status"
+
+
+def parse_tracks_topic(topic: str) -> int:
+    """``cblrs/<plane>/tracks`` -> the plane id (0: the site's global tracks).
+
+    Raises:
+        TopicError: the topic does not have that form.
+    """
+    parts = topic.split("/")
+    if len(parts) != 3 or parts[0] != ROOT or parts[2] != "tracks":
+        raise TopicError(f"{topic!r} is not a tracks topic (cblrs/<plane>/tracks).")
+    if not parts[1].isdigit() or parts[1] != str(int(parts[1])):
+        raise TopicError(f"{topic!r} has no decimal plane id.")
+    plane_id = int(parts[1])
+    if plane_id != SITE_PLANE:
+        _plane(plane_id)
+    return plane_id
 
 
 def detections_filter(plane_id: int | None = None) -> str:

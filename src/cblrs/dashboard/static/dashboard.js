@@ -340,6 +340,10 @@ Cblrs.loadSession().then(() => Cblrs.fetchJSON("/api/site")).then((scene) => {
   window.addEventListener("resize", () => { state.view.resize(); state.dirty = true; });
   resetCounts();
   state.tablesDirty = true;  // the site's lines, zones and cameras, before any message
+  // Which rule made the counts, beside them (rules differ by ~10 % on real tracks).
+  const rules = [...new Set(scene.lines.map((line) => line.rule))];
+  $("line-rule").textContent = rules.length === 1 ? `counted when: ${rules[0]}`
+    : scene.lines.map((line) => `${line.name}: ${line.rule}`).join("; ");
   $("live-button").disabled = !scene.live;
   $("replay-button").disabled = !scene.replay;
   $("live-button").onclick = () => connect("/api/stream", "live");

@@ -37,6 +37,7 @@ from cblrs.runtime.wire.common import (
     MAX_DETECTIONS,
     MAX_INT,
     MAX_TRACK_ROWS,
+    SITE_PLANE,
     STATUS_SCHEMA,
     TRACKS_SCHEMA,
     CameraId,
@@ -45,6 +46,7 @@ from cblrs.runtime.wire.common import (
     PlaneId,
     RejectedMessage,
     RejectReason,
+    SitePlaneId,
 )
 from cblrs.runtime.wire.detections import (
     ValidationPolicy,
@@ -78,6 +80,7 @@ __all__ = [
     "MAX_DETECTIONS",
     "MAX_INT",
     "MAX_TRACK_ROWS",
+    "SITE_PLANE",
     "STATUS_SCHEMA",
     "TRACKS_SCHEMA",
     "CameraId",
@@ -86,6 +89,7 @@ __all__ = [
     "PlaneId",
     "RejectReason",
     "RejectedMessage",
+    "SitePlaneId",
     "Status",
     "StatusState",
     "TracksUpdate",

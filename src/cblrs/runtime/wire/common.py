@@ -60,6 +60,15 @@ Count = Annotated[int, msgspec.Meta(ge=0, le=MAX_INT)]
 PlaneId = Annotated[int, msgspec.Meta(ge=1, le=MAX_PLANE_ID)]
 
 
+SITE_PLANE = 0
+"""The plane id of what covers the whole site (the linker's global tracks, the site's
+analytics): 0, the B channel's "no plane", which no real plane has."""
+
+
+SitePlaneId = Annotated[int, msgspec.Meta(ge=0, le=MAX_PLANE_ID)]
+"""A plane id, or :data:`SITE_PLANE` for the whole site."""
+
+
 ClassName = Annotated[str, msgspec.Meta(max_length=32)]
 
 

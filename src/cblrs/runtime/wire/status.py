@@ -24,7 +24,7 @@ class Status(msgspec.Struct, forbid_unknown_fields=True, frozen=True, omit_defau
     Attributes:
         schema: the schema tag.
         client: the camera or matcher id.
-        role: "camera", "matcher" or "viewer".
+        role: "camera", "matcher", "linker" or "viewer".
         state: "online" or "offline".
         timestamp: when it was published (seconds since the epoch); None in a last will,
             which is composed at connection time.
@@ -35,7 +35,7 @@ class Status(msgspec.Struct, forbid_unknown_fields=True, frozen=True, omit_defau
 
     schema: str
     client: CameraId
-    role: Literal["camera", "matcher", "viewer"]
+    role: Literal["camera", "matcher", "linker", "viewer"]
     state: StatusState
     timestamp: float | None = None
     session_present: bool | None = None

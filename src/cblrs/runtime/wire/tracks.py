@@ -1,4 +1,8 @@
-"""``cblrs.tracks/1``: a matcher's track updates on ``cblrs/<plane>/tracks``.
+"""``cblrs.tracks/1``: a matcher's track updates on ``cblrs/<plane>/tracks``, and the
+linker's global ones on ``cblrs/0/tracks`` (plane 0: the whole site).
+
+A global update's rows carry the global id in ``track`` and where it came from:
+``source_plane`` (the plane whose matcher saw it) and ``source_track`` (that matcher's id).
 """
 
 from __future__ import annotations
@@ -22,6 +26,7 @@ from cblrs.runtime.wire.common import (
     PlaneId,
     RejectedMessage,
     RejectReason,
+    SitePlaneId,
     _decode_typed,
 )
 
@@ -37,13 +42,17 @@ class WireTrack(msgspec.Struct, forbid_unknown_fields=True):
     box: tuple[float, float, float, float] | None = None
     class_name: ClassName | None = msgspec.field(default=None, name="class")
     """The track's class (a name of :data:`~cblrs.detections.CLASS_NAMES`); absent: unknown."""
+    source_plane: PlaneId | None = None
+    """Global rows (plane 0): the plane whose matcher gave the row."""
+    source_track: Annotated[int, msgspec.Meta(ge=-MAX_INT, le=MAX_INT)] | None = None
+    """Global rows (plane 0): that matcher's track id."""
 
 
 class WireTracks(msgspec.Struct, forbid_unknown_fields=True):
     """A ``cblrs.tracks/1`` payload."""
 
     schema: str
-    plane: PlaneId
+    plane: SitePlaneId
     sequence: Count
     tracks: Annotated[list[WireTrack], msgspec.Meta(max_length=MAX_TRACK_ROWS)]
     cameras: Annotated[list[CameraId], msgspec.Meta(max_length=1000)] = msgspec.field(
@@ -63,6 +72,8 @@ class TracksUpdate:
         cameras: camera ids, in the order ``Tracks.camera_id`` refers to them (may be empty).
         timestamp: the update's time, seconds: the matcher has tracked everything captured
             up to it (an empty update says no track is there at that time); None if not said.
+        source_plane: global updates (plane 0): (N,) int64 the plane of each row, else None.
+        source_track: global updates: (N,) int64 that plane's track id, else None.
     """
 
     plane_id: int
@@ -70,6 +81,8 @@ class TracksUpdate:
     tracks: Tracks
     cameras: tuple[str, ...] = field(default=())
     timestamp: float | None = None
+    source_plane: np.ndarray | None = None
+    source_track: np.ndarray | None = None
 
 
 def encode_tracks(
@@ -79,15 +92,18 @@ def encode_tracks(
     sequence: int = 0,
     cameras: list[str] | None = None,
     timestamp: float | None = None,
+    source_plane: np.ndarray | None = None,
+    source_track: np.ndarray | None = None,
 ) -> bytes:
     """Serialise track rows for ``cblrs/<plane>/tracks`` (schema ``cblrs.tracks/1``).
 
     Args:
         tracks: rows to publish; NaN boxes are sent as ``null``.
-        plane_id: the plane.
+        plane_id: the plane (0: the site's global tracks).
         sequence: the matcher's update counter.
         cameras: camera ids that ``tracks.camera_id`` indexes (optional).
         timestamp: the update's time (the released group's capture time; optional).
+        source_plane, source_track: global rows: (N,) where each came from (both or neither).
 
     Raises:
         RejectedMessage: non-finite positions or times, or too many rows.
@@ -98,6 +114,12 @@ def encode_tracks(
         )
     if not (np.isfinite(tracks.world_xy).all() and np.isfinite(tracks.timestamp).all()):
         raise RejectedMessage(RejectReason.INVALID_VALUE, "track positions must be finite")
+    if (source_plane is None) != (source_track is None):
+        raise ValueError("give source_plane and source_track together")
+    sources = (
+        zip(np.asarray(source_plane).tolist(), np.asarray(source_track).tolist(), strict=True)
+        if source_plane is not None and source_track is not None else None
+    )
     rows = []
     for frame, timestamp, track_id, world_xy, camera, box, class_id in zip(
         tracks.frame.tolist(),
@@ -120,6 +142,8 @@ def encode_tracks(
             row["box"] = box
         if 0 <= class_id < len(CLASS_NAMES):
             row["class"] = CLASS_NAMES[class_id]
+        if sources is not None:
+            row["source_plane"], row["source_track"] = next(sources)
         rows.append(row)
     document = {
         "schema": TRACKS_SCHEMA,
@@ -174,4 +198,14 @@ def decode_tracks(payload: bytes, *, max_bytes: int = 8 * 1024 * 1024) -> Tracks
         )
     if wire.timestamp is not None and not math.isfinite(wire.timestamp):
         raise RejectedMessage(RejectReason.INVALID_VALUE, "the update's time must be finite")
-    return TracksUpdate(wire.plane, wire.sequence, tracks, tuple(wire.cameras), wire.timestamp)
+    sources = [(row.source_plane, row.source_track) for row in rows]
+    known = [plane is not None and track is not None for plane, track in sources]
+    if any(known) and not all(known):
+        raise RejectedMessage(RejectReason.MISSING_FIELD,
+                              "every row of a global update needs source_plane and source_track")
+    source_plane = source_track = None
+    if rows and all(known):
+        source_plane = np.array([plane for plane, _ in sources], dtype=np.int64)
+        source_track = np.array([track for _, track in sources], dtype=np.int64)
+    return TracksUpdate(wire.plane, wire.sequence, tracks, tuple(wire.cameras), wire.timestamp,
+                        source_plane, source_track)

@@ -1,0 +1,222 @@
+"""The linker service: planes' track updates in, global tracks and site counts out, equal to
+the offline link of the same rows, through duplicates, bad updates and restarts."""
+
+from __future__ import annotations
+
+import math
+import sqlite3
+import time
+from collections import Counter
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from waiting import wait_until
+
+from cblrs.analytics.tables import analyse_tracks
+from cblrs.datasets.city import city_scenes, street_world
+from cblrs.detections import Tracks
+from cblrs.linking.files import site_analytics_config
+from cblrs.linking.linker import PlaneLinker, link_tracks
+from cblrs.runtime.analytics_store import read_counts, read_od
+from cblrs.runtime.inprocess import InProcessBroker, InProcessTransport
+from cblrs.runtime.linker_service import LinkerService
+from cblrs.runtime.linker_store import LinkerStore, LinkerStoreError
+from cblrs.runtime.mqtt_transport import MqttTransport
+from cblrs.runtime.online_analytics import OnlineAnalytics
+from cblrs.runtime.topics import events_topic, site_tracks_topic, tracks_topic
+from cblrs.runtime.wire import decode_tracks, encode_tracks
+
+EPOCH = 1_700_000_000.0
+
+
+@pytest.fixture(scope="module")
+def city():
+    """The small city's planes as matchers would publish them: every plane's ground truth
+    with its own ids and 5 cm of noise, at capture times from EPOCH."""
+    scenes = city_scenes(street_world(seed=4, people=10, cars=4, wanderers=1, spawn_s=6.0,
+                                      max_trip_m=90.0))
+    rng = np.random.default_rng(1)
+    per_plane = {}
+    for plane_id, scene in scenes.planes.items():
+        truth = scene.ground_truth
+        per_plane[plane_id] = replace(
+            truth, timestamp=EPOCH + truth.timestamp, track_id=truth.track_id * 10 + plane_id,
+            world_xy=truth.world_xy + rng.normal(0, 0.05, (len(truth), 2)))
+    return scenes, per_plane
+
+
+def updates_of(scenes, per_plane):
+    """Every plane's updates, one per frame (empty ones too), in capture order."""
+    updates = []
+    for plane_id, rows in per_plane.items():
+        for index, seconds in enumerate(scenes.timestamps.tolist()):
+            chosen = rows[rows.frame == index]
+            updates.append((EPOCH + seconds, plane_id, encode_tracks(
+                chosen, plane_id, sequence=index, timestamp=EPOCH + seconds)))
+    updates.sort(key=lambda item: (item[0], item[1]))
+    return updates
+
+
+def client(broker, name, persistent=False):
+    """A client of the in-process broker, or of a real Mosquitto (a RunningBroker)."""
+    if isinstance(broker, InProcessBroker):
+        return InProcessTransport(broker, name, persistent=persistent)
+    return MqttTransport(name, broker.settings(), persistent=persistent)
+
+
+def make_service(broker, scenes, database, **options):
+    spec = scenes.spec
+    transport = client(broker, "linker", persistent=True)
+    analytics = OnlineAnalytics(spec.places, site_analytics_config(spec.links), delay_s=0.0)
+    return LinkerService(transport, LinkerStore(database), PlaneLinker(spec.planes, spec.links),
+                         spec.planes.ids, site={"planes": spec.planes.to_list()},
+                         analytics=analytics, live_interval_s=None, **options)
+
+
+@pytest.fixture(params=["inprocess", "mosquitto"])
+def broker(request):
+    if request.param == "inprocess":
+        return InProcessBroker()
+    return request.getfixturevalue("mosquitto")
+
+
+def test_live_equals_offline_through_duplicates_bad_updates_and_a_restart(city, broker,
+                                                                          tmp_path):
+    scenes, per_plane = city
+    viewer = client(broker, "viewer", persistent=True)
+    seen: list = []
+    events: list = []
+    viewer.subscribe(site_tracks_topic(), lambda d: seen.append(decode_tracks(d.payload)))
+    viewer.subscribe(events_topic(0), lambda d: events.append(d.payload))
+    viewer.connect()
+    matchers = {plane: client(broker, f"matcher{plane}") for plane in per_plane}
+    for transport in matchers.values():
+        transport.connect()
+    database = tmp_path / "linker.db"
+    service = make_service(broker, scenes, database)
+    service.start()
+    updates = updates_of(scenes, per_plane)
+    half = len(updates) // 2
+    for index, (_, plane, payload) in enumerate(updates[:half]):
+        matchers[plane].publish(tracks_topic(plane), payload)
+        if index % 97 == 0:  # a redelivery, and something that is not an update
+            matchers[plane].publish(tracks_topic(plane), payload)
+            matchers[plane].publish(tracks_topic(plane), b'{"schema": "cblrs.tracks/1"')
+            matchers[plane].publish(tracks_topic(plane), encode_tracks(
+                Tracks.empty(), plane, timestamp=time.time() + 3600.0))
+    wait_until(lambda: service.stats().get("updates", 0) >= half, 30, "the first half")
+    service.close()  # a stop, not the end: the next start resumes
+    service.store.close()
+    service = make_service(broker, scenes, database)
+    service.start()
+    for _, plane, payload in updates[half:]:
+        matchers[plane].publish(tracks_topic(plane), payload)
+    wait_until(lambda: service.stats().get("updates", 0) >= len(updates), 30, "every update")
+    service.close(finish=True)
+    store = service.store
+    counters = store.counters()
+    assert counters["updates"] == len(updates) and counters.get("late_rows", 0) == 0
+    assert counters["duplicates"] >= half // 97 and counters["rejected.malformed_json"] >= 1
+    assert counters["rejected.in_future"] == counters["rejected.malformed_json"]
+    # The global rows equal the offline link of the same rows.
+    offline, handovers, _ = link_tracks(scenes.spec.planes, scenes.spec.links, per_plane)
+    live = store.rows()
+    for name in ("frame", "timestamp", "track_id", "world_xy", "class_id"):
+        np.testing.assert_array_equal(getattr(live.tracks, name), getattr(offline.tracks, name))
+    assert store.handovers() == handovers
+    assert {item.kind for item in handovers} == {"overlap", "portal"}
+    # ... and so do the site's counts.
+    counted = analyse_tracks(offline.tracks, scenes.spec.places,
+                             site_analytics_config(scenes.spec.links))
+    od = read_od(store)
+    assert sum(od.values()) >= 10
+    assert od == {(origin, destination): value for origin, row in counted.od.items()
+                  for destination, value in row.items() if value}
+    counts = read_counts(store)
+    assert sum(row["count"] for row in counted.lines if row["class"] == "all") >= 10
+    for row in counted.lines:
+        if row["class"] == "all":
+            continue
+        assert counts.get((row["line"], row["direction"], row["class"]), 0) == row["count"]
+    for row in counted.zones:
+        assert sum(value for (place, measure, _), value in counts.items()
+                   if place == row["zone"] and measure == "entries") == row["entries"]
+    # What a viewer got on cblrs/0/tracks is the stored rows (the first run's included).
+    wait_until(lambda: sum(len(update.tracks) for update in seen) >= len(live), 10,
+               "the published global rows")
+    published = Tracks.concatenate([update.tracks for update in seen])
+    keys = Counter(zip(published.timestamp.tolist(), published.track_id.tolist(), strict=True))
+    assert keys == Counter(zip(live.tracks.timestamp.tolist(), live.tracks.track_id.tolist(),
+                               strict=True))
+    assert all(update.plane_id == 0 and update.source_plane is not None
+               for update in seen if len(update.tracks))
+    wait_until(lambda: len(events) >= sum(1 for _ in store.query("SELECT id FROM events")), 10,
+               "the site's events")
+    store.close()
+    viewer.close()
+    for transport in matchers.values():
+        transport.close()
+
+
+def test_a_silent_plane_is_waited_for_then_left_out(city, tmp_path):
+    scenes, per_plane = city
+    broker = InProcessBroker()
+    now = [0.0]
+    service = make_service(broker, scenes, tmp_path / "linker.db", max_wait_s=5.0,
+                           monotonic=lambda: now[0])
+    service.start()
+    matchers = {plane: InProcessTransport(broker, f"m{plane}") for plane in per_plane}
+    for transport in matchers.values():
+        transport.connect()
+    updates = [item for item in updates_of(scenes, per_plane) if item[1] != 4]
+    for _, plane, payload in updates[:600]:
+        matchers[plane].publish(tracks_topic(plane), payload)
+    wait_until(lambda: service.stats().get("updates", 0) >= 600, 30, "the updates")
+    assert service.stats().get("rows_out", 0) == 0  # plane 4 may still come
+    now[0] = 6.0  # plane 4 never spoke: after max_wait_s the others go on without it
+    for _, plane, payload in updates[600:650]:
+        matchers[plane].publish(tracks_topic(plane), payload)
+    wait_until(lambda: service.stats().get("rows_out", 0) > 0, 30, "rows without plane 4")
+    # Plane 4's rows for times already linked are counted late, not linked.
+    late = per_plane[4][per_plane[4].timestamp < service.linker.clock]
+    assert len(late)
+    matchers[4].publish(tracks_topic(4), encode_tracks(late, 4, timestamp=float(
+        late.timestamp.max())))
+    wait_until(lambda: service.stats().get("late_rows", 0) == len(late), 30, "late rows")
+    service.close()
+    service.store.close()
+
+
+def test_the_database_is_held_private_and_bound_to_its_site(city, tmp_path):
+    scenes, _ = city
+    database = tmp_path / "linker.db"
+    service = make_service(InProcessBroker(), scenes, database)
+    service.start()
+    assert database.stat().st_mode & 0o777 == 0o600
+    second = LinkerStore(database)
+    with pytest.raises(LinkerStoreError, match="in use by another linker"):
+        second.hold()
+    second.close()
+    service.close()
+    service.store.close()
+    with LinkerStore(database) as store, pytest.raises(LinkerStoreError,
+                                                       match="links another site"):
+        store.bind({"planes": []})
+    (tmp_path / "other.db").write_bytes(b"not sqlite at all")
+    with pytest.raises(LinkerStoreError, match="is not a SQLite database"):
+        LinkerStore(tmp_path / "other.db")
+    connection = sqlite3.connect(tmp_path / "foreign.db")
+    connection.execute("CREATE TABLE photos (id INTEGER)")
+    connection.commit()
+    connection.close()
+    with pytest.raises(LinkerStoreError, match="not a cblrs linker database"):
+        LinkerStore(tmp_path / "foreign.db")
+
+
+def test_bad_settings_are_refused(city, tmp_path):
+    scenes, _ = city
+    with pytest.raises(ValueError, match="max_wait_s"):
+        make_service(InProcessBroker(), scenes, tmp_path / "x.db", max_wait_s=math.nan)
+
+
