@@ -30,7 +30,7 @@ def register(subparsers) -> None:
     parser = subparsers.add_parser(
         "bench",
         help="benchmarks: lookup (Table I), render, claims, tracker, pipeline, analytics, "
-        "dashboard, backbone, asynchrony, mqtt, all",
+        "linker, dashboard, backbone, asynchrony, mqtt, all",
         description="Measure cblrs on this machine; medians over repeated runs.",
     )
     kinds = parser.add_subparsers(dest="benchmark", metavar="BENCHMARK")
@@ -105,6 +105,19 @@ def register(subparsers) -> None:
     analytics.add_argument("--repeats", type=int, default=1, help=argparse.SUPPRESS)
     _common(analytics)
     analytics.set_defaults(handler=run, benchmark="analytics")
+
+    linker = kinds.add_parser(
+        "linker", help="linker rows/s across planes: alone and as a service (SQLite, analytics)"
+    )
+    linker.add_argument("--planes", type=int, default=8, help="planes in a row (default 8)")
+    linker.add_argument("--people", type=int, default=50,
+                        help="people on each plane (default 50)")
+    linker.add_argument("--seconds", type=float, default=120.0, help="seconds (default 120)")
+    linker.add_argument("--rate", type=float, default=10.0, help="updates per second (10)")
+    linker.add_argument("--no-service", action="store_true", help="the linker alone only")
+    linker.add_argument("--repeats", type=int, default=1, help=argparse.SUPPRESS)
+    _common(linker, dataset=False)
+    linker.set_defaults(handler=run, benchmark="linker")
 
     dashboard = kinds.add_parser(
         "dashboard", help="dashboard smoothness: live tracks drawn by headless Chromium"
@@ -331,6 +344,17 @@ def _run_one(name: str, args: argparse.Namespace) -> tuple[dict[str, Any], str]:
             online_minutes=args.online_minutes,
         )
         return result, analytics_report(result)
+    if name == "linker":
+        # lazy: a subcommand imports the library when it runs, so its --help starts fast
+        from cblrs.bench.linker import benchmark_linker, linker_report
+
+        if not (args.seconds > 0 and args.rate > 0):
+            raise UsageError("--seconds and --rate must be positive.")
+        result = benchmark_linker(
+            planes=_positive(args.planes, "--planes"), people=_positive(args.people, "--people"),
+            seconds=args.seconds, rate_hz=args.rate, service=not args.no_service,
+        )
+        return result, linker_report(result)
     if name == "backbone":
         return _run_backbone(args, repeats)
     if name == "dashboard":

@@ -78,6 +78,7 @@ EXAMPLES: dict[str, list[str]] = {
     "bench camera": [f"cblrs bench camera --dataset {MVX}"],
     "bench detect": [f"cblrs bench detect --dataset {MVX}"],
     "bench analytics": ["cblrs bench analytics --tracks 200 --hours 1"],
+    "bench linker": ["cblrs bench linker --planes 8 --people 50 --seconds 120"],
     "bench dashboard": ["cblrs bench dashboard --tracks 200 --seconds 20"],
     "bench backbone": ["cblrs bench backbone --backbones mosquitto,nats --cameras 10"],
     "bench asynchrony": ["cblrs bench asynchrony --spreads 5,20,50 --in-process-only"],

@@ -50,7 +50,7 @@ SUBCOMMANDS = {
     "dashboard_users": "the dashboard's users: add, passwd, set-role, remove, list, token, "
     "revoke",
     "bench": "benchmarks: lookup (Table I), render, claims, tracker, pipeline, analytics, "
-    "dashboard, backbone, asynchrony, mqtt, all",
+    "linker, dashboard, backbone, asynchrony, mqtt, all",
     "experiment": "rerun the paper's experiments: targeting (IV-B), resolution; clicked "
     "calibration; count accuracy; pseudo-coordinate recovery; identities across planes",
 }

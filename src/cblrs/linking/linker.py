@@ -52,6 +52,7 @@ Example:
 from __future__ import annotations
 
 import bisect
+import heapq
 import logging
 import math
 from collections import defaultdict
@@ -186,7 +187,8 @@ class PlaneLinker:
         self._watch: list[tuple[float, int, int]] = []  # (decide_at, plane, track), sorted
         self._last_forget = -math.inf
         self._by_global: dict[int, list[tuple[int, int]]] = defaultdict(list)
-        self._out: list[tuple[Row, int]] = []  # (row, global id)
+        # Rows with their id, waiting to leave: a heap of (time, global id, plane, track, row).
+        self._out: list[tuple[float, int, int, int, Row]] = []
         self._handovers: list[Handover] = []
 
     def get_state(self) -> dict[str, Any]:
@@ -207,7 +209,7 @@ class PlaneLinker:
                  "held": [list(row) for row in local.held]}
                 for local in self._locals.values()
             ],
-            "out": [[list(row), global_id] for row, global_id in self._out],
+            "out": [[list(item[4]), item[1]] for item in sorted(self._out)],
             "handovers": [asdict(item) for item in self._handovers],
         }
 
@@ -243,7 +245,8 @@ class PlaneLinker:
                 assert local.decide_at is not None
                 bisect.insort(self._watch, (local.decide_at, local.plane, local.track))
         self._last_forget = _or_minus_infinity(state.get("last_forget"))
-        self._out = [(_row(row), int(global_id)) for row, global_id in state["out"]]
+        for row, global_id in state["out"]:
+            self._emit(_row(row), int(global_id))
         self._handovers = [Handover(**item) for item in state["handovers"]]
 
     # ------------------------------------------------------------------ input
@@ -260,13 +263,13 @@ class PlaneLinker:
             self.counters["late_rows"] += count
             logger.warning("plane %d: %d rows came after their time was linked; not linked",
                            plane_id, count)
-        rows = self._inbox[plane_id]
-        keep = np.flatnonzero(~late)
-        for index in keep.tolist():
-            rows.append((float(times[index]), int(plane_id), int(tracks.track_id[index]),
-                         int(tracks.frame[index]), float(tracks.world_xy[index, 0]),
-                         float(tracks.world_xy[index, 1]), int(tracks.class_id[index])))
-        self.counters["rows_in"] += len(keep)
+        kept = tracks[~late] if late.any() else tracks
+        plane = int(plane_id)
+        self._inbox[plane_id].extend(zip(
+            kept.timestamp.tolist(), [plane] * len(kept), kept.track_id.tolist(),
+            kept.frame.tolist(), kept.world_xy[:, 0].tolist(), kept.world_xy[:, 1].tolist(),
+            kept.class_id.tolist(), strict=True))
+        self.counters["rows_in"] += len(kept)
         return int(late.sum())
 
     def advance(self, watermark: float) -> LinkedRows:
@@ -345,14 +348,19 @@ class PlaneLinker:
         local.last_t, local.last_xy = time, (x, y)
         if local.class_id < 0 <= class_id:
             local.class_id = class_id
-        local.history.append((time, x, y))
+        history = local.history
+        history.append((time, x, y))
         horizon = time - self._history_s
-        if local.history[0][0] < horizon:
-            local.history = [item for item in local.history if item[0] >= horizon]
+        if history[0][0] < horizon:
+            # Rows arrive in time order: the old ones are at the front.
+            cut = 1
+            while cut < len(history) and history[cut][0] < horizon:
+                cut += 1
+            del history[:cut]
         if local.global_id is None:
             local.held.append(row)
         else:
-            self._out.append((row, local.global_id))
+            self._emit(row, local.global_id)
 
     def _in_any_region(self, plane: int, xy: tuple[float, float]) -> bool:
         point = np.array([xy])
@@ -368,7 +376,7 @@ class PlaneLinker:
         local.decide_at = None
         self._by_global[global_id].append((local.plane, local.track))
         for row in local.held:
-            self._out.append((row, global_id))
+            self._emit(row, global_id)
         local.held = []
 
     def _forget(self, now: float) -> None:
@@ -461,29 +469,36 @@ class PlaneLinker:
         return found
 
     # ------------------------------------------------------------------ output
+    def _emit(self, row: Row, global_id: int) -> None:
+        heapq.heappush(self._out, (row[0], global_id, row[1], row[2], row))
+
     def _flush(self, watermark: float) -> LinkedRows:
+        out = self._out
+        ready = []
         if self._watch:
             # Nothing at or after the first watched track's start leaves before its id.
             first = min(self._locals[(plane, track)].first_t for _, plane, track in self._watch)
-            ready = [item for item in self._out if item[0][0] < first]
-            self._out = [item for item in self._out if item[0][0] >= first]
+            while out and out[0][0] < first:
+                ready.append(heapq.heappop(out))
         else:
-            ready = [item for item in self._out if item[0][0] <= watermark]
-            self._out = [item for item in self._out if item[0][0] > watermark]
+            while out and out[0][0] <= watermark:
+                ready.append(heapq.heappop(out))
         if not ready:
             return LinkedRows.empty()
-        chosen: dict[tuple[float, int], tuple[float, Row]] = {}
-        for row, global_id in ready:
-            key = (row[0], global_id)
+        # In (time, id, plane) order: the rows of one id and instant are neighbours.
+        items: list[tuple[float, int, Row]] = []
+        best_depth = -math.inf
+        for time, global_id, _, _, row in ready:
             depth = self._depth(row)
-            current = chosen.get(key)
-            if current is None or depth > current[0] or (
-                    depth == current[0] and row[1] < current[1][1]):
-                chosen[key] = (depth, row)
-        self.counters["rows_out"] += len(chosen)
-        self.counters["rows_shared"] += len(ready) - len(chosen)
-        items = sorted(((key[0], key[1], row) for key, (_, row) in chosen.items()),
-                       key=lambda item: (item[0], item[1]))
+            if items and items[-1][0] == time and items[-1][1] == global_id:
+                if depth > best_depth:  # ties keep the lower plane (first in order)
+                    items[-1] = (time, global_id, row)
+                    best_depth = depth
+                continue
+            items.append((time, global_id, row))
+            best_depth = depth
+        self.counters["rows_out"] += len(items)
+        self.counters["rows_shared"] += len(ready) - len(items)
         self.emitted_until = max(self.emitted_until, items[-1][0])
         return LinkedRows(
             tracks=Tracks(

@@ -75,16 +75,21 @@ def overlap_score(
     if not new_rows:
         return None
     tolerance = config.time_tolerance_s
-    old_times = np.array([item[0] for item in old_rows]) if old_rows else np.zeros(0)
-    distances = []
-    if len(old_times):
-        for time, x, y in new_rows:
-            index = int(np.argmin(np.abs(old_times - time)))
-            if abs(old_times[index] - time) <= tolerance:
-                distances.append(math.hypot(old_rows[index][1] - x, old_rows[index][2] - y))
+    distances = np.zeros(0)
+    if old_rows:
+        old = np.asarray(old_rows, dtype=np.float64)  # (M, 3), in time order
+        new = np.asarray(new_rows, dtype=np.float64)
+        # The old row nearest in time to each new row: the one before or after it.
+        after = np.clip(np.searchsorted(old[:, 0], new[:, 0]), 0, len(old) - 1)
+        before = np.clip(after - 1, 0, len(old) - 1)
+        nearest = np.where(np.abs(old[before, 0] - new[:, 0]) <= np.abs(old[after, 0]
+                                                                         - new[:, 0]),
+                           before, after)
+        together = np.abs(old[nearest, 0] - new[:, 0]) <= tolerance
+        distances = np.hypot(*(old[nearest[together], 1:] - new[together, 1:]).T)
     velocity_gap = _gap(velocity(new_rows, config.velocity_window_s),
                         velocity(old_rows, config.velocity_window_s))
-    if distances:
+    if len(distances):
         mean = float(np.mean(distances))
         if mean > link.max_distance_m:
             return None

@@ -371,6 +371,7 @@ class SiteModel(_Strict):
     map: MapModel | None = None
     places: dict[str, Any] | None = None
     links: list[LinkModel] = Field(default_factory=list)
+    alerts: dict[str, Any] | None = None  # cblrs.alerts.rules checks it
 
 
 # ---------------------------------------------------------------------------- errors
