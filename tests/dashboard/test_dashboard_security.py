@@ -434,3 +434,77 @@ def test_hostile_names_in_the_site_file_are_refused(own_site, tmp_path, capsys):
         assert main(["dashboard", "--site", str(path), "--port", "0"]) == 1
         error = capsys.readouterr().err
         assert "may not contain '<'" in error and len(error.strip().splitlines()) == 1, what
+
+
+def self_signed(folder: Path) -> tuple[Path, Path]:
+    """A certificate for 127.0.0.1 and localhost, and its key (PEM files)."""
+    import datetime
+    import ipaddress
+
+    from cryptography import x509
+    from cryptography.hazmat.primitives import hashes, serialization
+    from cryptography.hazmat.primitives.asymmetric import ec
+    from cryptography.x509.oid import NameOID
+
+    key = ec.generate_private_key(ec.SECP256R1())
+    name = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, "cblrs dashboard test")])
+    now = datetime.datetime.now(datetime.UTC) - datetime.timedelta(minutes=5)
+    certificate = (
+        x509.CertificateBuilder().subject_name(name).issuer_name(name)
+        .public_key(key.public_key()).serial_number(x509.random_serial_number())
+        .not_valid_before(now).not_valid_after(now + datetime.timedelta(days=1))
+        .add_extension(x509.SubjectAlternativeName([
+            x509.DNSName("localhost"), x509.IPAddress(ipaddress.ip_address("127.0.0.1"))]),
+            critical=False)
+        .sign(key, hashes.SHA256())
+    )
+    cert_path, key_path = folder / "dash.crt", folder / "dash.key"
+    cert_path.write_bytes(certificate.public_bytes(serialization.Encoding.PEM))
+    key_path.write_bytes(key.private_bytes(serialization.Encoding.PEM,
+                                           serialization.PrivateFormat.PKCS8,
+                                           serialization.NoEncryption()))
+    key_path.chmod(0o600)
+    return cert_path, key_path
+
+
+def test_over_tls_the_cookie_is_secure(own_site, users_file, start_dashboard, tmp_path):
+    import ssl
+
+    cert, key = self_signed(tmp_path)
+    served = start_dashboard("--site", str(own_site), "--users", str(users_file),
+                             "--tls-cert", str(cert), "--tls-key", str(key))
+    assert served.url.startswith("https://127.0.0.1:")
+    port = urlsplit(served.url).port
+    context = ssl.create_default_context(cafile=str(cert))
+
+    def tls_call(path: str, method: str = "GET", headers: dict | None = None,
+                 body: str | None = None) -> tuple[int, dict[str, str], bytes]:
+        connection = http.client.HTTPSConnection("127.0.0.1", port, timeout=120,
+                                                 context=context)
+        try:
+            connection.request(method, path, body=body, headers=headers or {})
+            response = connection.getresponse()
+            return (response.status, {k.lower(): v for k, v in response.getheaders()},
+                    response.read())
+        finally:
+            connection.close()
+
+    https_origin = f"https://127.0.0.1:{port}"
+    status, headers, _ = tls_call("/api/login", "POST", {
+        "Content-Type": "application/json", "Origin": https_origin},
+        json.dumps({"user": VIEWER[0], "password": VIEWER[1]}))
+    assert status == 200
+    cookie = headers["set-cookie"]
+    flags = [part.strip().lower() for part in cookie.split(";")]
+    assert cookie.startswith("__Host-cblrs_session=") and "secure" in flags
+    assert "httponly" in flags and "samesite=strict" in flags
+    session = {"Cookie": cookie.split(";")[0]}
+    assert tls_call("/api/site", headers=session)[0] == 200
+    csrf = json.loads(tls_call("/api/session", headers=session)[2])["csrf"]
+    # The same host and port over plain HTTP is another origin.
+    status, _, _ = tls_call("/api/logout", "POST", {
+        **session, "Content-Type": "application/json", "X-CSRF-Token": csrf,
+        "Origin": f"http://127.0.0.1:{port}"}, "{}")
+    assert status == 403
+    with pytest.raises((http.client.HTTPException, ConnectionError, OSError)):
+        call(f"http://127.0.0.1:{port}/", "/api/site")  # no clear text on the TLS port
