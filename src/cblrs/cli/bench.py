@@ -29,8 +29,8 @@ def register(subparsers) -> None:
     """Add the ``cblrs bench`` parser to ``subparsers``."""
     parser = subparsers.add_parser(
         "bench",
-        help="benchmarks: lookup (Table I), render, claims, tracker, pipeline, analytics, "
-        "linker, dashboard, backbone, asynchrony, mqtt, all",
+        help="benchmarks: lookup (Table I), render, claims, tracker, pipeline, track, "
+        "analytics, linker, dashboard, backbone, asynchrony, mqtt, all",
         description="Measure cblrs on this machine; medians over repeated runs.",
     )
     kinds = parser.add_subparsers(dest="benchmark", metavar="BENCHMARK")
@@ -76,6 +76,23 @@ def register(subparsers) -> None:
     )
     _common(pipeline)
     pipeline.set_defaults(handler=run, benchmark="pipeline")
+
+    track = kinds.add_parser(
+        "track",
+        help="the whole cblrs track on WILDTRACK as a process beside a homography + norfair "
+        "baseline: wall, CPU, peak memory, ratios, HOTA",
+        description="Runs `cblrs track` and two homography + norfair baselines on the same "
+        "WILDTRACK boxes in turn, whole process each, and prints medians, the ratios "
+        "cblrs / baseline round by round, peak memory and each output's scores. Needs norfair "
+        "(pip install -e '.[dev]').",
+    )
+    track.add_argument("--repeats", type=int, default=5, help="counted rounds (default 5)")
+    track.add_argument("--warmup", type=int, default=1,
+                       help="rounds run first and not counted (default 1)")
+    track.add_argument("--matcher", choices=("fusion", "paper"), default="fusion",
+                       help="cblrs track --matcher (default fusion)")
+    _common(track)
+    track.set_defaults(handler=run, benchmark="track")
 
     for name, help_text in (
         ("camera", "on-camera cost per real frame: decode, detector (whole / tiled), "
@@ -317,6 +334,26 @@ def _run_one(name: str, args: argparse.Namespace) -> tuple[dict[str, Any], str]:
             targetings=targetings,
         )
         return result, pipeline_report(result)
+    if name == "track":
+        # lazy: a subcommand imports the library when it runs, so its --help starts fast
+        from cblrs.bench.cameras import find_wildtrack
+        from cblrs.bench.track import benchmark_track, track_report
+
+        root = find_wildtrack(args.dataset)
+        if root is None:
+            raise UsageError(
+                "the track benchmark needs WILDTRACK; pass --dataset or set CBLRS_WILDTRACK."
+            )
+
+        def progress(line: str) -> None:
+            if not args.quiet:
+                print(line, file=sys.stderr, flush=True)
+
+        if args.warmup < 0:
+            raise UsageError(f"--warmup must be >= 0, got {args.warmup}.")
+        result = benchmark_track(root, repeats=repeats, warmup=args.warmup,
+                                 matcher=args.matcher, progress=progress)
+        return result, track_report(result)
     if name == "asynchrony":
         return _asynchrony(args)
     if name in ("camera", "detect"):

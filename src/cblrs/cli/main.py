@@ -47,8 +47,8 @@ SUBCOMMANDS = {
     "linker": "run the site's linker: every plane's tracks -> global ids and site counts",
     "dashboard": "serve the live dashboard: site map, tracks, counts, cameras; replay; "
     "calibration",
-    "bench": "benchmarks: lookup (Table I), render, claims, tracker, pipeline, analytics, "
-    "linker, dashboard, backbone, asynchrony, mqtt, all",
+    "bench": "benchmarks: lookup (Table I), render, claims, tracker, pipeline, track, "
+    "analytics, linker, dashboard, backbone, asynchrony, mqtt, all",
     "experiment": "rerun the paper's experiments: targeting (IV-B), resolution; clicked "
     "calibration; count accuracy; pseudo-coordinate recovery; identities across planes",
 }
