@@ -202,6 +202,13 @@ def register(subparsers) -> None:
     mqtt.add_argument("--people", type=int, default=2,
                       help="detections per message (default 2)")
     mqtt.add_argument("--matcher", default="fusion", help="matcher (default fusion)")
+    mqtt.add_argument("--clock-spread-ms", type=float, default=0.0, metavar="MS",
+                      help="real camera clocks: each camera stamps its frames this many ms "
+                      "apart from the others at most (offsets spread evenly over 0..MS; "
+                      "default 0: all cameras stamp a frame with the same time)")
+    mqtt.add_argument("--clock-jitter-ms", type=float, default=0.0, metavar="MS",
+                      help="per-frame jitter of every camera's stamps, standard deviation in "
+                      "ms (default 0)")
     mqtt.add_argument("--nagle", action="store_true",
                       help="leave Nagle's algorithm on (no TCP_NODELAY), as before issue 10")
     mqtt.add_argument("--stages", action="store_true",
@@ -573,6 +580,8 @@ def _run_mqtt(args: argparse.Namespace) -> int:
         raise UsageError("--cameras, --repeats and --fps must be positive, --people >= 0.")
     if args.out is not None and args.out.exists() and not args.out.is_dir():
         raise UsageError(f"--out {args.out} is a file; give a folder.")
+    if not (args.clock_spread_ms >= 0 and args.clock_jitter_ms >= 0):
+        raise UsageError("--clock-spread-ms and --clock-jitter-ms must be >= 0.")
     if args.publisher is None:
         args.publisher = "mosquitto_pub" if shutil.which("mosquitto_pub") else "paho"
     threading.current_thread().name = "bench"
