@@ -75,6 +75,7 @@ EXAMPLES: dict[str, list[str]] = {
     "bench claims": ["cblrs bench claims --out bench-results"],
     "bench tracker": ["cblrs bench tracker --tracks 50,200 --cameras 4 --matchers fusion"],
     "bench pipeline": [f"cblrs bench pipeline --dataset {WT}"],
+    "bench track": [f"cblrs bench track --dataset {WT} --repeats 5"],
     "bench camera": [f"cblrs bench camera --dataset {MVX}"],
     "bench detect": [f"cblrs bench detect --dataset {MVX}"],
     "bench analytics": ["cblrs bench analytics --tracks 200 --hours 1"],

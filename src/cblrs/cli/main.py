@@ -49,8 +49,8 @@ SUBCOMMANDS = {
     "calibration",
     "dashboard_users": "the dashboard's users: add, passwd, set-role, remove, list, token, "
     "revoke",
-    "bench": "benchmarks: lookup (Table I), render, claims, tracker, pipeline, analytics, "
-    "linker, dashboard, backbone, asynchrony, mqtt, all",
+    "bench": "benchmarks: lookup (Table I), render, claims, tracker, pipeline, track, "
+    "analytics, linker, dashboard, backbone, asynchrony, mqtt, all",
     "experiment": "rerun the paper's experiments: targeting (IV-B), resolution; clicked "
     "calibration; count accuracy; pseudo-coordinate recovery; identities across planes",
 }
