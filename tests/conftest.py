@@ -58,15 +58,9 @@ def yolox_model() -> Path:
     return path
 
 
-@pytest.fixture(autouse=True, scope="session")
-def _camera_spools_in_a_temporary_folder(tmp_path_factory):
+@pytest.fixture(autouse=True)
+def _camera_spools_in_a_temporary_folder(tmp_path_factory, monkeypatch):
     """``cblrs camera`` keeps a spool file per camera (default under ~/.local/state): tests
-    that run it without --spool keep theirs in a folder of this session instead."""
-    folder = tmp_path_factory.mktemp("camera-spools")
-    previous = os.environ.get("CBLRS_SPOOL_DIR")
-    os.environ["CBLRS_SPOOL_DIR"] = str(folder)
-    yield
-    if previous is None:
-        os.environ.pop("CBLRS_SPOOL_DIR", None)
-    else:
-        os.environ["CBLRS_SPOOL_DIR"] = previous
+    that run it without --spool keep theirs in a folder of their own (a spool refuses
+    another run's messages, so tests must not share one)."""
+    monkeypatch.setenv("CBLRS_SPOOL_DIR", str(tmp_path_factory.mktemp("camera-spools")))

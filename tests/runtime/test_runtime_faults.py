@@ -139,15 +139,42 @@ def counter(database: Path, name: str) -> int:
         return 0
 
 
-def spool_rows(path: Path) -> int:
-    """Messages in a camera's spool file (0 while it does not exist yet)."""
+def spool_rows(path: Path, state: int | None = None) -> int:
+    """Messages in a camera's spool file (0 while it does not exist yet); with ``state``,
+    those in that state (2: acknowledged by the broker)."""
     if not path.exists():
         return 0
+    where, parameters = ("", ()) if state is None else (" WHERE state = ?", (state,))
     try:
         with sqlite3.connect(f"file:{path}?mode=ro", uri=True) as connection:
-            return connection.execute("SELECT COUNT(*) FROM outbox").fetchone()[0]
+            return connection.execute(f"SELECT COUNT(*) FROM outbox{where}",
+                                      parameters).fetchone()[0]
     except sqlite3.OperationalError:  # created, tables not yet
         return 0
+
+
+def broker_saves(plant: Plant) -> int:
+    """How many times the broker has begun saving its database (it logs each save)."""
+    return plant.broker.process.log_path.read_text().count("Saving in-memory database")
+
+
+def wait_matcher_online(plant: Plant, since: float, timeout: float = 60) -> None:
+    """Wait for the matcher's retained "online" stamped after ``since``: it then holds its
+    database and the plane's lease and has subscribed."""
+    from cblrs.runtime.mqtt_transport import MqttTransport
+    from cblrs.runtime.topics import matcher_status_filter
+    from cblrs.runtime.wire import decode_status
+
+    seen: list = []
+    viewer = MqttTransport("viewer", plant.broker.settings("viewer"), persistent=False)
+    viewer.subscribe(matcher_status_filter(1), lambda delivery: (
+        seen.append(decode_status(delivery.payload)), delivery.ack()))
+    viewer.connect()
+    try:
+        wait_until(lambda: any(status.state == "online" and (status.timestamp or 0) >= since
+                               for status in seen), timeout, "the matcher to be online")
+    finally:
+        viewer.close()
 
 
 def one_sentence(err: str) -> str:
@@ -191,7 +218,10 @@ def test_item1_a_full_broker_queue_loses_nothing(plant, tmp_path):
 
 
 def test_item2_broker_killed_after_the_cameras_finished_loses_nothing(plant, tmp_path):
-    """The broker saves its queue every second: kill -9 after that loses nothing."""
+    """What the broker acknowledged is on its disk once a save begun after the
+    acknowledgement has been written (Mosquitto begins one when more than ``autosave_s``
+    whole seconds have passed since the last: every 1-2 s by default): kill -9 after that
+    loses nothing. (Before it, see the next test.)"""
     plant = plant()
     database = tmp_path / "plane1.db"
     assert plant.run(plant.matcher(database, "--prepare")).returncode == 0
@@ -199,7 +229,13 @@ def test_item2_broker_killed_after_the_cameras_finished_loses_nothing(plant, tmp
     for camera in cameras:
         code, out, err = finish(camera)
         assert code == 0 and json.loads(out)["flushed"], err
-    time.sleep(1.5)  # past the broker's next save
+    # Every message was acknowledged before the cameras exited: a save that begins after
+    # this count holds them all. The broker logs a save as it begins writing (to a new
+    # file it then renames over the old one), and saves one at a time: once the save after
+    # that one has begun, the first is complete on disk. (Killed at its log line, the
+    # broker lost everything: the restart read the previous file.)
+    saved = broker_saves(plant)
+    wait_until(lambda: broker_saves(plant) >= saved + 2, 30, "the broker's next save")
     plant.broker.process.kill()
     plant.broker.start()
     code, out, err = finish(plant.start(plant.matcher(database, "--until-cameras-offline",
@@ -216,9 +252,8 @@ def test_item2_broker_killed_before_it_saved_loses_nothing(plant, tmp_path):
     assert plant.run(plant.matcher(database, "--prepare")).returncode == 0
     cameras = [plant.start(plant.camera(name, "--confirm-timeout", "60", "--resend-after", "1"))
                for name in CAMERAS]
-    wait_until(lambda: all(spool_rows(tmp_path / f"{name}.spool") == PER_CAMERA
-                           for name in CAMERAS), 30, "the spools to fill")
-    time.sleep(1.0)  # every message acknowledged by the broker
+    wait_until(lambda: all(spool_rows(tmp_path / f"{name}.spool", state=2) == PER_CAMERA
+                           for name in CAMERAS), 60, "the broker to acknowledge everything")
     plant.broker.process.kill()
     plant.broker.start()
     matcher = plant.start(plant.matcher(database, "--until-cameras-offline", "--idle-exit",
@@ -249,7 +284,9 @@ def test_item3_cameras_before_the_first_matcher_lose_nothing(plant, tmp_path):
     assert plain.returncode == 3
     assert "not yet confirmed by a matcher" in plain.stdout and "all confirmed" not in plain.stdout
     cameras = [plant.start(plant.camera(name, "--confirm-timeout", "60")) for name in CAMERAS]
-    time.sleep(1.0)  # the cameras published again; the broker still drops everything
+    # Both published again and the broker acknowledged (and dropped) everything.
+    wait_until(lambda: all(spool_rows(tmp_path / f"{name}.spool", state=2) == PER_CAMERA
+                           for name in CAMERAS), 60, "the broker to acknowledge everything")
     matcher = plant.start(plant.matcher(database, "--until-cameras-offline", "--idle-exit",
                                         "40"))
     for camera in cameras:
@@ -363,9 +400,9 @@ def test_item6_a_second_matcher_for_the_plane_is_refused(plant, tmp_path):
     first keeps the plane, nothing lands in the second database."""
     plant = plant()
     first_db, second_db = tmp_path / "first.db", tmp_path / "second.db"
+    since = time.time()
     first = plant.start(plant.matcher(first_db))  # runs until told to stop
-    wait_until(lambda: first_db.exists(), 30, "the first matcher")
-    time.sleep(1.0)
+    wait_matcher_online(plant, since)
     cameras = [plant.start(plant.camera(name, "--realtime", "--speed", "10",
                                         "--confirm-timeout", "60"))
                for name in CAMERAS]
@@ -475,17 +512,25 @@ def test_item12_logs_have_times_lifecycle_lines_and_rate_limited_rejections(plan
     import re
 
     from cblrs.runtime.mqtt_transport import MqttTransport
-    from cblrs.runtime.topics import detections_topic
+    from cblrs.runtime.topics import detections_topic, status_topic
+    from cblrs.runtime.wire import encode_status
 
     plant = plant()
     database = tmp_path / "plane1.db"
-    matcher = plant.start(plant.matcher(database, "--idle-exit", "2"))
-    wait_until(lambda: database.exists(), 30, "the matcher")
-    time.sleep(0.5)
+    since = time.time()
+    matcher = plant.start(plant.matcher(database, "--until-cameras-offline", "--idle-exit",
+                                        "60"))
+    wait_matcher_online(plant, since)
+    # CVLab1 sends only garbage, between its own "online" and final "offline"; the matcher
+    # stops once CVLab2 has finished too.
     sender = MqttTransport("CVLab1", plant.broker.settings("CVLab1"), persistent=False)
     sender.connect()
+    sender.publish(status_topic(1, "CVLab1"), encode_status(
+        "CVLab1", "online", role="camera", timestamp=time.time()), retain=True)
     for _ in range(50):
         sender.publish(detections_topic(1, "CVLab1"), b"{not json")
+    sender.publish(status_topic(1, "CVLab1"), encode_status(
+        "CVLab1", "offline", role="camera", timestamp=time.time()), retain=True)
     assert sender.flush(10)
     sender.close()
     camera = plant.run(plant.camera("CVLab2", "--confirm-timeout", "5"))

@@ -105,8 +105,9 @@ def test_metrics_live_summary_and_events(tmp_path):
                        encode_status(name, "offline", timestamp=time.time()))
     wait_until(lambda: store.counters().get("processed", 0) == 2 * FRAMES, 30, "tracking")
     wait_until(lambda: any(event.kind == "zone_entered" for event in events), 30, "events")
-    wait_until(lambda: lives and lives[-1].lines[0].negative + lives[-1].lines[0].positive == 1,
-               30, "a live summary with the crossing")
+    wait_until(lambda: lives and lives[-1].lines[0].negative + lives[-1].lines[0].positive == 1
+               and lives[-1].zones[0].entries == 1, 30,
+               "a live summary with the crossing and the entry")
 
     code, text = scrape(f"{server.url}/metrics")
     assert code == 200

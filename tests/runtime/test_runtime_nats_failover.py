@@ -49,6 +49,11 @@ PLANE = 1
 FRAMES = (0, 595)  # 120 annotated frames
 SPEED = 10.0  # 60 s of scene in 6 s
 LEASE_TTL = 3.0
+WINDOW_S = 30.0
+"""The matcher's silence window: a camera whose publishes wait longer than this for a new
+stream leader is given up and its messages are late (stored, not tracked). On a loaded
+machine an election took more than the 8 s used before; the window's wait costs nothing
+here (every camera ends with "offline")."""
 
 pytestmark = [pytest.mark.nats, pytest.mark.slow]
 
@@ -84,8 +89,8 @@ def start_matcher(case, cluster, database, client_id, *extra) -> subprocess.Pope
     command = [
         sys.executable, "-m", "cblrs.cli.main", "matcher", "--references", str(case["folder"]),
         "--db", str(database), "--backbone", cluster.url, "--client-id", client_id,
-        "--window", "8", "--lease-ttl", str(LEASE_TTL), "--until-cameras-offline",
-        "--idle-exit", "60", "--json", *extra,
+        "--window", str(WINDOW_S), "--lease-ttl", str(LEASE_TTL), "--until-cameras-offline",
+        "--idle-exit", "180", "--json", *extra,
     ]
     return subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             env={**os.environ, "PYTHONUNBUFFERED": "1"})
@@ -106,7 +111,7 @@ def start_cameras(case, cluster, epoch: float) -> tuple[list[threading.Thread], 
             transport = NatsTransport(f"camera-{name}", settings)
             transport.connect()
             node = CameraNode(transport, PLANE, name, case["references"][index], realtime=True,
-                              speed=SPEED, epoch=epoch, flush_timeout_s=60.0)
+                              speed=SPEED, epoch=epoch, flush_timeout_s=180.0)
             report = node.run(scene_source(scene, index), connect=False)
             results.append(report.flushed)
             transport.close()
@@ -185,13 +190,15 @@ def assert_exactly_once(database, case, expected) -> dict:
 def finish(processes, cameras, probe, database, case, epoch, report, record_property) -> None:
     threads, flushed = cameras
     for thread in threads:
-        thread.join(90)
+        thread.join(240)
     assert all(flushed) and len(flushed) == len(case["scene"].cameras), "a camera lost messages"
     final = processes[-1]
-    out, err = final.communicate(timeout=120)
+    out, err = final.communicate(timeout=300)
     assert final.returncode == 0, err[-2000:]
     summary = json.loads(out)
-    assert summary["processed"] == len(case["scene"].frames) * len(case["scene"].cameras)
+    assert summary["processed"] == len(case["scene"].frames) * len(case["scene"].cameras), {
+        name: summary[name] for name in ("received", "accepted", "duplicates", "late",
+                                         "processed")}
     report.update(assert_exactly_once(database, case, undisturbed_tracks(case, epoch)))
     updates = track_updates_per_group(probe)
     report["duplicated_track_updates"] = sum(count - 1 for count in updates.values())

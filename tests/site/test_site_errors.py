@@ -132,7 +132,7 @@ CASES = [
         "an unknown top-level key",
         _set("camras", []),
         r"^site\.yaml: camras: unknown key "
-        r"\(allowed: version, name, planes, cameras, map, places, links\)",
+        r"\(allowed: version, name, planes, cameras, map, places, links, alerts\)",
     ),
     (
         "two geometries",

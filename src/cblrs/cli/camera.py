@@ -468,7 +468,7 @@ def run(args: argparse.Namespace) -> int:
     # lazy: a subcommand imports the library when it runs, so its --help starts fast
     from cblrs.runtime.camera_node import CameraNode, camera_last_will
     from cblrs.runtime.mqtt_transport import MqttTransport
-    from cblrs.runtime.spool import Spool
+    from cblrs.runtime.spool import Spool, run_identity
     from cblrs.runtime.topics import validate_camera_id
     from cblrs.runtime.transport import Will
 
@@ -490,7 +490,8 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError(f"--plane {plane_id} is not in the reference (planes {plane_ids}).")
     folder = Path(os.environ.get(SPOOL_ENVIRONMENT) or DEFAULT_SPOOL_FOLDER).expanduser()
     spool_path = args.spool if args.spool is not None else folder / f"{plane_id}-{args.camera}.db"
-    spool = Spool(spool_path, max_bytes=int(args.spool_max_mb * 2**20))
+    spool = Spool(spool_path, max_bytes=int(args.spool_max_mb * 2**20),
+                  run=run_identity(vars(args), plane_id))
     if len(spool):
         logger.info("camera %s: %d unconfirmed messages from an earlier run are sent first",
                     args.camera, len(spool))

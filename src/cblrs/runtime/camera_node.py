@@ -261,6 +261,10 @@ class CameraNode:
         self._done = False
         self._flushed = False
         self._answers = True
+        self._marks_resends = False
+        self._fresh: set[int] = set()  # produced in this run and not yet handed over
+        self._resends = 0
+        self._run_token = f"{int(time.time() * 1000):x}"
         self.topic = detections_topic(self.plane_id, camera_id)
         self.status_topic = status_topic(self.plane_id, camera_id)
 
@@ -291,7 +295,11 @@ class CameraNode:
             self.transport.publish(self.topic, b"", qos=1, retain=True)
         # A transport without per-publish answers (NATS: its publishes are retried until the
         # stream takes them) counts a publish as acknowledged once handed over.
-        self._answers = "on_result" in inspect.signature(self.transport.publish).parameters
+        parameters = inspect.signature(self.transport.publish).parameters
+        self._answers = "on_result" in parameters
+        # A transport that de-duplicates by message id (NATS) is told which publishes are
+        # re-sends (see _pump).
+        self._marks_resends = "resend" in parameters
         pump = threading.Thread(target=self._pump, name=f"cblrs-pump-{self.camera_id}",
                                 daemon=True)
         pump.start()
@@ -313,7 +321,10 @@ class CameraNode:
                 sequence += 1
                 if payload is None:
                     continue
-                if not spool.append(sequence - 1, self.topic, payload):
+                if spool.append(sequence - 1, self.topic, payload):
+                    with self._lock:
+                        self._fresh.add(sequence - 1)
+                else:
                     self._counts["already_spooled"] += 1
                 self._wake.set()
                 if started is None:
@@ -389,6 +400,9 @@ class CameraNode:
             time.sleep(0.02)
         counts = spool.counts()
         all_handed = self._refusal is None and counts["waiting"] == 0 and counts["handed"] == 0
+        if all_handed and not self._answers:
+            # Handed over is not taken (NATS retries on its own): wait for the stream.
+            all_handed = self.transport.flush(max(0.0, deadline - time.monotonic()))
         # Flushed: the broker acknowledged every message (later re-sends change nothing).
         self._flushed = all_handed
         if (all_handed and self.confirm_timeout_s > 0 and not stopping):
@@ -446,6 +460,10 @@ class CameraNode:
                                 topic, payload, qos=1,
                                 on_result=functools.partial(self._on_result, sequence, topic),
                             )
+                        elif self._marks_resends:
+                            self.transport.publish(topic, payload, qos=1,
+                                                   resend=self._resend_token(sequence))
+                            self._on_result(sequence, topic, 0)
                         else:
                             self.transport.publish(topic, payload, qos=1)
                             self._on_result(sequence, topic, 0)
@@ -463,6 +481,17 @@ class CameraNode:
                 disconnected_since = None
             self._wake.wait(0.1)
             self._wake.clear()
+
+    def _resend_token(self, sequence: int) -> str | None:
+        """None for the first publish of a message produced in this run; else a token no
+        earlier publish of it carried (this process's start and a counter): a re-send, or a
+        message an earlier run left in the spool, which that run may have published."""
+        with self._lock:
+            if sequence in self._fresh:
+                self._fresh.discard(sequence)
+                return None
+            self._resends += 1
+            return f"r{self._run_token}-{self._resends}"
 
     def _on_result(self, sequence: int, topic: str, reason: int) -> None:
         if self._done:

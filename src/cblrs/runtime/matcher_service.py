@@ -17,7 +17,8 @@ Per delivery:
    rate nor capture instants) once no camera can still add to them: every camera has moved
    past the window, is in it, is not due to capture again before its end, or said
    "offline"; a dead camera is given up after ``window_s`` of silence. The window clock
-   stops while the service is disconnected from the broker, so an outage does not expire
+   stops while the service is disconnected from the broker (on NATS, also until its
+   consumer has delivered what the stream holds again), so an outage does not expire
    windows whose remaining messages are queued at the broker. A message at or before the
    last released window's timestamp is ``late``: stored, counted, not tracked;
 4. **track**: the window goes to the matcher (``update(timestamp, messages)``, messages in
@@ -103,7 +104,8 @@ from cblrs.runtime.wire import RejectedMessage, ValidationPolicy, decode_status,
 
 logger = logging.getLogger(__name__)
 
-COUNTER_NAMES = ("received", "accepted", "duplicates", "late", "processed", "groups", "tracks")
+COUNTER_NAMES = ("received", "accepted", "duplicates", "conflicts", "late", "processed",
+                 "groups", "tracks")
 """Counters every summary shows (rejections add ``rejected.<reason>``)."""
 
 
@@ -235,7 +237,10 @@ class MatcherService:
         self.groups_per_commit = max(1, int(groups_per_commit))
         self.observer = observer
         self._wall_clock = wall_clock
-        self.clock = ServiceClock(lambda: bool(getattr(transport, "connected", True)))
+        # The silence timeout counts only while messages can arrive: connected, and (NATS)
+        # the plane's consumer has delivered what its stream holds.
+        self.clock = ServiceClock(lambda: bool(getattr(
+            transport, "caught_up", getattr(transport, "connected", True))))
         self._settings = {"plane_id": self.plane_id, "camera_ids": self.camera_ids}
         self._settings.update(settings or {})
 
@@ -339,15 +344,21 @@ class MatcherService:
         everything received.
 
         Without ``flush`` waiting groups stay pending in the store and a restarted service
-        processes them (groups already sent to the tracker process are still committed).
+        processes them; so do groups sent to the tracker process and not yet committed (it
+        abandons them), so a backlog does not delay the stop.
 
         Raises:
             RuntimeError: a thread or the tracker process failed (the cause is chained).
         """
         if flush:
             self._flush_requested.set()
+        elif self._tracker is not None:
+            # What is released but not committed stays pending: a backlog does not hold the
+            # stop (a restart tracks it).
+            self._tracker.abandon()
         self._stop.set()
         self._arrived.set()
+        self._wake.set()
         deadline = time.monotonic() + timeout
         for thread in self._threads:
             thread.join(max(0.0, deadline - time.monotonic()))
@@ -544,6 +555,13 @@ class MatcherService:
             late = self._orderer.is_late(wire.timestamp)
             accepted.append((InboxEntry.from_wire(wire), LATE if late else PENDING, received_at))
         inserted = self.store.insert_messages(accepted, counters)
+        if counters.get("conflicts"):
+            self._rejections.log(
+                logging.ERROR, "conflicts",
+                "plane %d: %d messages repeat a stored camera and sequence number with other "
+                "content (another run of a camera reusing its numbers: give it another "
+                "--first-sequence); the stored ones are kept, these are counted as conflicts",
+                self.plane_id, counters["conflicts"])
         # Acknowledge only now: everything above is durably stored (or rejected on purpose).
         for delivery in acknowledge:
             delivery.ack()
@@ -636,19 +654,25 @@ class MatcherService:
                 self._wake.wait(0.05 if len(self._orderer) else 0.2)
                 self._wake.clear()
                 self._release_ready()
-            if self._failure is None:
+            if self._failure is None and self._flush_requested.is_set():
                 self._release_ready()
-                if self._flush_requested.is_set():
-                    self._release_ready(force=True)
+                self._release_ready(force=True)
+        except TrackerProcessError as error:
+            if not self._abandoning():  # else: the tracker process left as it was told
+                self._fail(error, "releaser")
         except BaseException as error:  # surfaced by stop()
             self._fail(error, "releaser")
         finally:
             # A flushed stop ends the stream: the analytics end every track, as offline.
             self._tracker.finish(flush=self._flush_requested.is_set() and self._failure is None)
 
+    def _abandoning(self) -> bool:
+        """Stopping without a flush: nothing more is released (it stays pending)."""
+        return self._stop.is_set() and not self._flush_requested.is_set()
+
     def _release_ready(self, force: bool = False) -> None:
         assert self._tracker is not None
-        while self._failure is None:
+        while self._failure is None and not self._abandoning():
             with self._state_lock:
                 batch: Batch = self._orderer.release(
                     self.clock(), force=force, limit=self.groups_per_commit
@@ -668,6 +692,8 @@ class MatcherService:
                 try:
                     answer = self._tracker.receive()
                 except EOFError:
+                    if self._abandoning():
+                        return  # it left without answering for what it abandoned
                     self._tracker.process.join(1.0)  # for its exit code
                     raise TrackerProcessError(
                         f"the tracker process exited (code {self._tracker.process.exitcode})"

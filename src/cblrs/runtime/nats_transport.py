@@ -20,7 +20,9 @@ behaviour the services rely on, on a NATS server or cluster with JetStream:
 * **publishes** to a stream are JetStream publishes, each with a ``Nats-Msg-Id``
   (``<plane>.<camera>.<sequence>`` for detections, ``<plane>.<timestamp>`` for a track
   update), retried with the same id until the stream acknowledges them, so a retry after a
-  leader change or a lost connection is stored once; ``flush`` waits for those
+  leader change or a lost connection is stored once (a camera's own re-send of an
+  unconfirmed message carries a suffix, ``publish(..., resend=)``, so that it reaches the
+  matcher, which confirms it); ``flush`` waits for those
   acknowledgements. With ``publish_window=1`` (cameras) publishes stay in order even across
   retries. Publishes made while the servers are away wait in memory;
 * **plane lease** (``lease=``): a key with a time to live in the replicated key-value bucket
@@ -72,6 +74,9 @@ DETECTIONS_SUBJECTS = ("cblrs.*.*.detections", "cblrs.*.*.status")
 TRACKS_STREAM = "CBLRS_TRACKS"
 TRACKS_SUBJECTS = ("cblrs.*.tracks", "cblrs.*.events")
 LEASE_BUCKET = "cblrs_leases"
+_GIVE_UP_S = 120.0
+"""How long the consumer's restart or state may stay unanswerable before the transport goes
+on without it (a cluster still recovering answers within that; a refusal never does)."""
 
 
 def _import_nats() -> Any:
@@ -326,6 +331,13 @@ class NatsTransport:
         self._core_publishes: set[asyncio.Future] = set()
         self._pull_task: asyncio.Task | None = None
         self._pull_wake: asyncio.Event | None = None
+        self._consumer_config: Any = None
+        self._resume_at: int | None = None  # restart the consumer here (see _redeliver...)
+        self._floor: int | None = None  # where it was last restarted from
+        self._redeliver = False  # after a reconnection: before the next pull request
+        self._last_delivery = 0  # the consumer's sequence of the last delivery
+        self._caught_up = False  # the consumer had nothing more to deliver at last look
+        self._check_failing_since: float | None = None
         self._outstanding = 0
         self._last_activity = 0.0
         self._lease_task: asyncio.Task | None = None
@@ -339,6 +351,15 @@ class NatsTransport:
     def connected(self) -> bool:
         """Whether the connection to the broker is up now."""
         return self._connected.is_set()
+
+    @property
+    def caught_up(self) -> bool:
+        """Whether the plane's durable consumer has delivered everything its stream holds
+        (at the last delivery or check): while not, a camera's silence may only mean its
+        messages are still on their way. Without a durable consumer: :attr:`connected`."""
+        if self._pull_task is None:
+            return self.connected
+        return self.connected and self._caught_up and not self._redeliver
 
     def open(self) -> None:
         """Connect, create the streams if missing and take the lease; deliver nothing yet.
@@ -380,8 +401,18 @@ class NatsTransport:
         self._started = True
         self._run(self._start(), None)
 
-    def publish(self, topic: str, payload: bytes, qos: int = 1, retain: bool = False) -> None:
-        """Publish a message (see :class:`~cblrs.runtime.transport.Transport`)."""
+    def publish(self, topic: str, payload: bytes, qos: int = 1, retain: bool = False,
+                *, resend: str | None = None) -> None:
+        """Publish a message (see :class:`~cblrs.runtime.transport.Transport`).
+
+        Args:
+            resend: this is the sender's own re-send of a message it published before (a
+                camera that got no confirmation), distinguished by this token: its
+                ``Nats-Msg-Id`` gets ``.<resend>`` so that the stream stores it again rather
+                than dropping it as the duplicate of the first publish — the matcher, which
+                may have stored the first one without ever confirming it, must see it to
+                confirm it. (The transport's own retries of one publish keep one id.)
+        """
         validate_topic(topic)
         if qos not in (0, 1):
             raise TransportError(f"QoS must be 0 or 1, got {qos}.")
@@ -391,10 +422,12 @@ class NatsTransport:
         if qos == 0 or stream_of(subject) is None:
             loop.call_soon_threadsafe(self._publish_core, subject, data)
             return
+        identifier = message_id(subject, data)
+        if identifier is not None and resend is not None:
+            identifier = f"{identifier}.{resend}"
         with self._condition:
             self._pending += 1
-        loop.call_soon_threadsafe(self._enqueue_publish, (subject, data,
-                                                          message_id(subject, data)))
+        loop.call_soon_threadsafe(self._enqueue_publish, (subject, data, identifier))
 
     def subscribe(self, topic_filter: str, handler: Handler, qos: int = 1) -> None:
         """Subscribe a handler to a topic filter (see
@@ -504,11 +537,13 @@ class NatsTransport:
 
         async def on_disconnected() -> None:
             self._connected.clear()
+            self._caught_up = False
             logger.info("%s: disconnected from NATS", self.client_id)
 
         async def on_reconnected() -> None:
             self._connected.set()
             self._outstanding = 0  # pull requests die with the connection: ask again
+            self._redeliver = self._pull_task is not None  # deliveries may have died too
             if self._pull_wake is not None:
                 self._pull_wake.set()
             logger.info("%s: reconnected to %s", self.client_id,
@@ -634,7 +669,7 @@ class NatsTransport:
 
         assert self.durable is not None
         subjects = sorted({topic_to_subject(topic_filter) for topic_filter in self._bound})
-        config = ConsumerConfig(
+        self._consumer_config = ConsumerConfig(
             durable_name=self.durable, ack_policy=AckPolicy.EXPLICIT,
             deliver_policy=DeliverPolicy.ALL, ack_wait=self.settings.ack_wait_s,
             max_ack_pending=self.settings.max_ack_pending, max_deliver=-1,
@@ -649,14 +684,91 @@ class NatsTransport:
             except NotFoundError:
                 pass
             self.replay = False
+        else:
+            # What an earlier holder was handed and never acknowledged (it died, or the
+            # deliveries died with a server) comes now, not after ack_wait.
+            try:
+                await self._redeliver_unacknowledged()
+            except Exception as error:  # e.g. not permitted: they come after ack_wait
+                logger.warning("%s: could not restart the consumer %s at its "
+                               "acknowledgement floor (%s); unacknowledged messages come "
+                               "again after %g s", self.client_id, self.durable,
+                               error or type(error).__name__, self.settings.ack_wait_s)
         try:
-            await self._js.add_consumer(DETECTIONS_STREAM, config)
+            await self._js.add_consumer(DETECTIONS_STREAM, self._consumer_config)
         except Exception as error:
             raise TransportError(
                 f"{self.client_id}: cannot set up the consumer {self.durable}: {error}."
             ) from None
+        self._resume_at = None
+        self._last_delivery = 0
         self._pull_wake = asyncio.Event()
         self._pull_task = asyncio.get_running_loop().create_task(self._pull())
+
+    async def _redeliver_unacknowledged(self) -> None:
+        """Restart the durable consumer at its first unacknowledged message.
+
+        JetStream counts a message as delivered once it has sent it: a message in flight to
+        a matcher that died, or lost with the server that carried it, comes again only after
+        ``ack_wait`` (30 s), behind everything newer, so the matcher would hold it late. Here
+        the consumer is created anew from its acknowledgement floor: every message after the
+        floor comes again at once, in stream order (the matcher's store recognises those it
+        already holds). Called before the first pull and after every reconnection; without
+        unacknowledged messages it changes nothing.
+        """
+        # optional extra: pip install cblrs[nats]
+        from nats.js.api import DeliverPolicy
+        from nats.js.errors import NotFoundError
+
+        assert self.durable is not None
+        if self._resume_at is None:
+            try:
+                info = await self._js.consumer_info(DETECTIONS_STREAM, self.durable)
+            except NotFoundError:
+                if self._floor is None:
+                    return  # a new consumer: add_consumer delivers from the first message
+                info = None  # deleted here before, its creation failed: create it now
+            if info is not None:
+                if not info.num_ack_pending:
+                    return
+                self._floor = info.ack_floor.stream_seq + 1
+                logger.info("%s: %d messages were handed out and not acknowledged; "
+                            "delivering again from stream sequence %d", self.client_id,
+                            info.num_ack_pending, self._floor)
+                try:
+                    await self._js.delete_consumer(DETECTIONS_STREAM, self.durable)
+                except NotFoundError:
+                    pass
+            self._resume_at = self._floor
+        else:
+            try:
+                await self._js.delete_consumer(DETECTIONS_STREAM, self.durable)
+            except NotFoundError:
+                pass
+        # Kept until the consumer exists again: a failure between the deletion and the
+        # creation must not make the next attempt start from the stream's first message.
+        self._consumer_config = replace(
+            self._consumer_config, deliver_policy=DeliverPolicy.BY_START_SEQUENCE,
+            opt_start_seq=self._resume_at)
+
+    async def _check_caught_up(self) -> None:
+        """Nothing came for a while: ask the consumer whether it has anything left."""
+        try:
+            info = await self._js.consumer_info(DETECTIONS_STREAM, self.durable)
+        except Exception as error:  # not ready yet: ask again at the next idle beat
+            logger.debug("%s: consumer info: %s", self.client_id, error)
+            self._check_failing_since = self._check_failing_since or time.monotonic()
+            if time.monotonic() - self._check_failing_since > _GIVE_UP_S:
+                # Unanswerable (e.g. not permitted): connected counts as caught up.
+                logger.warning("%s: cannot ask the consumer %s what it holds (%s); a silent "
+                               "camera is given up by the window alone", self.client_id,
+                               self.durable, error or type(error).__name__)
+                self._caught_up = True
+                self._check_failing_since = None
+            return
+        self._check_failing_since = None
+        if not self._redeliver:
+            self._caught_up = info.num_pending == 0
 
     # Internals: pulling ------------------------------------------------------------------
 
@@ -669,7 +781,33 @@ class NatsTransport:
         batch = max(1, settings.pull_batch)
         expires_s = max(5.0, 5 * settings.heartbeat_s)
         assert self._pull_wake is not None
+        failing_since: float | None = None
         while not self._closing and not self.lease_lost:
+            if self._redeliver and nc.is_connected:
+                try:
+                    await self._redeliver_unacknowledged()
+                    if self._resume_at is not None:
+                        await self._js.add_consumer(DETECTIONS_STREAM, self._consumer_config)
+                        self._resume_at = None
+                        self._last_delivery = 0
+                    self._redeliver = False
+                except asyncio.CancelledError:
+                    raise
+                except Exception as error:  # the cluster is not ready yet: pull nothing
+                    logger.debug("%s: consumer not restarted yet: %s", self.client_id, error)
+                    failing_since = failing_since or time.monotonic()
+                    if (self._resume_at is None
+                            and time.monotonic() - failing_since > _GIVE_UP_S):
+                        # Never deleted: the consumer still serves, only later.
+                        logger.warning("%s: could not restart the consumer %s for %.0f s "
+                                       "(%s); unacknowledged messages come again after %g s",
+                                       self.client_id, self.durable, _GIVE_UP_S,
+                                       error or type(error).__name__, settings.ack_wait_s)
+                        self._redeliver = False
+                    else:
+                        await asyncio.sleep(settings.reconnect_wait_s)
+                        continue
+                failing_since = None
             now = time.monotonic()
             if now - self._last_activity > 3 * settings.heartbeat_s:
                 self._outstanding = 0  # nothing, not even heartbeats: the requests are gone
@@ -686,7 +824,8 @@ class NatsTransport:
             try:
                 await asyncio.wait_for(self._pull_wake.wait(), settings.heartbeat_s)
             except TimeoutError:
-                pass
+                if not self._caught_up and nc.is_connected and not self._redeliver:
+                    await self._check_caught_up()
 
     async def _on_pulled(self, msg: Any) -> None:
         self._last_activity = time.monotonic()
@@ -706,7 +845,18 @@ class NatsTransport:
         if self._outstanding <= self.settings.pull_batch // 2:
             self._pull_wake.set()  # type: ignore[union-attr]
         reply = msg.reply
-        delivered, stamp = _ack_metadata(reply)
+        delivered, stamp, consumer_sequence, pending = _ack_metadata(reply)
+        if self._last_delivery and consumer_sequence > self._last_delivery + 1:
+            # Deliveries in between were lost on the way (a server or route died): they
+            # would come again only after ack_wait, behind newer ones.
+            logger.info("%s: deliveries %d-%d of the consumer were lost on the way",
+                        self.client_id, self._last_delivery + 1, consumer_sequence - 1)
+            self._redeliver = True
+            self._caught_up = False
+            self._pull_wake.set()  # type: ignore[union-attr]
+        elif not self._redeliver:
+            self._caught_up = pending == 0
+        self._last_delivery = consumer_sequence
         topic = subject_to_topic(msg.subject)
         retain = topic.endswith("/status") and stamp < self._connected_at
         if self.lease_lost:
@@ -896,8 +1046,9 @@ async def _cancel_tasks() -> None:
     await asyncio.gather(*tasks, return_exceptions=True)
 
 
-def _ack_metadata(reply: str) -> tuple[int, float]:
-    """``(times delivered, stream timestamp in seconds)`` from a JetStream ack subject.
+def _ack_metadata(reply: str) -> tuple[int, float, int, int]:
+    """``(times delivered, stream timestamp in seconds, consumer sequence, messages still
+    pending)`` from a JetStream ack subject (consumer sequence 0 and pending 1 when unreadable).
 
     ``$JS.ACK.<stream>.<consumer>.<delivered>.<sseq>.<cseq>.<ns>.<pending>`` or, with a
     domain and account hash, two tokens more after ``$JS.ACK``.
@@ -905,9 +1056,10 @@ def _ack_metadata(reply: str) -> tuple[int, float]:
     tokens = reply.split(".")
     offset = 2 if len(tokens) == 9 else 4
     try:
-        return int(tokens[offset + 2]), int(tokens[offset + 5]) / 1e9
+        return (int(tokens[offset + 2]), int(tokens[offset + 5]) / 1e9,
+                int(tokens[offset + 4]), int(tokens[offset + 6]))
     except (IndexError, ValueError):
-        return 1, time.time()
+        return 1, time.time(), 0, 1
 
 
 def with_servers(settings: NatsSettings, url: str) -> NatsSettings:

@@ -19,6 +19,16 @@ are deleted (whatever their state), counted in ``dropped`` (kept in the file) an
 a log line at ERROR level, at most one every 10 s. The newest data is kept because a network
 of cameras is watched live; an operator who prefers the oldest sets a larger spool.
 
+Runs. A spool never mixes two runs' data. Each message is kept with the identity of the run
+that produced it (``run``: for ``cblrs camera`` its source, epoch, plane and first sequence
+number). A new message is refused (:class:`SpoolConflict`, one sentence) when the spool still
+holds unconfirmed messages of another run, or holds a message of the same camera and sequence
+number with other content: a replay numbers its messages from 0, so two runs' messages share
+numbers and the matcher, which keeps one message per camera and sequence, would take one for
+the other. Delivering an earlier run's leftovers without producing anything new (a camera
+with an empty source) is allowed. Repeating the same run (same identity and the same
+messages) continues it: what is still spooled is not spooled twice.
+
 The file is SQLite in WAL mode with ``synchronous=NORMAL``: a message written survives a crash
 of the camera process; an OS crash may lose the last few. One process holds a spool at a
 time (a lock on ``<file>-lock``); its mode is 0600.
@@ -27,6 +37,7 @@ time (a lock on ``<file>-lock``); its mode is 0600.
 from __future__ import annotations
 
 import fcntl
+import json
 import logging
 import os
 import sqlite3
@@ -60,8 +71,31 @@ CREATE TABLE IF NOT EXISTS counters (name TEXT PRIMARY KEY, value INTEGER NOT NU
 """
 
 
+RUN_OPTIONS = ("camera", "detections", "dataset", "video", "images", "frames", "fps", "format",
+               "aicity_camera", "frame_step", "class_name", "detector", "model", "weights",
+               "confidence", "live", "realtime", "speed", "hidden_feet", "epoch",
+               "first_sequence")
+"""The ``cblrs camera`` options that shape its messages (its run's identity)."""
+_RUN_FILES = ("detections", "dataset", "video", "images", "model", "weights")
+
+
+def run_identity(options: dict[str, Any], plane_id: int) -> str:
+    """A run's identity for :class:`Spool`: the :data:`RUN_OPTIONS` given (files by their
+    resolved path) and the plane. A live camera's sequence numbers come from the clock, so
+    its runs never share one; a replay's start at 0 unless ``first_sequence`` is given."""
+    chosen = {name: options[name] for name in RUN_OPTIONS if options.get(name) is not None}
+    for name in _RUN_FILES:
+        if name in chosen:  # the same file however it was named
+            chosen[name] = str(Path(chosen[name]).expanduser().resolve())
+    return json.dumps({"plane": plane_id, **chosen}, sort_keys=True, default=str)
+
+
 class SpoolError(CblrsError):
     """The spool file cannot be used (another process holds it, or it is not a spool)."""
+
+
+class SpoolConflict(SpoolError):
+    """A new message would mix with another run's messages (see the module docstring)."""
 
 
 class Spool:
@@ -72,6 +106,8 @@ class Spool:
             library use: then nothing survives the process).
         max_bytes: bound of the payloads held, bytes.
         clock: monotonic clock for acknowledgement times.
+        run: what identifies the run that appends messages (e.g. its source and epoch);
+            None: not checked (messages of files written before runs were recorded, too).
 
     Raises:
         SpoolError: another process holds the file, or it is not a spool.
@@ -83,7 +119,10 @@ class Spool:
         *,
         max_bytes: int = DEFAULT_SPOOL_BYTES,
         clock: Callable[[], float] = time.monotonic,
+        run: str | None = None,
     ):
+        self.run = run
+        self._others = 0  # messages of other runs held (re-counted before refusing)
         if max_bytes <= 0:
             raise SpoolError(f"the spool size must be positive, got {max_bytes} bytes.")
         self.path = None if path is None else Path(path)
@@ -106,6 +145,9 @@ class Spool:
             self._db.execute("PRAGMA journal_mode=WAL")
             self._db.execute("PRAGMA synchronous=NORMAL")
             self._db.executescript(_SCHEMA)
+            columns = {row[1] for row in self._db.execute("PRAGMA table_info(outbox)")}
+            if "run" not in columns:  # a file written before runs were recorded
+                self._db.execute("ALTER TABLE outbox ADD COLUMN run TEXT")
             # Whatever was handed or acknowledged by a broker in an earlier run has not been
             # confirmed: send it again.
             self._db.execute("UPDATE outbox SET state = 0, acked_at = NULL WHERE state != 0")
@@ -116,6 +158,7 @@ class Spool:
             self._release_hold()
             raise SpoolError(f"{self.path} is not a usable spool file: {error}.") from None
         self._bytes = int(total)
+        self._others = self._count_others()
         if self.path is not None:
             for suffix in ("", "-wal", "-shm"):
                 try:
@@ -163,20 +206,52 @@ class Spool:
     # -- writing -----------------------------------------------------------------------------
 
     def append(self, sequence: int, topic: str, payload: bytes) -> bool:
-        """Keep a new message (``waiting``); False if the spool already holds ``sequence``
-        (an unconfirmed message of an earlier run with the same number: that one is kept,
-        as the matcher keeps one message per camera and sequence)."""
+        """Keep a new message (``waiting``); False if the spool already holds this very
+        message (same number and content: the same run, repeated).
+
+        Raises:
+            SpoolConflict: the spool holds unconfirmed messages of another run, or another
+                message under this number (see the module docstring); nothing is kept.
+        """
         size = len(payload)
         with self._lock:
+            if self._others and self.run is not None:
+                self._others = self._count_others()
+                if self._others:
+                    raise SpoolConflict(self._conflict_text(
+                        f"{self._others} unconfirmed messages of another run"))
+            row = self._db.execute("SELECT payload FROM outbox WHERE sequence = ?",
+                                   (int(sequence),)).fetchone()
+            if row is not None:
+                if bytes(row[0]) == bytes(payload):
+                    return False
+                raise SpoolConflict(self._conflict_text(
+                    f"another message numbered {int(sequence)}"))
             self._make_room(size)
-            cursor = self._db.execute(
-                "INSERT OR IGNORE INTO outbox (sequence, topic, payload) VALUES (?, ?, ?)",
-                (int(sequence), topic, bytes(payload)),
+            self._db.execute(
+                "INSERT INTO outbox (sequence, topic, payload, run) VALUES (?, ?, ?, ?)",
+                (int(sequence), topic, bytes(payload), self.run),
             )
-            if cursor.rowcount != 1:
-                return False
             self._bytes += size
             return True
+
+    def _count_others(self) -> int:
+        if self.run is None:
+            return 0
+        (count,) = self._db.execute(
+            "SELECT COUNT(*) FROM outbox WHERE run IS NOT NULL AND run != ?", (self.run,)
+        ).fetchone()
+        return int(count)
+
+    def _conflict_text(self, what: str) -> str:
+        where = self.path or "(memory)"
+        return (
+            f"the spool {where} holds {what} (a different video, source, epoch or first "
+            "sequence under this camera's name); they would be taken for one another. "
+            f"Deliver them first (run the earlier command again, or this camera with an "
+            f"empty source, once its matcher is up), or give this run another --spool "
+            f"(deleting {where} discards them)"
+        )
 
     def _make_room(self, size: int) -> None:
         if self._bytes + size <= self.max_bytes:

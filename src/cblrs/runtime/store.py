@@ -47,7 +47,7 @@ import socket
 import sqlite3
 import threading
 import uuid
-from collections.abc import Callable, Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, MutableMapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -478,19 +478,22 @@ class RuntimeStore:
     def insert_messages(
         self,
         messages: Sequence[tuple[InboxEntry, str, float]],
-        counters: Mapping[str, int] | None = None,
+        counters: MutableMapping[str, int] | None = None,
     ) -> list[bool]:
         """Insert accepted messages into the inbox in one transaction.
 
         Args:
             messages: ``(entry, status, received_at)`` with status ``pending`` or ``late``
                 and ``received_at`` in wall-clock seconds.
-            counters: counter increments committed in the same transaction.
+            counters: counter increments committed in the same transaction (``conflicts``
+                is added to it, see below).
 
         Returns:
             For each message, True if it was new, False if ``(camera, sequence)`` was already
             stored (a duplicate; its row is left as it was). The counters ``accepted``,
-            ``duplicates`` and ``late`` are incremented accordingly in the same transaction.
+            ``duplicates`` and ``late`` are incremented accordingly in the same transaction,
+            and ``conflicts`` for duplicates whose capture time or detections differ from
+            the stored message (another run of the camera reusing its numbers).
         """
         rows = [
             (entry.camera_id, entry.sequence, entry.timestamp, entry.frame, received_at, status,
@@ -507,9 +510,16 @@ class RuntimeStore:
             else:
                 cursor.execute("ROLLBACK TO batch")
                 inserted = []
+                conflicts = 0
                 for row in rows:
                     cursor.execute(_INSERT_INBOX, row)
                     inserted.append(cursor.rowcount == 1)
+                    if not inserted[-1]:
+                        conflicts += _conflicts(cursor, row)
+                if conflicts and counters is not None:
+                    counters["conflicts"] = counters.get("conflicts", 0) + conflicts
+                elif conflicts:
+                    counters = {"conflicts": conflicts}
             cursor.execute("RELEASE batch")
             totals = dict(counters or {})
             new = sum(inserted)
@@ -873,6 +883,15 @@ def _add_counters(cursor: sqlite3.Cursor, counters: Mapping[str, int]) -> None:
         "ON CONFLICT(name) DO UPDATE SET value = value + excluded.value",
         [(name, int(value)) for name, value in counters.items() if value],
     )
+
+
+def _conflicts(cursor: sqlite3.Cursor, row: tuple) -> int:
+    """1 if the stored message under ``row``'s camera and sequence differs from ``row``."""
+    stored = cursor.execute(
+        "SELECT timestamp, frame, body FROM inbox WHERE camera_id = ? AND sequence = ?",
+        (row[0], row[1]),
+    ).fetchone()
+    return int(stored is not None and tuple(stored) != (row[2], row[3], row[6]))
 
 
 def _nullable(value: float) -> float | None:

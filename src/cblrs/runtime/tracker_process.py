@@ -23,7 +23,9 @@ Messages (pickled) on the two pipes:
   payload or None), ...], counters, report)`` once a batch is committed (``report``: the
   stages' durations, the analytics events by kind, the zones' live occupancy and dwell);
   ``("failed", traceback)`` when tracking or committing raised (the process then exits);
-  ``("stopped",)`` after ``None`` or ``"flush"``.
+  ``("stopped",)`` after ``None`` or ``"flush"``, or once the service abandoned what it sent
+  (:meth:`TrackerProcess.abandon`, a stop without flush: the batch being tracked and those
+  still in the pipe are not committed, and stay pending in the store).
 
 With analytics, each group's rows are counted as soon as it is tracked
 (:class:`~cblrs.runtime.online_analytics.OnlineAnalytics`, empty groups too), and the
@@ -84,10 +86,11 @@ class TrackerProcess:
     ):
         requests_reader, self._requests = context.Pipe(duplex=False)
         self._results, results_writer = context.Pipe(duplex=False)
+        self._abandon = context.Event()
         self.process = context.Process(
             target=run,
             args=(requests_reader, results_writer, matcher, shared, tracker, plane_id,
-                  list(camera_ids), publish_tracks, analytics),
+                  list(camera_ids), publish_tracks, analytics, self._abandon),
             name=f"cblrs-tracker-{plane_id}",
             daemon=True,
         )
@@ -105,11 +108,13 @@ class TrackerProcess:
         """
         try:
             self._requests.send(batch)
-        except OSError as error:
+        except (OSError, TypeError, ValueError) as error:
+            # OSError: the process has gone; TypeError/ValueError: close() closed the pipe
+            # under this send (a stop that did not wait for it).
             self.process.join(1.0)  # for its exit code
             raise TrackerProcessError(
                 f"the tracker process exited (code {self.process.exitcode}) before taking "
-                f"the next groups ({error.strerror or error})"
+                f"the next groups ({getattr(error, 'strerror', None) or error})"
             ) from None
 
     def finish(self, flush: bool = False) -> None:
@@ -123,6 +128,12 @@ class TrackerProcess:
             self._requests.send("flush" if flush else None)
         except OSError:
             pass
+
+    def abandon(self) -> None:
+        """Stop without tracking what was sent and not yet committed (a stop without flush):
+        the process commits nothing more and exits at its next group. Those messages stay
+        pending in the store; a restarted service tracks them."""
+        self._abandon.set()
 
     def receive(self) -> tuple:
         """The next answer of the process (blocks).
@@ -154,6 +165,7 @@ def run(
     camera_ids: list[str],
     publish_tracks: bool,
     analytics: Any = None,
+    abandon: Any = None,
 ) -> None:
     """The tracker process's main function (see the module docstring for the protocol)."""
     # The service decides when this process stops: Ctrl-C in a terminal and systemd's SIGTERM
@@ -184,7 +196,8 @@ def run(
         gc.freeze()
         updates = 0
         released = store.released_timestamp()
-        while (batch := requests.recv()) is not None:
+        abandoned = abandon.is_set if abandon is not None else lambda: False
+        while not abandoned() and (batch := requests.recv()) is not None:
             if batch == "flush":
                 if released is not None:
                     updates = _flush(store, matcher, analytics, released, tracker, results,
@@ -193,12 +206,16 @@ def run(
             tracked = []
             report = _Report(analytics)
             for timestamp, entries in batch:
+                if abandoned():
+                    break
                 messages = [entry.message() for entry in entries]
                 started = time.perf_counter()
                 group_tracks = matcher.update(timestamp, messages)
                 report.add("track", time.perf_counter() - started)
                 tracked.append((timestamp, group_tracks))
                 report.count(group_tracks, timestamp)
+            if abandoned():
+                break  # a stop without flush: this batch stays pending in the store
             keys = [(entry.camera_id, entry.sequence) for _, entries in batch for entry in entries]
             tracks = Tracks.concatenate([group_tracks for _, group_tracks in tracked])
             counters = {"processed": len(keys), "groups": len(batch), "tracks": len(tracks)}

@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from cblrs.alerts.rules import AlertsError, AlertsModel, load_alerts
 from cblrs.camera import Camera
 from cblrs.errors import CblrsError
 from cblrs.linking.links import LinkError, PlaneLink, build_links
@@ -103,6 +104,7 @@ class Site:
         map: the site map (None when the file has none).
         places: zones and counting lines (empty when the file has none).
         links: where tracks pass from one plane to another (empty when the file has none).
+        alerts: alert rules and webhooks (:mod:`cblrs.alerts`; none when the file has none).
     """
 
     path: Path | None
@@ -111,6 +113,7 @@ class Site:
     map: SiteMap | None
     places: Places
     links: tuple[PlaneLink, ...] = ()
+    alerts: AlertsModel = field(default_factory=AlertsModel)
     _resolved: dict[str, SiteCamera] = field(default_factory=dict, repr=False)
 
     # ------------------------------------------------------------------ basics
@@ -256,7 +259,8 @@ class Site:
         return _ordered(data)
 
 
-_TOP_ORDER = ("version", "name", "pseudo", "map", "planes", "cameras", "places", "links")
+_TOP_ORDER = ("version", "name", "pseudo", "map", "planes", "cameras", "places", "links",
+              "alerts")
 
 
 def _ordered(data: dict[str, Any]) -> dict[str, Any]:
@@ -327,7 +331,14 @@ def site_from_document(data: dict[str, Any], path: Path | None) -> Site:
                                 planes)
         except LinkError as error:
             raise SiteError(f"{source}: {error}") from None
-    return Site(path=path, model=model, planes=planes, map=site_map, places=places, links=links)
+    try:
+        alerts = load_alerts(model.alerts, source, [zone.name for zone in places.zones],
+                             [line.name for line in places.lines],
+                             [camera.name for camera in model.cameras] or None)
+    except AlertsError as error:
+        raise SiteError(str(error)) from None
+    return Site(path=path, model=model, planes=planes, map=site_map, places=places, links=links,
+                alerts=alerts)
 
 
 def parse_site(text: str, source: str = "site.yaml", folder: Path | None = None) -> Site:
