@@ -37,12 +37,13 @@ higher in the box. For people the offset is zero (their feet are the footprint).
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import Protocol
 
 import numpy as np
 
 from cblrs.detections import CLASS_NAMES, CameraMessage, Detections
-from cblrs.reference import ReferenceImage
+from cblrs.reference import Reference
 from cblrs.targeting import TargetingPosition, target_pixels, targeting_for
 
 # Half the typical footprint depth seen along a viewing ray, metres (a 4.5 x 1.8 m car shows
@@ -154,7 +155,7 @@ def make_message(
     timestamp: float,
     frame: int,
     detections: Detections,
-    reference: ReferenceImage,
+    reference: Reference,
     targeting: dict[str, TargetingPosition] | None = None,
     targeter: Targeter | None = None,
     drop_hidden_feet: bool = False,
@@ -181,26 +182,16 @@ def make_message(
         The message; a detection whose target pixel sees no plane (or lies outside the
         image) carries colour (0, 0, 0).
     """
-    horizontal, vertical = targeting_columns(detections.class_id, targeting)
-    offset = depth_offsets(detections.class_id, targeting)
-    horizontal_matters = offset > 0
-    vertical = np.where(offset > 0, OFFSET_TARGETING.vertical, vertical)
-    horizontal = np.where(offset > 0, OFFSET_TARGETING.horizontal, horizontal)
-    pixels, inside = target_pixels(
-        detections.xyxy, horizontal, vertical, image_size=reference.image_size
-    )
     if targeter is not None:
         pixels, inside = targeter.target_pixels(detections)
-        offset = np.zeros(len(detections))
-    colours, valid = reference.colours_at(pixels)
-    cut = cut_by_border(detections.xyxy, vertical, horizontal_matters, reference.image_size)
-    if drop_hidden_feet:
-        cut |= feet_hidden(detections.xyxy, pixels, vertical)
-    colours[~(valid & inside) | cut] = 0
-    shift = (offset > 0) & ~cut
-    if shift.any():
-        colours[shift] = _push_away(reference, detections.xyxy[shift], pixels[shift],
-                                    colours[shift], offset[shift])
+        colours = _box_colours(
+            detections.xyxy, detections.class_id, reference, targeting, drop_hidden_feet,
+            targeted=(pixels, inside),
+        )
+    else:
+        colours = _box_colours(
+            detections.xyxy, detections.class_id, reference, targeting, drop_hidden_feet
+        )
     return CameraMessage(
         camera_id=camera_id,
         sequence=sequence,
@@ -211,6 +202,110 @@ def make_message(
         class_id=detections.class_id,
         colour=colours,
     )
+
+
+def make_messages(
+    camera_id: str,
+    frames: Sequence[tuple[int, float, int]],
+    detections: Sequence[Detections],
+    reference: Reference,
+    targeting: dict[str, TargetingPosition] | None = None,
+    targeter: Targeter | None = None,
+    drop_hidden_feet: bool = False,
+) -> list[CameraMessage]:
+    """:func:`make_message` for many frames of one camera: the same messages.
+
+    The boxes of all frames are targeted and looked up at once (what a replay of a recorded
+    camera can do; a live camera sends frame by frame). Every step is row by row except the
+    hidden-feet rule, which compares the boxes of one frame, so the colours are those of
+    :func:`make_message` frame by frame.
+
+    Args:
+        camera_id: the camera's name.
+        frames: per message ``(sequence, timestamp, frame)``.
+        detections: per message that frame's boxes (as many as ``frames``).
+        reference, targeting, targeter, drop_hidden_feet: as for :func:`make_message`; a
+            targeter chooses pixels frame by frame.
+
+    Returns:
+        One message per frame, in the order given.
+    """
+    if len(frames) != len(detections):
+        raise ValueError(
+            f"need one set of detections per frame ({len(frames)}), got {len(detections)}"
+        )
+    if targeter is not None or not frames:
+        return [
+            make_message(camera_id, sequence, timestamp, frame, boxes, reference, targeting,
+                         targeter, drop_hidden_feet)
+            for (sequence, timestamp, frame), boxes in zip(frames, detections, strict=True)
+        ]
+    xyxy = np.concatenate([boxes.xyxy for boxes in detections])
+    class_id = np.concatenate([boxes.class_id for boxes in detections])
+    ends = np.cumsum([len(boxes) for boxes in detections])
+    colours = _box_colours(
+        xyxy, class_id, reference, targeting, drop_hidden_feet, frame_ends=ends
+    )
+    starts = ends - np.array([len(boxes) for boxes in detections])
+    return [
+        CameraMessage(
+            camera_id=camera_id,
+            sequence=sequence,
+            timestamp=timestamp,
+            frame=frame,
+            xyxy=boxes.xyxy,
+            confidence=boxes.confidence,
+            class_id=boxes.class_id,
+            colour=colours[start:end],
+        )
+        for (sequence, timestamp, frame), boxes, start, end in zip(
+            frames, detections, starts.tolist(), ends.tolist(), strict=True
+        )
+    ]
+
+
+def _box_colours(
+    xyxy: np.ndarray,
+    class_id: np.ndarray,
+    reference: Reference,
+    targeting: dict[str, TargetingPosition] | None,
+    drop_hidden_feet: bool,
+    targeted: tuple[np.ndarray, np.ndarray] | None = None,
+    frame_ends: np.ndarray | None = None,
+) -> np.ndarray:
+    """(N, 3) int64 colours of boxes, the policy of :func:`make_message`.
+
+    ``targeted``: a targeter's ``(pixels, inside)``, replacing the class targeting and its
+    depth offsets. ``frame_ends``: the boxes are several frames' one after another, frame k
+    ending before row ``frame_ends[k]`` (the hidden-feet rule compares boxes of one frame);
+    None: one frame.
+    """
+    horizontal, vertical = targeting_columns(class_id, targeting)
+    offset = depth_offsets(class_id, targeting)
+    horizontal_matters = offset > 0
+    vertical = np.where(offset > 0, OFFSET_TARGETING.vertical, vertical)
+    horizontal = np.where(offset > 0, OFFSET_TARGETING.horizontal, horizontal)
+    pixels, inside = target_pixels(xyxy, horizontal, vertical, image_size=reference.image_size)
+    if targeted is not None:
+        pixels, inside = targeted
+        offset = np.zeros(len(xyxy))
+    colours, valid = reference.colours_at(pixels)
+    cut = cut_by_border(xyxy, vertical, horizontal_matters, reference.image_size)
+    if drop_hidden_feet:
+        if frame_ends is None:
+            cut |= feet_hidden(xyxy, pixels, vertical)
+        else:
+            starts = np.concatenate([[0], frame_ends[:-1]]).tolist()
+            for start, end in zip(starts, frame_ends.tolist(), strict=True):
+                cut[start:end] |= feet_hidden(
+                    xyxy[start:end], pixels[start:end], vertical[start:end]
+                )
+    colours[~(valid & inside) | cut] = 0
+    shift = (offset > 0) & ~cut
+    if shift.any():
+        colours[shift] = _push_away(reference, xyxy[shift], pixels[shift],
+                                    colours[shift], offset[shift])
+    return colours
 
 
 def cut_by_border(
@@ -280,7 +375,7 @@ def depth_offsets(
 
 
 def _push_away(
-    reference: ReferenceImage,
+    reference: Reference,
     xyxy: np.ndarray,
     pixels: np.ndarray,
     colours: np.ndarray,

@@ -19,17 +19,15 @@ from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
-from tqdm import tqdm
 
 from cblrs.datasets.clocks import ClockSimulation, camera_clocks
 from cblrs.datasets.scene import Scene
 from cblrs.detections import CameraMessage, Tracks
-from cblrs.edge import Targeter, make_message
+from cblrs.edge import Targeter, make_messages
 from cblrs.errors import DatasetError
-from cblrs.geometric_targeting import GeometricTargeter
 from cblrs.matching import DEFAULT_MATCHER, Matcher, make_matcher
 from cblrs.plane import PlaneSet
-from cblrs.reference import ReferenceImage, render_reference
+from cblrs.reference import OnDemandReference, Reference, ReferenceImage, render_reference
 from cblrs.runtime.ordering import Orderer
 
 logger = logging.getLogger(__name__)
@@ -41,7 +39,8 @@ class TrackingResult:
 
     Attributes:
         tracks: one row per (frame, track), world metres, the scene's native frame numbers.
-        references: the reference image of each camera (scene camera order).
+        references: the reference of each camera (scene camera order; rendered where read
+            unless rendered images were given).
         message_count: camera messages sent (one per camera and frame).
         detection_count: detections in those messages (with or without a location).
         matcher_seconds: time spent inside the matcher's ``update`` calls.
@@ -57,7 +56,7 @@ class TrackingResult:
     """
 
     tracks: Tracks
-    references: list[ReferenceImage]
+    references: list[Reference]
     message_count: int
     detection_count: int
     matcher_seconds: float
@@ -87,6 +86,17 @@ def render_scene_references(scene: Scene, bits: int = 16) -> list[ReferenceImage
     return [render_reference(camera, planes) for camera in scene.cameras]
 
 
+def scene_references(scene: Scene, bits: int = 16) -> list[OnDemandReference]:
+    """Every camera's reference of the scene's ground plane, rendered where it is read.
+
+    The colours are those of :func:`render_scene_references`' images; only the pixels the
+    cameras read are rendered and nothing of the size of a frame is kept (a 16-bit
+    1920 x 1080 image is 12 MB), which is what a simulated run of cameras needs.
+    """
+    planes = scene_planes(scene, bits)
+    return [OnDemandReference(camera, planes) for camera in scene.cameras]
+
+
 def camera_positions(scene: Scene) -> dict[str, tuple[float, float, float]]:
     """Positions ``{name: (x, y, height)}`` metres of the scene's cameras that have a pose.
 
@@ -110,6 +120,8 @@ def scene_targeters(
         if targeting == "box":
             return None
         if targeting == "geometric":
+            # lazy: it needs the synthetic world's class sizes; the box targeting does not
+            from cblrs.geometric_targeting import GeometricTargeter
 
             return [GeometricTargeter(camera) for camera in scene.cameras]
         raise ValueError(f"targeting must be 'box' or 'geometric', got {targeting!r}")
@@ -123,7 +135,7 @@ def scene_targeters(
 
 def scene_messages(
     scene: Scene,
-    references: Sequence[ReferenceImage],
+    references: Sequence[Reference],
     targeters: Sequence[Targeter] | None = None,
     drop_hidden_feet: bool = False,
 ) -> Iterator[tuple[float, list[CameraMessage]]]:
@@ -140,21 +152,23 @@ def scene_messages(
         raise DatasetError(
             f"need one reference image per camera ({len(scene.cameras)}), got {len(references)}."
         )
-    names = scene.camera_names
-    order = np.argsort(scene.timestamps, kind="stable")
-    for sequence, index in enumerate(order.tolist()):
-        timestamp = float(scene.timestamps[index])
-        frame = int(scene.frames[index])
-        messages = [
-            make_message(
-                name, sequence, timestamp, frame, detections, reference, targeter=targeter,
-                drop_hidden_feet=drop_hidden_feet,
-            )
-            for name, detections, reference, targeter in zip(
-                names, scene.detections[index], references, chosen, strict=True
-            )
-        ]
-        yield timestamp, messages
+    order = np.argsort(scene.timestamps, kind="stable").tolist()
+    frames = [
+        (sequence, float(scene.timestamps[index]), int(scene.frames[index]))
+        for sequence, index in enumerate(order)
+    ]
+    # Each camera's frames at once (the same messages as frame by frame, one lookup).
+    per_camera = [
+        make_messages(
+            name, frames, [scene.detections[index][camera] for index in order], reference,
+            targeter=targeter, drop_hidden_feet=drop_hidden_feet,
+        )
+        for camera, (name, reference, targeter) in enumerate(
+            zip(scene.camera_names, references, chosen, strict=True)
+        )
+    ]
+    for position, (_, timestamp, _) in enumerate(frames):
+        yield timestamp, [messages[position] for messages in per_camera]
 
 
 def run_matcher(
@@ -188,7 +202,7 @@ def flush_matcher(matcher: Matcher) -> Tracks:
 
 def camera_messages(
     scene: Scene,
-    references: Sequence[ReferenceImage],
+    references: Sequence[Reference],
     targeters: Sequence[Targeter] | None = None,
     clocks: ClockSimulation | None = None,
     drop_hidden_feet: bool = False,
@@ -214,16 +228,20 @@ def camera_messages(
     for camera_index, (clock, reference, targeter) in enumerate(
         zip(camera_clocks(scene, clocks), references, chosen, strict=True)
     ):
-        for sequence, (index, recorded) in enumerate(
-            zip(clock.frame_index.tolist(), clock.timestamp.tolist(), strict=True)
-        ):
-            timestamp = epoch + recorded
-            message = make_message(
-                clock.camera, sequence, timestamp, int(scene.frames[index]),
-                scene.detections[index][camera_index], reference, targeter=targeter,
-                drop_hidden_feet=drop_hidden_feet,
+        indices = clock.frame_index.tolist()
+        frames = [
+            (sequence, epoch + recorded, int(scene.frames[index]))
+            for sequence, (index, recorded) in enumerate(
+                zip(indices, clock.timestamp.tolist(), strict=True)
             )
-            timed.append((timestamp, camera_index, message))
+        ]
+        messages = make_messages(
+            clock.camera, frames, [scene.detections[index][camera_index] for index in indices],
+            reference, targeter=targeter, drop_hidden_feet=drop_hidden_feet,
+        )
+        timed.extend(
+            (message.timestamp, camera_index, message) for message in messages
+        )
     timed.sort(key=lambda item: (item[0], item[1]))
     return [message for _, _, message in timed]
 
@@ -251,7 +269,7 @@ def ordered_windows(
 def track_scene(
     scene: Scene,
     matcher: str | Matcher = DEFAULT_MATCHER,
-    references: Sequence[ReferenceImage] | None = None,
+    references: Sequence[Reference] | None = None,
     bits: int = 16,
     progress: bool = False,
     targeting: str | Sequence[Targeter] = "box",
@@ -264,8 +282,9 @@ def track_scene(
     Args:
         scene: cameras, per-frame detections and the ground plane.
         matcher: a matcher name (``"fusion"``, ``"paper"``) or a ready matcher instance.
-        references: reference images per camera; rendered when None.
-        bits: bit depth for rendering (ignored when ``references`` are given).
+        references: reference images per camera; when None, each camera's is rendered
+            where it is read (:func:`scene_references`).
+        bits: bit depth of the references (ignored when ``references`` are given).
         progress: show a progress bar on stderr (terminals only).
         targeting: ``"box"`` (fixed per-class targeting positions, the default),
             ``"geometric"`` (a :class:`cblrs.geometric_targeting.GeometricTargeter` per
@@ -290,7 +309,7 @@ def track_scene(
     start = time.perf_counter()
     render_seconds = 0.0
     if references is None:
-        references = render_scene_references(scene, bits)
+        references = scene_references(scene, bits)
         render_seconds = time.perf_counter() - start
     references = list(references)
     if isinstance(matcher, str):
@@ -306,11 +325,11 @@ def track_scene(
         scene, references, scene_targeters(scene, targeting), clocks, drop_hidden_feet
     )
     captured = np.unique([message.frame for message in messages])
-    if progress:
+    if progress and sys.stderr.isatty():
+        # lazy: tqdm reads its version through importlib.metadata (~20 ms); only a bar needs it
+        from tqdm import tqdm
 
-        messages = tqdm(
-            messages, desc="tracking", leave=False, disable=not sys.stderr.isatty(),
-        )
+        messages = tqdm(messages, desc="tracking", leave=False)
     tracks, matcher_seconds, message_count, detection_count = run_matcher(
         matcher, ordered_windows(messages, scene.camera_names)
     )

@@ -226,6 +226,118 @@ class ReferenceImage:
         return cls(pixels=pixels, planes=planes, camera_name=str(metadata.get("camera", "")))
 
 
+class OnDemandReference:
+    """A camera's reference image that renders only the pixels read.
+
+    :meth:`colours_at` returns exactly what :func:`render_reference`'s image holds at those
+    pixels (the same arithmetic, point by point) without rendering or keeping the whole
+    frame: a simulated camera that reads a few target pixels a frame needs neither the
+    tens of megabytes of a full-resolution 16-bit image nor the time to render it. The whole
+    image is rendered on first use of :attr:`pixels` (for saving or drawing) and kept.
+
+    Args:
+        camera: the camera; planes above the ground need a posed camera.
+        planes: one plane or several.
+        encode_as: as for :func:`render_reference` (pseudo-coordinate references).
+
+    Example:
+        >>> camera = Camera.from_pose("c", (0, -10, 8), 90, 35, 900, (640, 360))
+        >>> plane = PlaneSpec(1, (-20, -5), 40, 40, bits=8)
+        >>> reference = OnDemandReference(camera, plane)
+        >>> pixels = np.array([[320.0, 300.0]])
+        >>> bool((reference.colours_at(pixels)[0]
+        ...       == render_reference(camera, plane).colours_at(pixels)[0]).all())
+        True
+    """
+
+    def __init__(
+        self,
+        camera: Camera,
+        planes: PlaneSet | PlaneSpec | list[PlaneSpec],
+        encode_as: tuple[NDArray, PlaneSet] | None = None,
+    ):
+        self._rendered_planes, self.planes, self._encode_matrix = _planes_to_encode(
+            planes, encode_as
+        )
+        self._encode_as = encode_as
+        self.camera = camera
+        self.camera_name = camera.name
+
+    @property
+    def image_size(self) -> tuple[int, int]:
+        """(width, height) in pixels."""
+        return self.camera.image_size
+
+    @property
+    def bits(self) -> int:
+        """Bits per colour channel (8 or 16)."""
+        return self.planes.bits
+
+    @cached_property
+    def _matrices(self) -> list[_CodeMatrices]:
+        return _code_matrices(self.camera, self._rendered_planes, self.planes, self._encode_matrix)
+
+    @cached_property
+    def image(self) -> ReferenceImage:
+        """The whole reference image, rendered on first use."""
+        return render_reference(self.camera, self._rendered_planes, self._encode_as)
+
+    @property
+    def pixels(self) -> NDArray[np.unsignedinteger]:
+        """(H, W, 3) uint8 or uint16 RGB array of the whole image (rendered on first use)."""
+        return self.image.pixels
+
+    def coverage(self) -> float:
+        """Fraction of pixels that see a plane (renders the whole image)."""
+        return self.image.coverage()
+
+    def pixel_indices(self, pixels: NDArray) -> tuple[NDArray[np.int64], BoolArray]:
+        """Flat indices of the nearest pixel centres and an inside-the-image mask."""
+        return nearest_pixel_indices(pixels, self.image_size)
+
+    def colours_at(self, pixels: NDArray) -> tuple[NDArray[np.int64], BoolArray]:
+        """Colours (N, 3) at pixel positions (N, 2); pixels outside the image read (0, 0, 0).
+
+        The same as :meth:`ReferenceImage.colours_at` on the rendered image.
+        """
+        indices, inside = self.pixel_indices(pixels)
+        rows, columns = np.divmod(indices[inside], self.image_size[0])
+        if self.camera.has_distortion:
+            grid_x, grid_y = self.camera.undistorted_grid()
+            map_x = grid_x[rows, columns].astype(np.float64)
+            map_y = grid_y[rows, columns].astype(np.float64)
+        else:
+            map_x, map_y = columns.astype(np.float64), rows.astype(np.float64)
+        channels = _plane_codes(
+            self._rendered_planes, self._matrices, map_x, map_y, (len(map_x),)
+        )
+        colours = np.zeros((len(indices), 3), dtype=np.int64)
+        colours[inside] = np.column_stack(channels)
+        return colours, inside & (colours[:, 2] != 0)
+
+    def locate(self, pixels: NDArray) -> tuple[FloatArray, BoolArray]:
+        """World positions (N, 2) metres of pixels (N, 2), with a validity mask."""
+        colours, _ = self.colours_at(pixels)
+        world_xy, valid, _ = self.planes.decode(colours)
+        return world_xy, valid
+
+    def metadata(self) -> dict:
+        """What the PNG's ``tEXt`` chunk carries (see :meth:`ReferenceImage.metadata`)."""
+        return self.image.metadata()
+
+    def to_png_bytes(self) -> bytes:
+        """The whole reference as PNG bytes (see :meth:`ReferenceImage.to_png_bytes`)."""
+        return self.image.to_png_bytes()
+
+    def save(self, path: str | Path) -> Path:
+        """Write the whole image and its plane specification to a PNG file."""
+        return self.image.save(path)
+
+
+# What a camera reads colours from: a rendered image, or one that renders the pixels read.
+Reference = ReferenceImage | OnDemandReference
+
+
 def load_reference(
     path: str | Path, expected_size: tuple[int, int] | None = None
 ) -> ReferenceImage:
@@ -293,15 +405,7 @@ def render_reference(
         >>> render_reference(camera, plane).pixels.shape
         (360, 640, 3)
     """
-    if isinstance(planes, PlaneSpec):
-        planes = PlaneSet([planes])
-    elif not isinstance(planes, PlaneSet):
-        planes = PlaneSet(planes)
-    encoded_planes, encode_matrix = planes, np.eye(3)
-    if encode_as is not None:
-        encode_matrix, encoded_planes = np.asarray(encode_as[0], np.float64), encode_as[1]
-        if sorted(encoded_planes.ids) != sorted(planes.ids) or encoded_planes.bits != planes.bits:
-            raise PlaneError("the encoded planes must have the ids and bits of the planes.")
+    planes, encoded_planes, encode_matrix = _planes_to_encode(planes, encode_as)
     width, height = camera.image_size
     if camera.has_distortion:
         map_x, map_y = (grid.astype(np.float64) for grid in camera.undistorted_grid())
@@ -310,22 +414,98 @@ def render_reference(
         # halves the work of the first multiply-adds.
         map_x = np.arange(width, dtype=np.float64)[None, :]
         map_y = np.arange(height, dtype=np.float64)[:, None]
-    dtype = np.uint8 if planes.bits == 8 else np.uint16
-    channels = [np.zeros((height, width), dtype=dtype) for _ in range(3)]
-    best_scale = np.zeros((height, width), dtype=np.float64)  # 1 / depth; larger is nearer
+    matrices = _code_matrices(camera, planes, encoded_planes, encode_matrix)
+    channels = _plane_codes(planes, matrices, map_x, map_y, (height, width))
+    pixels = cast(NDArray[np.unsignedinteger], cv2.merge(channels))
+    return ReferenceImage(pixels=pixels, planes=encoded_planes, camera_name=camera.name)
+
+
+def _planes_to_encode(
+    planes: PlaneSet | PlaneSpec | list[PlaneSpec],
+    encode_as: tuple[NDArray, PlaneSet] | None,
+) -> tuple[PlaneSet, PlaneSet, NDArray[np.float64] | None]:
+    """``(planes, encoded_planes, encode_matrix)`` of :func:`render_reference`'s arguments."""
+    if isinstance(planes, PlaneSpec):
+        planes = PlaneSet([planes])
+    elif not isinstance(planes, PlaneSet):
+        planes = PlaneSet(planes)
+    if encode_as is None:
+        return planes, planes, None
+    encode_matrix, encoded_planes = np.asarray(encode_as[0], np.float64), encode_as[1]
+    if sorted(encoded_planes.ids) != sorted(planes.ids) or encoded_planes.bits != planes.bits:
+        raise PlaneError("the encoded planes must have the ids and bits of the planes.")
+    return planes, encoded_planes, encode_matrix
+
+
+@dataclass(frozen=True)
+class _CodeMatrices:
+    """What turns ideal pinhole pixels into one plane's colour codes.
+
+    ``matrix`` maps a pixel to the plane's (fractional) R and G codes and the projective
+    scale: it folds "world -> colour code" into the inverse homography, so that one projective
+    division gives the codes directly. With pseudo coordinates, ``encoded`` maps it to the
+    codes of the transformed point in its encoded plane (same scale), whose largest code is
+    ``encoded_limit``.
+    """
+
+    matrix: FloatArray
+    encoded: FloatArray | None = None
+    encoded_limit: float = 0.0
+
+
+def _to_code(plane: PlaneSpec) -> FloatArray:
+    """(3, 3) from plane metres to (fractional) colour codes."""
+    step_x, step_y = plane.step
+    return np.array(
+        [
+            [1.0 / step_x, 0.0, -plane.origin[0] / step_x],
+            [0.0, 1.0 / step_y, -plane.origin[1] / step_y],
+            [0.0, 0.0, 1.0],
+        ]
+    )
+
+
+def _code_matrices(
+    camera: Camera,
+    planes: PlaneSet,
+    encoded_planes: PlaneSet | None = None,
+    encode_matrix: NDArray[np.float64] | None = None,
+) -> list[_CodeMatrices]:
+    """Per plane of ``planes`` its :class:`_CodeMatrices` for ``camera``."""
+    matrices = []
     for plane in planes:
-        # Fold "world -> colour code" into the inverse homography so that one projective
-        # division gives the (fractional) R and G codes directly.
-        step_x, step_y = plane.step
-        to_code = np.array(
-            [
-                [1.0 / step_x, 0.0, -plane.origin[0] / step_x],
-                [0.0, 1.0 / step_y, -plane.origin[1] / step_y],
-                [0.0, 0.0, 1.0],
-            ]
-        )
         to_plane = np.linalg.inv(camera.plane_homography(plane.height))
-        matrix = to_code @ to_plane
+        if encode_matrix is None or encoded_planes is None:
+            matrices.append(_CodeMatrices(_to_code(plane) @ to_plane))
+            continue
+        encoded = encoded_planes.by_id(plane.plane_id)
+        matrices.append(_CodeMatrices(
+            _to_code(plane) @ to_plane,
+            _to_code(encoded) @ encode_matrix @ to_plane,
+            encoded.max_value + 0.5,
+        ))
+    return matrices
+
+
+def _plane_codes(
+    planes: PlaneSet,
+    matrices: list[_CodeMatrices],
+    map_x: FloatArray,
+    map_y: FloatArray,
+    shape: tuple[int, ...],
+) -> list[NDArray[np.unsignedinteger]]:
+    """The R, G and B channels seen at ideal pinhole pixels ``(map_x, map_y)``.
+
+    ``matrices`` are :func:`_code_matrices`' for the camera. ``map_x`` and ``map_y``
+    broadcast to ``shape``: a whole frame's grid for :func:`render_reference`, a few target
+    pixels for :class:`OnDemandReference`. Every value is computed elementwise by the same
+    operations in the same order, so a pixel gets the same colour either way.
+    """
+    dtype = np.uint8 if planes.bits == 8 else np.uint16
+    channels = [np.zeros(shape, dtype=dtype) for _ in range(3)]
+    best_scale = np.zeros(shape, dtype=np.float64)  # 1 / depth; larger is nearer
+    for plane, codes in zip(planes, matrices, strict=True):
+        matrix = codes.matrix
         scale = matrix[2, 0] * map_x + matrix[2, 1] * map_y + matrix[2, 2]
         with np.errstate(divide="ignore", invalid="ignore"):
             inverse_scale = 1.0 / scale
@@ -335,32 +515,22 @@ def render_reference(
         with np.errstate(invalid="ignore"):
             hit = (scale > best_scale) & (code_x >= -0.5) & (code_x < limit)
             hit &= (code_y >= -0.5) & (code_y < limit)
-        if encode_as is not None:
+        if codes.encoded is not None:
             # The hit test above stays on the real plane; the colour is the code of the
             # transformed point in its encoded plane (the same projective division).
-            encoded = encoded_planes.by_id(plane.plane_id)
-            encoded_x, encoded_y = encoded.step
-            to_encoded = np.array(
-                [
-                    [1.0 / encoded_x, 0.0, -encoded.origin[0] / encoded_x],
-                    [0.0, 1.0 / encoded_y, -encoded.origin[1] / encoded_y],
-                    [0.0, 0.0, 1.0],
-                ]
-            ) @ encode_matrix @ to_plane
+            encoded = codes.encoded
             with np.errstate(divide="ignore", invalid="ignore"):
-                code_x = (to_encoded[0, 0] * map_x + to_encoded[0, 1] * map_y
-                          + to_encoded[0, 2]) * inverse_scale
-                code_y = (to_encoded[1, 0] * map_x + to_encoded[1, 1] * map_y
-                          + to_encoded[1, 2]) * inverse_scale
-                encoded_limit = encoded.max_value + 0.5
-                hit &= (code_x >= -0.5) & (code_x < encoded_limit)
-                hit &= (code_y >= -0.5) & (code_y < encoded_limit)
+                code_x = (encoded[0, 0] * map_x + encoded[0, 1] * map_y
+                          + encoded[0, 2]) * inverse_scale
+                code_y = (encoded[1, 0] * map_x + encoded[1, 1] * map_y
+                          + encoded[1, 2]) * inverse_scale
+                hit &= (code_x >= -0.5) & (code_x < codes.encoded_limit)
+                hit &= (code_y >= -0.5) & (code_y < codes.encoded_limit)
         np.copyto(best_scale, scale, where=hit)
         np.copyto(channels[0], np.rint(code_x), where=hit, casting="unsafe")
         np.copyto(channels[1], np.rint(code_y), where=hit, casting="unsafe")
         channels[2][hit] = plane.plane_id
-    pixels = cast(NDArray[np.unsignedinteger], cv2.merge(channels))
-    return ReferenceImage(pixels=pixels, planes=encoded_planes, camera_name=camera.name)
+    return channels
 
 
 def _insert_chunk(png: bytes, kind: bytes, body: bytes) -> bytes:

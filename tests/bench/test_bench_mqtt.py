@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import json
 
+import numpy as np
 import pytest
 
+from cblrs.bench.mqtt_load import CameraClocks
 from cblrs.cli.main import main
 from cblrs.runtime.broker import find_mosquitto
 
@@ -19,7 +21,8 @@ def _need_mosquitto():
 def test_a_short_run_reports_what_the_matcher_stored_and_the_subscriber_saw(capsys):
     code = main(["bench", "mqtt", "--cameras", "2", "--runs", "matcher/paced", "transport/max",
                  "--repeats", "1", "--paced-seconds", "2", "--fps", "10",
-                 "--max-messages", "200", "--publisher", "paho", "--json"])
+                 "--max-messages", "200", "--publisher", "paho", "--json",
+                 "--clock-spread-ms", "20", "--clock-jitter-ms", "2"])
     assert code == 0
     document = json.loads(capsys.readouterr().out)
     assert document["machine"]["cores"] >= 1 and document["publisher"] == "paho"
@@ -28,6 +31,10 @@ def test_a_short_run_reports_what_the_matcher_stored_and_the_subscriber_saw(caps
     assert paced["messages"] == 2 * 20 and paced["received"] == paced["messages"]
     assert 0 < paced["receipt_p50_ms"] <= paced["receipt_p99_ms"] < 5000
     assert 0 < paced["subscriber_p50_ms"] < 5000
+    assert document["clock_spread_ms"] == 20 and paced["clock_jitter_ms"] == 2
+    # Where a group's time went: waiting for its last camera, then the path to the tracks.
+    assert 0 <= paced["last_member_p50_ms"] <= paced["last_member_p99_ms"] < 5000
+    assert 0 <= paced["after_last_p50_ms"] <= paced["after_last_p99_ms"] < 5000
     full_speed = rows[("transport", "max")]
     assert full_speed["received"] == full_speed["messages"] == 200
     assert full_speed["received_per_s"] > 0
@@ -43,3 +50,21 @@ def test_the_stages_run_without_a_broker(capsys):
 def test_bad_runs_are_a_usage_error(runs, capsys):
     assert main(["bench", "mqtt", "--runs", *runs]) == 2
     assert "error" in capsys.readouterr().err
+
+
+def test_camera_clocks_spread_the_cameras_and_keep_each_in_order():
+    same = CameraClocks().times(4, 5, 10.0, 100.0)
+    assert (same == same[:, :1]).all()  # idealised: every camera stamps a frame alike
+    times = CameraClocks(spread_s=0.02, jitter_s=0.002, seed=3).times(5, 200, 10.0, 100.0)
+    offsets = np.median(times - (100.0 + np.arange(200)[:, None] / 10.0), axis=0)
+    assert sorted(np.round(offsets, 3).tolist()) == pytest.approx([0, 0.005, 0.01, 0.015, 0.02],
+                                                                  abs=1e-3)
+    assert (np.diff(times, axis=0) > 0).all()  # jitter never reorders a camera's frames
+    assert np.abs(times - np.round(times * 10) / 10 - offsets).max() <= 0.02 + 1e-9
+    with pytest.raises(ValueError, match=">= 0"):
+        CameraClocks(spread_s=-1.0)
+
+
+def test_negative_clock_options_are_a_usage_error(capsys):
+    assert main(["bench", "mqtt", "--clock-jitter-ms", "-1"]) == 2
+    assert "--clock-jitter-ms must be >= 0" in capsys.readouterr().err

@@ -74,6 +74,7 @@ from paho.mqtt.enums import CallbackAPIVersion
 from cblrs.bench.mqtt_load import (
     PLANE,
     PLANE_ID,
+    CameraClocks,
     camera_names,
     measure_stages,
     publisher,
@@ -102,23 +103,37 @@ _timestamp_decoder = msgspec.json.Decoder(_Timestamp)
 
 
 class Probe:
-    """Observer of the matcher service: receipt and track-output times per message."""
+    """Observer of the matcher service: receipt and track-output times per message, and per
+    group where the time went: from the group's mean capture time to the receipt of its last
+    message (waiting for the last camera and receiving it), then to the track output
+    (ordering, the tracker process, publishing)."""
 
     def __init__(self) -> None:
         self.receipt: list[float] = []
         self.tracked: list[float] = []
+        self.last_member: list[float] = []
+        self.after_last: list[float] = []
+        self._stored_at: dict[tuple[str, int], float] = {}
         self.last_stored = 0.0
         self.last_group = 0.0
         self.stored = 0
 
     def on_stored(self, messages, wall_time) -> None:
         self.receipt.extend(wall_time - message.timestamp for message in messages)
+        for message in messages:
+            self._stored_at[message.camera_id, message.sequence] = wall_time
         self.last_stored = wall_time
         self.stored += len(messages)
 
     def on_group(self, timestamp, messages, tracks, wall_time) -> None:
         self.tracked.extend(wall_time - message.timestamp for message in messages)
         self.last_group = wall_time
+        stored = [self._stored_at.pop((message.camera_id, message.sequence), math.nan)
+                  for message in messages]
+        if messages and not any(math.isnan(value) for value in stored):
+            capture = statistics.fmean(message.timestamp for message in messages)
+            self.last_member.append(max(stored) - capture)
+            self.after_last.append(wall_time - max(stored))
 
 
 class _Receiver:
@@ -202,9 +217,12 @@ def track_subscriber(port: int, nagle: bool, ready, stop, results) -> None:
 
 
 def run_once(receiver_kind: str, publisher_kind: str, cameras: int, frames: int, fps: float,
-             paced: bool, people: int, matcher_name: str, nagle: bool = False) -> dict:
+             paced: bool, people: int, matcher_name: str, nagle: bool = False,
+             clocks: CameraClocks | None = None) -> dict:
     """One run: a Mosquitto on a free port, the receiver in this process, the publishers in
-    others; the run's counts, rates and latency percentiles (milliseconds)."""
+    others; the run's counts, rates and latency percentiles (milliseconds). ``clocks``: when
+    the cameras capture and stamp their frames (default: all at the same instants)."""
+    clocks = clocks or CameraClocks()
     total = cameras * frames
     with tempfile.TemporaryDirectory(prefix="cblrs-bench-") as folder:
         port = free_port()
@@ -221,6 +239,7 @@ def run_once(receiver_kind: str, publisher_kind: str, cameras: int, frames: int,
         subscriber_stop = multiprocessing.Event()
         receiver = _Receiver(total, paced)
         probe = Probe()
+        cpu: dict[str, float] = {}
         service = store = client = transport = subscriber = None
         try:
             if receiver_kind == "broker":
@@ -264,10 +283,11 @@ def run_once(receiver_kind: str, publisher_kind: str, cameras: int, frames: int,
                         raise RuntimeError("the tracks subscriber did not subscribe")
                 gc.freeze()  # as cblrs matcher does before starting its service
                 service.start()
+                service_cpu = time.process_time()
             results: multiprocessing.Queue = multiprocessing.Queue()
             process = multiprocessing.Process(
                 target=publisher,
-                args=(publisher_kind, port, cameras, frames, fps, paced, people, results),
+                args=(publisher_kind, port, cameras, frames, fps, paced, people, results, clocks),
             )
             process.start()
             report = results.get(timeout=900)
@@ -282,6 +302,10 @@ def run_once(receiver_kind: str, publisher_kind: str, cameras: int, frames: int,
                 while (probe.stored < total or not service.drained()) and time.time() < deadline:
                     time.sleep(0.005)
                 receiver.count, receiver.last = probe.stored, probe.last_stored
+                # Where the CPU went: this process (receiver, ordering, publishing, and this
+                # benchmark's own waiting) and the tracker process (from /proc, Linux).
+                cpu["service"] = time.process_time() - service_cpu
+                cpu["tracker"] = _process_cpu_seconds(service)
                 service.close(flush=True)
                 stats = service.stats()
                 if subscriber_process is not None:
@@ -310,23 +334,42 @@ def run_once(receiver_kind: str, publisher_kind: str, cameras: int, frames: int,
         "receipt_p50_ms": math.nan, "receipt_p99_ms": math.nan,
         "track_p50_ms": math.nan, "track_p99_ms": math.nan,
         "subscriber_p50_ms": math.nan, "subscriber_p99_ms": math.nan, "nagle": nagle,
+        "clock_spread_ms": 1000 * clocks.spread_s, "clock_jitter_ms": 1000 * clocks.jitter_s,
     }
     if paced and receiver.receipt:
         row["receipt_p50_ms"] = 1000 * float(np.percentile(receiver.receipt, 50))
         row["receipt_p99_ms"] = 1000 * float(np.percentile(receiver.receipt, 99))
     if service is not None:
         row["tracked_per_s"] = total / max(probe.last_group - report["start"], 1e-9)
+        row["service_cpu_us_per_message"] = 1e6 * cpu.get("service", math.nan) / total
+        row["tracker_cpu_us_per_message"] = 1e6 * cpu.get("tracker", math.nan) / total
         row["late"], row["rejected"] = stats["late"], stats["rejected"]
         if paced:  # in max runs capture times are synthetic: latencies would mean nothing
             row["receipt_p50_ms"] = 1000 * float(np.percentile(probe.receipt, 50))
             row["receipt_p99_ms"] = 1000 * float(np.percentile(probe.receipt, 99))
             row["track_p50_ms"] = 1000 * float(np.percentile(probe.tracked, 50))
             row["track_p99_ms"] = 1000 * float(np.percentile(probe.tracked, 99))
+            if probe.last_member:
+                for name, values in (("last_member", probe.last_member),
+                                     ("after_last", probe.after_last)):
+                    row[f"{name}_p50_ms"] = 1000 * float(np.percentile(values, 50))
+                    row[f"{name}_p99_ms"] = 1000 * float(np.percentile(values, 99))
             if subscriber_latencies:
                 row["subscriber_p50_ms"] = 1000 * float(np.percentile(subscriber_latencies, 50))
                 row["subscriber_p99_ms"] = 1000 * float(np.percentile(subscriber_latencies, 99))
                 row["subscriber_updates"] = len(subscriber_latencies)
     return row
+
+
+def _process_cpu_seconds(service: MatcherService) -> float:
+    """User + system CPU seconds of the service's tracker process so far (NaN if unknown)."""
+    tracker = getattr(service, "_tracker", None)
+    pid = getattr(getattr(tracker, "process", None), "pid", None)
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except (OSError, IndexError):
+        return math.nan
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
 def median_of(runs: list[dict]) -> dict:
@@ -382,7 +425,8 @@ def markdown_table(info: dict, rows: list[dict], args: argparse.Namespace) -> st
     lines = [
         f"QoS 1 on loopback, {args.people} detections per message, {args.fps:g} fps when paced, "
         f"{args.matcher} matcher; publishers: {args.publisher} (one connection per camera, "
-        f"other processes). {info['cpu']}, {info['cores']} cores, Python {info['python']}, "
+        f"other processes); {_clocks_text(args)}. {info['cpu']}, {info['cores']} cores, "
+        f"Python {info['python']}, "
         f"{info['mosquitto']}, paho-mqtt {info['paho-mqtt']}; "
         + ("Nagle's algorithm on (no TCP_NODELAY); " if args.nagle else "TCP_NODELAY on; ")
         + "load average "
@@ -404,6 +448,15 @@ def markdown_table(info: dict, rows: list[dict], args: argparse.Namespace) -> st
             f"| {row['messages'] - row['received']} |"
         )
     return "\n".join(lines)
+
+
+def _clocks_text(args: Any) -> str:
+    """How the simulated cameras stamp their frames, in words."""
+    spread, jitter = args.clock_spread_ms, args.clock_jitter_ms
+    if not spread and not jitter:
+        return "every camera stamps a frame with the same time (idealised clocks)"
+    return (f"camera clocks: offsets spread over {spread:g} ms, per-frame jitter "
+            f"{jitter:g} ms (sd)")
 
 
 def check_runs(runs: list[str]) -> str | None:
@@ -451,7 +504,8 @@ def run_mqtt_benchmark(args: Any) -> int:
     if not (args.json or args.markdown):
         print(f"{info['cpu']}, {info['cores']} cores, Python {info['python']}, "
               f"{info['mosquitto']}, paho-mqtt {info['paho-mqtt']}; publisher: "
-              f"{args.publisher}; load average {info['load_start'][0]:.2f}", flush=True)
+              f"{args.publisher}; {_clocks_text(args)}; load average "
+              f"{info['load_start'][0]:.2f}", flush=True)
         print(f"{'cams':>4s} {'receiver':9s} {'rate':5s} {'msgs':>6s} {'recv/s':>8s} "
               f"{'track/s':>8s} | {'receipt p50':>11s} {'p99 ms':>7s} | {'track p50':>9s} "
               f"{'p99 ms':>7s} | {'subscr p50':>10s} {'p99 ms':>7s} | lost late", flush=True)
@@ -463,8 +517,10 @@ def run_mqtt_benchmark(args: Any) -> int:
             frames = (int(args.paced_seconds * args.fps) if paced
                       else max(1, args.max_messages // cameras))
             runs = [run_once(receiver, args.publisher, cameras, frames, args.fps, paced,
-                             args.people, args.matcher, args.nagle)
-                    for _ in range(args.repeats)]
+                             args.people, args.matcher, args.nagle,
+                             CameraClocks(args.clock_spread_ms / 1000,
+                                          args.clock_jitter_ms / 1000, seed=repeat))
+                    for repeat in range(args.repeats)]
             row = median_of(runs)
             row["runs"] = runs
             rows.append(row)
@@ -479,10 +535,20 @@ def run_mqtt_benchmark(args: Any) -> int:
                     f"{row['messages'] - row['received']:4d} {row['late']:4d}",
                     flush=True,
                 )
+                if receiver == "matcher":
+                    print(f"{'':20s} CPU per message: service process "
+                          f"{row['service_cpu_us_per_message']:.0f} us, tracker process "
+                          f"{row['tracker_cpu_us_per_message']:.0f} us", flush=True)
+                if "last_member_p50_ms" in row:
+                    print(f"{'':20s} capture -> last member received p50/p99 "
+                          f"{row['last_member_p50_ms']:.1f}/{row['last_member_p99_ms']:.1f} ms,"
+                          f" then -> track output {row['after_last_p50_ms']:.1f}/"
+                          f"{row['after_last_p99_ms']:.1f} ms", flush=True)
     info["load_end"] = list(os.getloadavg())
     document = {"machine": info, "publisher": args.publisher, "repeats": args.repeats,
                 "fps": args.fps, "people": args.people, "matcher": args.matcher,
-                "results": rows}
+                "clock_spread_ms": args.clock_spread_ms,
+                "clock_jitter_ms": args.clock_jitter_ms, "results": rows}
     if out is not None:
         _write_results(Path(out), "mqtt", document, markdown_table(info, rows, args))
     if args.markdown:

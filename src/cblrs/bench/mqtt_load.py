@@ -39,8 +39,13 @@ def camera_names(count: int) -> list[str]:
 def frame_message(camera: str, index: int, frame: int, timestamp: float, people: int) -> bytes:
     """A message with ``people`` detections whose colours walk across the plane."""
     rng = np.random.default_rng(index * 100003 + frame)
+    # People walk 0.6 m/s at 30 fps and start over every 750 frames, so that long runs stay
+    # on the 40 m plane (a point off it has no location and costs the tracker nothing); more
+    # than ten people stand in rows of ten.
+    walked = 0.02 * (frame % 750)
     base = np.array(
-        [[5.0 + 3 * person + 0.02 * frame, 5.0 + 2 * person] for person in range(people)]
+        [[4.0 + 2 * (person % 10) + walked, 5.0 + 2 * (person % 10) + 3 * (person // 10)]
+         for person in range(people)]
     )
     world = base + rng.normal(0, 0.05, base.shape)
     colours, _ = PLANE.encode(world.reshape(-1, 2))
@@ -54,27 +59,97 @@ def frame_message(camera: str, index: int, frame: int, timestamp: float, people:
     return encode_message(message, PLANE_ID)
 
 
+class CameraClocks:
+    """When each simulated camera captures and stamps its frames.
+
+    Real cameras do not capture at the same instants: each runs its own clock and its own
+    frame timer, so frame ``f`` of camera ``k`` is stamped ``f / fps + offset_k + jitter``.
+    ``spread_s`` spreads the per-camera offsets evenly over ``[0, spread_s]`` (in a random
+    order of the cameras), ``jitter_s`` is the standard deviation of a per-frame jitter
+    (clipped at a fifth of the frame period, so that frames stay in order). Both 0: every
+    camera stamps frame ``f`` with the same time, as an idealised benchmark would.
+
+    Args:
+        spread_s: spread of the cameras' offsets, seconds.
+        jitter_s: per-frame jitter, seconds.
+        seed: of the cameras' order and the jitter.
+    """
+
+    def __init__(self, spread_s: float = 0.0, jitter_s: float = 0.0, seed: int = 0):
+        if not (spread_s >= 0 and jitter_s >= 0):
+            raise ValueError("clock spread and jitter must be >= 0")
+        self.spread_s = float(spread_s)
+        self.jitter_s = float(jitter_s)
+        self.seed = int(seed)
+
+    def times(self, cameras: int, frames: int, fps: float, start: float) -> np.ndarray:
+        """(frames, cameras) capture times, seconds."""
+        generator = np.random.default_rng(self.seed)
+        offsets = np.zeros(cameras)
+        if cameras > 1:
+            offsets = generator.permutation(np.linspace(0.0, self.spread_s, cameras))
+        limit = 0.2 / fps
+        jitter = np.clip(generator.normal(0.0, self.jitter_s, (frames, cameras)), -limit, limit)
+        if self.jitter_s == 0:
+            jitter[:] = 0.0
+        return start + np.arange(frames)[:, None] / fps + offsets[None, :] + jitter
+
+
 def publisher(kind: str, port: int, cameras: int, frames: int, fps: float, paced: bool,
-              people: int, results) -> None:
+              people: int, results, clocks: CameraClocks | None = None) -> None:
     """Child process: simulate ``cameras`` cameras; put timing facts on ``results``."""
+    clocks = clocks or CameraClocks()
     try:
         if kind == "mosquitto_pub":
-            report = _publish_with_mosquitto_pub(port, cameras, frames, fps, paced, people)
+            report = _publish_with_mosquitto_pub(port, cameras, frames, fps, paced, people,
+                                                 clocks)
         else:
-            report = _publish_with_paho(port, cameras, frames, fps, paced, people)
+            report = _publish_with_paho(port, cameras, frames, fps, paced, people, clocks)
     except BaseException as error:
         results.put({"error": repr(error)})
         raise
     results.put(report)
 
 
-def _frames(names: list[str], frames: int, fps: float, epoch: float, people: int):
-    return [[frame_message(name, index, frame, epoch + frame / fps, people)
+def _frames(names: list[str], frames: int, fps: float, epoch: float, people: int,
+            clocks: CameraClocks | None = None):
+    times = (clocks or CameraClocks()).times(len(names), frames, fps, epoch)
+    return [[frame_message(name, index, frame, float(times[frame, index]), people)
              for index, name in enumerate(names)] for frame in range(frames)]
 
 
+def _paced(names: list[str], frames: int, fps: float, start: float, people: int,
+           clocks: CameraClocks, send) -> None:
+    """Send every camera's frames at their capture times: ``send(camera_index, payload)``.
+
+    Each frame is encoded ahead of its capture time, as each real camera would do on its own
+    device; the loop then only waits and sends.
+    """
+    times = clocks.times(len(names), frames, fps, start)
+    order = np.argsort(times, axis=None, kind="stable")
+    upcoming: dict[tuple[int, int], bytes] = {}
+
+    def encode(frame: int) -> None:
+        if frame < frames:
+            for index, name in enumerate(names):
+                upcoming[frame, index] = frame_message(name, index, frame,
+                                                       float(times[frame, index]), people)
+
+    encode(0)
+    encoded = 0
+    for flat in order.tolist():
+        frame, index = divmod(flat, len(names))
+        if frame >= encoded:
+            encoded = frame + 1
+            encode(encoded)
+        delay = times[frame, index] - time.time()
+        if delay > 0:
+            time.sleep(delay)
+        send(index, upcoming.pop((frame, index)))
+
+
 def _publish_with_mosquitto_pub(port: int, cameras: int, frames: int, fps: float, paced: bool,
-                                people: int) -> dict:
+                                people: int, clocks: CameraClocks) -> dict:
     names = camera_names(cameras)
     processes = [
         subprocess.Popen(
@@ -87,25 +162,19 @@ def _publish_with_mosquitto_pub(port: int, cameras: int, frames: int, fps: float
     if not paced:  # as fast as possible: encode up front, then measure transport + receiver
         epoch = time.time() - frames / fps
         streams = [b"".join(payload + b"\n" for payload in column)
-                   for column in zip(*_frames(names, frames, fps, epoch, people), strict=True)]
+                   for column in zip(*_frames(names, frames, fps, epoch, people, clocks),
+                                     strict=True)]
     time.sleep(1.0 + 0.02 * cameras)  # every mosquitto_pub connected
     start = time.time()
     if paced:
         start += 0.2
-        upcoming = [frame_message(name, index, 0, start, people)
-                    for index, name in enumerate(names)]
-        for frame in range(frames):
-            capture = start + frame / fps
-            delay = capture - time.time()
-            if delay > 0:
-                time.sleep(delay)
-            for process, payload in zip(processes, upcoming, strict=True):
-                assert process.stdin is not None
-                process.stdin.write(payload + b"\n")
-            # Encode the next frame ahead of its capture time, as each real camera would do
-            # on its own device; the loop above then only sends.
-            upcoming = [frame_message(name, index, frame + 1, start + (frame + 1) / fps, people)
-                        for index, name in enumerate(names)]
+
+        def send(index: int, payload: bytes) -> None:
+            stdin = processes[index].stdin
+            assert stdin is not None
+            stdin.write(payload + b"\n")
+
+        _paced(names, frames, fps, start, people, clocks, send)
     else:
         def feed(process: subprocess.Popen, stream: bytes) -> None:
             assert process.stdin is not None
@@ -127,28 +196,23 @@ def _publish_with_mosquitto_pub(port: int, cameras: int, frames: int, fps: float
 
 
 def _publish_with_paho(port: int, cameras: int, frames: int, fps: float, paced: bool,
-                       people: int) -> dict:
+                       people: int, clocks: CameraClocks) -> dict:
     settings = MqttSettings(port=port, max_inflight=1000)
     names = camera_names(cameras)
     transports = [MqttTransport(f"bench-{name}", settings, persistent=False) for name in names]
     for transport in transports:
         transport.connect()
-    payloads = None
-    if not paced:
-        payloads = _frames(names, frames, fps, time.time() - frames / fps, people)
+    topics = [detections_topic(PLANE_ID, name) for name in names]
     start = time.time() + (0.2 if paced else 0.0)
-    upcoming = None
-    for frame in range(frames):
-        if paced:
-            upcoming = [frame_message(name, index, frame, start + frame / fps, people)
-                        for index, name in enumerate(names)]
-            delay = start + frame / fps - time.time()
-            if delay > 0:
-                time.sleep(delay)
-        batch = payloads[frame] if payloads is not None else upcoming
-        assert batch is not None
-        for name, transport, payload in zip(names, transports, batch, strict=True):
-            transport.publish(detections_topic(PLANE_ID, name), payload)
+    if paced:
+        _paced(names, frames, fps, start, people, clocks,
+               lambda index, payload: transports[index].publish(topics[index], payload))
+    else:
+        payloads = _frames(names, frames, fps, time.time() - frames / fps, people, clocks)
+        start = time.time()
+        for batch in payloads:
+            for transport, topic, payload in zip(transports, topics, batch, strict=True):
+                transport.publish(topic, payload)
     published = time.time()
     flushed = all(transport.flush(120) for transport in transports)
     for transport in transports:

@@ -29,8 +29,8 @@ def register(subparsers) -> None:
     """Add the ``cblrs bench`` parser to ``subparsers``."""
     parser = subparsers.add_parser(
         "bench",
-        help="benchmarks: lookup (Table I), render, claims, tracker, pipeline, analytics, "
-        "linker, dashboard, backbone, asynchrony, mqtt, all",
+        help="benchmarks: lookup (Table I), render, claims, tracker, pipeline, track, "
+        "analytics, linker, dashboard, backbone, asynchrony, mqtt, all",
         description="Measure cblrs on this machine; medians over repeated runs.",
     )
     kinds = parser.add_subparsers(dest="benchmark", metavar="BENCHMARK")
@@ -76,6 +76,23 @@ def register(subparsers) -> None:
     )
     _common(pipeline)
     pipeline.set_defaults(handler=run, benchmark="pipeline")
+
+    track = kinds.add_parser(
+        "track",
+        help="the whole cblrs track on WILDTRACK as a process beside a homography + norfair "
+        "baseline: wall, CPU, peak memory, ratios, HOTA",
+        description="Runs `cblrs track` and two homography + norfair baselines on the same "
+        "WILDTRACK boxes in turn, whole process each, and prints medians, the ratios "
+        "cblrs / baseline round by round, peak memory and each output's scores. Needs norfair "
+        "(pip install -e '.[dev]').",
+    )
+    track.add_argument("--repeats", type=int, default=5, help="counted rounds (default 5)")
+    track.add_argument("--warmup", type=int, default=1,
+                       help="rounds run first and not counted (default 1)")
+    track.add_argument("--matcher", choices=("fusion", "paper"), default="fusion",
+                       help="cblrs track --matcher (default fusion)")
+    _common(track)
+    track.set_defaults(handler=run, benchmark="track")
 
     for name, help_text in (
         ("camera", "on-camera cost per real frame: decode, detector (whole / tiled), "
@@ -185,6 +202,13 @@ def register(subparsers) -> None:
     mqtt.add_argument("--people", type=int, default=2,
                       help="detections per message (default 2)")
     mqtt.add_argument("--matcher", default="fusion", help="matcher (default fusion)")
+    mqtt.add_argument("--clock-spread-ms", type=float, default=0.0, metavar="MS",
+                      help="real camera clocks: each camera stamps its frames this many ms "
+                      "apart from the others at most (offsets spread evenly over 0..MS; "
+                      "default 0: all cameras stamp a frame with the same time)")
+    mqtt.add_argument("--clock-jitter-ms", type=float, default=0.0, metavar="MS",
+                      help="per-frame jitter of every camera's stamps, standard deviation in "
+                      "ms (default 0)")
     mqtt.add_argument("--nagle", action="store_true",
                       help="leave Nagle's algorithm on (no TCP_NODELAY), as before issue 10")
     mqtt.add_argument("--stages", action="store_true",
@@ -317,6 +341,26 @@ def _run_one(name: str, args: argparse.Namespace) -> tuple[dict[str, Any], str]:
             targetings=targetings,
         )
         return result, pipeline_report(result)
+    if name == "track":
+        # lazy: a subcommand imports the library when it runs, so its --help starts fast
+        from cblrs.bench.cameras import find_wildtrack
+        from cblrs.bench.track import benchmark_track, track_report
+
+        root = find_wildtrack(args.dataset)
+        if root is None:
+            raise UsageError(
+                "the track benchmark needs WILDTRACK; pass --dataset or set CBLRS_WILDTRACK."
+            )
+
+        def progress(line: str) -> None:
+            if not args.quiet:
+                print(line, file=sys.stderr, flush=True)
+
+        if args.warmup < 0:
+            raise UsageError(f"--warmup must be >= 0, got {args.warmup}.")
+        result = benchmark_track(root, repeats=repeats, warmup=args.warmup,
+                                 matcher=args.matcher, progress=progress)
+        return result, track_report(result)
     if name == "asynchrony":
         return _asynchrony(args)
     if name in ("camera", "detect"):
@@ -536,6 +580,8 @@ def _run_mqtt(args: argparse.Namespace) -> int:
         raise UsageError("--cameras, --repeats and --fps must be positive, --people >= 0.")
     if args.out is not None and args.out.exists() and not args.out.is_dir():
         raise UsageError(f"--out {args.out} is a file; give a folder.")
+    if not (args.clock_spread_ms >= 0 and args.clock_jitter_ms >= 0):
+        raise UsageError("--clock-spread-ms and --clock-jitter-ms must be >= 0.")
     if args.publisher is None:
         args.publisher = "mosquitto_pub" if shutil.which("mosquitto_pub") else "paho"
     threading.current_thread().name = "bench"

@@ -11,7 +11,6 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 import numpy as np
-from tqdm import tqdm
 
 from cblrs.errors import CblrsError
 
@@ -89,7 +88,13 @@ def progress(
     """A tqdm progress bar on stderr, shown only on a terminal and without --quiet."""
 
     disable = quiet or not sys.stderr.isatty()
-    yield from tqdm(iterable, desc=description, total=total, disable=disable, leave=False)
+    if disable:
+        yield from iterable
+        return
+    # lazy: tqdm reads its version through importlib.metadata (~20 ms); only a bar needs it
+    from tqdm import tqdm
+
+    yield from tqdm(iterable, desc=description, total=total, leave=False)
 
 
 def add_output_options(parser: Any) -> None:

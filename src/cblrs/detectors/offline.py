@@ -10,6 +10,7 @@ from __future__ import annotations
 import logging
 import sys
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -27,7 +28,7 @@ from cblrs.detectors import (
     onnx_camera_detector,
 )
 from cblrs.errors import DatasetError
-from cblrs.reference import ReferenceImage
+from cblrs.reference import Reference
 
 logger = logging.getLogger(__name__)
 
@@ -65,7 +66,7 @@ def detect_scene(
     scene: Scene,
     root: str | Path,
     model: str | Path | OnnxDetector,
-    references: list[ReferenceImage],
+    references: Sequence[Reference],
     tiling: str = DEFAULT_TILING,
     confidence: float = DEFAULT_CONFIDENCE,
     iou: float = DEFAULT_IOU,

@@ -40,7 +40,7 @@ from numpy.typing import NDArray
 from cblrs.detections import Detections
 from cblrs.detectors.base import box_cover, non_maximum_suppression
 from cblrs.errors import CblrsError
-from cblrs.reference import ReferenceImage
+from cblrs.reference import Reference
 
 logger = logging.getLogger(__name__)
 
@@ -117,7 +117,7 @@ def whole_frame_plan(image_size: tuple[int, int], model_size: tuple[int, int]) -
 
 
 def object_heights_px(
-    reference: ReferenceImage, object_height_m: float = PERSON_HEIGHT_M, grid_px: int = _GRID_PX
+    reference: Reference, object_height_m: float = PERSON_HEIGHT_M, grid_px: int = _GRID_PX
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
     """Where the plane is visible, on a grid, and how tall an object standing there looks.
 
@@ -152,7 +152,7 @@ def object_heights_px(
 
 
 def plan_tiles(
-    reference: ReferenceImage,
+    reference: Reference,
     model_size: tuple[int, int],
     min_object_px: float = DEFAULT_MIN_OBJECT_PX,
     object_height_m: float = PERSON_HEIGHT_M,

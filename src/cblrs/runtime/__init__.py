@@ -12,43 +12,107 @@
 
 from __future__ import annotations
 
-from cblrs.runtime.broker import (
-    BrokerError,
-    BrokerFiles,
-    MosquittoProcess,
-    free_port,
-    write_broker_config,
-)
-from cblrs.runtime.inprocess import InProcessBroker, InProcessTransport
-from cblrs.runtime.lease import LeaseError, PlaneLease
-from cblrs.runtime.mqtt_transport import MqttSettings, MqttTransport
-from cblrs.runtime.retention import RetainedTable, RetentionPolicy, apply_retention
-from cblrs.runtime.spool import Spool, SpoolError
-from cblrs.runtime.topics import (
-    TopicError,
-    detections_filter,
-    detections_topic,
-    matcher_status_topic,
-    parse_detections_topic,
-    status_topic,
-    tracks_topic,
-    validate_camera_id,
-)
-from cblrs.runtime.transport import Delivery, Transport, TransportError, Will
-from cblrs.runtime.wire import (
-    RejectedMessage,
-    RejectReason,
-    Status,
-    TracksUpdate,
-    ValidationPolicy,
-    decode_message,
-    decode_message_with_plane,
-    decode_status,
-    decode_tracks,
-    encode_message,
-    encode_status,
-    encode_tracks,
-)
+import importlib
+from typing import TYPE_CHECKING, Any
+
+# The names below are imported on first use (PEP 562), as in `cblrs`: a module that needs one
+# room of the runtime (the offline pipeline imports only `cblrs.runtime.ordering`) does not
+# pay for the transports, the broker and paho at start-up.
+_LAZY = {
+    "BrokerError": "cblrs.runtime.broker",
+    "BrokerFiles": "cblrs.runtime.broker",
+    "Delivery": "cblrs.runtime.transport",
+    "InProcessBroker": "cblrs.runtime.inprocess",
+    "InProcessTransport": "cblrs.runtime.inprocess",
+    "LeaseError": "cblrs.runtime.lease",
+    "MosquittoProcess": "cblrs.runtime.broker",
+    "MqttSettings": "cblrs.runtime.mqtt_transport",
+    "MqttTransport": "cblrs.runtime.mqtt_transport",
+    "PlaneLease": "cblrs.runtime.lease",
+    "RejectReason": "cblrs.runtime.wire",
+    "RejectedMessage": "cblrs.runtime.wire",
+    "RetainedTable": "cblrs.runtime.retention",
+    "RetentionPolicy": "cblrs.runtime.retention",
+    "Spool": "cblrs.runtime.spool",
+    "SpoolError": "cblrs.runtime.spool",
+    "Status": "cblrs.runtime.wire",
+    "TopicError": "cblrs.runtime.topics",
+    "TracksUpdate": "cblrs.runtime.wire",
+    "Transport": "cblrs.runtime.transport",
+    "TransportError": "cblrs.runtime.transport",
+    "ValidationPolicy": "cblrs.runtime.wire",
+    "Will": "cblrs.runtime.transport",
+    "apply_retention": "cblrs.runtime.retention",
+    "decode_message": "cblrs.runtime.wire",
+    "decode_message_with_plane": "cblrs.runtime.wire",
+    "decode_status": "cblrs.runtime.wire",
+    "decode_tracks": "cblrs.runtime.wire",
+    "detections_filter": "cblrs.runtime.topics",
+    "detections_topic": "cblrs.runtime.topics",
+    "encode_message": "cblrs.runtime.wire",
+    "encode_status": "cblrs.runtime.wire",
+    "encode_tracks": "cblrs.runtime.wire",
+    "free_port": "cblrs.runtime.broker",
+    "matcher_status_topic": "cblrs.runtime.topics",
+    "parse_detections_topic": "cblrs.runtime.topics",
+    "status_topic": "cblrs.runtime.topics",
+    "tracks_topic": "cblrs.runtime.topics",
+    "validate_camera_id": "cblrs.runtime.topics",
+    "write_broker_config": "cblrs.runtime.broker",
+}
+
+if TYPE_CHECKING:
+    from cblrs.runtime.broker import (
+        BrokerError,
+        BrokerFiles,
+        MosquittoProcess,
+        free_port,
+        write_broker_config,
+    )
+    from cblrs.runtime.inprocess import InProcessBroker, InProcessTransport
+    from cblrs.runtime.lease import LeaseError, PlaneLease
+    from cblrs.runtime.mqtt_transport import MqttSettings, MqttTransport
+    from cblrs.runtime.retention import RetainedTable, RetentionPolicy, apply_retention
+    from cblrs.runtime.spool import Spool, SpoolError
+    from cblrs.runtime.topics import (
+        TopicError,
+        detections_filter,
+        detections_topic,
+        matcher_status_topic,
+        parse_detections_topic,
+        status_topic,
+        tracks_topic,
+        validate_camera_id,
+    )
+    from cblrs.runtime.transport import Delivery, Transport, TransportError, Will
+    from cblrs.runtime.wire import (
+        RejectedMessage,
+        RejectReason,
+        Status,
+        TracksUpdate,
+        ValidationPolicy,
+        decode_message,
+        decode_message_with_plane,
+        decode_status,
+        decode_tracks,
+        encode_message,
+        encode_status,
+        encode_tracks,
+    )
+
+
+def __getattr__(name: str) -> Any:
+    module = _LAZY.get(name)
+    if module is None:
+        raise AttributeError(f"module 'cblrs.runtime' has no attribute {name!r}")
+    value = getattr(importlib.import_module(module), name)
+    globals()[name] = value  # later lookups are plain attribute reads
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_LAZY))
+
 
 __all__ = [
     "BrokerError",

@@ -12,8 +12,6 @@ from __future__ import annotations
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
 
 from cblrs.matching import kalman
 from cblrs.matching.base import (
@@ -27,6 +25,7 @@ from cblrs.matching.fusion.gaussian import (
     mahalanobis_squared,
 )
 from cblrs.matching.fusion.table import FusionContext, Measured, TrackTable
+from cblrs.matching.graph import component_labels
 
 _UNASSIGNABLE = 1.0e9
 
@@ -178,10 +177,7 @@ class _Run:
             return contested, rows, columns, cost
         track_count = len(self.tracks.ids)
         node_count = len(rest) + track_count
-        graph = coo_matrix(
-            (np.ones(len(rows)), (rows, len(rest) + columns)), shape=(node_count, node_count)
-        )
-        _, label = connected_components(graph, directed=False)
+        label = component_labels(node_count, rows, len(rest) + columns)
         size = int(label.max()) + 1
         tracks_in = np.bincount(label[len(rest):], minlength=size)
         detection_label = label[: len(rest)]
@@ -538,10 +534,7 @@ def _merge_assignments(
     source = np.concatenate([differ + track_count, differ + track_count])
     target = np.concatenate([best[differ], candidate[differ]])
     keep = target >= 0
-    graph = coo_matrix(
-        (np.ones(int(keep.sum())), (source[keep], target[keep])), shape=(node_count, node_count)
-    )
-    _, label = connected_components(graph, directed=False)
+    label = component_labels(node_count, source[keep], target[keep])
     track_label, detection_label = label[:track_count], label[track_count:]
     involved = np.unique(detection_label[differ])
     size = int(label.max()) + 1

@@ -10,8 +10,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
 
 from cblrs.matching import kalman
 from cblrs.matching.base import (
@@ -24,6 +22,7 @@ from cblrs.matching.fusion.gaussian import (
     mahalanobis_squared,
 )
 from cblrs.matching.fusion.table import FusionContext, TrackTable, largest_boxes
+from cblrs.matching.graph import component_labels
 
 
 @dataclass
@@ -191,8 +190,7 @@ def cluster_detections(
     # Components of the compatibility graph. A component that is a clique with one
     # detection per camera is one cluster (the greedy merge below would join it whole);
     # only the other components need the greedy complete-linkage merge.
-    graph = coo_matrix((np.ones(len(first)), (first, second)), shape=(count, count))
-    _, component = connected_components(graph, directed=False)
+    component = component_labels(count, first, second)
     size = np.bincount(component)
     edges = np.bincount(component[first], minlength=len(size))
     cameras_in = np.bincount(
