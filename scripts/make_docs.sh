@@ -178,6 +178,12 @@ planes_options=""
 # shellcheck disable=SC2086
 cblrs experiment planes $planes_options --out "$results" --quiet > /dev/null
 
+if [[ -d "$wildtrack/calibrations" && "${QUICK:-0}" != "1" ]]; then
+    echo "== experiment: identity where it is hard (issue 19's cases, about 15 minutes each)" >&2
+    cblrs experiment tracking --out "$results" --quiet > /dev/null
+    cblrs experiment tracking --without-rules --out "$results" --quiet > /dev/null
+fi
+
 echo "== bench: analytics (an hour of 200 tracks at 10 Hz)" >&2
 analytics_hours=1
 [[ "${QUICK:-0}" == "1" ]] && analytics_hours=0.1

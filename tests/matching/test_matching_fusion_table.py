@@ -37,7 +37,8 @@ def test_track_table_selects_and_extends_every_column_alike():
         covariance=np.ones((2, 4, 4)), mode_state=np.zeros((2, 2, 4)),
         mode_covariance=np.zeros((2, 2, 4, 4)), mode_probability=np.full((2, 2), 0.5),
         evidence=np.array([3, 1]), last_seen=np.array([1.0, 2.0]),
-        seen_by=np.full((2, 3), -np.inf),
+        seen_by=np.full((2, 3), -np.inf), velocity_sigma=np.ones(2),
+        heading=np.zeros((2, 2)), heading_time=np.full(2, -np.inf), heading_sigma=np.zeros(2),
     )
     both = tracks.extend(one).extend(one)
     assert len(both) == 4 and both.ids.tolist() == [5, -1, 5, -1]

@@ -109,9 +109,13 @@ def test_metrics_live_summary_and_events(tmp_path):
                and lives[-1].zones[0].entries == 1, 30,
                "a live summary with the crossing and the entry")
 
+    labels = '{plane="1"}'
+    # The collector observes a group after its commit (what "processed" counts): wait for it.
+    wait_until(lambda: metric(scrape(f"{server.url}/metrics")[1],
+                              f"cblrs_capture_to_track_seconds_count{labels}") == FRAMES, 30,
+               "every group's capture-to-track time")
     code, text = scrape(f"{server.url}/metrics")
     assert code == 200
-    labels = '{plane="1"}'
     assert metric(text, f"cblrs_messages_received_total{labels}") == 2 * FRAMES + 2
     assert metric(text, 'cblrs_messages_rejected_total{plane="1",reason="wrong_schema"}') == 1
     assert metric(text, f"cblrs_messages_duplicate_total{labels}") == 1

@@ -703,10 +703,13 @@ def test_a_replay_that_starts_late_says_when_its_first_frame_goes_out(small_worl
         line = next(line for line in said if "first frame" in line)
         assert "WARNING" in line, line
         assert re.search(r"camera cam1: the first frame \(recorded at 100 s\) is due at "
-                         r"\d\d:\d\d:\d\d UTC \(--epoch \+ its time\), in 10\d s; nothing is "
+                         r"\d\d:\d\d:\d\d UTC \(--epoch \+ its time\), in (\d+) s; nothing is "
                          r"sent before; the recording starts at 100 s, so to start it at once "
                          r"give every camera --epoch \$\(\( \$\(date \+%s\) \+ 5 - 100 \)\)$",
                          line.strip()), line
+        # 105 s less however long the camera took to start on a busy machine.
+        waiting = int(re.search(r"in (\d+) s;", line)[1])
+        assert 10 < waiting <= 105, line
         assert late.poll() is None  # still waiting, as it said
     finally:
         late.terminate()
@@ -720,8 +723,11 @@ def test_a_replay_that_starts_late_says_when_its_first_frame_goes_out(small_worl
     assert prompt.returncode == 0, err
     assert json.loads(out)["messages"] == 2
     assert time.monotonic() - started < 30
+    # At most a note that the first frame is due in a few seconds (none when the camera took
+    # that long to start): no warning, no advice.
     said = [line for line in err.splitlines() if "first frame" in line]
-    assert len(said) == 1 and " INFO " in said[0] and "to start it at once" not in said[0]
+    assert len(said) <= 1 and all(" INFO " in line and "to start it at once" not in line
+                                  for line in said), said
 
 
 @pytest.mark.parametrize(

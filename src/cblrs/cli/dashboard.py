@@ -5,12 +5,15 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import re
+import secrets
 import socket
 import sys
 from pathlib import Path
+from typing import Any
 
 from cblrs.cli.camera import add_mqtt_options, mqtt_settings
-from cblrs.cli.common import InputError, UsageError, add_output_options
+from cblrs.cli.common import InputError, UsageError, add_output_options, check_positive
 
 logger = logging.getLogger(__name__)
 
@@ -28,7 +31,10 @@ def register(subparsers) -> None:
             "with --db, replay a matcher's stored run at 1x-10x; /calibrate: click point "
             "pairs between a camera's frame and the site map, see the errors live, save to "
             "the site file and render the reference. Nothing is downloaded: the page is "
-            "shipped with cblrs."
+            "shipped with cblrs. Everyone logs in: with --users, the users of that file "
+            "(cblrs dashboard-users; viewers see, admins also calibrate); without it, on "
+            "loopback only, whoever opens the login link printed at start (an admin link "
+            "valid for this run). See docs/security.md."
         ),
     )
     parser.add_argument("--site", type=Path, required=True, help="the site file")
@@ -38,8 +44,24 @@ def register(subparsers) -> None:
         "--key", type=Path, help="the site's pseudo-coordinate key (docs/privacy.md): the "
         "matcher works on a pseudo site; show its tracks and events on this real site's map"
     )
-    parser.add_argument("--host", default="127.0.0.1", help="address to serve on")
+    parser.add_argument("--host", default="127.0.0.1", help="address to serve on (beyond "
+                        "loopback only with --users)")
     parser.add_argument("--port", type=int, default=8080, help="port (0: a free one)")
+    access = parser.add_argument_group("who may use it (docs/security.md)")
+    access.add_argument("--users", type=Path, metavar="FILE",
+                        help="users file written by cblrs dashboard-users (default: no users; "
+                        "loopback only, with a login link for this run)")
+    access.add_argument("--tls-cert", type=Path, metavar="PEM",
+                        help="serve HTTPS with this certificate (chain) ...")
+    access.add_argument("--tls-key", type=Path, metavar="PEM", help="... and its private key")
+    access.add_argument("--origin", metavar="URL",
+                        help="the address browsers use, when it is not this server's own "
+                        "(e.g. https://dashboard.example.org behind a TLS proxy)")
+    access.add_argument("--session-hours", type=float, default=12.0,
+                        help="a login lasts this long")
+    access.add_argument("--idle-minutes", type=float, default=120.0,
+                        help="a login ends after this long without a request (an open page "
+                        "keeps it)")
     parser.add_argument("--frames", type=Path, help="folder of camera frames <camera>.png|jpg "
                         "for the calibration page")
     parser.add_argument("--references", type=Path,
@@ -67,6 +89,7 @@ def run(args: argparse.Namespace) -> int:
     from cblrs.dashboard.replay import StoreReplay
     from cblrs.runtime.transport import TransportError
 
+    auth = _authenticator(args)
     if not args.site.is_file():
         raise InputError(f"--site {args.site} does not exist.")
     if args.frames is not None and not args.frames.is_dir():
@@ -115,6 +138,8 @@ def run(args: argparse.Namespace) -> int:
         config.feed = feed
         config.broker = args.broker
     host, port = listener.getsockname()[:2]
+    scheme = "https" if args.tls_cert else "http"
+    shown = f"[{host}]" if ":" in host else host
     where = [f"site {args.site}", f"plane {plane}"]
     if feed is not None:
         where.append(f"live from {args.broker}" + (f" as {args.username}" if args.username
@@ -123,15 +148,28 @@ def run(args: argparse.Namespace) -> int:
         where.append(f"replay of {args.db}")
     if feed is None and args.db is None:
         where.append("no --broker nor --db: site map and calibration page only")
+    url = f"{scheme}://{shown}:{port}/"
+    if auth.run_token is not None:
+        url += f"login?token={auth.run_token}"
+        where.append("no --users: this link logs in as admin until the dashboard stops")
+    else:
+        where.append(f"users of {args.users}")
     if args.json:
-        print(json.dumps({"url": f"http://{host}:{port}/", "site": str(args.site),
-                          "plane": plane, "broker": args.broker,
+        print(json.dumps({"url": url, "site": str(args.site), "plane": plane,
+                          "broker": args.broker, "users": None if args.users is None
+                          else str(args.users),
                           "db": None if args.db is None else str(args.db)}), flush=True)
     else:
-        print(f"dashboard on http://{host}:{port}/ ({', '.join(where)}); Ctrl-C stops it",
-              flush=True)
-    server = uvicorn.Server(uvicorn.Config(create_app(config), log_level="warning",
-                                           access_log=False, lifespan="off"))
+        print(f"dashboard on {url} ({', '.join(where)}); Ctrl-C stops it", flush=True)
+    if not auth.loopback and not auth.secure:
+        print("cblrs dashboard: warning: passwords and session cookies cross the network in "
+              "clear; give --tls-cert and --tls-key, or serve it behind a TLS proxy (--origin "
+              "https://...).", file=sys.stderr, flush=True)
+    server = uvicorn.Server(uvicorn.Config(
+        create_app(config, auth), log_level="warning", access_log=False, lifespan="off",
+        ssl_certfile=str(args.tls_cert) if args.tls_cert else None,
+        ssl_keyfile=str(args.tls_key) if args.tls_key else None,
+    ))
     try:
         server.run(sockets=[listener])
     finally:
@@ -140,6 +178,45 @@ def run(args: argparse.Namespace) -> int:
         listener.close()
     print("dashboard stopped", file=sys.stderr)
     return 0
+
+
+def _authenticator(args: argparse.Namespace) -> Any:
+    """Who may use the dashboard, from the options; refuses to serve beyond loopback without
+    users (an open dashboard shows where people are to anyone who finds it)."""
+    # lazy: a subcommand imports the library when it runs, so its --help starts fast
+    from cblrs.dashboard.auth import Authenticator
+    from cblrs.dashboard.users import UsersError
+    from cblrs.runtime.metrics import is_loopback_host
+
+    loopback = is_loopback_host(args.host)
+    if not loopback and args.users is None:
+        raise UsageError(
+            f"--host {args.host} serves beyond this machine, so it needs --users FILE (create "
+            "it with cblrs dashboard-users add); without --users the dashboard serves on "
+            "loopback only."
+        )
+    if (args.tls_cert is None) != (args.tls_key is None):
+        raise UsageError("give --tls-cert and --tls-key together.")
+    for option, path in (("--tls-cert", args.tls_cert), ("--tls-key", args.tls_key)):
+        if path is not None and not path.is_file():
+            raise InputError(f"{option} {path} does not exist.")
+    if args.origin is not None and not re.fullmatch(r"https?://[^/?#\s]+/?", args.origin):
+        raise UsageError(f"--origin {args.origin!r} must be a scheme and host, e.g. "
+                         "https://dashboard.example.org.")
+    check_positive(args.session_hours, "--session-hours")
+    check_positive(args.idle_minutes, "--idle-minutes")
+    try:
+        return Authenticator(
+            users_path=args.users,
+            run_token=None if args.users is not None else secrets.token_urlsafe(24),
+            session_s=args.session_hours * 3600.0,
+            idle_s=args.idle_minutes * 60.0,
+            secure=args.tls_cert is not None,
+            origin=args.origin,
+            loopback=loopback,
+        )
+    except UsersError as error:
+        raise InputError(str(error)) from None
 
 
 def _listen(host: str, port: int) -> socket.socket:

@@ -53,7 +53,22 @@ EXAMPLES: dict[str, list[str]] = {
                 "cblrs matcher --stats plane1.db"],
     "linker": ["cblrs linker --site street.yaml --db linker.db --backbone nats://n1:4222,"
                "n2:4222,n3:4222", "cblrs linker --stats linker.db"],
-    "dashboard": ["cblrs dashboard --site site.yaml --db plane1.db --port 8080"],
+    "dashboard": ["cblrs dashboard --site site.yaml --db plane1.db --port 8080",
+                  "cblrs dashboard --site site.yaml --users users.yaml --host 0.0.0.0 "
+                  "--tls-cert dash.crt --tls-key dash.key"],
+    "dashboard-users": ["cblrs dashboard-users add --users users.yaml alice --role admin",
+                        "cblrs dashboard-users list --users users.yaml"],
+    "dashboard-users add": ["cblrs dashboard-users add --users users.yaml alice --role admin",
+                            "cblrs dashboard-users add --users users.yaml bob "
+                            "--password-file bob.password"],
+    "dashboard-users passwd": ["cblrs dashboard-users passwd --users users.yaml alice"],
+    "dashboard-users set-role": ["cblrs dashboard-users set-role --users users.yaml bob admin"],
+    "dashboard-users remove": ["cblrs dashboard-users remove --users users.yaml bob"],
+    "dashboard-users list": ["cblrs dashboard-users list --users users.yaml --json"],
+    "dashboard-users token": ["cblrs dashboard-users token --users users.yaml alice "
+                              "--label grafana > grafana.token"],
+    "dashboard-users revoke": ["cblrs dashboard-users revoke --users users.yaml alice "
+                               "--label grafana"],
     "bench": ["cblrs bench lookup", "cblrs bench all --out bench-results"],
     "bench lookup": ["cblrs bench lookup --n 100000 --repeats 5"],
     "bench render": ["cblrs bench render --repeats 5"],

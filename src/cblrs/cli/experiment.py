@@ -156,6 +156,10 @@ def register(subparsers) -> None:
     )
     tracking.add_argument("--no-held-out", action="store_true",
                           help="skip the held-out checks")
+    tracking.add_argument("--without-rules", action="store_true",
+                          help="the tracker without issue 19's rules (tracks leaving the plane "
+                          "end, vehicles cannot turn on the spot, multi-view confirmation), "
+                          "for comparison")
     tracking.add_argument("--sites", type=Path, default=None,
                           help="folder of <scene>.yaml site files (default: the repository's "
                           "sites/)")
@@ -368,6 +372,7 @@ def run_tracking_command(args: argparse.Namespace) -> tuple[dict[str, Any], str]
     # lazy: a subcommand imports the library when it runs, so its --help starts fast
     from cblrs.experiments.tracking import (
         SCENES,
+        WITHOUT_RULES,
         TrackingSetup,
         default_cases,
         run_tracking,
@@ -384,13 +389,15 @@ def run_tracking_command(args: argparse.Namespace) -> tuple[dict[str, Any], str]
     if not cases:
         raise UsageError("no case left to run; check --scenes and --no-held-out.")
     setup = TrackingSetup(cases=cases, wildtrack=args.dataset, multiviewx=args.multiviewx,
-                          model=args.model, sites=args.sites)
+                          model=args.model, sites=args.sites,
+                          matcher_options=WITHOUT_RULES if args.without_rules else ())
     show = not args.quiet and sys.stderr.isatty()
     result = run_tracking(setup, report=(lambda line: print(line, file=sys.stderr)) if show
                           else None)
     text = tracking_report(result)
     if args.out is not None:
-        _write(args.out, "tracking", result, text)
+        _write(args.out, "tracking_without_rules" if args.without_rules else "tracking", result,
+               text)
     return result, text
 
 

@@ -47,6 +47,8 @@ SUBCOMMANDS = {
     "linker": "run the site's linker: every plane's tracks -> global ids and site counts",
     "dashboard": "serve the live dashboard: site map, tracks, counts, cameras; replay; "
     "calibration",
+    "dashboard_users": "the dashboard's users: add, passwd, set-role, remove, list, token, "
+    "revoke",
     "bench": "benchmarks: lookup (Table I), render, claims, tracker, pipeline, track, "
     "analytics, linker, dashboard, backbone, asynchrony, mqtt, all",
     "experiment": "rerun the paper's experiments: targeting (IV-B), resolution; clicked "

@@ -27,6 +27,7 @@ from cblrs.cli.common import (
     format_table,
     print_json,
 )
+from cblrs.cli.metrics_http import add_http_options, http_settings
 from cblrs.errors import CblrsError
 
 logger = logging.getLogger(__name__)
@@ -148,11 +149,7 @@ def register(subparsers) -> None:
         help="rows wait this long (plus the tracker's own lag) behind the newest capture "
         "time before they are counted",
     )
-    online.add_argument(
-        "--http",
-        metavar="HOST:PORT",
-        help="serve Prometheus /metrics, /healthz and /readyz here (e.g. 127.0.0.1:9100)",
-    )
+    add_http_options(online)
     online.add_argument(
         "--live-interval",
         type=float,
@@ -311,9 +308,9 @@ def run(args: argparse.Namespace) -> int:
     metrics = server = None
     if args.http is not None:
         # lazy: a subcommand imports the library when it runs, so its --help starts fast
-        from cblrs.runtime.metrics import MetricsServer, ServiceMetrics, parse_address
+        from cblrs.runtime.metrics import MetricsServer, ServiceMetrics
 
-        address = parse_address(args.http)
+        address, http_token = http_settings(args)
         metrics = ServiceMetrics(plane_id, names)
     store = RuntimeStore(args.db)
     if uses_nats(args):
@@ -352,7 +349,8 @@ def run(args: argparse.Namespace) -> int:
             return metrics.exposition()
 
         try:
-            server = MetricsServer(address, exposition, service.health, service.ready).start()
+            server = MetricsServer(address, exposition, service.health, service.ready,
+                                   token=http_token).start()
         except Exception:
             store.close()
             raise

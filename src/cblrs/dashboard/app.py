@@ -19,7 +19,13 @@ API (JSON, and Server-Sent Events for the streams):
 * ``GET /api/calibrate/cameras``, ``GET /api/calibrate/frame/{camera}``,
   ``POST /api/calibrate/fit``, ``POST /api/calibrate/save``,
   ``GET /api/calibrate/reference/{camera}`` — the calibration page
-  (:mod:`cblrs.dashboard.calibration`).
+  (:mod:`cblrs.dashboard.calibration`);
+* ``GET /login``, ``POST /api/login``, ``POST /api/logout``, ``GET /api/session`` — logging
+  in and out, and who the page's user is (with the session's CSRF token).
+
+Who may do what (:mod:`cblrs.dashboard.auth`): ``/login``, ``/healthz`` and ``/static``
+are open; every other route needs a viewer, and the calibration page and its API an admin.
+Each endpoint states its role with :func:`~cblrs.dashboard.auth.requires`.
 """
 
 from __future__ import annotations
@@ -34,12 +40,16 @@ from cblrs.dashboard import calibration
 from cblrs.dashboard.feed import LiveFeed, sse
 from cblrs.dashboard.replay import ReplayError, StoreReplay
 from cblrs.dashboard.scene import map_image, site_scene
+from cblrs.dashboard.users import Role
 from cblrs.errors import CblrsError
 from cblrs.site import Site, load_site
 
 logger = logging.getLogger(__name__)
 
 STATIC = Path(__file__).parent / "static"
+KEEPALIVE_S = 15.0
+"""A live stream says something this often when the plane is quiet (and checks that its
+session is still open)."""
 
 
 @dataclass
@@ -74,48 +84,116 @@ class DashboardConfig:
             self.references = self.site_path.parent / "references"
 
 
-def create_app(config: DashboardConfig) -> Any:
-    """The ASGI application (needs the ``dashboard`` extra: Starlette)."""
+def create_app(config: DashboardConfig, auth: Any) -> Any:
+    """The ASGI application (needs the ``dashboard`` extra: Starlette).
+
+    Args:
+        config: what it serves.
+        auth: who may use it (:class:`cblrs.dashboard.auth.Authenticator`).
+    """
     try:
         # optional extra: pip install cblrs[dashboard]
         from starlette.applications import Starlette
+        from starlette.middleware import Middleware
         from starlette.responses import (
             FileResponse,
             JSONResponse,
+            RedirectResponse,
             Response,
             StreamingResponse,
         )
         from starlette.routing import Mount, Route
         from starlette.staticfiles import StaticFiles
+
+        from cblrs.dashboard.auth import (
+            LoginRefused,
+            SecurityMiddleware,
+            requires,
+            safe_next,
+        )
     except ImportError:  # pragma: no cover - depends on the environment
         raise CblrsError(
             "the dashboard needs Starlette and uvicorn: pip install cblrs[dashboard]"
         ) from None
 
+    viewer, admin = Role.VIEWER, Role.ADMIN
     scene_cache: dict[str, Any] = {}
+    logins = asyncio.Semaphore(2)  # scrypt takes 128 MiB and a good part of a second each
 
     def scene() -> dict[str, Any]:
         if "scene" not in scene_cache:
             scene_cache["scene"] = site_scene(config.site, config.plane_id)
         return scene_cache["scene"]
 
+    # -- logging in -----------------------------------------------------------------------
+
+    async def login_page(request: Any) -> Any:
+        token = request.query_params.get("token")
+        if token is None:
+            return FileResponse(STATIC / "login.html")
+        identity = auth.login_with_run_token(token)
+        if identity is None:
+            return FileResponse(STATIC / "login.html", status_code=401)
+        response = RedirectResponse(safe_next(request.query_params.get("next")), 303)
+        auth.set_cookie(response, identity)
+        return response
+
+    async def login(request: Any) -> Any:
+        try:
+            data = await request.json()
+            name, password = str(data["user"]), str(data["password"])
+        except (ValueError, KeyError, TypeError):
+            return JSONResponse({"error": "give user and password."}, status_code=400)
+        client = request.client.host if request.client else "?"
+        try:
+            async with logins:
+                identity = await asyncio.to_thread(auth.login, name, password, client)
+        except LoginRefused as refused:
+            headers = ({"Retry-After": str(max(1, round(refused.retry_after_s)))}
+                       if refused.status == 429 else None)
+            return JSONResponse({"error": str(refused)}, status_code=refused.status,
+                                headers=headers)
+        response = JSONResponse({"user": identity.user, "role": identity.role.label})
+        auth.set_cookie(response, identity)
+        return response
+
+    @requires(viewer)
+    async def logout(request: Any) -> Any:
+        auth.logout(request.state.identity)
+        response = JSONResponse({"logged_out": True})
+        auth.clear_cookie(response)
+        return response
+
+    @requires(viewer)
+    async def session(request: Any) -> Any:
+        identity = request.state.identity
+        return JSONResponse({"user": identity.user, "role": identity.role.label,
+                             "csrf": identity.csrf, "via": identity.via})
+
+    # -- the map --------------------------------------------------------------------------
+
+    @requires(viewer, page=True)
     async def index(request: Any) -> Any:
         return FileResponse(STATIC / "index.html")
 
+    @requires(admin, page=True)
     async def calibrate_page(request: Any) -> Any:
         return FileResponse(STATIC / "calibrate.html")
 
+    @requires(viewer)
     async def site(request: Any) -> Any:
         data = await asyncio.to_thread(scene)
         return JSONResponse({**data, "live": config.feed is not None,
                              "replay": config.database is not None, "broker": config.broker})
 
+    @requires(viewer)
     async def site_map(request: Any) -> Any:
         image = map_image(config.site)
         if image is None:
             return Response("the site has no map image\n", status_code=404)
         return Response(image[0], media_type=image[1])
 
+    @requires(viewer)
     async def status(request: Any) -> Any:
         feed = config.feed
         return JSONResponse({
@@ -125,17 +203,25 @@ def create_app(config: DashboardConfig) -> Any:
             "replay": str(config.database) if config.database else None,
         })
 
+    @requires(viewer)
     async def stream(request: Any) -> Any:
         feed = config.feed
         if feed is None:
             return JSONResponse({"error": "this dashboard has no broker (--broker)."},
                                 status_code=404)
+        identity = request.state.identity
         subscriber = feed.subscribe(asyncio.get_running_loop())
 
         async def body():
             try:
-                while True:
-                    yield sse(await subscriber.next())
+                while auth.still_valid(identity):
+                    try:
+                        item = await asyncio.wait_for(subscriber.next(), KEEPALIVE_S)
+                    except TimeoutError:
+                        yield b": keep-alive\n\n"  # also finds pages that went away
+                        continue
+                    identity.last_seen = auth.clock()  # an open stream is activity
+                    yield sse(item)
             finally:
                 feed.unsubscribe(subscriber)
 
@@ -147,6 +233,7 @@ def create_app(config: DashboardConfig) -> Any:
             raise ReplayError("this dashboard has no stored run (--db).")
         return StoreReplay(config.database, config.to_site)
 
+    @requires(viewer)
     async def replay_info(request: Any) -> Any:
         try:
             replay = open_replay()
@@ -157,6 +244,7 @@ def create_app(config: DashboardConfig) -> Any:
         finally:
             replay.close()
 
+    @requires(viewer)
     async def replay(request: Any) -> Any:
         try:
             speed = float(request.query_params.get("speed", "1"))
@@ -174,11 +262,15 @@ def create_app(config: DashboardConfig) -> Any:
         except ReplayError as error:
             stored.close()
             return JSONResponse({"error": str(error)}, status_code=400)
+        identity = request.state.identity
 
         async def body():
             try:
                 yield sse(first)
                 async for item in messages:
+                    if not auth.still_valid(identity):
+                        break
+                    identity.last_seen = auth.clock()
                     yield sse(item)
             finally:
                 stored.close()
@@ -186,16 +278,18 @@ def create_app(config: DashboardConfig) -> Any:
         return StreamingResponse(body(), media_type="text/event-stream",
                                  headers={"Cache-Control": "no-cache"})
 
-    # -- calibration ----------------------------------------------------------------------
+    # -- calibration (admins) -------------------------------------------------------------
 
     def refusal(error: Exception, status_code: int = 422) -> Any:
         return JSONResponse({"error": str(error)}, status_code=status_code)
 
+    @requires(admin)
     async def calibrate_cameras(request: Any) -> Any:
         cameras = await asyncio.to_thread(calibration.camera_list, config.site, config.frames)
         return JSONResponse({"cameras": cameras, "map": scene()["map"],
                              "bounds": scene()["bounds"], "site": config.site.source})
 
+    @requires(admin)
     async def calibrate_frame(request: Any) -> Any:
         camera = request.path_params["camera"]
         try:
@@ -207,6 +301,7 @@ def create_app(config: DashboardConfig) -> Any:
                            404)
         return FileResponse(path)
 
+    @requires(admin)
     async def calibrate_fit(request: Any) -> Any:
         try:
             data = await request.json()
@@ -220,6 +315,7 @@ def create_app(config: DashboardConfig) -> Any:
             return refusal(error)
         return JSONResponse(result)
 
+    @requires(admin)
     async def calibrate_save(request: Any) -> Any:
         assert config.references is not None
         try:
@@ -232,10 +328,13 @@ def create_app(config: DashboardConfig) -> Any:
             )
         except (CblrsError, ValueError, AttributeError) as error:
             return refusal(error)
+        logger.info("dashboard: %s saved the calibration of %s", request.state.identity.user,
+                    data.get("camera"))
         config.site = load_site(config.site_path)
         scene_cache.clear()
         return JSONResponse(result)
 
+    @requires(admin)
     async def calibrate_reference(request: Any) -> Any:
         assert config.references is not None
         try:
@@ -249,11 +348,19 @@ def create_app(config: DashboardConfig) -> Any:
     async def healthz(request: Any) -> Any:
         return Response("ok\n", media_type="text/plain")
 
+    async def favicon(request: Any) -> Any:
+        return Response(status_code=204)
+
     routes = [
         Route("/", index),
+        Route("/login", login_page),
         Route("/calibrate", calibrate_page),
         Route("/healthz", healthz),
+        Route("/favicon.ico", favicon),
         Route("/map", site_map),
+        Route("/api/login", login, methods=["POST"]),
+        Route("/api/logout", logout, methods=["POST"]),
+        Route("/api/session", session),
         Route("/api/site", site),
         Route("/api/status", status),
         Route("/api/stream", stream),
@@ -266,7 +373,9 @@ def create_app(config: DashboardConfig) -> Any:
         Route("/api/calibrate/reference/{camera}", calibrate_reference),
         Mount("/static", StaticFiles(directory=STATIC), name="static"),
     ]
-    return Starlette(routes=routes)
+    app = Starlette(routes=routes, middleware=[Middleware(SecurityMiddleware, auth=auth)])
+    app.state.auth = auth
+    return app
 
 
 def _optional_float(value: Any) -> float | None:

@@ -12,6 +12,14 @@ library:
 * ``/readyz`` — 200 when it can do its work: started, connected to the broker and (with
   a plane lease) holding it; else 503 with what is missing.
 
+Who may read them: with a token (``cblrs matcher --http-token-file``), ``/metrics`` answers
+only a request that carries it (``Authorization: Bearer <token>``, or HTTP basic
+authentication with the token as the password: what Prometheus' ``authorization`` and
+``basic_auth`` send), and ``/healthz`` and ``/readyz`` answer loopback clients freely and
+others with the token. Without a token the server binds to a loopback address only
+(:func:`check_exposure`): the metrics name the site's cameras, lines and zones and count
+the people crossing them.
+
 Metric names (all labelled ``plane``):
 
 =============================================  ==========================================
@@ -40,7 +48,11 @@ benchmark) and reach out to the ordering window's seconds.
 
 from __future__ import annotations
 
+import base64
+import hmac
+import ipaddress
 import logging
+import socket
 import threading
 import time
 from collections.abc import Callable, Iterable, Mapping
@@ -233,6 +245,9 @@ class ServiceMetrics:
         return generate_latest(self.registry)
 
 
+MIN_TOKEN_CHARS = 16
+
+
 class MetricsServerError(CblrsError):
     """The metrics address cannot be used."""
 
@@ -251,6 +266,60 @@ def parse_address(text: str) -> tuple[str, int]:
     return (host.strip("[]") or "127.0.0.1"), int(port)
 
 
+def is_loopback_host(host: str) -> bool:
+    """Whether every address ``host`` names is a loopback one (``127.0.0.1``, ``::1``,
+    ``localhost``); a name that does not resolve is not."""
+    try:
+        infos = socket.getaddrinfo(host, None, type=socket.SOCK_STREAM)
+    except (OSError, UnicodeError):
+        return False
+    try:
+        return bool(infos) and all(
+            ipaddress.ip_address(str(info[4][0]).split("%")[0]).is_loopback for info in infos
+        )
+    except ValueError:
+        return False
+
+
+def check_exposure(host: str, token: str | None) -> None:
+    """Refuse to serve the metrics beyond loopback without a token.
+
+    Raises:
+        MetricsServerError: ``host`` is not a loopback address and there is no token.
+    """
+    if token is None and not is_loopback_host(host):
+        raise MetricsServerError(
+            f"--http {host} serves the metrics beyond this machine, so it needs "
+            "--http-token-file FILE (scrapers send the token as a bearer token or basic-auth "
+            "password); without it, serve on 127.0.0.1."
+        )
+
+
+def request_allowed(path: str, client: str, authorization: str, token: str | None) -> bool:
+    """Whether a request for ``path`` from address ``client`` with this ``Authorization``
+    header is answered: always without a token; with one, health checks from loopback
+    clients, and anything that carries the token."""
+    if token is None:
+        return True
+    if path != "/metrics" and is_loopback_host(client):
+        return True
+    return _authorized(authorization, token)
+
+
+def _authorized(header: str, token: str) -> bool:
+    """Whether an Authorization header carries ``token`` (bearer, or basic-auth password)."""
+    scheme, _, value = header.strip().partition(" ")
+    value = value.strip()
+    if scheme.lower() == "basic":
+        try:
+            value = base64.b64decode(value, validate=True).decode().partition(":")[2]
+        except (ValueError, UnicodeDecodeError):
+            return False
+    elif scheme.lower() != "bearer":
+        return False
+    return hmac.compare_digest(value.encode(), token.encode())
+
+
 class MetricsServer:
     """``/metrics``, ``/healthz`` and ``/readyz`` over HTTP, in a thread of its own.
 
@@ -259,9 +328,12 @@ class MetricsServer:
         exposition: returns the ``/metrics`` body.
         health: the ``/healthz`` check.
         ready: the ``/readyz`` check.
+        token: the token a request must carry (see the module docstring); None: no
+            token, and then ``address`` must be a loopback one.
 
     Raises:
-        MetricsServerError: the address cannot be bound (one sentence).
+        MetricsServerError: the address cannot be bound, or is beyond loopback without a
+            token (one sentence).
     """
 
     def __init__(
@@ -270,7 +342,15 @@ class MetricsServer:
         exposition: Callable[[], bytes],
         health: Check,
         ready: Check,
+        token: str | None = None,
     ):
+        if token is not None and len(token) < MIN_TOKEN_CHARS:
+            raise MetricsServerError(
+                f"the metrics token has {len(token)} characters; give at least "
+                f"{MIN_TOKEN_CHARS} (e.g. python -c 'import secrets; "
+                "print(secrets.token_urlsafe(32))')."
+            )
+        check_exposure(address[0], token)
         routes: dict[str, Callable[[], tuple[int, str, bytes]]] = {
             "/metrics": lambda: (200, CONTENT_TYPE_LATEST, exposition()),
             "/healthz": lambda: _check_answer(health),
@@ -279,9 +359,18 @@ class MetricsServer:
 
         class Handler(BaseHTTPRequestHandler):
             def do_GET(self) -> None:
-                route = routes.get(self.path.split("?", 1)[0])
+                path = self.path.split("?", 1)[0]
+                route = routes.get(path)
+                headers = {}
                 if route is None:
                     status, kind, body = 404, "text/plain; charset=utf-8", b"not found\n"
+                elif not request_allowed(path, self.client_address[0],
+                                         self.headers.get("Authorization", ""), token):
+                    status, kind = 401, "text/plain; charset=utf-8"
+                    body = b"the metrics need the token (bearer or basic-auth password)\n"
+                    headers["WWW-Authenticate"] = 'Basic realm="cblrs metrics"'
+                    logger.warning("metrics: refused %s from %s (no valid token)", path,
+                                   self.client_address[0])
                 else:
                     try:
                         status, kind, body = route()
@@ -292,6 +381,10 @@ class MetricsServer:
                 self.send_response(status)
                 self.send_header("Content-Type", kind)
                 self.send_header("Content-Length", str(len(body)))
+                self.send_header("X-Content-Type-Options", "nosniff")
+                self.send_header("Cache-Control", "no-store")
+                for name, value in headers.items():
+                    self.send_header(name, value)
                 self.end_headers()
                 self.wfile.write(body)
 

@@ -41,6 +41,7 @@ from pydantic import (
 )
 
 from cblrs.errors import CblrsError
+from cblrs.names import check_name
 
 SITE_VERSION = 1
 
@@ -97,6 +98,15 @@ def _image_size(value: Any) -> list[int]:
 ImageSize = Annotated[list[int], BeforeValidator(_image_size)]
 
 
+def _optional_name(what: str) -> AfterValidator:
+    """A validator of a name that may be empty ("" or None: no name)."""
+
+    def check(name: str | None) -> str | None:
+        return name if not name else check_name(name, what)
+
+    return AfterValidator(check)
+
+
 class _Strict(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
@@ -108,7 +118,7 @@ class PlaneModel(_Strict):
     """A colour-coded plane (:class:`cblrs.plane.PlaneSpec`), metres."""
 
     id: int = Field(ge=1, le=65535)
-    name: str = ""
+    name: Annotated[str, _optional_name("plane name")] = ""
     origin: Vector2
     size: Vector2
     bits: Literal[8, 16] = 16
@@ -171,7 +181,7 @@ class CalibrationRefModel(_Strict):
 class PointModel(_Strict):
     """One clicked correspondence: pixel (u, v) <-> world (x, y)."""
 
-    name: str | None = None
+    name: Annotated[str | None, _optional_name("point name")] = None
     u: float
     v: float
     x: float
@@ -206,7 +216,7 @@ def _camera_name_text(name: str) -> str:
             f"camera name {name!r} must be non-empty without '/', '+', '#' or spaces "
             "(it is part of MQTT topics)"
         )
-    return name
+    return check_name(name, "camera name")
 
 
 MODELS = ("auto", "homography", "pose", "focal", "k1")
@@ -354,7 +364,7 @@ class SiteModel(_Strict):
     """The whole site file."""
 
     version: Literal[1]
-    name: str = ""
+    name: Annotated[str, _optional_name("site name")] = ""
     pseudo: PseudoModel | None = None
     planes: list[PlaneModel] = Field(default_factory=list)
     cameras: list[CameraModel] = Field(default_factory=list)

@@ -428,7 +428,8 @@ function chooseCamera(name) {
   refit();
 }
 
-Promise.all([Cblrs.fetchJSON("/api/site"), Cblrs.fetchJSON("/api/calibrate/cameras")])
+Cblrs.loadSession()
+  .then(() => Promise.all([Cblrs.fetchJSON("/api/site"), Cblrs.fetchJSON("/api/calibrate/cameras")]))
   .then(([scene, data]) => {
     cal.scene = scene;
     cal.cameras = data.cameras;

@@ -1,5 +1,10 @@
-// cblrs dashboard: what both pages share — the site map view (metres <-> canvas pixels)
-// and the drawing of the site (map image or metric grid, planes, zones, lines, cameras).
+// cblrs dashboard: what both pages share — the session (who is logged in, the CSRF token
+// that every write carries), building page elements from data, the site map view (metres <->
+// canvas pixels) and the drawing of the site (map image or metric grid, planes, zones, lines,
+// cameras).
+//
+// Names come from the site file and from the broker: they reach the page as text only
+// (textContent, element properties, canvas fillText), never as HTML.
 "use strict";
 
 const Cblrs = (() => {
@@ -186,12 +191,83 @@ const Cblrs = (() => {
     }
   }
 
+  // ---------------------------------------------------------------- session
+  let session = null;
+
+  function toLogin() {
+    location.assign(`/login?next=${encodeURIComponent(location.pathname + location.search)}`);
+  }
+
+  // Who is logged in; a page without a session goes to the login page.
+  async function loadSession() {
+    const response = await fetch("/api/session", { credentials: "same-origin" });
+    if (response.status === 401) {
+      toLogin();
+      throw new Error("not logged in");
+    }
+    if (!response.ok) throw new Error(`cannot read the session (${response.status})`);
+    session = await response.json();
+    const user = document.getElementById("user");
+    if (user) user.textContent = `${session.user} · ${session.role}`;
+    for (const element of document.querySelectorAll("[data-admin]")) {
+      element.classList.toggle("hidden", session.role !== "admin");
+    }
+    const logout = document.getElementById("logout");
+    if (logout) logout.addEventListener("click", logoutNow);
+    return session;
+  }
+
+  async function logoutNow() {
+    try { await fetchJSON("/api/logout", { method: "POST", body: "{}" }); } catch (error) { /* gone */ }
+    location.assign("/login");
+  }
+
+  // A stream that broke: if the session ended, go and log in again.
+  async function checkSession() {
+    const response = await fetch("/api/session", { credentials: "same-origin" });
+    if (response.status === 401) toLogin();
+  }
+
+  // JSON requests of this site; writes carry the session's CSRF token.
   function fetchJSON(url, options) {
-    return fetch(url, options).then(async (response) => {
+    const init = { ...(options || {}), credentials: "same-origin" };
+    const method = (init.method || "GET").toUpperCase();
+    const headers = new Headers(init.headers || {});
+    if (method !== "GET" && method !== "HEAD") {
+      headers.set("Content-Type", "application/json");
+      if (session && session.csrf) headers.set("X-CSRF-Token", session.csrf);
+    }
+    init.headers = headers;
+    return fetch(url, init).then(async (response) => {
+      if (response.status === 401 && url !== "/api/logout") {
+        toLogin();
+        throw new Error("logged out");
+      }
       const data = await response.json();
       if (!response.ok) throw new Error(data.error || `${response.status}`);
       return data;
     });
+  }
+
+  // ---------------------------------------------------------------- elements
+  // el("td", {className: "now"}, "text", child, ...): an element; strings become text nodes.
+  function el(tag, properties, ...children) {
+    const element = document.createElement(tag);
+    for (const [key, value] of Object.entries(properties || {})) {
+      if (key === "dataset") Object.assign(element.dataset, value);
+      else element[key] = value;
+    }
+    for (const child of children) {
+      if (child === null || child === undefined) continue;
+      element.append(child instanceof Node ? child : document.createTextNode(String(child)));
+    }
+    return element;
+  }
+
+  // Replace an element's children with these (text or elements).
+  function fill(element, children) {
+    element.replaceChildren(...children.map((child) =>
+      child instanceof Node ? child : document.createTextNode(String(child))));
   }
 
   function clockText(seconds) {
@@ -200,5 +276,6 @@ const Cblrs = (() => {
     return `t = ${seconds.toFixed(1)} s`;
   }
 
-  return { idColour, MapView, fetchJSON, clockText };
+  return { idColour, MapView, fetchJSON, clockText, loadSession, checkSession, el, fill,
+    session: () => session };
 })();

@@ -19,8 +19,9 @@ window.cblrsStats = stats;
 
 const state = {
   scene: null, view: null, tracks: new Map(), time: null, dirty: true,
-  lines: {}, zones: {}, cameras: {}, openVisits: {}, events: [], seenKeys: new Set(),
-  flashes: {}, source: null, updates: [],
+  lines: Object.create(null), zones: Object.create(null), cameras: Object.create(null),
+  openVisits: Object.create(null), events: [], seenKeys: new Set(),
+  flashes: Object.create(null), source: null, updates: [],
 };
 window.cblrsCounts = () => ({
   lines: JSON.parse(JSON.stringify(state.lines)),
@@ -29,11 +30,14 @@ window.cblrsCounts = () => ({
 });
 
 const $ = (id) => document.getElementById(id);
+// Tables keyed by names from the site file or the broker: no prototype, so that a name such
+// as "__proto__" is a key like any other.
+const dict = () => Object.create(null);
 
 function resetCounts() {
-  state.lines = {};
-  state.zones = {};
-  state.openVisits = {};
+  state.lines = dict();
+  state.zones = dict();
+  state.openVisits = dict();
   for (const line of state.scene.lines) state.lines[line.name] = { positive: 0, negative: 0 };
   for (const zone of state.scene.zones) {
     state.zones[zone.name] = { now: 0, entries: 0, exits: 0, visits: 0, dwell_s: 0, longest: 0 };
@@ -86,7 +90,7 @@ function onEvent(event) {
     const zone = state.zones[event.place];
     if (zone) {
       if (event.crossed) zone.entries += 1;
-      state.openVisits[event.place].set(event.track, event.timestamp);
+      (state.openVisits[event.place] ||= new Map()).set(event.track, event.timestamp);
       zone.now = state.openVisits[event.place].size;
     }
   } else if (event.kind === "zone_left") {
@@ -95,7 +99,7 @@ function onEvent(event) {
       zone.visits += 1;
       zone.dwell_s += event.dwell_s;
       if (event.exited) zone.exits += 1;
-      state.openVisits[event.place].delete(event.track);
+      (state.openVisits[event.place] ||= new Map()).delete(event.track);
       zone.now = state.openVisits[event.place].size;
     }
   }
@@ -169,7 +173,7 @@ function connect(url, mode) {
   state.events = [];
   state.seenKeys.clear();
   state.time = null;
-  state.cameras = {};
+  state.cameras = dict();
   stats.mode = mode;
   stats.ended = false;
   resetCounts();
@@ -181,6 +185,7 @@ function connect(url, mode) {
     stats.connected = false;
     setConnection(mode, false);
     if (mode === "replay" && stats.ended) source.close();
+    else Cblrs.checkSession();  // a stream refused or ended because the login did
   };
   source.onmessage = (message) => onMessage(JSON.parse(message.data));
   $("live-button").classList.toggle("active", mode === "live");
@@ -204,9 +209,9 @@ function startReplay() {
 
 // ------------------------------------------------------------------ drawing
 function labels() {
-  const lines = {};
+  const lines = dict();
   for (const [name, row] of Object.entries(state.lines)) lines[name] = `+${row.positive} −${row.negative}`;
-  const zones = {};
+  const zones = dict();
   for (const [name, row] of Object.entries(state.zones)) {
     zones[name] = { now: row.now, text: `${row.now} now · ${row.entries} entered` };
   }
@@ -257,10 +262,13 @@ function draw() {
 }
 
 function renderTables() {
-  const rows = (id, html) => { $(id).querySelector("tbody").innerHTML = html; };
+  const { el, fill } = Cblrs;
+  const rows = (id, list) => fill($(id).querySelector("tbody"), list);
   rows("lines", Object.entries(state.lines).map(([name, row]) =>
-    `<tr data-line="${name}"><td>${name}</td><td class="positive">${row.positive}</td>` +
-    `<td class="negative">${row.negative}</td><td>${row.positive + row.negative}</td></tr>`).join(""));
+    el("tr", { dataset: { line: name } }, el("td", {}, name),
+      el("td", { className: "positive" }, row.positive),
+      el("td", { className: "negative" }, row.negative),
+      el("td", {}, row.positive + row.negative))));
   const now = state.time || 0;
   rows("zones", Object.entries(state.zones).map(([name, row]) => {
     let longest = row.longest || 0;
@@ -268,10 +276,11 @@ function renderTables() {
       for (const entered of state.openVisits[name].values()) longest = Math.max(longest, now - entered);
     }
     const mean = row.visits ? (row.dwell_s / row.visits).toFixed(1) + " s" : "–";
-    return `<tr data-zone="${name}"><td>${name}</td><td class="now">${row.now}</td>` +
-      `<td class="entries">${row.entries}</td><td class="exits">${row.exits}</td><td>${mean}</td>` +
-      `<td>${longest ? longest.toFixed(1) + " s" : "–"}</td></tr>`;
-  }).join(""));
+    return el("tr", { dataset: { zone: name } }, el("td", {}, name),
+      el("td", { className: "now" }, row.now), el("td", { className: "entries" }, row.entries),
+      el("td", { className: "exits" }, row.exits), el("td", {}, mean),
+      el("td", {}, longest ? longest.toFixed(1) + " s" : "–"));
+  }));
   const cameras = state.scene.cameras.map((camera) => camera.name);
   for (const name of Object.keys(state.cameras)) if (!cameras.includes(name)) cameras.push(name);
   rows("cameras", cameras.map((name) => {
@@ -281,18 +290,20 @@ function renderTables() {
       : camera.online ? "online" : "offline";
     const age = camera.last_age_s === undefined || camera.last_age_s === null ? "–"
       : camera.last_age_s < 60 ? camera.last_age_s.toFixed(1) + " s" : Math.round(camera.last_age_s / 60) + " min";
-    return `<tr data-camera="${name}"><td>${name}</td><td><span class="dot ${dot}"></span>${label}</td>` +
-      `<td>${camera.rate_hz === undefined ? "–" : camera.rate_hz.toFixed(1)}</td><td>${age}</td>` +
-      `<td class="rejected">${camera.rejected === undefined ? "–" : camera.rejected}</td></tr>`;
-  }).join(""));
-  $("events").innerHTML = state.events.map((event) => {
+    return el("tr", { dataset: { camera: name } }, el("td", {}, name),
+      el("td", {}, el("span", { className: `dot ${dot}` }), label),
+      el("td", {}, camera.rate_hz === undefined ? "–" : camera.rate_hz.toFixed(1)),
+      el("td", {}, age),
+      el("td", { className: "rejected" }, camera.rejected === undefined ? "–" : camera.rejected));
+  }));
+  fill($("events"), state.events.map((event) => {
     let text = `${event.place} · #${event.track}`;
     if (event.kind === "line_crossed") text += ` · ${event.direction === "positive" ? "+" : "−"}`;
-    if (event.kind === "zone_left") text += ` · ${event.dwell_s.toFixed(1)} s`;
-    const time = Cblrs.clockText(event.timestamp);
-    return `<li class="kind-${event.kind}"><span class="time">${time}</span>` +
-      `<span>${event.kind.replace("_", " ")}</span><span>${text}</span></li>`;
-  }).join("");
+    if (event.kind === "zone_left") text += ` · ${Number(event.dwell_s).toFixed(1)} s`;
+    return el("li", { className: `kind-${event.kind}` },
+      el("span", { className: "time" }, Cblrs.clockText(event.timestamp)),
+      el("span", {}, String(event.kind).replace("_", " ")), el("span", {}, text));
+  }));
   state.tablesDirty = false;
 }
 
@@ -321,13 +332,14 @@ setInterval(() => {
 }, 250);
 
 // ------------------------------------------------------------------ start
-Cblrs.fetchJSON("/api/site").then((scene) => {
+Cblrs.loadSession().then(() => Cblrs.fetchJSON("/api/site")).then((scene) => {
   state.scene = scene;
   document.title = `cblrs · ${scene.name}`;
   $("site-name").textContent = `${scene.name} · plane ${scene.plane}`;
   state.view = new Cblrs.MapView($("map"), scene);
   window.addEventListener("resize", () => { state.view.resize(); state.dirty = true; });
   resetCounts();
+  state.tablesDirty = true;  // the site's lines, zones and cameras, before any message
   // Which rule made the counts, beside them (rules differ by ~10 % on real tracks).
   const rules = [...new Set(scene.lines.map((line) => line.rule))];
   $("line-rule").textContent = rules.length === 1 ? `counted when: ${rules[0]}`

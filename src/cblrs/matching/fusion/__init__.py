@@ -26,13 +26,17 @@ observations of one point. Per instant:
    the cameras' innovation costs, an unassigned detection costing as much as one at the
    gate);
 4. let leftovers join a track other cameras saw at this instant when they are consistent
-   with its fused position (the gate must not split one object's views);
+   with its fused position (the gate must not split one object's views); then release the
+   detections of a vehicle track that would have had to turn tighter than its class can
+   (the motion check: a coasting car must not take the next car on the opposite lane);
 5. fuse each track's detections in information form (inverse covariances) and update the
    filter once, adding an object-level noise common to all views;
 6. cluster the remaining detections across cameras (at most one per camera per cluster,
    complete linkage on the Mahalanobis distance) and start a tentative track per cluster;
-7. confirm tracks with enough evidence (camera detections), optionally merge duplicates,
-   delete tracks unseen for too long.
+7. confirm tracks with enough evidence (camera detections; where two cameras see the
+   ground, from both: multi-view confirmation), split vehicle tracks whose direction turned
+   further than they can turn, optionally merge duplicates, delete tracks unseen for too
+   long or that left the planes.
 
 Cameras need not be synchronised. Messages are fused in windows of nearby capture times
 (:mod:`cblrs.matching.timing`: a fraction of the shortest frame period wide, one message per
@@ -56,9 +60,12 @@ look-ahead.
 The package follows these steps: :mod:`~cblrs.matching.fusion.config` (parameters),
 :mod:`~cblrs.matching.fusion.noise` (1), :mod:`~cblrs.matching.fusion.gaussian` (the Gaussian
 algebra all steps share), :mod:`~cblrs.matching.fusion.association` (3, 4),
-:mod:`~cblrs.matching.fusion.birth` (6, 7), :mod:`~cblrs.matching.fusion.clocks` (camera
-clocks), :mod:`~cblrs.matching.fusion.state` (snapshots) and
-:mod:`~cblrs.matching.fusion.tracker` (the tracker, which runs them: 2 and 5 are its own).
+:mod:`~cblrs.matching.fusion.motion` (4, 7: vehicles' turns),
+:mod:`~cblrs.matching.fusion.birth` (6, 7), :mod:`~cblrs.matching.fusion.coverage` (7: where
+each camera sees), :mod:`~cblrs.matching.fusion.clocks` (camera clocks),
+:mod:`~cblrs.matching.fusion.table` (what the stages share), :mod:`~cblrs.matching.fusion.state`
+(snapshots) and :mod:`~cblrs.matching.fusion.tracker` (the tracker, which runs them: 2 and 5
+are its own).
 """
 
 from __future__ import annotations

@@ -99,6 +99,10 @@ class Births:
             evidence=np.bincount(labels, minlength=count),
             last_seen=np.full(count, timestamp),
             seen_by=np.where(cameras, timestamp, -np.inf),
+            velocity_sigma=np.sqrt(covariance[:, 2, 2] + covariance[:, 3, 3]),
+            heading=np.zeros((count, 2)),
+            heading_time=np.full(count, -np.inf),
+            heading_sigma=np.zeros(count),
         )
         return Born(born, cameras, camera, box)
 

@@ -31,6 +31,10 @@ DEFAULT_CLASS_MEASUREMENT_SIGMA_M: dict[str, float] = {
 DEFAULT_CLASS_ACCELERATION_SIGMA: dict[str, float] = {
     "car": 5.0, "truck": 2.0, "bus": 2.0, "bicycle": 1.5, "motorcycle": 3.0,
 }
+DEFAULT_CLASS_TURN_RADIUS_M: dict[str, float] = {
+    "car": 5.0, "truck": 8.0, "bus": 9.0, "bicycle": 2.0, "motorcycle": 3.0,
+}
+"""Smallest turning radius of each vehicle class, metres (people turn on the spot)."""
 
 
 def _positive(value: Any) -> bool:
@@ -80,6 +84,13 @@ class FusionConfig:
             unit of relative box error), scaled to the cameras' mean height.
         acceleration_sigma: white-noise acceleration of a person's motion model, m/s^2.
         class_acceleration_sigma: the same for other classes, ``{class name: m/s^2}``.
+        class_turn_radius_m: smallest turning radius of each vehicle class, metres
+            (``{class name: m}``; classes left out, people, turn on the spot). A moving
+            vehicle cannot turn on the spot nor reverse at once: a track of such a class
+            whose speed is known takes a detection only if the direction from where it was
+            last seen to the detection is within the heading change its speed and this
+            radius allow since then (plus the detection's noise). This is what keeps a
+            coasting car's track from taking the next car arriving on the opposite lane.
         model_acceleration_factors: the motion model is an interacting multiple-model
             filter: constant-velocity models whose white-noise accelerations are these
             multiples of the class's (people mostly walk steadily, sometimes turn or stop:
@@ -111,8 +122,15 @@ class FusionConfig:
             by disjoint sets of cameras, are one object seen twice; the younger one is dropped.
         confirm_evidence: camera detections (summed over instants) a track needs before it
             is reported.
+        confirm_cameras: a new track is confirmed only once this many cameras have seen it,
+            where at least that many cameras cover its position (learned from where each
+            camera locates detections, :mod:`~cblrs.matching.fusion.coverage`); where fewer
+            do, as many as cover it (at least one). 1: any one camera confirms.
         tentative_max_age_s: a tentative track unseen this long is dropped, seconds.
         max_age_s: a confirmed track unseen this long is dropped, seconds.
+        end_off_plane: a track missed at an instant whose prediction lies off every plane,
+            moving away from it, has left the located area and is dropped at once (no camera
+            can locate it there); False keeps it coasting for ``max_age_s``.
         report_coasting_s: keep reporting the prediction of a confirmed track that was
             missed for at most this long, seconds (0: report only observed tracks).
         max_window_s: messages are fused in windows of nearby capture times (see
@@ -142,6 +160,9 @@ class FusionConfig:
     class_acceleration_sigma: Mapping[str, float] = field(
         default_factory=lambda: dict(DEFAULT_CLASS_ACCELERATION_SIGMA)
     )
+    class_turn_radius_m: Mapping[str, float] = field(
+        default_factory=lambda: dict(DEFAULT_CLASS_TURN_RADIUS_M)
+    )
     model_acceleration_factors: tuple[float, ...] = (0.25, 2.0)
     model_sojourn_s: tuple[float, ...] = (10.0, 2.0)
     initial_velocity_sigma: float = 1.5
@@ -154,8 +175,10 @@ class FusionConfig:
     association_orders: int = 2
     merge_radius_m: float = 0.0
     confirm_evidence: int = 2
+    confirm_cameras: int = 2
     tentative_max_age_s: float = 1.0
     max_age_s: float = 2.0
+    end_off_plane: bool = True
     report_coasting_s: float = 0.0
     max_window_s: float = DEFAULT_MAX_WINDOW_S
     window_fraction: float = DEFAULT_WINDOW_FRACTION
@@ -194,7 +217,7 @@ class FusionConfig:
             "model_acceleration_factors and model_sojourn_s need one entry per model, got "
             f"{len(self.model_acceleration_factors)} and {len(self.model_sojourn_s)}.",
         )
-        for name in ("adapt_noise", "estimate_clocks"):
+        for name in ("adapt_noise", "estimate_clocks", "end_off_plane"):
             value = getattr(self, name)
             require(isinstance(value, bool), f"{name} must be true or false, got {value!r}.")
         require(
@@ -217,7 +240,13 @@ class FusionConfig:
             and self.confirm_evidence >= 1,
             f"confirm_evidence must be a whole number >= 1, got {self.confirm_evidence!r}.",
         )
-        for name in ("class_measurement_sigma_m", "class_acceleration_sigma"):
+        require(
+            isinstance(self.confirm_cameras, int) and not isinstance(self.confirm_cameras, bool)
+            and self.confirm_cameras >= 1,
+            f"confirm_cameras must be a whole number >= 1, got {self.confirm_cameras!r}.",
+        )
+        for name in ("class_measurement_sigma_m", "class_acceleration_sigma",
+                     "class_turn_radius_m"):
             table = getattr(self, name)
             require(isinstance(table, Mapping), f"{name} must map class names to numbers.")
             for class_name, value in table.items():

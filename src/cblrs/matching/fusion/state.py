@@ -31,6 +31,11 @@ def table_state(tracks: TrackTable) -> dict:
         "mode_probability": tracks.mode_probability.tolist(),
         "seen_by": [[value if math.isfinite(value) else None for value in row]
                     for row in tracks.seen_by.tolist()],
+        "velocity_sigma": tracks.velocity_sigma.tolist(),
+        "heading": tracks.heading.tolist(),
+        "heading_time": [value if math.isfinite(value) else None
+                         for value in tracks.heading_time.tolist()],
+        "heading_sigma": tracks.heading_sigma.tolist(),
     }
 
 
@@ -41,11 +46,18 @@ def table_from_state(state: dict, models: int, cameras: int) -> TrackTable:
         KeyError, TypeError, ValueError, IndexError: a missing or malformed column.
         MatcherError: columns of different lengths.
     """
+    covariance = np.asarray(state["covariance"], np.float64).reshape(-1, 4, 4)
+    # States saved before velocity_sigma existed: the current velocity uncertainty.
+    velocity_sigma = state.get("velocity_sigma")
+    if velocity_sigma is None:
+        velocity_sigma = np.sqrt(np.maximum(covariance[:, 2, 2] + covariance[:, 3, 3], 0.0))
+    count = len(covariance)
+    heading_time = state.get("heading_time", [None] * count)
     tracks = TrackTable(
         ids=np.asarray(state["ids"], np.int64).reshape(-1),
         class_id=np.asarray(state["class_id"], np.int64).reshape(-1),
         state=np.asarray(state["state"], np.float64).reshape(-1, 4),
-        covariance=np.asarray(state["covariance"], np.float64).reshape(-1, 4, 4),
+        covariance=covariance,
         mode_state=np.asarray(state["mode_state"], np.float64).reshape(-1, models, 4),
         mode_covariance=np.asarray(state["mode_covariance"], np.float64).reshape(
             -1, models, 4, 4),
@@ -56,6 +68,12 @@ def table_from_state(state: dict, models: int, cameras: int) -> TrackTable:
             [[-np.inf if value is None else value for value in row]
              for row in state["seen_by"]], np.float64,
         ).reshape(-1, cameras),
+        velocity_sigma=np.asarray(velocity_sigma, np.float64).reshape(-1),
+        heading=np.asarray(state.get("heading", np.zeros((count, 2))), np.float64).reshape(-1, 2),
+        heading_time=np.array([-np.inf if value is None else value for value in heading_time],
+                              np.float64).reshape(-1),
+        heading_sigma=np.asarray(state.get("heading_sigma", np.zeros(count)),
+                                 np.float64).reshape(-1),
     )
     if len({len(column) for column in tracks.columns()}) != 1:
         raise MatcherError("the saved fusion-tracker state has columns of different lengths.")

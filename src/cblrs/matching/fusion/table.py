@@ -40,6 +40,12 @@ class TrackTable:
         evidence: (T,) int64 detections taken so far.
         last_seen: (T,) seconds.
         seen_by: (T, C) when each camera last saw the track (-inf: never).
+        velocity_sigma: (T,) uncertainty of the velocity when last seen, m/s (the root of
+            the trace of its covariance; coasting grows the covariance, not this).
+        heading: (T, 2) unit direction of motion the last time it was well known (zeros:
+            never), for the motion check of vehicles.
+        heading_time: (T,) when that was, seconds (-inf: never).
+        heading_sigma: (T,) its uncertainty then, radians.
     """
 
     ids: np.ndarray
@@ -52,6 +58,10 @@ class TrackTable:
     evidence: np.ndarray
     last_seen: np.ndarray
     seen_by: np.ndarray
+    velocity_sigma: np.ndarray
+    heading: np.ndarray
+    heading_time: np.ndarray
+    heading_sigma: np.ndarray
 
     @classmethod
     def empty(cls, models: int, cameras: int) -> TrackTable:
@@ -61,7 +71,8 @@ class TrackTable:
             covariance=np.zeros((0, 4, 4)), mode_state=np.zeros((0, models, 4)),
             mode_covariance=np.zeros((0, models, 4, 4)),
             mode_probability=np.zeros((0, models)), evidence=np.zeros(0, np.int64),
-            last_seen=np.zeros(0), seen_by=np.zeros((0, cameras)),
+            last_seen=np.zeros(0), seen_by=np.zeros((0, cameras)), velocity_sigma=np.zeros(0),
+            heading=np.zeros((0, 2)), heading_time=np.zeros(0), heading_sigma=np.zeros(0),
         )
 
     def __len__(self) -> int:
@@ -71,7 +82,8 @@ class TrackTable:
         """The columns in declaration order."""
         return (self.ids, self.class_id, self.state, self.covariance, self.mode_state,
                 self.mode_covariance, self.mode_probability, self.evidence, self.last_seen,
-                self.seen_by)
+                self.seen_by, self.velocity_sigma, self.heading, self.heading_time,
+                self.heading_sigma)
 
     def select(self, keep: np.ndarray) -> TrackTable:
         """The rows where ``keep`` (a (T,) mask or indices)."""
@@ -116,6 +128,8 @@ class FusionContext:
         class_extra: (K + 1,) extra measurement sigma of each class, metres (last: unknown).
         class_scale: (K + 1,) gate and cluster scale relative to a person.
         noise: the learned measurement-noise model.
+        class_turn_radius: (K + 1,) smallest turning radius of each class, metres (inf:
+            turns on the spot).
     """
 
     config: FusionConfig
@@ -125,9 +139,13 @@ class FusionContext:
     class_scale: np.ndarray
     noise: NoiseModel
     object_covariance: np.ndarray = field(init=False)
+    class_turn_radius: np.ndarray = field(init=False)
 
     def __post_init__(self) -> None:
         self.object_covariance = self.config.object_sigma_m**2 * np.eye(2)
+        self.class_turn_radius = np.array(
+            [self.config.class_turn_radius_m.get(name, np.inf) for name in CLASS_NAMES]
+            + [np.inf])
 
     @property
     def camera_count(self) -> int:

@@ -29,7 +29,9 @@ from cblrs.matching.fusion.association import Association
 from cblrs.matching.fusion.birth import Births
 from cblrs.matching.fusion.clocks import ClockLearning
 from cblrs.matching.fusion.config import FusionConfig
+from cblrs.matching.fusion.coverage import Coverage
 from cblrs.matching.fusion.gaussian import fuse, ray_covariance
+from cblrs.matching.fusion.motion import MotionCheck
 from cblrs.matching.fusion.noise import NoiseModel
 from cblrs.matching.fusion.state import STATE_VERSION, table_from_state, table_state
 from cblrs.matching.fusion.table import FusionContext, Measured, TrackTable, largest_boxes
@@ -113,6 +115,8 @@ class FusionTracker:
                        config.sigma_per_distance),
         )
         self.association = Association(self.context)
+        self.motion = MotionCheck(self.context)
+        self.coverage = Coverage(self.planes, len(self.camera_ids))
         self.births = Births(self.context)
         self.clock_learning = ClockLearning(self.context, self._clock)
         self.reset()
@@ -127,6 +131,7 @@ class FusionTracker:
         self._windows.reset()
         self._clock.reset()
         self.clock_learning.reset()
+        self.coverage.reset()
         self._reported: dict[int, set[int]] = {}
 
     def get_state(self) -> dict:
@@ -165,6 +170,28 @@ class FusionTracker:
             self.clock_learning.turn = int(state["clock_turn"])
         except (KeyError, TypeError, ValueError, IndexError) as error:
             raise MatcherError(f"the saved fusion-tracker state is incomplete: {error}.") from None
+
+    def set_views(self, references: Sequence[Any]) -> None:
+        """Tell the tracker which ground each camera sees, from its reference image.
+
+        Multi-view confirmation (``confirm_cameras``) then knows where several cameras see
+        the ground from the start, instead of learning it from their detections.
+
+        Args:
+            references: :class:`~cblrs.reference.ReferenceImage` objects whose
+                ``camera_name`` is one of this tracker's cameras (others are ignored).
+        """
+        for reference in references:
+            camera = self._cameras.get(reference.camera_name)
+            if camera is None:
+                continue
+            # Every 4th pixel each way: plenty for metre-sized cells.
+            colours = reference.pixels[::4, ::4].reshape(-1, 3)
+            located = []
+            for plane in reference.planes:
+                world_xy, valid = plane.decode(colours)
+                located.append(world_xy[valid])
+            self.coverage.set_view(camera, np.concatenate(located))
 
     @property
     def track_count(self) -> int:
@@ -274,10 +301,14 @@ class FusionTracker:
                 * self.measured.direction
             )
 
+        # Where each camera locates things (coverage module, for multi-view confirmation).
+        self.coverage.learn(observed.world_xy, observed.camera)
         # 3. associate (association module); 4. leftovers join tracks seen at this instant.
         assigned = self.association.associate(self.tracks, self.measured, observed, covariance)
         assigned = self.association.join_observed(self.tracks, self.measured, observed,
                                                   covariance, assigned)
+        # 4b. vehicles cannot turn on the spot (motion module).
+        assigned = self.motion.check(self.tracks, observed, covariance, assigned, timestamp)
         matched = assigned >= 0
         located_xy = observed.world_xy
         if matched.any() and np.any(lag[matched] != 0):
@@ -311,10 +342,16 @@ class FusionTracker:
 
         # 7. merge duplicates, drop tracks unseen too long, confirm, report.
         keep = self.births.merge_duplicates(self.tracks, seen_now, cameras_of_track)
-        keep &= self._alive(timestamp)
+        keep &= self._alive(timestamp, seen_now)
         self.tracks = self.tracks.select(keep)
         seen_now, report_camera, report_box = seen_now[keep], report_camera[keep], report_box[keep]
 
+        # A vehicle track that turned further than it can is another vehicle from now on.
+        turned = self.motion.split(self.tracks, seen_now, timestamp) & (self.tracks.ids >= 0)
+        if turned.any():
+            count = int(turned.sum())
+            self.tracks.ids[turned] = self._next_id + np.arange(count)
+            self._next_id += count
         report = self._confirm(timestamp, seen_now)
         self.clock_learning.record(self.tracks, timestamp, seen_now & (self.tracks.ids >= 0),
                                    located_xy,
@@ -354,6 +391,9 @@ class FusionTracker:
                 self.tracks.mode_state[seen_now], self.tracks.mode_covariance[seen_now],
                 self.tracks.mode_probability[seen_now],
             )
+            velocity_covariance = self.tracks.covariance[seen_now, 2:4, 2:4]
+            self.tracks.velocity_sigma[seen_now] = np.sqrt(np.maximum(
+                velocity_covariance[:, 0, 0] + velocity_covariance[:, 1, 1], 0.0))
             self.tracks.evidence += np.bincount(rows, minlength=track_count)
             self.tracks.last_seen[seen_now] = timestamp
             cameras_of_track[rows, observed.camera[matched]] = True
@@ -367,6 +407,14 @@ class FusionTracker:
         tracks to report (confirmed, and seen now or coasting briefly)."""
         tracks = self.tracks
         newly_confirmed = (tracks.ids < 0) & (tracks.evidence >= self.config.confirm_evidence)
+        if self.config.confirm_cameras > 1 and newly_confirmed.any():
+            # Multi-view confirmation: where several cameras see the ground, a track one
+            # camera alone keeps seeing is more likely that camera's false positive.
+            candidates = np.flatnonzero(newly_confirmed)
+            cameras_seen = np.isfinite(tracks.seen_by[candidates]).sum(axis=1)
+            covering = self.coverage.covering(tracks.state[candidates, :2])
+            needed = np.clip(covering, 1, self.config.confirm_cameras)
+            newly_confirmed[candidates[cameras_seen < needed]] = False
         count = int(newly_confirmed.sum())
         self.tracks.ids[newly_confirmed] = self._next_id + np.arange(count)
         self._next_id += count
@@ -470,11 +518,35 @@ class FusionTracker:
                                  np.sqrt(np.maximum(along, lateral)))
         return ray_covariance(direction, along, lateral)
 
-    def _alive(self, timestamp: float) -> np.ndarray:
+    def _departed(self) -> np.ndarray:
+        """(T,) bool: tracks predicted off every plane and moving away from the nearest.
+
+        No camera can locate anything off the planes (the reference images end there): a
+        track that is missed there while its velocity (as known when last seen, three
+        standard deviations) points outwards has left the scene. Kept coasting, it would
+        take the next object entering nearby (a car arriving on the opposite lane of the
+        arm its own car left by). One standing at the border, whose views flicker on and
+        off the plane, is not moving away and stays.
+        """
+        position, velocity = self.tracks.state[:, :2], self.tracks.state[:, 2:4]
+        departed = np.ones(len(position), dtype=bool)
+        for plane in self.planes:
+            low = np.array(plane.origin, np.float64)
+            high = low + np.array([plane.width, plane.length])
+            outward = position - np.clip(position, low, high)
+            distance = np.hypot(outward[:, 0], outward[:, 1])
+            speed_out = np.einsum("ij,ij->i", velocity, outward) / np.maximum(distance, 1e-12)
+            departed &= (distance > 0) & (speed_out > 3.0 * self.tracks.velocity_sigma)
+        return departed
+
+    def _alive(self, timestamp: float, seen_now: np.ndarray) -> np.ndarray:
         age = timestamp - self.tracks.last_seen
         limit = np.where(self.tracks.ids >= 0, self.config.max_age_s,
                          self.config.tentative_max_age_s)
-        return age <= limit
+        alive = age <= limit
+        if self.config.end_off_plane and len(alive):
+            alive &= seen_now | ~self._departed()
+        return alive
 
 
 def _subset(observed: Observations, mask: np.ndarray) -> Observations:

@@ -1,0 +1,497 @@
+"""Who is asking, and may they: the dashboard's logins, sessions, roles and cross-site guard.
+
+Every route but ``/login``, ``/healthz`` and the static files needs an identity
+(:meth:`Authenticator.identify`):
+
+* a **session**: ``POST /api/login`` with a user's name and password from the users file
+  (:mod:`cblrs.dashboard.users`) opens one; its id travels in a cookie that scripts cannot
+  read (``HttpOnly``), that no other site's page sends (``SameSite=Strict``) and, over TLS,
+  that is never sent in clear (``Secure``, ``__Host-`` name). A session ends at logout, after
+  :attr:`Authenticator.session_s` (absolute) or :attr:`~Authenticator.idle_s` without a
+  request, and as soon as its user's role, password or tokens change in the users file;
+* an **API token** (``Authorization: Bearer <token>``): a user's token from the users file,
+  or, when the dashboard runs without a users file (loopback only), the token of this run
+  that ``cblrs dashboard`` prints in its login link.
+
+Roles (:class:`~cblrs.dashboard.users.Role`): a route is guarded by :func:`requires`, the one
+decorator every endpoint uses (``@requires(Role.ADMIN)``); it answers 401 to nobody
+(a page: a redirect to the login page) and 403 to a role too low.
+
+Cross-site requests: a state-changing request (any method but GET/HEAD/OPTIONS) made with a
+session must come from the dashboard's own origin (``Origin``, else ``Referer``) and carry
+the session's CSRF token in ``X-CSRF-Token`` (the page reads it from ``/api/session``, which
+no other origin can read); :class:`SecurityMiddleware` refuses any such request whose body is
+not JSON (415: forms and ``text/plain`` are what a foreign page can send without asking),
+and adds the headers that keep the page to itself (a strict Content-Security-Policy with no
+inline script, ``frame-ancestors 'none'``, ``nosniff``, ``Referrer-Policy``). Bound to a
+loopback address it also refuses requests for any other host name (DNS rebinding).
+
+Failed logins are slowed down (:class:`LoginLimiter`): after a few failures for a user name
+or from one client, each further attempt waits twice as long as the previous one, up to five
+minutes (429 with ``Retry-After``).
+"""
+
+from __future__ import annotations
+
+import functools
+import hmac
+import ipaddress
+import logging
+import secrets
+import threading
+import time
+from collections.abc import Awaitable, Callable, MutableMapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+from urllib.parse import quote, urlsplit
+
+# optional extra: pip install cblrs[dashboard] (this module serves the dashboard only)
+from starlette.requests import Request
+from starlette.responses import JSONResponse, PlainTextResponse, RedirectResponse, Response
+
+from cblrs.dashboard.users import Role, User, UsersError, UsersFile, verify_password
+
+logger = logging.getLogger(__name__)
+
+SAFE_METHODS = frozenset({"GET", "HEAD", "OPTIONS"})
+CSRF_HEADER = "x-csrf-token"
+MAX_BODY_BYTES = 1 << 20
+MAX_SESSIONS = 10_000
+
+CONTENT_SECURITY_POLICY = (
+    "default-src 'none'; script-src 'self'; style-src 'self'; img-src 'self' blob:; "
+    "connect-src 'self'; form-action 'self'; frame-ancestors 'none'; base-uri 'none'"
+)
+SECURITY_HEADERS = (
+    (b"content-security-policy", CONTENT_SECURITY_POLICY.encode()),
+    (b"x-content-type-options", b"nosniff"),
+    (b"referrer-policy", b"same-origin"),
+    (b"x-frame-options", b"DENY"),
+    (b"cross-origin-opener-policy", b"same-origin"),
+    (b"cross-origin-resource-policy", b"same-origin"),
+)
+
+Endpoint = Callable[[Request], Awaitable[Response]]
+
+
+@dataclass
+class Identity:
+    """Who a request comes from.
+
+    Attributes:
+        user: the user's name.
+        role: what they may do.
+        via: ``"session"`` (a browser's cookie) or ``"token"`` (an API token).
+        stamp: the user's record when the identity was made (:attr:`User.stamp`).
+        session: the session id (sessions only).
+        csrf: the session's CSRF token (sessions only).
+        created: when the session was opened (monotonic seconds).
+        last_seen: the session's last request (monotonic seconds).
+    """
+
+    user: str
+    role: Role
+    via: str
+    stamp: str
+    session: str | None = None
+    csrf: str | None = None
+    created: float = 0.0
+    last_seen: float = 0.0
+
+
+class LoginRefused(Exception):
+    """A login is refused: ``status`` (401, 429), one sentence, and the seconds to wait."""
+
+    def __init__(self, status: int, message: str, retry_after_s: float = 0.0):
+        super().__init__(message)
+        self.status = status
+        self.retry_after_s = retry_after_s
+
+
+class LoginLimiter:
+    """Exponential back-off of failed logins, per user name and per client address.
+
+    After ``free_per_user`` failures for a name (``free_per_client`` from an address) each
+    further failure locks that name (address) for ``base_s`` doubled per failure, at most
+    ``max_s``; a success clears the name's count.
+    """
+
+    def __init__(self, free_per_user: int = 5, free_per_client: int = 20, base_s: float = 1.0,
+                 max_s: float = 300.0, clock: Callable[[], float] = time.monotonic):
+        self.free = {"user": free_per_user, "client": free_per_client}
+        self.base_s, self.max_s, self.clock = base_s, max_s, clock
+        self._failures: dict[tuple[str, str], tuple[int, float]] = {}
+        self._lock = threading.Lock()
+
+    def wait_s(self, user: str, client: str) -> float:
+        """Seconds until ``user`` may try again from ``client`` (0: now)."""
+        now = self.clock()
+        with self._lock:
+            return max(0.0, *(self._failures.get(key, (0, 0.0))[1] - now
+                              for key in (("user", user), ("client", client))))
+
+    def failed(self, user: str, client: str) -> None:
+        now = self.clock()
+        with self._lock:
+            if len(self._failures) > 100_000:  # bounded: forget the stale ones
+                self._failures = {key: value for key, value in self._failures.items()
+                                  if value[1] > now - self.max_s}
+            for key in (("user", user), ("client", client)):
+                count = self._failures.get(key, (0, 0.0))[0] + 1
+                over = count - self.free[key[0]]
+                until = now + min(self.max_s, self.base_s * 2 ** (over - 1)) if over > 0 else 0.0
+                self._failures[key] = (count, until)
+
+    def succeeded(self, user: str) -> None:
+        with self._lock:
+            self._failures.pop(("user", user), None)
+
+
+class Authenticator:
+    """The dashboard's users, sessions and API tokens (see the module docstring).
+
+    Args:
+        users_path: the users file (None: no users; then ``run_token`` is the only login).
+        run_token: an admin token valid for this run (the login link), or None.
+        session_s: a session's lifetime from login.
+        idle_s: a session ends after this long without a request (open streams count).
+        secure: the dashboard is served over TLS (cookies get ``Secure``).
+        origin: the one origin pages are served from (e.g. behind a TLS proxy:
+            ``https://dashboard.example.org``); None: the request's own scheme and host.
+        loopback: bound to a loopback address: requests must name a loopback host.
+        limiter: the login back-off (default: :class:`LoginLimiter` on ``clock``).
+    """
+
+    def __init__(
+        self,
+        users_path: Path | None = None,
+        run_token: str | None = None,
+        session_s: float = 12 * 3600.0,
+        idle_s: float = 2 * 3600.0,
+        secure: bool = False,
+        origin: str | None = None,
+        loopback: bool = True,
+        clock: Callable[[], float] = time.monotonic,
+        limiter: LoginLimiter | None = None,
+    ):
+        if users_path is None and run_token is None:
+            raise ValueError("the dashboard needs a users file or a run token")
+        self.users_path = users_path
+        self.run_token = run_token
+        self.session_s, self.idle_s = float(session_s), float(idle_s)
+        self.secure = secure or (origin or "").startswith("https://")
+        self.origin = origin.rstrip("/") if origin else None
+        self.loopback = loopback
+        self.clock = clock
+        self.limiter = limiter if limiter is not None else LoginLimiter(clock=clock)
+        self.cookie_name = "__Host-cblrs_session" if self.secure else "cblrs_session"
+        self._sessions: dict[str, Identity] = {}
+        self._lock = threading.Lock()
+        self._users: UsersFile | None = None
+        self._users_key: tuple[int, int] | None = None
+        if users_path is not None:
+            self.users()  # a broken file says so at start
+
+    # ------------------------------------------------------------------ users
+    def users(self) -> UsersFile | None:
+        """The users file as it is now (re-read when it changed on disk).
+
+        Raises:
+            UsersError: it cannot be read (at start; later the old one fails closed).
+        """
+        if self.users_path is None:
+            return None
+        try:
+            status = self.users_path.stat()
+            key = (status.st_mtime_ns, status.st_size)
+        except OSError:
+            key = None
+        if key != self._users_key or self._users is None:
+            try:
+                users = UsersFile.load(self.users_path)
+            except UsersError:
+                if self._users is None:
+                    raise
+                logger.error("dashboard: the users file %s cannot be read: nobody is let in "
+                             "until it is fixed", self.users_path)
+                self._users = UsersFile(self.users_path)
+                self._users_key = key
+                return self._users
+            self._users, self._users_key = users, key
+        return self._users
+
+    def _user(self, name: str) -> User | None:
+        users = self.users()
+        return users.users.get(name) if users is not None else None
+
+    # ------------------------------------------------------------------ identify
+    def identify(self, request: Request) -> Identity | None:
+        """The request's identity (bearer token or session cookie), or None."""
+        header = request.headers.get("authorization", "")
+        if header[:7].lower() == "bearer ":
+            return self._from_token(header[7:].strip())
+        session_id = request.cookies.get(self.cookie_name)
+        if not session_id:
+            return None
+        with self._lock:
+            identity = self._sessions.get(session_id)
+        if identity is None or not self.still_valid(identity):
+            return None
+        identity.last_seen = self.clock()
+        return identity
+
+    def _from_token(self, token: str) -> Identity | None:
+        if not token:
+            return None
+        if self.run_token is not None and hmac.compare_digest(token.encode(),
+                                                              self.run_token.encode()):
+            return Identity("admin", Role.ADMIN, "token", "run")
+        users = self.users()
+        user = users.find_token(token) if users is not None else None
+        if user is None:
+            return None
+        return Identity(user.name, user.role, "token", user.stamp)
+
+    def still_valid(self, identity: Identity) -> bool:
+        """Whether the identity may still act: its session is open and not expired, and its
+        user's record is unchanged."""
+        now = self.clock()
+        if identity.via == "session":
+            with self._lock:
+                if self._sessions.get(identity.session or "") is not identity:
+                    return False
+                if self._expired(identity, now):
+                    self._sessions.pop(identity.session or "", None)
+                    return False
+        if identity.stamp == "run":
+            return self.run_token is not None
+        user = self._user(identity.user)
+        if user is None or user.stamp != identity.stamp:
+            if identity.session is not None:
+                with self._lock:
+                    self._sessions.pop(identity.session, None)
+            return False
+        return True
+
+    # ------------------------------------------------------------------ sessions
+    def login(self, name: str, password: str, client: str) -> Identity:
+        """Check ``name`` and ``password`` (slow: scrypt) and open a session.
+
+        Raises:
+            LoginRefused: wrong name or password (401), or too many failures (429).
+        """
+        wait = self.limiter.wait_s(name, client)
+        if wait > 0:
+            raise LoginRefused(429, f"too many failed logins; try again in {wait:.0f} s.",
+                               wait)
+        user = self._user(name)
+        # An unknown name costs the same scrypt as a known one (no user enumeration).
+        ok = verify_password(password, user.password if user is not None else "")
+        if user is None or not ok:
+            self.limiter.failed(name, client)
+            logger.warning("dashboard: failed login for %r from %s", name[:64], client)
+            if self.users_path is None:
+                raise LoginRefused(401, "this dashboard has no users file: open the login "
+                                   "link that cblrs dashboard printed.")
+            raise LoginRefused(401, "wrong user name or password.")
+        self.limiter.succeeded(name)
+        logger.info("dashboard: %s logged in (%s) from %s", name, user.role.label, client)
+        return self.open_session(user.name, user.role, user.stamp)
+
+    def open_session(self, user: str, role: Role, stamp: str) -> Identity:
+        now = self.clock()
+        identity = Identity(user, role, "session", stamp, secrets.token_urlsafe(32),
+                            secrets.token_urlsafe(32), now, now)
+        with self._lock:
+            if len(self._sessions) >= MAX_SESSIONS:
+                self._prune(now)
+            if len(self._sessions) >= MAX_SESSIONS:  # the oldest goes
+                oldest = min(self._sessions.values(), key=lambda item: item.last_seen)
+                self._sessions.pop(oldest.session or "", None)
+            assert identity.session is not None
+            self._sessions[identity.session] = identity
+        return identity
+
+    def login_with_run_token(self, token: str) -> Identity | None:
+        identity = self._from_token(token)
+        if identity is None or identity.stamp != "run":
+            return None
+        return self.open_session(identity.user, identity.role, identity.stamp)
+
+    def logout(self, identity: Identity) -> None:
+        with self._lock:
+            self._sessions.pop(identity.session or "", None)
+
+    def _expired(self, identity: Identity, now: float) -> bool:
+        return now - identity.created > self.session_s or now - identity.last_seen > self.idle_s
+
+    def _prune(self, now: float) -> None:
+        for key, identity in list(self._sessions.items()):
+            if self._expired(identity, now):
+                del self._sessions[key]
+
+    def set_cookie(self, response: Response, identity: Identity) -> None:
+        assert identity.session is not None
+        response.set_cookie(self.cookie_name, identity.session, max_age=int(self.session_s),
+                            path="/", secure=self.secure, httponly=True, samesite="strict")
+
+    def clear_cookie(self, response: Response) -> None:
+        response.delete_cookie(self.cookie_name, path="/", secure=self.secure, httponly=True,
+                               samesite="strict")
+
+    # ------------------------------------------------------------------ cross-site
+    def expected_origin(self, request: Request) -> str:
+        if self.origin is not None:
+            return self.origin
+        scheme = "https" if self.secure else "http"
+        return f"{scheme}://{request.headers.get('host', '')}"
+
+    def cross_site_problem(self, request: Request) -> str | None:
+        """Why a state-changing request may have been made by another site's page, or None.
+
+        ``Origin`` (else ``Referer``) must name the dashboard's origin; a request with a
+        session must have one of the two and carry the session's CSRF token.
+        """
+        expected = self.expected_origin(request)
+        origin = request.headers.get("origin")
+        referer = request.headers.get("referer")
+        if origin is not None:
+            if origin != expected:
+                return f"a request from {origin[:100]} (another site) is refused."
+        elif referer:
+            parts = urlsplit(referer)
+            if f"{parts.scheme}://{parts.netloc}" != expected:
+                return "a request referred by another site is refused."
+        return None
+
+    def csrf_problem(self, request: Request, identity: Identity) -> str | None:
+        if identity.via != "session":
+            return None  # a bearer token is never sent by a browser on its own
+        if request.headers.get("origin") is None and not request.headers.get("referer"):
+            return "a request without Origin or Referer is refused (reload the page)."
+        given = request.headers.get(CSRF_HEADER, "")
+        if not given or not hmac.compare_digest(given.encode(), (identity.csrf or "").encode()):
+            return "the request lacks this session's CSRF token (reload the page)."
+        return None
+
+    def host_problem(self, host_header: str) -> str | None:
+        """Bound to loopback: the Host header must name a loopback address (DNS rebinding)."""
+        if not self.loopback or self.origin is not None:
+            return None
+        host = urlsplit(f"//{host_header}").hostname or ""
+        if host == "localhost" or host.endswith(".localhost"):
+            return None
+        try:
+            if ipaddress.ip_address(host).is_loopback:
+                return None
+        except ValueError:
+            pass
+        return f"host {host_header[:100]!r} is not served here (use 127.0.0.1 or localhost)."
+
+
+def authenticator(request: Request) -> Authenticator:
+    """The application's :class:`Authenticator` (``app.state.auth``)."""
+    return request.app.state.auth
+
+
+def requires(role: Role, page: bool = False) -> Callable[[Endpoint], Endpoint]:
+    """Guard an endpoint: only an identity of ``role`` or higher reaches it.
+
+    Anonymous: 401 (``page``: a redirect to the login page); a lower role: 403; a
+    state-changing method with a session: also the same-origin and CSRF checks (403). The
+    endpoint finds the identity in ``request.state.identity``.
+
+    Example:
+        >>> @requires(Role.ADMIN)  # doctest: +SKIP
+        ... async def save_place(request): ...
+    """
+
+    def decorate(endpoint: Endpoint) -> Endpoint:
+        @functools.wraps(endpoint)
+        async def guarded(request: Request) -> Response:
+            auth = authenticator(request)
+            identity = auth.identify(request)
+            if identity is None:
+                if page:
+                    target = request.url.path + (f"?{request.url.query}"
+                                                 if request.url.query else "")
+                    return RedirectResponse(f"/login?next={quote(target, safe='')}", 303)
+                return JSONResponse({"error": "log in first (/login)."}, status_code=401,
+                                    headers={"WWW-Authenticate": 'Bearer realm="cblrs"'})
+            if identity.role < role:
+                message = (f"{identity.user} is a {identity.role.label}; this needs an "
+                           f"{role.label}." if role == Role.ADMIN else "not allowed.")
+                if page:
+                    return PlainTextResponse(message + "\n", status_code=403)
+                return JSONResponse({"error": message}, status_code=403)
+            if request.method not in SAFE_METHODS:
+                problem = auth.cross_site_problem(request) or auth.csrf_problem(request,
+                                                                                identity)
+                if problem is not None:
+                    logger.warning("dashboard: refused %s %s for %s: %s", request.method,
+                                   request.url.path, identity.user, problem)
+                    return JSONResponse({"error": problem}, status_code=403)
+            request.state.identity = identity
+            return await endpoint(request)
+
+        return guarded
+
+    return decorate
+
+
+class SecurityMiddleware:
+    """ASGI middleware: security headers on every response; every state-changing request
+    same-origin, JSON and at most :data:`MAX_BODY_BYTES`; loopback host names only when
+    bound to loopback (see the module docstring)."""
+
+    def __init__(self, app: Any, auth: Authenticator):
+        self.app = app
+        self.auth = auth
+
+    async def __call__(self, scope: dict[str, Any], receive: Any, send: Any) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        request = Request(scope)
+        problem = self.auth.host_problem(request.headers.get("host", ""))
+        status = 421
+        if problem is None and request.method not in SAFE_METHODS:
+            status = 403
+            problem = self.auth.cross_site_problem(request)
+            if problem is None:
+                kind = request.headers.get("content-type", "").split(";")[0].strip().lower()
+                if kind != "application/json":
+                    status = 415
+                    problem = (f"a {request.method} here takes application/json, not "
+                               f"{kind or 'no content type'}.")
+            if problem is None:
+                length = request.headers.get("content-length")
+                if length is not None and (not length.isdigit()
+                                           or int(length) > MAX_BODY_BYTES):
+                    status, problem = 413, "the request body is too large."
+        path = scope.get("path", "")
+        no_store = not path.startswith("/static/")
+
+        async def send_with_headers(message: MutableMapping[str, Any]) -> None:
+            if message["type"] == "http.response.start":
+                headers = list(message.get("headers", []))
+                headers += SECURITY_HEADERS
+                if no_store and not any(name.lower() == b"cache-control" for name, _ in headers):
+                    headers.append((b"cache-control", b"no-store"))
+                message = {**message, "headers": headers}
+            await send(message)
+
+        if problem is not None:
+            logger.warning("dashboard: refused %s %s: %s", request.method, path, problem)
+            response = JSONResponse({"error": problem}, status_code=status)
+            await response(scope, receive, send_with_headers)
+            return
+        await self.app(scope, receive, send_with_headers)
+
+
+def safe_next(target: str | None) -> str:
+    """A redirect target after login: a path of this site only (never another host)."""
+    if not target or not target.startswith("/") or target.startswith("//") or "\\" in target:
+        return "/"
+    return target

@@ -1,0 +1,46 @@
+// cblrs login page: posts the user's name and password as JSON to /api/login (which sets
+// the session cookie), then goes where the user was going (a path of this site only).
+"use strict";
+
+(() => {
+  const form = document.getElementById("login-form");
+  const message = document.getElementById("login-message");
+  const params = new URLSearchParams(location.search);
+  if (params.has("token")) {
+    message.textContent = "This login link is not valid: it changes each time the dashboard "
+      + "starts. Open the link it printed last.";
+  }
+
+  function nextPath() {
+    const target = params.get("next") || "/";
+    // Only a path of this site: never "//host", "/\host" or another scheme.
+    return /^\/(?![\/\\])/.test(target) ? target : "/";
+  }
+
+  form.addEventListener("submit", async (event) => {
+    event.preventDefault();
+    message.textContent = "";
+    const button = document.getElementById("login-button");
+    button.disabled = true;
+    try {
+      const response = await fetch("/api/login", {
+        method: "POST",
+        credentials: "same-origin",
+        headers: { "Content-Type": "application/json" },
+        body: JSON.stringify({
+          user: document.getElementById("user-name").value,
+          password: document.getElementById("password").value,
+        }),
+      });
+      const data = await response.json().catch(() => ({}));
+      if (!response.ok) throw new Error(data.error || `refused (${response.status})`);
+      window.cblrsLoggedIn = data;
+      location.assign(nextPath());
+    } catch (error) {
+      message.textContent = error.message;
+      document.getElementById("password").value = "";
+    } finally {
+      button.disabled = false;
+    }
+  });
+})();

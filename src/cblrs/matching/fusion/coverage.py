@@ -1,0 +1,97 @@
+"""Where each camera sees the ground, learned from its detections (multi-view confirmation).
+
+A real detector fires on a sign or a reflection frame after frame: one camera sees a
+"person" standing there, consistently, and a track built on it looks as solid as a real
+one. What gives it away is the other cameras: they see the same ground (they locate people
+walking through it) and see nobody. :class:`Coverage` counts, on a grid over the planes,
+how many detections each camera has located in each cell; a camera covers a cell once it
+has located a few there — or, better, it is told where each camera sees the ground
+(:meth:`Coverage.set_view`: the cells its reference image holds, which also covers ground
+nobody walks on, where a false positive is as likely as anywhere). A new track is then
+confirmed only when two cameras have seen it,
+unless fewer than two cameras cover where it is (where one camera alone sees the ground, one
+camera must do). Until a camera has seen enough of the ground (a fresh tracker), nothing
+is covered and one camera confirms, as before.
+
+The grid is learned online and costs one histogram update per window; it is not part of
+the tracker's saved state (it is learned again within seconds of a restart).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from cblrs.plane import PlaneSet
+
+_MAX_CELLS = 250_000  # per camera: a finer grid over a very large plane is coarsened
+
+
+class Coverage:
+    """Per camera, how many detections it located in each cell of a grid over the planes.
+
+    Args:
+        planes: the planes; the grid spans their union's bounding rectangle.
+        camera_count: C.
+        cell_m: grid step, metres (coarsened to at most 250,000 cells per camera).
+        covering_count: detections a camera must have located in a cell to cover it.
+    """
+
+    def __init__(self, planes: PlaneSet, camera_count: int, cell_m: float = 1.0,
+                 covering_count: int = 3):
+        low = np.min([plane.origin for plane in planes], axis=0).astype(np.float64)
+        high = np.max([(plane.origin[0] + plane.width, plane.origin[1] + plane.length)
+                       for plane in planes], axis=0).astype(np.float64)
+        extent = np.maximum(high - low, 1e-6)
+        cell = max(cell_m, float(np.sqrt(extent[0] * extent[1] / _MAX_CELLS)))
+        self.low, self.cell = low, cell
+        self.shape = tuple(int(v) for v in np.ceil(extent / cell).astype(int) + 1)
+        self.camera_count = camera_count
+        self.covering_count = covering_count
+        self.counts = np.zeros((camera_count, *self.shape), np.int32)
+        self.view = np.zeros((camera_count, *self.shape), dtype=bool)
+        self.has_view = np.zeros(camera_count, dtype=bool)
+
+    def reset(self) -> None:
+        """Forget everything learnt (the views set by :meth:`set_view` stay)."""
+        self.counts[:] = 0
+
+    def set_view(self, camera: int, world_xy: np.ndarray) -> None:
+        """Tell which ground a camera sees: (M, 2) metres, points its image locates.
+
+        From then on that camera covers exactly the cells holding these points (what it has
+        located no longer matters for it).
+        """
+        column, row, inside = self._cells(np.asarray(world_xy, np.float64).reshape(-1, 2))
+        self.view[camera] = False
+        self.view[camera, column[inside], row[inside]] = True
+        self.has_view[camera] = True
+
+    def _cells(self, world_xy: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        index = np.floor((world_xy - self.low) / self.cell).astype(np.int64)
+        inside = (index >= 0).all(axis=1) & (index[:, 0] < self.shape[0]) & (
+            index[:, 1] < self.shape[1])
+        return index[:, 0], index[:, 1], inside
+
+    def learn(self, world_xy: np.ndarray, camera: np.ndarray) -> None:
+        """Count located detections: (N, 2) metres, (N,) camera index."""
+        learning = ~self.has_view[camera]  # a camera whose view was told learns nothing
+        if not learning.any():
+            return
+        column, row, inside = self._cells(world_xy[learning])
+        flat = np.ravel_multi_index(
+            (camera[learning][inside], column[inside], row[inside]), self.counts.shape)
+        cells, added = np.unique(flat, return_counts=True)
+        # Saturating: a cell only needs to reach covering_count.
+        self.counts.flat[cells] = np.minimum(self.counts.flat[cells] + added, 1_000_000)
+
+    def covering(self, world_xy: np.ndarray) -> np.ndarray:
+        """(T,) int64: how many cameras cover each position (0 off the grid)."""
+        count = np.zeros(len(world_xy), np.int64)
+        if len(world_xy) == 0:
+            return count
+        column, row, inside = self._cells(world_xy)
+        covered = self.counts[:, column[inside], row[inside]] >= self.covering_count
+        told = self.has_view
+        covered[told] = self.view[told][:, column[inside], row[inside]]
+        count[inside] = covered.sum(axis=0)
+        return count
