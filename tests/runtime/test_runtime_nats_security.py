@@ -482,14 +482,15 @@ def test_the_generated_backbone_runs_cameras_matcher_and_viewer_end_to_end(
             subprocess.Popen(
                 [*cli, "camera", "--dataset", str(wildtrack_root), "--camera", name,
                  "--references", str(references), "--frames", "0:45", "--epoch", str(epoch),
-                 "--spool", str(tmp_path / f"{name}.spool"), "--json", *login(name)],
+                 "--spool", str(tmp_path / f"{name}.spool"), "--confirm-timeout", "120",
+                 "--json", *login(name)],
                 stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=environment)
             for name in names
         ]
         for camera in cameras:
-            output, error = camera.communicate(timeout=120)
+            output, error = camera.communicate(timeout=240)
             assert camera.returncode == 0, (output, error)
-        output, error = matcher.communicate(timeout=120)
+        output, error = matcher.communicate(timeout=240)
         assert matcher.returncode == 0, error
     finally:
         for process in [*locals().get("cameras", []), locals().get("matcher")]:
