@@ -34,7 +34,8 @@ pytestmark = pytest.mark.nats
 SITE = "north"
 CAMERAS = ("CVLab1", "CVLab2")
 MATCHERS = {"matcher1": [1], "matcher2": [2]}
-WAIT = 15.0
+WAIT = 60.0
+"""Generous: the suite runs beside other work on two cores; conditions are waited for."""
 
 
 def _detections(camera: str, sequence: int, plane: int = 1) -> bytes:
@@ -238,7 +239,8 @@ def test_nobody_but_the_admin_deletes_or_creates_a_stream(backbone, clients, use
     ):
         with pytest.raises(Exception):  # noqa: B017 - the servers answer nothing: a timeout
             client.call(attempt, 3)
-        assert subject in client.refused_subjects
+        wait_until(lambda subject=subject: subject in client.refused_subjects, WAIT,
+                   f"the servers' refusal of {subject}")
     names = admin_call(backbone, lambda js: js.streams_info())
     assert {info.config.name for info in names} >= {stream, "KV_cblrs_leases"}
     assert "EVIL" not in {info.config.name for info in names}
@@ -257,7 +259,7 @@ def test_a_matcher_serves_its_plane_end_to_end_and_replays_it(backbone, clients)
     matcher.publish("cblrs/1/tracks", b'{"plane": 1, "tracks": [{"timestamp": 5.0}]}')
     matcher.publish("cblrs/1/CVLab2/stored", b"confirmation")
     assert matcher.flush(WAIT) and matcher.refused_publishes == 0
-    assert tracks.wait_for(1)
+    assert tracks.wait_for(1, WAIT)
     # A new host with an empty store replays the plane: the matcher resets its own
     # consumer (it may not create or delete one).
     matcher.close()
@@ -507,7 +509,7 @@ def test_the_generated_backbone_runs_cameras_matcher_and_viewer_end_to_end(
 
 
 def test_a_matchers_own_login_gets_what_a_dead_holder_left_unacknowledged_at_once(
-    backbone, clients
+    backbone, clients, caplog
 ):
     """A runtime login may not delete and re-create its consumer; it resets it to its
     acknowledgement floor instead, so what the dead holder was handed comes at once, not
@@ -536,8 +538,9 @@ def test_a_matchers_own_login_gets_what_a_dead_holder_left_unacknowledged_at_onc
     successor.subscribe("cblrs/2/+/detections",
                         lambda delivery: (again.append(delivery.payload), delivery.ack()))
     successor.subscribe("cblrs/2/+/status", lambda delivery: delivery.ack())
-    started = time.monotonic()
-    successor.connect()
-    wait_until(lambda: _detections("CVLab1", 901, 2) in again, WAIT, "the unacknowledged")
-    assert time.monotonic() - started < 20, "they came after ack_wait, not at once"
+    with caplog.at_level("INFO", logger="cblrs.runtime.nats_transport"):
+        successor.connect()
+        wait_until(lambda: _detections("CVLab1", 901, 2) in again, WAIT, "the unacknowledged")
+    # Not by ack_wait's redelivery: the successor reset its consumer to the floor at start.
+    assert "consumer cblrs-plane-2 reset to deliver them again" in caplog.text
     assert not successor.refused_subjects
