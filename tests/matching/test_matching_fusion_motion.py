@@ -3,6 +3,8 @@ confirmation (:mod:`cblrs.matching.fusion.motion`, :mod:`~cblrs.matching.fusion.
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 
 from cblrs.detections import CLASS_NAMES, CameraMessage, Tracks
@@ -153,3 +155,46 @@ def test_a_false_positive_one_camera_keeps_seeing_where_two_see_is_never_confirm
     tracks = Tracks.concatenate(parts)
     assert len(np.unique(tracks.track_id)) == 1  # the person, not the west camera's ghost
     assert np.all(np.abs(tracks.world_xy[:, 1]) < 1.0)
+
+
+def test_learned_coverage_is_part_of_the_saved_state():
+    """A matcher restarted from its saved state confirms as the undisturbed one: what the
+    coverage grid learnt travels with the state (not the views, which are configuration)."""
+    def tracker() -> FusionTracker:
+        return FusionTracker(PLANES, ["west", "east"],
+                             camera_positions={"west": (-25.0, 0.0), "east": (25.0, 0.0)})
+
+    def messages(frame: int) -> list[CameraMessage]:
+        # People walking where both cameras see them (the grid learns that); from frame 40
+        # the west camera alone keeps seeing a ghost on ground both have located people on.
+        people = [[-5.0 + 0.12 * frame, 0.0]]
+        if frame < 40:  # a second person walks through the ghost's place, then leaves
+            people.append([6.0, -6.0 + 0.3 * frame])
+        ghost = [[6.0, 3.0]] if frame >= 40 else []
+        return [message("west", frame, [*people, *ghost], PERSON),
+                message("east", frame, people, PERSON)]
+
+    undisturbed, first = tracker(), tracker()
+    expected = [undisturbed.update(frame * 0.1, messages(frame)) for frame in range(70)]
+    got = [first.update(frame * 0.1, messages(frame)) for frame in range(35)]
+    state = first.get_state()
+    assert state["coverage"]["cells"] and max(state["coverage"]["counts"]) == 3
+    restored = tracker()
+    restored.set_state(json.loads(json.dumps(state)))
+    assert restored.coverage.covering(np.array([[6.0, 3.0]])).tolist() == [2]
+    got += [restored.update(frame * 0.1, messages(frame)) for frame in range(35, 70)]
+    for ours, theirs in zip(got, expected, strict=True):
+        np.testing.assert_array_equal(ours.track_id, theirs.track_id)
+        np.testing.assert_array_equal(ours.world_xy, theirs.world_xy)
+    # The ghost was never confirmed; without the learnt grid a restarted tracker would have.
+    def ghost_rows(parts: list[Tracks]) -> int:
+        tracks = Tracks.concatenate(parts)
+        return int(((tracks.timestamp >= 4.0) & (tracks.world_xy[:, 1] > 2.0)).sum())
+
+    assert ghost_rows(got) == 0
+    forgetful = tracker()
+    saved = dict(state)
+    saved.pop("coverage")
+    forgetful.set_state(json.loads(json.dumps(saved)))
+    assert ghost_rows([forgetful.update(frame * 0.1, messages(frame))
+                       for frame in range(35, 70)]) > 0

@@ -64,6 +64,7 @@ STREET_WEST_M = -8.0
 STREET_EAST_M = PLANE_X0[-1] + PLANE_WIDTH_M + 8.0
 ARM_OUT_M = 22.0
 LANE_Y_M = 2.5
+CAR_CORNER_RADIUS_M = 6.0  # turning in and out of the side streets
 PAVEMENT_Y_M = (7.0, 10.0)
 _IMAGE_SIZE = (1280, 720)
 _GRID_S = 0.1
@@ -261,7 +262,38 @@ def _drive(origin: str, destination: str) -> list[tuple[float, float]]:
         side = 1 if destination.startswith("north") else -1
         x = _endpoint_x(destination) + side * 2.0
         points += [(x, lane), (x, side * (ARM_OUT_M + 3.0))]
-    return points
+    # A car cannot turn a corner on the spot: it follows an arc (the fusion tracker's
+    # turning-radius rule would rightly split a track that did).
+    return _round_corners(points, CAR_CORNER_RADIUS_M)
+
+
+def _round_corners(points: list[tuple[float, float]],
+                   radius_m: float) -> list[tuple[float, float]]:
+    """The polyline with each corner replaced by a circular arc of ``radius_m`` (smaller
+    where a leg is too short for it); repeated points and straight-through vertices go."""
+    kept = [np.asarray(points[0], np.float64)]
+    for point in points[1:]:
+        if np.hypot(*(np.asarray(point) - kept[-1])) > 1e-6:
+            kept.append(np.asarray(point, np.float64))
+    rounded = [kept[0]]
+    for before, corner, after in zip(kept, kept[1:], kept[2:]):
+        leg_in, leg_out = corner - before, after - corner
+        length_in, length_out = np.hypot(*leg_in), np.hypot(*leg_out)
+        u, v = leg_in / length_in, leg_out / length_out
+        turn = math.acos(float(np.clip(u @ v, -1.0, 1.0)))
+        if turn < 1e-3 or turn > math.pi - 1e-3:
+            rounded.append(corner)  # straight on (or a U-turn, which no trip makes)
+            continue
+        tangent = min(radius_m * math.tan(turn / 2), length_in / 2, length_out / 2)
+        radius = tangent / math.tan(turn / 2)
+        left = 1.0 if u[0] * v[1] - u[1] * v[0] > 0 else -1.0
+        centre = corner - u * tangent + left * radius * np.array([-u[1], u[0]])
+        first = math.atan2(*(corner - u * tangent - centre)[::-1])
+        steps = max(2, math.ceil(turn / math.radians(10.0)))
+        for angle in first + left * turn * np.linspace(0.0, 1.0, steps + 1):
+            rounded.append(centre + radius * np.array([math.cos(angle), math.sin(angle)]))
+    rounded.append(kept[-1])
+    return [(float(x), float(y)) for x, y in rounded]
 
 
 def _length(points: list[tuple[float, float]]) -> float:

@@ -13,8 +13,10 @@ unless fewer than two cameras cover where it is (where one camera alone sees the
 camera must do). Until a camera has seen enough of the ground (a fresh tracker), nothing
 is covered and one camera confirms, as before.
 
-The grid is learned online and costs one histogram update per window; it is not part of
-the tracker's saved state (it is learned again within seconds of a restart).
+The grid is learned online and costs one histogram update per window. What it has learnt
+is part of the tracker's saved state (only the cells a camera has located something in,
+each count capped at what covering needs), so a restarted matcher confirms exactly as the
+undisturbed one would.
 """
 
 from __future__ import annotations
@@ -82,7 +84,31 @@ class Coverage:
             (camera[learning][inside], column[inside], row[inside]), self.counts.shape)
         cells, added = np.unique(flat, return_counts=True)
         # Saturating: a cell only needs to reach covering_count.
-        self.counts.flat[cells] = np.minimum(self.counts.flat[cells] + added, 1_000_000)
+        self.counts.flat[cells] = np.minimum(self.counts.flat[cells] + added,
+                                             self.covering_count)
+
+    def get_state(self) -> dict:
+        """What has been learnt, JSON-ready: the flat indices and counts of the non-empty
+        cells (the views told by :meth:`set_view` are configuration, not state)."""
+        cells = np.flatnonzero(self.counts)
+        return {"shape": list(self.counts.shape), "cells": cells.tolist(),
+                "counts": self.counts.flat[cells].tolist()}
+
+    def set_state(self, state: dict | None) -> None:
+        """Restore :meth:`get_state`'s data; ``None`` (a state saved before coverage was
+        kept) starts from nothing learnt."""
+        self.reset()
+        if state is None:
+            return
+        if list(state["shape"]) != list(self.counts.shape):
+            raise ValueError(f"coverage grid {state['shape']} is not this tracker's "
+                             f"{list(self.counts.shape)}")
+        cells = np.asarray(state["cells"], np.int64)
+        counts = np.asarray(state["counts"], np.int64)
+        if cells.shape != counts.shape or (cells.size and (
+                cells.min() < 0 or cells.max() >= self.counts.size)):
+            raise ValueError("coverage cells out of the grid")
+        self.counts.flat[cells] = np.clip(counts, 0, self.covering_count)
 
     def covering(self, world_xy: np.ndarray) -> np.ndarray:
         """(T,) int64: how many cameras cover each position (0 off the grid)."""

@@ -147,6 +147,7 @@ class FusionTracker:
             "clock": self._clock.get_state(),
             "reported": [[frame, sorted(ids)] for frame, ids in self._reported.items()],
             "clock_turn": self.clock_learning.turn,
+            "coverage": self.coverage.get_state(),
         }
 
     def set_state(self, state: dict) -> None:
@@ -168,6 +169,7 @@ class FusionTracker:
             self._clock.set_state(state["clock"])
             self._reported = {int(frame): set(ids) for frame, ids in state["reported"]}
             self.clock_learning.turn = int(state["clock_turn"])
+            self.coverage.set_state(state.get("coverage"))
         except (KeyError, TypeError, ValueError, IndexError) as error:
             raise MatcherError(f"the saved fusion-tracker state is incomplete: {error}.") from None
 
