@@ -276,7 +276,7 @@ def _round_corners(points: list[tuple[float, float]],
         if np.hypot(*(np.asarray(point) - kept[-1])) > 1e-6:
             kept.append(np.asarray(point, np.float64))
     rounded = [kept[0]]
-    for before, corner, after in zip(kept, kept[1:], kept[2:]):
+    for before, corner, after in zip(kept, kept[1:], kept[2:], strict=False):
         leg_in, leg_out = corner - before, after - corner
         length_in, length_out = np.hypot(*leg_in), np.hypot(*leg_out)
         u, v = leg_in / length_in, leg_out / length_out
