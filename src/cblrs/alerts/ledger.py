@@ -51,8 +51,16 @@ class AlertLedger:
         if state is not None:
             self.episodes.set_state(state)
 
-    def observe(self, observation: Observation) -> list[AlertEvent]:
-        """Feed one observation; its events, committed with the episodes' state."""
+    def observe(self, observation: Observation,
+                meta: Mapping[str, Any] | None = None) -> list[AlertEvent]:
+        """Feed one observation; its events, committed with the episodes' state.
+
+        Args:
+            observation: the plane now.
+            meta: more ``meta`` keys to commit in the same transaction (e.g. how far the
+                caller has read the events table), so that they and the episodes' state
+                never disagree after a crash.
+        """
         events = self.episodes.observe(observation)
         state = self.episodes.get_state()
 
@@ -68,6 +76,12 @@ class AlertLedger:
                 "ON CONFLICT(key) DO UPDATE SET value = excluded.value",
                 (STATE_KEY, json.dumps(state)),
             )
+            for key, value in (meta or {}).items():
+                cursor.execute(
+                    "INSERT INTO meta (key, value) VALUES (?, ?) "
+                    "ON CONFLICT(key) DO UPDATE SET value = excluded.value",
+                    (key, json.dumps(value)),
+                )
 
         if events or state["clock"] is not None:
             self.store.write(writes)

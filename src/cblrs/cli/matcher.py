@@ -305,6 +305,12 @@ def run(args: argparse.Namespace) -> int:
     stop = threading.Event()
     failures: list[str] = []
     analytics = make_analytics(site, plane_id, args)
+    alerts = None if site is None or not site.alerts.rules else site.alerts
+    senders: dict[str, Any] = {}
+    if alerts is not None:
+        from cblrs.runtime.alert_service import make_senders  # lazy, like the others
+
+        senders = make_senders(alerts, site.path.parent if site.path is not None else None)
     metrics = server = None
     if args.http is not None:
         # lazy: a subcommand imports the library when it runs, so its --help starts fast
@@ -340,6 +346,8 @@ def run(args: argparse.Namespace) -> int:
         analytics=analytics,
         metrics=metrics,
         live_interval_s=args.live_interval or None,
+        alerts=alerts,
+        alert_senders=senders,
     )
     if metrics is not None:
 
@@ -392,6 +400,9 @@ def run(args: argparse.Namespace) -> int:
             print(f"analytics: {len(analytics.places.lines)} counting lines, "
                   f"{len(analytics.places.zones)} zones; events on cblrs/{plane_id}/events",
                   file=sys.stderr)
+        if alerts is not None:
+            print(f"alerts: {len(alerts.rules)} rules on cblrs/{plane_id}/alerts, webhooks: "
+                  f"{', '.join(senders) or 'none'}", file=sys.stderr)
         if server is not None:
             print(f"metrics: {server.url}/metrics, /healthz, /readyz", file=sys.stderr)
     flush = True if args.prepare else _wait(service, stop, args)
