@@ -1,8 +1,8 @@
 """The dashboard's pages attacked in a real browser (headless Chromium through Playwright).
 
 * Script in names: zone, line, site, camera and calibration-point names, and place names
-  arriving from the broker (an event, the live summary, an alert), carry markup that would run if the
-  page wrote them as HTML. The site-file route is closed by validation (tested in
+  arriving from the broker (an event, the live summary, an alert), carry markup that would
+  run if the page wrote them as HTML. The site-file route is closed by validation (tested in
   test_dashboard_security.py); here the validation is switched off in this process, so that
   the hostile names reach the page over the wire, as from a site file of an older cblrs or
   from a compromised matcher. None may run (no dialog, the title and a global untouched,

@@ -234,6 +234,7 @@ def run(args: argparse.Namespace) -> int:
     check_arguments(args)
     # lazy: a subcommand imports the library when it runs, so its --help starts fast
     from cblrs.matching import make_matcher
+    from cblrs.runtime.alert_service import site_alerts
     from cblrs.runtime.matcher_service import MatcherService
     from cblrs.runtime.mqtt_transport import MqttTransport
     from cblrs.runtime.retention import RetentionPolicy
@@ -305,12 +306,7 @@ def run(args: argparse.Namespace) -> int:
     stop = threading.Event()
     failures: list[str] = []
     analytics = make_analytics(site, plane_id, args)
-    alerts = None if site is None or not site.alerts.rules else site.alerts
-    senders: dict[str, Any] = {}
-    if alerts is not None:
-        from cblrs.runtime.alert_service import make_senders  # lazy, like the others
-
-        senders = make_senders(alerts, site.path.parent if site.path is not None else None)
+    alerts, senders = site_alerts(site)  # the webhooks' secrets are read now
     metrics = server = None
     if args.http is not None:
         # lazy: a subcommand imports the library when it runs, so its --help starts fast
@@ -346,8 +342,7 @@ def run(args: argparse.Namespace) -> int:
         analytics=analytics,
         metrics=metrics,
         live_interval_s=args.live_interval or None,
-        alerts=alerts,
-        alert_senders=senders,
+        alerts=alerts, alert_senders=senders,
     )
     if metrics is not None:
 
@@ -400,9 +395,6 @@ def run(args: argparse.Namespace) -> int:
             print(f"analytics: {len(analytics.places.lines)} counting lines, "
                   f"{len(analytics.places.zones)} zones; events on cblrs/{plane_id}/events",
                   file=sys.stderr)
-        if alerts is not None:
-            print(f"alerts: {len(alerts.rules)} rules on cblrs/{plane_id}/alerts, webhooks: "
-                  f"{', '.join(senders) or 'none'}", file=sys.stderr)
         if server is not None:
             print(f"metrics: {server.url}/metrics, /healthz, /readyz", file=sys.stderr)
     flush = True if args.prepare else _wait(service, stop, args)
@@ -519,7 +511,7 @@ def position_summary(site: Any, names: list[str], options: dict[str, Any], match
     if site is not None:
         text += (
             f"\nsite {site.name or site.source}: {len(site.places.zones)} zones, "
-            f"{len(site.places.lines)} counting lines"
+            f"{len(site.places.lines)} counting lines, {len(site.alerts.rules)} alert rules"
         )
     return text
 

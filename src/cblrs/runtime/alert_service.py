@@ -69,6 +69,18 @@ def make_senders(alerts: AlertsModel, folder: Path | None = None,
     return senders
 
 
+def site_alerts(site: Any) -> tuple[AlertsModel | None, dict[str, WebhookSender]]:
+    """A site's alerts for the matcher (None without rules) and their webhooks' senders.
+
+    Raises:
+        AlertsError: see :func:`make_senders`.
+    """
+    if site is None or not site.alerts.rules:
+        return None, {}
+    folder = site.path.parent if site.path is not None else None
+    return site.alerts, make_senders(site.alerts, folder)
+
+
 class _Backbone:
     """The broker as an outbox destination: publish, wait for the acknowledgement."""
 
