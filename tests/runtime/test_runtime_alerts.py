@@ -191,6 +191,7 @@ def test_an_episode_fires_once_and_clears_once_across_a_matcher_kill(
         assert first["valid"] and 0 <= first["age_s"] < 30
         assert first["body"]["episode"] == "down/CVLab1/1" and first["body"]["state"] == "fired"
         assert first["body"]["kind"] == "camera_offline" and first["body"]["subject"] == "CVLab1"
+        assert first["body"]["plane"] == 1
         # The viewer reads it on the backbone, with the episode in the active list.
         wait_until(lambda: alerts.deliveries, 10, "the alert on the backbone")
         published = decode_alert(alerts.deliveries[0].payload)

@@ -41,11 +41,19 @@ STATE_KEY = "alert_state"
 
 
 class AlertLedger:
-    """Alert episodes of one plane, persisted in its store, and their webhook outbox."""
+    """Alert episodes of one plane, persisted in its store, and their webhook outbox.
 
-    def __init__(self, store: Any, alerts: AlertsModel) -> None:
+    Args:
+        store: the matcher's store.
+        alerts: the rules.
+        context: fields added to every alert's body (the matcher service adds its ``plane``).
+    """
+
+    def __init__(self, store: Any, alerts: AlertsModel,
+                 context: Mapping[str, Any] | None = None) -> None:
         self.store = store
         self.episodes = AlertEpisodes(alerts)
+        self.context = dict(context or {})
         store.write(lambda cursor: cursor.execute(ALERTS_SCHEMA))
         state = store.get_meta(STATE_KEY)
         if state is not None:
@@ -68,8 +76,8 @@ class AlertLedger:
             cursor.executemany(
                 "INSERT OR IGNORE INTO alerts (episode, state, timestamp, body) "
                 "VALUES (?, ?, ?, ?)",
-                [(event.episode, event.state, event.timestamp, json.dumps(event.to_dict()))
-                 for event in events],
+                [(event.episode, event.state, event.timestamp,
+                  json.dumps({**event.to_dict(), **self.context})) for event in events],
             )
             cursor.execute(
                 "INSERT INTO meta (key, value) VALUES (?, ?) "

@@ -170,7 +170,7 @@ class AlertService:
     # ------------------------------------------------------------------ lifecycle
     def start(self) -> None:
         """Open the ledger (resuming its episodes) and start the threads."""
-        self.ledger = AlertLedger(self.store, self.alerts)
+        self.ledger = AlertLedger(self.store, self.alerts, {"plane": self.plane_id})
         seen = self.store.get_meta(EVENTS_SEEN_KEY)
         if seen is None:  # counting starts now, not from the history already in the file
             seen = self._last_event_id()
