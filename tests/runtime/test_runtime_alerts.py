@@ -39,6 +39,7 @@ from cblrs.runtime.wire import encode_message
 
 pytestmark = [pytest.mark.mqtt]
 
+REPO = Path(__file__).resolve().parents[2]
 MATCHER = "matcher1"
 SECRET = b"a webhook secret for the test"
 RULE = {"name": "down", "kind": "camera_offline", "camera": "CVLab1", "for_s": 1}
@@ -89,18 +90,21 @@ class Receiver:
 
 @pytest.fixture(scope="module")
 def wildtrack_site(wildtrack_root, tmp_path_factory) -> dict:
+    """`cblrs site init` of WILDTRACK with the places of sites/wildtrack.yaml."""
     folder = tmp_path_factory.mktemp("alerts-site")
     path = folder / "base.yaml"
     assert main(["site", "init", str(wildtrack_root), "--out", str(path)]) == 0
-    return yaml.safe_load(path.read_text())
+    document = yaml.safe_load(path.read_text())
+    document["places"] = yaml.safe_load((REPO / "sites/wildtrack.yaml").read_text())["places"]
+    return document
 
 
-def write_site(base: dict, folder: Path, url: str) -> Path:
+def write_site(base: dict, folder: Path, url: str, rules=(RULE,)) -> Path:
     secret = folder / "ops.secret"
     secret.write_bytes(SECRET)
     secret.chmod(0o600)
     document = {**base, "alerts": {
-        "rules": [RULE],
+        "rules": list(rules),
         "webhooks": [{"name": "ops", "url": url, "secret_file": "ops.secret", "timeout_s": 2,
                       "retries": 3, "backoff_s": 0.2, "max_backoff_s": 1}],
     }}
@@ -109,20 +113,28 @@ def write_site(base: dict, folder: Path, url: str) -> Path:
     return path
 
 
-def start_matcher(site: Path, database: Path, broker) -> subprocess.Popen:
+def start_matcher(site: Path, database: Path, broker, window: str = "1") -> subprocess.Popen:
     command = [
         sys.executable, "-m", "cblrs.cli.main", "matcher", "--site", str(site),
         "--db", str(database), "--broker", f"127.0.0.1:{broker.port}",
         "--username", MATCHER, "--password-file", str(broker.files.password_files[MATCHER]),
-        "--window", "1",
+        "--window", window,
     ]
     return subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             env={**os.environ, "PYTHONUNBUFFERED": "1"})
 
 
 def read_db(database: Path, sql: str) -> list[tuple]:
+    """The rows of a read-only query (none while the matcher has not created the file)."""
+    if not database.exists():
+        return []
     with sqlite3.connect(f"file:{database}?mode=ro", uri=True, timeout=5) as connection:
-        return connection.execute(sql).fetchall()
+        try:
+            return connection.execute(sql).fetchall()
+        except sqlite3.OperationalError as error:  # the tables are being created
+            if "no such table" in str(error):
+                return []
+            raise
 
 
 def alert_clock(database: Path) -> float:
@@ -238,4 +250,65 @@ def test_an_episode_fires_once_and_clears_once_across_a_matcher_kill(
                 process.kill()
                 process.communicate()
         viewer.close(timeout=1)
+        receiver.close()
+
+
+def test_live_counts_fire_the_line_and_zone_rules(wildtrack_root, wildtrack_site,
+                                                 start_mosquitto, tmp_path):
+    """Seven WILDTRACK cameras replay 30 s of the scene (~5x) through the broker: every line
+    the matcher counted crossings on fires its line-count rule (more than 0 in 3 s) and clears
+    it 3 s after, once each; an occupancy rule fires only on zones people entered."""
+    from test_runtime_online_analytics import start_cameras
+
+    from cblrs.datasets import load_scene
+    from cblrs.site import load_site
+
+    places = wildtrack_site["places"]
+    rules = [{"name": f"rush {line['name']}", "kind": "line_count", "line": line["name"],
+              "above": 0, "per_s": 3} for line in places["lines"]]
+    rules += [{"name": f"busy {zone['name']}", "kind": "occupancy", "zone": zone["name"],
+               "above": 0} for zone in places["zones"]]
+    names = [camera["name"] for camera in wildtrack_site["cameras"]]
+    broker = start_mosquitto(cameras=names, matchers=[MATCHER], plane_ids=(1,))
+    receiver = Receiver(SECRET)
+    site_path = write_site(wildtrack_site, tmp_path, receiver.url, rules)
+    site = load_site(site_path)
+    scene = load_scene(wildtrack_root).select_frames(0, 295)
+    case = {"scene": scene,
+            "references": [site.render_reference(name) for name in scene.camera_names]}
+    database = tmp_path / "matcher.db"
+    matcher = start_matcher(site_path, database, broker, window="5")
+    try:
+        wait_until(lambda: alert_clock(database) > 0 or matcher.poll() is not None, 30,
+                   "the matcher's first alert observation")
+        assert matcher.poll() is None, matcher.communicate()[1]
+        for thread in start_cameras(case, broker, float(int(time.time()) - 600)):
+            thread.join(60)
+
+        def counted(kind: str) -> set[str]:
+            return {place for (place,) in read_db(
+                database, f"SELECT DISTINCT place FROM events WHERE kind = '{kind}'")}
+
+        wait_until(lambda: read_db(database, "SELECT COUNT(*) FROM inbox WHERE status = "
+                                   "'pending'") == [(0,)] and counted("line_crossed"), 60,
+                   "every message tracked and crossings counted")
+        crossed = counted("line_crossed")
+        expected = {f"rush {line}/{line}/1 {state}" for line in crossed
+                    for state in ("fired", "cleared")}
+        # The last crossing's rule clears 3 s after it (wall clock), at the latest.
+        wait_until(lambda: expected <= set(receiver.episodes()), 30,
+                   "each counted line's rule to fire and clear")
+        assert all(post["valid"] for post in receiver.posts)
+        episodes = receiver.episodes()
+        assert len(episodes) == len(set(episodes)), episodes  # each (episode, state) once
+        lines_fired = {post["body"]["subject"] for post in receiver.posts
+                       if post["body"]["kind"] == "line_count"}
+        assert lines_fired == crossed  # no line fired that the matcher did not count
+        zones_fired = {post["body"]["subject"] for post in receiver.posts
+                       if post["body"]["kind"] == "occupancy"}
+        assert zones_fired and zones_fired <= counted("zone_entered")
+    finally:
+        if matcher.poll() is None:
+            matcher.kill()
+            matcher.communicate()
         receiver.close()
