@@ -14,7 +14,7 @@ Two cameras (CVLab1, CVLab2), 40 annotated WILDTRACK frames each, as in
 * item 5: a stop with a tracking backlog (the service with a deliberately slow tracker);
 * item 6: a spool holding another run's messages.
 * item 1 (late data re-tracked) is not done: a message that arrives after its window was
-  released is stored as ``late`` and not tracked (README, "What cblrs guarantees").
+  released is stored as ``late`` and not tracked (docs/services.md, "What cblrs guarantees").
 """
 
 from __future__ import annotations

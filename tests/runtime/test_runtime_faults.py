@@ -5,7 +5,7 @@ in one sentence, before anything is acknowledged).
 
 Scaled down to stay quick on two cores: two cameras (CVLab1, CVLab2), 40 annotated frames
 each (80 messages); a queue cap of a few kilobytes stands in for the 100 000-message one.
-README's "What cblrs guarantees" names the test behind each of its lines.
+"What cblrs guarantees" in docs/services.md names the test behind each of its lines.
 """
 
 from __future__ import annotations
