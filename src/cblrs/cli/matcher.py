@@ -241,12 +241,12 @@ def run(args: argparse.Namespace) -> int:
     from cblrs.runtime.store import RuntimeStore
     from cblrs.runtime.topics import matcher_status_topic, validate_client_id
     from cblrs.runtime.transport import Will
+    from cblrs.runtime.views import tell_views
     from cblrs.runtime.wire import ValidationPolicy, encode_status
 
     site = None
     if args.site is not None:
-        # lazy: a subcommand imports the library when it runs, so its --help starts fast
-        from cblrs.site import load_site
+        from cblrs.site import load_site  # lazy, as above
 
         site = load_site(args.site)
     if args.references is not None:
@@ -282,11 +282,11 @@ def run(args: argparse.Namespace) -> int:
     options = parse_options(args.option)
     positions = site_positions(site, names)
     if site is not None and args.matcher == "fusion" and "camera_positions" not in options:
-        # The fusion tracker's noise grows with distance from each camera and along its
-        # viewing ray: without positions it tracks worse (WILDTRACK HOTA 92.0 vs 93.8).
+        # Noise grows with distance and along the ray (without: WILDTRACK HOTA 92.0 vs 93.8).
         if positions:
             options["camera_positions"] = {name: list(xyz) for name, xyz in positions.items()}
     matcher = make_matcher(args.matcher, planes, names, **options)
+    tell_views(matcher, names, args.references, site)  # where each camera sees the ground
     limits: dict[str, Any] = {"bits": planes.bits}
     for name, value in (
         ("max_age_s", args.max_age),
