@@ -286,7 +286,6 @@ def run(args: argparse.Namespace) -> int:
         if positions:
             options["camera_positions"] = {name: list(xyz) for name, xyz in positions.items()}
     matcher = make_matcher(args.matcher, planes, names, **options)
-    tell_views(matcher, names, args.references, site)  # where each camera sees the ground
     limits: dict[str, Any] = {"bits": planes.bits}
     for name, value in (
         ("max_age_s", args.max_age),
@@ -314,6 +313,7 @@ def run(args: argparse.Namespace) -> int:
 
         address, http_token = http_settings(args)
         metrics = ServiceMetrics(plane_id, names)
+    tell_views(matcher, names, args.references, site)  # where each camera sees the ground
     store = RuntimeStore(args.db)
     if uses_nats(args):
         # An empty store is rebuilt from the plane's stream (e.g. on a new host).
