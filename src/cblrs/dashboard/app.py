@@ -20,11 +20,14 @@ API (JSON, and Server-Sent Events for the streams):
   ``POST /api/calibrate/fit``, ``POST /api/calibrate/save``,
   ``GET /api/calibrate/reference/{camera}`` — the calibration page
   (:mod:`cblrs.dashboard.calibration`);
+* ``GET /api/places`` (viewers may read), ``POST /api/places/save`` (admins) — the map's
+  places editor (:mod:`cblrs.dashboard.places_editor`);
 * ``GET /login``, ``POST /api/login``, ``POST /api/logout``, ``GET /api/session`` — logging
   in and out, and who the page's user is (with the session's CSRF token).
 
 Who may do what (:mod:`cblrs.dashboard.auth`): ``/login``, ``/healthz`` and ``/static``
-are open; every other route needs a viewer, and the calibration page and its API an admin.
+are open; every other route needs a viewer, and the calibration page and its API, and saving
+places, an admin.
 Each endpoint states its role with :func:`~cblrs.dashboard.auth.requires`.
 """
 
@@ -36,7 +39,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from cblrs.dashboard import calibration
+from cblrs.dashboard import calibration, places_editor
 from cblrs.dashboard.feed import LiveFeed, sse
 from cblrs.dashboard.replay import ReplayError, StoreReplay
 from cblrs.dashboard.scene import map_image, site_scene
@@ -118,6 +121,7 @@ def create_app(config: DashboardConfig, auth: Any) -> Any:
 
     viewer, admin = Role.VIEWER, Role.ADMIN
     scene_cache: dict[str, Any] = {}
+    places_lock = asyncio.Lock()  # one save of the site file at a time
     logins = asyncio.Semaphore(2)  # scrypt takes 128 MiB and a good part of a second each
 
     def scene() -> dict[str, Any]:
@@ -345,6 +349,33 @@ def create_app(config: DashboardConfig, auth: Any) -> Any:
             return refusal(error, 404)
         return Response(png, media_type="image/png")
 
+    # -- places drawn on the map (admins save) ------------------------------------------
+
+    @requires(viewer)
+    async def places(request: Any) -> Any:
+        view = await asyncio.to_thread(places_editor.places_view, config.site,
+                                       config.site_path, config.plane_id)
+        return JSONResponse(view)
+
+    @requires(admin)
+    async def places_save(request: Any) -> Any:
+        try:
+            data = await request.json()
+        except ValueError:
+            return refusal(CblrsError("send the places as JSON."), 400)
+        async with places_lock:
+            try:
+                result = await asyncio.to_thread(places_editor.save_places, config.site_path,
+                                                 data, config.plane_id)
+            except CblrsError as error:
+                return refusal(error)
+            config.site = load_site(config.site_path)
+            scene_cache.clear()
+        logger.info("dashboard: %s saved %d zones and %d lines to %s",
+                    request.state.identity.user, result["zones"], result["lines"],
+                    config.site_path)
+        return JSONResponse(result)
+
     async def healthz(request: Any) -> Any:
         return Response("ok\n", media_type="text/plain")
 
@@ -366,6 +397,8 @@ def create_app(config: DashboardConfig, auth: Any) -> Any:
         Route("/api/stream", stream),
         Route("/api/replay/info", replay_info),
         Route("/api/replay", replay),
+        Route("/api/places", places),
+        Route("/api/places/save", places_save, methods=["POST"]),
         Route("/api/calibrate/cameras", calibrate_cameras),
         Route("/api/calibrate/frame/{camera}", calibrate_frame),
         Route("/api/calibrate/fit", calibrate_fit, methods=["POST"]),
