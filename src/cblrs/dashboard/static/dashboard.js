@@ -69,6 +69,7 @@ function onTracks(message) {
   }
   if (state.time === null || t >= state.time) state.time = t;
   if (!message.tick) {
+    CblrsPlaces.heatAdd(message.rows);
     stats.tracksMessages += 1;
     state.updates.push(performance.now());
   }
@@ -200,6 +201,7 @@ function connect(url, mode) {
   stats.mode = mode;
   stats.ended = false;
   resetCounts();
+  CblrsPlaces.heatReset(state.scene.bounds);
   hideNotice();
   const source = new EventSource(url);
   state.source = source;
@@ -223,7 +225,12 @@ function setConnection(mode, ok) {
   pill.textContent = mode === "replay" ? (ok ? "replay" : "replay ended") : ok ? "live" : "offline";
 }
 
-function showNotice(text) { const n = $("notice"); n.textContent = text; n.classList.remove("hidden"); }
+function showNotice(text, info) {
+  const n = $("notice");
+  n.textContent = text;
+  n.classList.toggle("info", Boolean(info));
+  n.classList.remove("hidden");
+}
 function hideNotice() { $("notice").classList.add("hidden"); }
 
 function startReplay() {
@@ -249,7 +256,9 @@ function draw() {
   ctx.setTransform(1, 0, 0, 1, 0, 0);
   ctx.drawImage(view.staticLayer, 0, 0);
   ctx.setTransform(view.ratio, 0, 0, view.ratio, 0, 0);
-  view.drawPlaces(ctx, labels(), state.flashes, started);
+  CblrsPlaces.heatDraw(ctx, view);
+  if (CblrsPlaces.editing()) CblrsPlaces.draw(ctx, view);
+  else view.drawPlaces(ctx, labels(), state.flashes, started);
   const showTrails = $("trails").checked;
   const count = state.tracks.size;
   ctx.lineWidth = 2;
@@ -363,18 +372,39 @@ setInterval(() => {
 }, 250);
 
 // ------------------------------------------------------------------ start
-Cblrs.loadSession().then(() => Cblrs.fetchJSON("/api/site")).then((scene) => {
+// The site's places (at start, and again after the places editor saved them).
+function applyScene(scene) {
+  const counts = { lines: state.lines, zones: state.zones };
   state.scene = scene;
-  document.title = `cblrs · ${scene.name}`;
-  $("site-name").textContent = `${scene.name} · plane ${scene.plane}`;
-  state.view = new Cblrs.MapView($("map"), scene);
-  window.addEventListener("resize", () => { state.view.resize(); state.dirty = true; });
+  if (state.view) {
+    state.view.scene = scene;
+    state.view.resize();
+  }
   resetCounts();
+  // Counts of places that kept their names stay until the matcher says otherwise.
+  for (const name of Object.keys(state.lines)) if (counts.lines[name]) state.lines[name] = counts.lines[name];
+  for (const name of Object.keys(state.zones)) if (counts.zones[name]) state.zones[name] = counts.zones[name];
   state.tablesDirty = true;  // the site's lines, zones and cameras, before any message
+  state.dirty = true;
   // Which rule made the counts, beside them (rules differ by ~10 % on real tracks).
   const rules = [...new Set(scene.lines.map((line) => line.rule))];
   $("line-rule").textContent = rules.length === 1 ? `counted when: ${rules[0]}`
     : scene.lines.map((line) => `${line.name}: ${line.rule}`).join("; ");
+}
+
+Cblrs.loadSession().then(() => Cblrs.fetchJSON("/api/site")).then((scene) => {
+  document.title = `cblrs · ${scene.name}`;
+  $("site-name").textContent = `${scene.name} · plane ${scene.plane}`;
+  applyScene(scene);
+  state.view = new Cblrs.MapView($("map"), scene);
+  window.addEventListener("resize", () => { state.view.resize(); state.dirty = true; });
+  CblrsPlaces.start({
+    view: () => state.view,
+    redraw: () => { state.dirty = true; },
+    onSaved: () => Cblrs.fetchJSON("/api/site").then(applyScene),
+    notify: (text) => { showNotice(text, true); setTimeout(hideNotice, 10000); },
+    admin: Cblrs.session().role === "admin",
+  });
   $("live-button").disabled = !scene.live;
   $("replay-button").disabled = !scene.replay;
   $("live-button").onclick = () => connect("/api/stream", "live");
