@@ -15,7 +15,8 @@
 
 const CblrsPlaces = (() => {
   const HEAT_TAU_S = 60;
-  const HEAT_CELLS = 160;       // cells along the longer side of the map
+  const HEAT_CELLS = 120;       // cells along the longer side of the map
+  const HEAT_SPREAD = 2;        // cells each side that a position warms
   const HANDLE_PX = 8;          // how near a vertex a press grabs it
   const LINE_PICK_PX = 7;       // how near a line a press picks it
   const $ = (id) => document.getElementById(id);
@@ -45,7 +46,14 @@ const CblrsPlaces = (() => {
       const col = Math.floor((row[1] - heat.x0) / heat.cell);
       const line = Math.floor((row[2] - heat.y0) / heat.cell);
       if (col < 0 || line < 0 || col >= heat.cols || line >= heat.rows) continue;
-      heat.grid[line * heat.cols + col] += 1;
+      // A soft spot (a person covers more than one cell; positions jitter by a few).
+      for (let dy = -HEAT_SPREAD; dy <= HEAT_SPREAD; dy += 1) {
+        for (let dx = -HEAT_SPREAD; dx <= HEAT_SPREAD; dx += 1) {
+          const c = col + dx, l = line + dy;
+          if (c < 0 || l < 0 || c >= heat.cols || l >= heat.rows) continue;
+          heat.grid[l * heat.cols + c] += Math.exp(-(dx * dx + dy * dy) / HEAT_SPREAD);
+        }
+      }
       heat.added += 1;
     }
     heat.dirty = true;
@@ -69,13 +77,15 @@ const CblrsPlaces = (() => {
       for (let line = 0; line < heat.rows; line += 1) {
         for (let col = 0; col < heat.cols; col += 1) {
           const level = Math.sqrt(heat.grid[line * heat.cols + col] / max);
-          if (level < 0.02) continue;
+          if (level < 0.01) continue;
           // The image's top row is the grid's highest y (the map has y up).
           const at = ((heat.rows - 1 - line) * heat.cols + col) * 4;
-          pixels.data[at] = 255;
-          pixels.data[at + 1] = Math.round(220 * (1 - level));
-          pixels.data[at + 2] = Math.round(60 * (1 - level));
-          pixels.data[at + 3] = Math.round(60 + 170 * level);
+          // Blue (rare) -> yellow -> red (most frequent).
+          const low = Math.min(1, level * 2), high = Math.max(0, level * 2 - 1);
+          pixels.data[at] = Math.round(60 + 195 * low);
+          pixels.data[at + 1] = Math.round(140 + 90 * low - 200 * high);
+          pixels.data[at + 2] = Math.round(255 * (1 - low));
+          pixels.data[at + 3] = Math.round(40 + 190 * level);
         }
       }
     }
