@@ -126,7 +126,7 @@ def shared(wildtrack_site, users_file, tmp_path_factory) -> Iterator[str]:
 PAGES = ["/", "/calibrate"]
 API = ["/api/site", "/api/status", "/api/stream", "/api/replay/info", "/api/replay", "/map",
        "/api/session", "/api/calibrate/cameras", "/api/calibrate/frame/CVLab1",
-       "/api/calibrate/reference/CVLab1"]
+       "/api/calibrate/reference/CVLab1", "/api/places"]
 
 
 def test_anonymous_requests_are_refused(shared, wildtrack_site):
@@ -139,7 +139,7 @@ def test_anonymous_requests_are_refused(shared, wildtrack_site):
         assert status == 401 and b"log in" in body, path
     before = own_site.read_bytes()
     body = json.dumps(calibration_points(own_site))
-    for path in ("/api/calibrate/save", "/api/calibrate/fit", "/api/logout"):
+    for path in ("/api/calibrate/save", "/api/calibrate/fit", "/api/places/save", "/api/logout"):
         status, _, _ = call(dashboard, path, "POST", {"Content-Type": "application/json",
                                                       "Origin": origin(dashboard)}, body)
         assert status == 401, path

@@ -4,7 +4,8 @@ Pages (static files shipped with the package, no build step, nothing fetched fro
 
 * ``/`` — the live map: the site's planes, zones, counting lines, cameras and their fields
   of view; live global tracks with short trails coloured by id; zones and lines with their
-  counts; per-camera status; the event log; a replay of a stored run at 1x-10x;
+  counts; per-camera status; the event log; a replay of a stored run at 1x-10x; a heatmap
+  of recent positions; for admins, an editor of the zones and lines (saved to the site file);
 * ``/calibrate`` — a camera's frame beside the site map: click point pairs, see each
   point's reprojection error live, save to the site file and render the reference.
 
@@ -60,7 +61,8 @@ class DashboardConfig:
     """What one dashboard serves.
 
     Attributes:
-        site_path: the site file (read at start; the calibration page rewrites it).
+        site_path: the site file (read at start; the calibration page and the places editor
+            rewrite it).
         plane_id: the plane shown (default: the site's first).
         feed: the live feed (None: replay only).
         database: a matcher database to replay (None: no replay).

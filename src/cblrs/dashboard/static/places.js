@@ -17,6 +17,12 @@ const CblrsPlaces = (() => {
   const HEAT_TAU_S = 60;
   const HEAT_CELLS = 120;       // cells along the longer side of the map
   const HEAT_SPREAD = 2;        // cells each side that a position warms
+  const HEAT_KERNEL = [];       // weights of the (2 * HEAT_SPREAD + 1)^2 cells around one
+  for (let dy = -HEAT_SPREAD; dy <= HEAT_SPREAD; dy += 1) {
+    for (let dx = -HEAT_SPREAD; dx <= HEAT_SPREAD; dx += 1) {
+      HEAT_KERNEL.push(Math.exp(-(dx * dx + dy * dy) / HEAT_SPREAD));
+    }
+  }
   const HANDLE_PX = 8;          // how near a vertex a press grabs it
   const LINE_PICK_PX = 7;       // how near a line a press picks it
   const $ = (id) => document.getElementById(id);
@@ -51,7 +57,8 @@ const CblrsPlaces = (() => {
         for (let dx = -HEAT_SPREAD; dx <= HEAT_SPREAD; dx += 1) {
           const c = col + dx, l = line + dy;
           if (c < 0 || l < 0 || c >= heat.cols || l >= heat.rows) continue;
-          heat.grid[l * heat.cols + c] += Math.exp(-(dx * dx + dy * dy) / HEAT_SPREAD);
+          heat.grid[l * heat.cols + c] += HEAT_KERNEL[(dy + HEAT_SPREAD) * (2 * HEAT_SPREAD + 1)
+            + dx + HEAT_SPREAD];
         }
       }
       heat.added += 1;
