@@ -1,9 +1,9 @@
 """The places editor in a real browser (headless Chromium), and the heatmap layer.
 
-An admin logs in through the login form, opens the editor, draws a counting line (two
-clicks) and a zone (clicks and a double-click), names them in the text box, drags a vertex
-of a zone of the file, picks the file's line and deletes it, and saves: a hostile name is
-refused with the server's sentence shown as text, then the save goes through and the site
+An admin logs in through the login form, opens the editor, draws a counting line (two clicks)
+and drags it, draws a zone (clicks and a double-click), names them in the text box, drags a
+vertex of a zone of the file, picks the file's line and deletes it, and saves: a hostile name
+is refused with the server's sentence shown as text, then the save goes through and the site
 file holds exactly what was drawn (within a screen pixel) and the map's tables list the new
 places. A viewer's page has no editor, and its heatmap layer colours the map where tracks
 were.
@@ -61,6 +61,11 @@ def test_admin_draws_renames_moves_deletes_and_saves(site_path, start_dashboard,
     page.mouse.click(*at(2, 8))
     page.mouse.click(*at(18, 8))
     page.fill("#place-name", "north path")
+    # Drag it by its middle one metre south.
+    page.mouse.move(*at(10, 8))
+    page.mouse.down()
+    page.mouse.move(*at(10, 7), steps=5)
+    page.mouse.up()
     # A zone: clicks, a double-click closes it.
     page.click("#draw-zone")
     page.mouse.click(*at(12, 2))
@@ -100,7 +105,7 @@ def test_admin_draws_renames_moves_deletes_and_saves(site_path, start_dashboard,
         for point, want in zip(got, expected[zone.name], strict=True):
             assert abs(point[0] - want[0]) <= tolerance and abs(point[1] - want[1]) <= tolerance
     line = saved.line("north path")
-    for point, want in ((line.start, (2, 8)), (line.end, (18, 8))):
+    for point, want in ((line.start, (2, 7)), (line.end, (18, 7))):
         assert abs(point[0] - want[0]) <= tolerance and abs(point[1] - want[1]) <= tolerance
     assert site_path.with_name("site.yaml.bak").read_bytes() == before
     # The map lists the new places at once.
