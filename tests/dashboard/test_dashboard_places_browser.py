@@ -2,11 +2,11 @@
 
 An admin logs in through the login form, opens the editor, draws a counting line (two clicks)
 and drags it, draws a zone (clicks and a double-click), names them in the text box, drags a
-vertex of a zone of the file, picks the file's line and deletes it, and saves: a hostile name
-is refused with the server's sentence shown as text, then the save goes through and the site
-file holds exactly what was drawn (within a screen pixel) and the map's tables list the new
-places. A viewer's page has no editor, and its heatmap layer colours the map where tracks
-were.
+vertex of a zone of the file, adds a vertex to it, picks the file's line and deletes it, and
+saves: a hostile name is refused with the server's sentence shown as text, then the save goes
+through and the site file holds exactly what was drawn (within a screen pixel) and the map's
+tables list the new places. A viewer's page has no editor, and its heatmap layer colours the
+map where tracks were.
 """
 
 from __future__ import annotations
@@ -77,6 +77,13 @@ def test_admin_draws_renames_moves_deletes_and_saves(site_path, start_dashboard,
     page.mouse.down()
     page.mouse.move(*at(6, 5), steps=5)
     page.mouse.up()
+    # A vertex added on the zone's top edge, another added and removed again (shift-click).
+    page.mouse.dblclick(*at(3, 4.5))
+    page.mouse.dblclick(*at(1, 2.5))
+    assert len(page.evaluate("window.cblrsPlaces.places()")[0]["polygon"]) == 6
+    page.keyboard.down("Shift")
+    page.mouse.click(*at(1, 2.5))
+    page.keyboard.up("Shift")
     page.mouse.click(*at(10, 3.5))
     assert page.input_value("#place-name") == "door"
     page.click("#delete-place")
@@ -97,7 +104,7 @@ def test_admin_draws_renames_moves_deletes_and_saves(site_path, start_dashboard,
     wait_until(lambda: not page.evaluate("window.cblrsPlaces.editing()"), 20, "the save")
     saved = load_site(site_path).places
     assert saved.names == ["gate area", "bench", "north path"]
-    expected = {"gate area": [[1, 1], [5, 1], [6, 5], [1, 4]],
+    expected = {"gate area": [[1, 1], [5, 1], [6, 5], [3, 4.5], [1, 4]],
                 "bench": [[12, 2], [16, 2], [14, 5]]}
     for zone in saved.zones:
         got = zone.polygon.tolist()

@@ -3,8 +3,9 @@
 // Editor: "Edit places" turns the map into a drawing board for the shown plane's zones and
 // counting lines: "Line" then two clicks draws a line; "Zone" then clicks, and a double-click
 // (or Enter) closes the polygon; in "Select", a click picks a place (its name goes to the text
-// box, to rename it), dragging a vertex moves it and dragging a place moves all of it; Delete
-// removes the picked one. "Save" sends the whole list to /api/places/save (the server checks
+// box, to rename it), dragging a vertex moves it and dragging a place moves all of it; a
+// double-click on an edge of the picked zone adds a vertex, a shift-click on a vertex removes
+// it; Delete removes the picked place. "Save" sends the whole list to /api/places/save (the server checks
 // it, writes the site file and answers one sentence when it refuses); "Cancel" drops the
 // edits. Names are drawn with fillText and shown with textContent / input values only.
 //
@@ -227,7 +228,8 @@ const CblrsPlaces = (() => {
     return result;
   }
 
-  // What is under a screen point: a vertex (nearest first), else a line, else a zone.
+  // What is under a screen point: a vertex (the picked place's first), else a line or a
+  // zone's edge, else the inside of a zone.
   function hit(screen) {
     const view = editor.view;
     const order = editor.selected ? [editor.selected, ...editor.places] : editor.places;
@@ -239,8 +241,13 @@ const CblrsPlaces = (() => {
       }
     }
     for (const place of editor.places) {
-      if (isLine(place) && distanceToSegment(screen, view.toScreen(...place.start),
-        view.toScreen(...place.end)) <= LINE_PICK_PX) return { place, index: null };
+      const list = points(place);
+      const edges = isLine(place) ? 1 : list.length;
+      for (let index = 0; index < edges; index += 1) {
+        const next = list[(index + 1) % list.length];
+        if (distanceToSegment(screen, view.toScreen(...list[index]), view.toScreen(...next))
+          <= LINE_PICK_PX) return { place, index: null };
+      }
     }
     const world = view.toWorld(...screen);
     for (const place of editor.places) {
@@ -274,6 +281,12 @@ const CblrsPlaces = (() => {
       return;
     }
     const found = hit(screen);
+    // Shift-click on a zone's vertex removes it (a zone keeps three).
+    if (found && event.shiftKey && found.index !== null && !isLine(found.place)) {
+      if (found.place.polygon.length > 3) found.place.polygon.splice(found.index, 1);
+      select(found.place);
+      return;
+    }
     select(found ? found.place : null);
     if (found) editor.drag = { ...found, from: world, before: copy(points(found.place)) };
   }
@@ -310,6 +323,24 @@ const CblrsPlaces = (() => {
     setMode("select");
     select(zone);
     message("", false);
+  }
+
+  // A double-click on an edge of the picked zone adds a vertex there.
+  function addVertex(event) {
+    const zone = editor.selected;
+    if (!zone || isLine(zone)) return;
+    const screen = screenPoint(event);
+    const view = editor.view;
+    let best = null, nearest = LINE_PICK_PX;
+    zone.polygon.forEach((vertex, index) => {
+      const next = zone.polygon[(index + 1) % zone.polygon.length];
+      const gap = distanceToSegment(screen, view.toScreen(...vertex), view.toScreen(...next));
+      if (gap <= nearest) { nearest = gap; best = index; }
+    });
+    if (best === null) return;
+    const world = view.toWorld(...screen).map((v) => Math.round(v * 1000) / 1000);
+    zone.polygon.splice(best + 1, 0, world);
+    editor.redraw();
   }
 
   function onKey(event) {
@@ -399,7 +430,11 @@ const CblrsPlaces = (() => {
     map.addEventListener("mousedown", onDown);
     map.addEventListener("mousemove", onMove);
     window.addEventListener("mouseup", () => { editor.drag = null; });
-    map.addEventListener("dblclick", () => { if (editor.on && editor.mode === "zone") finishZone(); });
+    map.addEventListener("dblclick", (event) => {
+      if (!editor.on) return;
+      if (editor.mode === "zone") finishZone();
+      else if (editor.mode === "select") addVertex(event);
+    });
     document.addEventListener("keydown", onKey);
     $("edit-places").addEventListener("click", () => {
       if (editor.on) return;
