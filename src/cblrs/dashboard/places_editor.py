@@ -177,8 +177,8 @@ def save_places(site_path: Path, data: Any, plane_id: int | None) -> dict[str, A
     Args:
         site_path: the site file (rewritten; the previous one is kept as ``<file>.bak``).
         data: ``{"zones": [{name, polygon, ...}], "lines": [{name, start, end, ...}],
-            "version"}`` in site metres; ``version`` (from :func:`places_view`) must name the
-            file as it is now.
+            "version"}`` in site metres; ``version`` (from :func:`places_view`), when given,
+            must name the file as it is now (the page always gives it).
         plane_id: the plane the dashboard shows.
 
     Returns:
