@@ -176,3 +176,20 @@ def test_admin_save_writes_the_file_that_reloads_with_the_new_places(clients, si
         "version": view["version"]})
     assert answer.status_code == 200, answer.text
     assert load_site(site_path).places.names == ["deck zone", "gate area"]
+
+
+def test_a_script_saves_with_an_admin_token(site_path, tmp_path):
+    """As docs/live.md shows with curl: a bearer token, JSON, no Origin, no version."""
+    from starlette.testclient import TestClient
+
+    auth = Authenticator(run_token="t" * 32)
+    app = create_app(DashboardConfig(site_path, 1, references=tmp_path / "r"), auth)
+    script = TestClient(app, base_url=ORIGIN, headers={"Authorization": "Bearer " + "t" * 32})
+    assert [zone["name"] for zone in script.get("/api/places").json()["zones"]] == ["gate area"]
+    answer = script.post("/api/places/save", json={
+        "zones": [{"name": "gate area", "polygon": [[12, 2], [16, 2], [14, 5]]}], "lines": []})
+    assert answer.status_code == 200, answer.text
+    assert load_site(site_path).places.zone("gate area").polygon.tolist() == [
+        [12, 2], [16, 2], [14, 5]]
+    assert script.post("/api/places/save", content="{}", headers={
+        "Content-Type": "text/plain"}).status_code == 415
