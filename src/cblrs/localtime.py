@@ -24,6 +24,7 @@ import re
 from dataclasses import dataclass, field
 from datetime import date, datetime, timedelta
 from datetime import time as clock_time
+from itertools import pairwise
 from typing import Any
 from zoneinfo import ZoneInfo, ZoneInfoNotFoundError
 
@@ -95,7 +96,7 @@ def _ranges(key: str, value: Any) -> tuple[tuple[int, int], ...]:
             )
         ranges.append((start, end))
     ranges.sort()
-    for (_, end), (start, _) in zip(ranges, ranges[1:], strict=False):
+    for (_, end), (start, _) in pairwise(ranges):
         if start < end:
             raise LocalTimeError(f"opening_hours: {key}: ranges overlap")
     return tuple(ranges)
