@@ -171,15 +171,16 @@ class OnlineAnalytics:
             writes.events.append(self._event_row(event))
         engine = self.engine
         counts, bins = writes.counts, writes.bins
-        interval = engine.config.interval_s
+        # A bin's key is its start in seconds: on the local clock with a site time zone.
+        start = engine.bins.start
         for (line, direction, klass), value in engine.line_counts.items():
             counts[(line, direction, class_name(klass))] += value
         for (index, line, direction, klass), value in engine.line_bins.items():
-            bins[(index * interval, line, direction, class_name(klass))] += value
+            bins[(start(index), line, direction, class_name(klass))] += value
         for (index, zone, measure), value in engine.zone_bins.items():
-            bins[(index * interval, zone, measure, "all")] += value
+            bins[(start(index), zone, measure, "all")] += value
         for (index, zone), seconds in engine.occupancy_seconds.items():
-            bins[(index * interval, zone, "occupancy_s", "all")] += seconds
+            bins[(start(index), zone, "occupancy_s", "all")] += seconds
         for (zone, klass), value in engine.zone_entries.items():
             counts[(zone, "entries", class_name(klass))] += value
         for (zone, klass), value in engine.zone_appeared.items():
@@ -201,18 +202,23 @@ class OnlineAnalytics:
         writes.counters["analytics_late_rows"] = (
             writes.counters.get("analytics_late_rows", 0) + engine.late_rows
         )
+        if engine.closed_events:
+            writes.counters["analytics_closed_events"] = (
+                writes.counters.get("analytics_closed_events", 0) + engine.closed_events
+            )
         for table in (engine.line_counts, engine.line_bins, engine.zone_bins, engine.zone_entries,
                       engine.zone_appeared, engine.occupancy_seconds, engine.od,
                       engine.od_unpaired):
             table.clear()
         engine.visits.clear()
-        engine.rows = engine.late_rows = 0
+        engine.rows = engine.late_rows = engine.closed_events = 0
 
     def _event_row(self, event: Event) -> tuple[float, str, str, int, str, str]:
         place = event_place(event)
         body: dict[str, Any] = {
             "kind": event.kind,
             "timestamp": event.timestamp,
+            **self._local_time(event.timestamp),
             "track": event.track_id,
             "place": place,
         }
@@ -235,6 +241,10 @@ class OnlineAnalytics:
         body["key"] = key
         return (event.timestamp, event.kind, place, event.track_id, key,
                 msgspec.json.encode(body).decode())
+
+    def _local_time(self, timestamp: float) -> dict[str, str]:
+        calendar = self.engine.config.calendar
+        return {} if calendar is None else {"time": calendar.iso(timestamp)}
 
     # ------------------------------------------------------------------ persistence
     def get_state(self) -> dict[str, Any]:
