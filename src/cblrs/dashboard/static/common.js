@@ -270,9 +270,35 @@ const Cblrs = (() => {
       child instanceof Node ? child : document.createTextNode(String(child))));
   }
 
-  function clockText(seconds) {
+  // Epoch seconds as a wall-clock time in the site's IANA zone (Intl.DateTimeFormat),
+  // labelled with the zone's abbreviation or offset; UTC when the site has no zone.
+  // Small numbers are scene seconds (a replay of an offline scene), not dates.
+  const clockFormats = new Map();
+  function clockFormat(zone, withDate) {
+    const key = `${zone}|${withDate}`;
+    if (!clockFormats.has(key)) {
+      clockFormats.set(key, new Intl.DateTimeFormat("en-GB", {
+        timeZone: zone, hourCycle: "h23", hour: "2-digit", minute: "2-digit",
+        second: "2-digit", fractionalSecondDigits: 1, timeZoneName: "short",
+        ...(withDate ? { year: "numeric", month: "2-digit", day: "2-digit" } : {}),
+      }));
+    }
+    return clockFormats.get(key);
+  }
+
+  function clockText(seconds, zone, withDate = false) {
     if (seconds === null || seconds === undefined) return "–";
-    if (seconds > 1e8) return new Date(seconds * 1000).toISOString().slice(11, 22) + " UTC";
+    if (seconds > 1e8) {
+      if (!zone) {
+        const iso = new Date(seconds * 1000).toISOString();
+        return (withDate ? `${iso.slice(0, 10)} ` : "") + iso.slice(11, 22) + " UTC";
+      }
+      const parts = clockFormat(zone, withDate).formatToParts(new Date(seconds * 1000));
+      const part = (type) => (parts.find((item) => item.type === type) || {}).value || "";
+      const time = `${part("hour")}:${part("minute")}:${part("second")}.${part("fractionalSecond")}`;
+      const date = withDate ? `${part("year")}-${part("month")}-${part("day")} ` : "";
+      return `${date}${time} ${part("timeZoneName")}`;
+    }
     return `t = ${seconds.toFixed(1)} s`;
   }
 
