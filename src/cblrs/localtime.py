@@ -22,8 +22,7 @@ from __future__ import annotations
 import math
 import re
 from dataclasses import dataclass, field
-from datetime import date, datetime, timedelta
-from datetime import time as clock_time
+from datetime import datetime
 from itertools import pairwise
 from typing import Any
 from zoneinfo import ZoneInfo, ZoneInfoNotFoundError
@@ -214,47 +213,56 @@ class LocalCalendar:
                 f"86400 s), got {interval_s:g} s"
             )
 
-    def _instants(self, day: date, wall_s: int) -> list[float]:
-        """Epoch seconds at which the local clock shows ``wall_s`` on ``day`` (none in a
-        skipped hour, two in a repeated one)."""
-        naive = datetime.combine(day, clock_time()) + timedelta(seconds=wall_s)
-        found = set()
-        for fold in (0, 1):
-            instant = naive.replace(tzinfo=self.zone, fold=fold).timestamp()
-            if datetime.fromtimestamp(instant, self.zone).replace(tzinfo=None) == naive:
-                found.add(instant)
-        return sorted(found)
+    def offset(self, timestamp: float) -> int:
+        """The zone's UTC offset at epoch seconds ``timestamp``, seconds."""
+        delta = self.local(timestamp).utcoffset()
+        return 0 if delta is None else round(delta.total_seconds())
+
+    def _transition(self, before: float, after: float) -> int:
+        """The first whole second in (before, after] with ``after``'s offset (zones change
+        offset on whole seconds; one change in between)."""
+        low, high, target = math.floor(before), math.floor(after), self.offset(after)
+        while high - low > 1:
+            middle = (low + high) // 2
+            if self.offset(middle) == target:
+                high = middle
+            else:
+                low = middle
+        return high
 
     def bin_start(self, timestamp: float, interval_s: float) -> float:
-        """Start (epoch seconds) of the local bin holding ``timestamp``: the latest instant
-        at or before it whose local wall-clock time is a multiple of ``interval_s``."""
+        """Start (epoch seconds) of the local bin holding ``timestamp``.
+
+        Bins start where the local wall clock shows a multiple of ``interval_s`` (hh:00 for
+        hours, midnight for days); a repeated hour gives its multiples twice (two bins), and
+        a multiple the clock skips moves to the instant of the change (a 02:00 bin skipped
+        in spring starts at 03:00).
+        """
         width = int(interval_s)
-        local = self.local(timestamp)
-        day = local.date()
-        wall = (local.hour * 3600 + local.minute * 60 + local.second) // width * width
-        for _ in range(2 * DAY_S // width + 4):
-            earlier = [instant for instant in self._instants(day, wall) if instant <= timestamp]
-            if earlier:
-                return earlier[-1]
-            wall -= width
-            if wall < 0:
-                day, wall = day - timedelta(days=1), wall + DAY_S
+        moment = timestamp
+        for _ in range(8):
+            offset = self.offset(moment)
+            start = math.floor((moment + offset) / width) * width - offset
+            if self.offset(start) == offset:
+                return float(start)
+            change = self._transition(start, moment)
+            if start + offset > change - 1 + self.offset(change - 1):
+                return float(change)  # the boundary fell in a skipped stretch of the clock
+            moment = change - 1  # the bin began before the change, on the old offset
         raise LocalTimeError(f"no local bin boundary found before {timestamp}")  # pragma: no cover
 
     def bin_end(self, start: float, interval_s: float) -> float:
         """The next bin's start after a bin starting at ``start`` (epoch seconds)."""
         width = int(interval_s)
-        local = self.local(start)
-        day = local.date()
-        wall = (local.hour * 3600 + local.minute * 60 + local.second) // width * width
-        for _ in range(2 * DAY_S // width + 4):
-            later = [instant for instant in self._instants(day, wall) if instant > start]
-            if later:
-                return later[0]
-            wall += width
-            if wall >= DAY_S:
-                day, wall = day + timedelta(days=1), wall - DAY_S
-        raise LocalTimeError(f"no local bin boundary found after {start}")  # pragma: no cover
+        offset = self.offset(start)
+        end = math.floor((start + offset) / width) * width + width - offset
+        if self.offset(end) == offset:
+            return float(end)
+        change = self._transition(start, end)
+        after = self.offset(change)
+        if math.floor((change + after) / width) * width > change - 1 + offset:
+            return float(change)  # the clock jumped to or over a boundary at the change
+        return float(math.ceil((change + after) / width) * width - after)
 
 
 def parse_time(text: str, calendar: LocalCalendar | None = None) -> float:
