@@ -19,6 +19,7 @@ from cblrs.cli.main import main
 from cblrs.datasets import write_tracks
 from cblrs.detections import Tracks
 from cblrs.places import CountingLine, Places, Zone
+from cblrs.runtime.events import decode_event, encode_event
 from cblrs.runtime.online_analytics import OnlineAnalytics
 
 ZURICH = ZoneInfo("Europe/Zurich")
@@ -162,7 +163,9 @@ def test_online_bins_are_keyed_by_their_local_start():
     events += online.flush()
     writes = online.take_writes()
     assert [key[0] for key in writes.bins] == [local(2026, 10, 25, 2) + 3600]
-    assert json.loads(writes.events[0][5])["time"] == "2026-10-25T02:30:00+01:00"
+    body = json.loads(writes.events[0][5])
+    assert body["time"] == "2026-10-25T02:30:00+01:00"
+    assert decode_event(encode_event(body, 1, 1)).time == body["time"]  # on the wire too
     assert [event.kind for event in events] == ["line_crossed"]
 
 
