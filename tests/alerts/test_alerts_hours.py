@@ -60,3 +60,49 @@ def test_line_counts_are_quiet_when_closed_and_cameras_are_watched_at_night():
     fired = always.observe(Observation(at(20, 2), crossings=crossings,
                                        camera_silence_s={"cam1": 60.0}))
     assert {event.rule for event in fired} == {"rush", "camera down"}
+
+
+def test_the_matcher_gates_its_alerts_and_counts_with_the_sites_hours(tmp_path):
+    """The matcher's analytics take the site's zone and hours, and its alert service the
+    same calendar (through MatcherService, from the analytics' settings)."""
+    from argparse import Namespace
+
+    import yaml
+
+    from cblrs.cli.matcher import make_analytics
+    from cblrs.runtime.alert_service import AlertService
+    from cblrs.runtime.analytics_service import CameraHealth
+    from cblrs.runtime.inprocess import InProcessBroker, InProcessTransport
+    from cblrs.runtime.store import RuntimeStore
+    from cblrs.site import load_site
+
+    path = tmp_path / "site.yaml"
+    path.write_text(yaml.safe_dump({
+        "version": 1, "timezone": "Europe/Zurich", "opening_hours": {"mon-fri": "07:00-19:00"},
+        "places": {"zones": [{"name": "hall", "polygon": [[0, 0], [4, 0], [4, 4], [0, 4]]}]}}))
+    site = load_site(path)
+    online = make_analytics(site, 1, Namespace(no_analytics=False, analytics_delay=0.5))
+    calendar = online.engine.config.calendar
+    assert calendar == CALENDAR
+
+    class Plane:
+        health = CameraHealth(["cam1"])
+
+        def live_state(self):
+            return {"clock": None, "occupancy": {"hall": 5}, "dwell": []}
+
+    transport = InProcessTransport(InProcessBroker(), "matcher")
+    transport.connect()
+    clock = [at(20, 0)]
+    with RuntimeStore(tmp_path / "m.db") as store:
+        service = AlertService(transport, store, 1, ["cam1"], RULES, {}, Plane(),
+                               lambda now: 0.0, interval_s=3600, wall_clock=lambda: clock[0],
+                               calendar=calendar)
+        service.start()
+        fired = service.observe_once()  # 20:00 Friday: closed, the crowd alerts nothing
+        clock[0] = at(10, 0, day=30)  # Monday 10:00, open: the crowd's for_s starts
+        pending = service.observe_once()
+        clock[0] += 60
+        fired_open = service.observe_once()
+        service.stop()
+    assert (fired, pending, fired_open) == (1, 0, 1)  # the camera at night; the crowd by day
