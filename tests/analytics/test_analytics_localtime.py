@@ -201,8 +201,7 @@ def test_cli_start_puts_scene_seconds_on_the_local_clock(tmp_path, capsys):
     out = tmp_path / "out"
     site = _site(tmp_path, opening_hours={"sun": "01:00-24:00"})
     assert main(["analytics", str(path), "--site", site, "--out", str(out), "--fps", "1",
-                 "--start", "2026-03-29T00:00:00", "--interval", "3600", "--no-plots",
-                 "--json"]) == 0
+                 "--start", "2026-03-29T00:00:00", "--interval", "3600", "--json"]) == 0
     summary = json.loads(capsys.readouterr().out)
     assert summary["local_time"] == "Europe/Zurich" and summary["closed_events"] == 1
     with (out / "counts_over_time.csv").open() as handle:
@@ -213,6 +212,7 @@ def test_cli_start_puts_scene_seconds_on_the_local_clock(tmp_path, capsys):
     with (out / "crossings.csv").open() as handle:
         times = [row["time"] for row in csv.DictReader(handle)]
     assert times == ["2026-03-29T01:30:00+01:00", "2026-03-29T03:30:00+02:00"]
+    assert (out / "counts_over_time.png").stat().st_size > 10_000  # drawn on the local clock
     # Without --start the times are scene seconds: the zone is not applied, and it says so.
     assert main(["analytics", str(path), "--site", site, "--out", str(tmp_path / "scene"),
                  "--fps", "1", "--no-plots", "--json"]) == 0
