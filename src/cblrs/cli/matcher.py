@@ -463,16 +463,9 @@ def make_analytics(site: Any, plane_id: int, args: argparse.Namespace) -> Any:
     if site is None or args.no_analytics:
         return None
     # lazy: a subcommand imports the library when it runs, so its --help starts fast
-    from cblrs.analytics import AnalyticsConfig
-    from cblrs.analytics.site import with_site_time
-    from cblrs.runtime.online_analytics import OnlineAnalytics, plane_places
+    from cblrs.runtime.online_analytics import site_online_analytics
 
-    places = plane_places(site.places, plane_id)
-    if not len(places):
-        return None
-    # Bins on the site's local clock, counting within its opening hours (when it has them).
-    config = with_site_time(AnalyticsConfig(), site)
-    return OnlineAnalytics(places, config, delay_s=args.analytics_delay)
+    return site_online_analytics(site, plane_id, args.analytics_delay)
 
 
 def site_positions(site: Any, names: list[str]) -> dict[str, tuple[float, float, float]]:

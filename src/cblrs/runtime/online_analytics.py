@@ -37,6 +37,7 @@ import numpy as np
 
 from cblrs.analytics import Analytics, AnalyticsConfig, AnalyticsError, Event
 from cblrs.analytics.config import LineCrossing, ZoneEntered, ZoneLeft
+from cblrs.analytics.site import with_site_time
 from cblrs.analytics.tables import class_name
 from cblrs.detections import Tracks
 from cblrs.places import Places
@@ -47,6 +48,17 @@ DEFAULT_DELAY_S = 0.5
 """How long rows wait behind the newest capture time before they are counted, seconds."""
 
 _ROW_FIELDS = ("frame", "timestamp", "track_id", "world_xy", "camera_id", "xyxy", "class_id")
+
+
+def site_online_analytics(site: Any, plane_id: int,
+                          delay_s: float = DEFAULT_DELAY_S) -> OnlineAnalytics | None:
+    """The online analytics of one plane of a site (:class:`cblrs.site.Site`): its places
+    on that plane, binned on the site's local clock and counted within its opening hours
+    when it has them; None when the plane has no places."""
+    places = plane_places(site.places, plane_id)
+    if not len(places):
+        return None
+    return OnlineAnalytics(places, with_site_time(AnalyticsConfig(), site), delay_s=delay_s)
 
 
 def plane_places(places: Places, plane_id: int) -> Places:
