@@ -53,3 +53,13 @@ def test_the_page_shows_local_times_across_both_changes(page):
     assert text(first, "Europe/Zurich", True).startswith("2026-10-25 02:30:00.0 ")
     assert text(first, None) == "00:30:00.00 UTC"
     assert text(12.5, "Europe/Zurich") == "t = 12.5 s"  # scene seconds are not dates
+    # Open or closed by the site's hours on the local wall clock (Friday 27 March 2026).
+    hours = site_scene(parse_site(yaml.safe_dump(SITE)))["opening_hours"]
+    cases = {(7, 0, 0): True, (6, 59, 59): False, (18, 59, 59): True, (19, 0, 0): False}
+    for (hour, minute, second), expected in cases.items():
+        moment = zurich(2026, 3, 27, hour, minute, second)
+        assert page.evaluate("([s, z, h]) => Cblrs.openAt(s, z, h)",
+                             [moment, "Europe/Zurich", hours]) is expected
+    assert page.evaluate("([s, z, h]) => Cblrs.openAt(s, z, h)",
+                         [zurich(2026, 3, 29, 12), "Europe/Zurich", hours]) is False  # Sunday
+    assert page.evaluate("(s) => Cblrs.openAt(s, 'UTC', null)", 0) is True

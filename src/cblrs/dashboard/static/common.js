@@ -302,6 +302,28 @@ const Cblrs = (() => {
     return `t = ${seconds.toFixed(1)} s`;
   }
 
-  return { idColour, MapView, fetchJSON, clockText, loadSession, checkSession, el, fill,
+  // Whether the site is open at epoch seconds on its zone's wall clock, by the opening hours
+  // of /api/site ({mon: "07:00-19:00", sat: "09:00-12:00, 13:00-17:00", sun: "closed"}):
+  // ranges are half-open, as in the analytics. No hours: always open.
+  const WEEKDAYS = ["mon", "tue", "wed", "thu", "fri", "sat", "sun"];
+  function openAt(seconds, zone, hours) {
+    if (!hours) return true;
+    const parts = new Intl.DateTimeFormat("en-GB", {
+      timeZone: zone || "UTC", weekday: "short", hourCycle: "h23", hour: "2-digit",
+      minute: "2-digit", second: "2-digit",
+    }).formatToParts(new Date(seconds * 1000));
+    const part = (type) => parts.find((item) => item.type === type).value;
+    const day = WEEKDAYS[WEEKDAYS.indexOf(part("weekday").slice(0, 3).toLowerCase())];
+    const wall = Number(part("hour")) * 3600 + Number(part("minute")) * 60 + Number(part("second"));
+    const text = hours[day] || "closed";
+    if (text === "closed") return false;
+    const clock = (time) => time.split(":").reduce((total, value) => total * 60 + Number(value), 0) * 60;
+    return text.split(",").some((range) => {
+      const [start, end] = range.trim().split("-").map(clock);
+      return start <= wall && wall < end;
+    });
+  }
+
+  return { idColour, MapView, fetchJSON, clockText, openAt, loadSession, checkSession, el, fill,
     session: () => session };
 })();

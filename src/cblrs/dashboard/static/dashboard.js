@@ -359,8 +359,10 @@ setInterval(() => {
   $("stat-tracks").textContent = `${state.tracks.size} tracks`;
   $("stat-rate").textContent = `${(state.updates.length / 2).toFixed(1)} updates/s`;
   $("stat-draw").textContent = stats.lastDrawMs === null ? "–" : stats.lastDrawMs.toFixed(2);
+  const hours = state.scene ? state.scene.opening_hours : null;
   $("clock").textContent = clockText(state.time)
-    + (state.time > 1e8 ? ` · ${siteZone() || "UTC"}` : "");
+    + (state.time > 1e8 ? ` · ${siteZone() || "UTC"}` : "")
+    + (hours && state.time > 1e8 && !Cblrs.openAt(state.time, siteZone(), hours) ? " · closed" : "");
   $("clock").title = clockText(state.time, true);
   if (stats.mode === "replay") state.tablesDirty = true;  // live dwell grows
   // A stream that stopped (cameras gone, matcher stopped): nobody is known to be there.
