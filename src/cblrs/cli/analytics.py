@@ -102,7 +102,7 @@ def run(args: argparse.Namespace) -> int:
           f"{summary['seconds']:.1f} s on site {summary['site']}; local time: "
           f"{summary['local_time']}")
     if summary["closed_events"]:
-        print(f"{summary['closed_events']} events outside opening hours were not counted")
+        print(f"not counted, outside opening hours: {summary['closed_events']} events")
     if summary["lines"]:
         rows: dict[str, dict[str, Any]] = {}
         for row in summary["lines"]:
