@@ -112,8 +112,7 @@ def test_opening_hours_gate_counts_and_a_crossing_at_closing_time_is_not_counted
                local(2026, 3, 29, 12, 0)]  # Sunday: closed
     config = AnalyticsConfig(interval_s=3600, timezone="Europe/Zurich", opening_hours=HOURS)
     result = analyse_tracks(walkers(inside + outside), GATE, config)
-    assert [row["timestamp_s"] if isinstance(row, dict) else row.timestamp
-            for row in result.crossings] == inside
+    assert [crossing.timestamp for crossing in result.crossings] == inside
     assert result.line_count("gate", "negative") == 3
     assert result.summary["closed_events"] == 4
     always = analyse_tracks(walkers(inside + outside), GATE,
