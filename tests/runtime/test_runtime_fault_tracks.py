@@ -13,8 +13,8 @@ Two cameras (CVLab1, CVLab2), 40 annotated WILDTRACK frames each, as in
 * item 3: re-sent messages that the matcher had stored and never confirmed (NATS);
 * item 5: a stop with a tracking backlog (the service with a deliberately slow tracker);
 * item 6: a spool holding another run's messages.
-* item 1 (late data re-tracked) is not done: a message that arrives after its window was
-  released is stored as ``late`` and not tracked (README, "What cblrs guarantees").
+* item 1: messages that arrive after their window was released (``late``) are tracked by
+  re-tracking from a snapshot (in-process broker; and a camera stalled on Mosquitto).
 """
 
 from __future__ import annotations
@@ -36,16 +36,17 @@ from waiting import wait_until
 from cblrs.datasets import load_scene
 from cblrs.detections import CameraMessage
 from cblrs.matching import make_matcher
-from cblrs.pipeline import render_scene_references, scene_planes, track_scene
+from cblrs.pipeline import camera_messages, render_scene_references, scene_planes, track_scene
 from cblrs.plane import PlaneSet, PlaneSpec
 from cblrs.reference import ReferenceImage
 from cblrs.runtime.inprocess import InProcessBroker, InProcessTransport
 from cblrs.runtime.matcher_service import MatcherService
 from cblrs.runtime.nats_server import NatsCluster, find_nats_server
 from cblrs.runtime.nats_transport import NatsSettings, NatsTransport, detections_stream
+from cblrs.runtime.retrack import RetrackPolicy
 from cblrs.runtime.store import PENDING, PROCESSED, RuntimeStore
-from cblrs.runtime.topics import detections_topic
-from cblrs.runtime.wire import encode_message
+from cblrs.runtime.topics import detections_topic, tracks_topic
+from cblrs.runtime.wire import TracksUpdate, decode_tracks, encode_message
 
 CAMERAS = ("CVLab1", "CVLab2")
 FIRST, LAST = 0, 195  # 40 annotated frames
@@ -165,6 +166,63 @@ def counter(database: Path, name: str) -> int:
             return store.counters().get(name, 0)
     except Exception:  # not created yet
         return 0
+
+
+# -- item 1 ----------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("withheld", [range(0, 3), range(20, 25)], ids=["first", "middle"])
+def test_item1_late_messages_are_tracked_from_a_snapshot(case, tmp_path, withheld):
+    """CVLab2's messages of some frames reach the matcher only after later frames were
+    released (the first frames: re-tracked from the empty tracker's snapshot; frames in the
+    middle: from a snapshot before them). They are stored late, then re-tracked: every
+    message is processed, the stored tracks are the undisturbed run's (exactly), and the
+    corrected rows are published as updates with ``corrected_from``."""
+    scene = case["scene"]
+    messages = camera_messages(replace(scene, timestamps=EPOCH + scene.timestamps),
+                               case["references"])
+    late = [message for message in messages
+            if message.camera_id == "CVLab2" and message.sequence in withheld]
+    assert len(late) == len(withheld)
+    broker = InProcessBroker()
+    updates: list[TracksUpdate] = []
+    viewer = InProcessTransport(broker, "viewer", persistent=False)
+    viewer.subscribe(tracks_topic(1), lambda delivery: updates.append(
+        decode_tracks(delivery.payload)))
+    viewer.connect()
+    database = tmp_path / "plane1.db"
+    store = RuntimeStore(database)
+    service = MatcherService(
+        InProcessTransport(broker, "matcher"), store,
+        make_matcher("fusion", scene_planes(scene), list(CAMERAS)), 1, list(CAMERAS),
+        window_s=10, retrack=RetrackPolicy(snapshot_interval_s=2.0, delay_s=0.3))
+    service.start()
+    sender = InProcessTransport(broker, "cameras", persistent=False)
+    sender.connect()
+    try:
+        for message in messages:
+            if message not in late:
+                sender.publish(detections_topic(1, message.camera_id), encode_message(message, 1))
+        wait_until(lambda: (store.released_timestamp() or 0) > max(m.timestamp for m in late),
+                   30, "the withheld frames' windows to be released")
+        for message in late:
+            sender.publish(detections_topic(1, message.camera_id), encode_message(message, 1))
+        wait_until(lambda: store.counters().get("late_tracked", 0) == len(late)
+                   and service.drained(), 30, "the late messages to be re-tracked")
+        service.close(flush=True)
+        counters = store.counters()
+    finally:
+        if not service._stop.is_set():
+            service.close()
+        sender.close()
+        viewer.close()
+        store.close()
+    assert counters["late"] == len(late) and counters.get("late_untracked", 0) == 0, counters
+    assert counters["retracks"] >= 1 and counters["retracked"] >= len(late), counters
+    assert_undisturbed(database, case)
+    corrections = [update for update in updates if update.corrected_from is not None]
+    assert corrections, "no corrected update was published"
+    assert max(update.corrected_from for update in corrections) < late[0].timestamp
 
 
 # -- item 2 ----------------------------------------------------------------------------------
