@@ -236,7 +236,8 @@ def retrack(store: RuntimeStore, matcher: Any, camera_ids: Sequence[str],
         final = matcher.update(watermark, [])
         last_time, last_tracks = windows[-1]
         windows[-1] = (last_time, Tracks.concatenate([last_tracks, final]))
-    counters.update({"retracks": 1, "retracked": len(entries), "late_tracked": len(trackable)})
+    counters.update({"retracks": 1, "retracked": len(entries), "late_tracked": len(trackable),
+                     "processed": len(trackable)})
     state_after = matcher.get_state()
 
     def commit(cursor: sqlite3.Cursor) -> None:
