@@ -197,6 +197,7 @@ def test_item1_late_messages_are_tracked_from_a_snapshot(case, tmp_path, withhel
         make_matcher("fusion", scene_planes(scene), list(CAMERAS)), 1, list(CAMERAS),
         window_s=10, retrack=RetrackPolicy(snapshot_interval_s=2.0, delay_s=0.3))
     service.start()
+    closed = False
     sender = InProcessTransport(broker, "cameras", persistent=False)
     sender.connect()
     try:
@@ -210,9 +211,10 @@ def test_item1_late_messages_are_tracked_from_a_snapshot(case, tmp_path, withhel
         wait_until(lambda: store.counters().get("late_tracked", 0) == len(late)
                    and service.drained(), 30, "the late messages to be re-tracked")
         service.close(flush=True)
+        closed = True
         counters = store.counters()
     finally:
-        if not service._stop.is_set():
+        if not closed:
             service.close()
         sender.close()
         viewer.close()
@@ -223,6 +225,64 @@ def test_item1_late_messages_are_tracked_from_a_snapshot(case, tmp_path, withhel
     corrections = [update for update in updates if update.corrected_from is not None]
     assert corrections, "no corrected update was published"
     assert max(update.corrected_from for update in corrections) < late[0].timestamp
+
+
+def stored_times(database: Path) -> tuple[float | None, float]:
+    """The matcher's released timestamp and CVLab2's latest stored capture time."""
+    try:
+        with RuntimeStore(database, read_only=True) as store:
+            released = store.released_timestamp()
+            latest = store.inbox_summary().get("CVLab2", {}).get("max_timestamp", 0.0)
+    except Exception:  # not created yet
+        return None, 0.0
+    return released, latest
+
+
+@pytest.mark.mqtt
+def test_item1_a_stalled_cameras_late_messages_are_tracked_on_mosquitto(
+        case, start_mosquitto, tmp_path):
+    """CVLab2 stalls (SIGSTOP) mid-stream for longer than the matcher's 1 s ordering window,
+    so the matcher gives it up and tracks CVLab1's frames alone; resumed, CVLab2 sends the
+    frames it is behind with their capture times: late. They are re-tracked: every message
+    is processed and the tracks are the undisturbed run's."""
+    broker = start_mosquitto(cameras=CAMERAS, matchers=("matcher1",), plane_ids=(1,))
+
+    def login(user: str) -> list[str]:
+        return ["--broker", f"127.0.0.1:{broker.port}", "--username", user,
+                "--password-file", str(broker.files.password_files[user])]
+
+    database = tmp_path / "plane1.db"
+    prepared = subprocess.run(matcher(case, database, login("matcher1"), "--prepare"),
+                              capture_output=True, text=True, env=ENVIRONMENT, timeout=120)
+    assert prepared.returncode == 0, prepared.stderr
+    served = start(matcher(case, database, login("matcher1"), "--window", "1",
+                           "--until-cameras-offline", "--idle-exit", "60"))
+    epoch = time.time() + 3.0  # paced: 20 s of scene in 10 s, from 3 s on
+    cameras = {name: start(camera(case, tmp_path, name, login(name), "--realtime", "--speed",
+                                  "2", "--confirm-timeout", "60", epoch=epoch))
+               for name in CAMERAS}
+    stalled = cameras["CVLab2"]
+    try:
+        wait_until(lambda: counter(database, "accepted") >= 10, 60, "some messages")
+        stalled.send_signal(signal.SIGSTOP)
+
+        def given_up() -> bool:
+            released, latest = stored_times(database)
+            return released is not None and released > latest + 1.0
+
+        wait_until(given_up, 30, "windows released without the stalled camera")
+        assert counter(database, "accepted") < TOTAL - 4, "the stall was not mid-stream"
+    finally:
+        stalled.send_signal(signal.SIGCONT)
+    for process in cameras.values():
+        code, out, err = finish(process)
+        assert code == 0 and json.loads(out)["confirmed_all"], err[-3000:]
+    code, out, err = finish(served)
+    assert code == 0, err[-3000:]
+    summary = json.loads(out)
+    assert summary["late"] >= 2 and summary["late_tracked"] == summary["late"], summary
+    assert summary["late_untracked"] == 0 and summary["retracks"] >= 1, summary
+    assert_undisturbed(database, case, undisturbed_tracks(case, epoch, speed=2.0))
 
 
 # -- item 2 ----------------------------------------------------------------------------------
