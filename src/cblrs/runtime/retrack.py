@@ -73,6 +73,9 @@ CREATE TABLE IF NOT EXISTS snapshots (
 ``track_row``: the last track row written then; ``boundary``: JSON ``[[camera, sequence],
 ...]`` of the messages at ``released`` already tracked; ``state``: ``get_state()`` JSON."""
 
+DELETED_KEY = "deleted_until.inbox"
+"""Meta key (:mod:`cblrs.runtime.retention`): the newest capture time of a deleted inbox row."""
+
 SEEN_KEY = "retrack_seen_rowid"
 """Meta key: the highest inbox rowid of a late message a re-tracking has looked at."""
 
@@ -202,6 +205,11 @@ def retrack(store: RuntimeStore, matcher: Any, camera_ids: Sequence[str],
     if not late:
         return Retracked()
     newest_seen = max(rowid for rowid, _ in late)
+    # A snapshot before inbox rows that retention deleted would re-track without them.
+    deleted_until = store.get_meta(DELETED_KEY)
+    if deleted_until is not None:
+        store.write(lambda cursor: cursor.execute(
+            "DELETE FROM snapshots WHERE released < ?", (float(deleted_until),)))
     (oldest,) = store.query("SELECT MIN(released) FROM snapshots")[0]
     trackable = {rowid: timestamp for rowid, timestamp in late
                  if oldest is not None and timestamp > oldest}
