@@ -7,11 +7,14 @@ Tables:
   rowid table with a unique index: rows of a few hundred bytes insert about twice as fast as
   in the ``WITHOUT ROWID`` table of earlier files, which open and work the same. A row is
   ``pending`` until its timestamp group has been tracked (then ``processed``), or ``late``
-  when it arrived after its timestamp had already been released.
+  when it arrived after its timestamp had already been released (``processed`` too once
+  re-tracking has tracked it, :mod:`cblrs.runtime.retrack`).
 * ``tracks`` — the tracker's output rows (frame, timestamp, track id, world x/y, camera, box).
 * ``meta`` — the matcher state snapshot (``get_state()`` JSON), the last released timestamp,
   the service settings and the token of the service currently tracking (:meth:`claim`).
 * ``counters`` — received, rejected by reason, duplicates, late, processed, ...
+* ``snapshots`` — the matcher's state every few seconds of capture time, for re-tracking
+  late messages (:mod:`cblrs.runtime.retrack`, which owns that table's SQL).
 * ``events``, ``counts``, ``count_bins``, ``od`` — the online analytics' outbox of events
   and its persistent counters (:mod:`cblrs.runtime.analytics_store`), written in the
   transaction of the group whose tracks produced them.

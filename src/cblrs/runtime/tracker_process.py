@@ -15,7 +15,10 @@ the same database (after a crash of either process) continues from the last comm
 Messages (pickled) on the two pipes:
 
 * service -> tracker: a batch ``[(timestamp, [InboxEntry, ...]), ...]`` (windows in time
-  order, messages in time and camera order), ``None``: commit nothing more and stop, or
+  order, messages in time and camera order), ``None``: commit nothing more and stop,
+  ``"retrack"``: track the late messages stored since the last time
+  (:mod:`cblrs.runtime.retrack`), answer ``("retracked", [(timestamp, tracks, payload or
+  None), ...], counters, report)`` with the corrected updates, or
   ``"flush"``: the stream has ended: fuse and commit what the matcher still holds (its
   ``flush()``), count those rows and end every track of the analytics, answer
   ``("flushed", timestamp, tracks, payload or None, report)``, then stop;
@@ -26,6 +29,9 @@ Messages (pickled) on the two pipes:
   ``("stopped",)`` after ``None`` or ``"flush"``, or once the service abandoned what it sent
   (:meth:`TrackerProcess.abandon`, a stop without flush: the batch being tracked and those
   still in the pipe are not committed, and stay pending in the store).
+
+With re-tracking on, the matcher's state is also kept as a snapshot after a group every
+few seconds of capture time, in the transaction of its batch (:mod:`cblrs.runtime.retrack`).
 
 With analytics, each group's rows are counted as soon as it is tracked
 (:class:`~cblrs.runtime.online_analytics.OnlineAnalytics`, empty groups too), and the
