@@ -285,6 +285,49 @@ def test_item1_a_stalled_cameras_late_messages_are_tracked_on_mosquitto(
     assert_undisturbed(database, case, undisturbed_tracks(case, epoch, speed=2.0))
 
 
+@pytest.mark.mqtt
+def test_item1_spooled_messages_lost_with_a_killed_broker_are_tracked_late(
+        case, start_mosquitto, tmp_path):
+    """CVLab2 publishes everything with --confirm-timeout 0 and leaves; Mosquitto is killed
+    before it saved them (they are lost; CVLab2's spool still holds them). With the broker
+    back, the matcher tracks CVLab1 alone (CVLab2 silent for its 1 s window); CVLab2's next
+    start re-sends its spool: all 40 messages late. They are re-tracked (from the empty
+    tracker's snapshot) and the tracks are the undisturbed run's."""
+    broker = start_mosquitto(cameras=CAMERAS, matchers=("matcher1",), plane_ids=(1,),
+                             autosave_s=3600)
+
+    def login(user: str) -> list[str]:
+        return ["--broker", f"127.0.0.1:{broker.port}", "--username", user,
+                "--password-file", str(broker.files.password_files[user])]
+
+    database = tmp_path / "plane1.db"
+    prepared = subprocess.run(matcher(case, database, login("matcher1"), "--prepare"),
+                              capture_output=True, text=True, env=ENVIRONMENT, timeout=120)
+    assert prepared.returncode == 0, prepared.stderr
+    code, out, err = finish(start(camera(case, tmp_path, "CVLab2", login("CVLab2"),
+                                         "--confirm-timeout", "0")))
+    assert code == 0 and json.loads(out)["unconfirmed"] == PER_CAMERA, err[-3000:]
+    broker.process.kill()
+    broker.start()
+    served = start(matcher(case, database, login("matcher1"), "--window", "1",
+                           "--until-cameras-offline", "--idle-exit", "60"))
+    code, out, err = finish(start(camera(case, tmp_path, "CVLab1", login("CVLab1"),
+                                         "--confirm-timeout", "60")))
+    assert code == 0 and json.loads(out)["confirmed_all"], err[-3000:]
+    wait_until(lambda: counter(database, "processed") == PER_CAMERA, 60,
+               "CVLab1's frames tracked without CVLab2")
+    assert counter(database, "accepted") == PER_CAMERA, "CVLab2's messages were not lost"
+    code, out, err = finish(start(camera(case, tmp_path, "CVLab2", login("CVLab2"),
+                                         "--confirm-timeout", "60", replay=False)))
+    assert code == 0 and json.loads(out)["confirmed_all"], err[-3000:]
+    code, out, err = finish(served)
+    assert code == 0, err[-3000:]
+    summary = json.loads(out)
+    assert summary["late"] == PER_CAMERA and summary["late_tracked"] == PER_CAMERA, summary
+    assert summary["retracks"] >= 1 and summary["processed"] == TOTAL, summary
+    assert_undisturbed(database, case)
+
+
 # -- item 2 ----------------------------------------------------------------------------------
 
 
