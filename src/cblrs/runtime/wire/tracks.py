@@ -166,6 +166,9 @@ def encode_tracks(
             raise RejectedMessage(RejectReason.INVALID_VALUE, "the update's time must be finite")
         document["timestamp"] = float(timestamp)
     if corrected_from is not None:
+        if math.isnan(corrected_from) or corrected_from == math.inf:
+            raise RejectedMessage(RejectReason.INVALID_VALUE,
+                                  "the corrected time must be finite (or -inf: every row)")
         # JSON has no infinity: a correction of everything is sent from time 0.
         document["corrected_from"] = max(0.0, float(corrected_from))
     try:
