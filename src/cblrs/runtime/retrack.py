@@ -46,6 +46,8 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
+import numpy as np
+
 from cblrs.detections import Tracks
 from cblrs.errors import CblrsError
 from cblrs.runtime.ordering import Orderer
@@ -159,7 +161,8 @@ class Snapshots:
 
         Args:
             released: the watermark of the last group the state has seen, seconds.
-            state: the matcher's ``get_state()`` then.
+            state: the matcher's ``get_state()`` then, or it as JSON text
+                (:func:`state_text`, taken at once: a later update cannot change it).
             boundary: keys ``(camera, sequence)`` of the messages at ``released`` it has seen.
             rows_after: track rows the transaction wrote after that group (its later groups').
         """
@@ -168,7 +171,8 @@ class Snapshots:
             "INSERT OR REPLACE INTO snapshots (released, track_row, boundary, state) "
             "VALUES (?, ?, ?, ?)",
             (released, int(track_row) - rows_after,
-             json.dumps([list(key) for key in boundary]), json.dumps(state)))
+             json.dumps([list(key) for key in boundary]),
+             state if isinstance(state, str) else state_text(state)))
         # Keep the newest snapshot at or before the horizon too: every late message within
         # the horizon then has a snapshot before it.
         cursor.execute(
@@ -236,7 +240,7 @@ def retrack(store: RuntimeStore, matcher: Any, camera_ids: Sequence[str],
             fed.setdefault(entry.timestamp, []).append((entry.camera_id, entry.sequence))
         if snapshots.due(timestamp):
             snapshots.taking(timestamp)
-            saved.append((len(windows) - 1, timestamp, matcher.get_state(),
+            saved.append((len(windows) - 1, timestamp, state_text(matcher.get_state()),
                           list(fed.get(timestamp, []))))
     watermark = store.released_timestamp()
     if watermark is not None and windows and watermark > windows[-1][0]:
@@ -269,6 +273,19 @@ def retrack(store: RuntimeStore, matcher: Any, camera_ids: Sequence[str],
 
     store.write(commit)
     return Retracked(windows, float(released), counters)
+
+
+def state_text(state: Any) -> str:
+    """A matcher state as the JSON text a snapshot stores (numpy values as plain ones)."""
+    return json.dumps(state, default=_plain)
+
+
+def _plain(value: Any) -> Any:
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, np.generic):
+        return value.item()
+    raise TypeError(f"cannot store {type(value).__name__} in a matcher snapshot")
 
 
 def _entries_after(store: RuntimeStore, released: float, boundary: set[tuple[str, int]],

@@ -51,7 +51,7 @@ from typing import Any
 
 from cblrs.detections import Tracks
 from cblrs.errors import CblrsError
-from cblrs.runtime.retrack import RetrackPolicy, Snapshots, retrack
+from cblrs.runtime.retrack import RetrackPolicy, Snapshots, retrack, state_text
 from cblrs.runtime.store import InboxEntry, RuntimeStore, SharedStore, checkpoint_regularly
 from cblrs.runtime.wire import encode_tracks
 
@@ -236,7 +236,7 @@ def run(
                 report.count(group_tracks, timestamp)
                 if snapshots is not None and snapshots.due(timestamp):
                     snapshots.taking(timestamp)
-                    taken.append((len(tracked) - 1, timestamp, matcher.get_state(),
+                    taken.append((len(tracked) - 1, timestamp, state_text(matcher.get_state()),
                                   _keys_at(batch[:len(tracked)], timestamp)))
             if abandoned():
                 break  # a stop without flush: this batch stays pending in the store
