@@ -472,6 +472,26 @@ def test_a_late_message_older_than_every_snapshot_stays_untracked(ordering):
     assert stats["processed"] == 3
 
 
+def test_a_restarted_matcher_tracks_the_late_messages_it_holds(ordering):
+    """Stopped before its re-tracking delay was over, the matcher leaves B's message late;
+    restarted on the same database, it re-tracks it."""
+    service, store, groups = ordering.start(window_s=0.2, retrack=RetrackPolicy(delay_s=600))
+    now = time.time()
+    ordering.publish("A", 0, now)
+    ordering.publish("A", 1, now + 1)
+    wait_until(lambda: len(groups.groups) == 2, 5, "A's groups after the window")
+    ordering.publish("B", 0, now)
+    wait_until(lambda: store.counters().get("late") == 1, 5, "a late message")
+    service.stop()
+    service.transport.close(unclean=True)
+    assert store.status_counts() == {PROCESSED: 2, LATE: 1}
+    again, store_again, _ = ordering.start(window_s=0.2, database="matcher.db",
+                                           retrack=RetrackPolicy(delay_s=0.1))
+    wait_until(lambda: store_again.counters().get("late_tracked") == 1 and again.drained(), 10,
+               "the late message to be re-tracked after the restart")
+    assert store_again.status_counts() == {PROCESSED: 3}
+
+
 def test_clean_offline_camera_is_not_waited_for(ordering):
     _, _, groups = ordering.start(window_s=60)
     now = time.time()
