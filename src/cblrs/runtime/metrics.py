@@ -35,7 +35,8 @@ Metric names (all labelled ``plane``):
 ``cblrs_live_tracks``                           tracks in the last tracker output
 ``cblrs_stage_duration_seconds{stage}``         receive (validate+store+ack a batch), track
                                                 and analytics (per group), commit (per
-                                                batch), publish (per group)
+                                                batch), publish (per group), retrack (per
+                                                re-tracking of late messages)
 ``cblrs_capture_to_track_seconds``              capture to committed track rows, per group
 ``cblrs_camera_last_seen_timestamp_seconds``    per camera: when its last message arrived
 ``cblrs_camera_messages_total{camera}``         per camera: messages received
@@ -80,7 +81,7 @@ STAGE_BUCKETS = (
     0.0001, 0.00025, 0.0005, 0.001, 0.0025, 0.005, 0.010, 0.025, 0.050, 0.100, 0.250,
     0.500, 1.0, 2.5,
 )
-STAGES = ("receive", "track", "analytics", "commit", "publish")
+STAGES = ("receive", "track", "analytics", "commit", "publish", "retrack")
 
 Check = Callable[[], tuple[bool, str]]
 """A health or readiness check: ``(ok, reason)``."""
