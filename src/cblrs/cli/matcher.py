@@ -27,6 +27,7 @@ from cblrs.cli.common import (
     format_table,
     print_json,
 )
+from cblrs.cli.late_options import add_late_options, retrack_policy
 from cblrs.cli.metrics_http import add_http_options, http_settings
 from cblrs.errors import CblrsError
 
@@ -131,17 +132,8 @@ def register(subparsers) -> None:
     )
     retention.add_argument(
         "--retain-gb", type=float, default=4.0,
-        help="keep the database under this size, GiB, oldest rows first (default 4; 0: no "
-        "size limit)",
-    )
-    late = parser.add_argument_group(
-        "late messages", "tracked by re-tracking from a snapshot taken before them (tracks "
-        "published again with corrected_from)")
-    late.add_argument("--late-horizon", type=float, default=10.0, metavar="MINUTES",
-                      help="how far back late messages are still tracked (snapshots are kept "
-                      "that long; default 10; 0: late messages are stored, never tracked)")
-    late.add_argument("--late-delay", type=float, default=1.0, metavar="SECONDS",
-                      help="re-track once no late message came for this long (default 1)")
+        help="keep the database under this size, GiB, oldest rows first (default 4; 0: none)")
+    add_late_options(parser)
     online = parser.add_argument_group("analytics, live summary and metrics")
     online.add_argument(
         "--no-analytics",
@@ -231,8 +223,7 @@ def check_arguments(args: argparse.Namespace) -> None:
         check_positive(args.stats_interval, "--stats-interval")
     check_non_negative(args.retain_hours, "--retain-hours")
     check_non_negative(args.retain_gb, "--retain-gb")
-    check_non_negative(args.late_horizon, "--late-horizon")
-    check_non_negative(args.late_delay, "--late-delay")
+    retrack_policy(args)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -247,7 +238,6 @@ def run(args: argparse.Namespace) -> int:
     from cblrs.runtime.matcher_service import MatcherService
     from cblrs.runtime.mqtt_transport import MqttTransport
     from cblrs.runtime.retention import RetentionPolicy
-    from cblrs.runtime.retrack import RetrackPolicy
     from cblrs.runtime.store import RuntimeStore
     from cblrs.runtime.topics import matcher_status_topic, validate_client_id
     from cblrs.runtime.transport import Will
@@ -351,8 +341,7 @@ def run(args: argparse.Namespace) -> int:
         analytics=analytics,
         metrics=metrics,
         live_interval_s=args.live_interval or None,
-        retrack=RetrackPolicy(horizon_s=args.late_horizon * 60, delay_s=args.late_delay)
-        if args.late_horizon > 0 else None,
+        retrack=retrack_policy(args),
     )
     if metrics is not None:
 
