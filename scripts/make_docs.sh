@@ -239,7 +239,8 @@ from pathlib import Path
 import cv2
 
 demo, figures = Path(sys.argv[1]), Path(sys.argv[2])
-# The README shows the demo's own pictures, scaled down to keep the repository small.
+# README.md and docs/getting-started.md show the demo's own pictures, scaled down to keep
+# the repository small.
 for source, target, width in [
     ("plaza/trajectories.png", "demo_plaza_trajectories.png", 1400),
     ("roundabout/trajectories.png", "demo_roundabout_trajectories.png", 1400),
@@ -269,7 +270,7 @@ print()
 print(f"{report['seconds']:.1f} s in all (`cblrs demo --json`).")
 PY
 
-# One markdown page with every table, in the order the README shows them.
+# One markdown page with every table, in the order the documentation shows them.
 {
     echo "# cblrs: measured results"
     echo
@@ -287,28 +288,8 @@ PY
 } > "$results/RESULTS.md"
 
 # Copy the tables into README.md and the pages under docs/ between their
-# "BEGIN/END generated: NAME" markers.
-for page in README.md docs/*.md; do
-python - "$results" "$page" <<'PY'
-import re
-import sys
-from pathlib import Path
-
-results, readme = Path(sys.argv[1]), Path(sys.argv[2])
-text = readme.read_text()
-
-
-def fill(match: re.Match) -> str:
-    name = match.group(1)
-    table = results / f"{name}.md"
-    body = table.read_text().strip() if table.exists() else f"(run scripts/make_docs.sh: {name})"
-    return f"<!-- BEGIN generated: {name} -->\n{body}\n<!-- END generated: {name} -->"
-
-
-pattern = re.compile(r"<!-- BEGIN generated: (\S+) -->.*?<!-- END generated: \1 -->", re.S)
-readme.write_text(pattern.sub(fill, text))
-PY
-done
+# "BEGIN/END generated: NAME" markers (the pages build into the MkDocs site, mkdocs.yml).
+python scripts/fill_docs.py
 
 ls -l "$figures"/*.png >&2
 echo "wrote $results/RESULTS.md" >&2

@@ -321,10 +321,11 @@ def track_scene(
         )
     elif matcher_options:
         raise ValueError("matcher options are only accepted with a matcher name.")
-    # Multi-view confirmation learns where each camera sees the ground from its detections,
-    # as the matcher service does: telling it the reference images' ground
-    # (FusionTracker.set_views) would count far ground where a camera detects nothing, and a
-    # live matcher would then track differently from this pipeline.
+    set_views = getattr(matcher, "set_views", None)
+    if set_views is not None:
+        # Where each camera sees the ground (multi-view confirmation), as `cblrs matcher`
+        # tells its tracker from the same references.
+        set_views(references)
     messages: Iterable[CameraMessage] = camera_messages(
         scene, references, scene_targeters(scene, targeting), clocks, drop_hidden_feet
     )

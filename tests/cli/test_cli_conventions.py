@@ -145,7 +145,7 @@ LEAVES = list(_leaves(build_parser()))
 @pytest.mark.parametrize(("path", "parser"), LEAVES, ids=[" ".join(p) for p, _ in LEAVES])
 def test_every_subcommand_takes_json_and_quiet(path, parser):
     # Issue 21: `site init` refused --quiet (as did site check/export, calibrate, dashboard and
-    # bench mqtt) although the README says every subcommand takes it.
+    # bench mqtt) although docs/cli.md says every subcommand takes it.
     options = {option for action in parser._actions for option in action.option_strings}
     assert {"--json", "--quiet"} <= options, " ".join(path)
 

@@ -1,6 +1,6 @@
 """Implausible calibrations are refused with the likely mistake named (issue 21, item 5).
 
-The README's clicked points (``gate.csv``) written as a newcomer got them wrong: ground
+The documentation's clicked points (``gate.csv``) written as a newcomer got them wrong: ground
 positions in centimetres or millimetres, map pixels read as metres, ``u, v`` or ``x, y``
 columns swapped. Each fits with a small pixel error, so before this check each exited 0
 ("camera 598 m high", a generic warning); now each is one sentence and exit 1, and the
@@ -21,7 +21,7 @@ from cblrs.camera import Camera
 from cblrs.cli.main import main
 from cblrs.errors import CalibrationError
 
-# The README's example points (pixels, metres) of a 1280x720 camera about 6 m high.
+# docs/sites.md's example points (pixels, metres) of a 1280x720 camera about 6 m high.
 GATE = [
     (1099.9, 288.4, 16, 0, "bench"),
     (16.1, 271.4, 4, 18, "bin"),

@@ -6,7 +6,7 @@ logged in to the broker as the read-only viewer, with the matcher's database for
 the page logged in to the dashboard as a viewer of its users file. The page must
 show the tracks and the counts appearing and changing, the cameras online with a message
 rate, and after the run replay the stored run at 10x to the same counts the matcher stored.
-Screenshots are saved (to ``$CBLRS_SCREENSHOTS`` too when set, for the README).
+Screenshots are saved (to ``$CBLRS_SCREENSHOTS`` too when set, for README.md and docs/live.md).
 """
 
 from __future__ import annotations

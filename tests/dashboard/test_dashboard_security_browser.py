@@ -1,8 +1,8 @@
 """The dashboard's pages attacked in a real browser (headless Chromium through Playwright).
 
 * Script in names: zone, line, site, camera and calibration-point names, and place names
-  arriving from the broker (an event, the live summary), carry markup that would run if the
-  page wrote them as HTML. The site-file route is closed by validation (tested in
+  arriving from the broker (an event, the live summary, an alert), carry markup that would
+  run if the page wrote them as HTML. The site-file route is closed by validation (tested in
   test_dashboard_security.py); here the validation is switched off in this process, so that
   the hostile names reach the page over the wire, as from a site file of an older cblrs or
   from a compromised matcher. None may run (no dialog, the title and a global untouched,
@@ -29,9 +29,9 @@ import pytest
 from cblrs.dashboard.app import DashboardConfig, create_app
 from cblrs.dashboard.auth import Authenticator
 from cblrs.dashboard.feed import LiveFeed
-from cblrs.runtime.events import encode_event, encode_live
+from cblrs.runtime.events import encode_alert, encode_event, encode_live
 from cblrs.runtime.mqtt_transport import MqttTransport
-from cblrs.runtime.topics import events_topic, live_topic
+from cblrs.runtime.topics import alerts_topic, events_topic, live_topic
 from cblrs.site import load_site
 from conftest import ADMIN, VIEWER, calibration_points, login, site_copy, wait_until
 
@@ -108,12 +108,23 @@ def test_hostile_names_reach_the_page_as_text(wildtrack_site, tmp_path, monkeypa
                        "visits": 0, "mean_dwell_s": 0.0, "dwell": [[7, 1.5]]}],
         })
 
+        episode = f"{payload('RULE')}/{payload('SUBJECT')}/1"
+        alert = encode_alert({"episode": episode, "rule": payload("RULE"), "kind": "occupancy",
+                              "subject": payload("SUBJECT"), "state": "fired",
+                              "timestamp": now, "since": now - 5, "value": 12,
+                              "threshold": 10},
+                             1, [{"episode": episode, "rule": payload("RULE"),
+                                  "kind": "occupancy", "subject": payload("SUBJECT"),
+                                  "since": now - 5, "value": 12}])
+
         def arrived() -> bool:
             text = page.evaluate("document.querySelector('aside').textContent")
-            if payload("EVENT") in text and payload("WIRE-ZONE") in text:
+            if payload("EVENT") in text and payload("WIRE-ZONE") in text and payload(
+                    "SUBJECT") in text:
                 return True
             publisher.publish(events_topic(1), event)
             publisher.publish(live_topic(1), live, qos=0)
+            publisher.publish(alerts_topic(1), alert)
             return False
 
         wait_until(arrived, 60, "the broker's hostile names on the page")
@@ -122,12 +133,16 @@ def test_hostile_names_reach_the_page_as_text(wildtrack_site, tmp_path, monkeypa
             zones: document.querySelector('#zones').textContent,
             cameras: document.querySelector('#cameras').textContent,
             events: document.querySelector('#events').textContent,
+            alerts: document.querySelector('#alerts').textContent,
+            active: document.querySelector('#alerts-active').textContent,
             header: document.querySelector('header').textContent,
             elements: document.querySelectorAll('body img, body svg, aside b, header b').length,
         })""")
         for where, text in (("ZONE", tables["zones"]), ("WIRE-ZONE", tables["zones"]),
                             ("LINE", tables["lines"]), ("WIRE-LINE", tables["lines"]),
-                            ("EVENT", tables["events"]), ("SITE", tables["header"])):
+                            ("EVENT", tables["events"]), ("SITE", tables["header"]),
+                            ("RULE", tables["alerts"]), ("SUBJECT", tables["alerts"]),
+                            ("RULE", tables["active"]), ("SUBJECT", tables["active"])):
             assert payload(where) in text, (where, text)
         assert CAMERA in tables["cameras"] and tables["elements"] == 0, tables
         assert "__proto__" in tables["lines"]

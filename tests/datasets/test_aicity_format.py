@@ -149,3 +149,25 @@ def test_round_trip(tmp_path_factory: pytest.TempPathFactory, count: int, data) 
     np.testing.assert_allclose(back.world_xy, tracks.world_xy, atol=5e-5)
     np.testing.assert_allclose(back.xyxy, tracks.xyxy, atol=0.011)  # 2 decimals, NaN == NaN
     np.testing.assert_allclose(back.timestamp, tracks.frame.astype(float))
+
+
+def test_track_files_are_readable_by_their_owner_only(tmp_path: Path) -> None:
+    """People's positions: a new track file is 0600, and so is one that existed as 0644."""
+    import stat
+
+    tracks = read_tracks_from_text(tmp_path, "1 7 0 10 20 30 40 1.5 2.5\n")
+    fresh = tmp_path / "fresh.txt"
+    write_tracks(fresh, tracks)
+    existing = tmp_path / "existing.txt"
+    existing.write_text("old\n")
+    existing.chmod(0o644)
+    write_tracks(existing, tracks)
+    for path in (fresh, existing):
+        assert stat.S_IMODE(path.stat().st_mode) == 0o600, path
+        assert read_tracks(path).track_id.tolist() == [7]
+
+
+def read_tracks_from_text(folder: Path, text: str) -> Tracks:
+    source = folder / "source.txt"
+    source.write_text(text)
+    return read_tracks(source)

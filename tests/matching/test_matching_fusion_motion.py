@@ -198,3 +198,24 @@ def test_learned_coverage_is_part_of_the_saved_state():
     forgetful.set_state(json.loads(json.dumps(saved)))
     assert ghost_rows([forgetful.update(frame * 0.1, messages(frame))
                        for frame in range(35, 70)]) > 0
+
+
+def test_a_moving_track_one_camera_sees_where_two_see_is_confirmed():
+    """The other camera is told it sees the place but does not see the car (an occluder its
+    reference image does not know): the car moves, so one camera confirms it; the same car
+    parked is never confirmed, and with the exception off neither is the moving one."""
+    def ids(speed: float, **options) -> int:
+        tracker = FusionTracker(PLANES, ["west", "east"], **options,
+                                camera_positions={"west": (-25.0, 0.0), "east": (25.0, 0.0)})
+        both = np.array([[x, y] for x in np.arange(-19.5, 20, 1.0)
+                         for y in np.arange(-19.5, 20, 1.0)])
+        tracker.coverage.set_view(0, both)
+        tracker.coverage.set_view(1, both)
+        parts = [tracker.update(frame * 0.1, [
+            message("west", frame, [[-10.0 + speed * frame * 0.1, 2.0]]),
+            message("east", frame, [])]) for frame in range(30)]
+        return len(np.unique(Tracks.concatenate(parts).track_id))
+
+    assert ids(6.0) == 1
+    assert ids(0.0) == 0
+    assert ids(6.0, confirm_moving_mps=0.0) == 0

@@ -1,4 +1,5 @@
-"""Fixtures for the pseudo-coordinate tests: the README's example site (from tests/site)."""
+"""Fixtures for the pseudo-coordinate tests: the documentation's example site
+(docs/sites.md, from tests/site)."""
 
 from __future__ import annotations
 
@@ -12,4 +13,4 @@ assert _spec is not None and _spec.loader is not None
 _site_fixtures = importlib.util.module_from_spec(_spec)
 _spec.loader.exec_module(_site_fixtures)
 
-readme_site = _site_fixtures.readme_site
+example_site = _site_fixtures.example_site

@@ -114,8 +114,8 @@ def _points(site) -> np.ndarray:
     return np.array(points, dtype=float)
 
 
-def test_points_and_homography_cameras_keep_their_positions(readme_site):
-    site = load_site(readme_site)
+def test_points_and_homography_cameras_keep_their_positions(example_site):
+    site = load_site(example_site)
     pseudo = site_from_document(pseudo_site_document(site, KEY), None)
     expected = site.camera_positions()
     carried = pseudo.camera_positions()

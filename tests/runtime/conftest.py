@@ -25,6 +25,7 @@ from dataclasses import dataclass
 
 import pytest
 from broker_user import RUN_AS
+from fault_plant import fault_references, plant  # noqa: F401 (fixtures of the fault tests)
 
 from cblrs.runtime.broker import (
     BrokerFiles,

@@ -45,7 +45,9 @@ def fusion(scene):
 def replay(scene, references, clocks, make_transport, store, timeout=120.0):
     """Camera nodes (threads) publish the simulated cameras; returns the service's stats."""
     names = scene.camera_names
-    service = MatcherService(make_transport("matcher"), store, fusion(scene), PLANE, names,
+    matcher = fusion(scene)
+    matcher.set_views(references)  # as `cblrs matcher` does from its references
+    service = MatcherService(make_transport("matcher"), store, matcher, PLANE, names,
                              window_s=5.0)
     service.start()
 

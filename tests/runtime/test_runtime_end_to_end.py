@@ -67,6 +67,8 @@ def replay(scene, references, epoch, make_transport, store, window_s=5.0, timeou
     )
     viewer.connect()
     matcher = make_matcher(matcher_name, scene_planes(scene), names)
+    if hasattr(matcher, "set_views"):
+        matcher.set_views(references)  # as `cblrs matcher` does from its references
     service = MatcherService(
         make_transport("matcher"), store, matcher, PLANE, names, window_s=window_s
     )

@@ -370,13 +370,14 @@ def test_the_servers_folder_holds_hashes_and_each_client_its_own_secrets(backbon
     ("role", "name", "planes", "allowed", "refused"),
     [
         ("camera", "cam.1", (), ["cblrs.north.7.cam//1.detections"],
-         ["cblrs.north.7.cam2.detections", "$JS.API.STREAM.DELETE.X"]),
+         ["cblrs.north.7.cam2.detections", "$JS.API.STREAM.DELETE.X", "cblrs.north.7.alerts"]),
         ("matcher", "m", (3,), ["cblrs.north.3.tracks", "$KV.cblrs_leases.north.plane-3",
-                                "$JS.ACK.CBLRS_north_P3.cblrs-plane-3.1.2.3.4.5"],
-         ["cblrs.north.4.tracks", "$KV.cblrs_leases.north.plane-4",
+                                "$JS.ACK.CBLRS_north_P3.cblrs-plane-3.1.2.3.4.5",
+                                "cblrs.north.3.alerts"],
+         ["cblrs.north.4.tracks", "$KV.cblrs_leases.north.plane-4", "cblrs.north.4.alerts",
           "$JS.API.CONSUMER.CREATE.CBLRS_north_P3.cblrs-plane-3",
           "$JS.API.CONSUMER.DELETE.CBLRS_north_P3.cblrs-plane-3"]),
-        ("viewer", "viewer", (), [], ["cblrs.north.1.tracks"]),
+        ("viewer", "viewer", (), [], ["cblrs.north.1.tracks", "cblrs.north.1.alerts"]),
     ],
 )
 def test_role_permissions_allow_exactly_the_roles_subjects(role, name, planes, allowed, refused):
@@ -389,6 +390,17 @@ def test_role_permissions_allow_exactly_the_roles_subjects(role, name, planes, a
     for subject in refused:
         assert not any(subject_matches(pattern, subject) for pattern in publish), subject
     assert role_permissions("admin", "admin") is None
+
+
+def test_viewers_read_alerts_and_cameras_do_not():
+    from cblrs.runtime.nats_transport import subject_matches
+
+    def reads(role: str, name: str, subject: str) -> bool:
+        allowed = role_permissions(role, name, (1,), SITE)["subscribe"]["allow"]
+        return any(subject_matches(pattern, subject) for pattern in allowed)
+
+    assert reads("viewer", "viewer", "cblrs.north.1.alerts")
+    assert not reads("camera", "CVLab1", "cblrs.north.1.alerts")
 
 
 @pytest.mark.parametrize(

@@ -170,6 +170,7 @@ def test_acl_and_credentials_files(mosquitto_auth):
     )
     assert "topic read cblrs/1/+/detections" in acl and "topic read cblrs/2/+/detections" in acl
     assert "topic write cblrs/1/tracks" in acl
+    assert "topic write cblrs/1/alerts" in acl and "topic read cblrs/+/alerts" in acl
     credentials = files.credentials()
     assert set(credentials) == {"CVLab1", "CVLab2", "matcher1", "matcher2", "viewer"}
     assert files.roles["CVLab1"] == "camera" and files.roles["viewer"] == "viewer"

@@ -1,4 +1,5 @@
-"""Fixtures for site tests: the README's example site with the files it refers to."""
+"""Fixtures for site tests: the documentation's example site (docs/sites.md) with the files it
+refers to."""
 
 from __future__ import annotations
 
@@ -16,23 +17,26 @@ from cblrs.camera import Camera
 REPO_ROOT = Path(__file__).resolve().parents[2]
 
 
-def readme_site_example() -> str:
-    """The YAML block after ``<!-- site-example -->`` in README.md."""
-    text = (REPO_ROOT / "README.md").read_text()
+SITES_PAGE = REPO_ROOT / "docs" / "sites.md"
+
+
+def site_example() -> str:
+    """The YAML block after ``<!-- site-example -->`` in docs/sites.md."""
+    text = SITES_PAGE.read_text()
     match = re.search(r"<!-- site-example -->\s*```yaml\n(.*?)```", text, re.S)
-    assert match, "README.md has no site example"
+    assert match, "docs/sites.md has no site example"
     return match.group(1)
 
 
 @pytest.fixture
-def readme_site(tmp_path) -> Path:
-    """The README example written to ``tmp_path/site.yaml`` with its map, CSV and JSON files.
+def example_site(tmp_path) -> Path:
+    """The documented example written to ``tmp_path/site.yaml`` with its map, CSV and JSON files.
 
     The files it names are made here from known cameras: ``north`` is a posed camera in
     cblrs camera JSON, ``east``'s clicks are exact projections given in map pixels.
     """
     path = tmp_path / "site.yaml"
-    path.write_text(readme_site_example())
+    path.write_text(site_example())
     cv2.imwrite(str(tmp_path / "plan.png"), np.full((900, 1000, 3), 230, np.uint8))
     north = Camera.from_pose("north", (12.0, 27.0, 7.0), -90, 30, 1100, (1920, 1080))
     (tmp_path / "calibrations").mkdir()

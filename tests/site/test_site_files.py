@@ -47,23 +47,24 @@ def test_wildtrack_site_gives_the_datasets_cameras_and_plane(wildtrack_root, tmp
     assert "calibration" in path.read_text() and "intrinsics" not in path.read_text()
 
 
-def test_export_inlines_everything_and_round_trips_exactly(wildtrack_root, readme_site, tmp_path):
-    # The README site (points inline and in a CSV in map pixels, a homography, a pose, a
-    # calibration file, a map image) plus WILDTRACK cameras referred to by folder.
-    text = readme_site.read_text()
-    wildtrack = site_from_dataset(wildtrack_root, readme_site)["cameras"][:2]
+def test_export_inlines_everything_and_round_trips_exactly(wildtrack_root, example_site, tmp_path):
+    # The documented site, docs/sites.md (points inline and in a CSV in map pixels, a
+    # homography, a pose, a calibration file, a map image) plus WILDTRACK cameras referred to
+    # by folder.
+    text = example_site.read_text()
+    wildtrack = site_from_dataset(wildtrack_root, example_site)["cameras"][:2]
     document = __import__("yaml").safe_load(text)
     document["cameras"] += wildtrack
-    save_document(document, readme_site)
-    original = load_site(readme_site)
+    save_document(document, example_site)
+    original = load_site(example_site)
     original_cameras = original.cameras()
     bundle = tmp_path / "bundle" / "site-bundle.yaml"
-    assert main(["site", "export", str(readme_site), "--out", str(bundle)]) == 0
+    assert main(["site", "export", str(example_site), "--out", str(bundle)]) == 0
     exported_text = bundle.read_text()
     for referred in ("calibrations/north.json", "clicks/east.csv", "plan.png", "wildtrack"):
         assert referred not in exported_text
     # In another folder with nothing beside it, the bundle gives the same cameras bit for bit.
-    shutil.rmtree(readme_site.parent / "calibrations")
+    shutil.rmtree(example_site.parent / "calibrations")
     exported = load_site(bundle)
     for first, second in zip(original_cameras, exported.cameras(), strict=True):
         _same_camera(first.camera, second.camera)

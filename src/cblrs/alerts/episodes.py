@@ -196,6 +196,16 @@ class AlertEpisodes:
         """``(rule, subject)`` of the episodes firing now."""
         return [key for key, episode in self._episodes.items() if episode.firing]
 
+    def active(self) -> list[dict[str, Any]]:
+        """The episodes firing now: episode, rule, kind, subject, since, value."""
+        kinds = {rule.name: rule.kind for rule in self.rules}
+        return [
+            {"episode": f"{rule}/{subject}/{episode.count}", "rule": rule,
+             "kind": kinds.get(rule, ""), "subject": subject,
+             "since": episode.pending_since, "value": episode.value}
+            for (rule, subject), episode in self._episodes.items() if episode.firing
+        ]
+
     # ------------------------------------------------------------------ persistence
     def get_state(self) -> dict[str, Any]:
         """Everything needed to go on after a restart, as JSON-ready data."""

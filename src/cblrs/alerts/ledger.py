@@ -41,18 +41,34 @@ STATE_KEY = "alert_state"
 
 
 class AlertLedger:
-    """Alert episodes of one plane, persisted in its store, and their webhook outbox."""
+    """Alert episodes of one plane, persisted in its store, and their webhook outbox.
 
-    def __init__(self, store: Any, alerts: AlertsModel) -> None:
+    Args:
+        store: the matcher's store.
+        alerts: the rules.
+        context: fields added to every alert's body (the matcher service adds its ``plane``).
+    """
+
+    def __init__(self, store: Any, alerts: AlertsModel,
+                 context: Mapping[str, Any] | None = None) -> None:
         self.store = store
         self.episodes = AlertEpisodes(alerts)
+        self.context = dict(context or {})
         store.write(lambda cursor: cursor.execute(ALERTS_SCHEMA))
         state = store.get_meta(STATE_KEY)
         if state is not None:
             self.episodes.set_state(state)
 
-    def observe(self, observation: Observation) -> list[AlertEvent]:
-        """Feed one observation; its events, committed with the episodes' state."""
+    def observe(self, observation: Observation,
+                meta: Mapping[str, Any] | None = None) -> list[AlertEvent]:
+        """Feed one observation; its events, committed with the episodes' state.
+
+        Args:
+            observation: the plane now.
+            meta: more ``meta`` keys to commit in the same transaction (e.g. how far the
+                caller has read the events table), so that they and the episodes' state
+                never disagree after a crash.
+        """
         events = self.episodes.observe(observation)
         state = self.episodes.get_state()
 
@@ -60,14 +76,20 @@ class AlertLedger:
             cursor.executemany(
                 "INSERT OR IGNORE INTO alerts (episode, state, timestamp, body) "
                 "VALUES (?, ?, ?, ?)",
-                [(event.episode, event.state, event.timestamp, json.dumps(event.to_dict()))
-                 for event in events],
+                [(event.episode, event.state, event.timestamp,
+                  json.dumps({**event.to_dict(), **self.context})) for event in events],
             )
             cursor.execute(
                 "INSERT INTO meta (key, value) VALUES (?, ?) "
                 "ON CONFLICT(key) DO UPDATE SET value = excluded.value",
                 (STATE_KEY, json.dumps(state)),
             )
+            for key, value in (meta or {}).items():
+                cursor.execute(
+                    "INSERT INTO meta (key, value) VALUES (?, ?) "
+                    "ON CONFLICT(key) DO UPDATE SET value = excluded.value",
+                    (key, json.dumps(value)),
+                )
 
         if events or state["clock"] is not None:
             self.store.write(writes)

@@ -1,4 +1,4 @@
-"""The synthetic load of ``cblrs bench tracker``, and the oracle tracks of the README.
+"""The synthetic load of ``cblrs bench tracker``, and the oracle tracks of docs/wildtrack.md.
 
 The synthetic load is what the central node sees in steady state: ``live_tracks`` people
 walking (constant velocity, bouncing off the borders of an area sized for a realistic

@@ -5,8 +5,8 @@ from them it extrapolates, and near the horizon one pixel spans metres. The refi
 the covariance of the model's parameters (:attr:`cblrs.calibrate.refine.Refined.covariance`);
 carried through the pixel -> ground mapping it predicts, for every pixel, how far the fitted
 camera may put what that pixel sees (the RMS of the 2-D ground error, metres). On WILDTRACK
-this prediction tracks the real localisation error (see README, "How good is a clicked
-calibration?"), so it tells the user where to click more points.
+this prediction tracks the real localisation error (see docs/sites.md, "How good is a
+clicked calibration?"), so it tells the user where to click more points.
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """One example (or a few) per subcommand, shown at the end of its ``--help``.
 
-Paths are those of the README: the data sets in ``../shared/data``, references in ``refs/``.
+Paths are those of the documentation: the data sets in ``../shared/data``, references in ``refs/``.
 :func:`cblrs.cli.main.build_parser` attaches them and the help formatter (defaults shown).
 """
 

@@ -128,8 +128,7 @@ def register(subparsers) -> None:
     retention.add_argument(
         "--retain-hours", type=float, default=24.0,
         help="delete inbox, track, published event and binned count rows older than this "
-        "(default 24; 0: no age limit; the counts' totals are kept)",
-    )
+        "(default 24; 0: no age limit; the counts' totals are kept)")
     retention.add_argument(
         "--retain-gb", type=float, default=4.0,
         help="keep the database under this size, GiB, oldest rows first (default 4; 0: none)")
@@ -235,18 +234,19 @@ def run(args: argparse.Namespace) -> int:
     check_arguments(args)
     # lazy: a subcommand imports the library when it runs, so its --help starts fast
     from cblrs.matching import make_matcher
+    from cblrs.runtime.alert_service import site_alerts
     from cblrs.runtime.matcher_service import MatcherService
     from cblrs.runtime.mqtt_transport import MqttTransport
     from cblrs.runtime.retention import RetentionPolicy
     from cblrs.runtime.store import RuntimeStore
     from cblrs.runtime.topics import matcher_status_topic, validate_client_id
     from cblrs.runtime.transport import Will
+    from cblrs.runtime.views import tell_views
     from cblrs.runtime.wire import ValidationPolicy, encode_status
 
     site = None
     if args.site is not None:
-        # lazy: a subcommand imports the library when it runs, so its --help starts fast
-        from cblrs.site import load_site
+        from cblrs.site import load_site  # lazy, as above
 
         site = load_site(args.site)
     if args.references is not None:
@@ -282,8 +282,7 @@ def run(args: argparse.Namespace) -> int:
     options = parse_options(args.option)
     positions = site_positions(site, names)
     if site is not None and args.matcher == "fusion" and "camera_positions" not in options:
-        # The fusion tracker's noise grows with distance from each camera and along its
-        # viewing ray: without positions it tracks worse (WILDTRACK HOTA 92.0 vs 93.8).
+        # Noise grows with distance and along the ray (without: WILDTRACK HOTA 92.0 vs 93.8).
         if positions:
             options["camera_positions"] = {name: list(xyz) for name, xyz in positions.items()}
     matcher = make_matcher(args.matcher, planes, names, **options)
@@ -306,6 +305,7 @@ def run(args: argparse.Namespace) -> int:
     stop = threading.Event()
     failures: list[str] = []
     analytics = make_analytics(site, plane_id, args)
+    alerts, senders = site_alerts(site)  # the webhooks' secrets are read now
     metrics = server = None
     if args.http is not None:
         # lazy: a subcommand imports the library when it runs, so its --help starts fast
@@ -313,6 +313,7 @@ def run(args: argparse.Namespace) -> int:
 
         address, http_token = http_settings(args)
         metrics = ServiceMetrics(plane_id, names)
+    tell_views(matcher, names, args.references, site)  # where each camera sees the ground
     store = RuntimeStore(args.db)
     if uses_nats(args):
         # An empty store is rebuilt from the plane's stream (e.g. on a new host).
@@ -341,7 +342,7 @@ def run(args: argparse.Namespace) -> int:
         analytics=analytics,
         metrics=metrics,
         live_interval_s=args.live_interval or None,
-        retrack=retrack_policy(args),
+        retrack=retrack_policy(args), alerts=alerts, alert_senders=senders,
     )
     if metrics is not None:
 
@@ -510,7 +511,7 @@ def position_summary(site: Any, names: list[str], options: dict[str, Any], match
     if site is not None:
         text += (
             f"\nsite {site.name or site.source}: {len(site.places.zones)} zones, "
-            f"{len(site.places.lines)} counting lines"
+            f"{len(site.places.lines)} counting lines, {len(site.alerts.rules)} alert rules"
         )
     return text
 

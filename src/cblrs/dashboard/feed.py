@@ -5,7 +5,7 @@ updates, analytics events, the matcher's live summary and the cameras' status, v
 each message with its schema, turns it into the compact JSON the page draws and hands it to
 every connected page (:class:`Subscriber`, one per Server-Sent-Events stream). A page that
 connects mid-run first gets what the feed holds: the last track frame, the last live
-summary, the cameras' status and the recent events.
+summary, the cameras' status, the recent events and the recent alerts.
 
 Messages to the page (``type``):
 
@@ -16,6 +16,9 @@ Messages to the page (``type``):
 * ``event`` — an analytics event (``cblrs.events/1`` fields), once per ``key``;
 * ``live`` — the matcher's live summary (counts, occupancy, dwell, camera health);
 * ``status`` — ``{"camera", "online"}`` from a camera's status topic;
+* ``alert`` — an alert episode fired or cleared (``cblrs.alerts/1`` fields: episode, rule,
+  kind, subject, state, timestamp, since, value, threshold, and ``active``: the episodes
+  firing then), once per ``(episode, state)``;
 * ``hello`` — first message of a stream: the mode and the plane.
 """
 
@@ -33,10 +36,11 @@ import msgspec
 import numpy as np
 
 from cblrs.detections import CLASS_NAMES
-from cblrs.runtime.events import decode_event, decode_live
+from cblrs.runtime.events import decode_alert, decode_event, decode_live
 from cblrs.runtime.mqtt_transport import MqttSettings, MqttTransport
 from cblrs.runtime.topics import (
     TopicError,
+    alerts_topic,
     events_topic,
     live_topic,
     parse_status_topic,
@@ -48,6 +52,7 @@ from cblrs.runtime.wire import RejectedMessage, decode_status, decode_tracks
 logger = logging.getLogger(__name__)
 
 RECENT_EVENTS = 50
+RECENT_ALERTS = 50
 """Events a newly connected page gets."""
 QUEUE_LIMIT = 256
 """Messages waiting for a slow page; beyond it the oldest track frames are dropped."""
@@ -141,7 +146,9 @@ class LiveFeed:
         self._last_live: dict[str, Any] | None = None
         self._status: dict[str, bool] = {}
         self._events: OrderedDict[str, dict[str, Any]] = OrderedDict()
-        self.counters = {"tracks": 0, "events": 0, "live": 0, "rejected": 0, "corrections": 0}
+        self._alerts: OrderedDict[tuple[str, str], dict[str, Any]] = OrderedDict()
+        self.counters = {"tracks": 0, "events": 0, "live": 0, "alerts": 0, "rejected": 0,
+                         "corrections": 0}
         self.last_message_at: float | None = None
 
     def start(self) -> None:
@@ -156,8 +163,10 @@ class LiveFeed:
         for topic, handler in ((tracks_topic(plane), self._on_tracks),
                                (events_topic(plane), self._on_event),
                                (live_topic(plane), self._on_live),
+                               (alerts_topic(plane), self._on_alert),
                                (status_filter(plane), self._on_status)):
-            self.transport.subscribe(topic, handler, qos=1 if topic.endswith("events") else 0)
+            self.transport.subscribe(topic, handler,
+                                     qos=1 if topic.endswith(("events", "alerts")) else 0)
 
     def close(self) -> None:
         """Disconnect from the broker."""
@@ -180,6 +189,7 @@ class LiveFeed:
             if self._last_live is not None:
                 backlog.append(self._last_live)
             backlog += [{**event, "recent": True} for event in self._events.values()]
+            backlog += [{**alert, "recent": True} for alert in self._alerts.values()]
             if self._last_tracks is not None:
                 backlog.append(self._last_tracks)
         for item in backlog:
@@ -250,6 +260,26 @@ class LiveFeed:
         with self._lock:
             self._last_live = item
             self.counters["live"] += 1
+        self._broadcast(item)
+
+    def _on_alert(self, delivery: Any) -> None:
+        try:
+            alert = decode_alert(delivery.payload)
+        except RejectedMessage as error:
+            self._reject("alert", error)
+            return
+        finally:
+            delivery.ack()
+        item = {"type": "alert", **msgspec.to_builtins(alert)}
+        item.pop("schema", None)
+        key = (alert.episode, alert.state)
+        with self._lock:
+            if key in self._alerts:  # QoS 1, or the retained one again after a reconnection
+                return
+            self._alerts[key] = item
+            while len(self._alerts) > RECENT_ALERTS:
+                self._alerts.popitem(last=False)
+            self.counters["alerts"] += 1
         self._broadcast(item)
 
     def _on_status(self, delivery: Any) -> None:

@@ -237,6 +237,12 @@ class ServiceReporter:
         if self.metrics is not None:
             self.metrics.tracked(groups, report.get("durations") or {}, events)
 
+    def live_state(self) -> dict[str, Any]:
+        """The tracker process's latest live state: ``clock``, ``occupancy`` (zone ->
+        tracks inside) and ``dwell`` (``(zone, track, seconds)`` of the open visits)."""
+        with self._lock:
+            return dict(self._live)
+
     def summary(self) -> dict[str, Any]:
         """The live summary (``cblrs.live/1`` fields without the schema)."""
         with self._lock:

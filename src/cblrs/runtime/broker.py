@@ -10,9 +10,9 @@ client needs into a folder of its own (see :mod:`cblrs.runtime.credentials`)::
     <out>/acl             a camera publishes only its own detections and status and reads
                           only its confirmations and the matchers' status; a matcher reads
                           the detections of its planes, publishes their tracks, analytics
-                          events, live summaries and confirmations and holds their lease; a
-                          viewer (a dashboard) reads tracks, events, live summaries and
-                          status, and writes nothing
+                          events, live summaries, alerts and confirmations and holds their
+                          lease; a viewer (a dashboard) reads tracks, events, live
+                          summaries, alerts and status, and writes nothing
     <out>/data/           persistence (queued QoS 1 messages survive a broker restart)
     <out>/tls/            the CA certificate, the server's certificate and key (``tls=True``)
     <out>-clients/<user>/ one client's password, and with TLS its certificate, key and the CA
@@ -265,7 +265,7 @@ def write_broker_config(
             ``cblrs/+/<camera>/detections`` and ``cblrs/+/<camera>/status``.
         matchers: matcher ids (each serving every plane of ``plane_ids``), or matcher id ->
             the planes it serves; a matcher may read the detections and status of its
-            planes and publish their tracks, events, live summaries and confirmations.
+            planes and publish their tracks, events, live summaries, alerts and confirmations.
         port: listener port.
         plane_ids: planes the matchers serve (when ``matchers`` is not a mapping).
         tls: make the listener TLS-only with generated certificates; clients must present a
@@ -518,6 +518,7 @@ def _acl(cameras: Sequence[str], planes_of: Mapping[str, Sequence[int]],
                 f"topic write {ROOT}/{plane}/tracks",
                 f"topic write {ROOT}/{plane}/events",
                 f"topic write {ROOT}/{plane}/live",
+                f"topic write {ROOT}/{plane}/alerts",
                 f"topic write {ROOT}/{plane}/+/stored",
                 f"topic write {ROOT}/{plane}/matchers/{matcher}/status",
                 f"topic readwrite {ROOT}/{plane}/lease",
@@ -529,6 +530,7 @@ def _acl(cameras: Sequence[str], planes_of: Mapping[str, Sequence[int]],
             f"topic read {ROOT}/+/tracks",
             f"topic read {ROOT}/+/events",
             f"topic read {ROOT}/+/live",
+            f"topic read {ROOT}/+/alerts",
             f"topic read {ROOT}/+/+/status",
             f"topic read {ROOT}/+/matchers/+/status",
             f"topic read {ROOT}/+/lease",

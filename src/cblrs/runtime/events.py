@@ -21,6 +21,8 @@
   persistent counters, each zone's occupancy and live dwell (open visits of confirmed
   tracks), and each camera's health as the matcher sees it (online, messages received and
   rejected, message rate, age of its last message).
+* ``cblrs.alerts/1`` on ``cblrs/<plane>/alerts``, QoS 1, retained: an alert episode fired or
+  cleared, with the episodes firing then (:class:`WireAlert`, :mod:`cblrs.alerts`).
 """
 
 from __future__ import annotations
@@ -214,3 +216,67 @@ def decode_live(payload: bytes) -> LiveSummary:
     if len(payload) > MAX_LIVE_BYTES:
         raise RejectedMessage(RejectReason.OVERSIZED, f"live summary of {len(payload)} bytes")
     return _decode_typed(payload, LiveSummary, LIVE_SCHEMA)
+
+
+# --------------------------------------------------------------------------- alerts
+
+ALERTS_SCHEMA = "cblrs.alerts/1"
+MAX_ALERT_BYTES = 64 * 1024
+AlertName = Annotated[str, msgspec.Meta(min_length=1, max_length=256)]
+
+
+class ActiveAlert(msgspec.Struct, forbid_unknown_fields=True):
+    """An episode firing when the alert was published."""
+
+    episode: AlertName
+    rule: AlertName
+    kind: AlertName
+    subject: AlertName
+    since: float | None
+    value: float
+
+
+class WireAlert(msgspec.Struct, forbid_unknown_fields=True):
+    """A ``cblrs.alerts/1`` payload on ``cblrs/<plane>/alerts`` (QoS 1, retained): one
+    episode fired or cleared (:class:`cblrs.alerts.AlertEvent`'s fields) and the episodes
+    firing at publication (``active``), so that a viewer subscribing late sees them from the
+    retained message. Subscribers de-duplicate on ``(episode, state)``."""
+
+    schema: str
+    plane: SitePlaneId
+    episode: AlertName
+    rule: AlertName
+    kind: Literal["occupancy", "dwell", "line_count", "camera_offline", "matcher_lag"]
+    subject: AlertName
+    state: Literal["fired", "cleared"]
+    timestamp: float
+    since: float
+    value: float
+    threshold: float
+    active: Annotated[list[ActiveAlert], msgspec.Meta(max_length=1000)]
+
+
+def encode_alert(body: dict[str, Any], plane_id: int, active: list[dict[str, Any]]) -> bytes:
+    """The payload of an alert (:meth:`cblrs.alerts.AlertEvent.to_dict`) with its plane and
+    the episodes firing now.
+
+    Raises:
+        RejectedMessage: it would not pass :func:`decode_alert`.
+    """
+    document = {**body, "schema": ALERTS_SCHEMA, "plane": int(plane_id), "active": active}
+    try:
+        alert = msgspec.convert(document, WireAlert)
+    except msgspec.ValidationError as error:
+        raise RejectedMessage(RejectReason.INVALID_VALUE, str(error)) from None
+    return msgspec.json.encode(alert)
+
+
+def decode_alert(payload: bytes) -> WireAlert:
+    """Decode and validate a ``cblrs.alerts/1`` payload.
+
+    Raises:
+        RejectedMessage: for every kind of bad input, and nothing else.
+    """
+    if len(payload) > MAX_ALERT_BYTES:
+        raise RejectedMessage(RejectReason.OVERSIZED, f"alert of {len(payload)} bytes")
+    return _decode_typed(payload, WireAlert, ALERTS_SCHEMA)

@@ -85,6 +85,7 @@ from typing import Any
 from cblrs.detections import Tracks
 from cblrs.errors import CblrsError
 from cblrs.matching.fusion import clock_report
+from cblrs.runtime.alert_service import AlertService
 from cblrs.runtime.analytics_service import ServiceReporter
 from cblrs.runtime.confirmations import ConfirmationBuffer, peek_sequence
 from cblrs.runtime.lease import PlaneLease
@@ -190,6 +191,11 @@ class MatcherService:
             occupancy, camera health); None publishes none.
         retrack: snapshots and re-tracking of late messages (:mod:`cblrs.runtime.retrack`);
             None: late messages stay untracked.
+        alerts: the site's ``alerts:`` (:class:`cblrs.alerts.AlertsModel`): evaluated,
+            committed, published on ``cblrs/<plane>/alerts`` and posted to its webhooks by
+            :class:`~cblrs.runtime.alert_service.AlertService`; None (or no rules): none.
+        alert_senders: webhook name -> :class:`cblrs.alerts.WebhookSender` (their secrets
+            read: :func:`cblrs.runtime.alert_service.make_senders`).
     """
 
     def __init__(
@@ -218,6 +224,8 @@ class MatcherService:
         metrics: ServiceMetrics | None = None,
         live_interval_s: float | None = 1.0,
         retrack: RetrackPolicy | None = RetrackPolicy(),  # noqa: B008 (frozen)
+        alerts: Any = None,
+        alert_senders: dict[str, Any] | None = None,
     ):
         if window_s < 0 or not math.isfinite(window_s):
             raise ValueError(f"window must be a finite number >= 0, got {window_s}.")
@@ -292,6 +300,10 @@ class MatcherService:
             places=None if analytics is None else analytics.places, metrics=metrics,
             live_interval_s=live_interval_s,
         )
+        self.alerts: AlertService | None = None
+        if alerts is not None and alerts.rules:
+            self.alerts = AlertService(transport, store, self.plane_id, self.camera_ids,
+                                       alerts, alert_senders or {}, self.reporter, self.lag)
 
     # -- lifecycle -------------------------------------------------------------------------
 
@@ -344,6 +356,8 @@ class MatcherService:
         if self._lease is not None:
             self._lease.start(self._lease_lost, self._lease_confirmed)
         self.reporter.start()
+        if self.alerts is not None:
+            self.alerts.start()
         self._receiving.set()
         self._announce("online")
         self._started = True
@@ -378,6 +392,8 @@ class MatcherService:
                                thread.name, timeout)
         if self._tracker is not None:
             self._tracker.close(max(0.0, deadline - time.monotonic()))
+        if self.alerts is not None:
+            self.alerts.stop(max(1.0, deadline - time.monotonic()))
         self.reporter.stop(max(1.0, deadline - time.monotonic()))
         self._send_confirmations(force=True)
         if self._lease is not None:
@@ -815,6 +831,16 @@ class MatcherService:
             if offline_at < summary[camera]["max_received_at"]:
                 return False
         return True
+
+    def lag(self, now: float) -> float:
+        """Seconds from the capture of the oldest message waiting for tracking (buffered or
+        with the tracker process) to ``now`` (seconds since 1970); 0 when none waits."""
+        with self._state_lock:
+            oldest = [self._orderer.oldest()]
+            if self._inflight:
+                oldest.append(self._inflight[0][0][0])
+        times = [value for value in oldest if value is not None]
+        return max(0.0, now - min(times)) if times else 0.0
 
     def drained(self) -> bool:
         """Nothing waiting: no delivery to store, no buffered group, no group being tracked,

@@ -46,8 +46,8 @@ Metric names (all labelled ``plane``):
 ``cblrs_zone_occupancy{zone}``, ``cblrs_zone_visits{zone}``: zones now and in total
 =============================================  ==========================================
 
-The capture-to-track buckets sit around the latency target of 20 ms (README, the MQTT
-benchmark) and reach out to the ordering window's seconds.
+The capture-to-track buckets sit around the latency target of 20 ms (docs/services.md, the
+MQTT benchmark) and reach out to the ordering window's seconds.
 """
 
 from __future__ import annotations

@@ -11,13 +11,13 @@ Mosquitto ACL of :mod:`cblrs.runtime.broker`:
 
       camera C   publish  R.*.C.detections, R.*.C.status
                  read     R.*.C.stored, R.*.matchers.*.status, its own inbox
-      matcher M  publish  R.P.tracks|events|live, R.P.*.stored, R.P.matchers.M.status
+      matcher M  publish  R.P.tracks|events|live|alerts, R.P.*.stored, R.P.matchers.M.status
                  (for each plane P it serves); its consumer only:
                  $JS.API.CONSUMER.INFO|RESET|MSG.NEXT.DS.D, $JS.ACK.DS.D.>; its lease
                  key only: $KV.cblrs_leases.KEY, $JS.API.DIRECT.GET.KV_cblrs_leases.
                  $KV.cblrs_leases.KEY, $JS.API.STREAM.INFO.KV_cblrs_leases
                  read     its own inbox
-      viewer V   read     R.*.tracks|events|live, R.*.*.status, R.*.matchers.*.status
+      viewer V   read     R.*.tracks|events|live|alerts, R.*.*.status, R.*.matchers.*.status
                  publish  nothing
       admin      everything (streams, consumers, buckets: ``cblrs matcher --prepare``)
 
@@ -121,6 +121,7 @@ def role_permissions(
                 f"{root}.{plane}.tracks",
                 f"{root}.{plane}.events",
                 f"{root}.{plane}.live",
+                f"{root}.{plane}.alerts",
                 f"{root}.{plane}.*.stored",
                 f"{root}.{plane}.matchers.{own}.status",
                 f"$JS.API.CONSUMER.INFO.{stream}.{consumer}",
@@ -135,8 +136,8 @@ def role_permissions(
         return {
             "publish": {"deny": [">"]},
             "subscribe": {"allow": [f"{root}.*.tracks", f"{root}.*.events", f"{root}.*.live",
-                                    f"{root}.*.*.status", f"{root}.*.matchers.*.status",
-                                    inbox]},
+                                    f"{root}.*.alerts", f"{root}.*.*.status",
+                                    f"{root}.*.matchers.*.status", inbox]},
         }
     raise ValueError(f"unknown role {role!r}")
 

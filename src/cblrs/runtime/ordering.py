@@ -212,6 +212,10 @@ class Orderer:
         """Messages waiting."""
         return len(self._waiting)
 
+    def oldest(self) -> float | None:
+        """Capture time of the oldest message waiting, or None."""
+        return self._waiting[0].timestamp if self._waiting else None
+
     @property
     def groups(self) -> int:
         """Distinct capture timestamps waiting."""

@@ -74,9 +74,11 @@ DEFAULT_TABLES: tuple[RetainedTable, ...] = (
     RetainedTable("tracks", "timestamp"),
     RetainedTable(*RETAINED_EVENTS),
     RetainedTable(*RETAINED_BINS),
+    RetainedTable("alerts", "timestamp", "instr(delivered, '\"cblrs/backbone\"') > 0"),
 )
 """The matcher's own tables: the inbox (never ``pending`` rows), the track history, the
-analytics events (never one not yet published) and the binned counts; the analytics' totals
+analytics events (never one not yet published), the binned counts and the alerts (never one
+not yet published on the backbone; :mod:`cblrs.runtime.alert_service`); the analytics' totals
 (``counts``, ``od``) are kept for ever (:mod:`cblrs.runtime.analytics_store`)."""
 
 

@@ -8,6 +8,7 @@ Layout (one subtree per plane, so a broker cluster can be split by plane id)::
     cblrs/<plane>/tracks                     matcher -> viewers, track updates
     cblrs/<plane>/events                     matcher -> viewers, analytics events (QoS 1)
     cblrs/<plane>/live                       matcher -> viewers, counts and camera health (1 Hz)
+    cblrs/<plane>/alerts                     matcher -> viewers, alert episodes (QoS 1, retained)
     cblrs/<plane>/matchers/<matcher>/status  retained availability of a matcher
     cblrs/<plane>/lease                      retained: which matcher instance holds the plane
     cblrs/0/tracks                           linker -> viewers, global tracks of the site
@@ -118,6 +119,12 @@ def live_topic(plane_id: int) -> str:
     """``cblrs/<plane>/live``: the matcher's live summary (counts, occupancy, camera health);
     plane 0: the linker's summary of the site."""
     return f"{ROOT}/{_plane_or_site(plane_id)}/live"
+
+
+def alerts_topic(plane_id: int) -> str:
+    """``cblrs/<plane>/alerts``: alert episodes fired and cleared (:mod:`cblrs.alerts`),
+    each with the episodes firing then; retained, so a viewer that subscribes late sees them."""
+    return f"{ROOT}/{_plane(plane_id)}/alerts"
 
 
 def _plane_or_site(plane_id: int) -> str:

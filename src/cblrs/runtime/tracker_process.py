@@ -186,7 +186,7 @@ def run(
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
     try:
         store = RuntimeStore(shared.path, write_lock=shared.write_lock)
-    except CblrsError as error:
+    except (CblrsError, OSError) as error:
         # The database vanished or changed before this process opened it (the receiver has
         # seen it too and stops the service, saying why): one line, no traceback.
         logger.warning("tracker process: %s", error)

@@ -8,12 +8,13 @@ const HOLD_S = 0.4;      // a mark not in an update for longer than this (captur
 const TRAIL_S = 3.0;     // trail length, capture seconds
 const TRAIL_POINTS = 40;
 const MAX_EVENTS = 30;
+const MAX_ALERTS = 30;
 const LABEL_LIMIT = 60;  // ids drawn next to the marks up to this many tracks
 const STALE_WALL_S = 3.0; // live: no update for this long (wall clock) and the marks go
 
 const stats = {
   mode: "live", connected: false, messages: 0, tracksMessages: 0, events: 0, draws: 0,
-  drawMs: [], lastDrawMs: null, tracksShown: 0, lastT: null, ended: false, live: 0,
+  drawMs: [], lastDrawMs: null, tracksShown: 0, lastT: null, ended: false, live: 0, alerts: 0,
 };
 window.cblrsStats = stats;
 
@@ -21,6 +22,7 @@ const state = {
   scene: null, view: null, tracks: new Map(), time: null, dirty: true,
   lines: Object.create(null), zones: Object.create(null), cameras: Object.create(null),
   openVisits: Object.create(null), events: [], seenKeys: new Set(),
+  alerts: [], activeAlerts: [], seenAlerts: new Set(),
   flashes: Object.create(null), source: null, updates: [],
 };
 window.cblrsCounts = () => ({
@@ -73,6 +75,23 @@ function onTracks(message) {
   state.lastUpdateWall = performance.now();
   stats.lastT = t;
   state.dirty = true;
+}
+
+// An alert episode fired or cleared; its "active" list is every episode firing then. Names
+// (rules, zones, cameras) come from the site file: shown as text only.
+function onAlert(alert) {
+  const key = `${alert.episode}\u0000${alert.state}`;
+  if (state.seenAlerts.has(key)) return;  // QoS 1, or the retained one again
+  state.seenAlerts.add(key);
+  stats.alerts += 1;
+  if (!alert.recent || !state.alerts.length
+      || alert.timestamp >= state.alerts[0].timestamp) {
+    state.activeAlerts = Array.isArray(alert.active) ? alert.active : [];
+  }
+  state.alerts.unshift(alert);
+  state.alerts.sort((a, b) => b.timestamp - a.timestamp);
+  state.alerts.length = Math.min(state.alerts.length, MAX_ALERTS);
+  state.tablesDirty = true;
 }
 
 function onEvent(event) {
@@ -148,6 +167,7 @@ function onMessage(message) {
   switch (message.type) {
     case "tracks": onTracks(message); break;
     case "event": onEvent(message); break;
+    case "alert": onAlert(message); break;
     case "live": onLive(message); break;
     case "counts": onCounts(message); break;
     case "status":
@@ -172,6 +192,9 @@ function connect(url, mode) {
   state.tracks.clear();
   state.events = [];
   state.seenKeys.clear();
+  state.alerts = [];
+  state.activeAlerts = [];
+  state.seenAlerts.clear();
   state.time = null;
   state.cameras = dict();
   stats.mode = mode;
@@ -296,6 +319,14 @@ function renderTables() {
       el("td", {}, age),
       el("td", { className: "rejected" }, camera.rejected === undefined ? "–" : camera.rejected));
   }));
+  fill($("alerts-active"), state.activeAlerts.map((alert) =>
+    el("li", {}, el("span", {}, `${alert.rule} · ${alert.subject}`),
+      el("span", { className: "time" }, `since ${Cblrs.clockText(alert.since)}`))));
+  fill($("alerts"), state.alerts.map((alert) =>
+    el("li", { className: `state-${alert.state === "fired" ? "fired" : "cleared"}` },
+      el("span", { className: "time" }, Cblrs.clockText(alert.timestamp)),
+      el("span", {}, alert.state === "fired" ? "fired" : "cleared"),
+      el("span", {}, `${alert.rule} · ${alert.subject} · ${Number(alert.value).toFixed(1)}`))));
   fill($("events"), state.events.map((event) => {
     let text = `${event.place} · #${event.track}`;
     if (event.kind === "line_crossed") text += ` · ${event.direction === "positive" ? "+" : "−"}`;

@@ -126,6 +126,12 @@ class FusionConfig:
             where at least that many cameras cover its position (learned from where each
             camera locates detections, :mod:`~cblrs.matching.fusion.coverage`); where fewer
             do, as many as cover it (at least one). 1: any one camera confirms.
+        confirm_moving_mps: a tentative track moving faster than this (m/s, and clearly:
+            faster than three standard deviations of its velocity) is confirmed by one
+            camera wherever it is. The false positives a detector keeps firing sit still
+            (a sign, a bollard, a reflection); a car or a person whom the second camera
+            cannot see (an occluder the reference image does not know, a distance where it
+            detects nothing) moves. 0: moving tracks need the cameras like any other.
         tentative_max_age_s: a tentative track unseen this long is dropped, seconds.
         max_age_s: a confirmed track unseen this long is dropped, seconds.
         end_off_plane: a track missed at an instant whose prediction lies off every plane,
@@ -176,6 +182,7 @@ class FusionConfig:
     merge_radius_m: float = 0.0
     confirm_evidence: int = 2
     confirm_cameras: int = 2
+    confirm_moving_mps: float = 0.5
     tentative_max_age_s: float = 1.0
     max_age_s: float = 2.0
     end_off_plane: bool = True
@@ -244,6 +251,10 @@ class FusionConfig:
             isinstance(self.confirm_cameras, int) and not isinstance(self.confirm_cameras, bool)
             and self.confirm_cameras >= 1,
             f"confirm_cameras must be a whole number >= 1, got {self.confirm_cameras!r}.",
+        )
+        require(
+            isinstance(self.confirm_moving_mps, (int, float)) and self.confirm_moving_mps >= 0,
+            f"confirm_moving_mps must be a number >= 0, got {self.confirm_moving_mps!r}.",
         )
         for name in ("class_measurement_sigma_m", "class_acceleration_sigma",
                      "class_turn_radius_m"):

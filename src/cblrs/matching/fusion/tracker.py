@@ -416,6 +416,11 @@ class FusionTracker:
             cameras_seen = np.isfinite(tracks.seen_by[candidates]).sum(axis=1)
             covering = self.coverage.covering(tracks.state[candidates, :2])
             needed = np.clip(covering, 1, self.config.confirm_cameras)
+            if self.config.confirm_moving_mps > 0:
+                speed = np.hypot(tracks.state[candidates, 2], tracks.state[candidates, 3])
+                moving = (speed > self.config.confirm_moving_mps) & (
+                    speed > 3.0 * tracks.velocity_sigma[candidates])
+                needed[moving] = 1
             newly_confirmed[candidates[cameras_seen < needed]] = False
         count = int(newly_confirmed.sum())
         self.tracks.ids[newly_confirmed] = self._next_id + np.arange(count)

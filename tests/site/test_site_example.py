@@ -1,4 +1,5 @@
-"""The README's site example is complete and valid, and every camera in it works."""
+"""The documentation's site example (docs/sites.md) is complete and valid, and every camera in
+it works."""
 
 from __future__ import annotations
 
@@ -8,8 +9,8 @@ import pytest
 from cblrs.site import check_site, load_site
 
 
-def test_readme_example_validates_and_is_ready_for_everything(readme_site):
-    report = check_site(readme_site)
+def test_example_example_validates_and_is_ready_for_everything(example_site):
+    report = check_site(example_site)
     assert report["valid"], report["problems"]
     assert report["ready"] == {
         "render": True,
@@ -42,13 +43,13 @@ def test_readme_example_validates_and_is_ready_for_everything(readme_site):
         ("north", (12.0, 27.0, 7.0), 1e-9),
     ],
 )
-def test_readme_cameras_are_where_they_were_put(readme_site, name, position, tolerance):
-    camera = load_site(readme_site).camera(name)
+def test_example_cameras_are_where_they_were_put(example_site, name, position, tolerance):
+    camera = load_site(example_site).camera(name)
     np.testing.assert_allclose(camera.position, position, atol=tolerance)
 
 
-def test_readme_map_converts_map_pixels(readme_site):
-    site = load_site(readme_site)
+def test_example_map_converts_map_pixels(example_site):
+    site = load_site(example_site)
     assert site.map is not None
     np.testing.assert_allclose(site.map.to_world([[120, 880], [320, 680]]), [[0, 0], [10, 10]])
     np.testing.assert_allclose(site.map.to_map([[10, 10]]), [[320, 680]])
