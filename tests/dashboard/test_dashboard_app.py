@@ -80,6 +80,25 @@ def test_tracks_frame_keeps_time_of_empty_updates():
     assert frame == {"type": "tracks", "t": 12.5, "rows": []}
 
 
+def test_the_live_feed_draws_no_corrections_of_the_past():
+    """A matcher that re-tracked late messages publishes the corrected past; the live view
+    keeps the newest frame (the correction is counted)."""
+    from types import SimpleNamespace
+
+    from cblrs.dashboard.feed import LiveFeed
+    from cblrs.detections import Tracks
+    from cblrs.runtime.mqtt_transport import MqttSettings
+
+    feed = LiveFeed(MqttSettings("127.0.0.1", 1), 1, "viewer-test")  # never connected
+    now = Tracks([7], [20.0], [3], [[1.0, 2.0]])
+    past = Tracks([1], [10.0], [3], [[5.0, 5.0]])
+    for payload in (encode_tracks(now, 1, sequence=1, timestamp=20.0),
+                    encode_tracks(past, 1, sequence=2, timestamp=10.0, corrected_from=9.0)):
+        feed._on_tracks(SimpleNamespace(payload=payload, ack=lambda: None))
+    assert feed.counters["tracks"] == 1 and feed.counters["corrections"] == 1
+    assert feed._last_tracks == {"type": "tracks", "t": 20.0, "rows": [[3, 1.0, 2.0, None]]}
+
+
 def test_subscriber_drops_old_track_frames_not_events():
     async def run() -> list[str]:
         subscriber = Subscriber(asyncio.get_running_loop(), limit=3)

@@ -13,8 +13,9 @@ Two cameras (CVLab1, CVLab2), 40 annotated WILDTRACK frames each, as in
 * item 3: re-sent messages that the matcher had stored and never confirmed (NATS);
 * item 5: a stop with a tracking backlog (the service with a deliberately slow tracker);
 * item 6: a spool holding another run's messages.
-* item 1 (late data re-tracked) is not done: a message that arrives after its window was
-  released is stored as ``late`` and not tracked (docs/services.md, "What cblrs guarantees").
+* item 1: messages that arrive after their window was released (``late``) are tracked by
+  re-tracking from a snapshot (in-process broker; on Mosquitto, a restarted matcher and a
+  killed broker).
 """
 
 from __future__ import annotations
@@ -36,16 +37,17 @@ from waiting import wait_until
 from cblrs.datasets import load_scene
 from cblrs.detections import CameraMessage
 from cblrs.matching import make_matcher
-from cblrs.pipeline import render_scene_references, scene_planes, track_scene
+from cblrs.pipeline import camera_messages, render_scene_references, scene_planes, track_scene
 from cblrs.plane import PlaneSet, PlaneSpec
 from cblrs.reference import ReferenceImage
 from cblrs.runtime.inprocess import InProcessBroker, InProcessTransport
 from cblrs.runtime.matcher_service import MatcherService
 from cblrs.runtime.nats_server import NatsCluster, find_nats_server
 from cblrs.runtime.nats_transport import NatsSettings, NatsTransport, detections_stream
+from cblrs.runtime.retrack import RetrackPolicy
 from cblrs.runtime.store import PENDING, PROCESSED, RuntimeStore
-from cblrs.runtime.topics import detections_topic
-from cblrs.runtime.wire import encode_message
+from cblrs.runtime.topics import detections_topic, tracks_topic
+from cblrs.runtime.wire import TracksUpdate, decode_tracks, encode_message
 
 CAMERAS = ("CVLab1", "CVLab2")
 FIRST, LAST = 0, 195  # 40 annotated frames
@@ -165,6 +167,152 @@ def counter(database: Path, name: str) -> int:
             return store.counters().get(name, 0)
     except Exception:  # not created yet
         return 0
+
+
+# -- item 1 ----------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("withheld", [range(0, 3), range(20, 25)], ids=["first", "middle"])
+def test_item1_late_messages_are_tracked_from_a_snapshot(case, tmp_path, withheld):
+    """CVLab2's messages of some frames reach the matcher only after later frames were
+    released (the first frames: re-tracked from the empty tracker's snapshot; frames in the
+    middle: from a snapshot before them). They are stored late, then re-tracked: every
+    message is processed, the stored tracks are the undisturbed run's (exactly), and the
+    corrected rows are published as updates with ``corrected_from``."""
+    scene = case["scene"]
+    messages = camera_messages(replace(scene, timestamps=EPOCH + scene.timestamps),
+                               case["references"])
+    late = [message for message in messages
+            if message.camera_id == "CVLab2" and message.sequence in withheld]
+    assert len(late) == len(withheld)
+    broker = InProcessBroker()
+    updates: list[TracksUpdate] = []
+    viewer = InProcessTransport(broker, "viewer", persistent=False)
+    viewer.subscribe(tracks_topic(1), lambda delivery: updates.append(
+        decode_tracks(delivery.payload)))
+    viewer.connect()
+    database = tmp_path / "plane1.db"
+    store = RuntimeStore(database)
+    tracker = make_matcher("fusion", scene_planes(scene), list(CAMERAS))
+    tracker.set_views(case["references"])  # as track_scene and `cblrs matcher` do
+    service = MatcherService(
+        InProcessTransport(broker, "matcher"), store, tracker, 1, list(CAMERAS),
+        window_s=10, retrack=RetrackPolicy(snapshot_interval_s=2.0, delay_s=0.3))
+    service.start()
+    closed = False
+    sender = InProcessTransport(broker, "cameras", persistent=False)
+    sender.connect()
+    try:
+        for message in messages:
+            if message not in late:
+                sender.publish(detections_topic(1, message.camera_id), encode_message(message, 1))
+        wait_until(lambda: (store.released_timestamp() or 0) > max(m.timestamp for m in late),
+                   30, "the withheld frames' windows to be released")
+        for message in late:
+            sender.publish(detections_topic(1, message.camera_id), encode_message(message, 1))
+        wait_until(lambda: store.counters().get("late_tracked", 0) == len(late)
+                   and service.drained(), 30, "the late messages to be re-tracked")
+        service.close(flush=True)
+        closed = True
+        counters = store.counters()
+    finally:
+        if not closed:
+            service.close()
+        sender.close()
+        viewer.close()
+        store.close()
+    assert counters["late"] == len(late) and counters.get("late_untracked", 0) == 0, counters
+    assert counters["retracks"] >= 1 and counters["retracked"] >= len(late), counters
+    assert_undisturbed(database, case)
+    corrections = [update for update in updates if update.corrected_from is not None]
+    assert corrections, "no corrected update was published"
+    assert max(update.corrected_from for update in corrections) < late[0].timestamp
+
+
+@pytest.mark.mqtt
+def test_item1_late_messages_for_a_restarted_matcher_are_tracked(case, start_mosquitto,
+                                                                 tmp_path):
+    """CVLab2 sends its first 20 frames and goes offline, CVLab1 sends all 40; the matcher
+    tracks them and stops (every camera offline). Restarted on the same --db, it gets
+    CVLab2's other 20 frames (a second run of the camera, numbered on): their times were
+    released before the restart, so they are late. They are re-tracked from a snapshot
+    before them, and the tracks are the undisturbed run's."""
+    broker = start_mosquitto(cameras=CAMERAS, matchers=("matcher1",), plane_ids=(1,))
+
+    def login(user: str) -> list[str]:
+        return ["--broker", f"127.0.0.1:{broker.port}", "--username", user,
+                "--password-file", str(broker.files.password_files[user])]
+
+    database = tmp_path / "plane1.db"
+    prepared = subprocess.run(matcher(case, database, login("matcher1"), "--prepare"),
+                              capture_output=True, text=True, env=ENVIRONMENT, timeout=120)
+    assert prepared.returncode == 0, prepared.stderr
+    half = PER_CAMERA // 2
+    runs = [("CVLab2", f"{FIRST}:95", "CVLab2.spool", "0"),
+            ("CVLab1", f"{FIRST}:{LAST}", None, "0"),
+            ("CVLab2", f"100:{LAST}", "CVLab2-again.spool", str(half))]
+    summaries = []
+    for restart in (False, True):
+        served = start(matcher(case, database, login("matcher1"), "--until-cameras-offline",
+                               "--idle-exit", "60"))
+        cameras = [start(camera(case, tmp_path, name, login(name), "--confirm-timeout", "60",
+                                "--first-sequence", first, frames=frames, spool=spool))
+                   for name, frames, spool, first in (runs[2:] if restart else runs[:2])]
+        for process in cameras:
+            code, out, err = finish(process)
+            assert code == 0 and json.loads(out)["confirmed_all"], err[-3000:]
+        code, out, err = finish(served)
+        assert code == 0, err[-3000:]
+        summaries.append(json.loads(out))
+    first, second = summaries
+    assert first["late"] == 0 and first["processed"] == PER_CAMERA + half, first
+    assert second["late"] == half and second["late_tracked"] == half, second
+    assert second["retracks"] == 1 and second["processed"] == TOTAL, second
+    assert 0 < second["retracked"] < TOTAL, "re-tracked from the empty tracker, not a snapshot"
+    assert_undisturbed(database, case)
+
+
+@pytest.mark.mqtt
+def test_item1_spooled_messages_lost_with_a_killed_broker_are_tracked_late(
+        case, start_mosquitto, tmp_path):
+    """CVLab2 publishes everything with --confirm-timeout 0 and leaves; Mosquitto is killed
+    before it saved them (they are lost; CVLab2's spool still holds them). With the broker
+    back, the matcher tracks CVLab1 alone (CVLab2 silent for its 1 s window); CVLab2's next
+    start re-sends its spool: all 40 messages late. They are re-tracked (from the empty
+    tracker's snapshot) and the tracks are the undisturbed run's."""
+    broker = start_mosquitto(cameras=CAMERAS, matchers=("matcher1",), plane_ids=(1,),
+                             autosave_s=3600)
+
+    def login(user: str) -> list[str]:
+        return ["--broker", f"127.0.0.1:{broker.port}", "--username", user,
+                "--password-file", str(broker.files.password_files[user])]
+
+    database = tmp_path / "plane1.db"
+    prepared = subprocess.run(matcher(case, database, login("matcher1"), "--prepare"),
+                              capture_output=True, text=True, env=ENVIRONMENT, timeout=120)
+    assert prepared.returncode == 0, prepared.stderr
+    code, out, err = finish(start(camera(case, tmp_path, "CVLab2", login("CVLab2"),
+                                         "--confirm-timeout", "0")))
+    assert code == 0 and json.loads(out)["unconfirmed"] == PER_CAMERA, err[-3000:]
+    broker.process.kill()
+    broker.start()
+    served = start(matcher(case, database, login("matcher1"), "--window", "1",
+                           "--until-cameras-offline", "--idle-exit", "60"))
+    code, out, err = finish(start(camera(case, tmp_path, "CVLab1", login("CVLab1"),
+                                         "--confirm-timeout", "60")))
+    assert code == 0 and json.loads(out)["confirmed_all"], err[-3000:]
+    wait_until(lambda: counter(database, "processed") == PER_CAMERA, 60,
+               "CVLab1's frames tracked without CVLab2")
+    assert counter(database, "accepted") == PER_CAMERA, "CVLab2's messages were not lost"
+    code, out, err = finish(start(camera(case, tmp_path, "CVLab2", login("CVLab2"),
+                                         "--confirm-timeout", "60", replay=False)))
+    assert code == 0 and json.loads(out)["confirmed_all"], err[-3000:]
+    code, out, err = finish(served)
+    assert code == 0, err[-3000:]
+    summary = json.loads(out)
+    assert summary["late"] == PER_CAMERA and summary["late_tracked"] == PER_CAMERA, summary
+    assert summary["retracks"] >= 1 and summary["processed"] == TOTAL, summary
+    assert_undisturbed(database, case)
 
 
 # -- item 2 ----------------------------------------------------------------------------------

@@ -105,6 +105,11 @@ def test_live_equals_offline_through_duplicates_bad_updates_and_a_restart(city, 
             matchers[plane].publish(tracks_topic(plane), b'{"schema": "cblrs.tracks/1"')
             matchers[plane].publish(tracks_topic(plane), encode_tracks(
                 Tracks.empty(), plane, timestamp=time.time() + 3600.0))
+            # A matcher's correction (late messages re-tracked), moved 5 m: not linked.
+            update = decode_tracks(payload)
+            moved = replace(update.tracks, world_xy=update.tracks.world_xy + 5.0)
+            matchers[plane].publish(tracks_topic(plane), encode_tracks(
+                moved, plane, timestamp=update.timestamp, corrected_from=update.timestamp - 1))
     wait_until(lambda: service.stats().get("updates", 0) >= half, 30, "the first half")
     service.close()  # a stop, not the end: the next start resumes
     service.store.close()
@@ -119,6 +124,7 @@ def test_live_equals_offline_through_duplicates_bad_updates_and_a_restart(city, 
     assert counters["updates"] == len(updates) and counters.get("late_rows", 0) == 0
     assert counters["duplicates"] >= half // 97 and counters["rejected.malformed_json"] >= 1
     assert counters["rejected.in_future"] == counters["rejected.malformed_json"]
+    assert counters["corrections_ignored"] >= half // 97 + 1
     # The global rows equal the offline link of the same rows.
     offline, handovers, _ = link_tracks(scenes.spec.planes, scenes.spec.links, per_plane)
     live = store.rows()

@@ -32,6 +32,7 @@ from cblrs.runtime.camera_node import CameraNode, camera_last_will
 from cblrs.runtime.inprocess import InProcessBroker, InProcessTransport
 from cblrs.runtime.matcher_service import MatcherService, ServiceClock
 from cblrs.runtime.mqtt_transport import MqttTransport
+from cblrs.runtime.retrack import RetrackPolicy
 from cblrs.runtime.sources import (
     ColourBlobDetector,
     Detector,
@@ -385,13 +386,13 @@ def ordering(tmp_path):
     broker = InProcessBroker()
     started = []
 
-    def start(window_s: float, database: str = "matcher.db"):
+    def start(window_s: float, database: str = "matcher.db", **options):
         groups = _Groups()
         store = RuntimeStore(tmp_path / database)
         service = MatcherService(
             InProcessTransport(broker, "matcher"), store,
             make_matcher("fusion", _planes(), ["A", "B"]), PLANE, ["A", "B"],
-            window_s=window_s, observer=groups,
+            window_s=window_s, observer=groups, **options,
         )
         service.start()
         started.append((service, store))
@@ -430,6 +431,8 @@ def test_group_waits_for_every_camera(ordering):
 
 
 def test_silent_camera_is_given_up_after_the_window_and_then_late(ordering):
+    """B's message comes after its time was released: counted late, then re-tracked (one
+    re-tracking from the empty tracker's snapshot) and processed."""
     service, store, groups = ordering.start(window_s=0.2)
     now = time.time()
     ordering.publish("A", 0, now)
@@ -438,11 +441,55 @@ def test_silent_camera_is_given_up_after_the_window_and_then_late(ordering):
     assert groups.groups == [(now, ["A"]), (now + 1, ["A"])]
     ordering.publish("B", 0, now)  # too late: its timestamp was released
     wait_until(lambda: store.counters().get("late") == 1, 5, "a late message")
+    wait_until(service.drained, 10, "the late message to be re-tracked")
+    assert [stored.status for stored in store.messages() if stored.message.camera_id == "B"] == [
+        PROCESSED
+    ]
+    stats = service.stats()
+    assert (stats["late"], stats["late_tracked"], stats["retracks"]) == (1, 1, 1), stats
+    assert stats["processed"] == 3 and stats["late_untracked"] == 0
+    assert groups.groups == [(now, ["A"]), (now + 1, ["A"])], "corrections are no new groups"
+
+
+def test_a_late_message_older_than_every_snapshot_stays_untracked(ordering):
+    """Only the newest snapshot is kept (after A's third message): B's message from before
+    it cannot be re-tracked; it stays late and is counted ``late_untracked``."""
+    service, store, groups = ordering.start(
+        window_s=0.2, retrack=RetrackPolicy(snapshot_interval_s=0.5, max_snapshots=1,
+                                            delay_s=0.1))
+    now = time.time()
+    for sequence in range(3):
+        ordering.publish("A", sequence, now + sequence)
+    wait_until(lambda: len(groups.groups) == 3, 5, "A's groups after the window")
+    ordering.publish("B", 0, now)
+    wait_until(lambda: store.counters().get("late_untracked") == 1 and service.drained(), 10,
+               "the late message to be looked at")
     assert [stored.status for stored in store.messages() if stored.message.camera_id == "B"] == [
         LATE
     ]
-    assert store.counters()["processed"] == 2
-    assert service.stats()["late"] == 1
+    stats = service.stats()
+    assert (stats["late"], stats["late_tracked"], stats["retracks"]) == (1, 0, 0), stats
+    assert stats["processed"] == 3
+
+
+def test_a_restarted_matcher_tracks_the_late_messages_it_holds(ordering):
+    """Stopped before its re-tracking delay was over, the matcher leaves B's message late;
+    restarted on the same database, it re-tracks it."""
+    service, store, groups = ordering.start(window_s=0.2, retrack=RetrackPolicy(delay_s=600))
+    now = time.time()
+    ordering.publish("A", 0, now)
+    ordering.publish("A", 1, now + 1)
+    wait_until(lambda: len(groups.groups) == 2, 5, "A's groups after the window")
+    ordering.publish("B", 0, now)
+    wait_until(lambda: store.counters().get("late") == 1, 5, "a late message")
+    service.stop()
+    service.transport.close(unclean=True)
+    assert store.status_counts() == {PROCESSED: 2, LATE: 1}
+    again, store_again, _ = ordering.start(window_s=0.2, database="matcher.db",
+                                           retrack=RetrackPolicy(delay_s=0.1))
+    wait_until(lambda: store_again.counters().get("late_tracked") == 1 and again.drained(), 10,
+               "the late message to be re-tracked after the restart")
+    assert store_again.status_counts() == {PROCESSED: 3}
 
 
 def test_clean_offline_camera_is_not_waited_for(ordering):

@@ -559,6 +559,21 @@ def test_tracks_round_trip(count):
     assert np.array_equal(update.tracks.xyxy, tracks.xyxy, equal_nan=True)
 
 
+@pytest.mark.parametrize("corrected_from, sent", [(None, None), (NOW, NOW), (-math.inf, 0.0)])
+def test_a_correction_says_from_when(corrected_from, sent):
+    """Re-tracked rows (late messages) replace those after ``corrected_from``; a correction
+    of every row (-inf) is sent from time 0, a plain update carries no such field."""
+    payload = encode_tracks(make_tracks(2), 1, timestamp=NOW + 1, corrected_from=corrected_from)
+    assert (b'"corrected_from"' in payload) == (sent is not None)
+    assert decode_tracks(payload).corrected_from == sent
+
+
+@pytest.mark.parametrize("corrected_from", [math.nan, math.inf])
+def test_a_correction_from_no_time_is_refused(corrected_from):
+    with pytest.raises(RejectedMessage, match="corrected time must be finite"):
+        encode_tracks(make_tracks(1), 1, corrected_from=corrected_from)
+
+
 def test_tracks_rejections():
     with pytest.raises(RejectedMessage, match="finite"):
         encode_tracks(Tracks([0], [NOW], [1], [[math.nan, 0.0]]), 1)

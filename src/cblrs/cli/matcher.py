@@ -27,6 +27,7 @@ from cblrs.cli.common import (
     format_table,
     print_json,
 )
+from cblrs.cli.late_options import add_late_options, retrack_policy
 from cblrs.cli.metrics_http import add_http_options, http_settings
 from cblrs.errors import CblrsError
 
@@ -127,13 +128,11 @@ def register(subparsers) -> None:
     retention.add_argument(
         "--retain-hours", type=float, default=24.0,
         help="delete inbox, track, published event and binned count rows older than this "
-        "(default 24; 0: no age limit; the counts' totals are kept)",
-    )
+        "(default 24; 0: no age limit; the counts' totals are kept)")
     retention.add_argument(
         "--retain-gb", type=float, default=4.0,
-        help="keep the database under this size, GiB, oldest rows first (default 4; 0: no "
-        "size limit)",
-    )
+        help="keep the database under this size, GiB, oldest rows first (default 4; 0: none)")
+    add_late_options(parser)
     online = parser.add_argument_group("analytics, live summary and metrics")
     online.add_argument(
         "--no-analytics",
@@ -223,6 +222,7 @@ def check_arguments(args: argparse.Namespace) -> None:
         check_positive(args.stats_interval, "--stats-interval")
     check_non_negative(args.retain_hours, "--retain-hours")
     check_non_negative(args.retain_gb, "--retain-gb")
+    retrack_policy(args)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -342,7 +342,7 @@ def run(args: argparse.Namespace) -> int:
         analytics=analytics,
         metrics=metrics,
         live_interval_s=args.live_interval or None,
-        alerts=alerts, alert_senders=senders,
+        retrack=retrack_policy(args), alerts=alerts, alert_senders=senders,
     )
     if metrics is not None:
 

@@ -11,7 +11,8 @@ Messages to the page (``type``):
 
 * ``tracks`` — ``{"t": capture time, "rows": [[track, x, y, class], ...]}``, one per
   track update, empty ones too (the page drops marks not seen for a moment: stale marks
-  disappear);
+  disappear); corrections of the past (updates with ``corrected_from``: the matcher
+  re-tracked late messages) are counted, not drawn;
 * ``event`` — an analytics event (``cblrs.events/1`` fields), once per ``key``;
 * ``live`` — the matcher's live summary (counts, occupancy, dwell, camera health);
 * ``status`` — ``{"camera", "online"}`` from a camera's status topic;
@@ -146,7 +147,8 @@ class LiveFeed:
         self._status: dict[str, bool] = {}
         self._events: OrderedDict[str, dict[str, Any]] = OrderedDict()
         self._alerts: OrderedDict[tuple[str, str], dict[str, Any]] = OrderedDict()
-        self.counters = {"tracks": 0, "events": 0, "live": 0, "alerts": 0, "rejected": 0}
+        self.counters = {"tracks": 0, "events": 0, "live": 0, "alerts": 0, "rejected": 0,
+                         "corrections": 0}
         self.last_message_at: float | None = None
 
     def start(self) -> None:
@@ -214,6 +216,10 @@ class LiveFeed:
             return
         finally:
             delivery.ack()
+        if update.corrected_from is not None:  # the past, re-tracked: not where people are
+            with self._lock:
+                self.counters["corrections"] += 1
+            return
         frame = tracks_frame(update, self.to_site)
         with self._lock:
             self._last_tracks = frame

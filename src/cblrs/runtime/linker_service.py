@@ -14,7 +14,9 @@ matchers may run on any host of the backbone), and per batch of deliveries:
    once every plane has passed them. A plane silent for ``max_wait_s`` while others go on is
    left out of the watermark (a matcher that died and is not yet taken over must not stop the
    site); rows it sends later for times already linked are counted ``late_rows``. At start,
-   planes never heard of are waited for ``max_wait_s`` too;
+   planes never heard of are waited for ``max_wait_s`` too. A matcher's corrections (its
+   updates with ``corrected_from``: late messages re-tracked, :mod:`cblrs.runtime.retrack`)
+   are counted ``corrections_ignored`` and not linked: the global tracks keep the first rows;
 3. counts the global rows that became final with the site's **analytics** (the matchers'
    engine, :class:`~cblrs.runtime.online_analytics.OnlineAnalytics`, on every place of the
    site; lives span a portal's longest transit);
@@ -302,6 +304,11 @@ class LinkerService:
             now = self._monotonic()
             for plane, time_of, update, received_at in decoded:
                 key = (plane, time_of)
+                if update.corrected_from is not None:
+                    # A plane's re-tracked rows (late messages): the global tracks keep
+                    # what was linked from the first updates.
+                    counters["corrections_ignored"] += 1
+                    continue
                 if key in seen or key in taken:
                     counters["duplicates"] += 1
                     continue

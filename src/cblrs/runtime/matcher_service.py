@@ -20,7 +20,11 @@ Per delivery:
    stops while the service is disconnected from the broker (on NATS, also until its
    consumer has delivered what the stream holds again), so an outage does not expire
    windows whose remaining messages are queued at the broker. A message at or before the
-   last released window's timestamp is ``late``: stored, counted, not tracked;
+   last released window's timestamp is ``late``: stored and counted, then tracked by
+   re-tracking once no late message has come for ``retrack.delay_s``: the tracker process
+   goes back to a snapshot before it, tracks everything since again and publishes the
+   corrected rows (:mod:`cblrs.runtime.retrack`; without snapshots, or older than the
+   oldest, it stays untracked);
 4. **track**: the window goes to the matcher (``update(timestamp, messages)``, messages in
    time and camera order; the fusion tracker fuses each at its own clock-corrected capture
    time) and one transaction stores the track rows it returns, marks the window's inbox rows
@@ -89,6 +93,7 @@ from cblrs.runtime.metrics import ServiceMetrics
 from cblrs.runtime.ordering import Orderer
 from cblrs.runtime.rate_limited import RateLimitedLog
 from cblrs.runtime.retention import RetentionPolicy, apply_retention
+from cblrs.runtime.retrack import RetrackPolicy
 from cblrs.runtime.store import LATE, PENDING, InboxEntry, RuntimeStore
 from cblrs.runtime.topics import (
     TopicError,
@@ -106,7 +111,7 @@ from cblrs.runtime.wire import RejectedMessage, ValidationPolicy, decode_status,
 logger = logging.getLogger(__name__)
 
 COUNTER_NAMES = ("received", "accepted", "duplicates", "conflicts", "late", "processed",
-                 "groups", "tracks")
+                 "groups", "tracks", "retracks", "retracked", "late_tracked", "late_untracked")
 """Counters every summary shows (rejections add ``rejected.<reason>``)."""
 
 
@@ -184,6 +189,8 @@ class MatcherService:
         metrics: :class:`~cblrs.runtime.metrics.ServiceMetrics` to feed, or None.
         live_interval_s: seconds between live summaries on ``cblrs/<plane>/live`` (counts,
             occupancy, camera health); None publishes none.
+        retrack: snapshots and re-tracking of late messages (:mod:`cblrs.runtime.retrack`);
+            None: late messages stay untracked.
         alerts: the site's ``alerts:`` (:class:`cblrs.alerts.AlertsModel`): evaluated,
             committed, published on ``cblrs/<plane>/alerts`` and posted to its webhooks by
             :class:`~cblrs.runtime.alert_service.AlertService`; None (or no rules): none.
@@ -216,6 +223,7 @@ class MatcherService:
         analytics: Any = None,
         metrics: ServiceMetrics | None = None,
         live_interval_s: float | None = 1.0,
+        retrack: RetrackPolicy | None = RetrackPolicy(),  # noqa: B008 (frozen)
         alerts: Any = None,
         alert_senders: dict[str, Any] | None = None,
     ):
@@ -283,6 +291,9 @@ class MatcherService:
         self._rejections = RateLimitedLog(logger, log_interval_s)
         self._retained_warned: set[str] = set()
         self.retention = retention
+        self.retrack = retrack
+        self._late_at: float | None = None  # service clock of the last late message waiting
+        self._retracks_inflight = 0
         self.analytics = analytics
         self.reporter = ServiceReporter(
             transport, store, self.plane_id, self.camera_ids,
@@ -336,7 +347,7 @@ class MatcherService:
         context = _process_context()
         self._tracker = TrackerProcess(
             context, self.matcher, self.store.share(), tracker, self.plane_id,
-            self.camera_ids, self.publish_tracks, self.analytics,
+            self.camera_ids, self.publish_tracks, self.analytics, self.retrack,
         )
         self._threads = [
             threading.Thread(target=target, name=f"cblrs-{role}-{self.plane_id}", daemon=True)
@@ -456,6 +467,8 @@ class MatcherService:
         pending = self.store.pending_entries()
         for entry in pending:
             self._orderer.add(entry, now)
+        if self.retrack is not None and self.store.status_counts().get(LATE):
+            self._late_at = now  # re-tracking looks at those it has not seen yet
         if released is not None or pending:
             logger.info(
                 "plane %d: resumed at %s with %d pending messages",
@@ -599,6 +612,8 @@ class MatcherService:
                 self._orderer.add(entry, now)
             else:
                 self._orderer.heard(entry.camera_id, now)
+                if self.retrack is not None:
+                    self._late_at = now
         if self.observer is not None and hasattr(self.observer, "on_stored") and stored:
             self.observer.on_stored(stored, self._wall_clock())
 
@@ -673,9 +688,11 @@ class MatcherService:
                 self._wake.wait(0.05 if len(self._orderer) else 0.2)
                 self._wake.clear()
                 self._release_ready()
+                self._retrack_if_due()
             if self._failure is None and self._flush_requested.is_set():
                 self._release_ready()
                 self._release_ready(force=True)
+                self._retrack_if_due(force=True)
         except TrackerProcessError as error:
             if not self._abandoning():  # else: the tracker process left as it was told
                 self._fail(error, "releaser")
@@ -703,6 +720,20 @@ class MatcherService:
                 self._inflight.append(batch)
             self._tracker.submit(batch)  # blocks while the tracker process is behind
 
+    def _retrack_if_due(self, force: bool = False) -> None:
+        """Ask the tracker process to track the late messages once none has come for
+        ``retrack.delay_s`` (``force``: now), after the groups already sent."""
+        assert self._tracker is not None
+        with self._state_lock:
+            if self._late_at is None or self.retrack is None or self._failure is not None \
+                    or self._abandoning():
+                return
+            if not force and self.clock() - self._late_at < self.retrack.delay_s:
+                return
+            self._late_at = None
+            self._retracks_inflight += 1
+        self._tracker.submit("retrack")
+
     def _collect(self) -> None:
         """Collector thread: publish what the tracker process committed, tell the observer."""
         assert self._tracker is not None
@@ -723,6 +754,21 @@ class MatcherService:
                 if answer[0] == "failed":
                     separator = "\n" if "Traceback" in answer[1] else " "
                     raise TrackerProcessError(f"the tracker process failed:{separator}{answer[1]}")
+                if answer[0] == "retracked":  # late messages tracked: corrected updates
+                    _, results, counters, report = answer
+                    self.reporter.tracked([], report)
+                    if self.reporter.metrics is not None:
+                        self.reporter.metrics.retracked(counters)
+                    for timestamp, tracks, payload in results:
+                        self._publish(timestamp, [], tracks, payload, corrected=True)
+                    if counters.get("late_tracked") or counters.get("late_untracked"):
+                        logger.info("plane %d: re-tracked %d messages: %d late ones tracked, "
+                                    "%d too old to track", self.plane_id,
+                                    counters.get("retracked", 0), counters.get("late_tracked", 0),
+                                    counters.get("late_untracked", 0))
+                    with self._state_lock:
+                        self._retracks_inflight -= 1
+                    continue
                 if answer[0] == "flushed":  # the end of the stream: what the matcher held
                     _, timestamp, tracks, payload, report = answer
                     if len(tracks):
@@ -744,14 +790,15 @@ class MatcherService:
             self._fail(error, "tracker")
 
     def _publish(
-        self, timestamp: float, entries: list[InboxEntry], tracks: Tracks, payload: bytes | None
+        self, timestamp: float, entries: list[InboxEntry], tracks: Tracks, payload: bytes | None,
+        corrected: bool = False,
     ) -> None:
         if payload is not None:
             try:
                 self.transport.publish(tracks_topic(self.plane_id), payload, qos=1)
             except Exception:  # a viewer feed must never stop the matcher
                 logger.exception("could not publish tracks of %s", timestamp)
-        if self.observer is not None and hasattr(self.observer, "on_group"):
+        if not corrected and self.observer is not None and hasattr(self.observer, "on_group"):
             self.observer.on_group(timestamp, entries, tracks, self._wall_clock())
 
     # -- queries (any thread) --------------------------------------------------------------
@@ -799,9 +846,11 @@ class MatcherService:
         return max(0.0, now - min(times)) if times else 0.0
 
     def drained(self) -> bool:
-        """Nothing waiting: no delivery to store, no buffered group, no group being tracked."""
+        """Nothing waiting: no delivery to store, no buffered group, no group being tracked,
+        no late message waiting to be re-tracked."""
         with self._state_lock:
-            return not self._inbox and not len(self._orderer) and not self._inflight
+            return (not self._inbox and not len(self._orderer) and not self._inflight
+                    and self._late_at is None and not self._retracks_inflight)
 
     def failed(self) -> bool:
         """The error that stopped the service, or None."""

@@ -27,12 +27,16 @@ Metric names (all labelled ``plane``):
 ``cblrs_messages_rejected_total{reason}``       refused by validation, by reason
 ``cblrs_messages_duplicate_total``              re-deliveries of stored messages
 ``cblrs_messages_late_total``                   arrived after their time was tracked
+``cblrs_messages_retracked_total``              tracked again when late ones were re-tracked
+``cblrs_messages_late_tracked_total``           late messages tracked by re-tracking
+``cblrs_messages_late_untracked_total``         late ones too old to re-track (no snapshot)
 ``cblrs_buffered_messages``                     waiting in the ordering buffer
 ``cblrs_tracker_lag_seconds``                   now minus the capture time last tracked
 ``cblrs_live_tracks``                           tracks in the last tracker output
 ``cblrs_stage_duration_seconds{stage}``         receive (validate+store+ack a batch), track
                                                 and analytics (per group), commit (per
-                                                batch), publish (per group)
+                                                batch), publish (per group), retrack (per
+                                                re-tracking of late messages)
 ``cblrs_capture_to_track_seconds``              capture to committed track rows, per group
 ``cblrs_camera_last_seen_timestamp_seconds``    per camera: when its last message arrived
 ``cblrs_camera_messages_total{camera}``         per camera: messages received
@@ -77,7 +81,7 @@ STAGE_BUCKETS = (
     0.0001, 0.00025, 0.0005, 0.001, 0.0025, 0.005, 0.010, 0.025, 0.050, 0.100, 0.250,
     0.500, 1.0, 2.5,
 )
-STAGES = ("receive", "track", "analytics", "commit", "publish")
+STAGES = ("receive", "track", "analytics", "commit", "publish", "retrack")
 
 Check = Callable[[], tuple[bool, str]]
 """A health or readiness check: ``(ok, reason)``."""
@@ -115,6 +119,15 @@ class ServiceMetrics:
         self.late = Counter("cblrs_messages_late",
                             "Messages that arrived after their time was tracked", labels,
                             registry=registry)
+        self.retracked_messages = Counter(
+            "cblrs_messages_retracked", "Messages tracked again when late ones were re-tracked",
+            labels, registry=registry)
+        self.late_tracked = Counter("cblrs_messages_late_tracked",
+                                    "Late messages tracked by re-tracking", labels,
+                                    registry=registry)
+        self.late_untracked = Counter(
+            "cblrs_messages_late_untracked",
+            "Late messages older than every snapshot: never tracked", labels, registry=registry)
         self.buffered = Gauge("cblrs_buffered_messages", "Messages in the ordering buffer",
                               labels, registry=registry)
         self.takeovers = Gauge("cblrs_session_takeovers",
@@ -148,7 +161,8 @@ class ServiceMetrics:
                                  [*labels, "zone"], registry=registry)
         for camera in camera_ids:
             self.camera_messages.labels(self.plane, camera)
-        for metric in (self.received, self.duplicates, self.late):
+        for metric in (self.received, self.duplicates, self.late, self.retracked_messages,
+                       self.late_tracked, self.late_untracked):
             metric.labels(self.plane)
         for stage in STAGES:
             self.stage.labels(self.plane, stage)
@@ -185,6 +199,14 @@ class ServiceMetrics:
         self.stage.labels(plane, "receive").observe(seconds)
 
     # ------------------------------------------------------------------ tracker
+    def retracked(self, counters: Mapping[str, int]) -> None:
+        """Late messages were re-tracked (counters ``retracked``, ``late_tracked``,
+        ``late_untracked`` of :func:`cblrs.runtime.retrack.retrack`)."""
+        plane = self.plane
+        self.retracked_messages.labels(plane).inc(counters.get("retracked", 0))
+        self.late_tracked.labels(plane).inc(counters.get("late_tracked", 0))
+        self.late_untracked.labels(plane).inc(counters.get("late_untracked", 0))
+
     def tracked(
         self,
         groups: Iterable[tuple[float, int]],

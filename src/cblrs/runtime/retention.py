@@ -29,6 +29,7 @@ one short transaction each, so the receiver never waits long.
 
 from __future__ import annotations
 
+import json
 import logging
 import math
 import sqlite3
@@ -39,6 +40,7 @@ from typing import Any
 
 from cblrs.errors import CblrsError
 from cblrs.runtime.analytics_store import RETAINED_BINS, RETAINED_EVENTS
+from cblrs.runtime.store import set_meta_value
 
 logger = logging.getLogger(__name__)
 
@@ -182,15 +184,27 @@ def _delete(
     batches, until none is left, ``until()`` is true, or ``rounds`` batches were done."""
     # Rows are appended in about time order, so the oldest come first in rowid order: a
     # batch is found at the start of the table without sorting it.
-    sql = (
-        f"DELETE FROM {table.name} WHERE rowid IN (SELECT rowid FROM {table.name} "
-        f"WHERE ({table.deletable}) AND ({condition}) ORDER BY rowid LIMIT ?)"
-    )
+    batch = (f"SELECT rowid FROM {table.name} WHERE ({table.deletable}) AND ({condition}) "
+             "ORDER BY rowid LIMIT ?")
+    newest = f"SELECT MAX({table.time_column}) FROM {table.name} WHERE rowid IN ({batch})"
+    sql = f"DELETE FROM {table.name} WHERE rowid IN ({batch})"
+
+    def delete_batch(cursor: sqlite3.Cursor) -> int:
+        # Where deletion has reached (meta "deleted_until.<table>"): re-tracking late
+        # messages (cblrs.runtime.retrack) never starts from a snapshot before it.
+        (until,) = cursor.execute(newest, (*parameters, batch_rows)).fetchone()
+        count = int(cursor.execute(sql, (*parameters, batch_rows)).rowcount)
+        if until is not None and count:
+            key = f"deleted_until.{table.name}"
+            row = cursor.execute("SELECT value FROM meta WHERE key = ?", (key,)).fetchone()
+            set_meta_value(cursor, key, max(float(until), json.loads(row[0]) if row else until))
+        return count
+
     total = 0
     done = 0
     while rounds is None or done < rounds:
         try:
-            count = store.execute_write(sql, (*parameters, batch_rows))
+            count = store.write(delete_batch)
         except sqlite3.OperationalError as error:  # e.g. a WITHOUT ROWID inbox of old files
             logger.warning("retention: cannot delete from %s: %s", table.name, error)
             return total

@@ -7,11 +7,14 @@ Tables:
   rowid table with a unique index: rows of a few hundred bytes insert about twice as fast as
   in the ``WITHOUT ROWID`` table of earlier files, which open and work the same. A row is
   ``pending`` until its timestamp group has been tracked (then ``processed``), or ``late``
-  when it arrived after its timestamp had already been released.
+  when it arrived after its timestamp had already been released (``processed`` too once
+  re-tracking has tracked it, :mod:`cblrs.runtime.retrack`).
 * ``tracks`` — the tracker's output rows (frame, timestamp, track id, world x/y, camera, box).
 * ``meta`` — the matcher state snapshot (``get_state()`` JSON), the last released timestamp,
   the service settings and the token of the service currently tracking (:meth:`claim`).
 * ``counters`` — received, rejected by reason, duplicates, late, processed, ...
+* ``snapshots`` — the matcher's state every few seconds of capture time, for re-tracking
+  late messages (:mod:`cblrs.runtime.retrack`, which owns that table's SQL).
 * ``events``, ``counts``, ``count_bins``, ``od`` — the online analytics' outbox of events
   and its persistent counters (:mod:`cblrs.runtime.analytics_store`), written in the
   transaction of the group whose tracks produced them.
@@ -556,37 +559,15 @@ class RuntimeStore:
         Raises:
             StoreError: ``tracker`` is not the file's tracker any more (nothing is written).
         """
-        rows = [
-            (
-                int(tracks.frame[index]),
-                float(tracks.timestamp[index]),
-                int(tracks.track_id[index]),
-                float(tracks.world_xy[index, 0]),
-                float(tracks.world_xy[index, 1]),
-                int(tracks.camera_id[index]),
-                *(_nullable(value) for value in tracks.xyxy[index]),
-                None if tracks.class_id[index] < 0 else int(tracks.class_id[index]),
-            )
-            for index in range(len(tracks))
-        ]
+        rows = track_rows(tracks)
         with self._lock, self._transaction() as cursor:
             if tracker is not None:
-                (claimed,) = cursor.execute(
-                    "SELECT value FROM meta WHERE key = 'tracker'"
-                ).fetchone() or (None,)
-                if claimed is None or json.loads(claimed) != tracker:
-                    raise StoreError(
-                        f"another matcher service has taken over {self.path}; not committing."
-                    )
+                check_tracker(cursor, self.path, tracker)
             cursor.executemany(
                 "UPDATE inbox SET status = 'processed' WHERE camera_id = ? AND sequence = ?",
                 [(camera_id, int(sequence)) for camera_id, sequence in keys],
             )
-            cursor.executemany(
-                "INSERT INTO tracks (frame, timestamp, track_id, x, y, camera, "
-                "x_min, y_min, x_max, y_max, class_id) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
-                rows,
-            )
+            cursor.executemany(INSERT_TRACKS, rows)
             if matcher_state is not None:
                 _set_meta(cursor, "matcher_state", matcher_state)
             _set_meta(cursor, "released_timestamp", float(released_timestamp))
@@ -741,6 +722,30 @@ class RuntimeStore:
         }
 
 
+INSERT_TRACKS = (
+    "INSERT INTO tracks (frame, timestamp, track_id, x, y, camera, "
+    "x_min, y_min, x_max, y_max, class_id) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)"
+)
+"""Insert one row of :func:`track_rows` into the ``tracks`` table."""
+
+
+def track_rows(tracks: Tracks) -> list[tuple]:
+    """The ``tracks`` table rows of :class:`Tracks` (NaN boxes and class -1 as NULL)."""
+    return [
+        (
+            int(tracks.frame[index]),
+            float(tracks.timestamp[index]),
+            int(tracks.track_id[index]),
+            float(tracks.world_xy[index, 0]),
+            float(tracks.world_xy[index, 1]),
+            int(tracks.camera_id[index]),
+            *(_nullable(value) for value in tracks.xyxy[index]),
+            None if tracks.class_id[index] < 0 else int(tracks.class_id[index]),
+        )
+        for index in range(len(tracks))
+    ]
+
+
 def tracks_from_rows(rows: Sequence[Sequence[Any]]) -> Tracks:
     """Track rows ``(frame, timestamp, track_id, x, y, camera, x_min, y_min, x_max, y_max,
     class_id)`` as :class:`Tracks` (NULL boxes become NaN, a NULL class -1)."""
@@ -867,6 +872,29 @@ _INSERT_INBOX = (
     "(camera_id, sequence, timestamp, frame, received_at, status, body) "
     "VALUES (?, ?, ?, ?, ?, ?, ?)"
 )
+
+
+def check_tracker(cursor: sqlite3.Cursor, path: Path, tracker: str) -> None:
+    """Inside a write transaction: raise unless ``tracker`` is still the file's tracker.
+
+    Raises:
+        StoreError: another service has claimed the file (:meth:`RuntimeStore.claim`).
+    """
+    (claimed,) = cursor.execute(
+        "SELECT value FROM meta WHERE key = 'tracker'"
+    ).fetchone() or (None,)
+    if claimed is None or json.loads(claimed) != tracker:
+        raise StoreError(f"another matcher service has taken over {path}; not committing.")
+
+
+def set_meta_value(cursor: sqlite3.Cursor, key: str, value: Any) -> None:
+    """Inside a write transaction: set one ``meta`` value (JSON)."""
+    _set_meta(cursor, key, value)
+
+
+def add_counter_values(cursor: sqlite3.Cursor, counters: Mapping[str, int]) -> None:
+    """Inside a write transaction: add counter increments."""
+    _add_counters(cursor, counters)
 
 
 def _set_meta(cursor: sqlite3.Cursor, key: str, value: Any) -> None:

@@ -15,7 +15,10 @@ the same database (after a crash of either process) continues from the last comm
 Messages (pickled) on the two pipes:
 
 * service -> tracker: a batch ``[(timestamp, [InboxEntry, ...]), ...]`` (windows in time
-  order, messages in time and camera order), ``None``: commit nothing more and stop, or
+  order, messages in time and camera order), ``None``: commit nothing more and stop,
+  ``"retrack"``: track the late messages stored since the last time
+  (:mod:`cblrs.runtime.retrack`), answer ``("retracked", [(timestamp, tracks, payload or
+  None), ...], counters, report)`` with the corrected updates, or
   ``"flush"``: the stream has ended: fuse and commit what the matcher still holds (its
   ``flush()``), count those rows and end every track of the analytics, answer
   ``("flushed", timestamp, tracks, payload or None, report)``, then stop;
@@ -26,6 +29,9 @@ Messages (pickled) on the two pipes:
   ``("stopped",)`` after ``None`` or ``"flush"``, or once the service abandoned what it sent
   (:meth:`TrackerProcess.abandon`, a stop without flush: the batch being tracked and those
   still in the pipe are not committed, and stay pending in the store).
+
+With re-tracking on, the matcher's state is also kept as a snapshot after a group every
+few seconds of capture time, in the transaction of its batch (:mod:`cblrs.runtime.retrack`).
 
 With analytics, each group's rows are counted as soon as it is tracked
 (:class:`~cblrs.runtime.online_analytics.OnlineAnalytics`, empty groups too), and the
@@ -45,6 +51,7 @@ from typing import Any
 
 from cblrs.detections import Tracks
 from cblrs.errors import CblrsError
+from cblrs.runtime.retrack import RetrackPolicy, Snapshots, retrack, state_text
 from cblrs.runtime.store import InboxEntry, RuntimeStore, SharedStore, checkpoint_regularly
 from cblrs.runtime.wire import encode_tracks
 
@@ -71,6 +78,8 @@ class TrackerProcess:
         publish_tracks: encode a track update per group.
         analytics: the plane's :class:`~cblrs.runtime.online_analytics.OnlineAnalytics`
             (pickled into the process; it resumes from the store), or None.
+        retrack: snapshots and re-tracking of late messages (:mod:`cblrs.runtime.retrack`);
+            None: neither (late messages stay untracked).
     """
 
     def __init__(
@@ -83,6 +92,7 @@ class TrackerProcess:
         camera_ids: Sequence[str],
         publish_tracks: bool,
         analytics: Any = None,
+        retrack: RetrackPolicy | None = None,
     ):
         requests_reader, self._requests = context.Pipe(duplex=False)
         self._results, results_writer = context.Pipe(duplex=False)
@@ -90,7 +100,7 @@ class TrackerProcess:
         self.process = context.Process(
             target=run,
             args=(requests_reader, results_writer, matcher, shared, tracker, plane_id,
-                  list(camera_ids), publish_tracks, analytics, self._abandon),
+                  list(camera_ids), publish_tracks, analytics, self._abandon, retrack),
             name=f"cblrs-tracker-{plane_id}",
             daemon=True,
         )
@@ -166,6 +176,7 @@ def run(
     publish_tracks: bool,
     analytics: Any = None,
     abandon: Any = None,
+    retrack_policy: RetrackPolicy | None = None,
 ) -> None:
     """The tracker process's main function (see the module docstring for the protocol)."""
     # The service decides when this process stops: Ctrl-C in a terminal and systemd's SIGTERM
@@ -191,6 +202,10 @@ def run(
             matcher.set_state(state)
         if analytics is not None:
             analytics.resume(store)
+        snapshots = None
+        if retrack_policy is not None:
+            snapshots = Snapshots(store, retrack_policy)
+            snapshots.start(matcher.get_state())
         # Everything alive now (modules, the matcher) lives as long as the process: keep it
         # out of the garbage collector's full passes, which would otherwise walk it all.
         gc.freeze()
@@ -203,8 +218,13 @@ def run(
                     updates = _flush(store, matcher, analytics, released, tracker, results,
                                      publish_tracks, plane_id, updates, camera_ids)
                 break
+            if batch == "retrack":
+                updates = _retrack(store, matcher, snapshots, tracker, results, publish_tracks,
+                                   plane_id, updates, camera_ids)
+                continue
             tracked = []
             report = _Report(analytics)
+            taken: list[tuple[int, float, Any, list[tuple[str, int]]]] = []
             for timestamp, entries in batch:
                 if abandoned():
                     break
@@ -214,6 +234,10 @@ def run(
                 report.add("track", time.perf_counter() - started)
                 tracked.append((timestamp, group_tracks))
                 report.count(group_tracks, timestamp)
+                if snapshots is not None and snapshots.due(timestamp):
+                    snapshots.taking(timestamp)
+                    taken.append((len(tracked) - 1, timestamp, state_text(matcher.get_state()),
+                                  _keys_at(batch[:len(tracked)], timestamp)))
             if abandoned():
                 break  # a stop without flush: this batch stays pending in the store
             keys = [(entry.camera_id, entry.sequence) for _, entries in batch for entry in entries]
@@ -224,8 +248,12 @@ def run(
             # One snapshot after the last group: the file holds all of these groups or none,
             # with their analytics events, counts and state.
             started = time.perf_counter()
-            store.commit_group(keys, tracks, matcher.get_state(), batch[-1][0], counters,
-                               tracker=tracker, also=report.writes())
+            also = report.writes()
+            if taken and snapshots is not None:
+                rows = [len(group_tracks) for _, group_tracks in tracked]
+                also = _snapshots_too(also, snapshots, taken, rows)
+            store.commit_group(keys, tracks, matcher.get_state(), released, counters,
+                               tracker=tracker, also=also)
             report.add("commit", time.perf_counter() - started)
             answers = []
             for timestamp, group_tracks in tracked:
@@ -248,6 +276,48 @@ def run(
         stop_checkpoints.set()
         checkpoints.join()
         store.close()
+
+
+def _keys_at(groups: Batch, timestamp: float) -> list[tuple[str, int]]:
+    """Keys of the messages captured at ``timestamp`` among these groups'."""
+    return [(entry.camera_id, entry.sequence) for _, entries in groups for entry in entries
+            if entry.timestamp == timestamp]
+
+
+def _snapshots_too(also: Any, snapshots: Snapshots,
+                   taken: list[tuple[int, float, Any, list[tuple[str, int]]]],
+                   rows: list[int]) -> Any:
+    """The batch's extra writes, then the snapshots taken after some of its groups
+    (``(group index, watermark, state, keys at it)``; ``rows``: track rows per group)."""
+    def writes(cursor: Any) -> None:
+        if also is not None:
+            also(cursor)
+        for index, released, state, boundary in taken:
+            snapshots.write(cursor, released, state, boundary, rows_after=sum(rows[index + 1:]))
+    return writes
+
+
+def _retrack(store: RuntimeStore, matcher: Any, snapshots: Snapshots | None, tracker: str,
+             results: Any, publish_tracks: bool, plane_id: int, updates: int,
+             camera_ids: list[str]) -> int:
+    """Track the late messages (:func:`cblrs.runtime.retrack.retrack`); one ``retracked``
+    answer with the corrected updates. Returns the update counter."""
+    started = time.perf_counter()
+    done = retrack(store, matcher, camera_ids, snapshots, tracker) if snapshots is not None \
+        else None
+    answers = []
+    for timestamp, tracks in done.windows if done is not None else []:
+        updates += 1
+        payload = None
+        if publish_tracks:
+            payload = _encode(tracks, plane_id, updates, camera_ids, timestamp,
+                              corrected_from=done.corrected_from)
+        answers.append((timestamp, tracks, payload))
+    counters = done.counters if done is not None else {}
+    report = {"durations": {"retrack": [time.perf_counter() - started]}, "events": {},
+              "live": None}
+    results.send(("retracked", answers, counters, report))
+    return updates
 
 
 def _clock_counters(matcher: Any) -> dict[str, int]:
@@ -319,12 +389,13 @@ def _flush(store: RuntimeStore, matcher: Any, analytics: Any, released: float, t
 
 
 def _encode(
-    tracks: Tracks, plane_id: int, sequence: int, camera_ids: list[str], timestamp: float
+    tracks: Tracks, plane_id: int, sequence: int, camera_ids: list[str], timestamp: float,
+    corrected_from: float | None = None,
 ) -> bytes | None:
     """The track update of one group; None (logged) if it cannot be encoded."""
     try:
         return encode_tracks(tracks, plane_id, sequence=sequence, cameras=camera_ids,
-                             timestamp=timestamp)
+                             timestamp=timestamp, corrected_from=corrected_from)
     except Exception:  # a viewer feed must never stop the matcher
         logger.exception("could not encode the tracks of %s", timestamp)
         return None

@@ -59,6 +59,9 @@ class WireTracks(msgspec.Struct, forbid_unknown_fields=True):
         default_factory=list
     )
     timestamp: float | None = None
+    corrected_from: float | None = None
+    """A correction (late messages re-tracked): these rows replace every row of the plane
+    after this time, seconds, that earlier updates carried."""
 
 
 @dataclass(frozen=True)
@@ -74,6 +77,8 @@ class TracksUpdate:
             up to it (an empty update says no track is there at that time); None if not said.
         source_plane: global updates (plane 0): (N,) int64 the plane of each row, else None.
         source_track: global updates: (N,) int64 that plane's track id, else None.
+        corrected_from: a correction: the rows replace those after this time that earlier
+            updates carried (late messages were re-tracked); None: a new update.
     """
 
     plane_id: int
@@ -83,6 +88,7 @@ class TracksUpdate:
     timestamp: float | None = None
     source_plane: np.ndarray | None = None
     source_track: np.ndarray | None = None
+    corrected_from: float | None = None
 
 
 def encode_tracks(
@@ -94,6 +100,7 @@ def encode_tracks(
     timestamp: float | None = None,
     source_plane: np.ndarray | None = None,
     source_track: np.ndarray | None = None,
+    corrected_from: float | None = None,
 ) -> bytes:
     """Serialise track rows for ``cblrs/<plane>/tracks`` (schema ``cblrs.tracks/1``).
 
@@ -104,6 +111,8 @@ def encode_tracks(
         cameras: camera ids that ``tracks.camera_id`` indexes (optional).
         timestamp: the update's time (the released group's capture time; optional).
         source_plane, source_track: global rows: (N,) where each came from (both or neither).
+        corrected_from: a correction of the rows after this time (see :class:`TracksUpdate`;
+            -inf: of every row).
 
     Raises:
         RejectedMessage: non-finite positions or times, or too many rows.
@@ -156,6 +165,12 @@ def encode_tracks(
         if not math.isfinite(timestamp):
             raise RejectedMessage(RejectReason.INVALID_VALUE, "the update's time must be finite")
         document["timestamp"] = float(timestamp)
+    if corrected_from is not None:
+        if math.isnan(corrected_from) or corrected_from == math.inf:
+            raise RejectedMessage(RejectReason.INVALID_VALUE,
+                                  "the corrected time must be finite (or -inf: every row)")
+        # JSON has no infinity: a correction of everything is sent from time 0.
+        document["corrected_from"] = max(0.0, float(corrected_from))
     try:
         msgspec.convert(document, WireTracks)
     except msgspec.ValidationError as error:
@@ -207,5 +222,7 @@ def decode_tracks(payload: bytes, *, max_bytes: int = 8 * 1024 * 1024) -> Tracks
     if rows and all(known):
         source_plane = np.array([plane for plane, _ in sources], dtype=np.int64)
         source_track = np.array([track for _, track in sources], dtype=np.int64)
+    if wire.corrected_from is not None and not math.isfinite(wire.corrected_from):
+        raise RejectedMessage(RejectReason.INVALID_VALUE, "the corrected time must be finite")
     return TracksUpdate(wire.plane, wire.sequence, tracks, tuple(wire.cameras), wire.timestamp,
-                        source_plane, source_track)
+                        source_plane, source_track, wire.corrected_from)

@@ -1,0 +1,41 @@
+"""Options of ``cblrs matcher`` for messages that arrive late.
+
+``--late-horizon`` and ``--late-delay`` set the :class:`~cblrs.runtime.retrack.RetrackPolicy`:
+how far back late messages are still tracked (by re-tracking from a snapshot taken before
+them) and how long the matcher waits for a burst of them to end.
+"""
+
+from __future__ import annotations
+
+import argparse
+from typing import Any
+
+from cblrs.cli.common import check_non_negative
+
+
+def add_late_options(parser: argparse.ArgumentParser) -> None:
+    """Add ``--late-horizon`` and ``--late-delay``."""
+    late = parser.add_argument_group(
+        "late messages", "tracked by re-tracking from a snapshot taken before them (tracks "
+        "published again with corrected_from)")
+    late.add_argument("--late-horizon", type=float, default=10.0, metavar="MINUTES",
+                      help="how far back late messages are still tracked (snapshots are kept "
+                      "that long; default 10; 0: late messages are stored, never tracked)")
+    late.add_argument("--late-delay", type=float, default=1.0, metavar="SECONDS",
+                      help="re-track once no late message came for this long (default 1)")
+
+
+def retrack_policy(args: argparse.Namespace) -> Any:
+    """The :class:`~cblrs.runtime.retrack.RetrackPolicy` of the options; None: off.
+
+    Raises:
+        UsageError: a negative or non-finite value.
+    """
+    check_non_negative(args.late_horizon, "--late-horizon")
+    check_non_negative(args.late_delay, "--late-delay")
+    if args.late_horizon == 0:
+        return None
+    # lazy: a subcommand imports the library when it runs, so its --help starts fast
+    from cblrs.runtime.retrack import RetrackPolicy
+
+    return RetrackPolicy(horizon_s=args.late_horizon * 60, delay_s=args.late_delay)
