@@ -71,12 +71,12 @@ def systemd_units(plan: SitePlan, mosquitto: str = "/usr/sbin/mosquitto",
         after = " ".join(names[name] for name in spec.after)
         lines = ["[Unit]", f"Description=cblrs {UNIT_ROLES[spec.role]} {spec.name} of site {site}",
                  f"PartOf={target}"]
-        if after:
-            lines += [f"After=network-online.target {after}", f"Requires={after}"
-                      if spec.role == "matcher" else f"Wants={after}"]
+        lines += [f"After=network-online.target {after}".rstrip()]
+        if spec.role == "matcher":
+            lines += [f"Requires={after}", "Wants=network-online.target"]
         else:
-            lines += ["After=network-online.target"]
-        lines += ["Wants=network-online.target", "", "[Service]", "Type=exec",
+            lines += [f"Wants=network-online.target {after}".rstrip()]
+        lines += ["", "[Service]", "Type=exec",
                   f"ExecStart={_quote(spec.argv)}", "Restart=on-failure", "RestartSec=2"]
         if spec.role != "broker":
             lines += [f"User={user}", f"WorkingDirectory={plan.out}",
