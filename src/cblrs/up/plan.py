@@ -113,6 +113,8 @@ class SitePlan:
         speed: the pace's speed-up.
         run_as: the user Mosquitto runs as when started as root.
         dashboard: run the dashboard.
+        fresh_epoch: the epoch is not a saved run's: the runner sets it when it starts the
+            cameras (a paced replay then begins as they start).
     """
 
     site: Site
@@ -127,6 +129,7 @@ class SitePlan:
     speed: float = 1.0
     run_as: str | None = None
     dashboard: bool = True
+    fresh_epoch: bool = False
     command: list[str] = field(default_factory=cblrs_command)
 
     # ------------------------------------------------------------------ paths
@@ -358,12 +361,13 @@ def make_plan(
             DEFAULT_BROKER_PORT if port_is_free(DEFAULT_BROKER_PORT) else 0)
     if broker_port == 0:
         broker_port = free_port()
+    fresh = epoch is None
     if epoch is None:
         epoch = float(int(time.time() + START_MARGIN_S if realtime
                           else time.time() - FAST_EPOCH_AGO_S))
     return SitePlan(site, site_path, out_path, cameras, list(planes), broker_port,
                     dashboard_port, float(epoch), realtime=realtime, speed=speed,
-                    run_as=run_as, dashboard=dashboard)
+                    run_as=run_as, dashboard=dashboard, fresh_epoch=fresh and realtime)
 
 
 def _files_of(source: SourceModel) -> list[tuple[str, str]]:

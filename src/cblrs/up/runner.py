@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from cblrs.up.plan import ProcessSpec, SitePlan, UpError
+from cblrs.up.plan import ProcessSpec, SitePlan, UpError, write_state
 
 logger = logging.getLogger(__name__)
 
@@ -35,6 +35,9 @@ CAMERA_UNCONFIRMED = 3
 """``cblrs camera``'s exit code when some messages are still in its spool."""
 STOP_GRACE_S = {"camera": 45.0, "matcher": 30.0, "dashboard": 5.0, "broker": 10.0}
 """How long each role may take to stop after SIGTERM before it is killed."""
+CAMERA_START_S = 4.0
+"""A fresh paced replay's first capture time lies this far after its cameras are started
+(their start-up: imports, the reference, the broker connection)."""
 READY_TIMEOUT_S = {"broker": 15.0, "matcher": 90.0, "dashboard": 60.0}
 
 
@@ -166,15 +169,26 @@ class SiteRunner:
                 if not self._wait_ready(matcher, lambda user=user, matcher=matcher: _log_has(
                         matcher, f"matcher {user}: plane"), stop):
                     return False
-            for dashboard in self.of_role("dashboard"):
-                self._spawn(dashboard)
-                if not self._wait_ready(dashboard, lambda d=dashboard: self._read_url(d), stop):
-                    return False
-            for camera in self.of_role("camera"):
+            # The cameras' replay starts now (a restart keeps its saved epoch).
+            if self.plan.fresh_epoch:
+                self.plan.epoch = float(int(time.time() + CAMERA_START_S))
+                self.plan.fresh_epoch = False
+                write_state(self.plan)
+                for camera in self.of_role("camera"):
+                    name = camera.spec.name.removeprefix("camera-")
+                    run = next(item for item in self.plan.cameras if item.name == name)
+                    camera.spec = self.plan.camera_spec(run)
+            # The dashboard and the cameras start together: neither waits for the other.
+            dashboards = self.of_role("dashboard")
+            for child in [*dashboards, *self.of_role("camera")]:
                 if stop.is_set():
                     return False
-                self._spawn(camera)
-                camera.state = "running"
+                self._spawn(child)
+                if child.spec.role == "camera":
+                    child.state = "running"
+            for dashboard in dashboards:
+                if not self._wait_ready(dashboard, lambda d=dashboard: self._read_url(d), stop):
+                    return False
             return True
         except BaseException:
             self.stop()
