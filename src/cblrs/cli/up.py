@@ -152,7 +152,7 @@ def _run_site(args: argparse.Namespace, plan, mosquitto: str, say, started: floa
             f"{plan.broker_address}, {len(plan.planes)} matcher(s), "
             f"{len(plan.cameras)} camera(s); state in {plan.out}")
         running = runner.start(stop)
-        if running and runner.dashboard_url and not args.quiet:
+        if running and runner.dashboard_url:  # even with --quiet: the way in
             print(f"dashboard: {runner.dashboard_url}", flush=True,
                   file=sys.stderr if args.json else sys.stdout)
         say("Ctrl-C stops everything" + (", or the end of every source" if args.until_done
