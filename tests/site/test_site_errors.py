@@ -132,7 +132,8 @@ CASES = [
         "an unknown top-level key",
         _set("camras", []),
         r"^site\.yaml: camras: unknown key "
-        r"\(allowed: version, name, planes, cameras, map, places, links, alerts\)",
+        r"\(allowed: version, name, planes, cameras, map, places, links, alerts, timezone, "
+        r"opening_hours\)",
     ),
     (
         "two geometries",

@@ -12,6 +12,12 @@ A condition that stops before ``for_s`` fires nothing. Every episode has an id
 (:meth:`AlertEpisodes.get_state`) is JSON, so a restarted matcher that restores it neither
 fires an open episode again nor forgets to clear it. Time is the observations' own (capture
 time), so a replay alerts as the live run did.
+
+With the site's opening hours (a :class:`cblrs.localtime.LocalCalendar`), the rules about
+places — occupancy, dwell, line_count — hold no breach while the site is closed: nothing
+fires after closing, an episode firing at closing time clears at the first observation
+after it, and a condition still true at opening starts its ``for_s`` afresh. Camera and
+matcher rules watch the system, not the public, and run at every hour.
 """
 
 from __future__ import annotations
@@ -33,6 +39,7 @@ from cblrs.alerts.rules import (
 from cblrs.errors import CblrsError
 
 STATE_VERSION = "cblrs.alert-episodes/1"
+_PLACE_RULES = (OccupancyRule, DwellRule, LineCountRule)
 _MATCHER = "matcher"
 
 
@@ -103,8 +110,9 @@ class _Episode:
 class AlertEpisodes:
     """The alert state of one plane: rules in, fired and cleared events out."""
 
-    def __init__(self, alerts: AlertsModel) -> None:
+    def __init__(self, alerts: AlertsModel, calendar: Any = None) -> None:
         self.rules = list(alerts.rules)
+        self.calendar = calendar
         self.reset()
 
     def reset(self) -> None:
@@ -124,12 +132,14 @@ class AlertEpisodes:
         if now < self.clock:
             return []
         self.clock = now
+        closed = self.calendar is not None and not self.calendar.is_open(now)
         events: list[AlertEvent] = []
         for rule in self.rules:
             threshold, hold, measured = self._measure(rule, observation)
+            quiet = closed and isinstance(rule, _PLACE_RULES)
             for subject, value in measured.items():
-                events += self._step(rule, subject, value, value > threshold, hold, now,
-                                     threshold)
+                events += self._step(rule, subject, value, value > threshold and not quiet,
+                                     hold, now, threshold)
         return events
 
     def _measure(

@@ -47,12 +47,13 @@ class AlertLedger:
         store: the matcher's store.
         alerts: the rules.
         context: fields added to every alert's body (the matcher service adds its ``plane``).
+        calendar: opening hours gating the places' rules (:class:`AlertEpisodes`).
     """
 
     def __init__(self, store: Any, alerts: AlertsModel,
-                 context: Mapping[str, Any] | None = None) -> None:
+                 context: Mapping[str, Any] | None = None, calendar: Any = None) -> None:
         self.store = store
-        self.episodes = AlertEpisodes(alerts)
+        self.episodes = AlertEpisodes(alerts, calendar)
         self.context = dict(context or {})
         store.write(lambda cursor: cursor.execute(ALERTS_SCHEMA))
         state = store.get_meta(STATE_KEY)

@@ -8,6 +8,7 @@ from dataclasses import asdict, dataclass
 from typing import Any
 
 from cblrs.errors import CblrsError
+from cblrs.localtime import LocalCalendar, LocalTimeError
 from cblrs.places import LineRule
 
 
@@ -112,7 +113,17 @@ class AnalyticsConfig:
             count nothing. Until then its events are held, then released with their times.
         interval_s: width of the time bins of the counts-over-time tables, seconds; bins are
             aligned to multiples of it from time 0, so the same tracks always bin alike.
+            With a ``timezone`` they are aligned to the local clock instead (an hour bin
+            starts at local hh:00, a day bin at local midnight; the width must divide a day).
         heatmap: the heatmap grid; None: no heatmap.
+        timezone: IANA zone of the times (epoch seconds), e.g. ``"Europe/Zurich"``; None:
+            bins from time 0 (UTC for epoch seconds).
+        opening_hours: the site's opening hours (:class:`cblrs.localtime.OpeningHours`
+            mapping, e.g. ``{"mon-fri": "07:00-19:00"}``; needs ``timezone``): only events
+            at open times count — a crossing at its crossing instant, an entry at its entry
+            instant, a visit (dwell, exit, occupancy, OD) by when it began, in full even if
+            it ends after closing. Ranges are half-open: a crossing at 19:00:00 of
+            ``07:00-19:00`` does not count. None: always open.
     """
 
     line_hysteresis_m: float = 0.5
@@ -125,8 +136,20 @@ class AnalyticsConfig:
     min_track_s: float = 1.0
     interval_s: float = 60.0
     heatmap: HeatmapGrid | None = None
+    timezone: str | None = None
+    opening_hours: dict[str, str] | None = None
 
     def __post_init__(self) -> None:
+        try:
+            calendar = LocalCalendar.of(self.timezone, self.opening_hours)
+            if calendar is not None:
+                calendar.check_interval(self.interval_s)
+        except LocalTimeError as error:
+            raise AnalyticsError(f"{str(error).rstrip('.')}.") from None
+        if calendar is not None and calendar.opening_hours is not None:
+            # One spelling of the same hours, so that saved states compare equal.
+            object.__setattr__(self, "opening_hours", calendar.opening_hours.to_dict())
+        object.__setattr__(self, "_calendar", calendar)
         if self.line_rule not in {rule.value for rule in LineRule}:
             choices = ", ".join(rule.value for rule in LineRule)
             raise AnalyticsError(f"line_rule must be one of {choices}, got {self.line_rule!r}.")
@@ -138,6 +161,15 @@ class AnalyticsConfig:
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
                 raise AnalyticsError(f"{name} must be a positive number, got {value}.")
+
+    @property
+    def calendar(self) -> LocalCalendar | None:
+        """The time zone and opening hours (None without a ``timezone``)."""
+        return self._calendar  # type: ignore[attr-defined]
+
+    def time_bins(self) -> TimeBins:
+        """The counts-over-time bins of these settings."""
+        return TimeBins(self.interval_s, self.calendar)
 
     def to_dict(self) -> dict[str, Any]:
         data = asdict(self)
@@ -159,6 +191,41 @@ class AnalyticsConfig:
         values = dict(data)
         grid = values.pop("heatmap", None)
         return cls(**values, heatmap=None if grid is None else HeatmapGrid.from_dict(grid))
+
+
+class TimeBins:
+    """Time bins keyed by an integer: ``floor(t / interval_s)`` from time 0, or with a
+    calendar the bin's start in whole epoch seconds (local bins differ in length)."""
+
+    def __init__(self, interval_s: float, calendar: LocalCalendar | None = None):
+        self.interval_s = float(interval_s)
+        self.calendar = calendar
+        self._last: tuple[float, float] = (math.inf, -math.inf)
+
+    def key(self, timestamp: float) -> int:
+        """The key of the bin holding ``timestamp``."""
+        if self.calendar is None:
+            return math.floor(timestamp / self.interval_s)
+        start, end = self._last
+        if not start <= timestamp < end:
+            start = self.calendar.bin_start(timestamp, self.interval_s)
+            end = self.calendar.bin_end(start, self.interval_s)
+            self._last = (start, end)
+        return round(start)
+
+    def start(self, key: int) -> float:
+        """Start of a bin, seconds."""
+        return float(key) if self.calendar is not None else key * self.interval_s
+
+    def end(self, key: int) -> float:
+        """End of a bin (the next one's start), seconds."""
+        if self.calendar is None:
+            return (key + 1) * self.interval_s
+        return self.calendar.bin_end(float(key), self.interval_s)
+
+    def following(self, key: int) -> int:
+        """The key of the next bin."""
+        return key + 1 if self.calendar is None else round(self.end(key))
 
 
 @dataclass(frozen=True)

@@ -25,6 +25,9 @@ How a track becomes counts (each rule also in :class:`AnalyticsConfig`):
   and ends at an exit or at the end of the life. An exit followed by a re-entry within
   ``merge_gap_s`` continues the visit. Dwell = end - start, with times at the border itself.
 * **Confirmation** — the events of a life count only once it has lasted ``min_track_s``.
+* **Opening hours** (``AnalyticsConfig.opening_hours``) — a final event counts only when the
+  site was open at its time (a visit: when it began); others are counted in
+  ``closed_events`` and nothing else.
 * **Heatmap** — each step between consecutive rows of a life adds half its duration to the
   cell of each end (person-seconds).
 * **Origin-destination** — per life, the zone of its first visit and of its last visit
@@ -110,6 +113,8 @@ class Analytics:
             )
         self.places = places
         self.config = config or AnalyticsConfig()
+        self.bins = self.config.time_bins()
+        self._calendar = self.config.calendar
         lines, zones = places.lines, places.zones
         self._line_start = np.array([line.start for line in lines]).reshape(-1, 2)
         self._line_normal = np.array([line.direction for line in lines]).reshape(-1, 2)
@@ -155,6 +160,7 @@ class Analytics:
         # Aggregates.
         self.rows = 0
         self.late_rows = 0
+        self.closed_events = 0
         self.line_counts: dict[tuple[str, str, int], int] = defaultdict(int)
         self.line_bins: dict[tuple[int, str, str, int], int] = defaultdict(int)
         self.zone_bins: dict[tuple[int, str, str], int] = defaultdict(int)
@@ -493,20 +499,24 @@ class Analytics:
 
     def _count(self, event: Event) -> None:
         """Add a final event to the aggregates and to this call's output."""
-        interval = self.config.interval_s
+        if not self._open_at(event.entered_at if isinstance(event, ZoneLeft)
+                             else event.timestamp):
+            self.closed_events += 1
+            return
+        key = self.bins.key
         if isinstance(event, LineCrossing):
             self.line_counts[(event.line, event.direction, event.class_id)] += 1
-            bin_index = math.floor(event.timestamp / interval)
+            bin_index = key(event.timestamp)
             self.line_bins[(bin_index, event.line, event.direction, event.class_id)] += 1
         elif isinstance(event, ZoneEntered):
             table = self.zone_entries if event.crossed else self.zone_appeared
             table[(event.zone, event.class_id)] += 1
             if event.crossed:
-                self.zone_bins[(math.floor(event.timestamp / interval), event.zone, "entries")] += 1
+                self.zone_bins[(key(event.timestamp), event.zone, "entries")] += 1
         else:
             self.visits.append(event)
             if event.exited:
-                self.zone_bins[(math.floor(event.timestamp / interval), event.zone, "exits")] += 1
+                self.zone_bins[(key(event.timestamp), event.zone, "exits")] += 1
             self._add_occupancy(event.zone, event.entered_at, event.timestamp)
             zone = [zone.name for zone in self.places.zones].index(event.zone)
             trip = self._trips.get(event.track_id)
@@ -525,13 +535,19 @@ class Analytics:
     def _add_occupancy(self, zone: str, start: float, end: float,
                        table: dict[tuple[int, str], float] | None = None) -> None:
         table = self.occupancy_seconds if table is None else table
-        interval = self.config.interval_s
-        first, last = math.floor(start / interval), math.floor(end / interval)
-        for bin_index in range(first, last + 1):
-            low = max(start, bin_index * interval)
-            high = min(end, (bin_index + 1) * interval)
+        bins = self.bins
+        bin_index, last = bins.key(start), bins.key(end)
+        while True:
+            low = max(start, bins.start(bin_index))
+            high = min(end, bins.end(bin_index))
             if high > low:
                 table[(bin_index, zone)] += high - low
+            if bin_index >= last:
+                break
+            bin_index = bins.following(bin_index)
+
+    def _open_at(self, timestamp: float) -> bool:
+        return self._calendar is None or self._calendar.is_open(timestamp)
 
     def _add_heatmap(self, before: FloatArray, after: FloatArray, seconds: FloatArray) -> None:
         grid = self.config.heatmap
@@ -611,6 +627,7 @@ class Analytics:
             "trips": [[track, asdict(trip)] for track, trip in self._trips.items()],
             "rows": self.rows,
             "late_rows": self.late_rows,
+            "closed_events": self.closed_events,
             "line_counts": [[*key, value] for key, value in self.line_counts.items()],
             "line_bins": [[*key, value] for key, value in self.line_bins.items()],
             "zone_bins": [[*key, value] for key, value in self.zone_bins.items()],
@@ -638,6 +655,9 @@ class Analytics:
         if isinstance(saved, dict) and "line_rule" not in saved:
             # Saved before lines had a rule: they were all counted with the hysteresis rule.
             saved = {**saved, "line_rule": LineRule.HYSTERESIS.value}
+        if isinstance(saved, dict):
+            # Saved before sites had local time: bins from time 0, always open.
+            saved = {"timezone": None, "opening_hours": None, **saved}
         if saved != json_round_trip(self.config.to_dict()):
             raise AnalyticsError("the saved analytics state was made with other settings.")
         try:
@@ -659,6 +679,7 @@ class Analytics:
                              for t, z, visit in state["pending"]}
             self._trips = {int(track): _Trip(**trip) for track, trip in state["trips"]}
             self.rows, self.late_rows = int(state["rows"]), int(state["late_rows"])
+            self.closed_events = int(state.get("closed_events", 0))
             for name, width in (("line_counts", 3), ("line_bins", 4), ("zone_bins", 3),
                                 ("zone_entries", 2), ("zone_appeared", 2),
                                 ("occupancy_seconds", 2), ("od", 2)):
@@ -675,10 +696,10 @@ class Analytics:
 
     # ------------------------------------------------------------------ live view
     def live_occupancy(self) -> dict[str, int]:
-        """Tracks inside each zone now (open visits of confirmed tracks)."""
+        """Tracks inside each zone now (open visits of confirmed tracks, begun while open)."""
         counts = {zone.name: 0 for zone in self.places.zones}
-        for (track, zone), _ in self._open.items():
-            if self._confirmed.get(track, False):
+        for (track, zone), visit in self._open.items():
+            if self._confirmed.get(track, False) and self._open_at(visit.start):
                 counts[self.places.zones[zone].name] += 1
         return counts
 
@@ -687,7 +708,7 @@ class Analytics:
         return [
             (self.places.zones[zone].name, track, self.clock - visit.start)
             for (track, zone), visit in sorted(self._open.items())
-            if self._confirmed.get(track, False)
+            if self._confirmed.get(track, False) and self._open_at(visit.start)
         ]
 
 

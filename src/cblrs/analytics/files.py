@@ -16,6 +16,7 @@ from cblrs.analytics.site import (
     check_tracks_on_site,
     load_site_places,
     site_extent,
+    with_site_time,
 )
 from cblrs.analytics.tables import AnalyticsResult, analyse_tracks, json_safe, write_result
 from cblrs.datasets.aicity import (
@@ -50,6 +51,7 @@ def analyse_file(
     config: AnalyticsConfig | None = None,
     cell_m: float = 0.5,
     plots: bool = True,
+    start: float | None = None,
 ) -> dict[str, Any]:
     """Run the analytics on an AI City tracks file with a site file's places.
 
@@ -64,6 +66,11 @@ def analyse_file(
             default and ``heatmap`` from the site's planes (or its places and the tracks).
         cell_m: heatmap cell, metres (when the grid is chosen here).
         plots: write the PNGs too.
+        start: epoch seconds of the file's time 0 (scene seconds from frame numbers), so
+            that its times are absolute. With absolute times (this, or the capture times of
+            the matcher's sidecar) and a site ``timezone``, bins follow the local clock,
+            tables carry local ISO times and only opening hours count; with scene seconds
+            the site's time zone and hours are not applied (the summary says so).
 
     Returns:
         A summary: files written, counts per line and zone, settings.
@@ -82,6 +89,11 @@ def analyse_file(
     tracks = read_tracks(tracks_path)  # a missing or malformed file is reported first
     metadata = read_track_metadata(tracks_path)
     tracks, rate = _timed(tracks, tracks_path, metadata, frames_per_second)
+    absolute = rate is None or start is not None
+    if start is not None:
+        if not math.isfinite(start):
+            raise AnalyticsError(f"the start time must be finite, got {start}.")
+        tracks = replace(tracks, timestamp=tracks.timestamp + start)
     tracks = apply_track_metadata(tracks, metadata)
     if len(tracks) == 0:
         raise AnalyticsError(f"{tracks_path} holds no track rows.")
@@ -90,6 +102,14 @@ def analyse_file(
     span = float(tracks.timestamp.max() - tracks.timestamp.min())
     if config.interval_s == AnalyticsConfig().interval_s:
         config = replace(config, interval_s=auto_interval(span))
+    local_time = "none: the site has no timezone"
+    if site.timezone is not None:
+        if absolute:
+            config = with_site_time(config, site)
+            local_time = site.timezone
+        else:
+            local_time = ("not applied: the times are scene seconds (give the time of "
+                          "second 0 with --start)")
     if config.heatmap is None:
         config = replace(config, heatmap=HeatmapGrid.covering(_heatmap_bounds(site, tracks),
                                                               cell_m))
@@ -106,6 +126,8 @@ def analyse_file(
         "frames_per_second": rate,
         "classes_known": bool((tracks.class_id >= 0).any()),
         "seconds": span,
+        "local_time": local_time,
+        "closed_events": result.summary["closed_events"],
         "lines": [row for row in result.lines if row["class"] == "all"],
         "zones": result.zones,
         "od": result.od,

@@ -7,12 +7,13 @@ and the "tracks from another site" check) and the site map (drawn under the heat
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
-from cblrs.analytics.config import AnalyticsError
+from cblrs.analytics.config import AnalyticsConfig, AnalyticsError
 from cblrs.detections import Tracks
 from cblrs.places import Places, bounding_box
 from cblrs.site import load_site
@@ -31,6 +32,8 @@ class SitePlaces:
         source: the file it came from.
         map_image: the site map's image file, if the site has one.
         map_extent: (x_min, x_max, y_min, y_max) metres the map image covers (``imshow``).
+        timezone: the site's IANA time zone (None: none given).
+        opening_hours: its opening hours as written in the file (None: always open).
     """
 
     name: str
@@ -39,6 +42,8 @@ class SitePlaces:
     source: str
     map_image: Path | None = None
     map_extent: tuple[float, float, float, float] | None = None
+    timezone: str | None = None
+    opening_hours: dict[str, Any] | None = None
 
 
 def load_site_places(path: str | Path) -> SitePlaces:
@@ -66,7 +71,17 @@ def load_site_places(path: str | Path) -> SitePlaces:
             image = site.map.image
             extent = (float(corners[0, 0]), float(corners[1, 0]),
                       float(corners[1, 1]), float(corners[0, 1]))
-    return SitePlaces(site.name or "", site.places, planes, str(path), image, extent)
+    return SitePlaces(site.name or "", site.places, planes, str(path), image, extent,
+                      site.model.timezone, site.model.opening_hours)
+
+
+def with_site_time(config: AnalyticsConfig, site: Any) -> AnalyticsConfig:
+    """``config`` with the time zone and opening hours of a site (a :class:`SitePlaces` or a
+    :class:`cblrs.site.Site`); unchanged when the site has no time zone."""
+    model = getattr(site, "model", site)
+    if model.timezone is None:
+        return config
+    return replace(config, timezone=model.timezone, opening_hours=model.opening_hours)
 
 
 def site_extent(site: SitePlaces) -> Bounds:

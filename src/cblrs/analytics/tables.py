@@ -20,6 +20,7 @@ from numpy.typing import NDArray
 from cblrs.analytics.config import AnalyticsConfig, Event, LineCrossing, ZoneLeft
 from cblrs.analytics.engine import Analytics
 from cblrs.detections import CLASS_NAMES, Tracks
+from cblrs.localtime import LocalCalendar
 from cblrs.places import Places, line_rule_text
 
 DIRECTIONS = ("positive", "negative")
@@ -42,16 +43,20 @@ class AnalyticsResult:
             mean / median dwell of all visits and mean dwell of complete visits (entered and
             exited), person-seconds inside.
         counts_over_time: ``{bin_start_s, place, kind, class, count}``; kind is a direction
-            for lines, ``entries`` / ``exits`` for zones.
-        occupancy: ``{bin_start_s, zone, mean_occupancy}``: person-seconds in the bin / bin
-            length.
+            for lines, ``entries`` / ``exits`` for zones. With a time zone
+            (``AnalyticsConfig.timezone``) each row also has ``bin_start``, the local ISO
+            time with its offset, and ``bin_s``, the bin's length (23 h for the day of the
+            spring change, 25 h in autumn).
+        occupancy: ``{bin_start_s, zone, mean_occupancy}`` (and ``bin_start``, ``bin_s``
+            with a time zone): person-seconds in the bin / bin length.
         od: ``{origin: {destination: count}}`` over zones, for lives with two or more visits.
         od_unpaired: per zone, lives with a single visit (origin or destination unknown).
         crossings: every counted crossing, in time order.
         visits: every visit, in order of its start.
         heatmap: (rows, columns) float64 person-seconds per cell (row 0 at the grid's
             lowest y), or None.
-        summary: rows, late rows, time span, settings, heatmap grid.
+        summary: rows, late rows, events outside opening hours, time span, settings.
+        calendar: the time zone and opening hours the times were read in (None: none).
     """
 
     lines: list[dict[str, Any]]
@@ -64,6 +69,7 @@ class AnalyticsResult:
     visits: list[ZoneLeft]
     heatmap: NDArray[np.float64] | None
     summary: dict[str, Any] = field(default_factory=dict)
+    calendar: LocalCalendar | None = None
 
     def line_count(self, line: str, direction: str, class_label: str = "all") -> int:
         for row in self.lines:
@@ -172,21 +178,29 @@ def result_of(engine: Analytics, events: list[Event]) -> AnalyticsResult:
             "mean_dwell_complete_s": _mean(complete),
             "person_seconds": float(dwell.sum()),
         })
-    interval = config.interval_s
+    bins, calendar = engine.bins, config.calendar
+
+    def when(bin_index: int) -> dict[str, Any]:
+        start = bins.start(bin_index)
+        if calendar is None:
+            return {"bin_start_s": start}
+        # Local bins differ in length (a day of 23 or 25 hours): the end goes beside.
+        return {"bin_start_s": start, "bin_start": calendar.iso(start),
+                "bin_s": bins.end(bin_index) - start}
+
     counts_over_time = [
-        {"bin_start_s": bin_index * interval, "place": line, "kind": direction,
+        {**when(bin_index), "place": line, "kind": direction,
          "class": class_name(class_id), "count": count}
         for (bin_index, line, direction, class_id), count in engine.line_bins.items()
     ] + [
-        {"bin_start_s": bin_index * interval, "place": zone, "kind": kind, "class": "all",
-         "count": count}
+        {**when(bin_index), "place": zone, "kind": kind, "class": "all", "count": count}
         for (bin_index, zone, kind), count in engine.zone_bins.items()
     ]
     counts_over_time.sort(key=lambda row: (row["bin_start_s"], row["place"], row["kind"],
                                            row["class"]))
     occupancy = [
-        {"bin_start_s": bin_index * interval, "zone": zone,
-         "mean_occupancy": seconds / interval}
+        {**when(bin_index), "zone": zone,
+         "mean_occupancy": seconds / (bins.end(bin_index) - bins.start(bin_index))}
         for (bin_index, zone), seconds in sorted(engine.occupancy_seconds.items())
     ]
     names = [zone.name for zone in places.zones]
@@ -198,6 +212,7 @@ def result_of(engine: Analytics, events: list[Event]) -> AnalyticsResult:
     summary = {
         "rows": engine.rows,
         "late_rows": engine.late_rows,
+        "closed_events": engine.closed_events,
         "end_s": None if math.isinf(engine.clock) else engine.clock,
         "settings": config.to_dict(),
         "heatmap_outside_person_seconds": engine.heatmap_outside_s,
@@ -207,7 +222,7 @@ def result_of(engine: Analytics, events: list[Event]) -> AnalyticsResult:
         od=od, od_unpaired={name: engine.od_unpaired.get(name, 0) for name in names},
         crossings=crossings, visits=visits,
         heatmap=engine.heatmap.copy() if config.heatmap is not None else None,
-        summary=summary,
+        summary=summary, calendar=calendar,
     )
 
 
@@ -232,24 +247,32 @@ def write_result(result: AnalyticsResult, out: str | Path) -> list[Path]:
 
     table("lines.csv", result.lines, ["line", "direction", "class", "count", "rule"])
     table("zones.csv", result.zones, list(result.zones[0]) if result.zones else ["zone"])
+    calendar = result.calendar
+    local = ["bin_start", "bin_s"] if calendar is not None else []
     table("counts_over_time.csv", result.counts_over_time,
-          ["bin_start_s", "place", "kind", "class", "count"])
-    table("occupancy.csv", result.occupancy, ["bin_start_s", "zone", "mean_occupancy"])
+          ["bin_start_s", *local, "place", "kind", "class", "count"])
+    table("occupancy.csv", result.occupancy, ["bin_start_s", *local, "zone", "mean_occupancy"])
+
     names = list(result.od)
     table("od.csv",
           [{"origin": origin, **result.od[origin], "unpaired": result.od_unpaired[origin]}
            for origin in names],
           ["origin", *names, "unpaired"])
     table("crossings.csv",
-          [{"timestamp_s": e.timestamp, "line": e.line, "track_id": e.track_id,
+          [{"timestamp_s": e.timestamp, **_local("time", e.timestamp, calendar),
+            "line": e.line, "track_id": e.track_id,
             "direction": e.direction, "class": class_name(e.class_id),
             "x_m": e.world_xy[0], "y_m": e.world_xy[1]} for e in result.crossings],
-          ["timestamp_s", "line", "track_id", "direction", "class", "x_m", "y_m"])
+          ["timestamp_s", *(["time"] if calendar else []), "line", "track_id", "direction",
+           "class", "x_m", "y_m"])
     table("visits.csv",
           [{"zone": e.zone, "track_id": e.track_id, "class": class_name(e.class_id),
-            "start_s": e.entered_at, "end_s": e.timestamp, "dwell_s": e.dwell_s,
-            "entered": e.entered, "exited": e.exited} for e in result.visits],
-          ["zone", "track_id", "class", "start_s", "end_s", "dwell_s", "entered", "exited"])
+            "start_s": e.entered_at, **_local("start", e.entered_at, calendar),
+            "end_s": e.timestamp, **_local("end", e.timestamp, calendar),
+            "dwell_s": e.dwell_s, "entered": e.entered, "exited": e.exited}
+           for e in result.visits],
+          ["zone", "track_id", "class", "start_s", *(["start"] if calendar else []), "end_s",
+           *(["end"] if calendar else []), "dwell_s", "entered", "exited"])
     if result.heatmap is not None:
         path = out / "heatmap.csv"
         np.savetxt(path, result.heatmap, delimiter=",", fmt="%.4g",
@@ -259,6 +282,11 @@ def write_result(result: AnalyticsResult, out: str | Path) -> list[Path]:
     path.write_text(json.dumps(json_safe(result.to_json()), indent=1) + "\n")
     written.append(path)
     return written
+
+
+def _local(name: str, timestamp: float, calendar: LocalCalendar | None) -> dict[str, str]:
+    """``{name: local ISO time}`` beside an epoch time (nothing without a calendar)."""
+    return {} if calendar is None else {name: calendar.iso(timestamp)}
 
 
 def _cell(value: Any) -> Any:

@@ -36,7 +36,14 @@ def register(subparsers) -> None:
                         "(default: from its .meta.json sidecar: the frame rate, or the capture "
                         "times that cblrs matcher --out-tracks keeps)")
     parser.add_argument("--interval", type=float, default=None, metavar="S",
-                        help="time bin of the counts over time, seconds (default: from the span)")
+                        help="time bin of the counts over time, seconds (default: from the "
+                        "span); with a site timezone it must divide a day, and bins start on "
+                        "the local clock (an hour at hh:00, a day at midnight)")
+    parser.add_argument("--start", default=None, metavar="TIME",
+                        help="the time of the file's second 0 when its times are scene "
+                        "seconds (frame numbers / --fps): an ISO time such as "
+                        "2026-03-29T06:00:00 (in the site's timezone unless it has an offset) "
+                        "or epoch seconds; needed for local times and opening hours")
     parser.add_argument("--cell", type=float, default=0.5, metavar="M",
                         help="heatmap cell, metres (default 0.5)")
     parser.add_argument("--line-hysteresis", type=float, default=defaults.line_hysteresis_m,
@@ -82,13 +89,20 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError(str(error)) from None
     if not args.cell > 0:
         raise UsageError(f"--cell must be a positive number of metres, got {args.cell}.")
+    start = None
+    if args.start is not None:
+        start = _start_time(args.start, args.site)
     summary = analyse_file(args.tracks, args.site, args.out, frames_per_second=args.fps,
-                           config=config, cell_m=args.cell, plots=not args.no_plots)
+                           config=config, cell_m=args.cell, plots=not args.no_plots,
+                           start=start)
     if args.json:
         print_json(summary)
         return 0
     print(f"{summary['rows']} rows, {summary['track_ids']} track ids, "
-          f"{summary['seconds']:.1f} s on site {summary['site']}")
+          f"{summary['seconds']:.1f} s on site {summary['site']}; local time: "
+          f"{summary['local_time']}")
+    if summary["closed_events"]:
+        print(f"not counted, outside opening hours: {summary['closed_events']} events")
     if summary["lines"]:
         rows: dict[str, dict[str, Any]] = {}
         for row in summary["lines"]:
@@ -103,3 +117,14 @@ def run(args: argparse.Namespace) -> int:
               z["person_seconds"]] for z in summary["zones"]]))
     print(f"wrote {len(summary['files'])} files to {args.out}")
     return 0
+
+
+def _start_time(text: str, site_path: Path) -> float:
+    """Epoch seconds of ``--start`` (an ISO time without offset is in the site's zone)."""
+    from cblrs.localtime import LocalTimeError, parse_time
+    from cblrs.site import load_site
+
+    try:
+        return parse_time(text, load_site(site_path).calendar)
+    except LocalTimeError as error:
+        raise UsageError(f"--start: {str(error).rstrip('.')}.") from None

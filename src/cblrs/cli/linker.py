@@ -117,9 +117,11 @@ def run(args: argparse.Namespace) -> int:
     linker = PlaneLinker(planes, site.links, LinkerConfig(decision_s=args.decision))
     analytics = None
     if len(site.places) and not args.no_analytics:
+        from cblrs.analytics.site import with_site_time
         from cblrs.runtime.online_analytics import OnlineAnalytics
 
-        analytics = OnlineAnalytics(site.places, site_analytics_config(site.links), delay_s=0.0)
+        config = with_site_time(site_analytics_config(site.links), site)
+        analytics = OnlineAnalytics(site.places, config, delay_s=0.0)
     linker_id = validate_client_id(args.client_id or args.username or "linker", "client id")
     will = Will(linker_status_topic(linker_id), encode_status(linker_id, "offline",
                                                               role="linker"))

@@ -463,12 +463,9 @@ def make_analytics(site: Any, plane_id: int, args: argparse.Namespace) -> Any:
     if site is None or args.no_analytics:
         return None
     # lazy: a subcommand imports the library when it runs, so its --help starts fast
-    from cblrs.runtime.online_analytics import OnlineAnalytics, plane_places
+    from cblrs.runtime.online_analytics import site_online_analytics
 
-    places = plane_places(site.places, plane_id)
-    if not len(places):
-        return None
-    return OnlineAnalytics(places, delay_s=args.analytics_delay)
+    return site_online_analytics(site, plane_id, args.analytics_delay)
 
 
 def site_positions(site: Any, names: list[str]) -> dict[str, tuple[float, float, float]]:

@@ -94,6 +94,10 @@ def site_scene(site: Site, plane_id: int | None = None) -> dict[str, Any]:
         "cameras": cameras,
         "bounds": bounds,
         "map": site_map,
+        # The page shows times in the site's zone (Intl.DateTimeFormat), UTC without one.
+        "timezone": site.model.timezone,
+        "opening_hours": (None if site.calendar is None or site.calendar.opening_hours is None
+                          else site.calendar.opening_hours.to_dict()),
     }
 
 

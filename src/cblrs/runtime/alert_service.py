@@ -131,6 +131,8 @@ class AlertService:
         lag: ``lag(now)``: how far tracking is behind ``now``, seconds (None: unknown).
         interval_s: seconds between observations.
         wall_clock: seconds since 1970.
+        calendar: the site's opening hours (:class:`cblrs.localtime.LocalCalendar`): the
+            places' rules are quiet while it is closed (None: always open).
     """
 
     def __init__(
@@ -146,7 +148,9 @@ class AlertService:
         *,
         interval_s: float = 1.0,
         wall_clock: Callable[[], float] = time.time,
+        calendar: Any = None,
     ):
+        self.calendar = calendar
         self.transport = transport
         self.store = store
         self.plane_id = int(plane_id)
@@ -170,7 +174,8 @@ class AlertService:
     # ------------------------------------------------------------------ lifecycle
     def start(self) -> None:
         """Open the ledger (resuming its episodes) and start the threads."""
-        self.ledger = AlertLedger(self.store, self.alerts, {"plane": self.plane_id})
+        self.ledger = AlertLedger(self.store, self.alerts, {"plane": self.plane_id},
+                                  calendar=self.calendar)
         seen = self.store.get_meta(EVENTS_SEEN_KEY)
         if seen is None:  # counting starts now, not from the history already in the file
             seen = self._last_event_id()

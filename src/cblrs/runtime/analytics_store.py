@@ -12,7 +12,8 @@ Tables (created with the store's own, see :mod:`cblrs.runtime.store`):
   ``negative`` crossings of a line; ``entries``, ``appeared``, ``exits``, ``visits``,
   ``dwell_s`` (sum), ``complete_visits`` and ``complete_dwell_s`` (visits that entered and
   exited), ``od_unpaired`` of a zone. They never shrink: retention leaves them alone.
-* ``count_bins`` — the same per time bin (``start``, seconds, bins of the analytics'
+* ``count_bins`` — the same per time bin (``start``, epoch seconds; with a site ``timezone``
+  the local bin's start, e.g. local hh:00 for hours; bins of the analytics'
   ``interval_s``): line directions, zone ``entries`` / ``exits`` and ``occupancy_s``
   (person-seconds), for charts and Grafana.
 * ``od`` — origin-destination counts between zones.

@@ -16,7 +16,8 @@
   the plane's event sequence in the matcher's database, ``key`` the event's natural
   identity: QoS 1 may deliver an event twice (a matcher killed between the broker's
   acknowledgement and marking it published sends it again), so subscribers de-duplicate by
-  ``key``. Times are capture times, seconds since the Unix epoch.
+  ``key``. Times are capture times, seconds since the Unix epoch; with a site ``timezone``
+  ``time`` gives the same instant as a local ISO time with its offset.
 * ``cblrs.live/1`` on ``cblrs/<plane>/live``, QoS 0, retained, about once a second: the
   persistent counters, each zone's occupancy and live dwell (open visits of confirmed
   tracks), and each camera's health as the matcher sees it (online, messages received and
@@ -71,6 +72,8 @@ class WireEvent(msgspec.Struct, forbid_unknown_fields=True, omit_defaults=True):
     dwell_s: float | None = None
     entered: bool | None = None
     exited: bool | None = None
+    # The local ISO time with offset, when the site has a timezone (cblrs.localtime).
+    time: Annotated[str, msgspec.Meta(min_length=1, max_length=64)] | None = None
 
 
 _REQUIRED = {

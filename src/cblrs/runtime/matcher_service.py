@@ -291,8 +291,11 @@ class MatcherService:
         )
         self.alerts: AlertService | None = None
         if alerts is not None and alerts.rules:
+            # The opening hours that gate counting gate the places' alerts too.
+            calendar = None if analytics is None else analytics.engine.config.calendar
             self.alerts = AlertService(transport, store, self.plane_id, self.camera_ids,
-                                       alerts, alert_senders or {}, self.reporter, self.lag)
+                                       alerts, alert_senders or {}, self.reporter, self.lag,
+                                       calendar=calendar)
 
     # -- lifecycle -------------------------------------------------------------------------
 

@@ -37,6 +37,7 @@ import numpy as np
 
 from cblrs.analytics import Analytics, AnalyticsConfig, AnalyticsError, Event
 from cblrs.analytics.config import LineCrossing, ZoneEntered, ZoneLeft
+from cblrs.analytics.site import with_site_time
 from cblrs.analytics.tables import class_name
 from cblrs.detections import Tracks
 from cblrs.places import Places
@@ -47,6 +48,17 @@ DEFAULT_DELAY_S = 0.5
 """How long rows wait behind the newest capture time before they are counted, seconds."""
 
 _ROW_FIELDS = ("frame", "timestamp", "track_id", "world_xy", "camera_id", "xyxy", "class_id")
+
+
+def site_online_analytics(site: Any, plane_id: int,
+                          delay_s: float = DEFAULT_DELAY_S) -> OnlineAnalytics | None:
+    """The online analytics of one plane of a site (:class:`cblrs.site.Site`): its places
+    on that plane, binned on the site's local clock and counted within its opening hours
+    when it has them; None when the plane has no places."""
+    places = plane_places(site.places, plane_id)
+    if not len(places):
+        return None
+    return OnlineAnalytics(places, with_site_time(AnalyticsConfig(), site), delay_s=delay_s)
 
 
 def plane_places(places: Places, plane_id: int) -> Places:
@@ -171,15 +183,16 @@ class OnlineAnalytics:
             writes.events.append(self._event_row(event))
         engine = self.engine
         counts, bins = writes.counts, writes.bins
-        interval = engine.config.interval_s
+        # A bin's key is its start in seconds: on the local clock with a site time zone.
+        start = engine.bins.start
         for (line, direction, klass), value in engine.line_counts.items():
             counts[(line, direction, class_name(klass))] += value
         for (index, line, direction, klass), value in engine.line_bins.items():
-            bins[(index * interval, line, direction, class_name(klass))] += value
+            bins[(start(index), line, direction, class_name(klass))] += value
         for (index, zone, measure), value in engine.zone_bins.items():
-            bins[(index * interval, zone, measure, "all")] += value
+            bins[(start(index), zone, measure, "all")] += value
         for (index, zone), seconds in engine.occupancy_seconds.items():
-            bins[(index * interval, zone, "occupancy_s", "all")] += seconds
+            bins[(start(index), zone, "occupancy_s", "all")] += seconds
         for (zone, klass), value in engine.zone_entries.items():
             counts[(zone, "entries", class_name(klass))] += value
         for (zone, klass), value in engine.zone_appeared.items():
@@ -201,18 +214,23 @@ class OnlineAnalytics:
         writes.counters["analytics_late_rows"] = (
             writes.counters.get("analytics_late_rows", 0) + engine.late_rows
         )
+        if engine.closed_events:
+            writes.counters["analytics_closed_events"] = (
+                writes.counters.get("analytics_closed_events", 0) + engine.closed_events
+            )
         for table in (engine.line_counts, engine.line_bins, engine.zone_bins, engine.zone_entries,
                       engine.zone_appeared, engine.occupancy_seconds, engine.od,
                       engine.od_unpaired):
             table.clear()
         engine.visits.clear()
-        engine.rows = engine.late_rows = 0
+        engine.rows = engine.late_rows = engine.closed_events = 0
 
     def _event_row(self, event: Event) -> tuple[float, str, str, int, str, str]:
         place = event_place(event)
         body: dict[str, Any] = {
             "kind": event.kind,
             "timestamp": event.timestamp,
+            **self._local_time(event.timestamp),
             "track": event.track_id,
             "place": place,
         }
@@ -235,6 +253,10 @@ class OnlineAnalytics:
         body["key"] = key
         return (event.timestamp, event.kind, place, event.track_id, key,
                 msgspec.json.encode(body).decode())
+
+    def _local_time(self, timestamp: float) -> dict[str, str]:
+        calendar = self.engine.config.calendar
+        return {} if calendar is None else {"time": calendar.iso(timestamp)}
 
     # ------------------------------------------------------------------ persistence
     def get_state(self) -> dict[str, Any]:

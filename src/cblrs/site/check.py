@@ -68,6 +68,10 @@ def check_site(path: str | Path) -> dict[str, Any]:
         "lines": len(site.places.lines),
         "names": site.places.names,
     }
+    calendar = site.calendar
+    report["timezone"] = None if calendar is None else calendar.timezone
+    report["opening_hours"] = (None if calendar is None or calendar.opening_hours is None
+                               else calendar.opening_hours.to_dict())
     cameras = [_camera_report(site, name) for name in site.camera_names]
     report["cameras"] = cameras
     for camera in cameras:
@@ -224,6 +228,11 @@ def format_check(report: dict[str, Any]) -> str:
         lines.append(f"    {camera['name']}: {camera['geometry']}{fitted}, {where}{coverage}")
     places = report["places"]
     lines.append(f"  places: {places['zones']} zones, {places['lines']} lines")
+    if report.get("timezone"):
+        hours = report.get("opening_hours")
+        open_text = ("always open" if hours is None else
+                     "open " + ", ".join(f"{day} {text}" for day, text in hours.items()))
+        lines.append(f"  local time: {report['timezone']}, {open_text}")
     for warning in report["warnings"]:
         lines.append(f"  warning: {warning}")
     ready = [command for command, ok in report["ready"].items() if ok]

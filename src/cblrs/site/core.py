@@ -21,6 +21,7 @@ from cblrs.alerts.rules import AlertsError, AlertsModel, load_alerts
 from cblrs.camera import Camera
 from cblrs.errors import CblrsError
 from cblrs.linking.links import LinkError, PlaneLink, build_links
+from cblrs.localtime import LocalCalendar
 from cblrs.places import PlaceError, Places
 from cblrs.plane import PlaneSet, PlaneSpec
 from cblrs.reference import render_reference
@@ -121,6 +122,11 @@ class Site:
     def source(self) -> str:
         """The file name used in messages."""
         return self.path.name if self.path is not None else "site"
+
+    @property
+    def calendar(self) -> LocalCalendar | None:
+        """The site's time zone and opening hours (None: no ``timezone``, times in UTC)."""
+        return self.model.calendar
 
     @property
     def folder(self) -> Path:
@@ -259,8 +265,8 @@ class Site:
         return _ordered(data)
 
 
-_TOP_ORDER = ("version", "name", "pseudo", "map", "planes", "cameras", "places", "links",
-              "alerts")
+_TOP_ORDER = ("version", "name", "pseudo", "timezone", "opening_hours", "map", "planes",
+              "cameras", "places", "links", "alerts")
 
 
 def _ordered(data: dict[str, Any]) -> dict[str, Any]:

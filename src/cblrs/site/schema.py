@@ -10,6 +10,8 @@ A site file is YAML (``.yaml``/``.yml``) or JSON (``.json``) holding::
     places: {zones: [...], lines: [...]}        # cblrs.places
     links: [{planes: [a, b], portals, transit_s, max_distance_m}]   # cblrs.linking
     pseudo: {key_id}                            # a pseudo site (cblrs.privacy)
+    timezone: Europe/Zurich                     # IANA zone of local times (cblrs.localtime)
+    opening_hours: {mon-fri: "07:00-19:00", sun: closed}   # counting and alerts (idem)
 
 Every section but ``version`` may be left out; each command checks what it needs. A camera's
 geometry is exactly one of: ``calibration`` (a file: cblrs camera JSON, an AI City
@@ -41,6 +43,7 @@ from pydantic import (
 )
 
 from cblrs.errors import CblrsError
+from cblrs.localtime import LocalCalendar, LocalTimeError, OpeningHours, time_zone
 from cblrs.names import check_name
 from cblrs.site.sources import DetectorModel, SourceModel
 
@@ -363,6 +366,24 @@ class PseudoModel(_Strict):
     key_id: Annotated[str, Field(pattern=r"^[0-9a-f]{8}$")]
 
 
+def _zone_name(name: str | None) -> str | None:
+    if name is not None:
+        try:
+            time_zone(name)
+        except LocalTimeError as error:
+            raise ValueError(str(error)) from None
+    return name
+
+
+def _hours(hours: dict[str, Any] | None) -> dict[str, Any] | None:
+    if hours is not None:
+        try:
+            OpeningHours.parse(hours)
+        except LocalTimeError as error:
+            raise ValueError(str(error).removeprefix("opening_hours: ")) from None
+    return hours
+
+
 class SiteModel(_Strict):
     """The whole site file."""
 
@@ -375,6 +396,21 @@ class SiteModel(_Strict):
     places: dict[str, Any] | None = None
     links: list[LinkModel] = Field(default_factory=list)
     alerts: dict[str, Any] | None = None  # cblrs.alerts.rules checks it
+    timezone: Annotated[str | None, AfterValidator(_zone_name)] = None
+    opening_hours: Annotated[dict[str, Any] | None, AfterValidator(_hours)] = None
+
+    @model_validator(mode="after")
+    def _hours_need_zone(self) -> SiteModel:
+        if self.opening_hours is not None and self.timezone is None:
+            raise ValueError(
+                "opening_hours need the site's timezone (add e.g. timezone: Europe/Zurich)"
+            )
+        return self
+
+    @property
+    def calendar(self) -> LocalCalendar | None:
+        """The site's local time and opening hours (None without a ``timezone``)."""
+        return LocalCalendar.of(self.timezone, self.opening_hours)
 
 
 # ---------------------------------------------------------------------------- errors

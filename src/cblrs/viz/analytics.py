@@ -7,11 +7,11 @@ a window (a Figure with the Agg canvas is made when no Axes is given).
 from __future__ import annotations
 
 from collections import defaultdict
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from cblrs.analytics.config import HeatmapGrid
+from cblrs.analytics.config import HeatmapGrid, TimeBins
 from cblrs.analytics.tables import AnalyticsResult
 from cblrs.detections import Tracks
 from cblrs.places import Places
@@ -114,27 +114,48 @@ def plot_counts_over_time(result: AnalyticsResult, axes: list[Axes] | None = Non
     starts = [start for series in (*lines.values(), *zones.values()) for start in series]
     end = result.summary.get("end_s") or 0.0
     first = min(starts) if starts else 0.0
-    bins = np.arange(first, max(max(starts, default=first), end) + interval, interval)
+    last = max(max(starts, default=first), end)
+    calendar = result.calendar
+    bins: Any = np.arange(first, last + interval, interval)
+    times: Any = bins
+    if calendar is not None:
+        # Local bins differ in length on daylight-saving days: follow them, and draw them
+        # at their local wall-clock times.
+        time_bins = TimeBins(interval, calendar)
+        key, bins = time_bins.key(first), []
+        while time_bins.start(key) <= last:
+            bins.append(time_bins.start(key))
+            key = time_bins.following(key)
+        times = [calendar.local(start) for start in bins]
     for ax, panel in zip(axes, panels, strict=False):
         if panel == "lines":
             for index, name in enumerate(line_names):
                 colour = f"C{index % 10}"
                 for direction, style in (("positive", "-"), ("negative", "--")):
                     counts = [lines[(name, direction)].get(start, 0) for start in bins]
-                    ax.step(bins, counts, where="post", linestyle=style, color=colour,
+                    ax.step(times, counts, where="post", linestyle=style, color=colour,
                             label=f"{name} {'+' if direction == 'positive' else '-'}")
             ax.set_ylabel("crossings per bin")
             ax.set_title("line crossings over time (+ solid, - dashed)")
         else:
             for index, name in enumerate(zone_names):
                 counts = [zones[name].get(start, 0) for start in bins]
-                ax.step(bins, counts, where="post",
+                ax.step(times, counts, where="post",
                         color=ZONE_COLOURS[index % len(ZONE_COLOURS)], label=name)
             ax.set_ylabel("entries per bin")
             ax.set_title("zone entries over time")
         ax.legend(fontsize=7, ncols=3, loc="upper left")
         ax.grid(True, linewidth=0.3)
-    axes[-1].set_xlabel(f"time (s), bins of {interval:g} s")
+    if calendar is None:
+        axes[-1].set_xlabel(f"time (s), bins of {interval:g} s")
+    else:
+        # lazy, as above
+        from matplotlib.dates import AutoDateLocator, ConciseDateFormatter
+
+        locator = AutoDateLocator(tz=calendar.zone)
+        axes[-1].xaxis.set_major_locator(locator)
+        axes[-1].xaxis.set_major_formatter(ConciseDateFormatter(locator, tz=calendar.zone))
+        axes[-1].set_xlabel(f"local time ({calendar.timezone}), bins of {interval:g} s")
     return figure
 
 

@@ -270,12 +270,60 @@ const Cblrs = (() => {
       child instanceof Node ? child : document.createTextNode(String(child))));
   }
 
-  function clockText(seconds) {
+  // Epoch seconds as a wall-clock time in the site's IANA zone (Intl.DateTimeFormat),
+  // labelled with the zone's abbreviation or offset; UTC when the site has no zone.
+  // Small numbers are scene seconds (a replay of an offline scene), not dates.
+  const clockFormats = new Map();
+  function clockFormat(zone, withDate) {
+    const key = `${zone}|${withDate}`;
+    if (!clockFormats.has(key)) {
+      clockFormats.set(key, new Intl.DateTimeFormat("en-GB", {
+        timeZone: zone, hourCycle: "h23", hour: "2-digit", minute: "2-digit",
+        second: "2-digit", fractionalSecondDigits: 1, timeZoneName: "short",
+        ...(withDate ? { year: "numeric", month: "2-digit", day: "2-digit" } : {}),
+      }));
+    }
+    return clockFormats.get(key);
+  }
+
+  function clockText(seconds, zone, withDate = false) {
     if (seconds === null || seconds === undefined) return "–";
-    if (seconds > 1e8) return new Date(seconds * 1000).toISOString().slice(11, 22) + " UTC";
+    if (seconds > 1e8) {
+      if (!zone) {
+        const iso = new Date(seconds * 1000).toISOString();
+        return (withDate ? `${iso.slice(0, 10)} ` : "") + iso.slice(11, 22) + " UTC";
+      }
+      const parts = clockFormat(zone, withDate).formatToParts(new Date(seconds * 1000));
+      const part = (type) => (parts.find((item) => item.type === type) || {}).value || "";
+      const time = `${part("hour")}:${part("minute")}:${part("second")}.${part("fractionalSecond")}`;
+      const date = withDate ? `${part("year")}-${part("month")}-${part("day")} ` : "";
+      return `${date}${time} ${part("timeZoneName")}`;
+    }
     return `t = ${seconds.toFixed(1)} s`;
   }
 
-  return { idColour, MapView, fetchJSON, clockText, loadSession, checkSession, el, fill,
+  // Whether the site is open at epoch seconds on its zone's wall clock, by the opening hours
+  // of /api/site ({mon: "07:00-19:00", sat: "09:00-12:00, 13:00-17:00", sun: "closed"}):
+  // ranges are half-open, as in the analytics. No hours: always open.
+  const WEEKDAYS = ["mon", "tue", "wed", "thu", "fri", "sat", "sun"];
+  function openAt(seconds, zone, hours) {
+    if (!hours) return true;
+    const parts = new Intl.DateTimeFormat("en-GB", {
+      timeZone: zone || "UTC", weekday: "short", hourCycle: "h23", hour: "2-digit",
+      minute: "2-digit", second: "2-digit",
+    }).formatToParts(new Date(seconds * 1000));
+    const part = (type) => parts.find((item) => item.type === type).value;
+    const day = WEEKDAYS[WEEKDAYS.indexOf(part("weekday").slice(0, 3).toLowerCase())];
+    const wall = Number(part("hour")) * 3600 + Number(part("minute")) * 60 + Number(part("second"));
+    const text = hours[day] || "closed";
+    if (text === "closed") return false;
+    const clock = (time) => time.split(":").reduce((total, value) => total * 60 + Number(value), 0) * 60;
+    return text.split(",").some((range) => {
+      const [start, end] = range.trim().split("-").map(clock);
+      return start <= wall && wall < end;
+    });
+  }
+
+  return { idColour, MapView, fetchJSON, clockText, openAt, loadSession, checkSession, el, fill,
     session: () => session };
 })();

@@ -321,10 +321,10 @@ function renderTables() {
   }));
   fill($("alerts-active"), state.activeAlerts.map((alert) =>
     el("li", {}, el("span", {}, `${alert.rule} · ${alert.subject}`),
-      el("span", { className: "time" }, `since ${Cblrs.clockText(alert.since)}`))));
+      el("span", { className: "time" }, `since ${clockText(alert.since)}`))));
   fill($("alerts"), state.alerts.map((alert) =>
     el("li", { className: `state-${alert.state === "fired" ? "fired" : "cleared"}` },
-      el("span", { className: "time" }, Cblrs.clockText(alert.timestamp)),
+      el("span", { className: "time" }, clockText(alert.timestamp)),
       el("span", {}, alert.state === "fired" ? "fired" : "cleared"),
       el("span", {}, `${alert.rule} · ${alert.subject} · ${Number(alert.value).toFixed(1)}`))));
   fill($("events"), state.events.map((event) => {
@@ -332,10 +332,19 @@ function renderTables() {
     if (event.kind === "line_crossed") text += ` · ${event.direction === "positive" ? "+" : "−"}`;
     if (event.kind === "zone_left") text += ` · ${Number(event.dwell_s).toFixed(1)} s`;
     return el("li", { className: `kind-${event.kind}` },
-      el("span", { className: "time" }, Cblrs.clockText(event.timestamp)),
+      el("span", { className: "time" }, clockText(event.timestamp)),
       el("span", {}, String(event.kind).replace("_", " ")), el("span", {}, text));
   }));
   state.tablesDirty = false;
+}
+
+// Times in the site's time zone (its `timezone:`), labelled with it; UTC without one.
+function siteZone() {
+  return state.scene ? state.scene.timezone || null : null;
+}
+
+function clockText(seconds, withDate = false) {
+  return Cblrs.clockText(seconds, siteZone(), withDate);
 }
 
 function frame() {
@@ -350,7 +359,11 @@ setInterval(() => {
   $("stat-tracks").textContent = `${state.tracks.size} tracks`;
   $("stat-rate").textContent = `${(state.updates.length / 2).toFixed(1)} updates/s`;
   $("stat-draw").textContent = stats.lastDrawMs === null ? "–" : stats.lastDrawMs.toFixed(2);
-  $("clock").textContent = Cblrs.clockText(state.time);
+  const hours = state.scene ? state.scene.opening_hours : null;
+  $("clock").textContent = clockText(state.time)
+    + (state.time > 1e8 ? ` · ${siteZone() || "UTC"}` : "")
+    + (hours && state.time > 1e8 && !Cblrs.openAt(state.time, siteZone(), hours) ? " · closed" : "");
+  $("clock").title = clockText(state.time, true);
   if (stats.mode === "replay") state.tablesDirty = true;  // live dwell grows
   // A stream that stopped (cameras gone, matcher stopped): nobody is known to be there.
   if (stats.mode === "live" && state.tracks.size && state.lastUpdateWall
