@@ -127,3 +127,59 @@ def test_bad_sources_are_one_sentence(small_site, tmp_path, require_mosquitto, s
     assert code == 1 and summary is None, err
     assert err.strip().count("\n") == 0 and "Traceback" not in err, err
     assert message in err
+
+
+def first_tracks_on_the_map(url: str, timeout: float) -> list:
+    """Log in with the dashboard's link and read its live stream until a track update with
+    tracks in it arrives; its rows."""
+    import http.cookiejar
+    import urllib.request
+
+    opener = urllib.request.build_opener(
+        urllib.request.HTTPCookieProcessor(http.cookiejar.CookieJar()))
+    opener.open(url, timeout=10).read()  # the login link sets the session cookie
+    stream = opener.open(url.split("/login")[0] + "/api/stream", timeout=timeout)
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        line = stream.readline().decode()
+        if line.startswith("data: "):
+            item = json.loads(line[len("data: "):])
+            if item.get("type") == "tracks" and item["rows"]:
+                stream.close()
+                return item["rows"]
+    raise AssertionError(f"no tracks on the map within {timeout} s")
+
+
+def test_tracks_reach_the_live_map_and_ctrl_c_stops_everything(
+        small_site, tmp_path, require_mosquitto):
+    out = tmp_path / "state"
+    started = time.monotonic()
+    process = subprocess.Popen(up_command(small_site, out, "--quiet"), stdout=subprocess.PIPE,
+                               stderr=subprocess.PIPE, text=True, env=ENVIRONMENT)
+    try:
+        line = process.stderr.readline()
+        while line and not line.startswith("dashboard: "):
+            line = process.stderr.readline()
+        assert line, process.communicate()[1]
+        rows = first_tracks_on_the_map(line.split(" ", 1)[1].strip(), timeout=45)
+        on_the_map_s = time.monotonic() - started
+        process.send_signal(signal.SIGINT)  # Ctrl-C
+        sent = time.monotonic()
+        stdout, stderr = process.communicate(timeout=60)
+        stopped_in = time.monotonic() - sent
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.communicate()
+    assert all(len(row) == 4 and isinstance(row[0], int) for row in rows), rows
+    assert process.returncode == 0, stderr
+    summary = json.loads(stdout)
+    assert summary["stopped_by"] == "signal"
+    assert set(summary["processes"]) == {"broker", "matcher-1", "dashboard", "camera-CVLab1",
+                                         "camera-CVLab2"}
+    assert {info["state"] for info in summary["processes"].values()} <= {"stopped",
+                                                                         "finished"}, summary
+    assert stopped_in < 15, stopped_in
+    assert on_the_map_s < 60, on_the_map_s
+    print(f"tracks on the map {on_the_map_s:.1f} s after cblrs up started; stopped in "
+          f"{stopped_in:.1f} s")
