@@ -183,3 +183,18 @@ def test_tracks_reach_the_live_map_and_ctrl_c_stops_everything(
     assert on_the_map_s < 60, on_the_map_s
     print(f"tracks on the map {on_the_map_s:.1f} s after cblrs up started; stopped in "
           f"{stopped_in:.1f} s")
+
+
+def test_a_port_in_use_is_one_sentence(small_site, tmp_path, require_mosquitto):
+    import socket
+
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen(1)
+        port = taken.getsockname()[1]
+        command = up_command(small_site, tmp_path / "state", "--dashboard-port", str(port))
+        result = subprocess.run(command, capture_output=True, text=True, timeout=60,
+                                env=ENVIRONMENT)
+    assert result.returncode == 1 and "Traceback" not in result.stderr, result.stderr
+    assert result.stderr.strip().count("\n") == 0
+    assert f"port {port} for the dashboard is in use" in result.stderr

@@ -88,6 +88,14 @@ def run(args: argparse.Namespace) -> int:
                      speed=args.speed, run_as=args.run_as, dashboard=not args.no_dashboard,
                      check_files=not deploying)
     say = _printer(args)
+    if not deploying:
+        from cblrs.up.plan import port_is_free  # lazy, as above
+
+        for what, port, option in (("the broker", plan.broker_port, "--broker-port"),
+                                   ("the dashboard", plan.dashboard_port, "--dashboard-port")):
+            if port and (what == "the broker" or plan.dashboard) and not port_is_free(port):
+                raise UpError(f"port {port} for {what} is in use (another cblrs up on "
+                              f"{plan.out}?); choose another with {option} (0: a free one).")
     if deploying:
         if args.systemd is not None:  # the units run what this folder holds
             for line in prepare(plan):
