@@ -51,7 +51,7 @@ def register(subparsers) -> None:
     parser.add_argument("--run-as", metavar="USER",
                         help="the user Mosquitto runs as when started as root (default: "
                         "mosquitto)")
-    parser.add_argument("--status-interval", type=float, default=2.0, metavar="SECONDS",
+    parser.add_argument("--status-interval", type=float, default=10.0, metavar="SECONDS",
                         help="show the status table at most this often, when it changes")
     deploy = parser.add_argument_group("deployment (write files and exit)")
     deploy.add_argument("--systemd", type=Path, metavar="DIR",
