@@ -46,6 +46,9 @@ EXAMPLES: dict[str, list[str]] = {
              "--plane 3=plane3.db --plane 4=plane4.db --out site-tracks.txt --analytics site/"],
     "broker-config": ["cblrs broker-config --out broker --cameras C1,C2,C3 --matchers matcher1 "
                       "--planes 1"],
+    "up": ["cblrs up sites/wildtrack-live.yaml",
+           "cblrs up sites/wildtrack-live.yaml --fast --until-done",
+           "cblrs up sites/wildtrack-live.yaml --systemd units --container container"],
     "camera": ["cblrs camera --camera Camera1 --reference refs/Camera1.png --images "
                f"{MVX}/Image_subsets/C1 --fps 2 --detector onnx "
                "--model ../shared/models/yolox_nano.onnx"],

@@ -42,6 +42,8 @@ SUBCOMMANDS = {
     "pseudo": "pseudo coordinates: make a key, a pseudo site for the matcher, map tracks back",
     "broker_config": "write a Mosquitto or NATS configuration (users, permissions, TLS) for "
     "cameras, matchers and viewers",
+    "up": "start a whole site from its site file: secured broker, matchers, dashboard, "
+    "cameras",
     "camera": "run an edge camera node: detections -> reference colours -> MQTT",
     "matcher": "run the central matcher of one plane: MQTT -> validate -> track -> SQLite",
     "linker": "run the site's linker: every plane's tracks -> global ids and site counts",

@@ -45,6 +45,7 @@ from pydantic import (
 from cblrs.errors import CblrsError
 from cblrs.localtime import LocalCalendar, LocalTimeError, OpeningHours, time_zone
 from cblrs.names import check_name
+from cblrs.site.sources import DetectorModel, SourceModel
 
 SITE_VERSION = 1
 
@@ -253,6 +254,8 @@ class CameraModel(_Strict):
     # The plane whose matcher the camera publishes to (its reference holds only that plane);
     # absent: every plane of the site (a site of one plane needs no more).
     plane: int | None = Field(default=None, ge=1, le=65535)
+    # What `cblrs up` runs for this camera (absent: the camera runs elsewhere, or not yet).
+    source: SourceModel | None = None
 
     @model_validator(mode="before")
     @classmethod
@@ -480,6 +483,10 @@ def _allowed_keys(loc: tuple[int | str, ...]) -> str:
             model = CalibrationRefModel
         elif len(loc) == 5 and loc[0] == "cameras" and loc[2] == "points":
             model = PointModel
+        elif len(loc) == 4 and loc[0] == "cameras" and loc[2] == "source":
+            model = SourceModel
+        elif len(loc) == 5 and loc[0] == "cameras" and loc[2:4] == ("source", "detector"):
+            model = DetectorModel
     # Keys only cblrs writes (an export's embedded map, a pseudo site's mark) are not offered.
     keys = [key for key in model.model_fields if key not in ("image_data", "pseudo")]
     return f" (allowed: {', '.join(keys)})"

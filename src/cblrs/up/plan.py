@@ -1,0 +1,471 @@
+"""What ``cblrs up`` runs for a site file: the broker's configuration, the references and one
+command line per process (broker, a matcher per plane, the dashboard, a camera per camera).
+
+A :class:`SitePlan` is pure description: the same plan starts the processes
+(:mod:`cblrs.up.runner`) and writes systemd units and a container definition
+(:mod:`cblrs.up.units`). Its state folder holds everything a run writes::
+
+    <out>/up.json              the run's identity: site, users, broker port, replay epoch
+    <out>/broker/              mosquitto.conf, hashed passwords, ACL, persistence
+    <out>/clients/<user>/      each login's password file (0600)
+    <out>/references/          the cameras' reference PNGs (rendered when missing)
+    <out>/plane<P>.db          the matcher's SQLite file of plane P
+    <out>/tracks-plane<P>.txt  its tracks (AI City format), written when it stops
+    <out>/spool/<camera>.db    each camera's spool
+    <out>/logs/<process>.log   each process's output
+
+A restarted ``cblrs up`` on the same folder keeps the epoch, the logins and the spools, so a
+replay stopped half-way resumes: what its cameras sent before is recognised as duplicates and
+what they still held is sent.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import shutil
+import socket
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from cblrs.errors import CblrsError
+from cblrs.site import Site, load_site
+from cblrs.site.schema import SourceModel
+
+STATE_FILE = "up.json"
+DEFAULT_BROKER_PORT = 1883
+DEFAULT_DASHBOARD_PORT = 8080
+START_MARGIN_S = 6.0
+"""A paced replay's first capture time lies this far after ``cblrs up`` starts its cameras
+(their start-up: imports, the reference, the broker connection)."""
+FAST_EPOCH_AGO_S = 300.0
+"""An unpaced replay's capture times start this long before now (none lies in the future)."""
+
+
+class UpError(CblrsError):
+    """The site cannot be started as asked (one sentence)."""
+
+
+@dataclass(frozen=True)
+class CameraRun:
+    """One camera ``cblrs up`` runs: its name, the plane it publishes to and its source."""
+
+    name: str
+    plane: int
+    source: SourceModel
+
+
+@dataclass(frozen=True)
+class ProcessSpec:
+    """One process of the site.
+
+    Attributes:
+        name: ``broker``, ``matcher-<plane>``, ``dashboard`` or ``camera-<name>``.
+        role: broker, matcher, dashboard or camera.
+        argv: its whole command line (the ``cblrs`` ones run this interpreter's cblrs).
+        after: the processes that must run before it starts.
+    """
+
+    name: str
+    role: str
+    argv: list[str]
+    after: tuple[str, ...] = ()
+
+
+def cblrs_command() -> list[str]:
+    """How this cblrs is started as a child process: this interpreter, ``-m cblrs.cli.main``."""
+    return [sys.executable, "-m", "cblrs.cli.main"]
+
+
+def safe_stem(name: str) -> str:
+    """A file stem for a camera name (the name ``cblrs render`` gives its reference)."""
+    return re.sub(r"[^A-Za-z0-9._-]+", "_", name).strip("._") or "camera"
+
+
+def port_is_free(port: int, host: str = "127.0.0.1") -> bool:
+    """Whether ``host:port`` can be bound now."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as probe:
+        try:
+            probe.bind((host, port))
+        except OSError:
+            return False
+    return True
+
+
+@dataclass
+class SitePlan:
+    """Everything ``cblrs up`` needs for one site file (see the module docstring).
+
+    Attributes:
+        site: the loaded site.
+        site_path: the site file, resolved.
+        out: the state folder, resolved.
+        cameras: the cameras to run, in the site's order.
+        planes: plane ids, each with one matcher.
+        broker_port: the broker's listener port.
+        dashboard_port: the dashboard's port (0: a free one).
+        epoch: seconds since 1970 added to every replay's recorded timestamps.
+        realtime: pace replays by their timestamps (False: as fast as possible).
+        speed: the pace's speed-up.
+        run_as: the user Mosquitto runs as when started as root.
+        dashboard: run the dashboard.
+        fresh_epoch: the epoch is not a saved run's: the runner sets it when it starts the
+            cameras (a paced replay then begins as they start).
+    """
+
+    site: Site
+    site_path: Path
+    out: Path
+    cameras: list[CameraRun]
+    planes: list[int]
+    broker_port: int
+    dashboard_port: int
+    epoch: float
+    realtime: bool = True
+    speed: float = 1.0
+    run_as: str | None = None
+    dashboard: bool = True
+    fresh_epoch: bool = False
+    command: list[str] = field(default_factory=cblrs_command)
+
+    # ------------------------------------------------------------------ paths
+    @property
+    def broker_dir(self) -> Path:
+        return self.out / "broker"
+
+    @property
+    def clients_dir(self) -> Path:
+        return self.out / "clients"
+
+    @property
+    def references_dir(self) -> Path:
+        return self.out / "references"
+
+    @property
+    def logs_dir(self) -> Path:
+        return self.out / "logs"
+
+    def database(self, plane: int) -> Path:
+        return self.out / f"plane{plane}.db"
+
+    def tracks_file(self, plane: int) -> Path:
+        return self.out / f"tracks-plane{plane}.txt"
+
+    def spool(self, camera: str) -> Path:
+        return self.out / "spool" / f"{safe_stem(camera)}.db"
+
+    def reference(self, camera: str) -> Path:
+        return self.references_dir / f"{safe_stem(camera)}.png"
+
+    def password_file(self, user: str) -> Path:
+        return self.clients_dir / user / f"{user}.password"
+
+    @staticmethod
+    def matcher_user(plane: int) -> str:
+        return f"matcher{plane}"
+
+    @property
+    def broker_address(self) -> str:
+        return f"127.0.0.1:{self.broker_port}"
+
+    # ------------------------------------------------------------------ command lines
+    def login(self, user: str) -> list[str]:
+        return ["--broker", self.broker_address, "--username", user,
+                "--password-file", str(self.password_file(user))]
+
+    def broker_spec(self, mosquitto: str = "mosquitto") -> ProcessSpec:
+        return ProcessSpec("broker", "broker",
+                           [mosquitto, "-c", str(self.broker_dir / "mosquitto.conf")])
+
+    def matcher_spec(self, plane: int, until_done: bool = False) -> ProcessSpec:
+        argv = [*self.command, "matcher", "--site", str(self.site_path), "--plane", str(plane),
+                "--db", str(self.database(plane)), "--out-tracks", str(self.tracks_file(plane)),
+                *self.login(self.matcher_user(plane))]
+        if until_done:
+            argv.append("--until-cameras-offline")
+        return ProcessSpec(f"matcher-{plane}", "matcher", argv, ("broker",))
+
+    def dashboard_spec(self) -> ProcessSpec:
+        plane = self.planes[0]
+        argv = [*self.command, "dashboard", "--site", str(self.site_path), "--plane", str(plane),
+                "--db", str(self.database(plane)), "--port", str(self.dashboard_port), "--json",
+                *self.login("viewer")]
+        return ProcessSpec("dashboard", "dashboard", argv,
+                           ("broker", *(f"matcher-{p}" for p in self.planes)))
+
+    def camera_spec(self, camera: CameraRun) -> ProcessSpec:
+        argv = [*self.command, "camera", "--camera", camera.name, "--plane", str(camera.plane),
+                "--reference", str(self.reference(camera.name)),
+                "--spool", str(self.spool(camera.name)), "--json",
+                *source_options(camera.source, self.site.folder)]
+        if camera.source.kind != "url":
+            argv += ["--epoch", repr(self.epoch)]
+            if self.realtime and camera.source.realtime:
+                argv += ["--realtime", "--speed", repr(self.speed)]
+        argv += self.login(camera.name)
+        return ProcessSpec(f"camera-{camera.name}", "camera", argv,
+                           ("broker", f"matcher-{camera.plane}"))
+
+    def processes(self, until_done: bool = False, mosquitto: str = "mosquitto"
+                  ) -> list[ProcessSpec]:
+        """Every process in start order: broker, matchers, dashboard, cameras."""
+        specs = [self.broker_spec(mosquitto)]
+        specs += [self.matcher_spec(plane, until_done) for plane in self.planes]
+        if self.dashboard:
+            specs.append(self.dashboard_spec())
+        specs += [self.camera_spec(camera) for camera in self.cameras]
+        return specs
+
+    def files_read(self) -> list[Path]:
+        """The files and folders outside the state folder the processes read (the site file,
+        its sources, models and calibrations), resolved."""
+        paths = {self.site_path}
+        for camera in self.cameras:
+            source = camera.source
+            if source.path:
+                paths.add((self.site.folder / source.path).resolve())
+            detector = source.detector
+            for name in ("model", "weights"):
+                value = getattr(detector, name, None) if detector is not None else None
+                if value:
+                    paths.add((self.site.folder / value).resolve())
+        for spec in self.site.model.cameras:
+            if spec.calibration is not None:
+                paths.add((self.site.folder / spec.calibration.file).resolve())
+            if spec.points_file is not None:
+                paths.add((self.site.folder / spec.points_file).resolve())
+        if self.site.model.map is not None and self.site.model.map.image:
+            paths.add((self.site.folder / self.site.model.map.image).resolve())
+        return sorted(paths)
+
+
+def source_options(source: SourceModel, folder: Path) -> list[str]:
+    """The ``cblrs camera`` options of a site file's ``source:`` (paths made absolute)."""
+
+    def path(value: str) -> str:
+        return str((folder / value).resolve())
+
+    options: list[str]
+    if source.kind == "dataset":
+        options = ["--dataset", path(source.path or "")]
+    elif source.kind == "detections":
+        options = ["--detections", path(source.path or ""), "--format", source.format]
+    elif source.kind == "images":
+        options = ["--images", path(source.path or "")]
+    elif source.kind == "video":
+        options = ["--video", path(source.path or "")]
+    else:
+        options = ["--video", source.url or "", "--live"]
+    if source.frames is not None:
+        options += ["--frames", source.frames]
+    if source.fps is not None:
+        options += ["--fps", repr(source.fps)]
+    detector = source.detector
+    if detector is not None:
+        options += ["--detector", detector.kind]
+        if detector.model:
+            options += ["--model", path(detector.model)]
+        if detector.weights:
+            options += ["--weights", path(detector.weights)]
+        if detector.confidence is not None:
+            options += ["--confidence", repr(detector.confidence)]
+        if detector.colour is not None:
+            options += ["--blob-colour", ",".join(str(int(value)) for value in detector.colour)]
+    return options
+
+
+def default_out(site_path: Path) -> Path:
+    """The default state folder: ``cblrs-<site file stem>`` in the current folder."""
+    return Path.cwd() / f"cblrs-{safe_stem(site_path.stem)}"
+
+
+def make_plan(
+    site_path: str | Path,
+    out: str | Path | None = None,
+    *,
+    broker_port: int | None = None,
+    dashboard_port: int = DEFAULT_DASHBOARD_PORT,
+    realtime: bool = True,
+    speed: float = 1.0,
+    run_as: str | None = None,
+    dashboard: bool = True,
+    check_files: bool = True,
+) -> SitePlan:
+    """The plan of a site file: validated, with its state folder's saved run reused.
+
+    Args:
+        site_path: the site file; every camera needs a ``source:``.
+        out: the state folder (default :func:`default_out`).
+        broker_port: the broker's port (None: the saved one, else 1883 when free, else a free
+            one; 0: a free one).
+        dashboard_port: the dashboard's port (0: a free one).
+        realtime: pace replays by their timestamps (a source may opt out with
+            ``realtime: false``); False replays as fast as possible.
+        speed: speed-up of paced replays.
+        run_as: the user Mosquitto runs as when started as root.
+        dashboard: plan the dashboard too.
+        check_files: refuse a source whose file does not exist.
+
+    Raises:
+        UpError: a camera without a source or plane, a missing file, a bad option.
+        SiteError: the site file itself is invalid.
+    """
+    site_path = Path(site_path)
+    site = load_site(site_path)
+    site_path = site_path.resolve()
+    if site.pseudo_key_id is not None:
+        raise UpError(f"{site_path.name} is a pseudo site; cblrs up runs a real site.")
+    planes = site.require_planes("cblrs up").ids
+    specs = site.model.cameras
+    if not specs:
+        raise UpError(f"{site_path.name} has no cameras; cblrs up needs at least one.")
+    cameras = []
+    for spec in specs:
+        if spec.source is None:
+            raise UpError(
+                f"{site_path.name}: camera {spec.name!r} has no source; give it one, e.g. "
+                "source: {kind: video, path: gate.mp4, detector: {kind: onnx, model: "
+                "yolox_nano.onnx}} (docs/up.md)."
+            )
+        plane = spec.plane if spec.plane is not None else (planes[0] if len(planes) == 1
+                                                            else None)
+        if plane is None:
+            raise UpError(f"{site_path.name}: camera {spec.name!r} needs plane: (the site has "
+                          f"planes {', '.join(map(str, planes))}).")
+        cameras.append(CameraRun(spec.name, plane, spec.source))
+        if check_files:
+            for what, value in _files_of(spec.source):
+                if not (site.folder / value).exists():
+                    raise UpError(f"{site_path.name}: camera {spec.name!r}: {what} "
+                                  f"{(site.folder / value).resolve()} does not exist.")
+    if not (speed > 0 and speed < float("inf")):
+        raise UpError(f"--speed must be a finite number greater than 0, got {speed}.")
+    if dashboard_port is not None and not 0 <= dashboard_port <= 65535:
+        raise UpError(f"--dashboard-port must be 0..65535, got {dashboard_port}.")
+    if broker_port is not None and not 0 <= broker_port <= 65535:
+        raise UpError(f"--broker-port must be 0..65535, got {broker_port}.")
+    out_path = (Path(out) if out is not None else default_out(site_path)).resolve()
+    saved = read_state(out_path)
+    if saved and saved.get("site") != str(site_path):
+        raise UpError(f"{out_path} holds the state of another site ({saved.get('site')}); "
+                      "choose another --out.")
+    epoch = saved.get("epoch") if saved else None
+    if saved and saved.get("realtime") != realtime:
+        epoch = None  # another pace: another run (the spools refuse to mix them)
+    if broker_port is None:
+        broker_port = int(saved["broker_port"]) if saved and saved.get("broker_port") else (
+            DEFAULT_BROKER_PORT if port_is_free(DEFAULT_BROKER_PORT) else 0)
+    if broker_port == 0:
+        broker_port = free_port()
+    fresh = epoch is None
+    if epoch is None:
+        epoch = float(int(time.time() + START_MARGIN_S if realtime
+                          else time.time() - FAST_EPOCH_AGO_S))
+    return SitePlan(site, site_path, out_path, cameras, list(planes), broker_port,
+                    dashboard_port, float(epoch), realtime=realtime, speed=speed,
+                    run_as=run_as, dashboard=dashboard, fresh_epoch=fresh and realtime)
+
+
+def _files_of(source: SourceModel) -> list[tuple[str, str]]:
+    files = [("path", source.path)] if source.path else []
+    if source.detector is not None:
+        files += [(name, value) for name in ("model", "weights")
+                  if (value := getattr(source.detector, name))]
+    return files
+
+
+def free_port() -> int:
+    """A free TCP port on loopback."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as probe:
+        probe.bind(("127.0.0.1", 0))
+        return int(probe.getsockname()[1])
+
+
+def read_state(out: Path) -> dict[str, Any] | None:
+    """The saved run of a state folder (None when there is none)."""
+    path = out / STATE_FILE
+    if not path.is_file():
+        return None
+    try:
+        state = json.loads(path.read_text())
+    except (OSError, ValueError) as error:
+        raise UpError(f"{path} is unreadable ({error}); remove it or choose another "
+                      "--out.") from None
+    return state if isinstance(state, dict) else None
+
+
+def write_state(plan: SitePlan) -> None:
+    """Save what a restart must reuse (site, logins, broker port, epoch, pace)."""
+    plan.out.mkdir(parents=True, exist_ok=True)
+    state = {"site": str(plan.site_path), "broker_port": plan.broker_port,
+             "epoch": plan.epoch, "realtime": plan.realtime,
+             "users": users_of(plan)}
+    (plan.out / STATE_FILE).write_text(json.dumps(state, indent=2) + "\n")
+
+
+def users_of(plan: SitePlan) -> dict[str, Any]:
+    return {"cameras": [camera.name for camera in plan.cameras],
+            "matchers": {plan.matcher_user(plane): [plane] for plane in plan.planes}}
+
+
+def prepare(plan: SitePlan, *, render: bool = True) -> list[str]:
+    """Write the broker's configuration (unless the saved one fits) and render the missing
+    references; what was done, one line each.
+
+    Raises:
+        UpError: the configuration or a reference cannot be written (one sentence).
+    """
+    # lazy: the broker's machinery pulls in the MQTT client
+    from cblrs.runtime.broker import BrokerError, write_broker_config
+
+    done = []
+    plan.out.mkdir(parents=True, exist_ok=True)
+    for folder in (plan.logs_dir, plan.out / "spool", plan.references_dir):
+        folder.mkdir(parents=True, exist_ok=True)
+    saved = read_state(plan.out) or {}
+    users = users_of(plan)
+    config = plan.broker_dir / "mosquitto.conf"
+    fits = (config.is_file() and saved.get("users") == users
+            and saved.get("broker_port") == plan.broker_port
+            and all(plan.password_file(user).is_file()
+                    for user in [*users["cameras"], *users["matchers"], "viewer"]))
+    if not fits:
+        try:
+            write_broker_config(plan.broker_dir, users["cameras"], users["matchers"],
+                                port=plan.broker_port, plane_ids=plan.planes,
+                                run_as=plan.run_as, clients_directory=plan.clients_dir)
+        except BrokerError as error:
+            raise UpError(str(error).rstrip(".") + ".") from None
+        done.append(f"broker configuration written to {plan.broker_dir} (port "
+                    f"{plan.broker_port}; logins in {plan.clients_dir})")
+    if render:
+        missing = [camera.name for camera in plan.cameras
+                   if not plan.reference(camera.name).is_file()]
+        for name in missing:
+            plan.site.render_reference(name).save(plan.reference(name))
+        if missing:
+            done.append(f"references rendered for {', '.join(missing)} in "
+                        f"{plan.references_dir}")
+    write_state(plan)
+    return done
+
+
+def find_broker(path: str | None = None) -> str | None:
+    """The mosquitto binary on the PATH (``path``, default the environment's), or in the
+    system's sbin folders when the PATH is a user's ordinary one (Debian installs it in
+    /usr/sbin, outside a user's PATH); None when there is none."""
+    path = os.environ.get("PATH", "") if path is None else path
+    found = shutil.which("mosquitto", path=path)
+    if found:
+        return found
+    folders = path.split(os.pathsep)
+    if "/usr/bin" in folders:
+        for folder in ("/usr/local/sbin", "/usr/sbin", "/sbin"):
+            candidate = Path(folder) / "mosquitto"
+            if folder not in folders and candidate.is_file() and os.access(candidate, os.X_OK):
+                return str(candidate)
+    return None

@@ -1,0 +1,90 @@
+"""What ``cblrs up`` plans for a site file, without starting anything: one matcher per plane,
+each camera on its plane with the options of its source, a restart that keeps its run."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from cblrs.site.sources import SourceModel
+from cblrs.up import UpError, make_plan
+from cblrs.up.plan import source_options, write_state
+
+CAMERA = ("{name: %s, image_size: [1280, 720], homography: [[-27.66, 11.3, 654.0], "
+          "[1.25, 0.87, 64.5], [-0.0207, -0.0145, 1]]%s}")
+
+
+def write_site(folder: Path, cameras: list[tuple[str, str]], planes: int = 2) -> Path:
+    (folder / "gate.txt").write_text("")
+    lines = ["version: 1", "name: two-planes", "planes:"]
+    lines += [f"  - {{id: {plane}, origin: [0, {10 * (plane - 1)}], size: [20, 10]}}"
+              for plane in range(1, planes + 1)]
+    lines += ["cameras:"] + [f"  - {CAMERA % (name, extra)}" for name, extra in cameras]
+    path = folder / "site.yaml"
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+SOURCE = ", source: {kind: detections, path: gate.txt, fps: 10}"
+
+
+def test_one_matcher_per_plane_and_each_camera_on_its_plane(tmp_path):
+    site = write_site(tmp_path, [("a", SOURCE + ", plane: 1"), ("b", SOURCE + ", plane: 2")])
+    plan = make_plan(site, tmp_path / "state", broker_port=18840, dashboard_port=0)
+    names = [spec.name for spec in plan.processes()]
+    assert names == ["broker", "matcher-1", "matcher-2", "dashboard", "camera-a", "camera-b"]
+    specs = {spec.name: spec for spec in plan.processes(until_done=True)}
+    assert "--until-cameras-offline" in specs["matcher-2"].argv
+    assert specs["matcher-2"].argv[specs["matcher-2"].argv.index("--plane") + 1] == "2"
+    camera = specs["camera-b"].argv
+    assert camera[camera.index("--plane") + 1] == "2"
+    assert camera[camera.index("--username") + 1] == "b"
+    assert camera[camera.index("--detections") + 1] == str((tmp_path / "gate.txt").resolve())
+    assert specs["camera-b"].after == ("broker", "matcher-2")
+    assert specs["dashboard"].after == ("broker", "matcher-1", "matcher-2")
+
+
+def test_a_camera_without_a_plane_on_a_site_of_two_is_one_sentence(tmp_path):
+    site = write_site(tmp_path, [("a", SOURCE)])
+    with pytest.raises(UpError, match=r"camera 'a' needs plane: \(the site has planes 1, 2\)"):
+        make_plan(site, tmp_path / "state")
+
+
+def test_a_restart_keeps_the_epoch_and_port_and_refuses_another_site(tmp_path):
+    site = write_site(tmp_path, [("a", SOURCE)], planes=1)
+    first = make_plan(site, tmp_path / "state", broker_port=0)
+    write_state(first)
+    again = make_plan(site, tmp_path / "state")
+    assert (again.epoch, again.broker_port) == (first.epoch, first.broker_port)
+    assert not again.fresh_epoch
+    # another pace is another run: a new epoch (capture times in the past, as fast replays use)
+    assert make_plan(site, tmp_path / "state", realtime=False).epoch < first.epoch - 200
+    other = tmp_path / "other"
+    other.mkdir()
+    with pytest.raises(UpError, match="holds the state of another site"):
+        make_plan(write_site(other, [("a", SOURCE)], planes=1), tmp_path / "state")
+    saved = json.loads((tmp_path / "state" / "up.json").read_text())
+    assert saved["users"] == {"cameras": ["a"], "matchers": {"matcher1": [1]}}
+
+
+@pytest.mark.parametrize(("source", "options"), [
+    ({"kind": "dataset", "path": "wt", "frames": "0:195"},
+     ["--dataset", "{folder}/wt", "--frames", "0:195"]),
+    ({"kind": "images", "path": "frames", "fps": 2.0,
+      "detector": {"kind": "blob", "colour": [255, 0, 0], "confidence": 0.5}},
+     ["--images", "{folder}/frames", "--fps", "2.0", "--detector", "blob", "--confidence",
+      "0.5", "--blob-colour", "255,0,0"]),
+    ({"kind": "url", "url": "rtsp://10.0.0.5/s1", "detector": {"kind": "onnx",
+                                                                "model": "m.onnx"}},
+     ["--video", "rtsp://10.0.0.5/s1", "--live", "--detector", "onnx", "--model",
+      "{folder}/m.onnx"]),
+    ({"kind": "video", "path": "v.mp4", "detector": {"kind": "yolo", "weights": "y.pt"}},
+     ["--video", "{folder}/v.mp4", "--detector", "yolo", "--weights", "{folder}/y.pt"]),
+    ({"kind": "detections", "path": "d.txt", "fps": 10, "format": "aicity"},
+     ["--detections", "{folder}/d.txt", "--format", "aicity", "--fps", "10.0"]),
+])
+def test_source_options(tmp_path, source, options):
+    expected = [option.format(folder=tmp_path.resolve()) for option in options]
+    assert source_options(SourceModel.model_validate(source), tmp_path) == expected

@@ -1,0 +1,48 @@
+"""Helpers of the ``cblrs up`` tests: a small live site (two WILDTRACK cameras, 40 annotated
+frames each) and a runner of the real command."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+CAMERAS = ("CVLab1", "CVLab2")
+PER_CAMERA = 40  # annotated frames 0, 5, ..., 195
+RUN_AS = ["--run-as", "root"] if os.geteuid() == 0 else []
+"""As root, Mosquitto would switch to its own user, which cannot enter pytest's private
+temporary folders (the runtime tests do the same)."""
+
+
+def small_site_text(wildtrack: Path, frames: str = "0:195") -> str:
+    rows = []
+    for name in CAMERAS:
+        rows.append(
+            f"  - {{name: {name}, image_size: [1920, 1080], calibration: {{file: {wildtrack}, "
+            f"camera: {name}}},\n     source: {{kind: dataset, path: {wildtrack}, "
+            f'frames: "{frames}"}}}}'
+        )
+    return "\n".join([
+        "version: 1", "name: small-live",
+        "planes:", "  - {id: 1, name: ground, origin: [-5.0, -11.0], size: [16.0, 40.0]}",
+        "cameras:", *rows,
+        "places:", "  lines:", "    - {name: middle, start: [-2.5, 6.0], end: [8.5, 6.0]}", ""])
+
+
+def up_command(site: Path, out: Path, *extra: str) -> list[str]:
+    return [sys.executable, "-m", "cblrs.cli.main", "up", str(site), "--out", str(out),
+            "--broker-port", "0", "--dashboard-port", "0", "--json", *RUN_AS, *extra]
+
+
+ENVIRONMENT = {**os.environ, "PYTHONUNBUFFERED": "1"}
+
+
+def run_up(site: Path, out: Path, *extra: str, timeout: float = 120,
+           environment: dict | None = None) -> tuple[int, dict | None, str]:
+    """Run ``cblrs up`` to its end: exit code, its JSON summary (None if none), stderr."""
+    result = subprocess.run(up_command(site, out, *extra), capture_output=True, text=True,
+                            timeout=timeout, env=environment or ENVIRONMENT)
+    summary = json.loads(result.stdout) if result.stdout.strip().startswith("{") else None
+    return result.returncode, summary, result.stderr
