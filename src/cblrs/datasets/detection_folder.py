@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from cblrs.datasets.detection_tables import mot_source
 from cblrs.datasets.images import (
     IMAGE_FOLDER,
     annotated_frames,
@@ -32,7 +33,6 @@ from cblrs.datasets.images import (
 from cblrs.datasets.scene import Scene
 from cblrs.detections import Detections
 from cblrs.errors import DatasetError
-from cblrs.runtime.sources import mot_source
 
 logger = logging.getLogger(__name__)
 

@@ -49,7 +49,7 @@ class DetectorModel(_Strict):
 
 def _frame_range(text: str | None) -> str | None:
     first, separator, last = (text or "").partition(":")
-    if text is not None and not (separator and (first + last).isdigit() or text == ":"):
+    if text is not None and not ((separator and (first + last).isdigit()) or text == ":"):
         raise ValueError(f"frames {text!r} must be FIRST:LAST frame numbers, e.g. 0:195")
     return text
 
