@@ -745,6 +745,9 @@ class MatcherService:
                     if self._abandoning():
                         return  # it left without answering for what it abandoned
                     self._tracker.process.join(1.0)  # for its exit code
+                    # A tracker process that found its database gone exits in one line; the
+                    # operator's sentence is the database's (StoreError), not the exit code.
+                    self.store.check_file()
                     raise TrackerProcessError(
                         f"the tracker process exited (code {self._tracker.process.exitcode})"
                         " without answering"
