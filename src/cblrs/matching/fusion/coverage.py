@@ -90,7 +90,10 @@ class Coverage:
     def get_state(self) -> dict:
         """What has been learnt, JSON-ready: the flat indices and counts of the non-empty
         cells (the views told by :meth:`set_view` are configuration, not state)."""
-        cells = np.flatnonzero(self.counts)
+        # Saved with every committed group: with every camera's view told (what `cblrs
+        # matcher` and `cblrs track` do) nothing is learnt, so skip the scan of the grid.
+        cells = (np.zeros(0, np.int64) if self.has_view.all()
+                 else np.flatnonzero(self.counts))
         return {"shape": list(self.counts.shape), "cells": cells.tolist(),
                 "counts": self.counts.flat[cells].tolist()}
 
