@@ -110,7 +110,6 @@ from cblrs.runtime.wire import RejectedMessage, ValidationPolicy, decode_status,
 
 logger = logging.getLogger(__name__)
 
-RESTARTED_CAMERAS_GRACE_S = 10.0
 COUNTER_NAMES = ("received", "accepted", "duplicates", "conflicts", "late", "processed",
                  "groups", "tracks", "retracks", "retracked", "late_tracked", "late_untracked")
 """Counters every summary shows (rejections add ``rejected.<reason>``)."""
@@ -268,7 +267,6 @@ class MatcherService:
         self._offline_at: dict[str, float | None] = dict.fromkeys(self.camera_ids, None)
         self._started_at = wall_clock()
         self._active_this_run: set[str] = set()
-        self._started_at = time.monotonic()
         self._last_delivery = 0.0
         self._stop = threading.Event()
         self._flush_requested = threading.Event()
@@ -831,10 +829,6 @@ class MatcherService:
                 return False
             if camera in self._active_this_run:
                 continue
-            # A retained "offline" of an earlier run: give cameras restarted beside this
-            # service (`cblrs up` starts them just after it) time to say "online" first.
-            if time.monotonic() - self._started_at < RESTARTED_CAMERAS_GRACE_S:
-                return False
             if summary is None:
                 summary = self.store.inbox_summary()
             offline_at = self._offline_at[camera]
