@@ -5,6 +5,7 @@ from __future__ import annotations
 import socket
 import threading
 import time
+from dataclasses import replace
 
 import pytest
 
@@ -562,3 +563,98 @@ def test_a_connection_to_itself_is_refused():
         client.connect(listener.getsockname())
         _socket_options(None, None, client)  # an ordinary connection: Nagle off
         assert client.getsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY) != 0
+
+
+class _SubscribeDroppingRelay:
+    """A TCP relay in front of the broker that cuts its first connection the moment the
+    client's first SUBSCRIBE arrives, before the broker sees it: the session exists (the
+    CONNECT went through) but holds no subscription."""
+
+    def __init__(self, broker_port: int):
+        self.broker_port = broker_port
+        self.dropped = threading.Event()
+        self._listener = socket.create_server(("127.0.0.1", 0))
+        self.port = self._listener.getsockname()[1]
+        self._sockets: list[socket.socket] = []
+        threading.Thread(target=self._accept, daemon=True).start()
+
+    def _accept(self) -> None:
+        while True:
+            try:
+                client, _ = self._listener.accept()
+            except OSError:
+                return
+            upstream = socket.create_connection(("127.0.0.1", self.broker_port))
+            self._sockets += [client, upstream]
+            threading.Thread(target=self._client_to_broker, args=(client, upstream),
+                             daemon=True).start()
+            threading.Thread(target=self._copy, args=(upstream, client), daemon=True).start()
+
+    @staticmethod
+    def _copy(source: socket.socket, target: socket.socket) -> None:
+        try:
+            while data := source.recv(65536):
+                target.sendall(data)
+        except OSError:
+            pass
+        for end in (source, target):
+            end.close()
+
+    def _client_to_broker(self, client: socket.socket, upstream: socket.socket) -> None:
+        buffer = b""
+        try:
+            while data := client.recv(65536):
+                buffer += data
+                while (packet := _mqtt_packet(buffer)) is not None:
+                    buffer = buffer[len(packet):]
+                    if packet[0] >> 4 == 8 and not self.dropped.is_set():  # SUBSCRIBE
+                        self.dropped.set()
+                        raise OSError("dropped")
+                    upstream.sendall(packet)
+        except OSError:
+            pass
+        for end in (client, upstream):
+            end.close()
+
+    def close(self) -> None:
+        self._listener.close()
+        for end in self._sockets:
+            end.close()
+
+
+def _mqtt_packet(buffer: bytes) -> bytes | None:
+    """The first whole MQTT control packet in ``buffer``, or None if it is not all there."""
+    length, multiplier, index = 0, 1, 1
+    while True:
+        if index >= len(buffer):
+            return None
+        byte = buffer[index]
+        length += (byte & 0x7F) * multiplier
+        multiplier *= 128
+        index += 1
+        if not byte & 0x80:
+            break
+    end = index + length
+    return buffer[:end] if len(buffer) >= end else None
+
+
+def test_a_subscription_lost_before_the_broker_granted_it_is_sent_again(start_mosquitto):
+    """A connection that drops between SUBSCRIBE and its grant (a broker stopped at that
+    moment did it in CI) leaves a session without the subscription; on reconnection
+    ("session present") the client must subscribe again, or it never hears a message."""
+    broker = start_mosquitto()
+    relay = _SubscribeDroppingRelay(broker.settings().port)
+    subscriber = MqttTransport("matcher", replace(broker.settings(), port=relay.port),
+                               persistent=True)
+    collector = Collector()
+    subscriber.subscribe("cblrs/1/+/detections", collector)
+    subscriber.connect()
+    assert wait_until(lambda: relay.dropped.is_set() and subscriber.connected
+                      and subscriber.connections == 2)
+    publisher = connected(MqttTransport("camera", broker.settings()))
+    publisher.publish("cblrs/1/CVLab1/detections", b"heard")
+    assert publisher.flush(WAIT)
+    assert [delivery.payload for delivery in collector.wait_for(1)] == [b"heard"]
+    publisher.close()
+    subscriber.close()
+    relay.close()

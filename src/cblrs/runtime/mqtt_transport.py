@@ -204,7 +204,11 @@ class MqttTransport:
         """The broker's Maximum Packet Size (MQTT 5 CONNACK property), if it announced one."""
         self._connect_hooks: list[Callable[[bool], None]] = []
         self._suback: dict[int, list] = {}
-        self._background_subscribes: set[int] = set()
+        self._background_subscribes: dict[int, str] = {}
+        """Subscriptions sent on (re)connection, by packet id, until the broker answers."""
+        self._suspected_takeover: tuple[float, Any] | None = None
+        """A connection the broker closed soon after accepting it: ``(lived, reason)``; a
+        takeover if the next attempt succeeds at once, a broker going away if it fails."""
         self._filter_ids: dict[int, str] = {}
         self._identified: set[str] = set()
         """Filters overlapping another one: subscribed with a subscription identifier so each
@@ -327,6 +331,9 @@ class MqttTransport:
                 f"{self.client_id}: the MQTT broker at {settings.address} "
                 f"refused the connection: {refusal}."
             )
+        # Filters registered before connect() count from the broker's grant, not from the
+        # send: a broker stopped in between must not lose them (they are sent again).
+        self._wait_for_subscriptions(max(0.0, deadline - time.monotonic()))
 
     def publish(
         self,
@@ -601,6 +608,11 @@ class MqttTransport:
 
     def _on_connect_fail(self, client, userdata) -> None:
         self._attempt_failed.set()
+        suspected, self._suspected_takeover = self._suspected_takeover, None
+        if suspected is not None:
+            # The broker closed the connection and then could not be reached: it went away.
+            logger.warning("%s: disconnected from %s: %s; reconnecting", self.client_id,
+                           self.settings.address, suspected[1])
 
     def _on_connect(self, client, userdata, flags, reason_code, properties) -> None:
         if reason_code.is_failure:
@@ -613,16 +625,22 @@ class MqttTransport:
             return
         self._refusal = None
         self._connected_at = time.monotonic()
+        suspected, self._suspected_takeover = self._suspected_takeover, None
+        if suspected is not None:
+            self._report_takeover(suspected[0])
         if not flags.session_present:
             self._subscribed.clear()
 
+        with self._condition:
+            self._background_subscribes.clear()  # answers to a lost connection never come
         for topic_filter in self._handlers.filters():
             if topic_filter not in self._subscribed:
+                # Counted as subscribed only once the broker grants it (_on_subscribe): if
+                # the connection drops first, the next connection sends it again.
                 _, mid = self._send_subscribe(client, topic_filter, self._qos[topic_filter])
                 if mid is not None:
                     with self._condition:
-                        self._background_subscribes.add(mid)
-                self._subscribed.add(topic_filter)
+                        self._background_subscribes[mid] = topic_filter
         self.connections += 1
         self._max_packet = getattr(properties, "MaximumPacketSize", None)
         with self._condition:
@@ -652,21 +670,27 @@ class MqttTransport:
         with self._condition:
             self._hold = bool(self._handed)
         lived = time.monotonic() - self._connected_at
-        if int(getattr(reason_code, "value", 0)) == SESSION_TAKEN_OVER or (
-                reason_code.is_failure and lived < SHORT_CONNECTION_S):
-            self.takeovers += 1
-            self._takeover_log.log(
-                logging.ERROR, "takeover",
-                "%s: another client logged in as %s and took over this session (the broker "
-                "closed this connection %.1f s after accepting it; %d times so far): a login "
-                "must not be shared (give each client its own) and may have been stolen; "
-                "reconnecting", self.client_id, self.settings.username or self.client_id,
-                lived, self.takeovers)
+        if int(getattr(reason_code, "value", 0)) == SESSION_TAKEN_OVER:
+            self._report_takeover(lived)
+        elif reason_code.is_failure and lived < SHORT_CONNECTION_S:
+            # Mosquitto 2.0 closes a taken-over MQTT 5 session without reason 0x8E, exactly
+            # as a broker that stops does: the next attempt tells them apart.
+            self._suspected_takeover = (lived, reason_code)
         elif reason_code.is_failure:
             logger.warning("%s: disconnected from %s: %s; reconnecting", self.client_id,
                            self.settings.address, reason_code)
         else:
             logger.info("%s: disconnected from %s", self.client_id, self.settings.address)
+
+    def _report_takeover(self, lived: float) -> None:
+        self.takeovers += 1
+        self._takeover_log.log(
+            logging.ERROR, "takeover",
+            "%s: another client logged in as %s and took over this session (the broker "
+            "closed this connection %.1f s after accepting it; %d times so far): a login "
+            "must not be shared (give each client its own) and may have been stolen; "
+            "reconnecting", self.client_id, self.settings.username or self.client_id,
+            lived, self.takeovers)
 
     def _on_publish(self, client, userdata, mid, reason_code, properties) -> None:
         reason = int(getattr(reason_code, "value", 0))
@@ -684,13 +708,14 @@ class MqttTransport:
         self._pump(blocking=False)
 
     def _on_subscribe(self, client, userdata, mid, reason_codes, properties) -> None:
-        with self._condition:
-            if mid in self._background_subscribes:
-                self._background_subscribes.discard(mid)
-            else:
-                self._suback[mid] = list(reason_codes)
-            self._condition.notify_all()
         failures = [code for code in reason_codes if code.is_failure]
+        with self._condition:
+            topic_filter = self._background_subscribes.pop(mid, None)
+            if topic_filter is None:
+                self._suback[mid] = list(reason_codes)
+            elif not failures:
+                self._subscribed.add(topic_filter)
+            self._condition.notify_all()
         if failures:
             logger.warning("%s: subscription %d refused: %s", self.client_id, mid, failures[0])
 
