@@ -246,6 +246,34 @@ def _frames(count: int, detections: Detections | None = None) -> list[SourceFram
     return [SourceFrame(10 + index, 1.0 + 0.5 * index, detections) for index in range(count)]
 
 
+def test_a_camera_stopped_before_its_source_ended_does_not_end_its_stream(small_world):
+    """A signal stops the node mid-replay: everything sent is acknowledged, yet the stream
+    goes on after a restart, so its "offline" carries no timestamp (a matcher run
+    --until-cameras-offline must keep waiting; cblrs up's restart once ended early so)."""
+    _, reference = small_world
+    broker = InProcessBroker()
+    received = _collector(broker)
+    transport = InProcessTransport(broker, "cam1", persistent=False,
+                                   will=Will(*camera_last_will(PLANE, "cam1")))
+    node = CameraNode(transport, PLANE, "cam1", reference, epoch=1000.0, confirm_timeout_s=0)
+
+    def frames():
+        for index, frame in enumerate(_frames(10)):
+            if index == 3:
+                node.stop()
+            yield frame
+
+    report = node.run(frames())
+    transport.close()
+    wait_until(lambda: any(topic == status_topic(PLANE, "cam1") and
+                           decode_status(payload).state == "offline"
+                           for topic, payload, _ in received), 5, "the offline status")
+    assert report.messages == 3 and report.acknowledged == 3
+    statuses = [decode_status(payload) for topic, payload, _ in received
+                if topic == status_topic(PLANE, "cam1")]
+    assert statuses[-1].state == "offline" and statuses[-1].timestamp is None
+
+
 def test_camera_node_publishes_status_and_messages(small_world):
     _, reference = small_world
     broker = InProcessBroker()

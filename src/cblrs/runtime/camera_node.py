@@ -43,9 +43,10 @@ wall clock at capture.
 Status. The node publishes a retained, timestamped "online" on its status topic at the start
 and after every reconnection, and at the end a timestamped "offline" — the matcher's sign
 that the stream has ended — only once everything it sent is accounted for (acknowledged by
-the broker, or, when it waits for confirmations, confirmed by the matcher). Otherwise it ends
-with an untimestamped "offline", like its last will: the connection ended, the stream did
-not, and the matcher keeps waiting for the rest.
+the broker, or, when it waits for confirmations, confirmed by the matcher). Otherwise — and
+when it is stopped (a signal) before its source ended — it ends with an untimestamped
+"offline", like its last will: the connection ended, the stream did not, and the matcher
+keeps waiting for the rest.
 
 It stays one module because :class:`CameraNode`'s capture loop, spool pump and resend timer
 share the spool, the sequence numbers and the stop signal; the spool, the sources and the
@@ -307,10 +308,12 @@ class CameraNode:
         started: float | None = None
         final = False
         failing = True  # until the source is read to its end (or the node was stopped)
+        stopped = False  # stopped before the source ended: the stream goes on after a restart
         skipped = SkippedImages(f"camera {self.camera_id}")
         try:
             for frame, capture_time in self._timed(frames, report):
                 if self._stop.is_set():
+                    stopped = True
                     break
                 if frame.unusable is not None:
                     # An unusable image: no message (a frame seen empty would be a claim).
@@ -334,7 +337,7 @@ class CameraNode:
         finally:
             report.next_sequence = sequence
             try:
-                final = self._finish(spool, report, failing)
+                final = self._finish(spool, report, failing, ended=not stopped)
             finally:
                 self._pump_stop.set()
                 self._wake.set()
@@ -379,10 +382,13 @@ class CameraNode:
         report.bytes += len(payload)
         return payload
 
-    def _finish(self, spool: Spool, report: CameraReport, failing: bool = False) -> bool:
+    def _finish(self, spool: Spool, report: CameraReport, failing: bool = False,
+                ended: bool = True) -> bool:
         """Wait for the broker (and the matcher); publish the final status. Returns whether
         the timestamped (final) "offline" was published. ``failing``: the source raised; wait
-        a little for the broker, not for the matcher (the spool keeps the rest)."""
+        a little for the broker, not for the matcher (the spool keeps the rest). ``ended``:
+        False when the node was stopped before its source ended: its stream has not ended
+        (a restart goes on with it), so its "offline" is not the final one."""
         stopping = self._stop.is_set() or failing
         flush_timeout = min(self.flush_timeout_s, 5.0) if stopping else self.flush_timeout_s
         deadline = time.monotonic() + flush_timeout
@@ -412,7 +418,7 @@ class CameraNode:
         # Nothing may follow the final "offline": stop the pump before publishing it.
         self._pump_stop.set()
         self._wake.set()
-        final = self._flushed and self._refusal is None and (
+        final = ended and self._flushed and self._refusal is None and (
             self.confirm_timeout_s <= 0 or len(spool) == 0)
         if getattr(self.transport, "connected", True):
             self._announce("offline", final=final)
