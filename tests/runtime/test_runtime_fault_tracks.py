@@ -41,15 +41,15 @@ from cblrs.pipeline import camera_messages, render_scene_references, scene_plane
 from cblrs.places import CountingLine, Places, Zone
 from cblrs.plane import PlaneSet, PlaneSpec
 from cblrs.reference import ReferenceImage
-from cblrs.runtime.analytics_store import read_bins, read_counts, read_events, read_od
-from cblrs.runtime.inprocess import InProcessBroker, InProcessTransport
-from cblrs.runtime.matcher_service import MatcherService
-from cblrs.runtime.nats_server import NatsCluster, find_nats_server
-from cblrs.runtime.nats_transport import NatsSettings, NatsTransport, detections_stream
-from cblrs.runtime.online_analytics import OnlineAnalytics
-from cblrs.runtime.retrack import RetrackPolicy
-from cblrs.runtime.store import PENDING, PROCESSED, RuntimeStore
-from cblrs.runtime.topics import detections_topic, tracks_topic
+from cblrs.runtime.broker.nats_server import NatsCluster, find_nats_server
+from cblrs.runtime.matcher.matcher_service import MatcherService
+from cblrs.runtime.matcher.retrack import RetrackPolicy
+from cblrs.runtime.matcher.store import PENDING, PROCESSED, RuntimeStore
+from cblrs.runtime.outputs.analytics_store import read_bins, read_counts, read_events, read_od
+from cblrs.runtime.outputs.online_analytics import OnlineAnalytics
+from cblrs.runtime.transport.inprocess import InProcessBroker, InProcessTransport
+from cblrs.runtime.transport.nats_transport import NatsSettings, NatsTransport, detections_stream
+from cblrs.runtime.transport.topics import detections_topic, tracks_topic
 from cblrs.runtime.wire import TracksUpdate, decode_tracks, encode_message
 
 CAMERAS = ("CVLab1", "CVLab2")
