@@ -107,7 +107,8 @@ class OnlineAnalytics:
         self.log_increments = False
         """Also write each update's counter increments to ``count_log`` (with the update's
         time), so that a re-tracking can take back what was counted after a snapshot
-        (:mod:`cblrs.runtime.matcher.retrack`); the tracker process sets it when it keeps snapshots."""
+        (:mod:`cblrs.runtime.matcher.retrack`); the tracker process sets it when it keeps
+        snapshots."""
         self.log_floor = -math.inf
         """Increments are logged at a time above this (a re-tracking from a snapshot at
         ``t`` logs what it counts at ``t`` just after it, so a later one takes it back)."""
