@@ -289,6 +289,8 @@ def test_item1_late_messages_are_tracked_from_a_snapshot(case, tmp_path, withhel
         counters
     assert counters["retracks"] >= 1 and counters["retracked"] >= len(withheld), counters
     assert "analytics_uncorrected" not in counters
+    # Rows counted before the snapshot are not counted again: each row once.
+    assert counters["analytics_rows"] == len(case["tracks"]), counters
     assert_undisturbed(database, case)
     corrections = [update for update in updates if update.corrected_from is not None]
     assert corrections, "no corrected update was published"

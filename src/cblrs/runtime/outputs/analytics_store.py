@@ -17,10 +17,11 @@ Tables (created with the store's own, see :mod:`cblrs.runtime.matcher.store`):
   ``interval_s``): line directions, zone ``entries`` / ``exits`` and ``occupancy_s``
   (person-seconds), for charts and Grafana.
 * ``od`` — origin-destination counts between zones.
-* ``count_log`` — with re-tracking on (:mod:`cblrs.runtime.matcher.retrack`): every increment of
-  ``counts``, ``count_bins`` and ``od`` with the time of the tracker group that made it, kept
-  as long as the snapshots, so a re-tracking from a snapshot takes back what was counted
-  after it (:func:`roll_back`) and counts the corrected tracks instead.
+* ``count_log`` — with re-tracking on (:mod:`cblrs.runtime.matcher.retrack`): every
+  increment of ``counts``, ``count_bins``, ``od`` and the analytics' counters with the time
+  of the tracker group that made it, kept as long as the snapshots, so a re-tracking from a
+  snapshot takes back what was counted after it (:func:`roll_back`) and counts the
+  corrected tracks instead.
 
 Every write of one tracker batch goes into the transaction that stores the batch's track
 rows and the engine's state (:meth:`RuntimeStore.commit_group`'s ``also``), so after a
@@ -102,7 +103,7 @@ class AnalyticsWrites:
         counters: increments of the store's ``counters`` (rows, late rows).
         state: the engine's state after the batch (``meta``), or None to leave it.
         log: ``(group time, table, key, increment)`` for ``count_log`` (``table``: counts,
-            bins or od).
+            bins, od, or counters: the analytics' own, e.g. ``analytics_rows``).
         published: keys of events to insert as already published (a re-tracking found
             again an event that was published before it).
     """
@@ -166,6 +167,7 @@ _ROLLBACK_SQL = {
     "bins": "UPDATE count_bins SET value = value - ? "
             "WHERE start = ? AND place = ? AND measure = ? AND class = ?",
     "od": "UPDATE od SET value = value - ? WHERE origin = ? AND destination = ?",
+    "counters": "UPDATE counters SET value = value - CAST(? AS INTEGER) WHERE name = ?",
 }
 
 

@@ -226,17 +226,16 @@ class OnlineAnalytics:
             add("od", key, value)
         for zone, value in engine.od_unpaired.items():
             add("counts", (zone, "od_unpaired", "all"), value)
+        for name, value in (("analytics_rows", engine.rows),
+                            ("analytics_late_rows", engine.late_rows),
+                            ("analytics_closed_events", engine.closed_events)):
+            if value or name != "analytics_closed_events":
+                writes.counters[name] = writes.counters.get(name, 0) + value
+            if log and value:  # rows counted again after a re-tracking are counted once
+                logged[("counters", (name,))] += value
         released = max(released, self.log_floor)
         writes.log += [(released, table, key, value)
                        for (table, key), value in logged.items() if value]
-        writes.counters["analytics_rows"] = writes.counters.get("analytics_rows", 0) + engine.rows
-        writes.counters["analytics_late_rows"] = (
-            writes.counters.get("analytics_late_rows", 0) + engine.late_rows
-        )
-        if engine.closed_events:
-            writes.counters["analytics_closed_events"] = (
-                writes.counters.get("analytics_closed_events", 0) + engine.closed_events
-            )
         for table in (engine.line_counts, engine.line_bins, engine.zone_bins, engine.zone_entries,
                       engine.zone_appeared, engine.occupancy_seconds, engine.od,
                       engine.od_unpaired):
