@@ -5,8 +5,9 @@ Starts a NATS cluster of three nodes (own ports and stores in ``--out``), the si
 and one matcher per plane as ``cblrs`` processes, one camera node per camera (threads, paced
 in real time), kills one plane's matcher (SIGKILL) once it has tracked a quarter of its
 messages and starts a new one on another "host"; then scores what the services stored
-(:func:`cblrs.experiments.planes_live.live_city_figures`). The default world is the one of
-``tests/runtime/test_runtime_city_nats.py``; a bigger street::
+(:func:`cblrs.experiments.planes_live.live_city_figures`) and, to compare, the same world
+in-process as ``cblrs experiment planes`` tracks it (exact boxes). The default world is the
+one of ``tests/runtime/test_runtime_city_nats.py``; a bigger street::
 
     python scripts/city_nats.py --out /tmp/city-nats
     python scripts/city_nats.py --out /tmp/city-nats-big --people 10 --cars 6 --wanderers 1 \
@@ -23,6 +24,7 @@ import sys
 import time
 from pathlib import Path
 
+from cblrs.experiments.planes import PlanesSetup, run_case
 from cblrs.experiments.planes_live import (
     LiveCitySetup,
     live_city_figures,
@@ -77,7 +79,15 @@ def main() -> int:
     finally:
         probe.close(timeout=1)
         cluster.kill()
-    print(json.dumps(live_city_figures(run), indent=2))
+    figures = live_city_figures(run)
+    # The same world through `cblrs experiment planes` (in-process, exact boxes), to compare.
+    offline = run_case(city.scenes, "exact", None, PlanesSetup())
+    figures["offline_experiment"] = {
+        "single_plane_idf1": round(offline["single_plane"]["idf1_pooled"], 2),
+        "linked_idf1": round(offline["linked"]["IDF1"], 2),
+        "ratio": round(offline["ratio"], 4), "od_error": offline["od_error"],
+        "handovers": offline["handovers"]}
+    print(json.dumps(figures, indent=2))
     return 0
 
 

@@ -32,6 +32,7 @@ from waiting import wait_until
 from cblrs.experiments.planes_live import (
     LiveCitySetup,
     live_city_figures,
+    matcher_options,
     prepare_city,
     run_live_city,
 )
@@ -76,11 +77,13 @@ def _try_connect(probe: NatsTransport) -> bool:
 
 
 def undisturbed_tracks(city, plane_id: int, epoch: float):
-    """The plane tracked in-process on the capture times the cameras stamped."""
+    """The plane tracked in-process on the capture times the cameras stamped, with the
+    options of its matcher."""
     scene = city.scenes.planes[plane_id]
     return track_scene(
         replace(scene, timestamps=epoch + scene.timestamps / SETUP.speed),
-        matcher=make_matcher("fusion", scene_planes(scene), scene.camera_names),
+        matcher=make_matcher("fusion", scene_planes(scene), scene.camera_names,
+                             **matcher_options(city, plane_id)),
         references=city.references[plane_id],
     ).tracks
 

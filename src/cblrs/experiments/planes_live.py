@@ -151,14 +151,27 @@ def _service(arguments: list[str]) -> subprocess.Popen:
                             env={**os.environ, "PYTHONUNBUFFERED": "1"})
 
 
+def matcher_options(city: LiveCity, plane_id: int) -> dict[str, Any]:
+    """The fusion tracker's options a plane's ``cblrs matcher --site`` runs with (the
+    cameras' positions from the site file): give them to an in-process run to compare."""
+    from cblrs.site import load_site
+
+    names = city.scenes.planes[plane_id].camera_names
+    positions = load_site(city.site).camera_positions()
+    return {"camera_positions": {name: list(positions[name]) for name in names}}
+
+
 def start_matcher(city: LiveCity, url: str, plane_id: int, database: Path, client_id: str,
                   setup: LiveCitySetup, *extra: str) -> subprocess.Popen:
-    """``cblrs matcher`` for one plane (its cameras in the scene's order, as the in-process
-    tracker has them)."""
+    """``cblrs matcher`` for one plane: the site file (the cameras' positions), the plane's
+    references, its cameras in the scene's order (as the in-process tracker has them: within
+    a time the tracker takes messages in this order). The site's places are counted by the
+    linker, not by the planes."""
     return _service([
-        "matcher", "--references", str(city.folder / f"plane{plane_id}"), "--plane",
-        str(plane_id), "--cameras", ",".join(city.scenes.planes[plane_id].camera_names),
-        "--db", str(database), "--backbone", url, "--client-id", client_id, "--window",
+        "matcher", "--site", str(city.site), "--no-analytics", "--references",
+        str(city.folder / f"plane{plane_id}"), "--plane", str(plane_id), "--cameras",
+        ",".join(city.scenes.planes[plane_id].camera_names), "--db", str(database),
+        "--backbone", url, "--client-id", client_id, "--window",
         str(setup.window_s), "--lease-ttl", str(setup.lease_ttl_s), "--until-cameras-offline",
         "--idle-exit", str(setup.timeout_s), "--json", *extra,
     ])
