@@ -243,6 +243,14 @@ def _consumer_ready(probe: Any, plane_id: int) -> bool:
         return False
 
 
+def _jetstream_ready(probe: Any) -> bool:
+    try:
+        probe.call(probe.jetstream.account_info(), 5)
+        return True
+    except Exception:
+        return False
+
+
 def _ended(process: subprocess.Popen, what: str) -> None:
     if process.poll() is not None:
         raise RuntimeError(f"{what} ended: {process.communicate()[1][-2000:]}")
@@ -274,6 +282,9 @@ def run_live_city(city: LiveCity, url: str, probe: Any, folder: Path,
     probe.subscribe(linker_status_topic("linker"),
                     lambda delivery: statuses.append(decode_status(delivery.payload).state))
     run = LiveCityRun(city, 0.0, databases, folder / "linker.db")
+    # A cluster accepts clients before it has elected its JetStream leader; a matcher that
+    # asks for its lease then is refused ("no response from stream").
+    wait_for(lambda: _jetstream_ready(probe), setup.timeout_s, "JetStream on the cluster")
     linker = start_linker(city, url, run.linker_database, setup)
     matchers = {plane: start_matcher(city, url, plane, databases[plane], f"host-a{plane}",
                                      setup) for plane in planes}
