@@ -68,6 +68,9 @@ def register(subparsers) -> None:
                         help="where the calibration page writes references (default: "
                         "references/ beside the site file)")
     add_mqtt_options(parser)
+    parser.add_argument("--mqtt-version", choices=("auto", "5", "3.1.1"), default="auto",
+                        help="MQTT version: auto (5, or 3.1.1 when the broker refuses 5, as "
+                        "the NATS server's MQTT listener does), 5 or 3.1.1")
     add_output_options(parser)
     parser.set_defaults(broker=None, handler=run)
 
