@@ -63,6 +63,8 @@ def test_topics_map_to_subjects_as_the_mqtt_listener_does(topic, subject):
         ("cblrs.1.CVLab1.status", None, "CBLRS_P1"),
         ("cblrs.3.tracks", None, "CBLRS_P3_TRACKS"),
         ("cblrs.3.events", None, "CBLRS_P3_TRACKS"),
+        ("cblrs.3.alerts", None, "CBLRS_P3_TRACKS"),
+        ("cblrs.north.3.alerts", "north", "CBLRS_north_P3_TRACKS"),
         ("cblrs.3.live", None, None),
         ("cblrs.1.matchers.m1.status", None, None),
         ("cblrs.*.*.detections", None, None),
@@ -110,6 +112,9 @@ def test_unusable_site_ids_are_refused(site):
          "tracks.2.1.5"),
         ("cblrs.2.tracks", b'{"plane":2,"tracks":[]}', None),
         ("cblrs.1.c.status", b'{"camera":"c"}', None),
+        ("cblrs.1.alerts", b'{"plane":1,"episode":"down/c/1","state":"fired","value":1}',
+         "alerts.1.down/c/1.fired"),
+        ("cblrs.1.alerts", b'{"plane":1}', None),
     ],
 )
 def test_message_ids(subject, payload, expected):
