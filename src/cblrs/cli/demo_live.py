@@ -30,8 +30,8 @@ def add_live_options(parser: argparse.ArgumentParser) -> None:
     group.add_argument("--no-live", action="store_true",
                        help="stop after the offline part (the default without a terminal)")
     group.add_argument("--live-seconds", type=float, metavar="SECONDS",
-                       help="run the live site even without a terminal, and stop it after "
-                       "SECONDS (tests, CI, measurements)")
+                       help="run the live site even without a terminal, and stop it SECONDS "
+                       "after it runs (tests, CI, measurements)")
     group.add_argument("--live-backbone", choices=("auto", "mqtt", "nats"), default="auto",
                        help="the live site's broker: Mosquitto when installed, else NATS "
                        "(default auto)")

@@ -58,7 +58,8 @@ def register(subparsers) -> None:
                         help="the user Mosquitto runs as when started as root (default: "
                         "mosquitto)")
     parser.add_argument("--stop-after", type=float, metavar="SECONDS",
-                        help="stop everything (as Ctrl-C does) after SECONDS (demos, tests)")
+                        help="stop everything (as Ctrl-C does) SECONDS after it all runs "
+                        "(demos, tests)")
     parser.add_argument("--status-interval", type=float, default=10.0, metavar="SECONDS",
                         help="show the status table at most this often, when it changes")
     deploy = parser.add_argument_group("deployment (write files and exit)")
@@ -178,10 +179,6 @@ def _run_site(args: argparse.Namespace, plan, mosquitto: str, say, started: floa
     previous = {signum: signal.signal(signum, handle) for signum in (signal.SIGINT,
                                                                       signal.SIGTERM)}
     timer = None
-    if args.stop_after is not None:
-        timer = threading.Timer(args.stop_after, stop.set)
-        timer.daemon = True
-        timer.start()
     try:
         broker = ("NATS server (JetStream) on " + plan.backbone_url if plan.backbone == "nats"
                   else "Mosquitto on " + plan.broker_address)
@@ -194,6 +191,10 @@ def _run_site(args: argparse.Namespace, plan, mosquitto: str, say, started: floa
                   file=sys.stderr if args.json else sys.stdout)
         say("Ctrl-C stops everything" + (", or the end of every source" if args.until_done
                                          else ""))
+        if running and args.stop_after is not None:  # counted from when everything runs
+            timer = threading.Timer(args.stop_after, stop.set)
+            timer.daemon = True
+            timer.start()
         if running:
             runner.watch(stop)
         if stop.is_set():
