@@ -1,6 +1,6 @@
 """``cblrs up`` on the NATS backbone, with real processes: chosen by itself where Mosquitto is
 not installed, secured (no anonymous client), tracks on the live map, SIGTERM stops it all;
-a replay to its end stores every message once."""
+a replay stopped half-way and restarted stores every message once."""
 
 from __future__ import annotations
 
@@ -23,6 +23,7 @@ from cblrs.runtime.nats_server import find_nats_server
 from cblrs.runtime.nats_transport import NatsSettings, NatsTransport
 from cblrs.runtime.store import RuntimeStore
 from cblrs.runtime.transport import TransportError
+from cblrs.up import database_counts
 
 EXPECTED = {(name, sequence) for name in CAMERAS for sequence in range(PER_CAMERA)}
 
@@ -87,19 +88,45 @@ def test_without_mosquitto_it_runs_on_nats_tracks_reach_the_map_and_sigterm_stop
           f"{stopped_in:.1f} s")
 
 
-def test_until_done_on_nats_stores_and_tracks_every_message_once(
+def stored_keys(database) -> list[tuple[str, int]]:
+    with RuntimeStore(database, read_only=True) as store:
+        return sorted((item.message.camera_id, item.message.sequence)
+                      for item in store.messages())
+
+
+def test_on_nats_sigterm_mid_run_and_a_restart_store_every_message_once(
         small_site, tmp_path, require_nats_server):
     out = tmp_path / "state"
-    code, summary, err = run_up(small_site, out, "--backbone", "nats", "--no-dashboard",
-                                "--fast", "--until-done", timeout=240)
+    process = subprocess.Popen(up_command(small_site, out, "--backbone", "nats",
+                                          "--no-dashboard", "--until-done", "--speed", "2"),
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                               env=ENVIRONMENT)
+    try:
+        deadline = time.monotonic() + 120
+        while sum(database_counts(out / "plane1.db")["stored"].values()) < 8:
+            assert process.poll() is None, process.communicate()[1]
+            assert time.monotonic() < deadline, "no message stored within 120 s"
+            time.sleep(0.1)
+        process.send_signal(signal.SIGTERM)
+        stdout, stderr = process.communicate(timeout=90)
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.communicate()
+    assert process.returncode == 0, stderr
+    summary = json.loads(stdout)
+    assert summary["backbone"] == "nats" and summary["stopped_by"] == "signal"
+    assert {info["state"] for info in summary["processes"].values()} == {"stopped"}, summary
+    first = stored_keys(out / "plane1.db")
+    assert 8 <= len(first) < len(EXPECTED)
+    # the restart keeps the folder's backbone (auto) and its stream: nothing is missing, and
+    # nothing is stored twice
+    code, again, err = run_up(small_site, out, "--no-dashboard", "--until-done", timeout=240)
     assert code == 0, err
-    assert summary["stopped_by"] == "done" and summary["failure"] is None, summary
-    plane = summary["planes"]["1"]
-    assert plane["stored"] == {name: PER_CAMERA for name in CAMERAS}
+    assert again["backbone"] == "nats" and again["stopped_by"] == "done", again
+    assert stored_keys(out / "plane1.db") == sorted(EXPECTED)
+    plane = again["planes"]["1"]
     assert plane["pending"] == 0
-    with RuntimeStore(out / "plane1.db", read_only=True) as store:
-        keys = [(item.message.camera_id, item.message.sequence) for item in store.messages()]
-    assert sorted(keys) == sorted(EXPECTED)
     assert len((out / "tracks-plane1.txt").read_text().splitlines()) == plane["track_rows"] > 0
     # the state folder keeps its backbone: another one is one sentence
     code, summary, err = run_up(small_site, out, "--backbone", "mqtt", timeout=60)
