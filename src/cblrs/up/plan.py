@@ -484,7 +484,7 @@ def prepare(plan: SitePlan, *, render: bool = True) -> list[str]:
         UpError: the configuration or a reference cannot be written (one sentence).
     """
     # lazy: the broker's machinery pulls in the MQTT client
-    from cblrs.runtime.broker import BrokerError, write_broker_config
+    from cblrs.runtime.broker.mosquitto_config import BrokerError, write_broker_config
 
     done = []
     plan.out.mkdir(parents=True, exist_ok=True)
@@ -523,8 +523,8 @@ def _write_nats(plan: SitePlan, users: dict[str, Any]) -> str:
     """The NATS node's configuration (users, permissions, JetStream; no TLS: loopback only)
     and every login's password file."""
     # lazy: the NATS machinery is an optional extra
-    from cblrs.runtime.nats_auth import NatsSecurityError
-    from cblrs.runtime.nats_server import write_nats_backbone
+    from cblrs.runtime.broker.nats_auth import NatsSecurityError
+    from cblrs.runtime.broker.nats_server import write_nats_backbone
 
     try:
         write_nats_backbone(plan.broker_dir, users["cameras"], users["matchers"],
