@@ -11,8 +11,10 @@ client needs into a folder of its own (see :mod:`cblrs.runtime.credentials`)::
                           only its confirmations and the matchers' status; a matcher reads
                           the detections of its planes, publishes their tracks, analytics
                           events, live summaries, alerts and confirmations and holds their
-                          lease; a viewer (a dashboard) reads tracks, events, live
-                          summaries, alerts and status, and writes nothing
+                          lease; a viewer (a dashboard) reads every plane's tracks,
+                          events, live summaries, alerts and camera and matcher status,
+                          the linker's (plane 0: global tracks, site counts, its
+                          status), and writes nothing
     <out>/data/           persistence (queued QoS 1 messages survive a broker restart)
     <out>/tls/            the CA certificate, the server's certificate and key (``tls=True``)
     <out>-clients/<user>/ one client's password, and with TLS its certificate, key and the CA
@@ -533,6 +535,7 @@ def _acl(cameras: Sequence[str], planes_of: Mapping[str, Sequence[int]],
             f"topic read {ROOT}/+/alerts",
             f"topic read {ROOT}/+/+/status",
             f"topic read {ROOT}/+/matchers/+/status",
+            f"topic read {ROOT}/0/linkers/+/status",
             f"topic read {ROOT}/+/lease",
             "",
         ]

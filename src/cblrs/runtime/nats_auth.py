@@ -17,7 +17,8 @@ Mosquitto ACL of :mod:`cblrs.runtime.broker`:
                  key only: $KV.cblrs_leases.KEY, $JS.API.DIRECT.GET.KV_cblrs_leases.
                  $KV.cblrs_leases.KEY, $JS.API.STREAM.INFO.KV_cblrs_leases
                  read     its own inbox
-      viewer V   read     R.*.tracks|events|live|alerts, R.*.*.status, R.*.matchers.*.status
+      viewer V   read     R.*.tracks|events|live|alerts, R.*.*.status, R.*.matchers.*.status,
+                 R.0.linkers.*.status (every plane's, and the linker's: plane 0)
                  publish  nothing
       admin      everything (streams, consumers, buckets: ``cblrs matcher --prepare``)
 
@@ -137,7 +138,8 @@ def role_permissions(
             "publish": {"deny": [">"]},
             "subscribe": {"allow": [f"{root}.*.tracks", f"{root}.*.events", f"{root}.*.live",
                                     f"{root}.*.alerts", f"{root}.*.*.status",
-                                    f"{root}.*.matchers.*.status", inbox]},
+                                    f"{root}.*.matchers.*.status",
+                                    f"{root}.0.linkers.*.status", inbox]},
         }
     raise ValueError(f"unknown role {role!r}")
 
