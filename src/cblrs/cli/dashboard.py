@@ -39,7 +39,7 @@ def register(subparsers) -> None:
             "overview (without --plane, or --plane all): every plane's map and live tracks "
             "with the linker's global ids, site-wide counts, each plane's matcher health, and "
             "each plane's own page. Reads MQTT (--broker) or NATS (--backbone nats://..., or "
-            "--broker nats://...). See docs/dashboard.md."
+            "--broker nats://...). See docs/live.md."
         ),
     )
     parser.add_argument("--site", type=Path, required=True, help="the site file")
