@@ -111,8 +111,12 @@ class DashboardConfig:
         Raises:
             ValueError: not a plane this dashboard shows.
         """
+        if self.overview:
+            first = None
+        else:  # one plane: the configured one, else the site's first
+            first = self.plane_id if self.plane_id is not None else self.planes[0]
         if text is None or text == "":
-            return None if self.overview else self.plane_id
+            return first
         if text == "all":
             if not self.overview:
                 raise ValueError("this dashboard shows one plane (cblrs dashboard --plane).")
@@ -121,8 +125,8 @@ class DashboardConfig:
             raise ValueError(f"plane {text[:20]!r} is not a plane of this site "
                              f"(planes {self.planes}).")
         plane = int(text)
-        if not self.overview and plane != self.plane_id:
-            raise ValueError(f"this dashboard shows plane {self.plane_id} only.")
+        if not self.overview and plane != first:
+            raise ValueError(f"this dashboard shows plane {first} only.")
         return plane
 
 
@@ -244,7 +248,7 @@ def create_app(config: DashboardConfig, auth: Any) -> Any:
         return JSONResponse({
             **data, "live": config.feed is not None, "overview": config.overview,
             "site_planes": config.planes,
-            "replay": config.database is not None and plane == config.plane_id,
+            "replay": config.database is not None and not config.overview,
             "broker": config.broker})
 
     @requires(viewer)
