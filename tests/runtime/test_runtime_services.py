@@ -28,12 +28,8 @@ from cblrs.matching import make_matcher
 from cblrs.pipeline import scene_planes
 from cblrs.plane import PlaneSet, PlaneSpec
 from cblrs.reference import render_reference
-from cblrs.runtime.camera_node import CameraNode, camera_last_will
-from cblrs.runtime.inprocess import InProcessBroker, InProcessTransport
-from cblrs.runtime.matcher_service import MatcherService, ServiceClock
-from cblrs.runtime.mqtt_transport import MqttTransport
-from cblrs.runtime.retrack import RetrackPolicy
-from cblrs.runtime.sources import (
+from cblrs.runtime.camera.camera_node import CameraNode, camera_last_will
+from cblrs.runtime.camera.sources import (
     ColourBlobDetector,
     Detector,
     SourceFrame,
@@ -45,10 +41,14 @@ from cblrs.runtime.sources import (
     scene_source,
     video_source,
 )
-from cblrs.runtime.store import LATE, PENDING, PROCESSED, RuntimeStore
-from cblrs.runtime.topics import detections_topic, matcher_status_topic, status_topic
-from cblrs.runtime.tracker_process import TrackerProcessError
-from cblrs.runtime.transport import Will
+from cblrs.runtime.matcher.matcher_service import MatcherService, ServiceClock
+from cblrs.runtime.matcher.retrack import RetrackPolicy
+from cblrs.runtime.matcher.store import LATE, PENDING, PROCESSED, RuntimeStore
+from cblrs.runtime.matcher.tracker_process import TrackerProcessError
+from cblrs.runtime.transport.inprocess import InProcessBroker, InProcessTransport
+from cblrs.runtime.transport.mqtt_transport import MqttTransport
+from cblrs.runtime.transport.protocol import Will
+from cblrs.runtime.transport.topics import detections_topic, matcher_status_topic, status_topic
 from cblrs.runtime.wire import decode_message, decode_status, encode_message, encode_status
 
 PLANE = 1
@@ -965,7 +965,7 @@ def test_a_camera_without_any_matcher_keeps_everything(small_world, caplog):
     broker = InProcessBroker()
     node = CameraNode(InProcessTransport(broker, "cam1", persistent=False), PLANE, "cam1",
                       reference, epoch=1000.0, confirm_timeout_s=0.2)
-    with caplog.at_level("WARNING", logger="cblrs.runtime.camera_node"):
+    with caplog.at_level("WARNING", logger="cblrs.runtime.camera.camera_node"):
         report = node.run(_frames(5))
     assert report.flushed and not report.confirmed_all
     assert (report.unconfirmed, report.extra["unrouted"], report.confirmed) == (5, 5, 0)

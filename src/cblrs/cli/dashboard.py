@@ -95,7 +95,7 @@ def run(args: argparse.Namespace) -> int:
     # lazy: a subcommand imports the library when it runs, so its --help starts fast
     from cblrs.dashboard.feed import LiveFeed
     from cblrs.dashboard.replay import StoreReplay
-    from cblrs.runtime.transport import TransportError
+    from cblrs.runtime.transport.protocol import TransportError
 
     auth = _authenticator(args)
     if not args.site.is_file():
@@ -129,7 +129,8 @@ def run(args: argparse.Namespace) -> int:
         client_id = args.client_id or f"cblrs-dashboard-{socket.gethostname()}-{shown}"
         if not logging.getLogger().isEnabledFor(logging.DEBUG):
             # A refusal is said once, below, as one sentence; not also as a log line.
-            for name in ("cblrs.runtime.mqtt_transport", "cblrs.runtime.nats_transport"):
+            for name in ("cblrs.runtime.transport.mqtt_transport",
+                         "cblrs.runtime.transport.nats_transport"):
                 logging.getLogger(name).setLevel(logging.ERROR)
         feed = LiveFeed(settings, config.planes if plane is None else plane, client_id[:64],
                         to_site=config.to_site)
@@ -235,7 +236,7 @@ def _authenticator(args: argparse.Namespace) -> Any:
     # lazy: a subcommand imports the library when it runs, so its --help starts fast
     from cblrs.dashboard.auth import Authenticator
     from cblrs.dashboard.users import UsersError
-    from cblrs.runtime.metrics import is_loopback_host
+    from cblrs.runtime.matcher.metrics import is_loopback_host
 
     loopback = is_loopback_host(args.host)
     if not loopback and args.users is None:

@@ -1,7 +1,7 @@
 """The dashboard's live feed: a read-only client of the backbone, relayed to browsers.
 
 :class:`LiveFeed` subscribes (as the backbone's read-only ``viewer``, on MQTT or NATS: any
-:class:`~cblrs.runtime.transport.Transport`) to the track updates, analytics events, live
+:class:`~cblrs.runtime.transport.protocol.Transport`) to the track updates, analytics events, live
 summaries, alerts and camera and matcher status of one plane or of every plane of a site
 (and then also to the linker's global tracks and site summary, plane 0), validates each
 message with its schema, turns it into the compact JSON the page draws and hands it to every
@@ -46,9 +46,9 @@ import msgspec
 import numpy as np
 
 from cblrs.detections import CLASS_NAMES
-from cblrs.runtime.events import decode_alert, decode_event, decode_live
-from cblrs.runtime.mqtt_transport import MqttTransport
-from cblrs.runtime.topics import (
+from cblrs.runtime.outputs.events import decode_alert, decode_event, decode_live
+from cblrs.runtime.transport.mqtt_transport import MqttTransport
+from cblrs.runtime.transport.topics import (
     SITE_PLANE,
     TopicError,
     alerts_topic,
@@ -141,10 +141,11 @@ def sse(item: dict[str, Any]) -> bytes:
 
 
 def viewer_transport(settings: Any, client_id: str) -> Any:
-    """The viewer's transport: NATS for :class:`~cblrs.runtime.nats_transport.NatsSettings`,
-    else MQTT (a clean session: nothing queues while away)."""
+    """The viewer's transport: NATS for
+    :class:`~cblrs.runtime.transport.nats_transport.NatsSettings`, else MQTT (a clean session:
+    nothing queues while away)."""
     # lazy: the NATS transport's module is only needed for a NATS backbone
-    from cblrs.runtime.nats_transport import NatsSettings, NatsTransport
+    from cblrs.runtime.transport.nats_transport import NatsSettings, NatsTransport
 
     if isinstance(settings, NatsSettings):
         return NatsTransport(client_id, settings)
@@ -186,8 +187,8 @@ class LiveFeed:
 
     Args:
         settings: the backbone's address and the viewer's login:
-            :class:`~cblrs.runtime.mqtt_transport.MqttSettings` or
-            :class:`~cblrs.runtime.nats_transport.NatsSettings`.
+            :class:`~cblrs.runtime.transport.mqtt_transport.MqttSettings` or
+            :class:`~cblrs.runtime.transport.nats_transport.NatsSettings`.
         planes: the plane shown, or the planes of the site (every one is followed).
         client_id: the client id (MQTT: a clean session; nothing queues while away).
         to_site: maps pseudo positions to the site (a matcher on a pseudo site), or None.
@@ -223,8 +224,8 @@ class LiveFeed:
         """Connect and subscribe.
 
         Raises:
-            cblrs.runtime.transport.TransportError: the backbone is unreachable, refuses the
-                login, or refuses a subscription (the ACL, the NATS permissions).
+            cblrs.runtime.transport.protocol.TransportError: the backbone is unreachable,
+                refuses the login, or refuses a subscription (the ACL, the NATS permissions).
         """
         self.transport.connect()
         for plane in self.planes:
