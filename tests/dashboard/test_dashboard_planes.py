@@ -216,5 +216,6 @@ def test_the_overview_shows_every_plane_with_global_ids(run, tmp_path):
                                   *backbone.options("viewer", site_id="north"))
         _, error = refused.communicate(timeout=WAIT)
         assert refused.returncode != 0
-        assert "did not accept the dashboard as user 'viewer'" in error, error
+        assert ("did not accept the dashboard as user 'viewer' (the login viewer may not read "
+                "it); check --backbone") in error, error
         assert "Traceback" not in error
