@@ -87,6 +87,11 @@ class ReferenceImage:
         """Fraction of pixels that see a plane."""
         return float(np.mean(self.pixels[..., 2] != 0))
 
+    def sampled_colours(self, step: int) -> NDArray[np.unsignedinteger]:
+        """The colours of every ``step``-th pixel each way, ``pixels[::step, ::step]``, as
+        (M, 3) rows (row-major)."""
+        return self.pixels[::step, ::step].reshape(-1, 3)
+
     def pixel_indices(self, pixels: NDArray) -> tuple[NDArray[np.int64], BoolArray]:
         """Flat indices of the nearest pixel centres and an inside-the-image mask."""
         return nearest_pixel_indices(pixels, self.image_size)
@@ -290,6 +295,24 @@ class OnDemandReference:
     def coverage(self) -> float:
         """Fraction of pixels that see a plane (renders the whole image)."""
         return self.image.coverage()
+
+    def sampled_colours(self, step: int) -> NDArray[np.unsignedinteger]:
+        """The colours of every ``step``-th pixel each way, (M, 3) rows (row-major): what
+        ``pixels[::step, ::step]`` holds, rendered for those pixels only (a 16th of the
+        image for ``step`` 4) unless the whole image already is."""
+        if "image" in self.__dict__:
+            return self.image.sampled_colours(step)
+        width, height = self.image_size
+        if self.camera.has_distortion:
+            grid_x, grid_y = self.camera.undistorted_grid()
+            map_x = grid_x[::step, ::step].astype(np.float64)
+            map_y = grid_y[::step, ::step].astype(np.float64)
+        else:
+            map_x = np.arange(0, width, step, dtype=np.float64)[None, :]
+            map_y = np.arange(0, height, step, dtype=np.float64)[:, None]
+        shape = (len(range(0, height, step)), len(range(0, width, step)))
+        channels = _plane_codes(self._rendered_planes, self._matrices, map_x, map_y, shape)
+        return np.stack(channels, axis=-1).reshape(-1, 3)
 
     def pixel_indices(self, pixels: NDArray) -> tuple[NDArray[np.int64], BoolArray]:
         """Flat indices of the nearest pixel centres and an inside-the-image mask."""
