@@ -1,10 +1,10 @@
-"""Pairs of points within a Chebyshev radius: a dense comparison for few, a k-d tree for many.
+"""Pairs of points within a Chebyshev radius: a sorted sweep for few, a k-d tree for many.
 
 The clock model looks, for each of a camera's recent detections, for the other cameras'
 track positions near it in space and time. With a few dozen people there are a few
-thousand pairs to compare, which numpy does at once; only beyond that is a k-d tree
-worth building, and only then is ``scipy.spatial`` (a quarter of a second to import)
-loaded. Both find the same pairs: the distance is the largest absolute coordinate
+thousand pairs to compare, which a sort along one axis narrows to a few candidates; only
+beyond that is the k-d tree used, and only then is ``scipy.spatial`` (a quarter of a second
+to import) loaded. Both find the same pairs: the distance is the largest absolute coordinate
 difference, the same floating-point operations either way.
 """
 
@@ -14,7 +14,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 DENSE_PAIRS = 1 << 18
-"""Up to this many query x point pairs are compared densely (a few MB at a time)."""
+"""Up to this many query x point pairs are swept without the tree."""
 
 
 def chebyshev_pairs(
@@ -47,12 +47,19 @@ def chebyshev_pairs(
             return empty, empty
         near = np.concatenate([near for near in neighbours if near]).astype(np.int64)
         return np.repeat(np.arange(len(query), dtype=np.int64), lengths), near
-    rows_per_chunk = max(1, DENSE_PAIRS // len(points))
-    found_query, found_point = [], []
-    for start in range(0, len(query), rows_per_chunk):
-        chunk = query[start:start + rows_per_chunk]
-        distance = np.abs(chunk[:, None, :] - points[None, :, :]).max(axis=2)
-        rows, columns = np.nonzero(distance <= radius)
-        found_query.append(rows.astype(np.int64) + start)
-        found_point.append(columns.astype(np.int64))
-    return np.concatenate(found_query), np.concatenate(found_point)
+    # Candidates: the points whose first coordinate is within the radius, found in the
+    # points sorted by it (the window widened by far more than a rounding error, so it
+    # misses none); then the exact test, axis by axis, on those.
+    order = np.argsort(points[:, 0], kind="stable")
+    first = points[order, 0]
+    slack = 1e-9 * (np.abs(query[:, 0]) + radius + 1.0)
+    low = np.searchsorted(first, query[:, 0] - radius - slack, side="left")
+    high = np.searchsorted(first, query[:, 0] + radius + slack, side="right")
+    counts = np.maximum(high - low, 0)
+    rows = np.repeat(np.arange(len(query)), counts)
+    offset = np.arange(len(rows)) - np.repeat(np.cumsum(counts) - counts, counts)
+    columns = order[np.repeat(low, counts) + offset]
+    for axis in range(query.shape[1]):
+        keep = np.abs(query[rows, axis] - points[columns, axis]) <= radius
+        rows, columns = rows[keep], columns[keep]
+    return rows.astype(np.int64), columns.astype(np.int64)
