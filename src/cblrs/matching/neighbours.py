@@ -47,19 +47,30 @@ def chebyshev_pairs(
             return empty, empty
         near = np.concatenate([near for near in neighbours if near]).astype(np.int64)
         return np.repeat(np.arange(len(query), dtype=np.int64), lengths), near
-    # Candidates: the points whose first coordinate is within the radius, found in the
-    # points sorted by it (the window widened by far more than a rounding error, so it
-    # misses none); then the exact test, axis by axis, on those.
+    rows, columns = sweep_candidates(query, points, radius)
+    for axis in range(query.shape[1]):
+        keep = np.abs(query[rows, axis] - points[columns, axis]) <= radius
+        rows, columns = rows[keep], columns[keep]
+    return rows.astype(np.int64), columns.astype(np.int64)
+
+
+def sweep_candidates(
+    query: NDArray[np.float64], points: NDArray[np.float64], radius: float
+) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """Every (query, point) pair whose first coordinates differ by at most ``radius``, and
+    a few more: the points sorted by that coordinate, a window around each query, widened
+    by far more than a rounding error so that it misses none. Exact tests on the pairs
+    follow (any pair within ``radius`` in the Chebyshev or Euclidean metric is among them).
+
+    Returns:
+        ``(query_index, point_index)``: two (K,) int64 arrays.
+    """
     order = np.argsort(points[:, 0], kind="stable")
     first = points[order, 0]
     slack = 1e-9 * (np.abs(query[:, 0]) + radius + 1.0)
     low = np.searchsorted(first, query[:, 0] - radius - slack, side="left")
     high = np.searchsorted(first, query[:, 0] + radius + slack, side="right")
     counts = np.maximum(high - low, 0)
-    rows = np.repeat(np.arange(len(query)), counts)
+    rows = np.repeat(np.arange(len(query), dtype=np.int64), counts)
     offset = np.arange(len(rows)) - np.repeat(np.cumsum(counts) - counts, counts)
-    columns = order[np.repeat(low, counts) + offset]
-    for axis in range(query.shape[1]):
-        keep = np.abs(query[rows, axis] - points[columns, axis]) <= radius
-        rows, columns = rows[keep], columns[keep]
-    return rows.astype(np.int64), columns.astype(np.int64)
+    return rows, order[np.repeat(low, counts) + offset].astype(np.int64)

@@ -10,6 +10,7 @@ from __future__ import annotations
 import numpy as np
 
 from cblrs.matching import kalman
+from cblrs.matching.neighbours import sweep_candidates
 
 _DENSE_PAIRS = 20_000  # below this many N x T pairs a dense distance matrix is faster
 # Up to this many finite pairs the k-d tree's answer is computed without the tree (and
@@ -144,16 +145,17 @@ def close_pairs(
 
 def _tree_pairs(points_xy: np.ndarray, targets_xy: np.ndarray, radius_m: float) -> dict:
     """What ``cKDTree(points).sparse_distance_matrix(cKDTree(targets), radius,
-    output_type="ndarray")`` returns, up to the order of the pairs, by comparing all of them:
-    the squared distance summed axis by axis, kept when ``<= radius**2``, then its square
-    root (the tree's own arithmetic, so the same pairs and the same distances).
+    output_type="ndarray")`` returns, up to the order of the pairs, without the tree: the
+    candidates of a sweep along x (:func:`cblrs.matching.neighbours.sweep_candidates`), the
+    squared distance summed axis by axis, kept when ``<= radius**2``, then its square root
+    (the tree's own arithmetic, so the same pairs and the same distances).
 
     Returns:
         ``{"i": (K,) int64, "j": (K,) int64, "v": (K,) float64}``.
     """
-    dx = points_xy[:, 0, None] - targets_xy[None, :, 0]
-    dy = points_xy[:, 1, None] - targets_xy[None, :, 1]
+    rows, columns = sweep_candidates(points_xy, targets_xy, radius_m)
+    dx = points_xy[rows, 0] - targets_xy[columns, 0]
+    dy = points_xy[rows, 1] - targets_xy[columns, 1]
     squared = dx * dx + dy * dy
-    rows, columns = np.nonzero(squared <= radius_m * radius_m)
-    return {"i": rows.astype(np.int64), "j": columns.astype(np.int64),
-            "v": np.sqrt(squared[rows, columns])}
+    keep = squared <= radius_m * radius_m
+    return {"i": rows[keep], "j": columns[keep], "v": np.sqrt(squared[keep])}
