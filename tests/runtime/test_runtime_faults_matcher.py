@@ -36,7 +36,7 @@ def test_item5_a_database_deleted_under_the_matcher_stops_it(plant, tmp_path):
     folder.mkdir()
     database = folder / "plane1.db"
     matcher = plant.start(plant.matcher(database))
-    wait_until(lambda: database.exists(), 30, "the database")
+    wait_until(lambda: database.exists(), 120, "the database")  # a loaded machine starts slowly
     cameras = [plant.start(plant.camera(name, "--realtime", "--speed", "8",
                                         "--confirm-timeout", "90", "--resend-after", "1"))
                for name in CAMERAS]

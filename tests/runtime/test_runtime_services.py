@@ -246,21 +246,28 @@ def _frames(count: int, detections: Detections | None = None) -> list[SourceFram
     return [SourceFrame(10 + index, 1.0 + 0.5 * index, detections) for index in range(count)]
 
 
-def test_a_camera_stopped_before_its_source_ended_does_not_end_its_stream(small_world):
-    """A signal stops the node mid-replay: everything sent is acknowledged, yet the stream
-    goes on after a restart, so its "offline" carries no timestamp (a matcher run
-    --until-cameras-offline must keep waiting; cblrs up's restart once ended early so)."""
+@pytest.mark.parametrize("realtime", [False, True], ids=["fast", "paced"])
+def test_a_camera_stopped_before_its_source_ended_does_not_end_its_stream(small_world,
+                                                                        realtime):
+    """A signal stops the node mid-replay (fast, or in a paced wait for the next frame's
+    time): everything sent is acknowledged, yet the stream goes on after a restart, so its
+    "offline" carries no timestamp (a matcher run --until-cameras-offline must keep waiting;
+    cblrs up's restart once ended early so)."""
     _, reference = small_world
     broker = InProcessBroker()
     received = _collector(broker)
     transport = InProcessTransport(broker, "cam1", persistent=False,
                                    will=Will(*camera_last_will(PLANE, "cam1")))
-    node = CameraNode(transport, PLANE, "cam1", reference, epoch=1000.0, confirm_timeout_s=0)
+    node = CameraNode(transport, PLANE, "cam1", reference, confirm_timeout_s=0,
+                      epoch=time.time() - 1.5 if realtime else 1000.0, realtime=realtime)
 
     def frames():
-        for index, frame in enumerate(_frames(10)):
+        for index, frame in enumerate(_frames(10)):  # frames 0.5 s apart from 1.0 s
             if index == 3:
-                node.stop()
+                if realtime:  # the next frame is due in about 1 s: stop in that wait
+                    threading.Timer(0.3, node.stop).start()
+                else:
+                    node.stop()
             yield frame
 
     report = node.run(frames())

@@ -333,6 +333,8 @@ class CameraNode:
                 if started is None:
                     started = time.perf_counter()
                 report.elapsed_s = time.perf_counter() - started
+            # A stop during a paced wait ends the frames early too (_timed returns).
+            stopped = stopped or self._stop.is_set()
             failing = False
         finally:
             report.next_sequence = sequence
