@@ -122,7 +122,7 @@ def test_the_backbone_is_mosquitto_when_installed_else_nats(monkeypatch, request
             choose_backbone(requested, saved)
 
 
-def test_a_nats_plan_logs_in_on_nats_and_the_dashboard_on_its_mqtt_listener(tmp_path):
+def test_a_nats_plan_logs_every_process_in_on_nats(tmp_path):
     site = write_site(tmp_path, [("gate", ", plane: 1" + SOURCE)])
     plan = make_plan(site, tmp_path / "state", broker_port=18850, dashboard_port=0,
                      backbone="nats")
@@ -131,12 +131,11 @@ def test_a_nats_plan_logs_in_on_nats_and_the_dashboard_on_its_mqtt_listener(tmp_
     specs = {spec.name: spec for spec in plan.processes(mosquitto="/venv/bin/nats-server")}
     assert specs["broker"].argv == ["/venv/bin/nats-server", "-c",
                                     str(plan.out / "broker" / "n1" / "n1.conf")]
-    for name in ("matcher-1", "matcher-2", "camera-gate"):
+    for name in ("matcher-1", "matcher-2", "camera-gate", "dashboard"):
         argv = specs[name].argv
         assert argv[argv.index("--backbone") + 1] == "nats://127.0.0.1:18850"
         assert "--broker" not in argv
     dashboard = specs["dashboard"].argv
-    assert dashboard[dashboard.index("--broker") + 1] == f"127.0.0.1:{plan.mqtt_port}"
     assert dashboard[dashboard.index("--username") + 1] == "viewer"
     prepares = plan.prepare_specs()
     assert [spec.name for spec in prepares] == ["prepare-1", "prepare-2"]

@@ -10,8 +10,9 @@ role, no anonymous access (:func:`cblrs.runtime.broker.mosquitto_config.write_br
 
 On NATS, the cameras and matchers speak NATS JetStream (``--backbone nats://...``), the plane's
 streams, consumer and lease bucket are created once by the backbone's admin (``cblrs matcher
---prepare``; runtime logins may not), and the dashboard, which reads MQTT, reads the server's
-MQTT listener (MQTT 3.1.1) with the viewer's login: the same users on both listeners.
+--prepare``; runtime logins may not), and the dashboard reads NATS with the viewer's login.
+The server also has an MQTT listener on loopback, with the same users, for clients that speak
+MQTT only (MQTT 3.1.1).
 """
 
 from __future__ import annotations

@@ -117,7 +117,8 @@ class SitePlan:
         dashboard: run the dashboard.
         backbone: ``mqtt`` (Mosquitto) or ``nats`` (a NATS server with JetStream; see
             :mod:`cblrs.up.backbone`).
-        mqtt_port: NATS only: the server's MQTT listener, which the dashboard reads.
+        mqtt_port: NATS only: the server's MQTT listener (the same logins; for MQTT
+            clients such as cameras that speak MQTT only).
         monitor_port: NATS only: the server's monitoring port (loopback).
         fresh_epoch: the epoch is not a saved run's: the runner sets it when it starts the
             cameras (a paced replay then begins as they start).
@@ -208,11 +209,8 @@ class SitePlan:
         return [*where, "--username", user, "--password-file", str(self.password_file(user))]
 
     def dashboard_login(self) -> list[str]:
-        """The dashboard's: it reads MQTT (on NATS, the server's MQTT listener, 3.1.1)."""
-        if self.backbone != NATS:
-            return self.login("viewer")
-        return ["--broker", f"127.0.0.1:{self.mqtt_port}", "--mqtt-version", "3.1.1",
-                "--username", "viewer", "--password-file", str(self.password_file("viewer"))]
+        """The dashboard's: the viewer's login on the site's backbone (MQTT or NATS)."""
+        return self.login("viewer")
 
     def broker_spec(self, binary: str = "mosquitto") -> ProcessSpec:
         return ProcessSpec("broker", "broker", [binary, "-c", str(self.broker_config)])
@@ -535,7 +533,7 @@ def _write_nats(plan: SitePlan, users: dict[str, Any]) -> str:
     except NatsSecurityError as error:
         raise UpError(str(error).rstrip(".") + ".") from None
     return (f"NATS configuration written to {plan.broker_config} (port {plan.broker_port}, "
-            f"MQTT listener {plan.mqtt_port} for the dashboard; logins in {plan.clients_dir})")
+            f"MQTT listener {plan.mqtt_port}; logins in {plan.clients_dir})")
 
 
 def find_broker(path: str | None = None) -> str | None:
