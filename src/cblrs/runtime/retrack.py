@@ -59,6 +59,7 @@ from cblrs.runtime.store import (
     RuntimeStore,
     add_counter_values,
     check_tracker,
+    set_matcher_state,
     set_meta_value,
     track_rows,
 )
@@ -268,7 +269,7 @@ def retrack(store: RuntimeStore, matcher: Any, camera_ids: Sequence[str],
                 upcoming = next(pending, None)
         cursor.executemany("UPDATE inbox SET status = ? WHERE rowid = ?",
                            [(PROCESSED, rowid) for rowid in trackable])
-        set_meta_value(cursor, "matcher_state", state_after)
+        set_matcher_state(cursor, state_after)
         _commit_seen(cursor, store, None, newest_seen, counters)
 
     store.write(commit)
