@@ -21,6 +21,7 @@ from cblrs.detections import CameraMessage
 from cblrs.matching import make_matcher
 from cblrs.plane import PlaneSet, PlaneSpec
 from cblrs.runtime.mqtt_transport import MqttSettings, MqttTransport
+from cblrs.runtime.ordering import Orderer
 from cblrs.runtime.store import InboxEntry, RuntimeStore
 from cblrs.runtime.topics import detections_topic
 from cblrs.runtime.wire import ValidationPolicy, encode_message
@@ -281,3 +282,27 @@ def measure_stages(cameras: int, people: int, matcher_name: str, frames: int = 9
         "commit_ms_per_group": 1e3 * commit,
         "database_bytes_per_message": stored_bytes,
     }
+
+
+def tracker_alone(cameras: int, people: int, matcher_name: str, frames: int,
+                  clocks: CameraClocks | None = None) -> float:
+    """The tracker's own rate on the benchmark's messages, messages/s (wall clock): the
+    same frames, decoded into inbox entries, ordered into windows as the service orders
+    them, then timed through what the tracker process does with each window (build the
+    messages from the entries, ``matcher.update``), in this process, with no broker, store
+    or pipe. The service's tracked messages/s over this is the share of the tracker's own
+    rate it keeps (issue 20 item 7).
+    """
+    names = camera_names(cameras)
+    policy = ValidationPolicy(known_cameras=frozenset(names), max_future_s=3600.0)
+    epoch = time.time() - frames / 30.0
+    orderer = Orderer(names)
+    for group in _frames(names, frames, 30.0, epoch, people, clocks):
+        for payload in group:
+            orderer.add(InboxEntry.from_wire(policy.decode_wire(payload, now=epoch)), 0.0)
+    windows = orderer.release(0.0, force=True)
+    matcher = make_matcher(matcher_name, PlaneSet([PLANE]), names)
+    started = time.perf_counter()
+    for timestamp, entries in windows:
+        matcher.update(timestamp, [entry.message() for entry in entries])
+    return cameras * frames / max(time.perf_counter() - started, 1e-9)
