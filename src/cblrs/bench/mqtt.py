@@ -45,7 +45,8 @@ acknowledgement) then wait for the previous one's TCP acknowledgement.
 
 Matcher rows at ``max`` also time the tracker alone on the same messages (ordered as the
 service orders them, messages built from inbox entries, ``matcher.update``; no broker, store
-or pipe) and print the service's tracked rate as a share of it.
+or pipe), in messages per second of CPU (what it does with a core of its own), and print
+the service's tracked rate as a share of it.
 
 Printed figures are medians over ``--repeats`` runs, with the machine (CPU, cores, load
 average at start and end). Not a test: nothing is asserted.
@@ -451,7 +452,8 @@ def markdown_table(info: dict, rows: list[dict], args: argparse.Namespace) -> st
         f"{info['load_start'][0]:.2f} at start, {info['load_end'][0]:.2f} at end (a shared "
         f"machine); medians of {args.repeats} runs.",
         "",
-        "| cameras | receiver | rate | received msg/s | tracked msg/s (% of the tracker alone) "
+        "| cameras | receiver | rate | received msg/s | tracked msg/s (% of the tracker alone, "
+        "msg per CPU s) "
         "| receipt p50 / p99 ms | track output p50 / p99 ms "
         "| **tracks at a subscriber** p50 / p99 ms | lost |",
         "|---:|---|---|---:|---:|---:|---:|---:|---:|",
@@ -566,7 +568,8 @@ def run_mqtt_benchmark(args: Any) -> int:
                           f"{row['tracker_cpu_us_per_message']:.0f} us", flush=True)
                 if "tracker_alone_per_s" in row:
                     print(f"{'':20s} the tracker alone on these messages: "
-                          f"{row['tracker_alone_per_s']:.0f} msg/s; the service tracked "
+                          f"{row['tracker_alone_per_s']:.0f} msg per CPU second; the service "
+                          "tracked "
                           f"{100 * row['tracked_per_s'] / row['tracker_alone_per_s']:.0f} % "
                           "of it", flush=True)
                 if "last_member_p50_ms" in row:
