@@ -9,7 +9,7 @@ import pytest
 
 from cblrs.bench.mqtt_load import CameraClocks
 from cblrs.cli.main import main
-from cblrs.runtime.broker import find_mosquitto
+from cblrs.runtime.broker.mosquitto_config import find_mosquitto
 
 
 @pytest.fixture(autouse=True)

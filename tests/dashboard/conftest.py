@@ -24,7 +24,7 @@ import yaml
 
 from cblrs.cli.main import main
 from cblrs.dashboard.browser import browser_problem, chromium_page
-from cblrs.runtime.broker import (
+from cblrs.runtime.broker.mosquitto_config import (
     BrokerFiles,
     MosquittoProcess,
     find_mosquitto,

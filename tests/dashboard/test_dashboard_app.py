@@ -17,8 +17,8 @@ from cblrs.dashboard.feed import Subscriber, tracks_frame
 from cblrs.dashboard.replay import ReplayError, StoreReplay
 from cblrs.dashboard.scene import clip_to_box, site_scene
 from cblrs.datasets import load_scene
-from cblrs.runtime.online_analytics import OnlineAnalytics
-from cblrs.runtime.store import RuntimeStore
+from cblrs.runtime.matcher.store import RuntimeStore
+from cblrs.runtime.outputs.online_analytics import OnlineAnalytics
 from cblrs.runtime.wire import decode_tracks, encode_tracks
 from cblrs.site import load_site
 from conftest import cblrs_command
@@ -87,7 +87,7 @@ def test_the_live_feed_draws_no_corrections_of_the_past():
 
     from cblrs.dashboard.feed import LiveFeed
     from cblrs.detections import Tracks
-    from cblrs.runtime.mqtt_transport import MqttSettings
+    from cblrs.runtime.transport.mqtt_transport import MqttSettings
 
     feed = LiveFeed(MqttSettings("127.0.0.1", 1), 1, "viewer-test")  # never connected
     now = Tracks([7], [20.0], [3], [[1.0, 2.0]])
@@ -210,7 +210,7 @@ def test_dashboard_refused_by_the_broker_says_so(wildtrack_site, start_broker, t
 
 
 def test_dashboard_bad_arguments_say_so(wildtrack_site, tmp_path):
-    from cblrs.runtime.broker import free_port
+    from cblrs.runtime.broker.mosquitto_config import free_port
 
     cases = [
         (["--site", str(tmp_path / "missing.yaml")], "does not exist"),

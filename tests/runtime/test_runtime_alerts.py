@@ -32,9 +32,9 @@ from waiting import wait_until
 
 from cblrs.cli.main import main
 from cblrs.detections import CameraMessage
-from cblrs.runtime.events import decode_alert
-from cblrs.runtime.mqtt_transport import MqttTransport
-from cblrs.runtime.topics import alerts_topic, detections_topic
+from cblrs.runtime.outputs.events import decode_alert
+from cblrs.runtime.transport.mqtt_transport import MqttTransport
+from cblrs.runtime.transport.topics import alerts_topic, detections_topic
 from cblrs.runtime.wire import encode_message
 
 pytestmark = [pytest.mark.mqtt]

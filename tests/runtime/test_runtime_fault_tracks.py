@@ -40,13 +40,13 @@ from cblrs.matching import make_matcher
 from cblrs.pipeline import camera_messages, render_scene_references, scene_planes, track_scene
 from cblrs.plane import PlaneSet, PlaneSpec
 from cblrs.reference import ReferenceImage
-from cblrs.runtime.inprocess import InProcessBroker, InProcessTransport
-from cblrs.runtime.matcher_service import MatcherService
-from cblrs.runtime.nats_server import NatsCluster, find_nats_server
-from cblrs.runtime.nats_transport import NatsSettings, NatsTransport, detections_stream
-from cblrs.runtime.retrack import RetrackPolicy
-from cblrs.runtime.store import PENDING, PROCESSED, RuntimeStore
-from cblrs.runtime.topics import detections_topic, tracks_topic
+from cblrs.runtime.broker.nats_server import NatsCluster, find_nats_server
+from cblrs.runtime.matcher.matcher_service import MatcherService
+from cblrs.runtime.matcher.retrack import RetrackPolicy
+from cblrs.runtime.matcher.store import PENDING, PROCESSED, RuntimeStore
+from cblrs.runtime.transport.inprocess import InProcessBroker, InProcessTransport
+from cblrs.runtime.transport.nats_transport import NatsSettings, NatsTransport, detections_stream
+from cblrs.runtime.transport.topics import detections_topic, tracks_topic
 from cblrs.runtime.wire import TracksUpdate, decode_tracks, encode_message
 
 CAMERAS = ("CVLab1", "CVLab2")

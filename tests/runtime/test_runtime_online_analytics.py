@@ -40,14 +40,14 @@ from cblrs.datasets import load_scene
 from cblrs.datasets.aicity import write_tracks
 from cblrs.matching import make_matcher
 from cblrs.pipeline import track_scene
-from cblrs.runtime.analytics_store import count_summary, read_counts, read_events, read_od
-from cblrs.runtime.broker import free_port
-from cblrs.runtime.camera_node import CameraNode, camera_last_will
-from cblrs.runtime.events import decode_event
-from cblrs.runtime.mqtt_transport import MqttTransport
-from cblrs.runtime.store import RuntimeStore
-from cblrs.runtime.topics import events_topic, matcher_status_topic
-from cblrs.runtime.transport import TransportError, Will
+from cblrs.runtime.broker.mosquitto_config import free_port
+from cblrs.runtime.camera.camera_node import CameraNode, camera_last_will
+from cblrs.runtime.matcher.store import RuntimeStore
+from cblrs.runtime.outputs.analytics_store import count_summary, read_counts, read_events, read_od
+from cblrs.runtime.outputs.events import decode_event
+from cblrs.runtime.transport.mqtt_transport import MqttTransport
+from cblrs.runtime.transport.protocol import TransportError, Will
+from cblrs.runtime.transport.topics import events_topic, matcher_status_topic
 from cblrs.runtime.wire import decode_status
 from cblrs.site import load_site
 
@@ -87,7 +87,7 @@ def paced(frames, seconds: float):
 
 def start_cameras(case, broker, epoch: float) -> list[threading.Thread]:
     """One camera node per camera, each logged in as its own broker user, paced."""
-    from cblrs.runtime.sources import scene_source
+    from cblrs.runtime.camera.sources import scene_source
 
     scene = case["scene"]
     threads = []

@@ -18,10 +18,10 @@ import pytest
 from cblrs.datasets import load_scene
 from cblrs.matching import make_matcher
 from cblrs.pipeline import camera_messages, render_scene_references, scene_planes, track_scene
-from cblrs.runtime import tracker_process
-from cblrs.runtime.ordering import Orderer
-from cblrs.runtime.retrack import RetrackPolicy
-from cblrs.runtime.store import PENDING, InboxEntry, RuntimeStore
+from cblrs.runtime.matcher import tracker_process
+from cblrs.runtime.matcher.ordering import Orderer
+from cblrs.runtime.matcher.retrack import RetrackPolicy
+from cblrs.runtime.matcher.store import PENDING, InboxEntry, RuntimeStore
 
 CAMERAS = ("CVLab1", "CVLab2")
 EPOCH = 1_700_000_000.0

@@ -13,9 +13,9 @@ Receivers (one at a time, each in this process):
 * ``broker``: ``mosquitto_sub -q 1`` (C): the broker's own ceiling on this machine;
 * ``paho``: a bare paho-mqtt 2.x client (MQTT 5, manual acks) that only acknowledges: the
   ceiling of any Python paho subscriber here;
-* ``transport``: :class:`~cblrs.runtime.transport.MqttTransport` with a handler that only
+* ``transport``: :class:`~cblrs.runtime.transport.protocol.MqttTransport` with a handler that only
   acknowledges (the runtime's transport wrapper);
-* ``matcher``: the full :class:`~cblrs.runtime.matcher_service.MatcherService`: validation,
+* ``matcher``: the full :class:`~cblrs.runtime.matcher.matcher_service.MatcherService`: validation,
   SQLite inbox (ack after commit), ordering in this process; the fusion tracker in the
   service's tracker process (one transaction per group batch, track rows in SQLite); track
   updates published from this process. Like ``cblrs matcher``, the run calls
@@ -93,11 +93,11 @@ from cblrs.bench.mqtt_load import (
 )
 from cblrs.matching import make_matcher
 from cblrs.plane import PlaneSet
-from cblrs.runtime.broker import MosquittoProcess, free_port, write_broker_config
-from cblrs.runtime.matcher_service import MatcherService
-from cblrs.runtime.mqtt_transport import MqttSettings, MqttTransport
-from cblrs.runtime.store import RuntimeStore
-from cblrs.runtime.topics import detections_filter, tracks_topic
+from cblrs.runtime.broker.mosquitto_config import MosquittoProcess, free_port, write_broker_config
+from cblrs.runtime.matcher.matcher_service import MatcherService
+from cblrs.runtime.matcher.store import RuntimeStore
+from cblrs.runtime.transport.mqtt_transport import MqttSettings, MqttTransport
+from cblrs.runtime.transport.topics import detections_filter, tracks_topic
 from cblrs.runtime.wire import ValidationPolicy
 
 RECEIVERS = ("broker", "paho", "transport", "matcher")

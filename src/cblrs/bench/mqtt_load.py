@@ -20,10 +20,10 @@ import numpy as np
 from cblrs.detections import CameraMessage
 from cblrs.matching import make_matcher
 from cblrs.plane import PlaneSet, PlaneSpec
-from cblrs.runtime.mqtt_transport import MqttSettings, MqttTransport
-from cblrs.runtime.ordering import Orderer
-from cblrs.runtime.store import InboxEntry, RuntimeStore
-from cblrs.runtime.topics import detections_topic
+from cblrs.runtime.matcher.ordering import Orderer
+from cblrs.runtime.matcher.store import InboxEntry, RuntimeStore
+from cblrs.runtime.transport.mqtt_transport import MqttSettings, MqttTransport
+from cblrs.runtime.transport.topics import detections_topic
 from cblrs.runtime.wire import ValidationPolicy, encode_message
 
 PLANE_ID = 1

@@ -411,7 +411,7 @@ def _run_one(name: str, args: argparse.Namespace) -> tuple[dict[str, Any], str]:
         # lazy: a subcommand imports the library when it runs, so its --help starts fast
         from cblrs.bench.dashboard import benchmark_dashboard, dashboard_report
         from cblrs.dashboard.browser import browser_problem
-        from cblrs.runtime.broker import find_mosquitto
+        from cblrs.runtime.broker.mosquitto_config import find_mosquitto
 
         if not (args.rate > 0 and args.seconds > 0):
             raise UsageError("--rate and --seconds must be positive.")
@@ -453,7 +453,7 @@ def _asynchrony(args: argparse.Namespace) -> tuple[dict[str, Any], str]:
     service = not args.in_process_only
     if service:
         # lazy: a subcommand imports the library when it runs, so its --help starts fast
-        from cblrs.runtime.broker import find_mosquitto
+        from cblrs.runtime.broker.mosquitto_config import find_mosquitto
 
         if find_mosquitto() is None:
             raise UsageError(
@@ -488,8 +488,8 @@ def _real_frames(args: argparse.Namespace) -> tuple[Path, Path]:
 def _run_backbone(args: argparse.Namespace, repeats: int) -> tuple[dict[str, Any], str]:
     # lazy: a subcommand imports the library when it runs, so its --help starts fast
     from cblrs.bench.backbone import BACKBONES, backbone_report, benchmark_backbone
-    from cblrs.runtime.broker import find_mosquitto
-    from cblrs.runtime.nats_server import find_nats_server
+    from cblrs.runtime.broker.mosquitto_config import find_mosquitto
+    from cblrs.runtime.broker.nats_server import find_nats_server
 
     backbones = tuple(_words(args.backbones, "--backbones"))
     unknown = sorted(set(backbones) - set(BACKBONES))

@@ -8,7 +8,11 @@ import shlex
 from pathlib import Path
 
 from cblrs.cli.common import UsageError, add_output_options, print_json
-from cblrs.runtime.broker import DEFAULT_AUTOSAVE_S, DEFAULT_QUEUE_BYTES, write_broker_config
+from cblrs.runtime.broker.mosquitto_config import (
+    DEFAULT_AUTOSAVE_S,
+    DEFAULT_QUEUE_BYTES,
+    write_broker_config,
+)
 
 
 def register(subparsers) -> None:
@@ -251,8 +255,8 @@ def _run_nats(args: argparse.Namespace, cameras: list[str],
               matchers: list[str] | dict[str, list[int]], planes: list[int]) -> int:
     """``cblrs broker-config --backbone nats``: the nodes' configurations and credentials."""
     # lazy: a subcommand imports the library when it runs, so its --help starts fast
-    from cblrs.runtime.broker import matcher_planes
-    from cblrs.runtime.nats_server import write_nats_backbone
+    from cblrs.runtime.broker.mosquitto_config import matcher_planes
+    from cblrs.runtime.broker.nats_server import write_nats_backbone
 
     hosts = _names(args.nodes, "--nodes")
     if (args.out / "n1" / "n1.conf").exists() and not args.force:

@@ -87,7 +87,7 @@ def run(args: argparse.Namespace) -> int:
     # lazy: a subcommand imports the library when it runs, so its --help starts fast
     from cblrs.dashboard.feed import LiveFeed
     from cblrs.dashboard.replay import StoreReplay
-    from cblrs.runtime.transport import TransportError
+    from cblrs.runtime.transport.protocol import TransportError
 
     auth = _authenticator(args)
     if not args.site.is_file():
@@ -123,7 +123,7 @@ def run(args: argparse.Namespace) -> int:
         client_id = args.client_id or f"cblrs-dashboard-{socket.gethostname()}-{plane}"
         if not logging.getLogger().isEnabledFor(logging.DEBUG):
             # A refusal is said once, below, as one sentence; not also as a log line.
-            logging.getLogger("cblrs.runtime.mqtt_transport").setLevel(logging.ERROR)
+            logging.getLogger("cblrs.runtime.transport.mqtt_transport").setLevel(logging.ERROR)
         feed = LiveFeed(settings, plane, client_id[:64], to_site=config.to_site)
         try:
             feed.start()
@@ -186,7 +186,7 @@ def _authenticator(args: argparse.Namespace) -> Any:
     # lazy: a subcommand imports the library when it runs, so its --help starts fast
     from cblrs.dashboard.auth import Authenticator
     from cblrs.dashboard.users import UsersError
-    from cblrs.runtime.metrics import is_loopback_host
+    from cblrs.runtime.matcher.metrics import is_loopback_host
 
     loopback = is_loopback_host(args.host)
     if not loopback and args.users is None:

@@ -36,9 +36,9 @@ import msgspec
 import numpy as np
 
 from cblrs.detections import CLASS_NAMES
-from cblrs.runtime.events import decode_alert, decode_event, decode_live
-from cblrs.runtime.mqtt_transport import MqttSettings, MqttTransport
-from cblrs.runtime.topics import (
+from cblrs.runtime.outputs.events import decode_alert, decode_event, decode_live
+from cblrs.runtime.transport.mqtt_transport import MqttSettings, MqttTransport
+from cblrs.runtime.transport.topics import (
     TopicError,
     alerts_topic,
     events_topic,
@@ -155,7 +155,7 @@ class LiveFeed:
         """Connect and subscribe.
 
         Raises:
-            cblrs.runtime.transport.TransportError: the broker is unreachable, refuses the
+            cblrs.runtime.transport.protocol.TransportError: the broker is unreachable, refuses the
                 credentials, or refuses a subscription (the ACL).
         """
         self.transport.connect()
