@@ -89,6 +89,7 @@ from cblrs.bench.mqtt_load import (
     camera_names,
     measure_stages,
     publisher,
+    stages_line,
     tracker_alone,
 )
 from cblrs.matching import make_matcher
@@ -502,16 +503,7 @@ def run_mqtt_benchmark(args: Any) -> int:
         stage_rows = [measure_stages(cameras, args.people, args.matcher)
                       for cameras in args.cameras]
         stages_document = {"machine": machine(), "stages": stage_rows}
-        lines = [
-            f"{row['cameras']:3d} cameras: decode {row['decode_us_per_message']:5.1f} us/msg"
-            f", inbox insert {row['insert_us_per_message']:5.1f} us/msg, {args.matcher} "
-            f"update {row['update_ms_per_group']:5.2f} ms/group "
-            f"({row['update_us_per_message']:5.0f} us/msg, worst frame "
-            f"{row['update_worst_ms']:5.1f} ms), commit "
-            f"{row['commit_ms_per_group']:5.2f} ms/group; database "
-            f"{row['database_bytes_per_message']:.0f} bytes/message"
-            for row in stage_rows
-        ]
+        lines = [stages_line(row, args.matcher) for row in stage_rows]
         print(json.dumps(stages_document, indent=2) if args.json else "\n".join(lines))
         if out is not None:
             _write_results(Path(out), "mqtt_stages", stages_document, "\n".join(lines))
