@@ -33,8 +33,17 @@ are counted as ``late_untracked``. Counters: ``retracks`` (re-trackings done),
 ``retracked`` (messages tracked again), ``late_tracked`` (late messages now tracked),
 ``late_untracked``.
 
-Not corrected: the online analytics (their events and counts keep what they counted from
-the first tracking; ``cblrs analytics`` on the stored tracks counts the corrected rows).
+The online analytics follow the correction (:mod:`cblrs.runtime.outputs.online_analytics`): a
+snapshot also holds the analytics' state and the last event id then, and every counter
+increment is logged with its group's time (``count_log``). A re-tracking takes back, in the
+same transaction, the increments logged after the snapshot and the events after its id
+(:func:`~cblrs.runtime.outputs.analytics_store.roll_back`), restores the analytics' state and counts
+the re-tracked rows again: counts, bins and origin-destination equal the undisturbed run's
+(sums of seconds up to float rounding), and so do the events. An event found again that was
+already published keeps its key and is not published twice; a published event the
+correction no longer finds is taken back by an ``event_retracted`` event naming its key.
+Snapshots of a database written before the analytics were snapshotted hold no analytics
+state: their events and counts stay as counted (``analytics_uncorrected``).
 """
 
 from __future__ import annotations
@@ -63,18 +72,23 @@ from cblrs.runtime.matcher.store import (
     set_meta_value,
     track_rows,
 )
+from cblrs.runtime.outputs.analytics_store import RolledBack, prune_log, read_counts, roll_back
 
 SNAPSHOTS_SCHEMA = """
 CREATE TABLE IF NOT EXISTS snapshots (
     released REAL PRIMARY KEY,
     track_row INTEGER NOT NULL,
     boundary TEXT NOT NULL,
-    state TEXT NOT NULL
+    state TEXT NOT NULL,
+    event_row INTEGER,
+    analytics TEXT
 )
 """
 """``released``: the watermark of the last group the state has seen (-inf: none);
 ``track_row``: the last track row written then; ``boundary``: JSON ``[[camera, sequence],
-...]`` of the messages at ``released`` already tracked; ``state``: ``get_state()`` JSON."""
+...]`` of the messages at ``released`` already tracked; ``state``: ``get_state()`` JSON;
+``event_row``: the last analytics event id then; ``analytics``: the online analytics'
+``get_state()`` JSON (NULL: no analytics, or a snapshot from before they were kept)."""
 
 DELETED_KEY = "deleted_until.inbox"
 """Meta key (:mod:`cblrs.runtime.matcher.retention`): the newest capture time of a deleted
@@ -120,11 +134,13 @@ class Retracked:
         corrected_from: the snapshot's time: these rows replace every row after it; None
             when nothing was re-tracked.
         counters: counter increments (committed).
+        events: analytics events counted again, by kind.
     """
 
     windows: list[tuple[float, Tracks]] = field(default_factory=list)
     corrected_from: float | None = None
     counters: dict[str, int] = field(default_factory=dict)
+    events: dict[str, int] = field(default_factory=dict)
 
 
 class Snapshots:
@@ -138,16 +154,17 @@ class Snapshots:
     def __init__(self, store: RuntimeStore, policy: RetrackPolicy):
         self.store = store
         self.policy = policy
-        store.write(lambda cursor: cursor.execute(SNAPSHOTS_SCHEMA))
+        store.write(_create_table)
         rows = store.query("SELECT MAX(released) FROM snapshots")
         self._last: float | None = None if rows[0][0] is None else float(rows[0][0])
 
-    def start(self, state: Any) -> None:
+    def start(self, state: Any, analytics: Any = None) -> None:
         """A fresh database: snapshot the empty tracker (late messages of the first
-        windows are re-tracked from it)."""
+        windows are re-tracked from it); ``analytics``: the online analytics' state."""
         if self._last is None and self.store.released_timestamp() is None:
             self.taking(-math.inf)
-            self.store.write(lambda cursor: self.write(cursor, -math.inf, state, []))
+            self.store.write(lambda cursor: self.write(cursor, -math.inf, state, [],
+                                                       analytics=analytics))
 
     def due(self, released: float) -> bool:
         """Whether the tracker after a group with watermark ``released`` is snapshotted."""
@@ -158,7 +175,8 @@ class Snapshots:
         self._last = released
 
     def write(self, cursor: sqlite3.Cursor, released: float, state: Any,
-              boundary: Sequence[tuple[str, int]], rows_after: int = 0) -> None:
+              boundary: Sequence[tuple[str, int]], rows_after: int = 0,
+              analytics: Any = None) -> None:
         """Inside the group's transaction, after its rows: save a snapshot, prune old ones.
 
         Args:
@@ -167,14 +185,19 @@ class Snapshots:
                 (:func:`state_text`, taken at once: a later update cannot change it).
             boundary: keys ``(camera, sequence)`` of the messages at ``released`` it has seen.
             rows_after: track rows the transaction wrote after that group (its later groups').
+            analytics: the online analytics' state then (their events and counts until
+                then are written before this call), or None.
         """
         (track_row,) = cursor.execute("SELECT COALESCE(MAX(row), 0) FROM tracks").fetchone()
+        (event_row,) = cursor.execute("SELECT COALESCE(MAX(id), 0) FROM events").fetchone()
         cursor.execute(
-            "INSERT OR REPLACE INTO snapshots (released, track_row, boundary, state) "
-            "VALUES (?, ?, ?, ?)",
+            "INSERT OR REPLACE INTO snapshots "
+            "(released, track_row, boundary, state, event_row, analytics) "
+            "VALUES (?, ?, ?, ?, ?, ?)",
             (released, int(track_row) - rows_after,
              json.dumps([list(key) for key in boundary]),
-             state if isinstance(state, str) else state_text(state)))
+             state if isinstance(state, str) else state_text(state), int(event_row),
+             None if analytics is None else state_text(analytics)))
         # Keep the newest snapshot at or before the horizon too: every late message within
         # the horizon then has a snapshot before it.
         cursor.execute(
@@ -185,6 +208,8 @@ class Snapshots:
             "DELETE FROM snapshots WHERE released NOT IN "
             "(SELECT released FROM snapshots ORDER BY released DESC LIMIT ?)",
             (self.policy.max_snapshots,))
+        (oldest,) = cursor.execute("SELECT MIN(released) FROM snapshots").fetchone()
+        prune_log(cursor, float(oldest))  # nothing re-tracks from before the oldest
 
     def forget_after(self, cursor: sqlite3.Cursor, released: float) -> None:
         """Delete the snapshots after ``released`` (re-tracking replaces them)."""
@@ -192,7 +217,8 @@ class Snapshots:
 
 
 def retrack(store: RuntimeStore, matcher: Any, camera_ids: Sequence[str],
-            snapshots: Snapshots, tracker: str | None = None) -> Retracked:
+            snapshots: Snapshots, tracker: str | None = None,
+            analytics: Any = None) -> Retracked:
     """Track the late messages not looked at yet (see the module docstring).
 
     Args:
@@ -201,6 +227,7 @@ def retrack(store: RuntimeStore, matcher: Any, camera_ids: Sequence[str],
         camera_ids: the plane's cameras.
         snapshots: the process's snapshots.
         tracker: the service's claim on the store (nothing is committed without it).
+        analytics: the plane's online analytics (they follow the correction), or None.
 
     Returns:
         The re-tracked windows and the counters committed.
@@ -223,58 +250,126 @@ def retrack(store: RuntimeStore, matcher: Any, camera_ids: Sequence[str],
     if not trackable:
         store.write(lambda cursor: _commit_seen(cursor, store, tracker, newest_seen, counters))
         return Retracked(counters=counters)
-    released, track_row, boundary, state = store.query(
-        "SELECT released, track_row, boundary, state FROM snapshots WHERE released < ? "
-        "ORDER BY released DESC LIMIT 1", (min(trackable.values()),))[0]
+    released, track_row, boundary, state, event_row, counted = store.query(
+        "SELECT released, track_row, boundary, state, event_row, analytics FROM snapshots "
+        "WHERE released < ? ORDER BY released DESC LIMIT 1", (min(trackable.values()),))[0]
+    released = float(released)
     entries = _entries_after(store, released, {tuple(key) for key in json.loads(boundary)},
                              set(trackable))
     matcher.set_state(json.loads(state))
+    recount = analytics is not None and counted is not None
+    if analytics is not None and not recount:
+        counters["analytics_uncorrected"] = 1
+    if recount:
+        analytics.set_state(json.loads(counted), _counts_at(store, released))
+        analytics.log_floor = math.nextafter(released, math.inf)
+    events: dict[str, int] = {}
+
+    def count(tracks: Tracks, timestamp: float) -> None:
+        if recount:
+            for event in analytics.update(tracks, timestamp):
+                events[event.kind] = events.get(event.kind, 0) + 1
+
     orderer = Orderer(camera_ids, timeout_s=1e9)  # everything is here: released at once
     for entry in entries:
         orderer.add(entry, 0.0)
     windows: list[tuple[float, Tracks]] = []
-    saved: list[tuple[int, float, Any, list[tuple[str, int]]]] = []  # after window index
-    snapshots.taking(float(released))
+    # After window index: (index, time, matcher state, keys at it, analytics writes until then)
+    saved: list[tuple[int, float, Any, list[tuple[str, int]], Any]] = []
+    snapshots.taking(released)
     fed: dict[float, list[tuple[str, int]]] = {}
     for timestamp, members in orderer.release(0.0, force=True):
         windows.append((timestamp, matcher.update(timestamp, [e.message() for e in members])))
+        count(windows[-1][1], timestamp)
         for entry in members:
             fed.setdefault(entry.timestamp, []).append((entry.camera_id, entry.sequence))
         if snapshots.due(timestamp):
             snapshots.taking(timestamp)
             saved.append((len(windows) - 1, timestamp, state_text(matcher.get_state()),
-                          list(fed.get(timestamp, []))))
+                          list(fed.get(timestamp, [])),
+                          analytics.take_writes() if recount else None))
     watermark = store.released_timestamp()
     if watermark is not None and windows and watermark > windows[-1][0]:
         # As far as the undisturbed run had come: everything up to it has been delivered.
         final = matcher.update(watermark, [])
+        count(final, watermark)
         last_time, last_tracks = windows[-1]
         windows[-1] = (last_time, Tracks.concatenate([last_tracks, final]))
     counters.update({"retracks": 1, "retracked": len(entries), "late_tracked": len(trackable),
                      "processed": len(trackable)})
     state_after = matcher.get_state()
+    rest = None
+    if recount:
+        rest = analytics.take_writes()
+        analytics.log_floor = -math.inf
 
     def commit(cursor: sqlite3.Cursor) -> None:
         if tracker is not None:
             check_tracker(cursor, store.path, tracker)
+        if recount:
+            taken_back = roll_back(cursor, released, int(event_row))
+            _keep_published(taken_back, [item[4] for item in saved] + [rest])
         cursor.execute("DELETE FROM tracks WHERE row > ?", (int(track_row),))
         # ``tracks`` counts the rows stored: the re-tracked ones replace those deleted.
         counters["tracks"] = sum(len(tracks) for _, tracks in windows) - cursor.rowcount
-        snapshots.forget_after(cursor, float(released))
+        snapshots.forget_after(cursor, released)
         pending = iter(saved)
         upcoming = next(pending, None)
         for index, (_, tracks) in enumerate(windows):
             cursor.executemany(INSERT_TRACKS, track_rows(tracks))
             if upcoming is not None and upcoming[0] == index:
-                snapshots.write(cursor, upcoming[1], upcoming[2], upcoming[3])
+                if upcoming[4] is not None:
+                    upcoming[4](cursor)
+                snapshots.write(cursor, upcoming[1], upcoming[2], upcoming[3],
+                                analytics=None if upcoming[4] is None else upcoming[4].state)
                 upcoming = next(pending, None)
+        if rest is not None:
+            rest(cursor)
         cursor.executemany("UPDATE inbox SET status = ? WHERE rowid = ?",
                            [(PROCESSED, rowid) for rowid in trackable])
         set_matcher_state(cursor, state_after)
         _commit_seen(cursor, store, None, newest_seen, counters)
 
     store.write(commit)
-    return Retracked(windows, float(released), counters)
+    return Retracked(windows, released, counters, events)
+
+
+def _counts_at(store: RuntimeStore, released: float) -> dict[tuple[str, str, str], float]:
+    """The ``counts`` as they were at a snapshot at ``released``: today's minus the
+    increments logged after it (the running totals of the events start from these)."""
+    counts = read_counts(store)
+    for key, value in store.query(
+            "SELECT key, SUM(value) FROM count_log WHERE tbl = 'counts' AND released > ? "
+            "GROUP BY key", (released,)):
+        place, measure, klass = json.loads(key)
+        counts[(place, measure, klass)] = counts.get((place, measure, klass), 0.0) - value
+    return counts
+
+
+def _keep_published(taken_back: RolledBack, recounted: Sequence[Any]) -> None:
+    """An event counted again that was published before keeps its published mark (it is not
+    published twice); a published event not counted again is taken back by an
+    ``event_retracted`` event, added to the last writes."""
+    found = {row[4] for writes in recounted if writes is not None for row in writes.events}
+    for writes in recounted:
+        if writes is not None:
+            writes.published = taken_back.published
+    last = next(writes for writes in reversed(recounted) if writes is not None)
+    for key, body in taken_back.events:
+        if body.get("kind") == "event_retracted":
+            if body.get("retracted") not in found:  # an earlier correction's: it stands
+                last.events.append((float(body.get("timestamp") or 0.0), "event_retracted",
+                                    str(body.get("place", "")), int(body.get("track") or 0),
+                                    key, json.dumps(body)))
+        elif key in taken_back.published and key not in found:
+            retraction = {"kind": "event_retracted", "timestamp": body.get("timestamp"),
+                          "track": body.get("track"), "place": body.get("place"),
+                          "retracted": key, "retracted_kind": body.get("kind")}
+            retraction_key = f"retracted/{key}"
+            retraction["key"] = retraction_key
+            last.events.append((float(body.get("timestamp") or 0.0), "event_retracted",
+                                str(body.get("place", "")), int(body.get("track") or 0),
+                                retraction_key, json.dumps(retraction)))
 
 
 def state_text(state: Any) -> str:
@@ -304,6 +399,14 @@ def _entries_after(store: RuntimeStore, released: float, boundary: set[tuple[str
         if (status == PROCESSED or rowid in late_rows)
         and not (timestamp == released and (camera, sequence) in boundary)
     ]
+
+
+def _create_table(cursor: sqlite3.Cursor) -> None:
+    cursor.execute(SNAPSHOTS_SCHEMA)
+    columns = {row[1] for row in cursor.execute("PRAGMA table_info(snapshots)")}
+    for column, kind in (("event_row", "INTEGER"), ("analytics", "TEXT")):
+        if column not in columns:  # a database written before the analytics were kept
+            cursor.execute(f"ALTER TABLE snapshots ADD COLUMN {column} {kind}")
 
 
 def _commit_seen(cursor: sqlite3.Cursor, store: RuntimeStore, tracker: str | None,

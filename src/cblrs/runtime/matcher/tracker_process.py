@@ -218,7 +218,10 @@ def run(
         snapshots = None
         if retrack_policy is not None:
             snapshots = Snapshots(store, retrack_policy)
-            snapshots.start(matcher.get_state())
+            if analytics is not None:
+                analytics.log_increments = True  # a re-tracking takes back what was counted
+            snapshots.start(matcher.get_state(),
+                            None if analytics is None else analytics.get_state())
         # Everything alive now (modules, the matcher) lives as long as the process: keep it
         # out of the garbage collector's full passes, which would otherwise walk it all.
         gc.freeze()
@@ -234,11 +237,11 @@ def run(
                 break
             if batch == "retrack":
                 updates = _retrack(store, matcher, snapshots, tracker, results, publish_tracks,
-                                   plane_id, updates, camera_ids)
+                                   plane_id, updates, camera_ids, analytics)
                 continue
             tracked = []
             report = _Report(analytics)
-            taken: list[tuple[int, float, Any, list[tuple[str, int]]]] = []
+            taken: list[tuple[int, float, Any, list[tuple[str, int]], Any]] = []
             snapshot_after = False  # a snapshot due after the batch's last group
             for timestamp, entries in batch:
                 if abandoned():
@@ -254,8 +257,10 @@ def run(
                         snapshot_after = True
                         continue
                     snapshots.taking(timestamp)
+                    # What the analytics counted so far is written before the snapshot,
+                    # with their state then: a re-tracking from it takes back the rest.
                     taken.append((len(tracked) - 1, timestamp, state_text(matcher.get_state()),
-                                  _keys_at(batch[:len(tracked)], timestamp)))
+                                  _keys_at(batch[:len(tracked)], timestamp), report.writes()))
             if abandoned():
                 break  # a stop without flush: this batch stays pending in the store
             keys = [(entry.camera_id, entry.sequence) for _, entries in batch for entry in entries]
@@ -266,7 +271,7 @@ def run(
             # One snapshot after the last group: the file holds all of these groups or none,
             # with their analytics events, counts and state.
             started = time.perf_counter()
-            also = report.writes()
+            also = counted = report.writes()
             if taken and snapshots is not None:
                 rows = [len(group_tracks) for _, group_tracks in tracked]
                 also = _snapshots_too(also, snapshots, taken, rows)
@@ -290,8 +295,10 @@ def run(
                 answers.append((timestamp, group_tracks, payload))
             results.send(("tracked", answers, counters, report.summary()))
             if snapshot_after or state.due(released, busy=requests.poll()):
+                # A snapshot here follows the batch's analytics writes: their state with it.
                 _save_state(store, matcher, snapshots if snapshot_after else None, tracker,
-                            released, _keys_at(batch, released))
+                            released, _keys_at(batch, released),
+                            None if counted is None else counted.state)
                 state.committed(0, released, saved=True)
         results.send(("stopped",))
     except BaseException as error:
@@ -344,16 +351,17 @@ class _StateSaving:
 
 
 def _save_state(store: RuntimeStore, matcher: Any, snapshots: Snapshots | None, tracker: str,
-                released: float, boundary: list[tuple[str, int]]) -> None:
+                released: float, boundary: list[tuple[str, int]], analytics: Any = None) -> None:
     """Save the matcher state after the last committed batch (empties the replay table),
-    with the snapshot due at its watermark if ``snapshots``, in one transaction."""
+    with the snapshot due at its watermark if ``snapshots`` (``analytics``: the online
+    analytics' state committed with that batch, or None), in one transaction."""
     text = state_text(matcher.get_state())
     also = None
     if snapshots is not None:
         snapshots.taking(released)
 
         def also(cursor: Any) -> None:
-            snapshots.write(cursor, released, text, boundary)
+            snapshots.write(cursor, released, text, boundary, analytics=analytics)
     store.save_matcher_state(text, tracker=tracker, also=also)
 
 
@@ -364,26 +372,30 @@ def _keys_at(groups: Batch, timestamp: float) -> list[tuple[str, int]]:
 
 
 def _snapshots_too(also: Any, snapshots: Snapshots,
-                   taken: list[tuple[int, float, Any, list[tuple[str, int]]]],
+                   taken: list[tuple[int, float, Any, list[tuple[str, int]], Any]],
                    rows: list[int]) -> Any:
-    """The batch's extra writes, then the snapshots taken after some of its groups
-    (``(group index, watermark, state, keys at it)``; ``rows``: track rows per group)."""
+    """The snapshots taken after some of the batch's groups (``(group index, watermark,
+    state, keys at it, analytics writes until then)``; ``rows``: track rows per group), each
+    after the analytics writes before it, then the batch's remaining extra writes."""
     def writes(cursor: Any) -> None:
+        for index, released, state, boundary, counted in taken:
+            if counted is not None:
+                counted(cursor)
+            snapshots.write(cursor, released, state, boundary, rows_after=sum(rows[index + 1:]),
+                            analytics=None if counted is None else counted.state)
         if also is not None:
             also(cursor)
-        for index, released, state, boundary in taken:
-            snapshots.write(cursor, released, state, boundary, rows_after=sum(rows[index + 1:]))
     return writes
 
 
 def _retrack(store: RuntimeStore, matcher: Any, snapshots: Snapshots | None, tracker: str,
              results: Any, publish_tracks: bool, plane_id: int, updates: int,
-             camera_ids: list[str]) -> int:
-    """Track the late messages (:func:`cblrs.runtime.matcher.retrack.retrack`); one ``retracked``
-    answer with the corrected updates. Returns the update counter."""
+             camera_ids: list[str], analytics: Any = None) -> int:
+    """Track the late messages (:func:`cblrs.runtime.matcher.retrack.retrack`); one
+    ``retracked`` answer with the corrected updates. Returns the update counter."""
     started = time.perf_counter()
-    done = retrack(store, matcher, camera_ids, snapshots, tracker) if snapshots is not None \
-        else None
+    done = retrack(store, matcher, camera_ids, snapshots, tracker, analytics) \
+        if snapshots is not None else None
     answers = []
     for timestamp, tracks in done.windows if done is not None else []:
         updates += 1
@@ -393,8 +405,10 @@ def _retrack(store: RuntimeStore, matcher: Any, snapshots: Snapshots | None, tra
                               corrected_from=done.corrected_from)
         answers.append((timestamp, tracks, payload))
     counters = done.counters if done is not None else {}
-    report = {"durations": {"retrack": [time.perf_counter() - started]}, "events": {},
-              "live": None}
+    report = {"durations": {"retrack": [time.perf_counter() - started]},
+              "events": done.events if done is not None else {},
+              "live": None if analytics is None or done is None or not done.windows
+              else analytics.live()}
     results.send(("retracked", answers, counters, report))
     return updates
 

@@ -17,6 +17,11 @@ Tables (created with the store's own, see :mod:`cblrs.runtime.matcher.store`):
   ``interval_s``): line directions, zone ``entries`` / ``exits`` and ``occupancy_s``
   (person-seconds), for charts and Grafana.
 * ``od`` — origin-destination counts between zones.
+* ``count_log`` — with re-tracking on (:mod:`cblrs.runtime.matcher.retrack`): every
+  increment of ``counts``, ``count_bins``, ``od`` and the analytics' counters with the time
+  of the tracker group that made it, kept as long as the snapshots, so a re-tracking from a
+  snapshot takes back what was counted after it (:func:`roll_back`) and counts the
+  corrected tracks instead.
 
 Every write of one tracker batch goes into the transaction that stores the batch's track
 rows and the engine's state (:meth:`RuntimeStore.commit_group`'s ``also``), so after a
@@ -68,6 +73,13 @@ CREATE TABLE IF NOT EXISTS od (
     value INTEGER NOT NULL,
     PRIMARY KEY (origin, destination)
 );
+CREATE TABLE IF NOT EXISTS count_log (
+    released REAL NOT NULL,
+    tbl TEXT NOT NULL,
+    key TEXT NOT NULL,
+    value REAL NOT NULL
+);
+CREATE INDEX IF NOT EXISTS count_log_released ON count_log (released);
 """
 
 STATE_KEY = "analytics_state"
@@ -90,6 +102,10 @@ class AnalyticsWrites:
         od: increments of ``od``.
         counters: increments of the store's ``counters`` (rows, late rows).
         state: the engine's state after the batch (``meta``), or None to leave it.
+        log: ``(group time, table, key, increment)`` for ``count_log`` (``table``: counts,
+            bins, od, or counters: the analytics' own, e.g. ``analytics_rows``).
+        published: keys of events to insert as already published (a re-tracking found
+            again an event that was published before it).
     """
 
     events: list[tuple[float, str, str, int, str, str]] = field(default_factory=list)
@@ -98,6 +114,8 @@ class AnalyticsWrites:
     od: dict[tuple[str, str], int] = field(default_factory=lambda: defaultdict(int))
     counters: dict[str, int] = field(default_factory=dict)
     state: dict[str, Any] | None = None
+    log: list[tuple[float, str, tuple, float]] = field(default_factory=list)
+    published: set[str] = field(default_factory=set)
 
     def __call__(self, cursor: sqlite3.Cursor) -> None:
         """Write everything with ``cursor`` (inside the caller's transaction)."""
@@ -107,9 +125,14 @@ class AnalyticsWrites:
 def write_analytics(cursor: sqlite3.Cursor, writes: AnalyticsWrites) -> None:
     """Apply :class:`AnalyticsWrites` with ``cursor`` (inside the caller's transaction)."""
     cursor.executemany(
-        "INSERT OR IGNORE INTO events (timestamp, kind, place, track_id, key, body) "
-        "VALUES (?, ?, ?, ?, ?, ?)",
-        writes.events,
+        "INSERT OR IGNORE INTO events (timestamp, kind, place, track_id, key, body, published) "
+        "VALUES (?, ?, ?, ?, ?, ?, ?)",
+        [(*row, int(row[4] in writes.published)) for row in writes.events],
+    )
+    cursor.executemany(
+        "INSERT INTO count_log (released, tbl, key, value) VALUES (?, ?, ?, ?)",
+        [(released, table, json.dumps(list(key)), value)
+         for released, table, key, value in writes.log],
     )
     cursor.executemany(
         "INSERT INTO counts (place, measure, class, value) VALUES (?, ?, ?, ?) "
@@ -137,6 +160,60 @@ def write_analytics(cursor: sqlite3.Cursor, writes: AnalyticsWrites) -> None:
             "ON CONFLICT(key) DO UPDATE SET value = excluded.value",
             (STATE_KEY, json.dumps(writes.state)),
         )
+
+
+_ROLLBACK_SQL = {
+    "counts": "UPDATE counts SET value = value - ? WHERE place = ? AND measure = ? AND class = ?",
+    "bins": "UPDATE count_bins SET value = value - ? "
+            "WHERE start = ? AND place = ? AND measure = ? AND class = ?",
+    "od": "UPDATE od SET value = value - ? WHERE origin = ? AND destination = ?",
+    "counters": "UPDATE counters SET value = value - CAST(? AS INTEGER) WHERE name = ?",
+}
+
+
+@dataclass
+class RolledBack:
+    """What :func:`roll_back` took back.
+
+    Attributes:
+        counts: the ``counts`` increments taken back (to restore the running totals).
+        events: ``(key, body)`` of the events deleted, in id order.
+        published: keys among them that had been published.
+    """
+
+    counts: dict[CountKey, float] = field(default_factory=lambda: defaultdict(float))
+    events: list[tuple[str, dict[str, Any]]] = field(default_factory=list)
+    published: set[str] = field(default_factory=set)
+
+
+def roll_back(cursor: sqlite3.Cursor, after: float, event_id: int) -> RolledBack:
+    """Take back everything the analytics counted after a snapshot (inside the
+    re-tracking's transaction): the logged increments of groups after ``after`` and the
+    events after id ``event_id``."""
+    rolled = RolledBack()
+    increments: dict[tuple[str, str], float] = defaultdict(float)
+    for table, key, value in cursor.execute(
+            "SELECT tbl, key, value FROM count_log WHERE released > ?", (after,)).fetchall():
+        increments[(table, key)] += value
+    for (table, key), value in increments.items():
+        parts = tuple(json.loads(key))
+        cursor.execute(_ROLLBACK_SQL[table], (value, *parts))
+        if table == "counts":
+            rolled.counts[parts] += value  # type: ignore[index]
+    cursor.execute("DELETE FROM count_log WHERE released > ?", (after,))
+    for key, body, published in cursor.execute(
+            "SELECT key, body, published FROM events WHERE id > ? ORDER BY id",
+            (int(event_id),)).fetchall():
+        rolled.events.append((key, json.loads(body)))
+        if published:
+            rolled.published.add(key)
+    cursor.execute("DELETE FROM events WHERE id > ?", (int(event_id),))
+    return rolled
+
+
+def prune_log(cursor: sqlite3.Cursor, until: float) -> None:
+    """Forget the logged increments at or before ``until`` (no snapshot before them)."""
+    cursor.execute("DELETE FROM count_log WHERE released <= ?", (until,))
 
 
 # ---------------------------------------------------------------------------- reads

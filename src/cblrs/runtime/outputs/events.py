@@ -11,8 +11,12 @@
   ``kind`` is ``line_crossed`` (with ``direction`` and ``world_xy``), ``zone_entered``
   (``crossed``: entered across the border, or first seen inside) or ``zone_left``
   (``entered_at``, ``dwell_s``, ``entered``, ``exited``: left across the border, or the
-  track was lost inside). ``total`` is the running count of that place's events of the
-  kind (crossings in that direction; visits begun; visits ended), all classes. ``id`` is
+  track was lost inside), or ``event_retracted``: a correction of the past (late messages
+  re-tracked, :mod:`cblrs.runtime.matcher.retrack`) no longer finds the published event whose key
+  is ``retracted`` (its kind ``retracted_kind``; the live summary's counters are already
+  the corrected ones). ``total`` (not in a retraction) is the running count of that
+  place's events of the kind (crossings in that direction; visits begun; visits ended), all
+  classes. ``id`` is
   the plane's event sequence in the matcher's database, ``key`` the event's natural
   identity: QoS 1 may deliver an event twice (a matcher killed between the broker's
   acknowledgement and marking it published sends it again), so subscribers de-duplicate by
@@ -45,7 +49,7 @@ from cblrs.runtime.wire.common import (
 
 EVENTS_SCHEMA = "cblrs.events/1"
 LIVE_SCHEMA = "cblrs.live/1"
-EVENT_KINDS = ("line_crossed", "zone_entered", "zone_left")
+EVENT_KINDS = ("line_crossed", "zone_entered", "zone_left", "event_retracted")
 MAX_EVENT_BYTES = 4096
 MAX_LIVE_BYTES = 1024 * 1024
 
@@ -58,12 +62,12 @@ class WireEvent(msgspec.Struct, forbid_unknown_fields=True, omit_defaults=True):
     schema: str
     plane: SitePlaneId
     id: Count
-    kind: Literal["line_crossed", "zone_entered", "zone_left"]
+    kind: Literal["line_crossed", "zone_entered", "zone_left", "event_retracted"]
     timestamp: float
     track: Annotated[int, msgspec.Meta(ge=-MAX_INT, le=MAX_INT)]
     place: PlaceName
-    total: Count
     key: Annotated[str, msgspec.Meta(min_length=1, max_length=512)]
+    total: Count | None = None
     class_name: ClassName | None = msgspec.field(default=None, name="class")
     direction: Literal["positive", "negative"] | None = None
     world_xy: tuple[float, float] | None = None
@@ -74,12 +78,15 @@ class WireEvent(msgspec.Struct, forbid_unknown_fields=True, omit_defaults=True):
     exited: bool | None = None
     # The local ISO time with offset, when the site has a timezone (cblrs.localtime).
     time: Annotated[str, msgspec.Meta(min_length=1, max_length=64)] | None = None
+    retracted: Annotated[str, msgspec.Meta(min_length=1, max_length=512)] | None = None
+    retracted_kind: Literal["line_crossed", "zone_entered", "zone_left"] | None = None
 
 
 _REQUIRED = {
-    "line_crossed": ("direction", "world_xy"),
-    "zone_entered": ("crossed",),
-    "zone_left": ("entered_at", "dwell_s", "entered", "exited"),
+    "line_crossed": ("total", "direction", "world_xy"),
+    "zone_entered": ("total", "crossed"),
+    "zone_left": ("total", "entered_at", "dwell_s", "entered", "exited"),
+    "event_retracted": ("retracted", "retracted_kind"),
 }
 
 

@@ -104,6 +104,14 @@ class OnlineAnalytics:
             raise AnalyticsError("the online analytics keep no heatmap; leave heatmap unset.")
         self.engine = Analytics(places, config)
         self.delay_s = float(delay_s)
+        self.log_increments = False
+        """Also write each update's counter increments to ``count_log`` (with the update's
+        time), so that a re-tracking can take back what was counted after a snapshot
+        (:mod:`cblrs.runtime.matcher.retrack`); the tracker process sets it when it keeps
+        snapshots."""
+        self.log_floor = -math.inf
+        """Increments are logged at a time above this (a re-tracking from a snapshot at
+        ``t`` logs what it counts at ``t`` just after it, so a later one takes it back)."""
         self.reset()
 
     @property
@@ -143,7 +151,7 @@ class OnlineAnalytics:
         self._waiting = self._waiting[~ready]
         order = np.argsort(rows.timestamp, kind="stable")
         events = self.engine.update(rows[order], now=cutoff)
-        self._collect(events)
+        self._collect(events, float(timestamp))
         return events
 
     def flush(self) -> list[Event]:
@@ -153,7 +161,7 @@ class OnlineAnalytics:
         order = np.argsort(rows.timestamp, kind="stable")
         events = self.engine.update(rows[order])
         events += self.engine.flush()
-        self._collect(events)
+        self._collect(events, self._watermark)
         return events
 
     # ------------------------------------------------------------------ output
@@ -175,49 +183,59 @@ class OnlineAnalytics:
             "dwell": [[zone, track, seconds] for zone, track, seconds in self.engine.live_dwell()],
         }
 
-    def _collect(self, events: list[Event]) -> None:
+    def _collect(self, events: list[Event], released: float) -> None:
         """Events to outbox rows (with running totals) and the engine's aggregates to counter
-        increments; the aggregates are then cleared (their totals live in the store)."""
+        increments (logged at ``released`` when :attr:`log_increments`); the aggregates are
+        then cleared (their totals live in the store)."""
         writes = self._writes
         for event in events:
             writes.events.append(self._event_row(event))
         engine = self.engine
-        counts, bins = writes.counts, writes.bins
+        logged: dict[tuple[str, tuple], float] = defaultdict(float)
+        log = self.log_increments
+
+        def add(table: str, key: tuple, value: float) -> None:
+            getattr(writes, table)[key] += value  # term by term: the offline run's sums
+            if log:
+                logged[(table, key)] += value
+
         # A bin's key is its start in seconds: on the local clock with a site time zone.
         start = engine.bins.start
         for (line, direction, klass), value in engine.line_counts.items():
-            counts[(line, direction, class_name(klass))] += value
+            add("counts", (line, direction, class_name(klass)), value)
         for (index, line, direction, klass), value in engine.line_bins.items():
-            bins[(start(index), line, direction, class_name(klass))] += value
+            add("bins", (start(index), line, direction, class_name(klass)), value)
         for (index, zone, measure), value in engine.zone_bins.items():
-            bins[(start(index), zone, measure, "all")] += value
+            add("bins", (start(index), zone, measure, "all"), value)
         for (index, zone), seconds in engine.occupancy_seconds.items():
-            bins[(start(index), zone, "occupancy_s", "all")] += seconds
+            add("bins", (start(index), zone, "occupancy_s", "all"), seconds)
         for (zone, klass), value in engine.zone_entries.items():
-            counts[(zone, "entries", class_name(klass))] += value
+            add("counts", (zone, "entries", class_name(klass)), value)
         for (zone, klass), value in engine.zone_appeared.items():
-            counts[(zone, "appeared", class_name(klass))] += value
+            add("counts", (zone, "appeared", class_name(klass)), value)
         for visit in engine.visits:
             label = class_name(visit.class_id)
-            counts[(visit.zone, "visits", label)] += 1
-            counts[(visit.zone, "dwell_s", label)] += visit.dwell_s
+            add("counts", (visit.zone, "visits", label), 1)
+            add("counts", (visit.zone, "dwell_s", label), visit.dwell_s)
             if visit.exited:
-                counts[(visit.zone, "exits", label)] += 1
+                add("counts", (visit.zone, "exits", label), 1)
             if visit.entered and visit.exited:
-                counts[(visit.zone, "complete_visits", label)] += 1
-                counts[(visit.zone, "complete_dwell_s", label)] += visit.dwell_s
+                add("counts", (visit.zone, "complete_visits", label), 1)
+                add("counts", (visit.zone, "complete_dwell_s", label), visit.dwell_s)
         for key, value in engine.od.items():
-            writes.od[key] += value
+            add("od", key, value)
         for zone, value in engine.od_unpaired.items():
-            counts[(zone, "od_unpaired", "all")] += value
-        writes.counters["analytics_rows"] = writes.counters.get("analytics_rows", 0) + engine.rows
-        writes.counters["analytics_late_rows"] = (
-            writes.counters.get("analytics_late_rows", 0) + engine.late_rows
-        )
-        if engine.closed_events:
-            writes.counters["analytics_closed_events"] = (
-                writes.counters.get("analytics_closed_events", 0) + engine.closed_events
-            )
+            add("counts", (zone, "od_unpaired", "all"), value)
+        for name, value in (("analytics_rows", engine.rows),
+                            ("analytics_late_rows", engine.late_rows),
+                            ("analytics_closed_events", engine.closed_events)):
+            if value or name != "analytics_closed_events":
+                writes.counters[name] = writes.counters.get(name, 0) + value
+            if log and value:  # rows counted again after a re-tracking are counted once
+                logged[("counters", (name,))] += value
+        released = max(released, self.log_floor)
+        writes.log += [(released, table, key, value)
+                       for (table, key), value in logged.items() if value]
         for table in (engine.line_counts, engine.line_bins, engine.zone_bins, engine.zone_entries,
                       engine.zone_appeared, engine.occupancy_seconds, engine.od,
                       engine.od_unpaired):
