@@ -418,6 +418,7 @@ def write_nats_backbone(
     tls: bool = True,
     ca_directory: str | Path | None = None,
     clients_directory: str | Path | None = None,
+    linkers: Sequence[str] = (),
 ) -> NatsBackboneFiles:
     """Write a secured NATS backbone: users, permissions and certificates
     (:func:`~cblrs.runtime.broker.nats_auth.write_nats_security`) and one configuration per node
@@ -437,6 +438,7 @@ def write_nats_backbone(
         viewers: read-only logins.
         admin: the administrator's login.
         tls: TLS on every port (clients present certificates).
+        linkers: logins of ``cblrs linker``.
         ca_directory: where the CAs' keys go (default ``<directory>-ca``).
         clients_directory: where the clients' folders go (default ``<directory>-clients``).
 
@@ -447,8 +449,8 @@ def write_nats_backbone(
     if not hosts or len(set(hosts)) != len(hosts):
         raise NatsSecurityError(f"give each node its own host, got {list(hosts)}.")
     security = write_nats_security(
-        directory, cameras, matchers, site=site, viewers=viewers, admin=admin, tls=tls,
-        hosts=hosts, ca_directory=ca_directory, clients_directory=clients_directory)
+        directory, cameras, matchers, site=site, viewers=viewers, linkers=linkers, admin=admin,
+        tls=tls, hosts=hosts, ca_directory=ca_directory, clients_directory=clients_directory)
     clustered = len(hosts) > 1
     nodes = [
         NatsNodeConfig(
