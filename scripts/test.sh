@@ -9,7 +9,9 @@
 #    tests whose package is missing are skipped with the reason;
 # 2. pip install -e ".[dev]";
 # 3. python -m pytest on every core (pytest-xdist: -n auto, one test file per worker at a
-#    time so that a file's module fixtures — rendered references, brokers — are built once);
+#    time so that a file's module fixtures — rendered references, brokers — are built once;
+#    tests/conftest.py hands the files out longest first, from tests/file_durations.json,
+#    so that no long file is left to run alone at the end);
 #    CBLRS_TEST_WORKERS=N sets the number of workers, 0 runs in this process.
 set -euo pipefail
 cd "$(dirname "$0")/.."
