@@ -550,10 +550,7 @@ def _large_error(
     redundancy = refined.redundancy
     if redundancy <= 0:
         return None
-    # lazy: scipy.stats takes ~0.4 s of CPU to import, and every `cblrs` process that loads
-    # a site (camera, matcher, up, dashboard) imports this module; only a fit needs it
-    from scipy.stats import chi2
-
+    from scipy.stats import chi2  # lazy: ~0.4 s of CPU, paid by every process loading a site
     if refined.chi_square <= chi2.ppf(1 - _LARGE_ERROR_PROBABILITY, redundancy):
         return None
     factor = math.sqrt(refined.chi_square / redundancy)
