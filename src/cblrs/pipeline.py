@@ -3,8 +3,8 @@
 Each camera turns its detections into a :class:`CameraMessage` through its own colour
 reference image (:func:`cblrs.edge.make_message`), exactly as an edge device would; the
 matcher only ever sees colours. Messages reach the matcher through the same
-:class:`~cblrs.runtime.ordering.Orderer` as in the matcher service, in capture-time order, so
-the in-process tracks equal the service's on the same messages. A
+:class:`~cblrs.runtime.matcher.ordering.Orderer` as in the matcher service, in capture-time order,
+so the in-process tracks equal the service's on the same messages. A
 :class:`~cblrs.datasets.clocks.ClockSimulation` gives the cameras their own clocks, frame
 rates and lost messages.
 """
@@ -28,7 +28,7 @@ from cblrs.errors import DatasetError
 from cblrs.matching import DEFAULT_MATCHER, Matcher, make_matcher
 from cblrs.plane import PlaneSet
 from cblrs.reference import OnDemandReference, Reference, ReferenceImage, render_reference
-from cblrs.runtime.ordering import Orderer
+from cblrs.runtime.matcher.ordering import Orderer
 
 logger = logging.getLogger(__name__)
 
@@ -250,7 +250,7 @@ def ordered_windows(
     messages: Iterable[CameraMessage], camera_ids: Sequence[str]
 ) -> Iterator[tuple[float, list[CameraMessage]]]:
     """Release messages (each camera's in capture order) in windows, as the matcher service
-    does: through an :class:`~cblrs.runtime.ordering.Orderer`.
+    does: through an :class:`~cblrs.runtime.matcher.ordering.Orderer`.
 
     Yields:
         ``(timestamp, messages)`` per window, in time order (the input to ``update``).

@@ -13,12 +13,12 @@ import pytest
 
 from cblrs.alerts import load_alerts
 from cblrs.alerts.rules import AlertsError
-from cblrs.runtime.alert_service import BACKBONE, AlertService, make_senders
-from cblrs.runtime.analytics_service import CameraHealth
-from cblrs.runtime.events import decode_alert
-from cblrs.runtime.inprocess import InProcessBroker, InProcessTransport
-from cblrs.runtime.store import RuntimeStore
-from cblrs.runtime.topics import alerts_topic
+from cblrs.runtime.matcher.store import RuntimeStore
+from cblrs.runtime.outputs.alert_service import BACKBONE, AlertService, make_senders
+from cblrs.runtime.outputs.analytics_service import CameraHealth
+from cblrs.runtime.outputs.events import decode_alert
+from cblrs.runtime.transport.inprocess import InProcessBroker, InProcessTransport
+from cblrs.runtime.transport.topics import alerts_topic
 
 RULES = {"rules": [
     {"name": "crowd", "kind": "occupancy", "zone": "market", "above": 1, "for_s": 2},

@@ -341,7 +341,7 @@ def test_the_receiver_sees_each_episode_fired_then_cleared(receiver, monkeypatch
 
 def test_the_ledger_survives_a_kill_and_delivers_each_alert_once(tmp_path, receiver):
     from cblrs.alerts import AlertLedger
-    from cblrs.runtime.store import RuntimeStore
+    from cblrs.runtime.matcher.store import RuntimeStore
 
     model = rules({"name": "crowd", "kind": "occupancy", "zone": "m", "above": 1, "for_s": 2})
     database = tmp_path / "plane1.db"

@@ -70,10 +70,10 @@ def test_the_matcher_gates_its_alerts_and_counts_with_the_sites_hours(tmp_path):
     import yaml
 
     from cblrs.cli.matcher import make_analytics
-    from cblrs.runtime.alert_service import AlertService
-    from cblrs.runtime.analytics_service import CameraHealth
-    from cblrs.runtime.inprocess import InProcessBroker, InProcessTransport
-    from cblrs.runtime.store import RuntimeStore
+    from cblrs.runtime.matcher.store import RuntimeStore
+    from cblrs.runtime.outputs.alert_service import AlertService
+    from cblrs.runtime.outputs.analytics_service import CameraHealth
+    from cblrs.runtime.transport.inprocess import InProcessBroker, InProcessTransport
     from cblrs.site import load_site
 
     path = tmp_path / "site.yaml"

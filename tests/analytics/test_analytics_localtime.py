@@ -19,8 +19,8 @@ from cblrs.cli.main import main
 from cblrs.datasets import write_tracks
 from cblrs.detections import Tracks
 from cblrs.places import CountingLine, Places, Zone
-from cblrs.runtime.events import decode_event, encode_event
-from cblrs.runtime.online_analytics import OnlineAnalytics
+from cblrs.runtime.outputs.events import decode_event, encode_event
+from cblrs.runtime.outputs.online_analytics import OnlineAnalytics
 
 ZURICH = ZoneInfo("Europe/Zurich")
 GATE = Places(lines=(CountingLine("gate", (0, -5), (0, 5)),))

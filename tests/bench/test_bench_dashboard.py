@@ -8,7 +8,7 @@ import pytest
 
 from cblrs.cli.main import main
 from cblrs.dashboard.browser import browser_problem
-from cblrs.runtime.broker import find_mosquitto
+from cblrs.runtime.broker.mosquitto_config import find_mosquitto
 
 
 @pytest.mark.slow

@@ -17,8 +17,8 @@ from cblrs.dashboard.feed import Subscriber, tracks_frame
 from cblrs.dashboard.replay import ReplayError, StoreReplay
 from cblrs.dashboard.scene import clip_to_box, site_scene
 from cblrs.datasets import load_scene
-from cblrs.runtime.online_analytics import OnlineAnalytics
-from cblrs.runtime.store import RuntimeStore
+from cblrs.runtime.matcher.store import RuntimeStore
+from cblrs.runtime.outputs.online_analytics import OnlineAnalytics
 from cblrs.runtime.wire import decode_tracks, encode_tracks
 from cblrs.site import load_site
 from conftest import cblrs_command
@@ -87,16 +87,17 @@ def test_the_live_feed_draws_no_corrections_of_the_past():
 
     from cblrs.dashboard.feed import LiveFeed
     from cblrs.detections import Tracks
-    from cblrs.runtime.mqtt_transport import MqttSettings
+    from cblrs.runtime.transport.mqtt_transport import MqttSettings
 
     feed = LiveFeed(MqttSettings("127.0.0.1", 1), 1, "viewer-test")  # never connected
     now = Tracks([7], [20.0], [3], [[1.0, 2.0]])
     past = Tracks([1], [10.0], [3], [[5.0, 5.0]])
     for payload in (encode_tracks(now, 1, sequence=1, timestamp=20.0),
                     encode_tracks(past, 1, sequence=2, timestamp=10.0, corrected_from=9.0)):
-        feed._on_tracks(SimpleNamespace(payload=payload, ack=lambda: None))
+        feed._on_tracks(1, SimpleNamespace(payload=payload, ack=lambda: None))
     assert feed.counters["tracks"] == 1 and feed.counters["corrections"] == 1
-    assert feed._last_tracks == {"type": "tracks", "t": 20.0, "rows": [[3, 1.0, 2.0, None]]}
+    assert feed._state[1].last_tracks == {"type": "tracks", "t": 20.0, "plane": 1,
+                                          "rows": [[3, 1.0, 2.0, None]]}
 
 
 def test_subscriber_drops_old_track_frames_not_events():
@@ -210,7 +211,7 @@ def test_dashboard_refused_by_the_broker_says_so(wildtrack_site, start_broker, t
 
 
 def test_dashboard_bad_arguments_say_so(wildtrack_site, tmp_path):
-    from cblrs.runtime.broker import free_port
+    from cblrs.runtime.broker.mosquitto_config import free_port
 
     cases = [
         (["--site", str(tmp_path / "missing.yaml")], "does not exist"),

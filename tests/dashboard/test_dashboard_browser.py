@@ -21,12 +21,12 @@ from pathlib import Path
 import pytest
 
 from cblrs.datasets import load_scene
-from cblrs.runtime.analytics_store import count_summary, read_counts
-from cblrs.runtime.camera_node import CameraNode, camera_last_will
-from cblrs.runtime.mqtt_transport import MqttTransport
-from cblrs.runtime.sources import scene_source
-from cblrs.runtime.store import RuntimeStore
-from cblrs.runtime.transport import Will
+from cblrs.runtime.camera.camera_node import CameraNode, camera_last_will
+from cblrs.runtime.camera.sources import scene_source
+from cblrs.runtime.matcher.store import RuntimeStore
+from cblrs.runtime.outputs.analytics_store import count_summary, read_counts
+from cblrs.runtime.transport.mqtt_transport import MqttTransport
+from cblrs.runtime.transport.protocol import Will
 from cblrs.site import load_site
 from conftest import VIEWER, cblrs_command, login, wait_until
 

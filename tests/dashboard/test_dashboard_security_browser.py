@@ -29,9 +29,9 @@ import pytest
 from cblrs.dashboard.app import DashboardConfig, create_app
 from cblrs.dashboard.auth import Authenticator
 from cblrs.dashboard.feed import LiveFeed
-from cblrs.runtime.events import encode_alert, encode_event, encode_live
-from cblrs.runtime.mqtt_transport import MqttTransport
-from cblrs.runtime.topics import alerts_topic, events_topic, live_topic
+from cblrs.runtime.outputs.events import encode_alert, encode_event, encode_live
+from cblrs.runtime.transport.mqtt_transport import MqttTransport
+from cblrs.runtime.transport.topics import alerts_topic, events_topic, live_topic
 from cblrs.site import load_site
 from conftest import ADMIN, VIEWER, calibration_points, login, site_copy, wait_until
 

@@ -13,8 +13,8 @@ from cblrs.dashboard.feed import tracks_frame
 from cblrs.dashboard.replay import StoreReplay
 from cblrs.datasets import load_scene
 from cblrs.privacy import PseudoKey, pseudo_places, tracks_to_pseudo
-from cblrs.runtime.online_analytics import OnlineAnalytics
-from cblrs.runtime.store import RuntimeStore
+from cblrs.runtime.matcher.store import RuntimeStore
+from cblrs.runtime.outputs.online_analytics import OnlineAnalytics
 from cblrs.runtime.wire import decode_tracks, encode_tracks
 
 KEY = PseudoKey(bytes(range(2, 34)), "00c0ffee")

@@ -27,16 +27,16 @@ import pytest
 from broker_user import RUN_AS
 from fault_plant import fault_references, plant  # noqa: F401 (fixtures of the fault tests)
 
-from cblrs.runtime.broker import (
+from cblrs.runtime.broker.mosquitto_config import (
     BrokerFiles,
     MosquittoProcess,
     find_mosquitto,
     free_port,
     write_broker_config,
 )
-from cblrs.runtime.inprocess import InProcessBroker, InProcessTransport
-from cblrs.runtime.mqtt_transport import MqttSettings, MqttTransport
-from cblrs.runtime.transport import Transport, Will
+from cblrs.runtime.transport.inprocess import InProcessBroker, InProcessTransport
+from cblrs.runtime.transport.mqtt_transport import MqttSettings, MqttTransport
+from cblrs.runtime.transport.protocol import Transport, Will
 
 TEST_CAMERAS = ("CVLab1", "CVLab2")
 TEST_MATCHERS = ("matcher1", "matcher2")

@@ -20,7 +20,7 @@ from waiting import wait_until
 
 from cblrs.datasets import load_scene
 from cblrs.pipeline import render_scene_references
-from cblrs.runtime.store import RuntimeStore
+from cblrs.runtime.matcher.store import RuntimeStore
 
 CAMERAS = ("CVLab1", "CVLab2")
 FRAMES = "0:195"  # 40 annotated frames
@@ -154,8 +154,8 @@ def broker_saves(plant: Plant) -> int:
 def wait_matcher_online(plant: Plant, since: float, timeout: float = 60) -> None:
     """Wait for the matcher's retained "online" stamped after ``since``: it then holds its
     database and the plane's lease and has subscribed."""
-    from cblrs.runtime.mqtt_transport import MqttTransport
-    from cblrs.runtime.topics import matcher_status_filter
+    from cblrs.runtime.transport.mqtt_transport import MqttTransport
+    from cblrs.runtime.transport.topics import matcher_status_filter
     from cblrs.runtime.wire import decode_status
 
     seen: list = []

@@ -12,7 +12,7 @@ import urllib.request
 
 import pytest
 
-from cblrs.runtime.metrics import (
+from cblrs.runtime.matcher.metrics import (
     MetricsServer,
     MetricsServerError,
     check_exposure,

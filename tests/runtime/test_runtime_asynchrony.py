@@ -25,13 +25,13 @@ from cblrs.detections import CameraMessage
 from cblrs.matching import make_matcher
 from cblrs.pipeline import camera_positions, render_scene_references, scene_planes, track_scene
 from cblrs.plane import PlaneSet, PlaneSpec
-from cblrs.runtime.camera_node import CameraNode, camera_last_will
-from cblrs.runtime.inprocess import InProcessBroker, InProcessTransport
-from cblrs.runtime.matcher_service import MatcherService
-from cblrs.runtime.sources import scene_source
-from cblrs.runtime.store import RuntimeStore
-from cblrs.runtime.topics import detections_topic
-from cblrs.runtime.transport import Will
+from cblrs.runtime.camera.camera_node import CameraNode, camera_last_will
+from cblrs.runtime.camera.sources import scene_source
+from cblrs.runtime.matcher.matcher_service import MatcherService
+from cblrs.runtime.matcher.store import RuntimeStore
+from cblrs.runtime.transport.inprocess import InProcessBroker, InProcessTransport
+from cblrs.runtime.transport.protocol import Will
+from cblrs.runtime.transport.topics import detections_topic
 from cblrs.runtime.wire import encode_message
 
 PLANE = 1

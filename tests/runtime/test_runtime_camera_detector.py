@@ -15,7 +15,7 @@ from cblrs.datasets import load_scene
 from cblrs.detectors import ColourBlobDetector
 from cblrs.errors import DatasetError
 from cblrs.pipeline import render_scene_references
-from cblrs.runtime.sources import image_folder_source, video_source
+from cblrs.runtime.camera.sources import image_folder_source, video_source
 
 
 @pytest.fixture(scope="module")

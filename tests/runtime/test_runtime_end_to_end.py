@@ -21,13 +21,13 @@ from cblrs.evaluation import evaluate
 from cblrs.matching import make_matcher
 from cblrs.pipeline import render_scene_references, scene_planes, track_scene
 from cblrs.reference import ReferenceImage
-from cblrs.runtime.camera_node import CameraNode, camera_last_will
-from cblrs.runtime.inprocess import InProcessBroker, InProcessTransport
-from cblrs.runtime.matcher_service import MatcherService
-from cblrs.runtime.sources import scene_source
-from cblrs.runtime.store import RuntimeStore
-from cblrs.runtime.topics import tracks_topic
-from cblrs.runtime.transport import Will
+from cblrs.runtime.camera.camera_node import CameraNode, camera_last_will
+from cblrs.runtime.camera.sources import scene_source
+from cblrs.runtime.matcher.matcher_service import MatcherService
+from cblrs.runtime.matcher.store import RuntimeStore
+from cblrs.runtime.transport.inprocess import InProcessBroker, InProcessTransport
+from cblrs.runtime.transport.protocol import Will
+from cblrs.runtime.transport.topics import tracks_topic
 from cblrs.runtime.wire import decode_tracks
 
 PLANE = 1

@@ -25,7 +25,7 @@ from fault_plant import (
 )
 from waiting import wait_until
 
-from cblrs.runtime.store import RuntimeStore
+from cblrs.runtime.matcher.store import RuntimeStore
 
 pytestmark = pytest.mark.mqtt
 

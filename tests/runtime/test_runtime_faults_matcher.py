@@ -23,7 +23,7 @@ from fault_plant import (
 )
 from waiting import wait_until
 
-from cblrs.runtime.store import RuntimeStore
+from cblrs.runtime.matcher.store import RuntimeStore
 
 pytestmark = pytest.mark.mqtt
 
@@ -36,7 +36,7 @@ def test_item5_a_database_deleted_under_the_matcher_stops_it(plant, tmp_path):
     folder.mkdir()
     database = folder / "plane1.db"
     matcher = plant.start(plant.matcher(database))
-    wait_until(lambda: database.exists(), 30, "the database")
+    wait_until(lambda: database.exists(), 120, "the database")  # a loaded machine starts slowly
     cameras = [plant.start(plant.camera(name, "--realtime", "--speed", "8",
                                         "--confirm-timeout", "90", "--resend-after", "1"))
                for name in CAMERAS]
@@ -131,7 +131,7 @@ def test_item10_sigterm_to_the_process_group_stops_cleanly_and_resumes(plant, tm
 def test_item10_clean_camera_shutdown_keeps_its_final_offline(plant, tmp_path):
     """A camera's clean end leaves its timestamped "offline" (not its last will) retained, so
     a matcher started afterwards knows the stream ended."""
-    from cblrs.runtime.mqtt_transport import MqttTransport
+    from cblrs.runtime.transport.mqtt_transport import MqttTransport
     from cblrs.runtime.wire import decode_status
 
     plant = plant()
@@ -180,8 +180,8 @@ def test_item12_logs_have_times_lifecycle_lines_and_rate_limited_rejections(plan
     per 10 s (50 rejections give one line); -v adds cblrs debug lines, -vv paho's packets."""
     import re
 
-    from cblrs.runtime.mqtt_transport import MqttTransport
-    from cblrs.runtime.topics import detections_topic, status_topic
+    from cblrs.runtime.transport.mqtt_transport import MqttTransport
+    from cblrs.runtime.transport.topics import detections_topic, status_topic
     from cblrs.runtime.wire import encode_status
 
     plant = plant()

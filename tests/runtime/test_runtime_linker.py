@@ -18,13 +18,13 @@ from cblrs.datasets.city import city_scenes, street_world
 from cblrs.detections import Tracks
 from cblrs.linking.files import site_analytics_config
 from cblrs.linking.linker import PlaneLinker, link_tracks
-from cblrs.runtime.analytics_store import read_counts, read_od
-from cblrs.runtime.inprocess import InProcessBroker, InProcessTransport
-from cblrs.runtime.linker_service import LinkerService
-from cblrs.runtime.linker_store import LinkerStore, LinkerStoreError
-from cblrs.runtime.mqtt_transport import MqttTransport
-from cblrs.runtime.online_analytics import OnlineAnalytics
-from cblrs.runtime.topics import events_topic, site_tracks_topic, tracks_topic
+from cblrs.runtime.outputs.analytics_store import read_counts, read_od
+from cblrs.runtime.outputs.linker_service import LinkerService
+from cblrs.runtime.outputs.linker_store import LinkerStore, LinkerStoreError
+from cblrs.runtime.outputs.online_analytics import OnlineAnalytics
+from cblrs.runtime.transport.inprocess import InProcessBroker, InProcessTransport
+from cblrs.runtime.transport.mqtt_transport import MqttTransport
+from cblrs.runtime.transport.topics import events_topic, site_tracks_topic, tracks_topic
 from cblrs.runtime.wire import decode_tracks, encode_tracks
 
 EPOCH = 1_700_000_000.0

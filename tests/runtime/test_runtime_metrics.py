@@ -15,19 +15,19 @@ from cblrs.detections import CameraMessage
 from cblrs.matching import make_matcher
 from cblrs.places import CountingLine, Places, Zone
 from cblrs.plane import PlaneSet, PlaneSpec
-from cblrs.runtime.analytics_store import read_events
-from cblrs.runtime.events import decode_event, decode_live
-from cblrs.runtime.inprocess import InProcessBroker, InProcessTransport
-from cblrs.runtime.matcher_service import MatcherService
-from cblrs.runtime.metrics import (
+from cblrs.runtime.matcher.matcher_service import MatcherService
+from cblrs.runtime.matcher.metrics import (
     MetricsServer,
     MetricsServerError,
     ServiceMetrics,
     parse_address,
 )
-from cblrs.runtime.online_analytics import OnlineAnalytics
-from cblrs.runtime.store import RuntimeStore
-from cblrs.runtime.topics import detections_topic, events_topic, live_topic, status_topic
+from cblrs.runtime.matcher.store import RuntimeStore
+from cblrs.runtime.outputs.analytics_store import read_events
+from cblrs.runtime.outputs.events import decode_event, decode_live
+from cblrs.runtime.outputs.online_analytics import OnlineAnalytics
+from cblrs.runtime.transport.inprocess import InProcessBroker, InProcessTransport
+from cblrs.runtime.transport.topics import detections_topic, events_topic, live_topic, status_topic
 from cblrs.runtime.wire import encode_message, encode_status
 
 PLANE = 1

@@ -19,9 +19,10 @@ from cblrs.datasets import load_scene
 from cblrs.matching import make_matcher
 from cblrs.pipeline import render_scene_references, scene_planes, track_scene
 from cblrs.reference import ReferenceImage
-from cblrs.runtime.mqtt_transport import MqttSettings, MqttTransport
-from cblrs.runtime.nats_server import NatsCluster, find_nats_server
-from cblrs.runtime.nats_transport import (
+from cblrs.runtime.broker.nats_server import NatsCluster, find_nats_server
+from cblrs.runtime.matcher.store import RuntimeStore
+from cblrs.runtime.transport.mqtt_transport import MqttSettings, MqttTransport
+from cblrs.runtime.transport.nats_transport import (
     LeaseSettings,
     NatsSettings,
     NatsTransport,
@@ -33,8 +34,7 @@ from cblrs.runtime.nats_transport import (
     subject_to_topic,
     topic_to_subject,
 )
-from cblrs.runtime.store import RuntimeStore
-from cblrs.runtime.transport import TransportError
+from cblrs.runtime.transport.protocol import TransportError
 
 pytestmark = pytest.mark.nats
 
@@ -417,10 +417,10 @@ def test_analytics_events_flow_on_the_backbone_stored_once(server, transports, t
 
     from cblrs.detections import Tracks
     from cblrs.places import CountingLine, Places
-    from cblrs.runtime.analytics_service import ServiceReporter
-    from cblrs.runtime.analytics_store import read_events
-    from cblrs.runtime.online_analytics import OnlineAnalytics
-    from cblrs.runtime.topics import events_topic
+    from cblrs.runtime.outputs.analytics_service import ServiceReporter
+    from cblrs.runtime.outputs.analytics_store import read_events
+    from cblrs.runtime.outputs.online_analytics import OnlineAnalytics
+    from cblrs.runtime.transport.topics import events_topic
 
     places = Places(lines=(CountingLine("gate", (0.0, -5.0), (0.0, 5.0)),))
     store = RuntimeStore(tmp_path / "m.db")
@@ -483,7 +483,7 @@ def test_a_deployment_with_the_old_single_stream_keeps_using_it(tmp_path, caplog
         created.append(matcher)
         matcher.subscribe("cblrs/3/+/detections",
                           lambda delivery: (received.append(delivery.payload), delivery.ack()))
-        with caplog.at_level("WARNING", logger="cblrs.runtime.nats_transport"):
+        with caplog.at_level("WARNING", logger="cblrs.runtime.transport.nats_transport"):
             matcher.connect()
         assert "the NATS stream CBLRS made by an older cblrs holds every plane" in caplog.text
         camera = NatsTransport("c", settings)

@@ -33,16 +33,16 @@ from cblrs.datasets import load_scene
 from cblrs.matching import make_matcher
 from cblrs.pipeline import render_scene_references, scene_planes, track_scene
 from cblrs.reference import ReferenceImage
-from cblrs.runtime.camera_node import CameraNode
-from cblrs.runtime.nats_server import NatsCluster, find_nats_server
-from cblrs.runtime.nats_transport import (
+from cblrs.runtime.broker.nats_server import NatsCluster, find_nats_server
+from cblrs.runtime.camera.camera_node import CameraNode
+from cblrs.runtime.camera.sources import scene_source
+from cblrs.runtime.matcher.store import RuntimeStore
+from cblrs.runtime.transport.nats_transport import (
     NatsSettings,
     NatsTransport,
     detections_stream,
     tracks_stream,
 )
-from cblrs.runtime.sources import scene_source
-from cblrs.runtime.store import RuntimeStore
 from cblrs.runtime.wire import decode_tracks
 
 PLANE = 1

@@ -17,17 +17,17 @@ import pytest
 from test_runtime_transport import Collector  # tests/runtime is on sys.path (rootdir-relative)
 from waiting import wait_until
 
-from cblrs.runtime.mqtt_transport import MqttTransport
-from cblrs.runtime.nats_auth import NatsSecurityError, role_permissions, write_nats_security
-from cblrs.runtime.nats_server import NatsCluster, find_nats_server
-from cblrs.runtime.nats_transport import (
+from cblrs.runtime.broker.nats_auth import NatsSecurityError, role_permissions, write_nats_security
+from cblrs.runtime.broker.nats_server import NatsCluster, find_nats_server
+from cblrs.runtime.transport.mqtt_transport import MqttTransport
+from cblrs.runtime.transport.nats_transport import (
     LeaseSettings,
     NatsSettings,
     NatsTransport,
     detections_stream,
     lease_key,
 )
-from cblrs.runtime.transport import TransportError
+from cblrs.runtime.transport.protocol import TransportError
 
 pytestmark = pytest.mark.nats
 
@@ -381,7 +381,7 @@ def test_the_servers_folder_holds_hashes_and_each_client_its_own_secrets(backbon
     ],
 )
 def test_role_permissions_allow_exactly_the_roles_subjects(role, name, planes, allowed, refused):
-    from cblrs.runtime.nats_transport import subject_matches
+    from cblrs.runtime.transport.nats_transport import subject_matches
 
     permissions = role_permissions(role, name, planes, SITE)
     publish = permissions["publish"].get("allow", [])
@@ -393,7 +393,7 @@ def test_role_permissions_allow_exactly_the_roles_subjects(role, name, planes, a
 
 
 def test_viewers_read_alerts_and_cameras_do_not():
-    from cblrs.runtime.nats_transport import subject_matches
+    from cblrs.runtime.transport.nats_transport import subject_matches
 
     def reads(role: str, name: str, subject: str) -> bool:
         allowed = role_permissions(role, name, (1,), SITE)["subscribe"]["allow"]
@@ -436,9 +436,9 @@ def test_the_generated_backbone_runs_cameras_matcher_and_viewer_end_to_end(
 
     from cblrs.datasets import load_scene
     from cblrs.pipeline import render_scene_references
-    from cblrs.runtime.mosquitto import free_port
-    from cblrs.runtime.nats_server import NatsNodeConfig, NatsServerProcess
-    from cblrs.runtime.store import RuntimeStore
+    from cblrs.runtime.broker.mosquitto import free_port
+    from cblrs.runtime.broker.nats_server import NatsNodeConfig, NatsServerProcess
+    from cblrs.runtime.matcher.store import RuntimeStore
 
     if find_nats_server() is None:
         pytest.skip("no nats-server")
@@ -550,7 +550,7 @@ def test_a_matchers_own_login_gets_what_a_dead_holder_left_unacknowledged_at_onc
     successor.subscribe("cblrs/2/+/detections",
                         lambda delivery: (again.append(delivery.payload), delivery.ack()))
     successor.subscribe("cblrs/2/+/status", lambda delivery: delivery.ack())
-    with caplog.at_level("INFO", logger="cblrs.runtime.nats_transport"):
+    with caplog.at_level("INFO", logger="cblrs.runtime.transport.nats_transport"):
         successor.connect()
         wait_until(lambda: _detections("CVLab1", 901, 2) in again, WAIT, "the unacknowledged")
     # Not by ack_wait's redelivery: the successor reset its consumer to the floor at start.

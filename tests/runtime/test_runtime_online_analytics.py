@@ -40,14 +40,14 @@ from cblrs.datasets import load_scene
 from cblrs.datasets.aicity import write_tracks
 from cblrs.matching import make_matcher
 from cblrs.pipeline import track_scene
-from cblrs.runtime.analytics_store import count_summary, read_counts, read_events, read_od
-from cblrs.runtime.broker import free_port
-from cblrs.runtime.camera_node import CameraNode, camera_last_will
-from cblrs.runtime.events import decode_event
-from cblrs.runtime.mqtt_transport import MqttTransport
-from cblrs.runtime.store import RuntimeStore
-from cblrs.runtime.topics import events_topic, matcher_status_topic
-from cblrs.runtime.transport import TransportError, Will
+from cblrs.runtime.broker.mosquitto_config import free_port
+from cblrs.runtime.camera.camera_node import CameraNode, camera_last_will
+from cblrs.runtime.matcher.store import RuntimeStore
+from cblrs.runtime.outputs.analytics_store import count_summary, read_counts, read_events, read_od
+from cblrs.runtime.outputs.events import decode_event
+from cblrs.runtime.transport.mqtt_transport import MqttTransport
+from cblrs.runtime.transport.protocol import TransportError, Will
+from cblrs.runtime.transport.topics import events_topic, matcher_status_topic
 from cblrs.runtime.wire import decode_status
 from cblrs.site import load_site
 
@@ -87,7 +87,7 @@ def paced(frames, seconds: float):
 
 def start_cameras(case, broker, epoch: float) -> list[threading.Thread]:
     """One camera node per camera, each logged in as its own broker user, paced."""
-    from cblrs.runtime.sources import scene_source
+    from cblrs.runtime.camera.sources import scene_source
 
     scene = case["scene"]
     threads = []
@@ -220,7 +220,10 @@ def test_online_counts_equal_offline_and_survive_sigkill(case, site_file, start_
     summary = json.loads(out)
     assert 0 < killed_at < total, "the kill was not mid-stream"
     assert 0 < events_at_kill, "no event was counted before the kill"
-    assert summary["processed"] == total and summary["late"] == 0
+    # Under load a restarted matcher may release a window before every camera's queued
+    # messages reached it: those are late, re-tracked, and the analytics follow.
+    assert summary["processed"] == total
+    assert summary["late"] == summary.get("late_tracked", 0), summary
 
     with RuntimeStore(database, read_only=True) as store:
         tracks = store.tracks()

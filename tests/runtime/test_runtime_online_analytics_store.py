@@ -14,15 +14,15 @@ from cblrs.analytics import AnalyticsError, analyse_tracks, load_site_places
 from cblrs.datasets import load_scene
 from cblrs.detections import Tracks
 from cblrs.places import CountingLine, Places, Zone
-from cblrs.runtime.analytics_store import (
+from cblrs.runtime.matcher.store import RuntimeStore
+from cblrs.runtime.outputs.analytics_store import (
     count_summary,
     read_bins,
     read_counts,
     read_events,
     read_od,
 )
-from cblrs.runtime.online_analytics import OnlineAnalytics, plane_places
-from cblrs.runtime.store import RuntimeStore
+from cblrs.runtime.outputs.online_analytics import OnlineAnalytics, plane_places
 
 EPOCH = 1_700_000_000.0
 REPO_SITE = "sites/wildtrack.yaml"
@@ -250,8 +250,8 @@ def test_unsynchronised_cameras_count_like_offline(wildtrack_root, places, clock
 def test_retention_deletes_old_published_events_and_bins_and_keeps_the_totals(tmp_path):
     import time
 
-    from cblrs.runtime.analytics_store import mark_published
-    from cblrs.runtime.retention import RetentionPolicy, apply_retention
+    from cblrs.runtime.matcher.retention import RetentionPolicy, apply_retention
+    from cblrs.runtime.outputs.analytics_store import mark_published
 
     places = Places(lines=(CountingLine("gate", (0.0, -5.0), (0.0, 5.0)),))
     store = RuntimeStore(tmp_path / "m.db")

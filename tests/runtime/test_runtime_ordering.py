@@ -6,7 +6,7 @@ from typing import NamedTuple
 
 import pytest
 
-from cblrs.runtime.ordering import Orderer
+from cblrs.runtime.matcher.ordering import Orderer
 
 
 class Entry(NamedTuple):

@@ -11,7 +11,7 @@ from cblrs.bench.mqtt_load import PLANE, CameraClocks, camera_names
 from cblrs.detections import CameraMessage
 from cblrs.matching import make_matcher
 from cblrs.plane import PlaneSet
-from cblrs.runtime.ordering import Orderer
+from cblrs.runtime.matcher.ordering import Orderer
 
 FPS = 10.0
 

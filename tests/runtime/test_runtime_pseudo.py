@@ -41,9 +41,9 @@ from waiting import wait_until
 from cblrs.datasets import load_scene
 from cblrs.privacy import PseudoKey
 from cblrs.reference import load_reference
-from cblrs.runtime.events import decode_event
-from cblrs.runtime.mqtt_transport import MqttTransport
-from cblrs.runtime.topics import matcher_status_topic
+from cblrs.runtime.outputs.events import decode_event
+from cblrs.runtime.transport.mqtt_transport import MqttTransport
+from cblrs.runtime.transport.topics import matcher_status_topic
 from cblrs.runtime.wire import decode_status, decode_tracks
 from cblrs.site import load_site
 

@@ -12,13 +12,13 @@ from test_runtime_store import entry
 
 from cblrs.detections import Tracks
 from cblrs.errors import CblrsError
-from cblrs.runtime.retention import (
+from cblrs.runtime.matcher.retention import (
     DEFAULT_TABLES,
     RetainedTable,
     RetentionPolicy,
     apply_retention,
 )
-from cblrs.runtime.store import LATE, PENDING, PROCESSED, RuntimeStore
+from cblrs.runtime.matcher.store import LATE, PENDING, PROCESSED, RuntimeStore
 
 NOW = 1_800_000_000.0
 HOUR = 3600.0
@@ -79,7 +79,7 @@ def test_size_deletes_the_oldest_first_but_never_pending_rows(tmp_path, caplog):
         assert max(ages) < 3000 - deleted["inbox"] + 1, "the oldest must go first"
         assert store.status_counts()[PENDING] == 300
         # A bound below what is not yet tracked: nothing pending goes, and it says so.
-        with caplog.at_level(logging.WARNING, logger="cblrs.runtime.retention"):
+        with caplog.at_level(logging.WARNING, logger="cblrs.runtime.matcher.retention"):
             apply_retention(store, RetentionPolicy(max_age_s=None, max_bytes=4096), NOW)
         assert store.status_counts() == {PENDING: 300}
         assert "is not yet tracked (kept)" in caplog.text
@@ -120,9 +120,9 @@ def test_the_service_applies_retention_while_it_runs(tmp_path):
 
     from cblrs.matching import make_matcher
     from cblrs.plane import PlaneSet, PlaneSpec
-    from cblrs.runtime.inprocess import InProcessBroker, InProcessTransport
-    from cblrs.runtime.matcher_service import MatcherService
-    from cblrs.runtime.topics import detections_topic
+    from cblrs.runtime.matcher.matcher_service import MatcherService
+    from cblrs.runtime.transport.inprocess import InProcessBroker, InProcessTransport
+    from cblrs.runtime.transport.topics import detections_topic
     from cblrs.runtime.wire import encode_message
 
     broker = InProcessBroker()
@@ -150,7 +150,7 @@ def test_the_service_applies_retention_while_it_runs(tmp_path):
 
 
 def test_rate_limited_log_says_how_many_it_held_back(caplog):
-    from cblrs.runtime.rate_limited import RateLimitedLog
+    from cblrs.runtime.transport.rate_limited import RateLimitedLog
 
     now = [0.0]
     log = RateLimitedLog(logging.getLogger("cblrs.test.rate"), interval_s=10, clock=lambda: now[0])

@@ -11,9 +11,9 @@ from cblrs.detections import CameraMessage
 from cblrs.errors import CblrsError
 from cblrs.matching import make_matcher
 from cblrs.plane import PlaneSet, PlaneSpec
-from cblrs.runtime.retention import RetentionPolicy, apply_retention
-from cblrs.runtime.retrack import RetrackPolicy, Snapshots, retrack
-from cblrs.runtime.store import LATE, PENDING, PROCESSED, InboxEntry, RuntimeStore
+from cblrs.runtime.matcher.retention import RetentionPolicy, apply_retention
+from cblrs.runtime.matcher.retrack import RetrackPolicy, Snapshots, retrack
+from cblrs.runtime.matcher.store import LATE, PENDING, PROCESSED, InboxEntry, RuntimeStore
 
 CAMERAS = ["A", "B"]
 NOW = 1_800_000_000.0

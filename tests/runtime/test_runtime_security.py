@@ -12,10 +12,15 @@ from pathlib import Path
 import pytest
 from test_runtime_transport import Collector  # tests/runtime is on sys.path (rootdir-relative)
 
-from cblrs.runtime.broker import BrokerError, MosquittoProcess, free_port, write_broker_config
-from cblrs.runtime.mqtt_transport import MqttTransport
-from cblrs.runtime.topics import detections_topic, status_topic, tracks_topic
-from cblrs.runtime.transport import TransportError
+from cblrs.runtime.broker.mosquitto_config import (
+    BrokerError,
+    MosquittoProcess,
+    free_port,
+    write_broker_config,
+)
+from cblrs.runtime.transport.mqtt_transport import MqttTransport
+from cblrs.runtime.transport.protocol import TransportError
+from cblrs.runtime.transport.topics import detections_topic, status_topic, tracks_topic
 
 pytestmark = pytest.mark.mqtt
 
@@ -226,8 +231,8 @@ def test_broker_config_command_writes_a_working_configuration(tmp_path, capsys):
     from broker_user import RUN_AS
 
     from cblrs.cli.main import main
-    from cblrs.runtime.broker import MosquittoProcess, free_port
-    from cblrs.runtime.mqtt_transport import MqttSettings
+    from cblrs.runtime.broker.mosquitto_config import MosquittoProcess, free_port
+    from cblrs.runtime.transport.mqtt_transport import MqttSettings
 
     port = free_port()
     out = tmp_path / "broker"
@@ -417,7 +422,7 @@ def test_a_second_client_with_the_same_login_is_logged_and_counted(mosquitto_aut
 
     first = connect(mosquitto_auth, "matcher1")
     intruder = MqttTransport("anything", mosquitto_auth.settings("matcher1"), persistent=False)
-    with caplog.at_level("ERROR", logger="cblrs.runtime.mqtt_transport"):
+    with caplog.at_level("ERROR", logger="cblrs.runtime.transport.mqtt_transport"):
         intruder.connect()
         # Two clients with one login take the session from each other until one leaves;
         # Mosquitto 2.0.11 closes the older one without MQTT 5's reason 0x8E, so a

@@ -28,12 +28,8 @@ from cblrs.matching import make_matcher
 from cblrs.pipeline import scene_planes
 from cblrs.plane import PlaneSet, PlaneSpec
 from cblrs.reference import render_reference
-from cblrs.runtime.camera_node import CameraNode, camera_last_will
-from cblrs.runtime.inprocess import InProcessBroker, InProcessTransport
-from cblrs.runtime.matcher_service import MatcherService, ServiceClock
-from cblrs.runtime.mqtt_transport import MqttTransport
-from cblrs.runtime.retrack import RetrackPolicy
-from cblrs.runtime.sources import (
+from cblrs.runtime.camera.camera_node import CameraNode, camera_last_will
+from cblrs.runtime.camera.sources import (
     ColourBlobDetector,
     Detector,
     SourceFrame,
@@ -45,10 +41,14 @@ from cblrs.runtime.sources import (
     scene_source,
     video_source,
 )
-from cblrs.runtime.store import LATE, PENDING, PROCESSED, RuntimeStore
-from cblrs.runtime.topics import detections_topic, matcher_status_topic, status_topic
-from cblrs.runtime.tracker_process import TrackerProcessError
-from cblrs.runtime.transport import Will
+from cblrs.runtime.matcher.matcher_service import MatcherService, ServiceClock
+from cblrs.runtime.matcher.retrack import RetrackPolicy
+from cblrs.runtime.matcher.store import LATE, PENDING, PROCESSED, RuntimeStore
+from cblrs.runtime.matcher.tracker_process import TrackerProcessError
+from cblrs.runtime.transport.inprocess import InProcessBroker, InProcessTransport
+from cblrs.runtime.transport.mqtt_transport import MqttTransport
+from cblrs.runtime.transport.protocol import Will
+from cblrs.runtime.transport.topics import detections_topic, matcher_status_topic, status_topic
 from cblrs.runtime.wire import decode_message, decode_status, encode_message, encode_status
 
 PLANE = 1
@@ -246,21 +246,28 @@ def _frames(count: int, detections: Detections | None = None) -> list[SourceFram
     return [SourceFrame(10 + index, 1.0 + 0.5 * index, detections) for index in range(count)]
 
 
-def test_a_camera_stopped_before_its_source_ended_does_not_end_its_stream(small_world):
-    """A signal stops the node mid-replay: everything sent is acknowledged, yet the stream
-    goes on after a restart, so its "offline" carries no timestamp (a matcher run
-    --until-cameras-offline must keep waiting; cblrs up's restart once ended early so)."""
+@pytest.mark.parametrize("realtime", [False, True], ids=["fast", "paced"])
+def test_a_camera_stopped_before_its_source_ended_does_not_end_its_stream(small_world,
+                                                                        realtime):
+    """A signal stops the node mid-replay (fast, or in a paced wait for the next frame's
+    time): everything sent is acknowledged, yet the stream goes on after a restart, so its
+    "offline" carries no timestamp (a matcher run --until-cameras-offline must keep waiting;
+    cblrs up's restart once ended early so)."""
     _, reference = small_world
     broker = InProcessBroker()
     received = _collector(broker)
     transport = InProcessTransport(broker, "cam1", persistent=False,
                                    will=Will(*camera_last_will(PLANE, "cam1")))
-    node = CameraNode(transport, PLANE, "cam1", reference, epoch=1000.0, confirm_timeout_s=0)
+    node = CameraNode(transport, PLANE, "cam1", reference, confirm_timeout_s=0,
+                      epoch=time.time() - 1.5 if realtime else 1000.0, realtime=realtime)
 
     def frames():
-        for index, frame in enumerate(_frames(10)):
+        for index, frame in enumerate(_frames(10)):  # frames 0.5 s apart from 1.0 s
             if index == 3:
-                node.stop()
+                if realtime:  # the next frame is due in about 1 s: stop in that wait
+                    threading.Timer(0.3, node.stop).start()
+                else:
+                    node.stop()
             yield frame
 
     report = node.run(frames())
@@ -965,7 +972,7 @@ def test_a_camera_without_any_matcher_keeps_everything(small_world, caplog):
     broker = InProcessBroker()
     node = CameraNode(InProcessTransport(broker, "cam1", persistent=False), PLANE, "cam1",
                       reference, epoch=1000.0, confirm_timeout_s=0.2)
-    with caplog.at_level("WARNING", logger="cblrs.runtime.camera_node"):
+    with caplog.at_level("WARNING", logger="cblrs.runtime.camera.camera_node"):
         report = node.run(_frames(5))
     assert report.flushed and not report.confirmed_all
     assert (report.unconfirmed, report.extra["unrouted"], report.confirmed) == (5, 5, 0)

@@ -25,8 +25,8 @@ from cblrs.cli.main import main
 from cblrs.datasets import load_scene, read_tracks
 from cblrs.datasets.aicity import metadata_path
 from cblrs.evaluation import evaluate
-from cblrs.runtime.mqtt_transport import MqttTransport
-from cblrs.runtime.topics import matcher_status_topic
+from cblrs.runtime.transport.mqtt_transport import MqttTransport
+from cblrs.runtime.transport.topics import matcher_status_topic
 from cblrs.runtime.wire import decode_status
 
 REPO = Path(__file__).resolve().parents[2]

@@ -16,7 +16,7 @@ from hypothesis import strategies as st
 from waiting import wait_until
 
 from cblrs.detections import CameraMessage, Tracks
-from cblrs.runtime.store import (
+from cblrs.runtime.matcher.store import (
     LATE,
     PENDING,
     PROCESSED,
@@ -167,7 +167,7 @@ def test_writer_lock_is_freed_when_its_holder_is_killed(tmp_path):
     path = tmp_path / "runtime.db-writers.lock"
     holder = subprocess.Popen(
         [sys.executable, "-c",
-         "import sys, time; from cblrs.runtime.store import WriterLock; "
+         "import sys, time; from cblrs.runtime.matcher.store import WriterLock; "
          "lock = WriterLock(sys.argv[1]); lock.acquire(); print('held', flush=True); "
          "time.sleep(60)", str(path)],
         stdout=subprocess.PIPE, text=True,

@@ -9,10 +9,10 @@ from dataclasses import replace
 
 import pytest
 
-from cblrs.runtime.inprocess import InProcessBroker, InProcessTransport
-from cblrs.runtime.mqtt_transport import MqttTransport
-from cblrs.runtime.topics import TopicError, topic_matches
-from cblrs.runtime.transport import Delivery, Transport, TransportError, Will
+from cblrs.runtime.transport.inprocess import InProcessBroker, InProcessTransport
+from cblrs.runtime.transport.mqtt_transport import MqttTransport
+from cblrs.runtime.transport.protocol import Delivery, Transport, TransportError, Will
+from cblrs.runtime.transport.topics import TopicError, topic_matches
 
 WAIT = 5.0
 """Upper bound for anything to arrive; tests finish as soon as it does."""
@@ -436,8 +436,8 @@ def test_without_broker_persistence_a_restart_loses_the_queue(start_mosquitto):
 
 
 def test_connect_to_a_closed_port_says_why_at_once():
-    from cblrs.runtime.broker import free_port
-    from cblrs.runtime.mqtt_transport import MqttSettings
+    from cblrs.runtime.broker.mosquitto_config import free_port
+    from cblrs.runtime.transport.mqtt_transport import MqttSettings
 
     transport = MqttTransport("lonely", MqttSettings(port=free_port(), connect_timeout_s=30))
     started = time.monotonic()
@@ -448,7 +448,7 @@ def test_connect_to_a_closed_port_says_why_at_once():
 
 
 def test_connect_to_a_silent_port_fails_within_the_timeout():
-    from cblrs.runtime.mqtt_transport import MqttSettings
+    from cblrs.runtime.transport.mqtt_transport import MqttSettings
 
     with socket.socket() as silent:  # accepts TCP connections, never speaks MQTT
         silent.bind(("127.0.0.1", 0))
@@ -461,7 +461,11 @@ def test_connect_to_a_silent_port_fails_within_the_timeout():
 def test_connect_without_waiting_queues_until_the_broker_appears(start_mosquitto, tmp_path):
     from broker_user import RUN_AS
 
-    from cblrs.runtime.broker import MosquittoProcess, free_port, write_broker_config
+    from cblrs.runtime.broker.mosquitto_config import (
+        MosquittoProcess,
+        free_port,
+        write_broker_config,
+    )
 
     files = write_broker_config(
         tmp_path / "late", [], [], port=free_port(), allow_anonymous=True, viewer=False,
@@ -549,7 +553,7 @@ def test_publishes_keep_their_order_across_broker_restarts(start_mosquitto):
 def test_a_connection_to_itself_is_refused():
     # Reconnecting to a local broker that is down, a client may draw the broker's port as its
     # source port and connect to itself; it would then block the broker's restart.
-    from cblrs.runtime.mqtt_transport import _socket_options
+    from cblrs.runtime.transport.mqtt_transport import _socket_options
 
     with socket.socket() as sock:
         sock.bind(("127.0.0.1", 0))

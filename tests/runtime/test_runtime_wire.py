@@ -12,7 +12,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from cblrs.detections import CLASS_NAMES, CameraMessage, Tracks
-from cblrs.runtime.topics import (
+from cblrs.runtime.transport.topics import (
     TopicError,
     detections_filter,
     detections_topic,
@@ -736,7 +736,7 @@ def test_topic_round_trip(camera_id, plane_id):
     ],
 )
 def test_filters_overlap(first, second, expected):
-    from cblrs.runtime.topics import filters_overlap
+    from cblrs.runtime.transport.topics import filters_overlap
 
     assert filters_overlap(first, second) is expected
     assert filters_overlap(second, first) is expected

@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 from up_helpers import small_site_text
 
-from cblrs.runtime.broker import find_mosquitto
+from cblrs.runtime.broker.mosquitto_config import find_mosquitto
 
 
 @pytest.fixture

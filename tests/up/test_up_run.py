@@ -11,7 +11,7 @@ import time
 import pytest
 from up_helpers import CAMERAS, ENVIRONMENT, PER_CAMERA, run_up, up_command
 
-from cblrs.runtime.store import RuntimeStore
+from cblrs.runtime.matcher.store import RuntimeStore
 from cblrs.up import database_counts
 
 EXPECTED = {(name, sequence) for name in CAMERAS for sequence in range(PER_CAMERA)}

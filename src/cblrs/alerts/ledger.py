@@ -1,7 +1,7 @@
 """Alert episodes kept in the matcher's SQLite file: fired once, cleared once, delivered once.
 
 :class:`AlertLedger` runs :class:`~cblrs.alerts.episodes.AlertEpisodes` on a store
-(:class:`cblrs.runtime.store.RuntimeStore`, or any object with ``write``, ``query`` and
+(:class:`cblrs.runtime.matcher.store.RuntimeStore`, or any object with ``write``, ``query`` and
 ``get_meta``): each observation's events and the episodes' new state are committed in one
 transaction, so a matcher killed at any moment restarts with the episodes it had committed —
 an open episode is not fired again, and its "cleared" comes once. The ``alerts`` table is also

@@ -33,13 +33,13 @@ from cblrs.detections import Tracks
 from cblrs.evaluation import evaluate
 from cblrs.matching import make_matcher
 from cblrs.pipeline import camera_positions, render_scene_references, scene_planes, track_scene
-from cblrs.runtime.broker import MosquittoProcess, free_port, write_broker_config
-from cblrs.runtime.camera_node import CameraNode, camera_last_will
-from cblrs.runtime.matcher_service import MatcherService
-from cblrs.runtime.mqtt_transport import MqttSettings, MqttTransport
-from cblrs.runtime.sources import scene_source
-from cblrs.runtime.store import RuntimeStore
-from cblrs.runtime.transport import Will
+from cblrs.runtime.broker.mosquitto_config import MosquittoProcess, free_port, write_broker_config
+from cblrs.runtime.camera.camera_node import CameraNode, camera_last_will
+from cblrs.runtime.camera.sources import scene_source
+from cblrs.runtime.matcher.matcher_service import MatcherService
+from cblrs.runtime.matcher.store import RuntimeStore
+from cblrs.runtime.transport.mqtt_transport import MqttSettings, MqttTransport
+from cblrs.runtime.transport.protocol import Will
 
 logger = logging.getLogger(__name__)
 

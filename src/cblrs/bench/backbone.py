@@ -1,7 +1,7 @@
 """``cblrs bench backbone``: Mosquitto, NATS (one node) and NATS R3 (three nodes) side by side.
 
 For each backbone, camera count and rate, one run starts its own servers on loopback ports
-and a full :class:`~cblrs.runtime.matcher_service.MatcherService` in this process (MQTT
+and a full :class:`~cblrs.runtime.matcher.matcher_service.MatcherService` in this process (MQTT
 transport on Mosquitto; the NATS transport with the plane's durable consumer and lease on
 NATS), then simulated cameras publish ``cblrs.detections/1`` messages (2 detections each).
 
@@ -45,13 +45,13 @@ from cblrs.bench.machine import describe_machine, machine_info
 from cblrs.detections import CameraMessage
 from cblrs.matching import make_matcher
 from cblrs.plane import PlaneSet, PlaneSpec
-from cblrs.runtime.broker import MosquittoProcess, free_port, write_broker_config
-from cblrs.runtime.matcher_service import MatcherService
-from cblrs.runtime.mqtt_transport import MqttSettings, MqttTransport
-from cblrs.runtime.nats_server import NatsCluster, find_nats_server
-from cblrs.runtime.nats_transport import LeaseSettings, NatsSettings, NatsTransport
-from cblrs.runtime.store import RuntimeStore
-from cblrs.runtime.topics import detections_topic
+from cblrs.runtime.broker.mosquitto_config import MosquittoProcess, free_port, write_broker_config
+from cblrs.runtime.broker.nats_server import NatsCluster, find_nats_server
+from cblrs.runtime.matcher.matcher_service import MatcherService
+from cblrs.runtime.matcher.store import RuntimeStore
+from cblrs.runtime.transport.mqtt_transport import MqttSettings, MqttTransport
+from cblrs.runtime.transport.nats_transport import LeaseSettings, NatsSettings, NatsTransport
+from cblrs.runtime.transport.topics import detections_topic
 from cblrs.runtime.wire import ValidationPolicy, encode_message
 
 PLANE_ID = 1

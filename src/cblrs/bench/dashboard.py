@@ -26,10 +26,10 @@ import yaml
 from cblrs.bench.analytics import AREA_M, bench_places, crowd_tracks
 from cblrs.bench.machine import describe_machine, json_ready, machine_info
 from cblrs.dashboard.browser import chromium_page
-from cblrs.runtime.broker import MosquittoProcess, free_port, write_broker_config
-from cblrs.runtime.events import encode_live
-from cblrs.runtime.mqtt_transport import MqttSettings, MqttTransport
-from cblrs.runtime.topics import live_topic, tracks_topic
+from cblrs.runtime.broker.mosquitto_config import MosquittoProcess, free_port, write_broker_config
+from cblrs.runtime.outputs.events import encode_live
+from cblrs.runtime.transport.mqtt_transport import MqttSettings, MqttTransport
+from cblrs.runtime.transport.topics import live_topic, tracks_topic
 from cblrs.runtime.wire import encode_tracks
 
 

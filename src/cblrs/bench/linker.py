@@ -9,7 +9,7 @@ people cross planes all the time, so the linker decides hand-overs all the time.
 * **linker**: :class:`~cblrs.linking.PlaneLinker` alone, fed instant by instant as a live
   linker is (every plane's rows of the instant, then the watermark): rows per second, and the
   time per instant;
-* **service**: :class:`~cblrs.runtime.linker_service.LinkerService` on the in-process broker
+* **service**: :class:`~cblrs.runtime.outputs.linker_service.LinkerService` on the in-process broker
   with its SQLite file and the site's analytics (one counting line per plane): every plane's
   updates published as fast as they go, timed from the first publish to the last update
   committed (decode, de-duplication, linking, counting, one transaction per batch,
@@ -148,11 +148,11 @@ def run_service(spec: PlaneSet, per_plane: dict[int, Tracks], timeout_s: float =
     """The linker service on the in-process broker with SQLite and analytics."""
     from cblrs.linking.linker import PlaneLinker
     from cblrs.places import CountingLine, Places
-    from cblrs.runtime.inprocess import InProcessBroker, InProcessTransport
-    from cblrs.runtime.linker_service import LinkerService
-    from cblrs.runtime.linker_store import LinkerStore
-    from cblrs.runtime.online_analytics import OnlineAnalytics
-    from cblrs.runtime.topics import tracks_topic
+    from cblrs.runtime.outputs.linker_service import LinkerService
+    from cblrs.runtime.outputs.linker_store import LinkerStore
+    from cblrs.runtime.outputs.online_analytics import OnlineAnalytics
+    from cblrs.runtime.transport.inprocess import InProcessBroker, InProcessTransport
+    from cblrs.runtime.transport.topics import tracks_topic
     from cblrs.runtime.wire import encode_tracks
 
     places = Places(lines=tuple(

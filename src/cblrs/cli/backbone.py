@@ -1,7 +1,7 @@
 """Backbone options shared by ``cblrs camera`` and ``cblrs matcher``: MQTT (default) or NATS.
 
 ``--backbone nats://host:port[,host:port...]`` switches a camera or a matcher from MQTT to
-NATS JetStream (:mod:`cblrs.runtime.nats_transport`); cameras may also stay on MQTT and
+NATS JetStream (:mod:`cblrs.runtime.transport.nats_transport`); cameras may also stay on MQTT and
 publish to the NATS server's MQTT listener (``--broker HOST:MQTTPORT``; the default
 ``--mqtt-version auto`` falls back to 3.1.1, the version NATS speaks). The login and TLS
 options (``--username``, ``--password-file``, ``--ca-file``, ``--cert-file``, ``--key-file``)
@@ -79,8 +79,8 @@ def nats_settings(args: argparse.Namespace, **options: Any) -> Any:
     """:class:`NatsSettings` from ``--backbone``, the login options and ``options``."""
     # lazy: a subcommand imports the library when it runs, so its --help starts fast
     from cblrs.cli.camera import read_password
-    from cblrs.runtime.nats_transport import NatsSettings
-    from cblrs.runtime.transport import TransportError
+    from cblrs.runtime.transport.nats_transport import NatsSettings
+    from cblrs.runtime.transport.protocol import TransportError
 
     try:
         return NatsSettings.from_url(
@@ -110,7 +110,7 @@ def matcher_transport(
             start (the store is rebuilt from the stream).
     """
     # lazy: a subcommand imports the library when it runs, so its --help starts fast
-    from cblrs.runtime.nats_transport import LeaseSettings, NatsTransport, lease_key
+    from cblrs.runtime.transport.nats_transport import LeaseSettings, NatsTransport, lease_key
 
     if args.lease_ttl <= 0 or args.lease_wait < 0 or args.retention_hours <= 0:
         raise UsageError("--lease-ttl and --retention-hours must be > 0, --lease-wait >= 0.")
@@ -137,6 +137,6 @@ def camera_transport(args: argparse.Namespace, client_id: str) -> Any:
     """A camera's NATS transport: JetStream publishes in order, a window of them awaiting the
     stream's acknowledgement at once."""
     # lazy: a subcommand imports the library when it runs, so its --help starts fast
-    from cblrs.runtime.nats_transport import NatsTransport
+    from cblrs.runtime.transport.nats_transport import NatsTransport
 
     return NatsTransport(client_id, nats_settings(args))

@@ -207,13 +207,14 @@ def register(subparsers) -> None:
     mqtt.add_argument("--people", type=int, default=2,
                       help="detections per message (default 2)")
     mqtt.add_argument("--matcher", default="fusion", help="matcher (default fusion)")
-    mqtt.add_argument("--clock-spread-ms", type=float, default=0.0, metavar="MS",
+    mqtt.add_argument("--clock-spread-ms", type=float, default=10.0, metavar="MS",
                       help="real camera clocks: each camera stamps its frames this many ms "
                       "apart from the others at most (offsets spread evenly over 0..MS; "
-                      "default 0: all cameras stamp a frame with the same time)")
-    mqtt.add_argument("--clock-jitter-ms", type=float, default=0.0, metavar="MS",
+                      "default 10; 0 with --clock-jitter-ms 0: every camera stamps a frame "
+                      "with the same time, an idealised case)")
+    mqtt.add_argument("--clock-jitter-ms", type=float, default=2.0, metavar="MS",
                       help="per-frame jitter of every camera's stamps, standard deviation in "
-                      "ms (default 0)")
+                      "ms (default 2)")
     mqtt.add_argument("--nagle", action="store_true",
                       help="leave Nagle's algorithm on (no TCP_NODELAY), as before issue 10")
     mqtt.add_argument("--stages", action="store_true",
@@ -410,7 +411,7 @@ def _run_one(name: str, args: argparse.Namespace) -> tuple[dict[str, Any], str]:
         # lazy: a subcommand imports the library when it runs, so its --help starts fast
         from cblrs.bench.dashboard import benchmark_dashboard, dashboard_report
         from cblrs.dashboard.browser import browser_problem
-        from cblrs.runtime.broker import find_mosquitto
+        from cblrs.runtime.broker.mosquitto_config import find_mosquitto
 
         if not (args.rate > 0 and args.seconds > 0):
             raise UsageError("--rate and --seconds must be positive.")
@@ -452,7 +453,7 @@ def _asynchrony(args: argparse.Namespace) -> tuple[dict[str, Any], str]:
     service = not args.in_process_only
     if service:
         # lazy: a subcommand imports the library when it runs, so its --help starts fast
-        from cblrs.runtime.broker import find_mosquitto
+        from cblrs.runtime.broker.mosquitto_config import find_mosquitto
 
         if find_mosquitto() is None:
             raise UsageError(
@@ -487,8 +488,8 @@ def _real_frames(args: argparse.Namespace) -> tuple[Path, Path]:
 def _run_backbone(args: argparse.Namespace, repeats: int) -> tuple[dict[str, Any], str]:
     # lazy: a subcommand imports the library when it runs, so its --help starts fast
     from cblrs.bench.backbone import BACKBONES, backbone_report, benchmark_backbone
-    from cblrs.runtime.broker import find_mosquitto
-    from cblrs.runtime.nats_server import find_nats_server
+    from cblrs.runtime.broker.mosquitto_config import find_mosquitto
+    from cblrs.runtime.broker.nats_server import find_nats_server
 
     backbones = tuple(_words(args.backbones, "--backbones"))
     unknown = sorted(set(backbones) - set(BACKBONES))

@@ -8,7 +8,11 @@ import shlex
 from pathlib import Path
 
 from cblrs.cli.common import UsageError, add_output_options, print_json
-from cblrs.runtime.broker import DEFAULT_AUTOSAVE_S, DEFAULT_QUEUE_BYTES, write_broker_config
+from cblrs.runtime.broker.mosquitto_config import (
+    DEFAULT_AUTOSAVE_S,
+    DEFAULT_QUEUE_BYTES,
+    write_broker_config,
+)
 
 
 def register(subparsers) -> None:
@@ -64,6 +68,11 @@ def register(subparsers) -> None:
         "--viewers", metavar="ID,ID,...",
         help="read-only logins, one per dashboard (default: viewer); a login is one client "
         "at a time",
+    )
+    parser.add_argument(
+        "--linkers", metavar="ID,ID,...",
+        help="logins of cblrs linker (default: none): each reads every plane's tracks and "
+        "publishes the site's global tracks, events and live summary (plane 0)",
     )
     parser.add_argument(
         "--clients-dir", type=Path,
@@ -171,6 +180,7 @@ def run(args: argparse.Namespace) -> int:
         bind=args.bind,
         viewer=not args.no_viewer,
         viewers=_names(args.viewers, "--viewers") if args.viewers else None,
+        linkers=_names(args.linkers, "--linkers") if args.linkers else (),
         queue_bytes=int(args.queue_mb * 2**20),
         autosave_s=args.autosave,
         run_as=args.run_as,
@@ -251,8 +261,8 @@ def _run_nats(args: argparse.Namespace, cameras: list[str],
               matchers: list[str] | dict[str, list[int]], planes: list[int]) -> int:
     """``cblrs broker-config --backbone nats``: the nodes' configurations and credentials."""
     # lazy: a subcommand imports the library when it runs, so its --help starts fast
-    from cblrs.runtime.broker import matcher_planes
-    from cblrs.runtime.nats_server import write_nats_backbone
+    from cblrs.runtime.broker.mosquitto_config import matcher_planes
+    from cblrs.runtime.broker.nats_server import write_nats_backbone
 
     hosts = _names(args.nodes, "--nodes")
     if (args.out / "n1" / "n1.conf").exists() and not args.force:
@@ -265,6 +275,7 @@ def _run_nats(args: argparse.Namespace, cameras: list[str],
         mqtt_port=None if args.no_mqtt else args.mqtt_port, site=args.site_id,
         viewers=_names(args.viewers, "--viewers") if args.viewers else
         ([] if args.no_viewer else ["viewer"]),
+        linkers=_names(args.linkers, "--linkers") if args.linkers else (),
         admin=args.admin, tls=not args.no_tls, ca_directory=args.ca_dir,
         clients_directory=args.clients_dir,
     )

@@ -65,7 +65,7 @@ def parse_broker(text: str) -> tuple[str, int]:
 def mqtt_settings(args: argparse.Namespace) -> Any:
     """:class:`MqttSettings` from the broker options; the password never comes from argv."""
     # lazy: a subcommand imports the library when it runs, so its --help starts fast
-    from cblrs.runtime.mqtt_transport import MqttSettings
+    from cblrs.runtime.transport.mqtt_transport import MqttSettings
 
     host, port = parse_broker(args.broker)
     password = read_password(args)
@@ -105,7 +105,7 @@ def connect_or_queue(transport: Any, where: str = "in memory") -> None:
     A refused login is an error; an absent broker is not: messages wait (``where``) meanwhile.
     """
     # lazy: a subcommand imports the library when it runs, so its --help starts fast
-    from cblrs.runtime.transport import TransportError
+    from cblrs.runtime.transport.protocol import TransportError
 
     try:
         transport.connect()
@@ -351,7 +351,7 @@ def build_source(args: argparse.Namespace):
     """``(frames iterator, expected image size or None)`` for the chosen source."""
     # lazy: a subcommand imports the library when it runs, so its --help starts fast
     from cblrs.detections import class_id_of
-    from cblrs.runtime import sources
+    from cblrs.runtime.camera import sources
 
     chosen = [
         name
@@ -406,7 +406,7 @@ def build_source(args: argparse.Namespace):
 def build_detector(args: argparse.Namespace, class_id: int):
     """The detector ``--detector`` names (onnx, yolo or blob), built from its options."""
     # lazy: a subcommand imports the library when it runs, so its --help starts fast
-    from cblrs.runtime import sources
+    from cblrs.runtime.camera import sources
 
     if args.detector == "blob":
         try:
@@ -466,11 +466,11 @@ def check_delivery_options(args: argparse.Namespace) -> None:
 def run(args: argparse.Namespace) -> int:
     """Run ``cblrs camera`` with its parsed arguments; the exit code."""
     # lazy: a subcommand imports the library when it runs, so its --help starts fast
-    from cblrs.runtime.camera_node import CameraNode, camera_last_will
-    from cblrs.runtime.mqtt_transport import MqttTransport
-    from cblrs.runtime.spool import Spool, run_identity
-    from cblrs.runtime.topics import validate_camera_id
-    from cblrs.runtime.transport import Will
+    from cblrs.runtime.camera.camera_node import CameraNode, camera_last_will
+    from cblrs.runtime.camera.spool import Spool, run_identity
+    from cblrs.runtime.transport.mqtt_transport import MqttTransport
+    from cblrs.runtime.transport.protocol import Will
+    from cblrs.runtime.transport.topics import validate_camera_id
 
     validate_camera_id(args.camera)
     if not (args.speed > 0 and args.speed < float("inf")):

@@ -1,6 +1,7 @@
 """Options of ``cblrs matcher`` for messages that arrive late.
 
-``--late-horizon`` and ``--late-delay`` set the :class:`~cblrs.runtime.retrack.RetrackPolicy`:
+``--late-horizon`` and ``--late-delay`` set the
+:class:`~cblrs.runtime.matcher.retrack.RetrackPolicy`:
 how far back late messages are still tracked (by re-tracking from a snapshot taken before
 them) and how long the matcher waits for a burst of them to end.
 """
@@ -26,7 +27,7 @@ def add_late_options(parser: argparse.ArgumentParser) -> None:
 
 
 def retrack_policy(args: argparse.Namespace) -> Any:
-    """The :class:`~cblrs.runtime.retrack.RetrackPolicy` of the options; None: off.
+    """The :class:`~cblrs.runtime.matcher.retrack.RetrackPolicy` of the options; None: off.
 
     Raises:
         UsageError: a negative or non-finite value.
@@ -36,6 +37,6 @@ def retrack_policy(args: argparse.Namespace) -> Any:
     if args.late_horizon == 0:
         return None
     # lazy: a subcommand imports the library when it runs, so its --help starts fast
-    from cblrs.runtime.retrack import RetrackPolicy
+    from cblrs.runtime.matcher.retrack import RetrackPolicy
 
     return RetrackPolicy(horizon_s=args.late_horizon * 60, delay_s=args.late_delay)

@@ -63,7 +63,7 @@ def register(subparsers) -> None:
 def show_stats(path: Path, as_json: bool) -> int:
     """Print the counters of a linker database."""
     # lazy: a subcommand imports the library when it runs, so its --help starts fast
-    from cblrs.runtime.linker_store import LinkerStore
+    from cblrs.runtime.outputs.linker_store import LinkerStore
 
     with LinkerStore(path, read_only=True) as store:
         summary: dict[str, Any] = {"database": str(path), **store.counters(),
@@ -79,10 +79,10 @@ def linker_transport(args: argparse.Namespace, client_id: str, will: Any) -> Any
     """The linker's transport: MQTT with a persistent session, or NATS."""
     if uses_nats(args):
         # lazy: a subcommand imports the library when it runs, so its --help starts fast
-        from cblrs.runtime.nats_transport import NatsTransport
+        from cblrs.runtime.transport.nats_transport import NatsTransport
 
         return NatsTransport(client_id, nats_settings(args, publish_window=64), will=will)
-    from cblrs.runtime.mqtt_transport import MqttTransport
+    from cblrs.runtime.transport.mqtt_transport import MqttTransport
 
     return MqttTransport(client_id, mqtt_settings(args), persistent=True, will=will)
 
@@ -102,10 +102,10 @@ def run(args: argparse.Namespace) -> int:
     # lazy: a subcommand imports the library when it runs, so its --help starts fast
     from cblrs.linking.files import site_analytics_config
     from cblrs.linking.linker import LinkerConfig, PlaneLinker
-    from cblrs.runtime.linker_service import LinkerService
-    from cblrs.runtime.linker_store import LinkerStore
-    from cblrs.runtime.topics import linker_status_topic, validate_client_id
-    from cblrs.runtime.transport import Will
+    from cblrs.runtime.outputs.linker_service import LinkerService
+    from cblrs.runtime.outputs.linker_store import LinkerStore
+    from cblrs.runtime.transport.protocol import Will
+    from cblrs.runtime.transport.topics import linker_status_topic, validate_client_id
     from cblrs.runtime.wire import encode_status
     from cblrs.site import load_site
 
@@ -118,7 +118,7 @@ def run(args: argparse.Namespace) -> int:
     analytics = None
     if len(site.places) and not args.no_analytics:
         from cblrs.analytics.site import with_site_time
-        from cblrs.runtime.online_analytics import OnlineAnalytics
+        from cblrs.runtime.outputs.online_analytics import OnlineAnalytics
 
         config = with_site_time(site_analytics_config(site.links), site)
         analytics = OnlineAnalytics(site.places, config, delay_s=0.0)

@@ -110,7 +110,7 @@ def configure_logging(verbosity: int, quiet: bool = False) -> None:
     logging.basicConfig(level=logging.WARNING, format=LOG_FORMAT, datefmt=LOG_DATE_FORMAT)
     level = logging.WARNING if quiet else logging.INFO
     logging.getLogger("cblrs").setLevel(logging.DEBUG if verbosity >= 1 else level)
-    paho = logging.getLogger("cblrs.runtime.mqtt_transport.paho")
+    paho = logging.getLogger("cblrs.runtime.transport.mqtt_transport.paho")
     paho.setLevel(logging.DEBUG if verbosity >= 2 else logging.INFO)
 
 

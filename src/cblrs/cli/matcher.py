@@ -234,14 +234,14 @@ def run(args: argparse.Namespace) -> int:
     check_arguments(args)
     # lazy: a subcommand imports the library when it runs, so its --help starts fast
     from cblrs.matching import make_matcher
-    from cblrs.runtime.alert_service import site_alerts
-    from cblrs.runtime.matcher_service import MatcherService
-    from cblrs.runtime.mqtt_transport import MqttTransport
-    from cblrs.runtime.retention import RetentionPolicy
-    from cblrs.runtime.store import RuntimeStore
-    from cblrs.runtime.topics import matcher_status_topic, validate_client_id
-    from cblrs.runtime.transport import Will
-    from cblrs.runtime.views import tell_views
+    from cblrs.runtime.matcher.matcher_service import MatcherService
+    from cblrs.runtime.matcher.retention import RetentionPolicy
+    from cblrs.runtime.matcher.store import RuntimeStore
+    from cblrs.runtime.matcher.views import tell_views
+    from cblrs.runtime.outputs.alert_service import site_alerts
+    from cblrs.runtime.transport.mqtt_transport import MqttTransport
+    from cblrs.runtime.transport.protocol import Will
+    from cblrs.runtime.transport.topics import matcher_status_topic, validate_client_id
     from cblrs.runtime.wire import ValidationPolicy, encode_status
 
     site = None
@@ -309,7 +309,7 @@ def run(args: argparse.Namespace) -> int:
     metrics = server = None
     if args.http is not None:
         # lazy: a subcommand imports the library when it runs, so its --help starts fast
-        from cblrs.runtime.metrics import MetricsServer, ServiceMetrics
+        from cblrs.runtime.matcher.metrics import MetricsServer, ServiceMetrics
 
         address, http_token = http_settings(args)
         metrics = ServiceMetrics(plane_id, names)
@@ -463,7 +463,7 @@ def make_analytics(site: Any, plane_id: int, args: argparse.Namespace) -> Any:
     if site is None or args.no_analytics:
         return None
     # lazy: a subcommand imports the library when it runs, so its --help starts fast
-    from cblrs.runtime.online_analytics import site_online_analytics
+    from cblrs.runtime.outputs.online_analytics import site_online_analytics
 
     return site_online_analytics(site, plane_id, args.analytics_delay)
 
@@ -557,8 +557,8 @@ def show_stats(path: Path, as_json: bool) -> int:
     """Print what a matcher database holds (``cblrs matcher --stats``); the exit code."""
     # lazy: a subcommand imports the library when it runs, so its --help starts fast
     from cblrs.matching.fusion import clock_report
-    from cblrs.runtime.analytics_store import count_summary, line_rules, read_counts
-    from cblrs.runtime.store import RuntimeStore
+    from cblrs.runtime.matcher.store import RuntimeStore
+    from cblrs.runtime.outputs.analytics_store import count_summary, line_rules, read_counts
 
     with RuntimeStore(path, read_only=True) as store:
         summary = store.summary()

@@ -32,7 +32,7 @@ def http_settings(args: argparse.Namespace) -> tuple[tuple[str, int], str | None
     """``(host, port)`` and the token of ``--http``; a usage error for metrics beyond
     loopback without a token, or a token too short to be one."""
     # lazy: a subcommand imports the library when it runs, so its --help starts fast
-    from cblrs.runtime.metrics import is_loopback_host, parse_address
+    from cblrs.runtime.matcher.metrics import is_loopback_host, parse_address
 
     address = parse_address(args.http)
     token = _read_token(args.http_token_file)

@@ -22,8 +22,8 @@ import numpy as np
 
 from cblrs.detections import CLASS_NAMES
 from cblrs.errors import CblrsError
-from cblrs.runtime.analytics_store import read_events
-from cblrs.runtime.store import RuntimeStore
+from cblrs.runtime.matcher.store import RuntimeStore
+from cblrs.runtime.outputs.analytics_store import read_events
 
 SPEEDS = (1.0, 2.0, 5.0, 10.0)
 MAX_SPEED = 10.0

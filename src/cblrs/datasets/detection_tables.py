@@ -7,7 +7,7 @@ start of the recording and the frame's boxes — in frame order, with empty fram
 * :func:`aicity_source` — an AI City format file (``camera obj frame x y w h ...``).
 
 They are file formats, so they live with the other readers; an edge camera
-(:mod:`cblrs.runtime.sources`) replays them as one of its sources.
+(:mod:`cblrs.runtime.camera.sources`) replays them as one of its sources.
 """
 
 from __future__ import annotations

@@ -84,7 +84,7 @@ def read_plane_tracks(path: str | Path, frames_per_second: float | None = None) 
         is_database = handle.read(16) == b"SQLite format 3\x00"
     if is_database:
         # lazy: the runtime (and its wire formats) only for databases
-        from cblrs.runtime.store import RuntimeStore, StoreError
+        from cblrs.runtime.matcher.store import RuntimeStore, StoreError
 
         try:
             with RuntimeStore(path, read_only=True) as store:

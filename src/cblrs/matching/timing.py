@@ -27,7 +27,7 @@ reach the matcher in each camera's own capture order, so for every camera one of
   whose next frame is due later;
 * it is in the window with the latest capture time of it (nothing of it can come between).
 
-The same rules order raw messages in the matcher service (:mod:`cblrs.runtime.ordering`) and
+The same rules order raw messages in the matcher service (:mod:`cblrs.runtime.matcher.ordering`) and
 clock-corrected ones inside the fusion tracker (:class:`WindowBuffer`).
 """
 

@@ -420,7 +420,7 @@ def prepare(plan: SitePlan, *, render: bool = True) -> list[str]:
         UpError: the configuration or a reference cannot be written (one sentence).
     """
     # lazy: the broker's machinery pulls in the MQTT client
-    from cblrs.runtime.broker import BrokerError, write_broker_config
+    from cblrs.runtime.broker.mosquitto_config import BrokerError, write_broker_config
 
     done = []
     plan.out.mkdir(parents=True, exist_ok=True)

@@ -14,7 +14,7 @@ import numpy as np
 
 from cblrs.detections import CLASS_NAMES
 from cblrs.errors import CblrsError
-from cblrs.runtime.topics import ID_PATTERN, MAX_ID_LENGTH, MAX_PLANE_ID
+from cblrs.runtime.transport.topics import ID_PATTERN, MAX_ID_LENGTH, MAX_PLANE_ID
 
 _T = TypeVar("_T")
 

@@ -1,0 +1,15 @@
+"""The matcher service (``cblrs matcher``) and what it stands on.
+
+* :mod:`cblrs.runtime.matcher.matcher_service` — the service: receives detections, stores
+  them, tracks, publishes tracks and confirmations;
+* :mod:`cblrs.runtime.matcher.store` — its SQLite database (inbox, tracks, state);
+* :mod:`cblrs.runtime.matcher.ordering` — which received messages go to the tracker together
+  (also used by the offline pipeline);
+* :mod:`cblrs.runtime.matcher.confirmations` — end-to-end confirmations to the cameras;
+* :mod:`cblrs.runtime.matcher.lease` — one matcher per plane;
+* :mod:`cblrs.runtime.matcher.tracker_process` — the tracker in a process of its own;
+* :mod:`cblrs.runtime.matcher.retrack` — re-tracking after a late message;
+* :mod:`cblrs.runtime.matcher.retention` — how much history the database keeps;
+* :mod:`cblrs.runtime.matcher.views` — where each camera sees the ground;
+* :mod:`cblrs.runtime.matcher.metrics` — Prometheus metrics, health and readiness.
+"""
