@@ -9,11 +9,18 @@
 #    tests whose package is missing are skipped with the reason;
 # 2. pip install -e ".[dev]";
 # 3. python -m pytest on every core (pytest-xdist: -n auto, one test file per worker at a
-#    time so that a file's module fixtures — rendered references, brokers — are built once);
+#    time so that a file's module fixtures — rendered references, brokers — are built once;
+#    tests/conftest.py hands the files out longest first, from tests/file_durations.json,
+#    so that no long file is left to run alone at the end);
 #    CBLRS_TEST_WORKERS=N sets the number of workers, 0 runs in this process.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 export PIP_DISABLE_PIP_VERSION_CHECK=1
+# The suite starts a few hundred `cblrs` processes: Python keeps the package's compiled modules,
+# and pytest its rewritten test modules, in __pycache__ (git-ignored) instead of compiling them
+# again in every process, even where PYTHONDONTWRITEBYTECODE is set (measured: 0.27 s of CPU
+# less per `cblrs matcher` start, and half the CPU of collecting the tests on each worker).
+unset PYTHONDONTWRITEBYTECODE
 
 missing=()
 command -v mosquitto > /dev/null 2>&1 || [[ -x /usr/sbin/mosquitto ]] || missing+=(mosquitto)

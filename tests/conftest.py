@@ -1,13 +1,46 @@
-"""Shared fixtures: the WILDTRACK and MultiviewX data folders, the shipped ONNX detector."""
+"""Shared fixtures: the WILDTRACK and MultiviewX data folders, the shipped ONNX detector;
+the order in which the test files run."""
 
 from __future__ import annotations
 
+import json
 import os
 from pathlib import Path
 
 import pytest
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
+FILE_DURATIONS = Path(__file__).with_name("file_durations.json")
+"""Measured seconds per test file (scripts/file_durations.py writes it from a JUnit report)."""
+
+
+def pytest_configure(config):
+    """Under pytest-xdist, hand out the test files in collection order (see below) rather than
+    by number of tests, xdist's default: that default starts the files of many quick
+    parametrised tests and leaves the few long files (brokers, ``cblrs up``, browsers) to
+    the end, where one of them runs alone while the other workers idle."""
+    if hasattr(config.option, "loadscopereorder"):
+        config.option.loadscopereorder = False
+
+
+def pytest_collection_modifyitems(config, items):
+    """Run the longest files first (``--dist loadfile`` gives a worker one file at a time, so
+    a long file started last ends the suite alone). Files not in file_durations.json (new
+    ones) run first, since one of them may be long; the order within a file is kept."""
+    try:
+        seconds = json.loads(FILE_DURATIONS.read_text())
+    except (OSError, ValueError):
+        return
+    root = Path(str(config.rootpath))
+
+    def cost(item) -> float:
+        try:
+            name = Path(str(item.path)).relative_to(root).as_posix()
+        except ValueError:
+            return 0.0
+        return float(seconds.get(name, float("inf")))
+
+    items.sort(key=lambda item: -cost(item))  # stable: a file's tests stay in their order
 
 
 def find_wildtrack() -> Path | None:

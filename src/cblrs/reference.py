@@ -6,6 +6,9 @@ lens distortion is baked in and a lookup needs no undistortion on the camera.
 
 PNG files carry their plane specification in a ``tEXt`` chunk (keyword ``cblrs``), so a file
 alone can be decoded. Pixels are stored 8 or 16 bits per channel.
+
+It stays one module: the rendered image and :class:`OnDemandReference` (which renders only
+the pixels read) must give the very same colours, so both call one renderer, kept here.
 """
 
 from __future__ import annotations
@@ -86,6 +89,10 @@ class ReferenceImage:
     def coverage(self) -> float:
         """Fraction of pixels that see a plane."""
         return float(np.mean(self.pixels[..., 2] != 0))
+
+    def sampled_colours(self, step: int) -> NDArray[np.unsignedinteger]:
+        """``pixels[::step, ::step]`` as (M, 3) rows (row-major)."""
+        return self.pixels[::step, ::step].reshape(-1, 3)
 
     def pixel_indices(self, pixels: NDArray) -> tuple[NDArray[np.int64], BoolArray]:
         """Flat indices of the nearest pixel centres and an inside-the-image mask."""
@@ -291,6 +298,24 @@ class OnDemandReference:
         """Fraction of pixels that see a plane (renders the whole image)."""
         return self.image.coverage()
 
+    def sampled_colours(self, step: int) -> NDArray[np.unsignedinteger]:
+        """``pixels[::step, ::step]`` as (M, 3) rows, rendered for those pixels only (a
+        16th of the image for ``step`` 4) unless the whole image already is."""
+        if "image" in self.__dict__:
+            return self.image.sampled_colours(step)
+        rows = np.arange(0, self.image_size[1], step)[:, None]
+        columns = np.arange(0, self.image_size[0], step)[None, :]
+        channels = _plane_codes(self._rendered_planes, self._matrices,
+                                *self._ideal(rows, columns), (rows.size, columns.size))
+        return np.stack(channels, axis=-1).reshape(-1, 3)
+
+    def _ideal(self, rows: NDArray, columns: NDArray) -> tuple[FloatArray, FloatArray]:
+        """Ideal pinhole ``(x, y)`` of the raw pixels at ``rows``, ``columns`` (broadcast)."""
+        if not self.camera.has_distortion:
+            return columns.astype(np.float64), rows.astype(np.float64)
+        grid_x, grid_y = self.camera.undistorted_grid()
+        return grid_x[rows, columns].astype(np.float64), grid_y[rows, columns].astype(np.float64)
+
     def pixel_indices(self, pixels: NDArray) -> tuple[NDArray[np.int64], BoolArray]:
         """Flat indices of the nearest pixel centres and an inside-the-image mask."""
         return nearest_pixel_indices(pixels, self.image_size)
@@ -302,12 +327,7 @@ class OnDemandReference:
         """
         indices, inside = self.pixel_indices(pixels)
         rows, columns = np.divmod(indices[inside], self.image_size[0])
-        if self.camera.has_distortion:
-            grid_x, grid_y = self.camera.undistorted_grid()
-            map_x = grid_x[rows, columns].astype(np.float64)
-            map_y = grid_y[rows, columns].astype(np.float64)
-        else:
-            map_x, map_y = columns.astype(np.float64), rows.astype(np.float64)
+        map_x, map_y = self._ideal(rows, columns)
         channels = _plane_codes(
             self._rendered_planes, self._matrices, map_x, map_y, (len(map_x),)
         )

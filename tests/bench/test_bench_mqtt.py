@@ -68,3 +68,15 @@ def test_camera_clocks_spread_the_cameras_and_keep_each_in_order():
 def test_negative_clock_options_are_a_usage_error(capsys):
     assert main(["bench", "mqtt", "--clock-jitter-ms", "-1"]) == 2
     assert "--clock-jitter-ms must be >= 0" in capsys.readouterr().err
+
+
+def test_by_default_cameras_have_their_own_clocks_and_full_speed_matcher_rows_time_the_tracker(
+        capsys):
+    code = main(["bench", "mqtt", "--cameras", "2", "--runs", "matcher/max", "--repeats", "1",
+                 "--max-messages", "100", "--publisher", "paho", "--json"])
+    assert code == 0
+    document = json.loads(capsys.readouterr().out)
+    assert document["clock_spread_ms"] == 10 and document["clock_jitter_ms"] == 2
+    row = document["results"][0]
+    assert row["received"] == row["messages"] == 100
+    assert row["tracker_alone_per_s"] > 0 and row["tracked_per_s"] > 0

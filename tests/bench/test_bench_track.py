@@ -3,13 +3,21 @@
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
 
-from cblrs.bench.track import BASELINES, CBLRS, BenchmarkError, run_process
+from cblrs.bench.track import (
+    BASELINES,
+    CBLRS,
+    BenchmarkError,
+    bytecode_environment,
+    run_process,
+    track_report,
+)
 from cblrs.cli.main import main
 
 BASELINE_SCRIPT = str(Path(__file__).resolve().parents[2] / "src" / "cblrs" / "bench"
@@ -38,12 +46,17 @@ def test_track_beside_norfair_on_wildtrack(wildtrack_root, tmp_path, capsys):
     assert scores["norfair every-box"]["ids"] > 2 * scores["norfair merged"]["ids"]
     assert result["load_average"]["start"] >= 0
     stages = result["stages_cpu_s"]
-    assert next(iter(stages)) == "numpy, SciPy, OpenCV imports" and "fusion tracker" in stages
+    assert next(iter(stages)) == "numpy and OpenCV imports" and "fusion tracker" in stages
     assert all(seconds >= 0 for seconds in stages.values())
     # The stages add up to about one cblrs track process (its CLI and the interpreter aside).
     assert 0.4 < sum(stages.values()) / result["runs"][CBLRS][0]["cpu_s"] < 1.3
+    assert "the tracker's views (reference colours)" in stages
     markdown = (tmp_path / "bench_track.md").read_text()
     assert "| cblrs track |" in markdown and "| norfair every-box |" in markdown
+    # The figures as printed: each command's wall, CPU and peak memory, and the ratios.
+    assert re.search(r"\| cblrs track \| [\d.]+ \| [\d.]+ \| \d+ \|", markdown)
+    assert re.search(r"\| norfair merged \| [\d.]+ \([\d.]+-[\d.]+\) \| [\d.]+ \(", markdown)
+    assert track_report(result) in markdown
 
 
 def test_baseline_script_refuses_bad_arguments(tmp_path):
@@ -65,3 +78,17 @@ def test_track_benchmark_needs_positive_repeats(wildtrack_root, capsys):
     argv = ["bench", "track", "--dataset", str(wildtrack_root), "--repeats", "0"]
     assert main(argv) == 2
     assert "--repeats must be a positive integer" in capsys.readouterr().err
+
+
+def test_processes_get_a_bytecode_cache(tmp_path, monkeypatch):
+    """An environment that forbids bytecode (PYTHONDONTWRITEBYTECODE) would time the compiler
+    at every start: the benchmark's processes cache it in a folder of their own."""
+    monkeypatch.setenv("PYTHONDONTWRITEBYTECODE", "1")
+    environment = bytecode_environment(tmp_path / "pycache")
+    assert "PYTHONDONTWRITEBYTECODE" not in environment
+    module = tmp_path / "cached_module.py"
+    module.write_text("VALUE = 1\n")
+    run_process([sys.executable, "-c", "import cached_module"],
+                dict(environment, PYTHONPATH=str(tmp_path)))
+    assert list((tmp_path / "pycache").rglob("cached_module*.pyc"))
+    assert not (tmp_path / "__pycache__").exists()  # nothing written beside the sources

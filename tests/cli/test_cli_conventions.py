@@ -129,6 +129,17 @@ def test_help_does_not_import_the_library():
     assert result.stdout.strip().splitlines()[-1] == "HEAVY:"
 
 
+
+def test_loading_a_site_does_not_import_scipy():
+    """``cblrs up``, ``dashboard`` and every service given ``--site`` import the site package;
+    SciPy (~0.5-1 s of CPU per process) is imported only by a calibration fit."""
+    code = ("import sys, cblrs.site, cblrs.up, cblrs.dashboard.app\n"
+            "print('SCIPY:' + ','.join(m for m in sys.modules if m.split('.')[0] == 'scipy'))")
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                            timeout=120)
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.strip().splitlines()[-1] == "SCIPY:"
+
 def _leaves(parser: argparse.ArgumentParser, path: tuple[str, ...] = ()):
     children = [action for action in parser._actions
                 if isinstance(action, argparse._SubParsersAction)]

@@ -52,6 +52,17 @@ def test_on_demand_colours_equal_the_rendered_image(distortion, planes):
     expected_world, expected_world_valid = rendered.locate(pixels)
     np.testing.assert_array_equal(world_valid, expected_world_valid)
     np.testing.assert_array_equal(world[world_valid], expected_world[expected_world_valid])
+    # The sampled grid (what the fusion tracker's set_views reads) without the whole image.
+    for step in (1, 4, 7):
+        sampled = OnDemandReference(camera, planes).sampled_colours(step)
+        expected_sampled = rendered.pixels[::step, ::step].reshape(-1, 3)
+        assert sampled.dtype == expected_sampled.dtype
+        np.testing.assert_array_equal(sampled, expected_sampled)
+        np.testing.assert_array_equal(rendered.sampled_colours(step), expected_sampled)
+    assert "image" not in on_demand.__dict__  # nothing above rendered the whole frame
+    on_demand.pixels  # noqa: B018 -- once rendered, sampling reads the image
+    np.testing.assert_array_equal(on_demand.sampled_colours(4),
+                                  rendered.pixels[::4, ::4].reshape(-1, 3))
 
 
 def test_on_demand_whole_image_is_the_rendered_one(tmp_path):

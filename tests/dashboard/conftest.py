@@ -81,8 +81,10 @@ def start_broker(tmp_path) -> Iterator[Callable[..., Broker]]:
         # pytest's private temporary folders: as root the broker runs as root (never in
         # production; see broker-config's run_as).
         options.setdefault("run_as", "root" if os.geteuid() == 0 else None)
+        # matchers: names (each serving plane 1), or name -> the planes it serves
+        served = dict(matchers) if isinstance(matchers, dict) else list(matchers)
         files = write_broker_config(tmp_path / f"broker{len(started)}", list(cameras),
-                                    list(matchers), port=free_port(), plane_ids=(1,), **options)
+                                    served, port=free_port(), plane_ids=(1,), **options)
         process = MosquittoProcess.from_files(files)
         process.start()
         broker = Broker(files, process)

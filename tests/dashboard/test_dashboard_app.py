@@ -94,9 +94,10 @@ def test_the_live_feed_draws_no_corrections_of_the_past():
     past = Tracks([1], [10.0], [3], [[5.0, 5.0]])
     for payload in (encode_tracks(now, 1, sequence=1, timestamp=20.0),
                     encode_tracks(past, 1, sequence=2, timestamp=10.0, corrected_from=9.0)):
-        feed._on_tracks(SimpleNamespace(payload=payload, ack=lambda: None))
+        feed._on_tracks(1, SimpleNamespace(payload=payload, ack=lambda: None))
     assert feed.counters["tracks"] == 1 and feed.counters["corrections"] == 1
-    assert feed._last_tracks == {"type": "tracks", "t": 20.0, "rows": [[3, 1.0, 2.0, None]]}
+    assert feed._state[1].last_tracks == {"type": "tracks", "t": 20.0, "plane": 1,
+                                          "rows": [[3, 1.0, 2.0, None]]}
 
 
 def test_subscriber_drops_old_track_frames_not_events():

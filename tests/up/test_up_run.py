@@ -9,7 +9,14 @@ import subprocess
 import time
 
 import pytest
-from up_helpers import CAMERAS, ENVIRONMENT, PER_CAMERA, run_up, up_command
+from up_helpers import (
+    CAMERAS,
+    ENVIRONMENT,
+    PER_CAMERA,
+    first_tracks_on_the_map,
+    run_up,
+    up_command,
+)
 
 from cblrs.runtime.matcher.store import RuntimeStore
 from cblrs.up import database_counts
@@ -103,11 +110,11 @@ def test_a_camera_without_a_source_is_one_sentence(small_site, tmp_path, require
 def test_mosquitto_missing_is_one_sentence(small_site, tmp_path):
     empty = tmp_path / "bin"
     empty.mkdir()
-    code, summary, err = run_up(small_site, tmp_path / "state", timeout=60,
-                                environment={**ENVIRONMENT, "PATH": str(empty)})
+    code, summary, err = run_up(small_site, tmp_path / "state", "--backbone", "mqtt",
+                                timeout=60, environment={**ENVIRONMENT, "PATH": str(empty)})
     assert code == 1 and summary is None
     assert err.strip().count("\n") == 0 and "Traceback" not in err, err
-    assert "mosquitto is not installed" in err
+    assert "mosquitto is not installed" in err and "--backbone nats" in err
 
 
 @pytest.mark.parametrize(("source", "message"), [
@@ -127,27 +134,6 @@ def test_bad_sources_are_one_sentence(small_site, tmp_path, require_mosquitto, s
     assert code == 1 and summary is None, err
     assert err.strip().count("\n") == 0 and "Traceback" not in err, err
     assert message in err
-
-
-def first_tracks_on_the_map(url: str, timeout: float) -> list:
-    """Log in with the dashboard's link and read its live stream until a track update with
-    tracks in it arrives; its rows."""
-    import http.cookiejar
-    import urllib.request
-
-    opener = urllib.request.build_opener(
-        urllib.request.HTTPCookieProcessor(http.cookiejar.CookieJar()))
-    opener.open(url, timeout=10).read()  # the login link sets the session cookie
-    stream = opener.open(url.split("/login")[0] + "/api/stream", timeout=timeout)
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        line = stream.readline().decode()
-        if line.startswith("data: "):
-            item = json.loads(line[len("data: "):])
-            if item.get("type") == "tracks" and item["rows"]:
-                stream.close()
-                return item["rows"]
-    raise AssertionError(f"no tracks on the map within {timeout} s")
 
 
 def test_tracks_reach_the_live_map_and_ctrl_c_stops_everything(

@@ -7,6 +7,7 @@ import json
 import os
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 CAMERAS = ("CVLab1", "CVLab2")
@@ -46,3 +47,24 @@ def run_up(site: Path, out: Path, *extra: str, timeout: float = 120,
                             timeout=timeout, env=environment or ENVIRONMENT)
     summary = json.loads(result.stdout) if result.stdout.strip().startswith("{") else None
     return result.returncode, summary, result.stderr
+
+
+def first_tracks_on_the_map(url: str, timeout: float) -> list:
+    """Log in with the dashboard's link and read its live stream until a track update with
+    tracks in it arrives; its rows."""
+    import http.cookiejar
+    import urllib.request
+
+    opener = urllib.request.build_opener(
+        urllib.request.HTTPCookieProcessor(http.cookiejar.CookieJar()))
+    opener.open(url, timeout=10).read()  # the login link sets the session cookie
+    stream = opener.open(url.split("/login")[0] + "/api/stream", timeout=timeout)
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        line = stream.readline().decode()
+        if line.startswith("data: "):
+            item = json.loads(line[len("data: "):])
+            if item.get("type") == "tracks" and item["rows"]:
+                stream.close()
+                return item["rows"]
+    raise AssertionError(f"no tracks on the map within {timeout} s")

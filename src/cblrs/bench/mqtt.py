@@ -33,9 +33,20 @@ Rates:
   the figure a user sees — to the track update's arrival at a *separate subscriber process*
   (a paho client on ``cblrs/<plane>/tracks``, one sample per update, i.e. per frame).
 
+Camera clocks: by default each simulated camera stamps and publishes its frames with its own
+clock, as real cameras do: offsets spread over 10 ms (``--clock-spread-ms``) and a per-frame
+jitter of 2 ms (``--clock-jitter-ms``), so the frames of one instant arrive a few ms apart.
+``--clock-spread-ms 0 --clock-jitter-ms 0`` stamps every camera's frame with the same time (an
+idealised case, which benchmarks before issue 20 measured).
+
 ``--nagle`` leaves Nagle's algorithm on (no ``TCP_NODELAY`` on the matcher's, the broker's and
 the subscriber's sockets), as cblrs did before issue 10: small packets (a track update, an
 acknowledgement) then wait for the previous one's TCP acknowledgement.
+
+Matcher rows at ``max`` also time the tracker alone on the same messages (ordered as the
+service orders them, messages built from inbox entries, ``matcher.update``; no broker, store
+or pipe), in messages per second of CPU (what it does with a core of its own), and print
+the service's tracked rate as a share of it.
 
 Printed figures are medians over ``--repeats`` runs, with the machine (CPU, cores, load
 average at start and end). Not a test: nothing is asserted.
@@ -78,6 +89,8 @@ from cblrs.bench.mqtt_load import (
     camera_names,
     measure_stages,
     publisher,
+    stages_line,
+    tracker_alone,
 )
 from cblrs.matching import make_matcher
 from cblrs.plane import PlaneSet
@@ -422,6 +435,13 @@ def markdown_table(info: dict, rows: list[dict], args: argparse.Namespace) -> st
     def pair(first: float, second: float) -> str:
         return "–" if math.isnan(first) else f"{cell(first)} / {cell(second)}"
 
+    def tracked(row: dict) -> str:
+        alone = row.get("tracker_alone_per_s")
+        if alone is None or math.isnan(row["tracked_per_s"]):
+            return cell(row["tracked_per_s"], 0)
+        return (f"{row['tracked_per_s']:.0f} ({100 * row['tracked_per_s'] / alone:.0f} % of "
+                f"{alone:.0f})")
+
     lines = [
         f"QoS 1 on loopback, {args.people} detections per message, {args.fps:g} fps when paced, "
         f"{args.matcher} matcher; publishers: {args.publisher} (one connection per camera, "
@@ -433,7 +453,8 @@ def markdown_table(info: dict, rows: list[dict], args: argparse.Namespace) -> st
         f"{info['load_start'][0]:.2f} at start, {info['load_end'][0]:.2f} at end (a shared "
         f"machine); medians of {args.repeats} runs.",
         "",
-        "| cameras | receiver | rate | received msg/s | tracked msg/s "
+        "| cameras | receiver | rate | received msg/s | tracked msg/s (% of the tracker alone, "
+        "msg per CPU s) "
         "| receipt p50 / p99 ms | track output p50 / p99 ms "
         "| **tracks at a subscriber** p50 / p99 ms | lost |",
         "|---:|---|---|---:|---:|---:|---:|---:|---:|",
@@ -441,7 +462,7 @@ def markdown_table(info: dict, rows: list[dict], args: argparse.Namespace) -> st
     for row in rows:
         lines.append(
             f"| {row['cameras']} | {row['receiver']} | {row['rate']} "
-            f"| {row['received_per_s']:.0f} | {cell(row['tracked_per_s'], 0)} "
+            f"| {row['received_per_s']:.0f} | {tracked(row)} "
             f"| {pair(row['receipt_p50_ms'], row['receipt_p99_ms'])} "
             f"| {pair(row['track_p50_ms'], row['track_p99_ms'])} "
             f"| {pair(row['subscriber_p50_ms'], row['subscriber_p99_ms'])} "
@@ -482,16 +503,7 @@ def run_mqtt_benchmark(args: Any) -> int:
         stage_rows = [measure_stages(cameras, args.people, args.matcher)
                       for cameras in args.cameras]
         stages_document = {"machine": machine(), "stages": stage_rows}
-        lines = [
-            f"{row['cameras']:3d} cameras: decode {row['decode_us_per_message']:5.1f} us/msg"
-            f", inbox insert {row['insert_us_per_message']:5.1f} us/msg, {args.matcher} "
-            f"update {row['update_ms_per_group']:5.2f} ms/group "
-            f"({row['update_us_per_message']:5.0f} us/msg, worst frame "
-            f"{row['update_worst_ms']:5.1f} ms), commit "
-            f"{row['commit_ms_per_group']:5.2f} ms/group; database "
-            f"{row['database_bytes_per_message']:.0f} bytes/message"
-            for row in stage_rows
-        ]
+        lines = [stages_line(row, args.matcher) for row in stage_rows]
         print(json.dumps(stages_document, indent=2) if args.json else "\n".join(lines))
         if out is not None:
             _write_results(Path(out), "mqtt_stages", stages_document, "\n".join(lines))
@@ -521,6 +533,13 @@ def run_mqtt_benchmark(args: Any) -> int:
                              CameraClocks(args.clock_spread_ms / 1000,
                                           args.clock_jitter_ms / 1000, seed=repeat))
                     for repeat in range(args.repeats)]
+            if receiver == "matcher" and not paced:
+                # The tracker's own rate on the same messages, between the service's runs.
+                for repeat, one in enumerate(runs):
+                    one["tracker_alone_per_s"] = tracker_alone(
+                        cameras, args.people, args.matcher, min(frames, 600),
+                        CameraClocks(args.clock_spread_ms / 1000, args.clock_jitter_ms / 1000,
+                                     seed=repeat))
             row = median_of(runs)
             row["runs"] = runs
             rows.append(row)
@@ -539,6 +558,12 @@ def run_mqtt_benchmark(args: Any) -> int:
                     print(f"{'':20s} CPU per message: service process "
                           f"{row['service_cpu_us_per_message']:.0f} us, tracker process "
                           f"{row['tracker_cpu_us_per_message']:.0f} us", flush=True)
+                if "tracker_alone_per_s" in row:
+                    print(f"{'':20s} the tracker alone on these messages: "
+                          f"{row['tracker_alone_per_s']:.0f} msg per CPU second; the service "
+                          "tracked "
+                          f"{100 * row['tracked_per_s'] / row['tracker_alone_per_s']:.0f} % "
+                          "of it", flush=True)
                 if "last_member_p50_ms" in row:
                     print(f"{'':20s} capture -> last member received p50/p99 "
                           f"{row['last_member_p50_ms']:.1f}/{row['last_member_p99_ms']:.1f} ms,"

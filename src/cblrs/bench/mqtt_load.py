@@ -20,6 +20,8 @@ import numpy as np
 from cblrs.detections import CameraMessage
 from cblrs.matching import make_matcher
 from cblrs.plane import PlaneSet, PlaneSpec
+from cblrs.runtime.matcher.ordering import Orderer
+from cblrs.runtime.matcher.retrack import state_text
 from cblrs.runtime.matcher.store import InboxEntry, RuntimeStore
 from cblrs.runtime.transport.mqtt_transport import MqttSettings, MqttTransport
 from cblrs.runtime.transport.topics import detections_topic
@@ -231,6 +233,26 @@ def _best_seconds(function, number: int, repeats: int = 5) -> float:
     return best
 
 
+def _pipe_seconds(batch: list, rounds: int = 20) -> tuple[float, int]:
+    """Best seconds to send ``batch`` through a ``multiprocessing`` pipe and receive it
+    (both ends in this process), and its pickled size in bytes."""
+    import multiprocessing
+    import pickle
+
+    reader, writer = multiprocessing.Pipe(duplex=False)
+    best = math.inf
+    for _ in range(rounds):
+        received = threading.Thread(target=reader.recv)
+        started = time.perf_counter()
+        received.start()
+        writer.send(batch)
+        received.join()
+        best = min(best, time.perf_counter() - started)
+    reader.close()
+    writer.close()
+    return best, len(pickle.dumps(batch))
+
+
 def measure_stages(cameras: int, people: int, matcher_name: str, frames: int = 90) -> dict:
     """In-process cost of each step a message or group takes in the matcher, no MQTT.
 
@@ -249,6 +271,12 @@ def measure_stages(cameras: int, people: int, matcher_name: str, frames: int = 9
             payload, topic_camera=topic_camera, now=epoch, topic_plane=PLANE_ID)), 2000)
     groups = [[InboxEntry.from_wire(policy.decode_wire(item, now=epoch)) for item in group]
               for group in payloads]
+    # Tracker process: a group's messages rebuilt from its entries; a batch of released
+    # groups through the pipe from the service (pickled, sent, received and unpickled).
+    build = _best_seconds(lambda: [entry.message() for entry in groups[0]], 200) / cameras
+    batch = [(epoch + frame / 30.0, group) for frame, group in enumerate(groups[:50])]
+    pipe, pipe_bytes = _pipe_seconds(batch)
+    pipe /= sum(len(group) for _, group in batch)
     matcher = make_matcher(matcher_name, PlaneSet([PLANE]), names)
     updates = []
     outputs = []
@@ -265,10 +293,14 @@ def measure_stages(cameras: int, people: int, matcher_name: str, frames: int = 9
             store.insert_messages(rows[start:start + cameras])
         insert = (time.perf_counter() - started) / len(rows)
         started = time.perf_counter()
-        for frame, group in enumerate(groups):
-            store.commit_group([(m.camera_id, m.sequence) for m in group], outputs[frame],
-                               matcher.get_state(), epoch + frame / 30.0, {"groups": 1})
+        for frame, group in enumerate(groups):  # as the tracker process: keys, no state
+            keys = [(m.camera_id, m.sequence) for m in group]
+            store.commit_group(keys, outputs[frame], None, epoch + frame / 30.0,
+                               {"groups": 1}, replay=[(epoch + frame / 30.0, keys)])
         commit = (time.perf_counter() - started) / frames
+        # Saving the matcher state (every few seconds of capture time, off the track path).
+        state_save = _best_seconds(
+            lambda: store.save_matcher_state(state_text(matcher.get_state())), 3, repeats=3)
         stored_bytes = store.used_bytes() / len(rows)  # inbox + track rows, per message
         store.close()
     return {
@@ -279,5 +311,50 @@ def measure_stages(cameras: int, people: int, matcher_name: str, frames: int = 9
         "update_us_per_message": 1e6 * statistics.median(steady) / cameras,
         "update_worst_ms": 1e3 * max(updates),
         "commit_ms_per_group": 1e3 * commit,
+        "state_save_ms": 1e3 * state_save,
+        "build_us_per_message": 1e6 * build,
+        "pipe_us_per_message": 1e6 * pipe,
+        "pipe_bytes_per_message": pipe_bytes / sum(len(group) for _, group in batch),
         "database_bytes_per_message": stored_bytes,
     }
+
+
+def stages_line(row: dict, matcher: str) -> str:
+    """One camera count's line of ``cblrs bench mqtt --stages`` (a :func:`measure_stages` row)."""
+    return (
+        f"{row['cameras']:3d} cameras: decode {row['decode_us_per_message']:5.1f} us/msg"
+        f", inbox insert {row['insert_us_per_message']:5.1f} us/msg, {matcher} "
+        f"update {row['update_ms_per_group']:5.2f} ms/group "
+        f"({row['update_us_per_message']:5.0f} us/msg, worst frame "
+        f"{row['update_worst_ms']:5.1f} ms), commit "
+        f"{row['commit_ms_per_group']:5.2f} ms/group, matcher state save "
+        f"{row['state_save_ms']:5.1f} ms; messages from entries "
+        f"{row['build_us_per_message']:4.1f} us/msg, pipe {row['pipe_us_per_message']:4.1f}"
+        f" us/msg ({row['pipe_bytes_per_message']:.0f} bytes); database "
+        f"{row['database_bytes_per_message']:.0f} bytes/message"
+    )
+
+
+def tracker_alone(cameras: int, people: int, matcher_name: str, frames: int,
+                  clocks: CameraClocks | None = None) -> float:
+    """The tracker's own rate on the benchmark's messages, messages per second of CPU: the
+    same frames, decoded into inbox entries, ordered into windows as the service orders
+    them, then timed through what the tracker process does with each window (build the
+    messages from the entries, ``matcher.update``), in this process, with no broker, store
+    or pipe. CPU time, not wall time: on a machine shared with other jobs it is what the
+    tracker does with a core of its own. The service's tracked messages/s (wall clock) over
+    this is the share of the tracker's own rate it keeps (issue 20 item 7).
+    """
+    names = camera_names(cameras)
+    policy = ValidationPolicy(known_cameras=frozenset(names), max_future_s=3600.0)
+    epoch = time.time() - frames / 30.0
+    orderer = Orderer(names)
+    for group in _frames(names, frames, 30.0, epoch, people, clocks):
+        for payload in group:
+            orderer.add(InboxEntry.from_wire(policy.decode_wire(payload, now=epoch)), 0.0)
+    windows = orderer.release(0.0, force=True)
+    matcher = make_matcher(matcher_name, PlaneSet([PLANE]), names)
+    started = time.process_time()
+    for timestamp, entries in windows:
+        matcher.update(timestamp, [entry.message() for entry in entries])
+    return cameras * frames / max(time.process_time() - started, 1e-9)

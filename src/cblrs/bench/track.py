@@ -1,17 +1,21 @@
 """The whole ``cblrs track`` on WILDTRACK as a process, beside a homography + norfair baseline.
 
-What a user waits for is the process: interpreter and imports, loading the data set, the
-colour path of every camera (reference, target pixels, colours), tracking, writing the tracks.
-This benchmark starts ``cblrs track`` and the two variants of the plain homography + norfair
+What a user waits for is the process: interpreter and imports, loading the data set, the colour
+path of every camera (reference, target pixels, colours), tracking, writing the tracks. This
+benchmark starts ``cblrs track`` and the two variants of the plain homography + norfair
 pipeline of :mod:`cblrs.bench.norfair_baseline` (``merged``: the cameras' ground points of a
 person merged first; ``every-box``: each camera's point a detection) on the same annotated
-boxes, in turn (each round in another order, after a round that is not counted, which warms
-the file cache), and reads each finished process's own accounting: wall seconds (a monotonic
-clock around start and reaping), CPU seconds (user + system) and peak resident memory
-(``ru_maxrss``). It prints the medians, the ratios of ``cblrs track`` to each baseline taken
-round by round (so a drift of the machine's speed cancels), the load of the machine, and the
-scores of the three outputs against the ground truth (outside the timing), so that a fast
-baseline cannot hide a poor one; and, from fresh processes of
+boxes, in turn (each round in another order, after a round that is not counted, which warms the
+file cache), and reads each finished process's own accounting: wall seconds (a monotonic clock
+around start and reaping), CPU seconds (user + system) and peak resident memory
+(``ru_maxrss``). Every process gets a bytecode cache in the benchmark's temporary folder
+(``PYTHONPYCACHEPREFIX``, ``PYTHONDONTWRITEBYTECODE`` unset), filled by the uncounted round: an
+installed package has its modules compiled at install, and a process that compiles them at
+every start (an environment that forbids writing bytecode, a read-only checkout) measures the
+compiler, not the program. It prints the medians, the ratios of ``cblrs track`` to each
+baseline taken round by round (so a drift of the machine's speed cancels), the load of the
+machine, and the scores of the three outputs against the ground truth (outside the timing), so
+that a fast baseline cannot hide a poor one; and, from fresh processes of
 :mod:`cblrs.bench.track_stages`, where the CPU time of ``cblrs track`` goes.
 """
 
@@ -53,8 +57,21 @@ def commands(root: Path, out: Path, matcher: str = "fusion") -> dict[str, list[s
     }
 
 
-def run_process(command: list[str]) -> dict[str, float]:
+def bytecode_environment(folder: Path) -> dict[str, str]:
+    """This process's environment, with Python's bytecode cached under ``folder``."""
+    environment = {key: value for key, value in os.environ.items()
+                   if key != "PYTHONDONTWRITEBYTECODE"}
+    environment["PYTHONPYCACHEPREFIX"] = str(folder)
+    return environment
+
+
+def run_process(command: list[str], environment: dict[str, str] | None = None
+                ) -> dict[str, float]:
     """Run a command to its end; its wall and CPU seconds and peak resident MiB.
+
+    Args:
+        command: the program and its arguments.
+        environment: its environment (default: this process's).
 
     Raises:
         BenchmarkError: it exited with a non-zero status (its last error line is quoted).
@@ -62,7 +79,7 @@ def run_process(command: list[str]) -> dict[str, float]:
     with tempfile.TemporaryFile() as errors:
         start = time.perf_counter()
         process = subprocess.Popen(command, stdin=subprocess.DEVNULL,
-                                   stdout=subprocess.DEVNULL, stderr=errors)
+                                   stdout=subprocess.DEVNULL, stderr=errors, env=environment)
         _, status, usage = os.wait4(process.pid, 0)
         wall = time.perf_counter() - start
         process.returncode = os.waitstatus_to_exitcode(status)
@@ -116,19 +133,20 @@ def benchmark_track(
     with tempfile.TemporaryDirectory(prefix="cblrs-bench-track-") as folder:
         out = Path(folder)
         lines = commands(root, out, matcher)
+        environment = bytecode_environment(out / "pycache")
         for _ in range(warmup):
             for name in names:
-                run_process(lines[name])
+                run_process(lines[name], environment)
         for round_index in range(repeats):
             # Rotate the order so that no command always follows the same one.
             shift = round_index % len(names)
             for name in names[shift:] + names[:shift]:
-                runs[name].append(run_process(lines[name]))
+                runs[name].append(run_process(lines[name], environment))
             if progress is not None:
                 progress(f"round {round_index + 1}/{repeats}: " + ", ".join(
                     f"{name} {runs[name][-1]['wall_s']:.2f} s" for name in names))
         scores = _scores(root, out)
-    stages = _stages(root, repeats)
+        stages = _stages(root, repeats, environment)
     medians = {
         name: {key: statistics.median(run[key] for run in runs[name])
                for key in ("wall_s", "cpu_s", "peak_mib")}
@@ -157,12 +175,13 @@ def benchmark_track(
     })
 
 
-def _stages(root: Path, repeats: int) -> dict[str, float]:
+def _stages(root: Path, repeats: int, environment: dict[str, str]) -> dict[str, float]:
     """Median CPU seconds of each stage of ``cblrs track`` (:mod:`cblrs.bench.track_stages`)."""
     runs = []
     for _ in range(repeats):
         done = subprocess.run([sys.executable, str(_STAGES_SCRIPT), str(root)],
-                              capture_output=True, text=True, stdin=subprocess.DEVNULL)
+                              capture_output=True, text=True, stdin=subprocess.DEVNULL,
+                              env=environment)
         if done.returncode != 0:
             lines = done.stderr.strip().splitlines()
             raise BenchmarkError(

@@ -12,7 +12,6 @@ from typing import Any
 import cv2
 import numpy as np
 from numpy.typing import NDArray
-from scipy.stats import chi2
 
 from cblrs.calibrate.checks import check_spread, image_size_of
 from cblrs.calibrate.models import ModelFailure, fit_model
@@ -551,6 +550,7 @@ def _large_error(
     redundancy = refined.redundancy
     if redundancy <= 0:
         return None
+    from scipy.stats import chi2  # lazy: ~0.4 s of CPU, paid by every process loading a site
     if refined.chi_square <= chi2.ppf(1 - _LARGE_ERROR_PROBABILITY, redundancy):
         return None
     factor = math.sqrt(refined.chi_square / redundancy)

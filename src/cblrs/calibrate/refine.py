@@ -28,7 +28,6 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 from numpy.typing import NDArray
-from scipy.optimize import least_squares
 
 from cblrs.camera import Camera
 
@@ -251,6 +250,10 @@ def refine(
                 np.eye(2) / noise.ground_m
             )
         return matrix
+
+    # lazy: scipy.optimize takes ~0.4 s of CPU to import; a site or dashboard that fits no
+    # points need not pay for it (see fit.py)
+    from scipy.optimize import least_squares
 
     start = np.concatenate([np.asarray(params, dtype=np.float64), world_xy.ravel()])
     method = "lm" if 4 * count >= size + 2 * count and not robust else "trf"

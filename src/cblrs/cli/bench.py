@@ -207,13 +207,14 @@ def register(subparsers) -> None:
     mqtt.add_argument("--people", type=int, default=2,
                       help="detections per message (default 2)")
     mqtt.add_argument("--matcher", default="fusion", help="matcher (default fusion)")
-    mqtt.add_argument("--clock-spread-ms", type=float, default=0.0, metavar="MS",
+    mqtt.add_argument("--clock-spread-ms", type=float, default=10.0, metavar="MS",
                       help="real camera clocks: each camera stamps its frames this many ms "
                       "apart from the others at most (offsets spread evenly over 0..MS; "
-                      "default 0: all cameras stamp a frame with the same time)")
-    mqtt.add_argument("--clock-jitter-ms", type=float, default=0.0, metavar="MS",
+                      "default 10; 0 with --clock-jitter-ms 0: every camera stamps a frame "
+                      "with the same time, an idealised case)")
+    mqtt.add_argument("--clock-jitter-ms", type=float, default=2.0, metavar="MS",
                       help="per-frame jitter of every camera's stamps, standard deviation in "
-                      "ms (default 0)")
+                      "ms (default 2)")
     mqtt.add_argument("--nagle", action="store_true",
                       help="leave Nagle's algorithm on (no TCP_NODELAY), as before issue 10")
     mqtt.add_argument("--stages", action="store_true",

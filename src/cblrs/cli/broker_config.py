@@ -70,6 +70,11 @@ def register(subparsers) -> None:
         "at a time",
     )
     parser.add_argument(
+        "--linkers", metavar="ID,ID,...",
+        help="logins of cblrs linker (default: none): each reads every plane's tracks and "
+        "publishes the site's global tracks, events and live summary (plane 0)",
+    )
+    parser.add_argument(
         "--clients-dir", type=Path,
         help="folder of the per-client folders of secrets (default: OUT-clients, beside OUT, "
         "never inside it); copy each client's folder to that client only",
@@ -175,6 +180,7 @@ def run(args: argparse.Namespace) -> int:
         bind=args.bind,
         viewer=not args.no_viewer,
         viewers=_names(args.viewers, "--viewers") if args.viewers else None,
+        linkers=_names(args.linkers, "--linkers") if args.linkers else (),
         queue_bytes=int(args.queue_mb * 2**20),
         autosave_s=args.autosave,
         run_as=args.run_as,
@@ -269,6 +275,7 @@ def _run_nats(args: argparse.Namespace, cameras: list[str],
         mqtt_port=None if args.no_mqtt else args.mqtt_port, site=args.site_id,
         viewers=_names(args.viewers, "--viewers") if args.viewers else
         ([] if args.no_viewer else ["viewer"]),
+        linkers=_names(args.linkers, "--linkers") if args.linkers else (),
         admin=args.admin, tls=not args.no_tls, ca_directory=args.ca_dir,
         clients_directory=args.clients_dir,
     )

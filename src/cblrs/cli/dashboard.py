@@ -12,6 +12,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from cblrs.cli.backbone import add_backbone_options, nats_settings, uses_nats
 from cblrs.cli.camera import add_mqtt_options, mqtt_settings
 from cblrs.cli.common import InputError, UsageError, add_output_options, check_positive
 
@@ -34,11 +35,17 @@ def register(subparsers) -> None:
             "shipped with cblrs. Everyone logs in: with --users, the users of that file "
             "(cblrs dashboard-users; viewers see, admins also calibrate); without it, on "
             "loopback only, whoever opens the login link printed at start (an admin link "
-            "valid for this run). See docs/security.md."
+            "valid for this run). See docs/security.md. A site of several planes gets an "
+            "overview (without --plane, or --plane all): every plane's map and live tracks "
+            "with the linker's global ids, site-wide counts, each plane's matcher health, and "
+            "each plane's own page. Reads MQTT (--broker) or NATS (--backbone nats://..., or "
+            "--broker nats://...). See docs/live.md."
         ),
     )
     parser.add_argument("--site", type=Path, required=True, help="the site file")
-    parser.add_argument("--plane", type=int, help="plane shown (default: the site's first)")
+    parser.add_argument("--plane", metavar="ID|all",
+                        help="plane shown, or all: the overview of every plane (default: the "
+                        "overview on a site of several planes, else its plane)")
     parser.add_argument("--db", type=Path, help="a matcher's database to replay (read-only)")
     parser.add_argument(
         "--key", type=Path, help="the site's pseudo-coordinate key (docs/privacy.md): the "
@@ -68,6 +75,7 @@ def register(subparsers) -> None:
                         help="where the calibration page writes references (default: "
                         "references/ beside the site file)")
     add_mqtt_options(parser)
+    add_backbone_options(parser, matcher=False)
     add_output_options(parser)
     parser.set_defaults(broker=None, handler=run)
 
@@ -94,7 +102,7 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"--site {args.site} does not exist.")
     if args.frames is not None and not args.frames.is_dir():
         raise InputError(f"--frames {args.frames} is not a folder.")
-    config = DashboardConfig(args.site, args.plane, database=args.db, frames=args.frames,
+    config = DashboardConfig(args.site, None, database=args.db, frames=args.frames,
                              references=args.references)
     if args.key is not None:
         if config.site.pseudo_key_id is not None:
@@ -106,44 +114,49 @@ def run(args: argparse.Namespace) -> int:
         from cblrs.privacy import PseudoKey
 
         config.to_site = PseudoKey.load(args.key).to_site
-    plane = args.plane
-    if plane is None:
-        planes = config.site.planes
-        plane = planes.ids[0] if planes is not None else 1
-    elif config.site.planes is not None and plane not in config.site.planes.ids:
-        raise UsageError(f"--plane {plane} is not a plane of {args.site.name} "
-                         f"(planes {config.site.planes.ids}).")
+    plane = _shown_plane(args, config)
     config.plane_id = plane
+    config.overview = plane is None
     if args.db is not None:
         StoreReplay(args.db).close()  # a file that cannot be replayed says so now
+    _backbone(args)
     listener = _listen(args.host, args.port)
     feed = None
-    if args.broker is not None:
-        settings = mqtt_settings(args)
-        client_id = args.client_id or f"cblrs-dashboard-{socket.gethostname()}-{plane}"
+    if args.broker is not None or args.backbone is not None:
+        nats = args.backbone is not None
+        settings = nats_settings(args) if nats else mqtt_settings(args)
+        shown = "all" if plane is None else plane
+        client_id = args.client_id or f"cblrs-dashboard-{socket.gethostname()}-{shown}"
         if not logging.getLogger().isEnabledFor(logging.DEBUG):
             # A refusal is said once, below, as one sentence; not also as a log line.
-            logging.getLogger("cblrs.runtime.transport.mqtt_transport").setLevel(logging.ERROR)
-        feed = LiveFeed(settings, plane, client_id[:64], to_site=config.to_site)
+            for name in ("cblrs.runtime.transport.mqtt_transport",
+                         "cblrs.runtime.transport.nats_transport"):
+                logging.getLogger(name).setLevel(logging.ERROR)
+        feed = LiveFeed(settings, config.planes if plane is None else plane, client_id[:64],
+                        to_site=config.to_site)
         try:
             feed.start()
         except TransportError as error:
+            feed.close()
             listener.close()
             who = f"user {args.username!r}" if args.username else "an anonymous client"
             reason = str(error).rsplit(": ", 1)[-1].rstrip(".")
+            where = args.backbone or args.broker
             raise UsageError(
-                f"the broker at {args.broker} did not accept the dashboard as {who} ({reason}); "
-                "check --broker, --username and --password-file (the broker's viewer)."
+                f"the {'NATS servers' if nats else 'broker'} at {where} did not accept the "
+                f"dashboard as {who} ({reason}); check --{'backbone' if nats else 'broker'}, "
+                "--username, --password-file" + (" and --site-id" if nats else "")
+                + " (the backbone's viewer)."
             ) from None
         config.feed = feed
-        config.broker = args.broker
+        config.broker = args.backbone or args.broker
     host, port = listener.getsockname()[:2]
     scheme = "https" if args.tls_cert else "http"
     shown = f"[{host}]" if ":" in host else host
-    where = [f"site {args.site}", f"plane {plane}"]
+    where = [f"site {args.site}", "every plane" if plane is None else f"plane {plane}"]
     if feed is not None:
-        where.append(f"live from {args.broker}" + (f" as {args.username}" if args.username
-                                                    else ""))
+        where.append(f"live from {config.broker}" + (f" as {args.username}" if args.username
+                                                     else ""))
     if args.db is not None:
         where.append(f"replay of {args.db}")
     if feed is None and args.db is None:
@@ -156,8 +169,8 @@ def run(args: argparse.Namespace) -> int:
         where.append(f"users of {args.users}")
     if args.json:
         print(json.dumps({"url": url, "site": str(args.site), "plane": plane,
-                          "broker": args.broker, "users": None if args.users is None
-                          else str(args.users),
+                          "planes": config.planes, "broker": config.broker or None,
+                          "users": None if args.users is None else str(args.users),
                           "db": None if args.db is None else str(args.db)}), flush=True)
     else:
         print(f"dashboard on {url} ({', '.join(where)}); Ctrl-C stops it", flush=True)
@@ -178,6 +191,43 @@ def run(args: argparse.Namespace) -> int:
         listener.close()
     print("dashboard stopped", file=sys.stderr)
     return 0
+
+
+def _shown_plane(args: argparse.Namespace, config: Any) -> int | None:
+    """The plane shown from ``--plane`` (None: the overview of every plane)."""
+    planes = config.planes
+    text = (args.plane or "").strip()
+    if text == "all" or (not text and len(planes) > 1):
+        if args.db is not None:
+            raise UsageError("--db replays one plane's matcher: give the plane too "
+                             "(--plane ID).")
+        if args.key is not None:
+            raise UsageError("--key maps one pseudo plane: give the plane too (--plane ID).")
+        return None
+    if not text:
+        return planes[0]
+    if not text.isdecimal():
+        raise UsageError(f"--plane {args.plane!r} must be a plane id or all.")
+    plane = int(text)
+    if config.site.planes is not None and plane not in planes:
+        raise UsageError(f"--plane {plane} is not a plane of {args.site.name} "
+                         f"(planes {planes}).")
+    return plane
+
+
+def _backbone(args: argparse.Namespace) -> None:
+    """``--broker nats://...`` means ``--backbone nats://...``; mqtt:// an MQTT broker."""
+    if args.broker is not None and args.broker.startswith("nats://"):
+        if args.backbone is not None:
+            raise UsageError("give the NATS servers once: --backbone or --broker nats://.")
+        args.backbone, args.broker = args.broker, None
+    elif args.broker is not None and args.broker.startswith("mqtt://"):
+        args.broker = args.broker[len("mqtt://"):]
+    if args.backbone is not None and not uses_nats(args):
+        args.broker, args.backbone = args.backbone[len("mqtt://"):], None
+    if args.site_id is not None and args.backbone is None:
+        raise UsageError("--site-id names a site's NATS subjects: it goes with --backbone "
+                         "nats://...")
 
 
 def _authenticator(args: argparse.Namespace) -> Any:

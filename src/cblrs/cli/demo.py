@@ -19,6 +19,9 @@ On a real data set with ``--detector onnx --model M.onnx`` the boxes come from t
 on the data set's images (``Image_subsets/C<k>/``), and the overlays are drawn over the real
 frames: detector boxes labelled with the fusion track they fed, the located targets, the
 annotated positions (green rings) and, faintly, the reference's metric grid.
+
+On a terminal, the synthetic demo then goes live: the plaza's cameras replayed through
+``cblrs up`` (broker, matcher, dashboard, cameras) until Ctrl-C (:mod:`cblrs.cli.demo_live`).
 """
 
 from __future__ import annotations
@@ -42,6 +45,7 @@ from cblrs.cli.common import (
     print_json,
     progress,
 )
+from cblrs.cli.demo_live import add_live_options, run_live, wants_live
 from cblrs.cli.detector_options import (
     DETECTIONS_HELP,
     add_detector_options,
@@ -155,6 +159,7 @@ def register(subparsers: Any) -> None:
         "or fitted from the calibration and a class size prior (geometric)",
     )
     add_detector_options(parser, detections_help=DETECTIONS_HELP)
+    add_live_options(parser)
     add_output_options(parser)
     parser.set_defaults(handler=run)
 
@@ -170,6 +175,8 @@ def run(args: Any) -> int:
     except OSError as error:
         raise InputError(f"cannot create the output folder {out}: {error.strerror}.") from None
     source = detection_source(args)
+    live = wants_live(args)
+    live_scene = None
     if source != "annotations" and not args.dataset:
         raise UsageError("--detector and --detections need --dataset DIR (a real data set).")
     start = time.perf_counter()
@@ -219,6 +226,8 @@ def run(args: Any) -> int:
         presets = ["roundabout", "plaza"] if args.preset == "all" else [args.preset]
         for preset in presets:
             scene, world = synthetic_scene(preset, args.seed, args.duration)
+            if preset == "plaza" and not frame_range:
+                live_scene = scene
             if frame_range:
                 scene = scene.select_frames(*frame_range)
             reports.append(
@@ -248,7 +257,11 @@ def run(args: Any) -> int:
         for path in pictures:
             print(f"  {path}")
         print(f"  {report.directory}/references/*.png, tracks_*.txt, ground_truth.txt")
-    return 0
+    if not live:
+        return 0
+    if live_scene is None:  # the live site replays the plaza, also after --preset roundabout
+        live_scene, _ = synthetic_scene("plaza", args.seed)
+    return run_live(args, out, live_scene)
 
 
 def results_table(reports: list[SceneReport]) -> str:

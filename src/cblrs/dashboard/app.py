@@ -2,17 +2,24 @@
 
 Pages (static files shipped with the package, no build step, nothing fetched from a CDN):
 
-* ``/`` — the live map: the site's planes, zones, counting lines, cameras and their fields
-  of view; live global tracks with short trails coloured by id; zones and lines with their
-  counts; per-camera status; the event log; a replay of a stored run at 1x-10x; a heatmap
-  of recent positions; for admins, an editor of the zones and lines (saved to the site file);
+* ``/`` — the overview of a site of several planes (``cblrs dashboard`` without ``--plane``,
+  or ``--plane all``): every plane's map placed by the site's geometry, the live tracks of
+  every plane with their global ids (from the linker), site-wide counts, each plane's matcher
+  health and a link to each plane's own page, ``/?plane=N``;
+* ``/`` (one plane), ``/?plane=N`` (a plane of the overview) — the live map: the site's planes,
+  zones, counting lines, cameras and their fields of view; live tracks with short trails
+  coloured by id (and their global ids); zones and lines with their counts; per-camera status;
+  the event log; a replay of a stored run at 1x-10x; a heatmap of recent positions; for admins,
+  an editor of the zones and lines (saved to the site file);
 * ``/calibrate`` — a camera's frame beside the site map: click point pairs, see each
   point's reprojection error live, save to the site file and render the reference.
 
 API (JSON, and Server-Sent Events for the streams):
 
-* ``GET /api/site`` — the site as drawn (:func:`cblrs.dashboard.scene.site_scene`);
-* ``GET /api/stream`` — the live feed (:mod:`cblrs.dashboard.feed`);
+* ``GET /api/site``, ``GET /api/site?plane=N|all`` — the site as drawn
+  (:func:`cblrs.dashboard.scene.site_scene`);
+* ``GET /api/stream``, ``GET /api/stream?plane=N|all`` — the live feed
+  (:mod:`cblrs.dashboard.feed`) of the plane shown, of plane N, or of every plane;
 * ``GET /api/replay/info``, ``GET /api/replay?speed=S&start=T`` — a stored run
   (:mod:`cblrs.dashboard.replay`);
 * ``GET /api/status`` — what the dashboard is connected to;
@@ -63,7 +70,9 @@ class DashboardConfig:
     Attributes:
         site_path: the site file (read at start; the calibration page and the places editor
             rewrite it).
-        plane_id: the plane shown (default: the site's first).
+        plane_id: the plane shown (default: the site's first); None with ``overview``.
+        overview: serve the overview of every plane at ``/`` (each plane's page at
+            ``/?plane=N``).
         feed: the live feed (None: replay only).
         database: a matcher database to replay (None: no replay).
         frames: folder of camera frames for the calibration page.
@@ -75,6 +84,7 @@ class DashboardConfig:
 
     site_path: Path
     plane_id: int | None = None
+    overview: bool = False
     feed: LiveFeed | None = None
     database: Path | None = None
     frames: Path | None = None
@@ -87,6 +97,37 @@ class DashboardConfig:
         self.site = load_site(self.site_path)
         if self.references is None:
             self.references = self.site_path.parent / "references"
+
+    @property
+    def planes(self) -> list[int]:
+        """The site's plane ids (``[plane_id]`` or ``[1]`` for a site without planes)."""
+        if self.site.planes is not None:
+            return list(self.site.planes.ids)
+        return [self.plane_id if self.plane_id is not None else 1]
+
+    def shown(self, text: str | None) -> int | None:
+        """The plane a request asks for (``?plane=N``; ``all``: the overview, None).
+
+        Raises:
+            ValueError: not a plane this dashboard shows.
+        """
+        if self.overview:
+            first = None
+        else:  # one plane: the configured one, else the site's first
+            first = self.plane_id if self.plane_id is not None else self.planes[0]
+        if text is None or text == "":
+            return first
+        if text == "all":
+            if not self.overview:
+                raise ValueError("this dashboard shows one plane (cblrs dashboard --plane).")
+            return None
+        if not text.isdecimal() or int(text) not in self.planes:
+            raise ValueError(f"plane {text[:20]!r} is not a plane of this site "
+                             f"(planes {self.planes}).")
+        plane = int(text)
+        if not self.overview and plane != first:
+            raise ValueError(f"this dashboard shows plane {first} only.")
+        return plane
 
 
 def create_app(config: DashboardConfig, auth: Any) -> Any:
@@ -126,10 +167,17 @@ def create_app(config: DashboardConfig, auth: Any) -> Any:
     places_lock = asyncio.Lock()  # one save of the site file at a time
     logins = asyncio.Semaphore(2)  # scrypt takes 128 MiB and a good part of a second each
 
-    def scene() -> dict[str, Any]:
-        if "scene" not in scene_cache:
-            scene_cache["scene"] = site_scene(config.site, config.plane_id)
-        return scene_cache["scene"]
+    def scene(plane: int | None = -1) -> dict[str, Any]:
+        """The scene of ``plane`` (None: every plane; the default: the configured one)."""
+        shown = config.plane_id if plane == -1 else plane
+        key = "all" if shown is None else str(shown)
+        if key not in scene_cache:
+            scene_cache[key] = site_scene(config.site, shown, every_plane=shown is None)
+        return scene_cache[key]
+
+    def asked_plane(request: Any) -> int | None:
+        """The plane the request names (``ValueError``: not one shown here)."""
+        return config.shown(request.query_params.get("plane"))
 
     # -- logging in -----------------------------------------------------------------------
 
@@ -180,7 +228,11 @@ def create_app(config: DashboardConfig, auth: Any) -> Any:
 
     @requires(viewer, page=True)
     async def index(request: Any) -> Any:
-        return FileResponse(STATIC / "index.html")
+        try:
+            plane = asked_plane(request)
+        except ValueError as error:
+            return Response(f"{error}\n", status_code=404, media_type="text/plain")
+        return FileResponse(STATIC / ("overview.html" if plane is None else "index.html"))
 
     @requires(admin, page=True)
     async def calibrate_page(request: Any) -> Any:
@@ -188,9 +240,16 @@ def create_app(config: DashboardConfig, auth: Any) -> Any:
 
     @requires(viewer)
     async def site(request: Any) -> Any:
-        data = await asyncio.to_thread(scene)
-        return JSONResponse({**data, "live": config.feed is not None,
-                             "replay": config.database is not None, "broker": config.broker})
+        try:
+            plane = asked_plane(request)
+        except ValueError as error:
+            return refusal(error, 404)
+        data = await asyncio.to_thread(scene, plane)
+        return JSONResponse({
+            **data, "live": config.feed is not None, "overview": config.overview,
+            "site_planes": config.planes,
+            "replay": config.database is not None and not config.overview,
+            "broker": config.broker})
 
     @requires(viewer)
     async def site_map(request: Any) -> Any:
@@ -215,8 +274,12 @@ def create_app(config: DashboardConfig, auth: Any) -> Any:
         if feed is None:
             return JSONResponse({"error": "this dashboard has no broker (--broker)."},
                                 status_code=404)
+        try:
+            plane = asked_plane(request)
+        except ValueError as error:
+            return refusal(error, 404)
         identity = request.state.identity
-        subscriber = feed.subscribe(asyncio.get_running_loop())
+        subscriber = feed.subscribe(asyncio.get_running_loop(), plane)
 
         async def body():
             try:
@@ -355,20 +418,29 @@ def create_app(config: DashboardConfig, auth: Any) -> Any:
 
     @requires(viewer)
     async def places(request: Any) -> Any:
+        try:
+            plane = asked_plane(request)
+        except ValueError as error:
+            return refusal(error, 404)
+        if plane is None:
+            return refusal(CblrsError("places are edited on a plane's page (?plane=N)."), 404)
         view = await asyncio.to_thread(places_editor.places_view, config.site,
-                                       config.site_path, config.plane_id)
+                                       config.site_path, plane)
         return JSONResponse(view)
 
     @requires(admin)
     async def places_save(request: Any) -> Any:
         try:
             data = await request.json()
+            plane = asked_plane(request)
         except ValueError:
-            return refusal(CblrsError("send the places as JSON."), 400)
+            return refusal(CblrsError("send the places as JSON, to a plane shown here."), 400)
+        if plane is None:
+            return refusal(CblrsError("places are saved from a plane's page (?plane=N)."), 400)
         async with places_lock:
             try:
                 result = await asyncio.to_thread(places_editor.save_places, config.site_path,
-                                                 data, config.plane_id)
+                                                 data, plane)
             except CblrsError as error:
                 return refusal(error)
             config.site = load_site(config.site_path)

@@ -1,25 +1,34 @@
-"""The dashboard's live feed: a read-only MQTT client of one plane, relayed to browsers.
+"""The dashboard's live feed: a read-only client of the backbone, relayed to browsers.
 
-:class:`LiveFeed` subscribes (as the broker's read-only ``viewer``) to the plane's track
-updates, analytics events, the matcher's live summary and the cameras' status, validates
-each message with its schema, turns it into the compact JSON the page draws and hands it to
-every connected page (:class:`Subscriber`, one per Server-Sent-Events stream). A page that
-connects mid-run first gets what the feed holds: the last track frame, the last live
-summary, the cameras' status, the recent events and the recent alerts.
+:class:`LiveFeed` subscribes (as the backbone's read-only ``viewer``, on MQTT or NATS: any
+:class:`~cblrs.runtime.transport.protocol.Transport`) to the track updates, analytics events, live
+summaries, alerts and camera and matcher status of one plane or of every plane of a site
+(and then also to the linker's global tracks and site summary, plane 0), validates each
+message with its schema, turns it into the compact JSON the page draws and hands it to every
+connected page (:class:`Subscriber`, one per Server-Sent-Events stream). A page follows one
+plane, or the whole site (the overview: every plane's messages, each with its ``plane``).
+A page that connects mid-run first gets what the feed holds: per plane, the last track
+frame, the last live summary, the cameras' and matchers' status, the recent events and the
+recent alerts.
 
-Messages to the page (``type``):
+Messages to the page (``type``; each carries ``plane``, 0 for the site's):
 
-* ``tracks`` — ``{"t": capture time, "rows": [[track, x, y, class], ...]}``, one per
-  track update, empty ones too (the page drops marks not seen for a moment: stale marks
-  disappear); corrections of the past (updates with ``corrected_from``: the matcher
-  re-tracked late messages) are counted, not drawn;
+* ``tracks`` — ``{"t": capture time, "rows": [[track, x, y, class], ...], "global":
+  [global id or null, ...]}``, one per track update, empty ones too (the page drops marks
+  not seen for a moment: stale marks disappear); ``global`` (when a linker publishes the
+  site's global tracks) names each row's global id, from the linker's newest rows with that
+  ``(source_plane, source_track)``; corrections of the past (updates with
+  ``corrected_from``: the matcher re-tracked late messages) are counted, not drawn;
 * ``event`` — an analytics event (``cblrs.events/1`` fields), once per ``key``;
-* ``live`` — the matcher's live summary (counts, occupancy, dwell, camera health);
+* ``live`` — the matcher's live summary (counts, occupancy, dwell, camera health); plane 0:
+  the linker's (counts on the global tracks);
+* ``matcher`` — ``{"matcher", "online"}`` from a matcher's (plane 0: a linker's) status;
 * ``status`` — ``{"camera", "online"}`` from a camera's status topic;
 * ``alert`` — an alert episode fired or cleared (``cblrs.alerts/1`` fields: episode, rule,
   kind, subject, state, timestamp, since, value, threshold, and ``active``: the episodes
   firing then), once per ``(episode, state)``;
-* ``hello`` — first message of a stream: the mode and the plane.
+* ``hello`` — first message of a stream: the mode, the plane (None: the overview) and the
+  planes of the feed.
 """
 
 from __future__ import annotations
@@ -29,7 +38,8 @@ import logging
 import threading
 import time
 from collections import OrderedDict, deque
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
 from typing import Any
 
 import msgspec
@@ -37,13 +47,17 @@ import numpy as np
 
 from cblrs.detections import CLASS_NAMES
 from cblrs.runtime.outputs.events import decode_alert, decode_event, decode_live
-from cblrs.runtime.transport.mqtt_transport import MqttSettings, MqttTransport
+from cblrs.runtime.transport.mqtt_transport import MqttTransport
 from cblrs.runtime.transport.topics import (
+    SITE_PLANE,
     TopicError,
     alerts_topic,
     events_topic,
+    linker_status_filter,
     live_topic,
+    matcher_status_filter,
     parse_status_topic,
+    site_tracks_topic,
     status_filter,
     tracks_topic,
 )
@@ -54,6 +68,8 @@ logger = logging.getLogger(__name__)
 RECENT_EVENTS = 50
 RECENT_ALERTS = 50
 """Events a newly connected page gets."""
+GLOBAL_IDS = 20_000
+"""``(plane, track) -> global id`` pairs held (the newest); older tracks have ended."""
 QUEUE_LIMIT = 256
 """Messages waiting for a slow page; beyond it the oldest track frames are dropped."""
 
@@ -123,92 +139,161 @@ def sse(item: dict[str, Any]) -> bytes:
     return b"data: " + _encoder.encode(item) + b"\n\n"
 
 
+
+def viewer_transport(settings: Any, client_id: str) -> Any:
+    """The viewer's transport: NATS for
+    :class:`~cblrs.runtime.transport.nats_transport.NatsSettings`, else MQTT (a clean session:
+    nothing queues while away)."""
+    # lazy: the NATS transport's module is only needed for a NATS backbone
+    from cblrs.runtime.transport.nats_transport import NatsSettings, NatsTransport
+
+    if isinstance(settings, NatsSettings):
+        return NatsTransport(client_id, settings)
+    return MqttTransport(client_id, settings, persistent=False)
+
+
+@dataclass
+class PlaneState:
+    """What the feed holds of one plane (plane 0: the site's, from the linker)."""
+
+    plane_id: int
+    last_tracks: dict[str, Any] | None = None
+    last_live: dict[str, Any] | None = None
+    status: dict[str, bool] = field(default_factory=dict)
+    matchers: dict[str, bool] = field(default_factory=dict)
+    events: OrderedDict[str, dict[str, Any]] = field(default_factory=OrderedDict)
+    alerts: OrderedDict[tuple[str, str], dict[str, Any]] = field(default_factory=OrderedDict)
+
+    def backlog(self) -> list[dict[str, Any]]:
+        """What a page that connects now gets first, oldest kind first."""
+        plane = self.plane_id
+        items: list[dict[str, Any]] = [
+            {"type": "status", "plane": plane, "camera": camera, "online": online}
+            for camera, online in self.status.items()]
+        items += [{"type": "matcher", "plane": plane, "matcher": name, "online": online}
+                  for name, online in self.matchers.items()]
+        if self.last_live is not None:
+            items.append(self.last_live)
+        items += [{**event, "recent": True} for event in self.events.values()]
+        items += [{**alert, "recent": True} for alert in self.alerts.values()]
+        if self.last_tracks is not None:
+            items.append(self.last_tracks)
+        return items
+
+
 class LiveFeed:
-    """The plane's messages, validated and relayed to pages (see the module docstring).
+    """One plane's or a site's messages, validated and relayed to pages (see the module
+    docstring).
 
     Args:
-        settings: broker address and the viewer's credentials.
-        plane_id: the plane shown.
-        client_id: the MQTT client id (a clean session: nothing queues while away).
+        settings: the backbone's address and the viewer's login:
+            :class:`~cblrs.runtime.transport.mqtt_transport.MqttSettings` or
+            :class:`~cblrs.runtime.transport.nats_transport.NatsSettings`.
+        planes: the plane shown, or the planes of the site (every one is followed).
+        client_id: the client id (MQTT: a clean session; nothing queues while away).
+        to_site: maps pseudo positions to the site (a matcher on a pseudo site), or None.
+        linker: also follow the linker (plane 0: global tracks, the site's counts); the
+            default: when more than one plane is followed.
+        transport: the transport to use (default: made from ``settings``).
     """
 
     def __init__(
-        self, settings: MqttSettings, plane_id: int, client_id: str,
-        to_site: ToSite | None = None,
+        self, settings: Any, planes: int | Sequence[int], client_id: str,
+        to_site: ToSite | None = None, linker: bool | None = None, transport: Any = None,
     ):
-        self.plane_id = int(plane_id)
+        self.planes = [int(planes)] if isinstance(planes, int) else [int(p) for p in planes]
+        if not self.planes:
+            raise ValueError("a live feed follows at least one plane")
+        self.plane_id = self.planes[0]
+        self.linker = len(self.planes) > 1 if linker is None else linker
         self.to_site = to_site
         self.settings = settings
-        self.transport = MqttTransport(client_id, settings, persistent=False)
+        self.transport = transport if transport is not None else viewer_transport(
+            settings, client_id)
         self._lock = threading.Lock()
-        self._subscribers: set[Subscriber] = set()
-        self._last_tracks: dict[str, Any] | None = None
-        self._last_live: dict[str, Any] | None = None
-        self._status: dict[str, bool] = {}
-        self._events: OrderedDict[str, dict[str, Any]] = OrderedDict()
-        self._alerts: OrderedDict[tuple[str, str], dict[str, Any]] = OrderedDict()
+        self._subscribers: dict[Subscriber, int | None] = {}
+        self._state = {plane: PlaneState(plane) for plane in self.planes}
+        if self.linker:
+            self._state[SITE_PLANE] = PlaneState(SITE_PLANE)
+        self._global: OrderedDict[tuple[int, int], int] = OrderedDict()
         self.counters = {"tracks": 0, "events": 0, "live": 0, "alerts": 0, "rejected": 0,
-                         "corrections": 0}
+                         "corrections": 0, "global": 0}
         self.last_message_at: float | None = None
 
     def start(self) -> None:
         """Connect and subscribe.
 
         Raises:
-            cblrs.runtime.transport.protocol.TransportError: the broker is unreachable, refuses the
-                credentials, or refuses a subscription (the ACL).
+            cblrs.runtime.transport.protocol.TransportError: the backbone is unreachable,
+                refuses the login, or refuses a subscription (the ACL, the NATS permissions).
         """
         self.transport.connect()
-        plane = self.plane_id
-        for topic, handler in ((tracks_topic(plane), self._on_tracks),
-                               (events_topic(plane), self._on_event),
-                               (live_topic(plane), self._on_live),
-                               (alerts_topic(plane), self._on_alert),
-                               (status_filter(plane), self._on_status)):
-            self.transport.subscribe(topic, handler,
-                                     qos=1 if topic.endswith(("events", "alerts")) else 0)
+        for plane in self.planes:
+            self._follow(plane, tracks_topic(plane), self._on_tracks, 0)
+            self._follow(plane, events_topic(plane), self._on_event, 1)
+            self._follow(plane, live_topic(plane), self._on_live, 0)
+            self._follow(plane, alerts_topic(plane), self._on_alert, 1)
+            self._follow(plane, status_filter(plane), self._on_status, 0)
+            self._follow(plane, matcher_status_filter(plane), self._on_matcher, 0)
+        if self.linker:
+            self._follow(SITE_PLANE, site_tracks_topic(), self._on_global, 0)
+            self._follow(SITE_PLANE, events_topic(SITE_PLANE), self._on_event, 1)
+            self._follow(SITE_PLANE, live_topic(SITE_PLANE), self._on_live, 0)
+            self._follow(SITE_PLANE, linker_status_filter(), self._on_matcher, 0)
+
+    def _follow(self, plane: int, topic: str, handler: Callable[[int, Any], None],
+                qos: int) -> None:
+        self.transport.subscribe(topic, lambda delivery: handler(plane, delivery), qos=qos)
 
     def close(self) -> None:
-        """Disconnect from the broker."""
+        """Disconnect from the backbone."""
         self.transport.close(timeout=1.0)
 
     @property
     def connected(self) -> bool:
-        return self.transport.connected
+        return bool(self.transport.connected)
+
+    def follows(self, plane: int | None) -> bool:
+        """Whether a page may follow ``plane`` (None: the overview of every plane)."""
+        return plane is None or plane in self.planes
 
     # ------------------------------------------------------------------ pages
-    def subscribe(self, loop: asyncio.AbstractEventLoop) -> Subscriber:
-        """A new page: its queue, primed with what the feed holds."""
+    def subscribe(self, loop: asyncio.AbstractEventLoop, plane: int | None = -1) -> Subscriber:
+        """A new page following ``plane`` (None: every plane and the site; the default: the
+        feed's first plane): its queue, primed with what the feed holds."""
+        shown = self.plane_id if plane == -1 else plane
         subscriber = Subscriber(loop)
         with self._lock:
-            self._subscribers.add(subscriber)
-            backlog: list[dict[str, Any]] = [{"type": "hello", "mode": "live",
-                                              "plane": self.plane_id}]
-            backlog += [{"type": "status", "camera": camera, "online": online}
-                        for camera, online in self._status.items()]
-            if self._last_live is not None:
-                backlog.append(self._last_live)
-            backlog += [{**event, "recent": True} for event in self._events.values()]
-            backlog += [{**alert, "recent": True} for alert in self._alerts.values()]
-            if self._last_tracks is not None:
-                backlog.append(self._last_tracks)
+            self._subscribers[subscriber] = shown
+            backlog: list[dict[str, Any]] = [{"type": "hello", "mode": "live", "plane": shown,
+                                              "planes": self.planes}]
+            for state in self._state.values():
+                if shown is None or state.plane_id == shown:
+                    backlog += state.backlog()
         for item in backlog:
             subscriber.push(item)
         return subscriber
 
     def unsubscribe(self, subscriber: Subscriber) -> None:
         with self._lock:
-            self._subscribers.discard(subscriber)
+            self._subscribers.pop(subscriber, None)
 
     def _broadcast(self, item: dict[str, Any]) -> None:
         self.last_message_at = time.time()
+        plane = item["plane"]
         with self._lock:
-            subscribers = list(self._subscribers)
+            subscribers = [subscriber for subscriber, shown in self._subscribers.items()
+                           if shown is None or shown == plane]
         for subscriber in subscribers:
             subscriber.push(item)
 
-    # ------------------------------------------------------------------ MQTT handlers
-    def _on_tracks(self, delivery: Any) -> None:
+    def global_ids(self, plane: int, tracks: Sequence[int]) -> list[int | None]:
+        """The global id of each of ``plane``'s ``tracks`` (None: not linked yet)."""
+        with self._lock:
+            return [self._global.get((plane, track)) for track in tracks]
+
+    # ------------------------------------------------------------------ handlers
+    def _on_tracks(self, plane: int, delivery: Any) -> None:
         try:
             update = decode_tracks(delivery.payload)
         except RejectedMessage as error:
@@ -220,13 +305,37 @@ class LiveFeed:
             with self._lock:
                 self.counters["corrections"] += 1
             return
-        frame = tracks_frame(update, self.to_site)
+        frame = {**tracks_frame(update, self.to_site), "plane": plane}
+        if self.linker:
+            frame["global"] = self.global_ids(plane, [row[0] for row in frame["rows"]])
         with self._lock:
-            self._last_tracks = frame
+            self._state[plane].last_tracks = frame
             self.counters["tracks"] += 1
         self._broadcast(frame)
 
-    def _on_event(self, delivery: Any) -> None:
+    def _on_global(self, plane: int, delivery: Any) -> None:
+        """The linker's global rows: which global id each plane's track has now."""
+        try:
+            update = decode_tracks(delivery.payload)
+        except RejectedMessage as error:
+            self._reject("global tracks", error)
+            return
+        finally:
+            delivery.ack()
+        if update.source_plane is None or update.source_track is None:
+            return
+        pairs = zip(update.source_plane.tolist(), update.source_track.tolist(),
+                    update.tracks.track_id.tolist(), strict=True)
+        with self._lock:
+            for source_plane, source_track, global_id in pairs:
+                key = (source_plane, source_track)
+                self._global[key] = global_id
+                self._global.move_to_end(key)
+            while len(self._global) > GLOBAL_IDS:
+                self._global.popitem(last=False)
+            self.counters["global"] += 1
+
+    def _on_event(self, plane: int, delivery: Any) -> None:
         try:
             event = decode_event(delivery.payload)
         except RejectedMessage as error:
@@ -234,20 +343,21 @@ class LiveFeed:
             return
         finally:
             delivery.ack()
-        item = {"type": "event", **msgspec.to_builtins(event)}
+        item = {"type": "event", **msgspec.to_builtins(event), "plane": plane}
         item.pop("schema", None)
         if self.to_site is not None and item.get("world_xy") is not None:
             item["world_xy"] = self.to_site(np.array([item["world_xy"]]))[0].tolist()
         with self._lock:
-            if event.key in self._events:  # QoS 1 may deliver it again
+            events = self._state[plane].events
+            if event.key in events:  # QoS 1 may deliver it again
                 return
-            self._events[event.key] = item
-            while len(self._events) > RECENT_EVENTS:
-                self._events.popitem(last=False)
+            events[event.key] = item
+            while len(events) > RECENT_EVENTS:
+                events.popitem(last=False)
             self.counters["events"] += 1
         self._broadcast(item)
 
-    def _on_live(self, delivery: Any) -> None:
+    def _on_live(self, plane: int, delivery: Any) -> None:
         try:
             live = decode_live(delivery.payload)
         except RejectedMessage as error:
@@ -255,14 +365,15 @@ class LiveFeed:
             return
         finally:
             delivery.ack()
-        item = {"type": "live", **msgspec.to_builtins(live)}
+        item = {"type": "live", **msgspec.to_builtins(live), "plane": plane}
         item.pop("schema", None)
+        item["received_at"] = time.time()
         with self._lock:
-            self._last_live = item
+            self._state[plane].last_live = item
             self.counters["live"] += 1
         self._broadcast(item)
 
-    def _on_alert(self, delivery: Any) -> None:
+    def _on_alert(self, plane: int, delivery: Any) -> None:
         try:
             alert = decode_alert(delivery.payload)
         except RejectedMessage as error:
@@ -270,19 +381,20 @@ class LiveFeed:
             return
         finally:
             delivery.ack()
-        item = {"type": "alert", **msgspec.to_builtins(alert)}
+        item = {"type": "alert", **msgspec.to_builtins(alert), "plane": plane}
         item.pop("schema", None)
         key = (alert.episode, alert.state)
         with self._lock:
-            if key in self._alerts:  # QoS 1, or the retained one again after a reconnection
+            alerts = self._state[plane].alerts
+            if key in alerts:  # QoS 1, or the retained one again after a reconnection
                 return
-            self._alerts[key] = item
-            while len(self._alerts) > RECENT_ALERTS:
-                self._alerts.popitem(last=False)
+            alerts[key] = item
+            while len(alerts) > RECENT_ALERTS:
+                alerts.popitem(last=False)
             self.counters["alerts"] += 1
         self._broadcast(item)
 
-    def _on_status(self, delivery: Any) -> None:
+    def _on_status(self, plane: int, delivery: Any) -> None:
         try:
             _, camera = parse_status_topic(delivery.topic)
             status = decode_status(delivery.payload)
@@ -293,8 +405,23 @@ class LiveFeed:
             delivery.ack()
         online = status.state == "online"
         with self._lock:
-            self._status[camera] = online
-        self._broadcast({"type": "status", "camera": camera, "online": online})
+            self._state[plane].status[camera] = online
+        self._broadcast({"type": "status", "plane": plane, "camera": camera, "online": online})
+
+    def _on_matcher(self, plane: int, delivery: Any) -> None:
+        """A matcher's (plane 0: a linker's) availability."""
+        try:
+            status = decode_status(delivery.payload)
+        except RejectedMessage as error:
+            self._reject("matcher status", error)
+            return
+        finally:
+            delivery.ack()
+        name = delivery.topic.split("/")[-2]
+        online = status.state == "online"
+        with self._lock:
+            self._state[plane].matchers[name] = online
+        self._broadcast({"type": "matcher", "plane": plane, "matcher": name, "online": online})
 
     def _reject(self, what: str, error: Exception) -> None:
         with self._lock:

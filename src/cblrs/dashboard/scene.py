@@ -27,13 +27,16 @@ BORDER_SAMPLES = 24
 """Points per image side of a field-of-view polygon."""
 
 
-def site_scene(site: Site, plane_id: int | None = None) -> dict[str, Any]:
+def site_scene(site: Site, plane_id: int | None = None, every_plane: bool = False
+               ) -> dict[str, Any]:
     """The site as the dashboard draws it.
 
     Args:
         site: the site.
         plane_id: the plane shown (default: the first one); places of other planes are left
             out.
+        every_plane: the overview of the site: the places of every plane (each with its
+            ``plane``; ``plane`` of the scene is then None), every camera with its plane.
 
     Returns:
         ``{"name", "plane", "planes": [{id, name, x, y, width, length}], "zones": [{name,
@@ -42,10 +45,16 @@ def site_scene(site: Site, plane_id: int | None = None) -> dict[str, Any]:
     """
     planes = list(site.planes or [])
     plane = plane_id if plane_id is not None else (planes[0].plane_id if planes else None)
+    if every_plane:
+        plane = None
+
+    def shown(place_plane: int | None) -> bool:
+        return every_plane or place_plane in (None, plane)
+
     zones = [
-        {"name": zone.name, "polygon": zone.polygon.tolist()}
+        {"name": zone.name, "polygon": zone.polygon.tolist(), "plane": zone.plane_id}
         for zone in site.places.zones
-        if zone.plane_id in (None, plane)
+        if shown(zone.plane_id)
     ]
     # What the matcher counts as a crossing (its default settings and the lines' own), said
     # beside the counts.
@@ -54,9 +63,10 @@ def site_scene(site: Site, plane_id: int | None = None) -> dict[str, Any]:
                       for rule, band in AnalyticsConfig().line_rules(site.places)), strict=True))
     lines = [
         {"name": line.name, "start": line.start.tolist(), "end": line.end.tolist(),
-         "normal": np.asarray(line.direction).tolist(), "rule": rules[line.name]}
+         "normal": np.asarray(line.direction).tolist(), "rule": rules[line.name],
+         "plane": line.plane_id}
         for line in site.places.lines
-        if line.plane_id in (None, plane)
+        if shown(line.plane_id)
     ]
     plane_boxes = [
         {"id": spec.plane_id, "name": spec.name or f"plane {spec.plane_id}",
@@ -66,7 +76,9 @@ def site_scene(site: Site, plane_id: int | None = None) -> dict[str, Any]:
     extent = _extent(plane_boxes, zones, lines)
     cameras = []
     for name in site.camera_names:
-        cameras.append(camera_view(site, name, extent))
+        view = camera_view(site, name, extent)
+        view["plane"] = site.camera_plane(name)
+        cameras.append(view)
     points = [[camera["position"][0], camera["position"][1]] for camera in cameras
               if camera["position"] is not None]
     bounds = _bounds(extent, points)

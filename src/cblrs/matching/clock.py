@@ -46,7 +46,8 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.spatial import cKDTree
+
+from cblrs.matching.neighbours import chebyshev_pairs
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -548,18 +549,15 @@ class ClockModel:
         # ... and those where another camera's track was near the detection: one query in
         # space and time (Chebyshev distance, time scaled so the lag range spans the radius).
         scale = self.hit_radius_m / self.max_offset_s
-        tree = cKDTree(np.column_stack([
-            np.concatenate(history_points), (np.concatenate(history_times) - origin) * scale
-        ]))
-        query = np.column_stack([points, (times - origin) * scale])
-        neighbours = tree.query_ball_point(query, self.hit_radius_m, p=np.inf,
-                                           return_sorted=False)
-        lengths = np.fromiter((len(near) for near in neighbours), np.int64, len(neighbours))
+        sample, near = chebyshev_pairs(
+            np.column_stack([points, (times - origin) * scale]),
+            np.column_stack([np.concatenate(history_points),
+                             (np.concatenate(history_times) - origin) * scale]),
+            self.hit_radius_m,
+        )
         hits = np.zeros(2 * bins + 1)
-        if lengths.sum():
-            entry = np.concatenate(history_entry)[
-                np.concatenate([near for near in neighbours if near]).astype(np.int64)]
-            sample = np.repeat(np.arange(len(neighbours)), lengths)
+        if len(sample):
+            entry = np.concatenate(history_entry)[near]
             # One hit per (detection, instant), however many tracks were near.
             pair = np.unique(sample * len(entry_time) + entry)
             sample, entry = pair // len(entry_time), pair % len(entry_time)

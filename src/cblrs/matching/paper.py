@@ -24,7 +24,6 @@ from dataclasses import asdict, dataclass
 from typing import Any
 
 import numpy as np
-from scipy.optimize import linear_sum_assignment
 
 from cblrs.detections import CameraMessage, Tracks
 from cblrs.matching.base import (
@@ -35,6 +34,7 @@ from cblrs.matching.base import (
     instant_frame,
     require,
 )
+from cblrs.matching.solvers import linear_sum_assignment
 from cblrs.plane import PlaneSet
 
 STATE_VERSION = "cblrs.paper-matcher/1"

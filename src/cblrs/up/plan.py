@@ -6,7 +6,8 @@ A :class:`SitePlan` is pure description: the same plan starts the processes
 (:mod:`cblrs.up.units`). Its state folder holds everything a run writes::
 
     <out>/up.json              the run's identity: site, users, broker port, replay epoch
-    <out>/broker/              mosquitto.conf, hashed passwords, ACL, persistence
+    <out>/broker/              mosquitto.conf, hashed passwords, ACL, persistence (or, on
+                               NATS, n1/n1.conf with the users' hashes and JetStream's store)
     <out>/clients/<user>/      each login's password file (0600)
     <out>/references/          the cameras' reference PNGs (rendered when missing)
     <out>/plane<P>.db          the matcher's SQLite file of plane P
@@ -35,6 +36,7 @@ from typing import Any
 from cblrs.errors import CblrsError
 from cblrs.site import Site, load_site
 from cblrs.site.schema import SourceModel
+from cblrs.up.backbone import ADMIN, DEFAULT_NATS_PORT, MQTT, NATS
 
 STATE_FILE = "up.json"
 DEFAULT_BROKER_PORT = 1883
@@ -113,6 +115,11 @@ class SitePlan:
         speed: the pace's speed-up.
         run_as: the user Mosquitto runs as when started as root.
         dashboard: run the dashboard.
+        backbone: ``mqtt`` (Mosquitto) or ``nats`` (a NATS server with JetStream; see
+            :mod:`cblrs.up.backbone`).
+        mqtt_port: NATS only: the server's MQTT listener (the same logins; for MQTT
+            clients such as cameras that speak MQTT only).
+        monitor_port: NATS only: the server's monitoring port (loopback).
         fresh_epoch: the epoch is not a saved run's: the runner sets it when it starts the
             cameras (a paced replay then begins as they start).
     """
@@ -130,6 +137,9 @@ class SitePlan:
     run_as: str | None = None
     dashboard: bool = True
     fresh_epoch: bool = False
+    backbone: str = MQTT
+    mqtt_port: int | None = None
+    monitor_port: int | None = None
     command: list[str] = field(default_factory=cblrs_command)
 
     # ------------------------------------------------------------------ paths
@@ -172,14 +182,51 @@ class SitePlan:
     def broker_address(self) -> str:
         return f"127.0.0.1:{self.broker_port}"
 
+    @property
+    def backbone_url(self) -> str:
+        """What the clients connect to: ``nats://127.0.0.1:PORT`` or ``127.0.0.1:PORT``."""
+        return (f"nats://{self.broker_address}" if self.backbone == NATS
+                else self.broker_address)
+
+    @property
+    def broker_config(self) -> Path:
+        """The broker's configuration file (Mosquitto's, or the NATS node's)."""
+        return (self.broker_dir / "n1" / "n1.conf" if self.backbone == NATS
+                else self.broker_dir / "mosquitto.conf")
+
+    @property
+    def users(self) -> list[str]:
+        """Every login of the run (the NATS admin too)."""
+        return [*(camera.name for camera in self.cameras),
+                *(self.matcher_user(plane) for plane in self.planes), "viewer",
+                *([ADMIN] if self.backbone == NATS else [])]
+
     # ------------------------------------------------------------------ command lines
     def login(self, user: str) -> list[str]:
-        return ["--broker", self.broker_address, "--username", user,
-                "--password-file", str(self.password_file(user))]
+        """A client's backbone and login options (cameras and matchers)."""
+        where = (["--backbone", self.backbone_url] if self.backbone == NATS
+                 else ["--broker", self.broker_address])
+        return [*where, "--username", user, "--password-file", str(self.password_file(user))]
 
-    def broker_spec(self, mosquitto: str = "mosquitto") -> ProcessSpec:
-        return ProcessSpec("broker", "broker",
-                           [mosquitto, "-c", str(self.broker_dir / "mosquitto.conf")])
+    def dashboard_login(self) -> list[str]:
+        """The dashboard's: the viewer's login on the site's backbone (MQTT or NATS)."""
+        return self.login("viewer")
+
+    def broker_spec(self, binary: str = "mosquitto") -> ProcessSpec:
+        return ProcessSpec("broker", "broker", [binary, "-c", str(self.broker_config)])
+
+    def prepare_specs(self) -> list[ProcessSpec]:
+        """NATS only: the admin's ``cblrs matcher --prepare`` of each plane (its streams,
+        consumer and the lease bucket, which runtime logins may not create), run to its end
+        before the matchers start."""
+        if self.backbone != NATS:
+            return []
+        return [ProcessSpec(
+            f"prepare-{plane}", "prepare",
+            [*self.command, "matcher", "--prepare", "--site", str(self.site_path), "--plane",
+             str(plane), "--db", str(self.database(plane)), "--client-id",
+             self.matcher_user(plane), *self.login(ADMIN)], ("broker",))
+            for plane in self.planes]
 
     def matcher_spec(self, plane: int, until_done: bool = False) -> ProcessSpec:
         argv = [*self.command, "matcher", "--site", str(self.site_path), "--plane", str(plane),
@@ -193,7 +240,7 @@ class SitePlan:
         plane = self.planes[0]
         argv = [*self.command, "dashboard", "--site", str(self.site_path), "--plane", str(plane),
                 "--db", str(self.database(plane)), "--port", str(self.dashboard_port), "--json",
-                *self.login("viewer")]
+                *self.dashboard_login()]
         return ProcessSpec("dashboard", "dashboard", argv,
                            ("broker", *(f"matcher-{p}" for p in self.planes)))
 
@@ -294,6 +341,7 @@ def make_plan(
     run_as: str | None = None,
     dashboard: bool = True,
     check_files: bool = True,
+    backbone: str = MQTT,
 ) -> SitePlan:
     """The plan of a site file: validated, with its state folder's saved run reused.
 
@@ -309,6 +357,8 @@ def make_plan(
         run_as: the user Mosquitto runs as when started as root.
         dashboard: plan the dashboard too.
         check_files: refuse a source whose file does not exist.
+        backbone: ``mqtt`` or ``nats`` (:func:`cblrs.up.backbone.choose_backbone` picks it);
+            a state folder keeps the backbone it was made with.
 
     Raises:
         UpError: a camera without a source or plane, a missing file, a bad option.
@@ -353,21 +403,32 @@ def make_plan(
     if saved and saved.get("site") != str(site_path):
         raise UpError(f"{out_path} holds the state of another site ({saved.get('site')}); "
                       "choose another --out.")
+    if saved and saved.get("backbone", MQTT) != backbone:
+        raise UpError(f"{out_path} holds a run on the {saved.get('backbone', MQTT)} backbone; "
+                      f"run it with --backbone {saved.get('backbone', MQTT)}, or choose another "
+                      "--out for a run on " + backbone + ".")
     epoch = saved.get("epoch") if saved else None
     if saved and saved.get("realtime") != realtime:
         epoch = None  # another pace: another run (the spools refuse to mix them)
+    default_port = DEFAULT_NATS_PORT if backbone == NATS else DEFAULT_BROKER_PORT
     if broker_port is None:
         broker_port = int(saved["broker_port"]) if saved and saved.get("broker_port") else (
-            DEFAULT_BROKER_PORT if port_is_free(DEFAULT_BROKER_PORT) else 0)
+            default_port if port_is_free(default_port) else 0)
     if broker_port == 0:
         broker_port = free_port()
+    mqtt_port = monitor_port = None
+    if backbone == NATS:  # the saved ones when still free: the configuration names them
+        mqtt_port, monitor_port = (
+            int(saved[name]) if saved and saved.get(name) and port_is_free(int(saved[name]))
+            else free_port() for name in ("mqtt_port", "monitor_port"))
     fresh = epoch is None
     if epoch is None:
         epoch = float(int(time.time() + START_MARGIN_S if realtime
                           else time.time() - FAST_EPOCH_AGO_S))
     return SitePlan(site, site_path, out_path, cameras, list(planes), broker_port,
                     dashboard_port, float(epoch), realtime=realtime, speed=speed,
-                    run_as=run_as, dashboard=dashboard, fresh_epoch=fresh and realtime)
+                    run_as=run_as, dashboard=dashboard, fresh_epoch=fresh and realtime,
+                    backbone=backbone, mqtt_port=mqtt_port, monitor_port=monitor_port)
 
 
 def _files_of(source: SourceModel) -> list[tuple[str, str]]:
@@ -401,9 +462,10 @@ def read_state(out: Path) -> dict[str, Any] | None:
 def write_state(plan: SitePlan) -> None:
     """Save what a restart must reuse (site, logins, broker port, epoch, pace)."""
     plan.out.mkdir(parents=True, exist_ok=True)
-    state = {"site": str(plan.site_path), "broker_port": plan.broker_port,
-             "epoch": plan.epoch, "realtime": plan.realtime,
-             "users": users_of(plan)}
+    state = {"site": str(plan.site_path), "backbone": plan.backbone,
+             "broker_port": plan.broker_port, "mqtt_port": plan.mqtt_port,
+             "monitor_port": plan.monitor_port, "epoch": plan.epoch,
+             "realtime": plan.realtime, "users": users_of(plan)}
     (plan.out / STATE_FILE).write_text(json.dumps(state, indent=2) + "\n")
 
 
@@ -428,12 +490,13 @@ def prepare(plan: SitePlan, *, render: bool = True) -> list[str]:
         folder.mkdir(parents=True, exist_ok=True)
     saved = read_state(plan.out) or {}
     users = users_of(plan)
-    config = plan.broker_dir / "mosquitto.conf"
-    fits = (config.is_file() and saved.get("users") == users
-            and saved.get("broker_port") == plan.broker_port
-            and all(plan.password_file(user).is_file()
-                    for user in [*users["cameras"], *users["matchers"], "viewer"]))
-    if not fits:
+    fits = (plan.broker_config.is_file() and saved.get("users") == users
+            and all(saved.get(name) == getattr(plan, name)
+                    for name in ("broker_port", "mqtt_port", "monitor_port"))
+            and all(plan.password_file(user).is_file() for user in plan.users))
+    if not fits and plan.backbone == NATS:
+        done.append(_write_nats(plan, users))
+    elif not fits:
         try:
             write_broker_config(plan.broker_dir, users["cameras"], users["matchers"],
                                 port=plan.broker_port, plane_ids=plan.planes,
@@ -452,6 +515,25 @@ def prepare(plan: SitePlan, *, render: bool = True) -> list[str]:
                         f"{plan.references_dir}")
     write_state(plan)
     return done
+
+
+def _write_nats(plan: SitePlan, users: dict[str, Any]) -> str:
+    """The NATS node's configuration (users, permissions, JetStream; no TLS: loopback only)
+    and every login's password file."""
+    # lazy: the NATS machinery is an optional extra
+    from cblrs.runtime.broker.nats_auth import NatsSecurityError
+    from cblrs.runtime.broker.nats_server import write_nats_backbone
+
+    try:
+        write_nats_backbone(plan.broker_dir, users["cameras"], users["matchers"],
+                            port=plan.broker_port, mqtt_port=plan.mqtt_port,
+                            monitor_port=plan.monitor_port or free_port(), admin=ADMIN,
+                            tls=False, clients_directory=plan.clients_dir,
+                            ca_directory=plan.out / "broker-ca")
+    except NatsSecurityError as error:
+        raise UpError(str(error).rstrip(".") + ".") from None
+    return (f"NATS configuration written to {plan.broker_config} (port {plan.broker_port}, "
+            f"MQTT listener {plan.mqtt_port}; logins in {plan.clients_dir})")
 
 
 def find_broker(path: str | None = None) -> str | None:

@@ -39,6 +39,8 @@ CAMERA_START_S = 4.0
 """A fresh paced replay's first capture time lies this far after its cameras are started
 (their start-up: imports, the reference, the broker connection)."""
 READY_TIMEOUT_S = {"broker": 15.0, "matcher": 90.0, "dashboard": 60.0}
+PREPARE_TIMEOUT_S = 90.0
+"""NATS: how long the admin's ``cblrs matcher --prepare`` of a plane may take."""
 
 
 def _child_setup() -> None:  # pragma: no cover - runs in the child between fork and exec
@@ -83,7 +85,7 @@ class SiteRunner:
 
     Args:
         plan: the site's plan (prepared: broker configuration and references written).
-        mosquitto: the broker binary.
+        mosquitto: the broker binary (Mosquitto's, or nats-server's on the NATS backbone).
         until_done: the matchers stop once every camera said its final "offline" and all is
             tracked; :meth:`watch` returns when every camera and matcher has ended.
         report: called with a status line or table whenever something changes.
@@ -158,9 +160,15 @@ class SiteRunner:
         try:
             broker = self.child("broker")
             self._spawn(broker)
-            if not self._wait_ready(broker, lambda: _accepts(self.plan.broker_port), stop):
+            ports = [self.plan.broker_port, *([self.plan.mqtt_port] if self.plan.mqtt_port
+                                              else [])]
+            if not self._wait_ready(broker, lambda: all(map(_accepts, ports)), stop):
                 return False
-            broker.detail = self.plan.broker_address
+            broker.detail = self.plan.backbone_url
+            for spec in self.plan.prepare_specs():
+                if stop.is_set():
+                    return False
+                self._run_to_end(spec)
             matchers = self.of_role("matcher")
             for matcher in matchers:
                 self._spawn(matcher)
@@ -193,6 +201,26 @@ class SiteRunner:
         except BaseException:
             self.stop()
             raise
+
+    def _run_to_end(self, spec: ProcessSpec) -> None:
+        """Run a one-off step (NATS: a plane's preparation) to its end, logged like a child.
+
+        Raises:
+            UpError: it failed or took longer than :data:`PREPARE_TIMEOUT_S`.
+        """
+        child = Child(spec, self.plan.logs_dir / f"{spec.name}.log")
+        self._spawn(child)
+        assert child.process is not None
+        try:
+            code = child.process.wait(PREPARE_TIMEOUT_S)
+        except subprocess.TimeoutExpired:
+            _signal_group(child, signal.SIGKILL)
+            child.process.wait(5)
+            raise UpError(f"{spec.name} did not end within {PREPARE_TIMEOUT_S:g} s (log: "
+                          f"{child.log}).") from None
+        if code != 0:
+            raise UpError(f"{spec.name} exited with code {code}: {child.last_error()} (log: "
+                          f"{child.log}).")
 
     def _read_url(self, dashboard: Child) -> bool:
         for line in _log_lines(dashboard):
@@ -336,7 +364,8 @@ class SiteRunner:
             }
         return {
             "site": str(self.plan.site_path), "out": str(self.plan.out),
-            "broker": self.plan.broker_address, "dashboard": self.dashboard_url,
+            "backbone": self.plan.backbone, "broker": self.plan.backbone_url,
+            "dashboard": self.dashboard_url,
             "processes": {child.spec.name: {"state": child.state,
                                             "exit_code": child.returncode,
                                             "log": str(child.log)}

@@ -80,6 +80,11 @@ const Cblrs = (() => {
         ctx.strokeStyle = "#3a4757";
         ctx.lineWidth = 1.5;
         ctx.strokeRect(ax, ay, plane.width * this.scale, plane.length * this.scale);
+        if (scene.planes.length > 1) {  // which plane is which (names: text only)
+          ctx.fillStyle = "#6f7f92";
+          ctx.font = "11px system-ui";
+          ctx.fillText(String(plane.name), ax + 4, ay + 13);
+        }
       }
       for (const camera of scene.cameras) this.drawCamera(ctx, camera);
       this.dirtyStatic = false;
@@ -324,6 +329,18 @@ const Cblrs = (() => {
     });
   }
 
+  // The plane a page of the overview follows (its ?plane=N), as a query for the API: "" on
+  // a dashboard of one plane, "?plane=N" on a plane's page of a site's overview.
+  function planeQuery(separator = "?") {
+    const plane = new URLSearchParams(location.search).get("plane");
+    return plane ? `${separator}plane=${encodeURIComponent(plane)}` : "";
+  }
+
+  // A track's label: its plane's id, and its global id (from the linker) beside it.
+  function trackLabel(id, globalId) {
+    return globalId === null || globalId === undefined ? String(id) : `${id} · G${globalId}`;
+  }
+
   return { idColour, MapView, fetchJSON, clockText, openAt, loadSession, checkSession, el, fill,
-    session: () => session };
+    planeQuery, trackLabel, session: () => session };
 })();

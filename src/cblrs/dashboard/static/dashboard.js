@@ -52,13 +52,15 @@ function onTracks(message) {
   const t = message.t;
   if (t === null || t === undefined) return;
   const seen = new Set();
-  for (const [id, x, y, cls] of message.rows) {
+  const globals = message.global || [];
+  message.rows.forEach(([id, x, y, cls], index) => {
     seen.add(id);
     let track = state.tracks.get(id);
     if (!track) { track = { trail: [], cls }; state.tracks.set(id, track); }
     track.x = x; track.y = y; track.t = t; track.cls = cls || track.cls;
+    if (globals[index] !== null && globals[index] !== undefined) track.global = globals[index];
     track.trail.push([x, y, t]);
-  }
+  });
   // No objects is information too: whoever is not in a newer update goes.
   for (const [id, track] of state.tracks) {
     if (!seen.has(id) && t - track.t > HOLD_S) state.tracks.delete(id);
@@ -282,7 +284,7 @@ function draw() {
     if (count <= LABEL_LIMIT) {
       ctx.fillStyle = "#e8edf3";
       ctx.font = "10px system-ui";
-      ctx.fillText(String(id), sx + 6, sy - 5);
+      ctx.fillText(Cblrs.trackLabel(id, track.global), sx + 6, sy - 5);
     }
   }
   const elapsed = performance.now() - started;
@@ -405,26 +407,29 @@ function applyScene(scene) {
     : scene.lines.map((line) => `${line.name}: ${line.rule}`).join("; ");
 }
 
-Cblrs.loadSession().then(() => Cblrs.fetchJSON("/api/site")).then((scene) => {
+const PLANE = Cblrs.planeQuery();  // "?plane=N" on a plane's page of a site's overview
+
+Cblrs.loadSession().then(() => Cblrs.fetchJSON(`/api/site${PLANE}`)).then((scene) => {
   document.title = `cblrs · ${scene.name}`;
   $("site-name").textContent = `${scene.name} · plane ${scene.plane}`;
+  if (scene.overview) $("overview-link").classList.remove("hidden");
   applyScene(scene);
   state.view = new Cblrs.MapView($("map"), scene);
   window.addEventListener("resize", () => { state.view.resize(); state.dirty = true; });
   CblrsPlaces.start({
     view: () => state.view,
     redraw: () => { state.dirty = true; },
-    onSaved: () => Cblrs.fetchJSON("/api/site").then(applyScene),
+    onSaved: () => Cblrs.fetchJSON(`/api/site${PLANE}`).then(applyScene),
     notify: (text) => { showNotice(text, true); setTimeout(hideNotice, 10000); },
     admin: Cblrs.session().role === "admin",
   });
   $("live-button").disabled = !scene.live;
   $("replay-button").disabled = !scene.replay;
-  $("live-button").onclick = () => connect("/api/stream", "live");
+  $("live-button").onclick = () => connect(`/api/stream${PLANE}`, "live");
   $("replay-button").onclick = startReplay;
   $("speed").onchange = () => { if (stats.mode === "replay") startReplay(); };
   const wanted = new URLSearchParams(location.search).get("mode");
   if (scene.replay && (wanted === "replay" || !scene.live)) startReplay();
-  else if (scene.live) connect("/api/stream", "live");
+  else if (scene.live) connect(`/api/stream${PLANE}`, "live");
   requestAnimationFrame(frame);
 }).catch((error) => showNotice(`cannot load the site: ${error.message}`));

@@ -142,7 +142,7 @@ const CblrsPlaces = (() => {
   }
 
   async function open() {
-    const view = await Cblrs.fetchJSON("/api/places");
+    const view = await Cblrs.fetchJSON(`/api/places${Cblrs.planeQuery()}`);
     editor.places = [
       ...view.zones.map((zone) => ({ ...zone, kind: "zone" })),
       ...view.lines.map((line) => ({ ...line, kind: "line" })),
@@ -194,7 +194,7 @@ const CblrsPlaces = (() => {
     }
     $("save-places").disabled = true;
     try {
-      const result = await Cblrs.fetchJSON("/api/places/save", { method: "POST",
+      const result = await Cblrs.fetchJSON(`/api/places/save${Cblrs.planeQuery()}`, { method: "POST",
         body: JSON.stringify({ zones, lines, version: editor.version }) });
       close();
       await editor.onSaved();

@@ -11,7 +11,6 @@ what the tracker calls.
 from __future__ import annotations
 
 import numpy as np
-from scipy.optimize import linear_sum_assignment
 
 from cblrs.matching import kalman
 from cblrs.matching.base import (
@@ -26,6 +25,7 @@ from cblrs.matching.fusion.gaussian import (
 )
 from cblrs.matching.fusion.table import FusionContext, Measured, TrackTable
 from cblrs.matching.graph import component_labels
+from cblrs.matching.solvers import linear_sum_assignment
 
 _UNASSIGNABLE = 1.0e9
 

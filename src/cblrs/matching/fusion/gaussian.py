@@ -8,11 +8,15 @@ All functions are pure and vectorised over N.
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from cblrs.matching import kalman
+from cblrs.matching.neighbours import sweep_candidates
 
 _DENSE_PAIRS = 20_000  # below this many N x T pairs a dense distance matrix is faster
+# Up to this many finite pairs the k-d tree's answer is computed without the tree (and
+# without importing scipy.spatial, a quarter of a second): a crowded window of WILDTRACK
+# compares some 150 located detections with each other.
+_TREE_FREE_PAIRS = 1 << 16
 
 
 def ray_covariance(
@@ -120,9 +124,16 @@ def close_pairs(
     finite_targets = np.isfinite(targets_xy).all(axis=1)
     point_index = np.flatnonzero(finite_points)
     target_index = np.flatnonzero(finite_targets)
-    pairs = cKDTree(points_xy[point_index]).sparse_distance_matrix(
-        cKDTree(targets_xy[target_index]), float(np.max(radius_m)), output_type="ndarray"
-    )
+    largest = float(np.max(radius_m))
+    if len(point_index) * len(target_index) <= _TREE_FREE_PAIRS:
+        pairs = _tree_pairs(points_xy[point_index], targets_xy[target_index], largest)
+    else:
+        # lazy: scipy.spatial takes a quarter of a second to import
+        from scipy.spatial import cKDTree
+
+        pairs = cKDTree(points_xy[point_index]).sparse_distance_matrix(
+            cKDTree(targets_xy[target_index]), largest, output_type="ndarray"
+        )
     rows = point_index[pairs["i"]]
     columns = target_index[pairs["j"]]
     distance = pairs["v"]
@@ -130,3 +141,21 @@ def close_pairs(
     rows, columns = rows[keep], columns[keep]
     order = np.lexsort((columns, rows))
     return rows[order].astype(np.int64), columns[order].astype(np.int64)
+
+
+def _tree_pairs(points_xy: np.ndarray, targets_xy: np.ndarray, radius_m: float) -> dict:
+    """What ``cKDTree(points).sparse_distance_matrix(cKDTree(targets), radius,
+    output_type="ndarray")`` returns, up to the order of the pairs, without the tree: the
+    candidates of a sweep along x (:func:`cblrs.matching.neighbours.sweep_candidates`), the
+    squared distance summed axis by axis, kept when ``<= radius**2``, then its square root
+    (the tree's own arithmetic, so the same pairs and the same distances).
+
+    Returns:
+        ``{"i": (K,) int64, "j": (K,) int64, "v": (K,) float64}``.
+    """
+    rows, columns = sweep_candidates(points_xy, targets_xy, radius_m)
+    dx = points_xy[rows, 0] - targets_xy[columns, 0]
+    dy = points_xy[rows, 1] - targets_xy[columns, 1]
+    squared = dx * dx + dy * dy
+    keep = squared <= radius_m * radius_m
+    return {"i": rows[keep], "j": columns[keep], "v": np.sqrt(squared[keep])}

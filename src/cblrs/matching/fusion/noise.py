@@ -8,12 +8,12 @@ along-ray bias online from how much the cameras that see one object disagree.
 from __future__ import annotations
 
 import numpy as np
-from scipy.optimize import nnls
 
 from cblrs.matching.fusion.gaussian import (
     inverse_cholesky_2x2,
     ray_covariance,
 )
+from cblrs.matching.solvers import nnls
 
 
 class NoiseModel:

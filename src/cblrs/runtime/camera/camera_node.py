@@ -492,12 +492,16 @@ class CameraNode:
 
     def _resend_token(self, sequence: int) -> str | None:
         """None for the first publish of a message produced in this run; else a token no
-        earlier publish of it carried (this process's start and a counter): a re-send, or a
-        message an earlier run left in the spool, which that run may have published."""
+        earlier publish of it carried (this process's start and a counter): a re-send, a
+        message an earlier run left in the spool, which that run may have published, or one
+        this run produced again (a replay restarted from its beginning) under a sequence an
+        earlier run handed over: the stream would drop it as a duplicate, so the matcher
+        would never see it again to confirm it."""
         with self._lock:
             if sequence in self._fresh:
                 self._fresh.discard(sequence)
-                return None
+                if sequence >= getattr(self._spool, "handed_before", 0):
+                    return None
             self._resends += 1
             return f"r{self._run_token}-{self._resends}"
 

@@ -159,6 +159,11 @@ class Spool:
             raise SpoolError(f"{self.path} is not a usable spool file: {error}.") from None
         self._bytes = int(total)
         self._others = self._count_others()
+        # Earlier runs handed every sequence below this to a transport (confirmed or not): a
+        # message of this run with such a sequence may be in a backbone's stream already.
+        row = self._db.execute("SELECT value FROM counters WHERE name = 'handed_below'"
+                               ).fetchone()
+        self.handed_before = int(row[0]) if row else 0
         if self.path is not None:
             for suffix in ("", "-wal", "-shm"):
                 try:
@@ -299,6 +304,10 @@ class Spool:
             if rows:
                 self._db.executemany("UPDATE outbox SET state = 1 WHERE sequence = ?",
                                      [(row[0],) for row in rows])
+                self._db.execute(
+                    "INSERT INTO counters (name, value) VALUES ('handed_below', ?) "
+                    "ON CONFLICT(name) DO UPDATE SET value = MAX(value, excluded.value)",
+                    (max(int(row[0]) for row in rows) + 1,))
         return [(int(sequence), topic, bytes(payload)) for sequence, topic, payload in rows]
 
     def acknowledged(self, sequence: int) -> None:

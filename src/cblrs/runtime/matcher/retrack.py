@@ -68,6 +68,7 @@ from cblrs.runtime.matcher.store import (
     RuntimeStore,
     add_counter_values,
     check_tracker,
+    set_matcher_state,
     set_meta_value,
     track_rows,
 )
@@ -326,7 +327,7 @@ def retrack(store: RuntimeStore, matcher: Any, camera_ids: Sequence[str],
             rest(cursor)
         cursor.executemany("UPDATE inbox SET status = ? WHERE rowid = ?",
                            [(PROCESSED, rowid) for rowid in trackable])
-        set_meta_value(cursor, "matcher_state", state_after)
+        set_matcher_state(cursor, state_after)
         _commit_seen(cursor, store, None, newest_seen, counters)
 
     store.write(commit)

@@ -12,6 +12,11 @@ Tables:
 * ``tracks`` — the tracker's output rows (frame, timestamp, track id, world x/y, camera, box).
 * ``meta`` — the matcher state snapshot (``get_state()`` JSON), the last released timestamp,
   the service settings and the token of the service currently tracking (:meth:`claim`).
+* ``replay`` — the groups committed since the matcher state was last saved, in order
+  (``timestamp``, ``keys``: JSON ``[[camera, sequence], ...]``). The state (a few hundred kB
+  of JSON with many cameras) is not saved with every group: a resumed matcher restores it
+  and updates it with these groups again, which gives the state after the last committed
+  group (:meth:`RuntimeStore.replay_groups`); saving the state empties the table.
 * ``counters`` — received, rejected by reason, duplicates, late, processed, ...
 * ``snapshots`` — the matcher's state every few seconds of capture time, for re-tracking
   late messages (:mod:`cblrs.runtime.matcher.retrack`, which owns that table's SQL).
@@ -20,8 +25,9 @@ Tables:
   transaction of the group whose tracks produced them.
 
 Processing a timestamp group is one transaction (track rows + inbox rows marked processed +
-matcher state + counters), so after a crash the file holds either all of a group or none of
-it, and a restarted matcher resumes from exactly the last committed group.
+matcher state, or the group's ``replay`` row + counters), so after a crash the file holds
+either all of a group or none of it, and a restarted matcher resumes from exactly the last
+committed group.
 
 One matcher service writes at a time, from two processes: its own (the inbox) and its tracker
 process (the groups), which take turns through a lock shared by :meth:`RuntimeStore.share`;
@@ -96,6 +102,11 @@ CREATE TABLE IF NOT EXISTS tracks (
 );
 CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
 CREATE TABLE IF NOT EXISTS counters (name TEXT PRIMARY KEY, value INTEGER NOT NULL);
+CREATE TABLE IF NOT EXISTS replay (
+    position INTEGER PRIMARY KEY AUTOINCREMENT,
+    timestamp REAL NOT NULL,
+    keys TEXT NOT NULL
+);
 """ + ANALYTICS_SCHEMA
 
 
@@ -543,8 +554,9 @@ class RuntimeStore:
         counters: Mapping[str, int] | None = None,
         tracker: str | None = None,
         also: Callable[[sqlite3.Cursor], None] | None = None,
+        replay: Sequence[tuple[float, Sequence[tuple[str, int]]]] | None = None,
     ) -> None:
-        """Store one processed timestamp group atomically.
+        """Store one processed timestamp group (or several) atomically.
 
         Args:
             keys: ``(camera_id, sequence)`` of the group's messages, marked processed.
@@ -555,6 +567,10 @@ class RuntimeStore:
             tracker: the committing service's :meth:`claim` token, if it has one.
             also: more writes of the same transaction (the online analytics' events,
                 counters and state), given the cursor.
+            replay: with ``matcher_state`` None, the groups as the matcher was updated with
+                them (``(timestamp, keys in order)``): a resumed matcher updates the last
+                saved state with them again (:meth:`replay_groups`). A state given empties
+                the replay table instead.
 
         Raises:
             StoreError: ``tracker`` is not the file's tracker any more (nothing is written).
@@ -569,11 +585,58 @@ class RuntimeStore:
             )
             cursor.executemany(INSERT_TRACKS, rows)
             if matcher_state is not None:
-                _set_meta(cursor, "matcher_state", matcher_state)
+                set_matcher_state(cursor, matcher_state)
+            elif replay:
+                cursor.executemany(
+                    "INSERT INTO replay (timestamp, keys) VALUES (?, ?)",
+                    [(float(timestamp), _encoder.encode([[camera, int(sequence)]
+                                                         for camera, sequence in group]).decode())
+                     for timestamp, group in replay],
+                )
             _set_meta(cursor, "released_timestamp", float(released_timestamp))
             _add_counters(cursor, counters or {})
             if also is not None:
                 also(cursor)
+
+    def save_matcher_state(self, state: Any, tracker: str | None = None,
+                           also: Callable[[sqlite3.Cursor], None] | None = None) -> None:
+        """Save the matcher state after the last committed group (JSON-serialisable, or
+        its JSON text) and empty the replay table, in one transaction with ``also``.
+
+        Raises:
+            StoreError: ``tracker`` is not the file's tracker any more (nothing is written).
+        """
+        with self._lock, self._transaction() as cursor:
+            if tracker is not None:
+                check_tracker(cursor, self.path, tracker)
+            set_matcher_state(cursor, state)
+            if also is not None:
+                also(cursor)
+
+    def replay_groups(self) -> list[tuple[float, list[InboxEntry]]]:
+        """The groups committed since the matcher state was saved, in order: ``(timestamp,
+        entries)`` as the matcher was updated with them.
+
+        Raises:
+            StoreError: a message of them is no longer in the inbox.
+        """
+        with self._lock:
+            groups = self._connection.execute(
+                "SELECT timestamp, keys FROM replay ORDER BY position").fetchall()
+            replayed = []
+            for timestamp, keys in groups:
+                entries = []
+                for camera, sequence in _decoder.decode(keys):
+                    row = self._connection.execute(
+                        "SELECT camera_id, sequence, timestamp, frame, body FROM inbox "
+                        "WHERE camera_id = ? AND sequence = ?", (camera, sequence)).fetchone()
+                    if row is None:
+                        raise StoreError(
+                            f"{self.path} lacks message {sequence} of camera {camera}, which "
+                            "the saved matcher state needs to resume; restart with --new-db.")
+                    entries.append(InboxEntry(*row))
+                replayed.append((float(timestamp), entries))
+        return replayed
 
     def write(self, writes: Callable[[sqlite3.Cursor], Any]) -> Any:
         """Run ``writes(cursor)`` in one write transaction of its own; returns its result."""
@@ -885,6 +948,17 @@ def check_tracker(cursor: sqlite3.Cursor, path: Path, tracker: str) -> None:
     ).fetchone() or (None,)
     if claimed is None or json.loads(claimed) != tracker:
         raise StoreError(f"another matcher service has taken over {path}; not committing.")
+
+
+def set_matcher_state(cursor: sqlite3.Cursor, state: Any) -> None:
+    """Inside a write transaction: save the matcher state (a value, or its JSON text) and
+    empty the replay table (the state has seen every committed group)."""
+    cursor.execute(
+        "INSERT INTO meta (key, value) VALUES ('matcher_state', ?) "
+        "ON CONFLICT(key) DO UPDATE SET value = excluded.value",
+        (state if isinstance(state, str) else json.dumps(state, default=_json_default),),
+    )
+    cursor.execute("DELETE FROM replay")
 
 
 def set_meta_value(cursor: sqlite3.Cursor, key: str, value: Any) -> None:

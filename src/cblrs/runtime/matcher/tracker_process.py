@@ -11,6 +11,13 @@ than taking turns on one interpreter lock.
 
 The process resumes the matcher from the state the store holds, so a service restarted on
 the same database (after a crash of either process) continues from the last committed batch.
+The state is not saved with every batch (with many cameras it is a few hundred kB of JSON,
+longer to encode than a group is to track): a batch is committed with its groups' keys in the
+store's ``replay`` table, and the state is saved on its own after a batch's answer, when no
+batch is waiting and ``STATE_INTERVAL_S`` of capture time has passed (with a snapshot due,
+too), or with a batch once ``MAX_REPLAY_GROUPS`` groups wait. A resumed process restores the
+saved state and updates the matcher with the replayed groups again (their tracks are stored
+already), which gives the state after the last committed group.
 
 Messages (pickled) on the two pipes:
 
@@ -31,7 +38,8 @@ Messages (pickled) on the two pipes:
   still in the pipe are not committed, and stay pending in the store).
 
 With re-tracking on, the matcher's state is also kept as a snapshot after a group every
-few seconds of capture time, in the transaction of its batch (:mod:`cblrs.runtime.matcher.retrack`).
+few seconds of capture time, in the transaction of its batch or, for a batch's last group,
+with the state saved after its answer (:mod:`cblrs.runtime.matcher.retrack`).
 
 With analytics, each group's rows are counted as soon as it is tracked
 (:class:`~cblrs.runtime.outputs.online_analytics.OnlineAnalytics`, empty groups too), and the
@@ -42,6 +50,7 @@ from __future__ import annotations
 
 import gc
 import logging
+import math
 import signal
 import threading
 import time
@@ -200,6 +209,10 @@ def run(
         state = store.matcher_state()
         if state is not None:
             matcher.set_state(state)
+        # The groups committed after the saved state: their tracks are stored; updating the
+        # matcher with them again gives its state after the last committed group.
+        for timestamp, entries in store.replay_groups():
+            matcher.update(timestamp, [entry.message() for entry in entries])
         if analytics is not None:
             analytics.resume(store)
         snapshots = None
@@ -214,6 +227,7 @@ def run(
         gc.freeze()
         updates = 0
         released = store.released_timestamp()
+        state = _StateSaving(released)
         abandoned = abandon.is_set if abandon is not None else lambda: False
         while not abandoned() and (batch := requests.recv()) is not None:
             if batch == "flush":
@@ -228,6 +242,7 @@ def run(
             tracked = []
             report = _Report(analytics)
             taken: list[tuple[int, float, Any, list[tuple[str, int]], Any]] = []
+            snapshot_after = False  # a snapshot due after the batch's last group
             for timestamp, entries in batch:
                 if abandoned():
                     break
@@ -238,6 +253,9 @@ def run(
                 tracked.append((timestamp, group_tracks))
                 report.count(group_tracks, timestamp)
                 if snapshots is not None and snapshots.due(timestamp):
+                    if len(tracked) == len(batch):  # taken after the answer, off its path
+                        snapshot_after = True
+                        continue
                     snapshots.taking(timestamp)
                     # What the analytics counted so far is written before the snapshot,
                     # with their state then: a re-tracking from it takes back the rest.
@@ -253,12 +271,20 @@ def run(
             # One snapshot after the last group: the file holds all of these groups or none,
             # with their analytics events, counts and state.
             started = time.perf_counter()
-            also = report.writes()
+            also = counted = report.writes()
             if taken and snapshots is not None:
                 rows = [len(group_tracks) for _, group_tracks in tracked]
                 also = _snapshots_too(also, snapshots, taken, rows)
-            store.commit_group(keys, tracks, matcher.get_state(), released, counters,
-                               tracker=tracker, also=also)
+            # The matcher state is saved with the batch only when too many groups would have
+            # to be replayed; otherwise the groups are (see _StateSaving).
+            forced = state.forced(len(batch))
+            store.commit_group(
+                keys, tracks, matcher.get_state() if forced else None, released, counters,
+                tracker=tracker, also=also,
+                replay=None if forced else [
+                    (timestamp, [(entry.camera_id, entry.sequence) for entry in entries])
+                    for timestamp, entries in batch])
+            state.committed(len(batch), released, saved=forced)
             report.add("commit", time.perf_counter() - started)
             answers = []
             for timestamp, group_tracks in tracked:
@@ -268,6 +294,12 @@ def run(
                     payload = _encode(group_tracks, plane_id, updates, camera_ids, timestamp)
                 answers.append((timestamp, group_tracks, payload))
             results.send(("tracked", answers, counters, report.summary()))
+            if snapshot_after or state.due(released, busy=requests.poll()):
+                # A snapshot here follows the batch's analytics writes: their state with it.
+                _save_state(store, matcher, snapshots if snapshot_after else None, tracker,
+                            released, _keys_at(batch, released),
+                            None if counted is None else counted.state)
+                state.committed(0, released, saved=True)
         results.send(("stopped",))
     except BaseException as error:
         # A cause the operator can fix is its one sentence; anything else, a traceback.
@@ -281,6 +313,56 @@ def run(
         stop_checkpoints.set()
         checkpoints.join()
         store.close()
+
+
+STATE_INTERVAL_S = 2.0
+"""Capture-time seconds between saves of the matcher state while groups keep coming."""
+
+MAX_REPLAY_GROUPS = 300
+"""Groups committed without the state, at most: a resumed matcher updates its saved state
+with them again (:meth:`RuntimeStore.replay_groups`), which takes a fraction of a second."""
+
+
+class _StateSaving:
+    """When the tracker process saves its matcher's state.
+
+    The state of a fusion tracker is a few hundred kB of JSON with many cameras: encoding it
+    takes longer than tracking a group. So a batch is committed with its groups' keys
+    (``replay``) instead, and the state is saved on its own, after the batch's answer (off
+    the capture -> track path), once no batch is waiting and ``STATE_INTERVAL_S`` of capture
+    time has passed; or with a batch when ``MAX_REPLAY_GROUPS`` would be exceeded.
+    """
+
+    def __init__(self, released: float | None):
+        self.saved_at = -math.inf if released is None else released
+        self.unsaved = MAX_REPLAY_GROUPS  # unknown after a restart: save soon
+
+    def forced(self, groups: int) -> bool:
+        return self.unsaved + groups > MAX_REPLAY_GROUPS
+
+    def due(self, released: float, busy: bool) -> bool:
+        return self.unsaved > 0 and not busy and released - self.saved_at >= STATE_INTERVAL_S
+
+    def committed(self, groups: int, released: float, saved: bool) -> None:
+        if saved:
+            self.unsaved, self.saved_at = 0, released
+        else:
+            self.unsaved += groups
+
+
+def _save_state(store: RuntimeStore, matcher: Any, snapshots: Snapshots | None, tracker: str,
+                released: float, boundary: list[tuple[str, int]], analytics: Any = None) -> None:
+    """Save the matcher state after the last committed batch (empties the replay table),
+    with the snapshot due at its watermark if ``snapshots`` (``analytics``: the online
+    analytics' state committed with that batch, or None), in one transaction."""
+    text = state_text(matcher.get_state())
+    also = None
+    if snapshots is not None:
+        snapshots.taking(released)
+
+        def also(cursor: Any) -> None:
+            snapshots.write(cursor, released, text, boundary, analytics=analytics)
+    store.save_matcher_state(text, tracker=tracker, also=also)
 
 
 def _keys_at(groups: Batch, timestamp: float) -> list[tuple[str, int]]:

@@ -11,12 +11,14 @@ behaviour the services rely on, on a NATS server or cluster with JetStream:
   sites share one cluster;
 * **streams**, two per plane (replicated over up to three nodes), each with its own leader:
   ``CBLRS_P<plane>`` (``CBLRS_<site>_P<plane>``) keeps the plane's detections and camera
-  status for ``retention_s``; ``CBLRS_P<plane>_TRACKS`` its track updates and analytics
-  events. A client that manages streams (``NatsSettings.manage``: an admin, or a server
-  without users) creates them when first needed; a deployment made before per-plane streams
-  keeps its one ``CBLRS`` stream (see :meth:`NatsTransport._resolve_stream`);
-* **security**: a login's permissions (:mod:`cblrs.runtime.broker.nats_auth`) are enforced by the
-  servers; answers come to the login's own inbox prefix; a refused login, TLS handshake,
+  status for ``retention_s``; ``CBLRS_P<plane>_TRACKS`` its track updates, analytics
+  events and alerts (a stream made before alerts had theirs gets the subject added when the
+  admin's client next looks it up). A client that manages streams
+  (``NatsSettings.manage``: an admin, or a server without users) creates them when first
+  needed; a deployment made before per-plane streams keeps its one ``CBLRS`` stream (see
+  :meth:`NatsTransport._resolve_stream`);
+* **security**: a login's permissions (:mod:`cblrs.runtime.broker.nats_auth`) are enforced by
+  the servers; answers come to the login's own inbox prefix; a refused login, TLS handshake,
   publish or subscription is one sentence (``refused_publishes``, ``refused_subjects``);
 * **durable consumer** (``durable=``): the subscriptions that fall in the plane's detections
   stream are served by one durable pull consumer with explicit acknowledgements (a runtime
@@ -186,7 +188,7 @@ def detections_stream(plane_id: int, site: str | None = None) -> str:
 
 
 def tracks_stream(plane_id: int, site: str | None = None) -> str:
-    """The stream of one plane's track updates and analytics events."""
+    """The stream of one plane's track updates, analytics events and alerts."""
     return detections_stream(plane_id, site) + "_TRACKS"
 
 
@@ -194,7 +196,8 @@ def stream_subjects(stream: str, plane_id: int, site: str | None = None) -> list
     """The subjects ``stream`` (one of a plane's two) stores."""
     root = subject_root(site)
     if stream == tracks_stream(plane_id, site):
-        return [f"{root}.{plane_id}.tracks", f"{root}.{plane_id}.events"]
+        return [f"{root}.{plane_id}.tracks", f"{root}.{plane_id}.events",
+                f"{root}.{plane_id}.alerts"]
     return [f"{root}.{plane_id}.*.detections", f"{root}.{plane_id}.*.status"]
 
 
@@ -214,7 +217,7 @@ def _classify(subject: str, site: str | None) -> tuple[str, int] | None:
         return None
     if len(tokens) == 3 and tokens[2] in ("detections", "status"):
         return "detections", int(plane)
-    if len(tokens) == 2 and tokens[1] in ("tracks", "events"):
+    if len(tokens) == 2 and tokens[1] in ("tracks", "events", "alerts"):
         return "tracks", int(plane)
     return None
 
@@ -249,9 +252,16 @@ class _EventKey(msgspec.Struct):
     key: str
 
 
+class _AlertKey(msgspec.Struct):
+    plane: int
+    episode: str
+    state: str
+
+
 _message_key = msgspec.json.Decoder(_MessageKey)
 _tracks_key = msgspec.json.Decoder(_TracksKey)
 _event_key = msgspec.json.Decoder(_EventKey)
+_alert_key = msgspec.json.Decoder(_AlertKey)
 
 
 def message_id(subject: str, payload: bytes) -> str | None:
@@ -262,7 +272,8 @@ def message_id(subject: str, payload: bytes) -> str | None:
     group), so a matcher that re-tracks groups after a failover does not store them twice;
     analytics events: ``events.<plane>.<key>`` (the event's natural identity), so an event
     published again (after a matcher restart, or counted again by a rebuilt plane) is stored
-    once.
+    once; alerts: ``alerts.<plane>.<episode>.<state>`` (what receivers de-duplicate on), so
+    an alert published again after a lost acknowledgement is stored once.
     """
     try:
         if subject.endswith(".detections"):
@@ -275,6 +286,9 @@ def message_id(subject: str, payload: bytes) -> str | None:
         if subject.endswith(".events"):
             event = _event_key.decode(payload)
             return f"events.{event.plane}.{event.key}"
+        if subject.endswith(".alerts"):
+            alert = _alert_key.decode(payload)
+            return f"alerts.{alert.plane}.{alert.episode}.{alert.state}"
     except msgspec.DecodeError:
         return None  # the matcher rejects and counts it; nothing to de-duplicate by
     return None
@@ -907,7 +921,8 @@ class NatsTransport:
         if not self.settings.manages:
             return name  # runtime logins may not look streams up; the admin made them
         try:
-            await self._js.stream_info(name)
+            info = await self._js.stream_info(name)
+            await self._add_subjects(info, stream_subjects(name, plane_id, self._site))
             return name
         except NotFoundError:
             pass
@@ -916,7 +931,9 @@ class NatsTransport:
         if self._site is None:
             legacy = LEGACY_DETECTIONS_STREAM if kind == "detections" else LEGACY_TRACKS_STREAM
             try:
-                await self._js.stream_info(legacy)
+                info = await self._js.stream_info(legacy)
+                if kind == "tracks":
+                    await self._add_subjects(info, [f"{subject_root(None)}.*.alerts"])
                 logger.warning(
                     "%s: the NATS stream %s made by an older cblrs holds every plane's %s; "
                     "using it (to give each plane its own stream %s, see docs/security.md, "
@@ -939,6 +956,18 @@ class NatsTransport:
         except Exception as error:
             raise self._refused_management(f"create the stream {name}", error) from None
         return name
+
+    async def _add_subjects(self, info: Any, subjects: list[str]) -> None:
+        """Give an existing stream the subjects it lacks (one made before alerts were
+        stored lacks ``<root>.<plane>.alerts``)."""
+        current = list(info.config.subjects or [])
+        missing = [subject for subject in subjects if subject not in current]
+        if not missing:
+            return
+        config = replace(info.config, subjects=current + missing)
+        await self._js.update_stream(config)
+        logger.info("%s: the NATS stream %s now also stores %s", self.client_id,
+                    info.config.name, ", ".join(missing))
 
     def _refused_management(self, what: str, error: Exception) -> TransportError:
         """One sentence for a management call that failed (refused, or no answer)."""

@@ -142,6 +142,11 @@ def linker_status_topic(linker_id: str) -> str:
     return f"{ROOT}/{SITE_PLANE}/linkers/{validate_client_id(linker_id, 'linker id')}/status"
 
 
+def linker_status_filter() -> str:
+    """Subscription filter for the status of every linker of the site."""
+    return f"{ROOT}/{SITE_PLANE}/linkers/+/status"
+
+
 def parse_tracks_topic(topic: str) -> int:
     """``cblrs/<plane>/tracks`` -> the plane id (0: the site's global tracks).
 
