@@ -69,6 +69,23 @@ def test_a_restart_keeps_the_epoch_and_port_and_refuses_another_site(tmp_path):
     assert saved["users"] == {"cameras": ["a"], "matchers": {"matcher1": [1]}}
 
 
+def test_a_restart_keeps_its_runs_speed_and_refuses_another(tmp_path):
+    """The cameras' capture times are epoch + t / speed and their spools refuse to mix two
+    runs: a restart goes on at the saved speed (a restart test once failed so: restarted
+    without --speed 2, a camera's spool refused its new run), another one is one sentence."""
+    site = write_site(tmp_path, [("a", SOURCE)], planes=1)
+    first = make_plan(site, tmp_path / "state", broker_port=0, speed=2.0)
+    write_state(first)
+    again = make_plan(site, tmp_path / "state")
+    assert again.speed == 2.0 and again.epoch == first.epoch
+    assert "--speed" in (argv := again.camera_spec(again.cameras[0]).argv)
+    assert argv[argv.index("--speed") + 1] == "2.0"
+    assert make_plan(site, tmp_path / "state", speed=2.0).speed == 2.0
+    with pytest.raises(UpError, match=r"holds a run replayed at --speed 2; restart it with that"):
+        make_plan(site, tmp_path / "state", speed=4.0)
+    assert make_plan(site, tmp_path / "fresh").speed == 1.0
+
+
 @pytest.mark.parametrize(("source", "options"), [
     ({"kind": "dataset", "path": "wt", "frames": "0:195"},
      ["--dataset", "{folder}/wt", "--frames", "0:195"]),

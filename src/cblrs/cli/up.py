@@ -53,7 +53,8 @@ def register(subparsers) -> None:
     parser.add_argument("--fast", action="store_true",
                         help="replay sources as fast as possible (default: paced by their "
                         "timestamps, like live cameras)")
-    parser.add_argument("--speed", type=float, default=1.0, help="speed-up of paced replays")
+    parser.add_argument("--speed", type=float, default=None,
+                        help="speed-up of paced replays (default 1; a restart keeps its run's)")
     parser.add_argument("--run-as", metavar="USER",
                         help="the user Mosquitto runs as when started as root (default: "
                         "mosquitto)")

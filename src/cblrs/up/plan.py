@@ -337,7 +337,7 @@ def make_plan(
     broker_port: int | None = None,
     dashboard_port: int = DEFAULT_DASHBOARD_PORT,
     realtime: bool = True,
-    speed: float = 1.0,
+    speed: float | None = None,
     run_as: str | None = None,
     dashboard: bool = True,
     check_files: bool = True,
@@ -353,7 +353,8 @@ def make_plan(
         dashboard_port: the dashboard's port (0: a free one).
         realtime: pace replays by their timestamps (a source may opt out with
             ``realtime: false``); False replays as fast as possible.
-        speed: speed-up of paced replays.
+        speed: speed-up of paced replays (None: the saved run's, else 1); a restart goes on
+            with its run's pace, so another speed on a state folder is refused.
         run_as: the user Mosquitto runs as when started as root.
         dashboard: plan the dashboard too.
         check_files: refuse a source whose file does not exist.
@@ -392,7 +393,7 @@ def make_plan(
                 if not (site.folder / value).exists():
                     raise UpError(f"{site_path.name}: camera {spec.name!r}: {what} "
                                   f"{(site.folder / value).resolve()} does not exist.")
-    if not (speed > 0 and speed < float("inf")):
+    if speed is not None and not (speed > 0 and speed < float("inf")):
         raise UpError(f"--speed must be a finite number greater than 0, got {speed}.")
     if dashboard_port is not None and not 0 <= dashboard_port <= 65535:
         raise UpError(f"--dashboard-port must be 0..65535, got {dashboard_port}.")
@@ -410,6 +411,15 @@ def make_plan(
     epoch = saved.get("epoch") if saved else None
     if saved and saved.get("realtime") != realtime:
         epoch = None  # another pace: another run (the spools refuse to mix them)
+    saved_speed = float(saved.get("speed", 1.0)) if saved else None
+    if speed is None:
+        speed = saved_speed if saved_speed is not None else 1.0
+    elif epoch is not None and realtime and saved_speed is not None and speed != saved_speed:
+        # The cameras' capture times are epoch + t / speed: another speed is another run,
+        # which the cameras' spools refuse to mix with what they still hold of this one.
+        raise UpError(f"{out_path} holds a run replayed at --speed {saved_speed:g}; restart it "
+                      f"with that speed (or without --speed), or choose another --out for a "
+                      f"run at {speed:g}.")
     default_port = DEFAULT_NATS_PORT if backbone == NATS else DEFAULT_BROKER_PORT
     if broker_port is None:
         broker_port = int(saved["broker_port"]) if saved and saved.get("broker_port") else (
@@ -465,7 +475,7 @@ def write_state(plan: SitePlan) -> None:
     state = {"site": str(plan.site_path), "backbone": plan.backbone,
              "broker_port": plan.broker_port, "mqtt_port": plan.mqtt_port,
              "monitor_port": plan.monitor_port, "epoch": plan.epoch,
-             "realtime": plan.realtime, "users": users_of(plan)}
+             "realtime": plan.realtime, "speed": plan.speed, "users": users_of(plan)}
     (plan.out / STATE_FILE).write_text(json.dumps(state, indent=2) + "\n")
 
 
