@@ -92,3 +92,18 @@ def test_processes_get_a_bytecode_cache(tmp_path, monkeypatch):
                 dict(environment, PYTHONPATH=str(tmp_path)))
     assert list((tmp_path / "pycache").rglob("cached_module*.pyc"))
     assert not (tmp_path / "__pycache__").exists()  # nothing written beside the sources
+
+
+def test_a_big_parent_does_not_inflate_the_peak_of_a_small_command():
+    """A forked child's resident set starts as its parent's and Linux keeps that high-water
+    mark through exec: from a 1 GiB test worker, a 90 MiB ``cblrs track`` once measured
+    1,000+ MiB. The command is started from a small interpreter instead."""
+    import numpy as np
+
+    from cblrs.bench.track import run_process
+
+    ballast = np.ones(600 * 2**20 // 8)  # 600 MiB in this process, touched
+    measured = run_process([sys.executable, "-c", "pass"])
+    assert ballast.sum() > 0
+    assert 0 < measured["peak_mib"] < 100, measured
+    assert measured["wall_s"] > 0 and measured["cpu_s"] > 0

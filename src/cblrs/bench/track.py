@@ -27,7 +27,6 @@ import statistics
 import subprocess
 import sys
 import tempfile
-import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -65,6 +64,24 @@ def bytecode_environment(folder: Path) -> dict[str, str]:
     return environment
 
 
+_MEASURE = """
+import os, sys, time
+out, command = sys.argv[1], sys.argv[2:]
+start = time.perf_counter()
+pid = os.posix_spawnp(command[0], command, os.environ)
+_, status, usage = os.wait4(pid, 0)
+wall = time.perf_counter() - start
+with open(out, "w") as answer:
+    answer.write(f"{os.waitstatus_to_exitcode(status)} {wall!r} "
+                 f"{usage.ru_utime + usage.ru_stime!r} {usage.ru_maxrss}")
+"""
+"""Runs a command and writes its exit code, wall and CPU seconds and peak resident KiB. The
+peak of a process started straight from this one would include this process's own size: a
+forked child's resident set starts as a copy of its parent's, and Linux keeps that high-water
+mark through the exec (a test worker of 1 GiB made a 90 MiB ``cblrs track`` look like 1 GiB).
+Started from this small interpreter instead, it carries at most its ~10 MiB."""
+
+
 def run_process(command: list[str], environment: dict[str, str] | None = None
                 ) -> dict[str, float]:
     """Run a command to its end; its wall and CPU seconds and peak resident MiB.
@@ -76,23 +93,23 @@ def run_process(command: list[str], environment: dict[str, str] | None = None
     Raises:
         BenchmarkError: it exited with a non-zero status (its last error line is quoted).
     """
-    with tempfile.TemporaryFile() as errors:
-        start = time.perf_counter()
-        process = subprocess.Popen(command, stdin=subprocess.DEVNULL,
-                                   stdout=subprocess.DEVNULL, stderr=errors, env=environment)
-        _, status, usage = os.wait4(process.pid, 0)
-        wall = time.perf_counter() - start
-        process.returncode = os.waitstatus_to_exitcode(status)
-        if process.returncode != 0:
+    with tempfile.TemporaryFile() as errors, tempfile.TemporaryDirectory() as folder:
+        answer = Path(folder) / "usage"
+        process = subprocess.run(
+            [sys.executable, "-c", _MEASURE, str(answer), *command], stdin=subprocess.DEVNULL,
+            stdout=subprocess.DEVNULL, stderr=errors, env=environment, check=False)
+        code, wall, cpu, peak_kib = (answer.read_text().split() if answer.exists()
+                                     else (str(process.returncode), "0", "0", "0"))
+        if int(code) != 0:
             errors.seek(0)
             lines = errors.read().decode(errors="replace").strip().splitlines()
             raise BenchmarkError(
-                f"{' '.join(command[1:3])} ... exited with {process.returncode}"
+                f"{' '.join(command[1:3])} ... exited with {code}"
                 + (f": {lines[-1]}" if lines else ".")
             )
     # ru_maxrss is KiB on Linux, bytes on macOS.
-    peak = usage.ru_maxrss / (2**20 if sys.platform == "darwin" else 2**10)
-    return {"wall_s": wall, "cpu_s": usage.ru_utime + usage.ru_stime, "peak_mib": peak}
+    peak = float(peak_kib) / (2**20 if sys.platform == "darwin" else 2**10)
+    return {"wall_s": float(wall), "cpu_s": float(cpu), "peak_mib": peak}
 
 
 def benchmark_track(
