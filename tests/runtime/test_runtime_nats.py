@@ -323,6 +323,33 @@ def test_plane_lease_refuses_a_second_holder_until_released(server, transports):
     transports.append(second)
 
 
+def test_a_lease_is_asked_again_while_jetstream_does_not_answer(server, transports,
+                                                                monkeypatch):
+    """A cluster that has just started (or elects the bucket's leader) may answer "no
+    response from stream" for a moment; a matcher started then asked once and failed (the
+    live city test, 1 run in 2). It now asks again. That moment cannot be produced on demand
+    here: the bucket's create fails twice as JetStream does then, and then works."""
+    from nats.js.errors import NoStreamResponseError
+    from nats.js.kv import KeyValue
+
+    create = KeyValue.create
+    failures = []
+
+    async def unanswered_twice(self, key, value):
+        if len(failures) < 2:
+            failures.append(key)
+            raise NoStreamResponseError
+        return await create(self, key, value)
+
+    monkeypatch.setattr(KeyValue, "create", unanswered_twice)
+    settings = NatsSettings.from_url(server.url)
+    matcher = NatsTransport("matcher-early", settings,
+                            lease=LeaseSettings("plane-44", ttl_s=30.0, what="plane 44"))
+    matcher.open()
+    transports.append(matcher)
+    assert failures == ["plane-44", "plane-44"]
+
+
 def test_lease_of_a_killed_holder_stays_until_it_expires(server, transports):
     # (That it then expires and another host takes over is test_runtime_nats_failover's.)
     settings = NatsSettings.from_url(server.url)

@@ -305,8 +305,12 @@ def test_matcher_killed_and_started_on_another_host(case, cluster, tmp_path, rec
         processed_at_kill = counter(first_database, "processed")
         processes.append(start_matcher(case, nats, second_database, "host-b",
                                        "--lease-wait", "30"))
-        wait_until(lambda: counter(second_database, "processed") >= processed_at_kill, 60,
+        wait_until(lambda: counter(second_database, "processed") >= processed_at_kill
+                   or processes[1].poll() is not None, 120,
                    "the new host to re-track what the old one had")
+        if processes[1].poll() is not None:  # say why, not only that it did not catch up
+            raise AssertionError(f"the new host exited with {processes[1].returncode}: "
+                                 f"{processes[1].communicate()[1][-3000:]}")
         recovered = time.monotonic() - killed
         report = {"fault": "matcher killed, restarted on another host",
                   "processed_at_kill": processed_at_kill, "recover_s": round(recovered, 2),

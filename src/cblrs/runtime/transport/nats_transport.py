@@ -97,6 +97,8 @@ LEGACY_DETECTIONS_STREAM = "CBLRS"
 deployment that has it; see :meth:`NatsTransport._resolve_stream`)."""
 LEGACY_TRACKS_STREAM = "CBLRS_TRACKS"
 LEASE_BUCKET = "cblrs_leases"
+LEASE_UNANSWERED_S = 30.0
+"""How long a lease is asked for again while JetStream does not answer (seconds)."""
 SITE_PATTERN = r"[A-Za-z][A-Za-z0-9-]{0,31}"
 """Site ids: a letter, then letters, digits or ``-`` (never a plane's decimal token, never a
 character a stream name forbids)."""
@@ -1440,8 +1442,14 @@ class NatsTransport:
 
     async def _acquire_lease(self) -> None:
         # optional extra: pip install cblrs[nats]
+        from nats.errors import NoRespondersError
+        from nats.errors import TimeoutError as NatsTimeoutError
         from nats.js.api import KeyValueConfig
-        from nats.js.errors import BucketNotFoundError, KeyWrongLastSequenceError
+        from nats.js.errors import (
+            BucketNotFoundError,
+            KeyWrongLastSequenceError,
+            NoStreamResponseError,
+        )
 
         lease = self.lease
         assert lease is not None
@@ -1469,10 +1477,26 @@ class NatsTransport:
         self._lease_kv = kv
         value = json.dumps({"holder": self.lease_holder, "since": time.time()}).encode()
         deadline = time.monotonic() + lease.wait_s
+        # JetStream may not answer for a moment (a cluster that has just started, or electing
+        # the bucket's leader): asked again for this long, then the error is the answer.
+        unanswered_until = time.monotonic() + max(lease.wait_s, LEASE_UNANSWERED_S)
+        said = False
         while True:
             try:
                 self._lease_revision = await kv.create(lease.key, value)
                 break
+            except (NoStreamResponseError, NoRespondersError, NatsTimeoutError) as error:
+                if time.monotonic() >= unanswered_until:
+                    raise TransportError(
+                        f"cannot take the lease {lease.key} of {lease.what or 'the plane'}: "
+                        f"JetStream did not answer for {max(lease.wait_s, LEASE_UNANSWERED_S):g}"
+                        f" s ({error})."
+                    ) from None
+                if not said:
+                    said = True
+                    logger.warning("%s: JetStream does not answer yet (%s); asking again for "
+                                   "the lease %s", self.client_id, error, lease.key)
+                await asyncio.sleep(0.5)
             except KeyWrongLastSequenceError:
                 holder, age = await self._lease_holder(kv)
                 if time.monotonic() >= deadline:
