@@ -318,8 +318,10 @@ def run_live_city(city: LiveCity, url: str, probe: Any, folder: Path,
             processes.append(matchers[plane])
             databases[plane] = replacement
             say(f"plane {plane}'s matcher killed after {run.processed_at_kill} messages")
-            wait_for(lambda: store_counter(replacement, "processed") >= run.processed_at_kill,
+            wait_for(lambda: store_counter(replacement, "processed") >= run.processed_at_kill
+                     or matchers[plane].poll() is not None,
                      setup.timeout_s, "the new host to re-track what the old one had")
+            _ended(matchers[plane], f"plane {plane}'s new host")
             run.recover_s = time.monotonic() - killed
             say(f"plane {plane} taken over in {run.recover_s:.1f} s")
         for thread in threads:
