@@ -1486,6 +1486,11 @@ class NatsTransport:
                 self._lease_revision = await kv.create(lease.key, value)
                 break
             except (NoStreamResponseError, NoRespondersError, NatsTimeoutError) as error:
+                if self.refused_subjects:  # not unanswered: refused (the servers said so)
+                    raise TransportError(
+                        f"cannot take the lease {lease.key} of {lease.what or 'the plane'}: "
+                        f"{self._denial_or(error)}."
+                    ) from None
                 if time.monotonic() >= unanswered_until:
                     raise TransportError(
                         f"cannot take the lease {lease.key} of {lease.what or 'the plane'}: "
