@@ -1447,6 +1447,7 @@ class NatsTransport:
         from nats.js.api import KeyValueConfig
         from nats.js.errors import (
             BucketNotFoundError,
+            KeyNotFoundError,
             KeyWrongLastSequenceError,
             NoStreamResponseError,
         )
@@ -1502,6 +1503,11 @@ class NatsTransport:
                     logger.warning("%s: JetStream does not answer yet (%s); asking again for "
                                    "the lease %s", self.client_id, error, lease.key)
                 await asyncio.sleep(0.5)
+            except KeyNotFoundError:
+                # nats-py's create() looks the key up after finding it taken; the holder's
+                # lease expired in between: ask again at once.
+                await asyncio.sleep(0.05)
+                continue
             except KeyWrongLastSequenceError:
                 holder, age = await self._lease_holder(kv)
                 if time.monotonic() >= deadline:
