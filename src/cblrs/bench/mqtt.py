@@ -103,6 +103,13 @@ from cblrs.runtime.wire import ValidationPolicy
 
 RECEIVERS = ("broker", "paho", "transport", "matcher")
 
+WARM_UP_FRAMES = 10
+"""Paced runs also report the subscriber's latency of the frames after each camera's first
+this many: the ordering and the fusion tracker learn a camera's frame period from its first
+``MINIMUM_INTERVALS + 1`` (4) frames (:mod:`cblrs.matching.timing`), and until then a
+frame's window waits for the camera's next frame (in each of the two, so by up to two frame
+periods); a run of 10 s at 10 fps has 100 frames, so those few set its p99."""
+
 
 DEFAULT_RUNS = ("broker/max", "paho/max", "transport/max", "matcher/max", "paho/paced",
                 "matcher/paced")
@@ -118,15 +125,19 @@ _timestamp_decoder = msgspec.json.Decoder(_Timestamp)
 class Probe:
     """Observer of the matcher service: receipt and track-output times per message, and per
     group where the time went: from the group's mean capture time to the receipt of its last
-    message (waiting for the last camera and receiving it), then to the track output
-    (ordering, the tracker process, publishing)."""
+    message (waiting for the last camera and receiving it), then to the track output, split
+    into the wait in the ordering buffer (until the group is released to the tracker
+    process) and what follows (the pipe, the tracker process, its commit, publishing)."""
 
     def __init__(self) -> None:
         self.receipt: list[float] = []
         self.tracked: list[float] = []
         self.last_member: list[float] = []
         self.after_last: list[float] = []
+        self.to_release: list[float] = []
+        self.after_release: list[float] = []
         self._stored_at: dict[tuple[str, int], float] = {}
+        self._released_at: dict[float, float] = {}
         self.last_stored = 0.0
         self.last_group = 0.0
         self.stored = 0
@@ -138,15 +149,23 @@ class Probe:
         self.last_stored = wall_time
         self.stored += len(messages)
 
+    def on_released(self, timestamps, wall_time) -> None:
+        for timestamp in timestamps:
+            self._released_at[timestamp] = wall_time
+
     def on_group(self, timestamp, messages, tracks, wall_time) -> None:
         self.tracked.extend(wall_time - message.timestamp for message in messages)
         self.last_group = wall_time
         stored = [self._stored_at.pop((message.camera_id, message.sequence), math.nan)
                   for message in messages]
+        released = self._released_at.pop(timestamp, math.nan)
         if messages and not any(math.isnan(value) for value in stored):
             capture = statistics.fmean(message.timestamp for message in messages)
             self.last_member.append(max(stored) - capture)
             self.after_last.append(wall_time - max(stored))
+            if not math.isnan(released):
+                self.to_release.append(released - max(stored))
+                self.after_release.append(wall_time - released)
 
 
 class _Receiver:
@@ -202,10 +221,10 @@ _update_decoder = msgspec.json.Decoder(_TrackUpdate)
 
 
 def track_subscriber(port: int, nagle: bool, ready, stop, results) -> None:
-    """Child process: a paho client on the tracks topic; capture -> arrival latency of each
-    track update (its rows carry the frame's capture time)."""
+    """Child process: a paho client on the tracks topic; ``(capture time, capture -> arrival
+    latency)`` of each track update (its rows carry the frame's capture time)."""
 
-    latencies: list[float] = []
+    latencies: list[tuple[float, float]] = []
     client = mqtt.Client(callback_api_version=CallbackAPIVersion.VERSION2,
                          client_id="bench-tracks", protocol=mqtt.MQTTv5)
     if not nagle:
@@ -216,7 +235,7 @@ def track_subscriber(port: int, nagle: bool, ready, stop, results) -> None:
         now = time.time()
         update = _update_decoder.decode(message.payload)
         if update.tracks:
-            latencies.append(now - update.tracks[0].timestamp)
+            latencies.append((update.tracks[0].timestamp, now - update.tracks[0].timestamp))
 
     client.on_message = on_message
     client.on_subscribe = lambda *args: ready.set()
@@ -247,7 +266,7 @@ def run_once(receiver_kind: str, publisher_kind: str, cameras: int, frames: int,
                                                                      ""))
         broker = MosquittoProcess.from_files(files).start()
         subscriber_process = None
-        subscriber_latencies: list[float] = []
+        subscriber_latencies: list[tuple[float, float]] = []
         subscriber_results: multiprocessing.Queue = multiprocessing.Queue()
         subscriber_stop = multiprocessing.Event()
         receiver = _Receiver(total, paced)
@@ -346,7 +365,9 @@ def run_once(receiver_kind: str, publisher_kind: str, cameras: int, frames: int,
         "tracked_per_s": math.nan, "late": 0, "rejected": 0,
         "receipt_p50_ms": math.nan, "receipt_p99_ms": math.nan,
         "track_p50_ms": math.nan, "track_p99_ms": math.nan,
-        "subscriber_p50_ms": math.nan, "subscriber_p99_ms": math.nan, "nagle": nagle,
+        "subscriber_p50_ms": math.nan, "subscriber_p99_ms": math.nan,
+        "subscriber_steady_p50_ms": math.nan, "subscriber_steady_p99_ms": math.nan,
+        "nagle": nagle,
         "clock_spread_ms": 1000 * clocks.spread_s, "clock_jitter_ms": 1000 * clocks.jitter_s,
     }
     if paced and receiver.receipt:
@@ -364,13 +385,26 @@ def run_once(receiver_kind: str, publisher_kind: str, cameras: int, frames: int,
             row["track_p99_ms"] = 1000 * float(np.percentile(probe.tracked, 99))
             if probe.last_member:
                 for name, values in (("last_member", probe.last_member),
-                                     ("after_last", probe.after_last)):
-                    row[f"{name}_p50_ms"] = 1000 * float(np.percentile(values, 50))
-                    row[f"{name}_p99_ms"] = 1000 * float(np.percentile(values, 99))
+                                     ("after_last", probe.after_last),
+                                     ("to_release", probe.to_release),
+                                     ("after_release", probe.after_release)):
+                    if values:
+                        row[f"{name}_p50_ms"] = 1000 * float(np.percentile(values, 50))
+                        row[f"{name}_p99_ms"] = 1000 * float(np.percentile(values, 99))
             if subscriber_latencies:
-                row["subscriber_p50_ms"] = 1000 * float(np.percentile(subscriber_latencies, 50))
-                row["subscriber_p99_ms"] = 1000 * float(np.percentile(subscriber_latencies, 99))
-                row["subscriber_updates"] = len(subscriber_latencies)
+                latencies = [latency for _, latency in subscriber_latencies]
+                row["subscriber_p50_ms"] = 1000 * float(np.percentile(latencies, 50))
+                row["subscriber_p99_ms"] = 1000 * float(np.percentile(latencies, 99))
+                row["subscriber_updates"] = len(latencies)
+                # After the warm-up: until the ordering and the fusion tracker know each
+                # camera's frame period, a frame's window waits for the next frame.
+                settled = report["start"] + WARM_UP_FRAMES / fps
+                steady = [latency for capture, latency in subscriber_latencies
+                          if capture >= settled]
+                if steady:
+                    row["subscriber_steady_p50_ms"] = 1000 * float(np.percentile(steady, 50))
+                    row["subscriber_steady_p99_ms"] = 1000 * float(np.percentile(steady, 99))
+                    row["subscriber_steady_updates"] = len(steady)
     return row
 
 
@@ -439,8 +473,19 @@ def markdown_table(info: dict, rows: list[dict], args: argparse.Namespace) -> st
         alone = row.get("tracker_alone_per_s")
         if alone is None or math.isnan(row["tracked_per_s"]):
             return cell(row["tracked_per_s"], 0)
-        return (f"{row['tracked_per_s']:.0f} ({100 * row['tracked_per_s'] / alone:.0f} % of "
-                f"{alone:.0f})")
+        text = (f"{row['tracked_per_s']:.0f} ({100 * row['tracked_per_s'] / alone:.0f} % of "
+                f"{alone:.0f}")
+        wall = row.get("tracker_alone_wall_per_s")
+        if wall is not None:
+            text += f"; {100 * row['tracked_per_s'] / wall:.0f} % of {wall:.0f}"
+        return text + ")"
+
+    def subscriber(row: dict) -> str:
+        text = pair(row["subscriber_p50_ms"], row["subscriber_p99_ms"])
+        if not math.isnan(row.get("subscriber_steady_p50_ms", math.nan)):
+            steady = pair(row["subscriber_steady_p50_ms"], row["subscriber_steady_p99_ms"])
+            text += f" ({steady})"
+        return text
 
     lines = [
         f"QoS 1 on loopback, {args.people} detections per message, {args.fps:g} fps when paced, "
@@ -453,10 +498,11 @@ def markdown_table(info: dict, rows: list[dict], args: argparse.Namespace) -> st
         f"{info['load_start'][0]:.2f} at start, {info['load_end'][0]:.2f} at end (a shared "
         f"machine); medians of {args.repeats} runs.",
         "",
-        "| cameras | receiver | rate | received msg/s | tracked msg/s (% of the tracker alone, "
-        "msg per CPU s) "
+        "| cameras | receiver | rate | received msg/s | tracked msg/s (% of the tracker alone: "
+        "msg per CPU s; msg/s in one process at the same load) "
         "| receipt p50 / p99 ms | track output p50 / p99 ms "
-        "| **tracks at a subscriber** p50 / p99 ms | lost |",
+        f"| **tracks at a subscriber** p50 / p99 ms (after each camera's first {WARM_UP_FRAMES}"
+        " frames) | lost |",
         "|---:|---|---|---:|---:|---:|---:|---:|---:|",
     ]
     for row in rows:
@@ -465,7 +511,7 @@ def markdown_table(info: dict, rows: list[dict], args: argparse.Namespace) -> st
             f"| {row['received_per_s']:.0f} | {tracked(row)} "
             f"| {pair(row['receipt_p50_ms'], row['receipt_p99_ms'])} "
             f"| {pair(row['track_p50_ms'], row['track_p99_ms'])} "
-            f"| {pair(row['subscriber_p50_ms'], row['subscriber_p99_ms'])} "
+            f"| {subscriber(row)} "
             f"| {row['messages'] - row['received']} |"
         )
     return "\n".join(lines)
@@ -536,10 +582,10 @@ def run_mqtt_benchmark(args: Any) -> int:
             if receiver == "matcher" and not paced:
                 # The tracker's own rate on the same messages, between the service's runs.
                 for repeat, one in enumerate(runs):
-                    one["tracker_alone_per_s"] = tracker_alone(
-                        cameras, args.people, args.matcher, min(frames, 600),
-                        CameraClocks(args.clock_spread_ms / 1000, args.clock_jitter_ms / 1000,
-                                     seed=repeat))
+                    one["tracker_alone_per_s"], one["tracker_alone_wall_per_s"] = \
+                        tracker_alone(cameras, args.people, args.matcher, min(frames, 600),
+                                      CameraClocks(args.clock_spread_ms / 1000,
+                                                   args.clock_jitter_ms / 1000, seed=repeat))
             row = median_of(runs)
             row["runs"] = runs
             rows.append(row)
@@ -560,15 +606,26 @@ def run_mqtt_benchmark(args: Any) -> int:
                           f"{row['tracker_cpu_us_per_message']:.0f} us", flush=True)
                 if "tracker_alone_per_s" in row:
                     print(f"{'':20s} the tracker alone on these messages: "
-                          f"{row['tracker_alone_per_s']:.0f} msg per CPU second; the service "
-                          "tracked "
+                          f"{row['tracker_alone_per_s']:.0f} msg per CPU second, "
+                          f"{row['tracker_alone_wall_per_s']:.0f} msg/s of wall time in this "
+                          "process (the same load); the service tracked "
                           f"{100 * row['tracked_per_s'] / row['tracker_alone_per_s']:.0f} % "
-                          "of it", flush=True)
+                          f"and {100 * row['tracked_per_s'] / row['tracker_alone_wall_per_s']:.0f}"
+                          " % of them", flush=True)
                 if "last_member_p50_ms" in row:
                     print(f"{'':20s} capture -> last member received p50/p99 "
                           f"{row['last_member_p50_ms']:.1f}/{row['last_member_p99_ms']:.1f} ms,"
                           f" then -> track output {row['after_last_p50_ms']:.1f}/"
-                          f"{row['after_last_p99_ms']:.1f} ms", flush=True)
+                          f"{row['after_last_p99_ms']:.1f} ms (in the ordering buffer "
+                          f"{row.get('to_release_p50_ms', math.nan):.1f}/"
+                          f"{row.get('to_release_p99_ms', math.nan):.1f} ms, then tracker "
+                          f"process and publishing {row.get('after_release_p50_ms', math.nan):.1f}"
+                          f"/{row.get('after_release_p99_ms', math.nan):.1f} ms)", flush=True)
+                if not math.isnan(row["subscriber_steady_p50_ms"]):
+                    print(f"{'':20s} tracks at the subscriber after each camera's first "
+                          f"{WARM_UP_FRAMES} frames p50/p99 "
+                          f"{row['subscriber_steady_p50_ms']:.1f}/"
+                          f"{row['subscriber_steady_p99_ms']:.1f} ms", flush=True)
     info["load_end"] = list(os.getloadavg())
     document = {"machine": info, "publisher": args.publisher, "repeats": args.repeats,
                 "fps": args.fps, "people": args.people, "matcher": args.matcher,
