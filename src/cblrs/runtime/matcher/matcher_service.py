@@ -34,11 +34,9 @@ Per delivery:
 
 Steps 1-3 run in the service's process: a *receiver* thread validates, stores, acknowledges
 and buffers the deliveries the transport's thread queues, in batches of what has arrived (one
-inbox transaction each), and a *releaser* thread sends released groups to step 4 (while the
-tracker process is idle the receiver sends them itself, right after storing the message that
-completed them: one thread hand-over less between a frame's last message and its tracks). Step
-4 runs in a separate *tracker process* (:mod:`cblrs.runtime.matcher.tracker_process`), which
-writes to the same SQLite file (the two take turns through a lock on a file next to it); a *collector*
+inbox transaction each), and a *releaser* thread sends released groups to step 4. Step 4 runs
+in a separate *tracker process* (:mod:`cblrs.runtime.matcher.tracker_process`), which writes to the
+same SQLite file (the two take turns through a lock on a file next to it); a *collector*
 thread publishes its track updates. So receiving and tracking use two cores, an
 acknowledgement never waits for the tracker, and messages are stored while earlier groups are
 being tracked. A group leaves the buffer and the "last released timestamp" advances in one
@@ -278,10 +276,6 @@ class MatcherService:
         self._received_all = threading.Event()
         self._state_lock = threading.RLock()
         self._inflight: deque[Batch] = deque()  # sent to the tracker process, not answered
-        # Held from taking groups out of the buffer until they are on the pipe: two threads
-        # send (the releaser, and the receiver while the tracker process is idle), and the
-        # pipe must carry batches in release order, each whole.
-        self._submit_lock = threading.Lock()
         self._tracker: TrackerProcess | None = None
         self._threads: list[threading.Thread] = []
         self._failure: BaseException | None = None
@@ -519,7 +513,6 @@ class MatcherService:
                 self._arrived.wait(0.2)
                 self._arrived.clear()  # before emptying the inbox, so no arrival is missed
                 while self._receiving.is_set() and self._handle():
-                    self._release_if_idle()
                     self._wake.set()
                     self._send_confirmations()
                     if self._stop.is_set():
@@ -709,58 +702,28 @@ class MatcherService:
             self._fail(error, "releaser")
         finally:
             # A flushed stop ends the stream: the analytics end every track, as offline.
-            with self._submit_lock:
-                self._tracker.finish(
-                    flush=self._flush_requested.is_set() and self._failure is None)
+            self._tracker.finish(flush=self._flush_requested.is_set() and self._failure is None)
 
     def _abandoning(self) -> bool:
         """Stopping without a flush: nothing more is released (it stays pending)."""
         return self._stop.is_set() and not self._flush_requested.is_set()
 
     def _release_ready(self, force: bool = False) -> None:
-        while self._failure is None and not self._abandoning():
-            with self._submit_lock:
-                if not self._release_batch(force):
-                    return
-
-    def _release_if_idle(self) -> None:
-        """Receiver thread, after storing a batch: release what is ready now if the tracker
-        process has nothing to do, so that a frame's last message goes on to tracking
-        without waiting for the releaser thread to be woken and scheduled (under load, the
-        largest share of a frame's wait in the service). While the tracker process is busy
-        (a backlog) the releaser thread sends, and may wait on the pipe; the receiver never
-        waits for a busy tracker process, so acknowledgements never wait for tracking."""
-        if self._inflight or self._failure is not None or self._abandoning():
-            return
-        if not self._submit_lock.acquire(blocking=False):
-            return  # the releaser thread is sending
-        try:
-            if not self._inflight:  # an idle tracker process reads the batch at once
-                self._release_batch(force=False)
-        except TrackerProcessError:
-            if not self._abandoning():
-                raise
-        finally:
-            self._submit_lock.release()
-
-    def _release_batch(self, force: bool) -> bool:
-        """Take the ready groups out of the buffer and send them to the tracker process
-        (the caller holds ``_submit_lock``); False if none was ready."""
         assert self._tracker is not None
-        with self._state_lock:
-            batch: Batch = self._orderer.release(
-                self.clock(), force=force, limit=self.groups_per_commit
-            )
-            if not batch:
-                return False
-            # From now on a message at or before these timestamps is late; the store
-            # records the same timestamp when the windows are committed.
-            self._inflight.append(batch)
-        if self.observer is not None and hasattr(self.observer, "on_released"):
-            self.observer.on_released([timestamp for timestamp, _ in batch],
-                                      self._wall_clock())
-        self._tracker.submit(batch)  # blocks while the tracker process is behind
-        return True
+        while self._failure is None and not self._abandoning():
+            with self._state_lock:
+                batch: Batch = self._orderer.release(
+                    self.clock(), force=force, limit=self.groups_per_commit
+                )
+                if not batch:
+                    return
+                # From now on a message at or before these timestamps is late; the store
+                # records the same timestamp when the windows are committed.
+                self._inflight.append(batch)
+            if self.observer is not None and hasattr(self.observer, "on_released"):
+                self.observer.on_released([timestamp for timestamp, _ in batch],
+                                          self._wall_clock())
+            self._tracker.submit(batch)  # blocks while the tracker process is behind
 
     def _retrack_if_due(self, force: bool = False) -> None:
         """Ask the tracker process to track the late messages once none has come for
@@ -774,8 +737,7 @@ class MatcherService:
                 return
             self._late_at = None
             self._retracks_inflight += 1
-        with self._submit_lock:
-            self._tracker.submit("retrack")
+        self._tracker.submit("retrack")
 
     def _collect(self) -> None:
         """Collector thread: publish what the tracker process committed, tell the observer."""
