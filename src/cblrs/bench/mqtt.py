@@ -31,7 +31,10 @@ Rates:
   in the inbox and acknowledged), to the track output (matcher: the group committed by the
   tracker process and its update handed to the transport, in the service's process), and —
   the figure a user sees — to the track update's arrival at a *separate subscriber process*
-  (a paho client on ``cblrs/<plane>/tracks``, one sample per update, i.e. per frame).
+  (a paho client on ``cblrs/<plane>/tracks``, one sample per update, i.e. per frame), over
+  every frame and over the frames after each camera's first :data:`WARM_UP_FRAMES`; each
+  group's time after its last camera's message is split at its release from the ordering
+  buffer (the service's ``on_released`` observer hook).
 
 Camera clocks: by default each simulated camera stamps and publishes its frames with its own
 clock, as real cameras do: offsets spread over 10 ms (``--clock-spread-ms``) and a per-frame
@@ -45,8 +48,9 @@ acknowledgement) then wait for the previous one's TCP acknowledgement.
 
 Matcher rows at ``max`` also time the tracker alone on the same messages (ordered as the
 service orders them, messages built from inbox entries, ``matcher.update``; no broker, store
-or pipe), in messages per second of CPU (what it does with a core of its own), and print
-the service's tracked rate as a share of it.
+or pipe), in messages per second of CPU (what it does with a core of its own) and of wall
+time (what it does in one process at the run's load), and print the service's tracked rate
+as a share of each.
 
 Printed figures are medians over ``--repeats`` runs, with the machine (CPU, cores, load
 average at start and end). Not a test: nothing is asserted.
