@@ -388,6 +388,8 @@ class LinkerService:
             if rewound is None:
                 if math.isfinite(back_to):  # older than every snapshot: not linked again
                     inputs = [item for item in inputs if item[0] == "add"]
+                    for plane, _, since in corrections:  # nor are its later updates
+                        self._correcting[plane] = [since, math.inf]
                 for operation, plane, rows in inputs:
                     if operation != "cut":
                         self.linker.push(plane, rows)
