@@ -14,7 +14,10 @@ import signal
 import sqlite3
 import subprocess
 import sys
+from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -36,13 +39,30 @@ IDLE_EXIT_S = 10.0
 """A linker finishes after this long without updates (longer than a restart takes)."""
 
 
-@pytest.fixture(params=["mosquitto", "nats"])
+@dataclass
+class Backbone:
+    """How the test reaches one backbone.
+
+    Attributes:
+        options: the linker's backbone options, given its client id (its login, if any).
+        client: a publishing or reading client, given a name (its login, if any).
+        prepare: run before anything is published, given the site file (the admin's
+            ``cblrs linker --prepare`` on a secured NATS).
+    """
+
+    options: Callable[[str], list[str]]
+    client: Callable[[str], Any]
+    prepare: Callable[[Path], None] = lambda site: None
+
+
+@pytest.fixture(params=["mosquitto", "nats", "nats-secured"])
 def backbone(request, tmp_path):
-    """``(the linker's backbone options, a factory of publishing clients)``."""
     if request.param == "mosquitto":
         broker = request.getfixturevalue("mosquitto")
-        options = ["--broker", f"127.0.0.1:{broker.port}"]
-        yield options, lambda name: MqttTransport(name, broker.settings(), persistent=False)
+        yield Backbone(
+            lambda name: ["--broker", f"127.0.0.1:{broker.port}"],
+            lambda name: MqttTransport(name, broker.settings(), persistent=False),
+        )
         return
     from cblrs.runtime.broker.nats_server import NatsCluster, find_nats_server
 
@@ -51,11 +71,64 @@ def backbone(request, tmp_path):
     pytest.importorskip("nats", reason="nats-py is not installed (pip install -e '.[nats]')")
     from cblrs.runtime.transport.nats_transport import NatsSettings, NatsTransport
 
-    cluster = NatsCluster.create(tmp_path / "nats", nodes=1).start()
+    if request.param == "nats":
+        cluster = NatsCluster.create(tmp_path / "nats", nodes=1).start()
+        try:
+            yield Backbone(
+                lambda name: ["--backbone", cluster.url],
+                lambda name: NatsTransport(name, NatsSettings.from_url(cluster.url)),
+            )
+        finally:
+            cluster.kill()
+        return
+    # Users and permissions as `cblrs broker-config --backbone nats --linkers ...` writes
+    # them: each linker logs in as itself; the admin prepares their consumers.
+    pytest.importorskip("bcrypt", reason="bcrypt is not installed (pip install -e '.[nats]')")
+    from cblrs.runtime.broker.nats_auth import write_nats_security
+
+    security = write_nats_security(
+        tmp_path / "servers",
+        (),
+        {f"matcher{plane}": [plane] for plane in (1, 2, 3, 4)},
+        linkers=("steady", "killed"),
+        tls=False,
+    )
+    cluster = NatsCluster.create(tmp_path / "nats", nodes=1, security=security).start()
+
+    def login(user: str) -> list[str]:
+        return [
+            "--backbone",
+            cluster.url,
+            "--username",
+            user,
+            "--password-file",
+            str(security.clients[user].password_file),
+        ]
+
+    def prepare(site: Path) -> None:
+        for name in ("steady", "killed"):
+            done = subprocess.run(
+                [
+                    sys.executable,
+                    "-m",
+                    "cblrs.cli.main",
+                    "linker",
+                    "--site",
+                    str(site),
+                    "--prepare",
+                    "--client-id",
+                    name,
+                    *login("admin"),
+                ],
+                capture_output=True,
+                text=True,
+                timeout=WAIT * 2,
+            )
+            assert done.returncode == 0, done.stderr[-2000:]
+
     try:
-        yield (
-            ["--backbone", cluster.url],
-            lambda name: NatsTransport(name, NatsSettings.from_url(cluster.url)),
+        yield Backbone(
+            login, lambda name: NatsTransport(name, security.settings(name, cluster.url)), prepare
         )
     finally:
         cluster.kill()
@@ -111,10 +184,11 @@ def test_a_linker_killed_mid_stream_resumes_to_the_undisturbed_result(
     tmp_path,
 ):
     scenes, per_plane = city
-    options, client = backbone
+    client = backbone.client
     site = save_document(city_site_document(scenes.spec), tmp_path / "street.yaml")
     steady_db, killed_db = tmp_path / "steady.db", tmp_path / "killed.db"
     statuses: dict[str, str] = {}
+    backbone.prepare(site)
     viewer = client("viewer")
     for name in ("steady", "killed"):
         viewer.subscribe(
@@ -127,8 +201,8 @@ def test_a_linker_killed_mid_stream_resumes_to_the_undisturbed_result(
     matchers = {plane: client(f"matcher{plane}") for plane in per_plane}
     for transport in matchers.values():
         transport.connect()
-    steady = start_linker(site, steady_db, "steady", options)
-    killed = start_linker(site, killed_db, "killed", options)
+    steady = start_linker(site, steady_db, "steady", backbone.options("steady"))
+    killed = start_linker(site, killed_db, "killed", backbone.options("killed"))
     processes = [steady, killed]
     try:
         wait_until(
@@ -162,7 +236,7 @@ def test_a_linker_killed_mid_stream_resumes_to_the_undisturbed_result(
         at_kill = taken(killed_db)
         assert at_kill < len(updates), "killed after the end: nothing to resume"
         send(len(updates) * 2 // 3)  # while it is down
-        killed = start_linker(site, killed_db, "killed", options)
+        killed = start_linker(site, killed_db, "killed", backbone.options("killed"))
         processes.append(killed)
         send(len(updates))  # while it restarts
         for transport in matchers.values():
