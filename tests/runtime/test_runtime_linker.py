@@ -222,12 +222,15 @@ def test_bad_settings_are_refused(city, tmp_path):
 
 
 
-def test_a_planes_correction_is_linked_again_as_if_it_had_come_in_time(city, broker, tmp_path):
+@pytest.mark.parametrize("restart", [False, True], ids=["running", "restarted-midway"])
+def test_a_planes_correction_is_linked_again_as_if_it_had_come_in_time(city, broker, tmp_path,
+                                                                     restart):
     """Plane 2's matcher got messages late: from T to T + 8 s its first rows had other track
     ids (a track split) and were 40 cm off; re-tracked, it publishes the right rows of every
     group after T with ``corrected_from`` = T, after the linker had linked the wrong ones. The
     linker's final rows, ids, hand-overs and counts are those of the right rows from the
-    start (the offline link of them)."""
+    start (the offline link of them) — also when it stops halfway through the correction and
+    starts again (the correction under way is in its file)."""
     scenes, per_plane = city
     since, until = EPOCH + 30.0, EPOCH + 38.0
     truth = per_plane[2]
@@ -255,13 +258,23 @@ def test_a_planes_correction_is_linked_again_as_if_it_had_come_in_time(city, bro
     assert len(service.store.rows())
     # The re-tracking: every group of plane 2 after T up to its clock, the right rows.
     clock = max(item[0] for item in first[:cut] if item[1] == 2)
-    corrections = 0
-    for index, seconds in enumerate(scenes.timestamps.tolist()):
-        if since < EPOCH + seconds <= clock:
-            corrections += 1
-            matchers[2].publish(tracks_topic(2), encode_tracks(
-                truth[truth.frame == index], 2, sequence=100_000 + index,
-                timestamp=EPOCH + seconds, corrected_from=since))
+    corrected = [encode_tracks(truth[truth.frame == index], 2, sequence=100_000 + index,
+                               timestamp=EPOCH + seconds, corrected_from=since)
+                 for index, seconds in enumerate(scenes.timestamps.tolist())
+                 if since < EPOCH + seconds <= clock]
+    corrections = len(corrected)
+    halfway = corrections // 2 if restart else corrections
+    for payload in corrected[:halfway]:
+        matchers[2].publish(tracks_topic(2), payload)
+    if restart:
+        wait_until(lambda: service.stats().get("corrections", 0) >= halfway, 30,
+                   "half the correction")
+        service.close()  # a stop, not the end
+        service.store.close()
+        service = make_service(broker, scenes, tmp_path / "linker.db")
+        service.start()
+    for payload in corrected[halfway:]:
+        matchers[2].publish(tracks_topic(2), payload)
     for _, plane, payload in first[cut:]:
         matchers[plane].publish(tracks_topic(plane), payload)
     wait_until(lambda: service.stats().get("updates", 0) >= len(first)
