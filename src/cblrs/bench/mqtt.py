@@ -64,20 +64,17 @@ Usage::
 
 from __future__ import annotations
 
-import argparse
 import gc
 import json
 import math
 import multiprocessing
 import os
-import platform
 import socket
 import statistics
 import subprocess
 import tempfile
 import threading
 import time
-from importlib import metadata
 from pathlib import Path
 from typing import Any
 
@@ -96,6 +93,14 @@ from cblrs.bench.mqtt_load import (
     stages_line,
     tracker_alone,
 )
+from cblrs.bench.mqtt_report import (
+    WARM_UP_FRAMES,
+    clocks_text,
+    format_value,
+    machine,
+    markdown_table,
+    median_of,
+)
 from cblrs.matching import make_matcher
 from cblrs.plane import PlaneSet
 from cblrs.runtime.broker.mosquitto_config import MosquittoProcess, free_port, write_broker_config
@@ -106,14 +111,6 @@ from cblrs.runtime.transport.topics import detections_filter, tracks_topic
 from cblrs.runtime.wire import ValidationPolicy
 
 RECEIVERS = ("broker", "paho", "transport", "matcher")
-
-WARM_UP_FRAMES = 10
-"""Paced runs also report the subscriber's latency of the frames after each camera's first
-this many: the ordering and the fusion tracker learn a camera's frame period from its first
-``MINIMUM_INTERVALS + 1`` (4) frames (:mod:`cblrs.matching.timing`), and until then a
-frame's window waits for the camera's next frame (in each of the two, so by up to two frame
-periods); a run of 10 s at 10 fps has 100 frames, so those few set its p99."""
-
 
 DEFAULT_RUNS = ("broker/max", "paho/max", "transport/max", "matcher/max", "paho/paced",
                 "matcher/paced")
@@ -423,113 +420,6 @@ def _process_cpu_seconds(service: MatcherService) -> float:
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
-def median_of(runs: list[dict]) -> dict:
-    """One row from repeated runs: the median of every float, the fewest messages received."""
-    merged = dict(runs[0])
-    for key, value in runs[0].items():
-        if isinstance(value, float):
-            merged[key] = statistics.median(run[key] for run in runs)
-    merged["received"] = min(run["received"] for run in runs)
-    merged["flushed"] = all(run["flushed"] for run in runs)
-    merged["repeats"] = len(runs)
-    return merged
-
-
-def machine() -> dict:
-    """CPU model, cores, Python, Mosquitto and paho-mqtt versions of this machine."""
-    model = platform.processor() or platform.machine()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                model = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    versions: dict[str, str | None] = {}
-    for package in ("paho-mqtt", "msgspec", "numpy"):
-        try:
-            versions[package] = metadata.version(package)
-        except metadata.PackageNotFoundError:
-            versions[package] = None
-    try:
-        mosquitto = subprocess.run(["mosquitto", "-h"], capture_output=True, text=True,
-                                   timeout=10).stdout.splitlines()[0]
-    except (OSError, IndexError, subprocess.SubprocessError):
-        mosquitto = None
-    return {"cpu": model, "cores": os.cpu_count(), "python": platform.python_version(),
-            "mosquitto": mosquitto, **versions}
-
-
-def _format(value: float, width: int = 7, digits: int = 1) -> str:
-    return " " * (width - 1) + "-" if math.isnan(value) else f"{value:{width}.{digits}f}"
-
-
-def markdown_table(info: dict, rows: list[dict], args: argparse.Namespace) -> str:
-    """The results as a markdown table with the machine and settings above it."""
-
-    def cell(value: float, digits: int = 1) -> str:
-        return "–" if math.isnan(value) else f"{value:.{digits}f}"
-
-    def pair(first: float, second: float) -> str:
-        return "–" if math.isnan(first) else f"{cell(first)} / {cell(second)}"
-
-    def tracked(row: dict) -> str:
-        alone = row.get("tracker_alone_per_s")
-        if alone is None or math.isnan(row["tracked_per_s"]):
-            return cell(row["tracked_per_s"], 0)
-        text = (f"{row['tracked_per_s']:.0f} ({100 * row['tracked_per_s'] / alone:.0f} % of "
-                f"{alone:.0f}")
-        wall = row.get("tracker_alone_wall_per_s")
-        if wall is not None:
-            text += f"; {100 * row['tracked_per_s'] / wall:.0f} % of {wall:.0f}"
-        return text + ")"
-
-    def subscriber(row: dict) -> str:
-        text = pair(row["subscriber_p50_ms"], row["subscriber_p99_ms"])
-        if not math.isnan(row.get("subscriber_steady_p50_ms", math.nan)):
-            steady = pair(row["subscriber_steady_p50_ms"], row["subscriber_steady_p99_ms"])
-            text += f" ({steady})"
-        return text
-
-    lines = [
-        f"QoS 1 on loopback, {args.people} detections per message, {args.fps:g} fps when paced, "
-        f"{args.matcher} matcher; publishers: {args.publisher} (one connection per camera, "
-        f"other processes); {_clocks_text(args)}. {info['cpu']}, {info['cores']} cores, "
-        f"Python {info['python']}, "
-        f"{info['mosquitto']}, paho-mqtt {info['paho-mqtt']}; "
-        + ("Nagle's algorithm on (no TCP_NODELAY); " if args.nagle else "TCP_NODELAY on; ")
-        + "load average "
-        f"{info['load_start'][0]:.2f} at start, {info['load_end'][0]:.2f} at end (a shared "
-        f"machine); medians of {args.repeats} runs.",
-        "",
-        "| cameras | receiver | rate | received msg/s | tracked msg/s (% of the tracker alone: "
-        "msg per CPU s; msg/s in one process at the same load) "
-        "| receipt p50 / p99 ms | track output p50 / p99 ms "
-        f"| **tracks at a subscriber** p50 / p99 ms (after each camera's first {WARM_UP_FRAMES}"
-        " frames) | lost |",
-        "|---:|---|---|---:|---:|---:|---:|---:|---:|",
-    ]
-    for row in rows:
-        lines.append(
-            f"| {row['cameras']} | {row['receiver']} | {row['rate']} "
-            f"| {row['received_per_s']:.0f} | {tracked(row)} "
-            f"| {pair(row['receipt_p50_ms'], row['receipt_p99_ms'])} "
-            f"| {pair(row['track_p50_ms'], row['track_p99_ms'])} "
-            f"| {subscriber(row)} "
-            f"| {row['messages'] - row['received']} |"
-        )
-    return "\n".join(lines)
-
-
-def _clocks_text(args: Any) -> str:
-    """How the simulated cameras stamp their frames, in words."""
-    spread, jitter = args.clock_spread_ms, args.clock_jitter_ms
-    if not spread and not jitter:
-        return "every camera stamps a frame with the same time (idealised clocks)"
-    return (f"camera clocks: offsets spread over {spread:g} ms, per-frame jitter "
-            f"{jitter:g} ms (sd)")
-
-
 def check_runs(runs: list[str]) -> str | None:
     """One sentence on what is wrong with these ``receiver/rate`` pairs, or None."""
     for run in runs:
@@ -566,7 +456,7 @@ def run_mqtt_benchmark(args: Any) -> int:
     if not (args.json or args.markdown):
         print(f"{info['cpu']}, {info['cores']} cores, Python {info['python']}, "
               f"{info['mosquitto']}, paho-mqtt {info['paho-mqtt']}; publisher: "
-              f"{args.publisher}; {_clocks_text(args)}; load average "
+              f"{args.publisher}; {clocks_text(args)}; load average "
               f"{info['load_start'][0]:.2f}", flush=True)
         print(f"{'cams':>4s} {'receiver':9s} {'rate':5s} {'msgs':>6s} {'recv/s':>8s} "
               f"{'track/s':>8s} | {'receipt p50':>11s} {'p99 ms':>7s} | {'track p50':>9s} "
@@ -596,11 +486,12 @@ def run_mqtt_benchmark(args: Any) -> int:
             if not (args.json or args.markdown):
                 print(
                     f"{cameras:4d} {receiver:9s} {rate:5s} {row['messages']:6d} "
-                    f"{row['received_per_s']:8.0f} {_format(row['tracked_per_s'], 8, 0)} | "
-                    f"{_format(row['receipt_p50_ms'], 11)} {_format(row['receipt_p99_ms'])} | "
-                    f"{_format(row['track_p50_ms'], 9)} {_format(row['track_p99_ms'])} | "
-                    f"{_format(row['subscriber_p50_ms'], 10)} "
-                    f"{_format(row['subscriber_p99_ms'])} | "
+                    f"{row['received_per_s']:8.0f} {format_value(row['tracked_per_s'], 8, 0)} | "
+                    f"{format_value(row['receipt_p50_ms'], 11)} "
+                    f"{format_value(row['receipt_p99_ms'])} | "
+                    f"{format_value(row['track_p50_ms'], 9)} {format_value(row['track_p99_ms'])} | "
+                    f"{format_value(row['subscriber_p50_ms'], 10)} "
+                    f"{format_value(row['subscriber_p99_ms'])} | "
                     f"{row['messages'] - row['received']:4d} {row['late']:4d}",
                     flush=True,
                 )
