@@ -44,7 +44,7 @@ def one_track(
             ids=np.array([1]),
             class_id=np.array([class_id]),
             state=np.array([[*at, *velocity]]),
-            covariance=np.eye(4)[None],
+            covariance=np.diag([0.1, 0.1, 0.25, 0.25])[None],
             mode_state=np.zeros((1, 2, 4)),
             mode_covariance=np.zeros((1, 2, 4, 4)),
             mode_probability=np.full((1, 2), 0.5),
@@ -91,6 +91,22 @@ def test_only_moving_vehicles_are_limited():
     assert reach.feasible(unsure, 10.2, columns, beside, along_road(1)).tolist() == [True]
     stopped = one_track(CAR, velocity=(0.0, 0.5), velocity_sigma=0.1)
     assert reach.feasible(stopped, 10.2, columns, beside, along_road(1)).tolist() == [True]
+
+
+def test_a_track_whose_motion_is_no_longer_well_known_keeps_its_last_known_cone():
+    """A wrong view dragged the track sideways and its velocity is uncertain now; it is still
+    held to the cone of the motion it had when that was well known."""
+    reach = cone()
+    car = one_track(CAR, velocity=(-2.0, 3.0), velocity_sigma=2.5, at=(0.5, 31.5))
+    columns, beside = np.array([0]), np.array([[-2.0, 30.5]])
+    assert reach.feasible(car, 10.2, columns, beside, along_road(1)).tolist() == [True]
+    car.heading[0], car.heading_time[0], car.heading_sigma[0] = (0.0, 1.0), 9.9, 0.05
+    car.heading_xy[0], car.heading_speed[0] = (2.0, 30.4), 6.0
+    assert reach.feasible(car, 10.2, columns, beside, along_road(1)).tolist() == [False]
+    ahead = np.array([[2.1, 32.2]])
+    assert reach.feasible(car, 10.2, columns, ahead, along_road(1)).tolist() == [True]
+    # Long after, the path it can have driven allows any direction.
+    assert reach.feasible(car, 15.0, columns, beside, along_road(1)).tolist() == [True]
 
 
 PLANES = PlaneSet([PlaneSpec(1, (-20.0, -40.0), 40.0, 80.0)])

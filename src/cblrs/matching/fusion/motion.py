@@ -53,9 +53,9 @@ class MotionCheck:
 
     def turn_limits(
         self, tracks: TrackTable, timestamp: float
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Where each track was last seen, its heading, and how far it can have turned
-        (:meth:`ReachableCone.limits`)."""
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Where each track's cone starts, its heading, how far it can have turned, and the
+        start's covariance (:meth:`ReachableCone.limits`)."""
         return self.cone.limits(tracks, timestamp)
 
     def check(
@@ -78,7 +78,7 @@ class MotionCheck:
         matched = assigned >= 0
         if not matched.any():
             return assigned
-        anchor, heading, limit = self.turn_limits(tracks, timestamp)
+        anchor, heading, limit, anchor_covariance = self.turn_limits(tracks, timestamp)
         rows = assigned[matched]
         checked = np.isfinite(limit)
         if not checked[rows].any():
@@ -92,7 +92,7 @@ class MotionCheck:
             heading[candidates],
             limit[candidates],
             fused_xy[candidates],
-            fused_covariance[candidates],
+            fused_covariance[candidates] + anchor_covariance[candidates],
         )
         impossible = candidates[sigmas > self.context.config.gate_sigmas]
         if len(impossible) == 0:
@@ -105,7 +105,9 @@ class MotionCheck:
         """(T,) bool: vehicle tracks whose direction turned further than they can turn.
 
         Also records each well-known direction in ``tracks`` (``heading``, ``heading_time``,
-        ``heading_sigma``) for the next call.
+        ``heading_sigma``, with where the track was and its speed: ``heading_xy``,
+        ``heading_speed``) for the next call and for the reachable cone of a track whose
+        motion is no longer well known.
 
         Args:
             tracks: the tracks after this instant's update.
@@ -134,4 +136,6 @@ class MotionCheck:
         tracks.heading[known] = heading
         tracks.heading_time[known] = timestamp
         tracks.heading_sigma[known] = sigma
+        tracks.heading_xy[known] = tracks.state[known, :2]
+        tracks.heading_speed[known] = speed[known]
         return turned

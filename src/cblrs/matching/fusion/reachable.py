@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from cblrs.detections import CLASS_NAMES
 from cblrs.matching.fusion.table import FusionContext, TrackTable
 
 _MIN_SPEED_MPS = 1.0  # slower than this a heading means little (a car creeping in a queue)
@@ -40,23 +41,45 @@ class ReachableCone:
 
     def __init__(self, context: FusionContext):
         self.context = context
+        config = context.config
+        # (K + 1,) per class (last: unknown), m/s^2: how much faster than its last
+        # well-known speed a track may have driven since.
+        self.acceleration = np.array(
+            [
+                config.class_acceleration_sigma.get(name, config.acceleration_sigma)
+                for name in CLASS_NAMES
+            ]
+            + [config.acceleration_sigma]
+        )
 
     def limits(
         self, tracks: TrackTable, timestamp: float
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Where each track was last seen, its heading, and how far it can have turned.
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Where each track's cone starts, its axis, how far the track can have turned, and
+        how uncertain the start is.
+
+        A track whose velocity is well known now is held to its cone from where it was last
+        seen. One whose velocity is no longer well known (a wrong view taken while coasting
+        throws it off: the next car on the opposite lane drags it sideways and its
+        uncertainty grows) is still held to the cone of its last well-known motion, widened
+        by the path it can have driven since (that speed, and the class's acceleration):
+        so the second car's next views are released although the first one was taken.
 
         Args:
             tracks: the tracks, predicted to ``timestamp``.
             timestamp: the time tested, seconds.
 
         Returns:
-            ``(anchor (T, 2) metres, heading (T, 2) unit vectors, limit (T,) radians; inf:
-            not tested)``.
+            ``(anchor (T, 2) metres, heading (T, 2) unit vectors, limit (T,) radians (inf:
+            not tested), anchor covariance (T, 2, 2) square metres)``. The start of a cone
+            is the track's estimate when last seen, which lags a car that brakes hard: its
+            uncertainty is added to that of the positions tested. (Not the prediction's:
+            that grows while the track coasts, in every direction, and a car does not.)
         """
         count = len(tracks)
         limit = np.full(count, np.inf)
-        radius = self.context.class_turn_radius[self.context.class_slot(tracks.class_id)]
+        slot = self.context.class_slot(tracks.class_id)
+        radius = self.context.class_turn_radius[slot]
         velocity = tracks.state[:, 2:4]
         speed = np.hypot(velocity[:, 0], velocity[:, 1])
         speed_sigma = tracks.velocity_sigma  # when last seen: coasting does not forget it
@@ -65,7 +88,28 @@ class ReachableCone:
         limit[known] = np.minimum(speed[known] * elapsed[known] / (2.0 * radius[known]), np.pi)
         heading = velocity / np.maximum(speed, 1e-12)[:, None]
         anchor = tracks.state[:, :2] - velocity * elapsed[:, None]
-        return anchor, heading, limit
+        anchor_covariance = tracks.seen_covariance.copy()
+        recorded = (
+            np.isfinite(radius)
+            & ~known
+            & np.isfinite(tracks.heading_time)
+            & np.isfinite(tracks.heading_xy).all(axis=1)
+            & (tracks.heading_speed >= _MIN_SPEED_MPS)
+        )
+        if recorded.any():
+            since = np.maximum(timestamp - tracks.heading_time[recorded], 0.0)
+            path = (
+                tracks.heading_speed[recorded] * since
+                + 0.5 * self.acceleration[slot[recorded]] * since**2
+            )
+            limit[recorded] = np.minimum(
+                path / (2.0 * radius[recorded]) + 3.0 * tracks.heading_sigma[recorded], np.pi
+            )
+            anchor[recorded] = tracks.heading_xy[recorded]
+            heading[recorded] = tracks.heading[recorded]
+            # Estimated when the motion was well known; the prediction since says nothing of it.
+            anchor_covariance[recorded] = 0.0
+        return anchor, heading, limit, anchor_covariance
 
     def outside(
         self,
@@ -125,13 +169,17 @@ class ReachableCone:
         ok = np.ones(len(columns), dtype=bool)
         if len(columns) == 0:
             return ok
-        anchor, heading, limit = self.limits(tracks, timestamp)
+        anchor, heading, limit, anchor_covariance = self.limits(tracks, timestamp)
         tested = np.flatnonzero(np.isfinite(limit[columns]))
         if len(tested) == 0:
             return ok
         rows = columns[tested]
         sigmas = self.outside(
-            anchor[rows], heading[rows], limit[rows], xy[tested], covariance[tested]
+            anchor[rows],
+            heading[rows],
+            limit[rows],
+            xy[tested],
+            covariance[tested] + anchor_covariance[rows],
         )
         ok[tested] = sigmas <= self.context.config.gate_sigmas
         return ok

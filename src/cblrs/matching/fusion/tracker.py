@@ -397,6 +397,7 @@ class FusionTracker:
                 self.tracks.mode_probability[seen_now],
             )
             velocity_covariance = self.tracks.covariance[seen_now, 2:4, 2:4]
+            self.tracks.seen_covariance[seen_now] = self.tracks.covariance[seen_now, :2, :2]
             self.tracks.velocity_sigma[seen_now] = np.sqrt(np.maximum(
                 velocity_covariance[:, 0, 0] + velocity_covariance[:, 1, 1], 0.0))
             self.tracks.evidence += np.bincount(rows, minlength=track_count)
