@@ -47,6 +47,7 @@ class Association:
 
     def __init__(self, context: FusionContext):
         self.context = context
+        self.cone = ReachableCone(context)
 
     def associate(
         self, tracks: TrackTable, measured: Measured, observed: Observations,
@@ -57,7 +58,8 @@ class Association:
         ``timestamp`` (the window's time, seconds) turns on the reachable-cone gate of
         vehicle tracks; None gates by position alone.
         """
-        return _Run(self.context, tracks, measured, timestamp)._associate(observed, covariance)
+        return _Run(self.context, tracks, measured, timestamp, self.cone)._associate(
+            observed, covariance)
 
     def join_observed(
         self, tracks: TrackTable, measured: Measured, observed: Observations,
@@ -65,7 +67,7 @@ class Association:
     ) -> np.ndarray:
         """``assigned`` with leftovers joined to tracks other cameras saw at this instant
         (``timestamp`` as in :meth:`associate`)."""
-        return _Run(self.context, tracks, measured, timestamp)._join_observed(
+        return _Run(self.context, tracks, measured, timestamp, self.cone)._join_observed(
             observed, covariance, assigned)
 
     def joint_cost(
@@ -83,20 +85,24 @@ class _Run:
 
     def __init__(
         self, context: FusionContext, tracks: TrackTable, measured: Measured,
-        timestamp: float | None = None,
+        timestamp: float | None = None, cone: ReachableCone | None = None,
     ):
         self.context = context
         self.tracks = tracks
         self.measured = measured
         self.timestamp = timestamp
-        self.cone = ReachableCone(context)
+        self.cone = cone if cone is not None else ReachableCone(context)
+        self._limits: tuple[np.ndarray, ...] | None = None  # computed at the first gate
 
     def _reachable(self, columns: np.ndarray, xy: np.ndarray, covariance: np.ndarray) -> np.ndarray:
         """(K,) bool: each position lies within its vehicle track's reachable cone (all True
         without a timestamp)."""
         if self.timestamp is None:
             return np.ones(len(columns), dtype=bool)
-        return self.cone.feasible(self.tracks, self.timestamp, columns, xy, covariance)
+        if self._limits is None:
+            self._limits = self.cone.limits(self.tracks, self.timestamp)
+        return self.cone.feasible(self.tracks, self.timestamp, columns, xy, covariance,
+                                  self._limits)
 
     def _associate(self, observed: Observations, covariance: np.ndarray) -> np.ndarray:
         """Track row of each detection (-1: none); one detection per camera per track.

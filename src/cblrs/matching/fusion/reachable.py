@@ -156,6 +156,7 @@ class ReachableCone:
         columns: np.ndarray,
         xy: np.ndarray,
         covariance: np.ndarray,
+        limits: tuple[np.ndarray, ...] | None = None,
     ) -> np.ndarray:
         """(K,) bool: each position is within ``gate_sigmas`` of its track's cone.
 
@@ -165,11 +166,15 @@ class ReachableCone:
             columns: (K,) track row of each position.
             xy: (K, 2) positions, metres.
             covariance: (K, 2, 2) their covariances.
+            limits: :meth:`limits` of ``tracks`` at ``timestamp`` when already computed (an
+                association gates several times per instant).
         """
         ok = np.ones(len(columns), dtype=bool)
         if len(columns) == 0:
             return ok
-        anchor, heading, limit, anchor_covariance = self.limits(tracks, timestamp)
+        anchor, heading, limit, anchor_covariance = (
+            self.limits(tracks, timestamp) if limits is None else limits
+        )
         tested = np.flatnonzero(np.isfinite(limit[columns]))
         if len(tested) == 0:
             return ok
