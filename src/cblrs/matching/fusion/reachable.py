@@ -17,9 +17,11 @@ take the oncoming one whenever a view looked along the road.)
 :class:`ReachableCone` is used twice by the fusion tracker: the association gate drops
 detection-track pairs outside the cone (:meth:`ReachableCone.feasible`, so the assignment
 looks for the detection's own track instead), and the motion check tests each track's fused
-position of the instant (:mod:`cblrs.matching.fusion.motion`). Only tracks whose speed is
-well known (at least 1 m/s and three standard deviations) are tested; people, stopped
-vehicles and new tracks never are.
+position of the instant (:mod:`cblrs.matching.fusion.motion`). Only vehicle tracks whose
+speed is well known (at least 1 m/s and three standard deviations) are tested, now or, when a
+wrong view has thrown their velocity off, at their last well-known motion (see
+:meth:`ReachableCone.limits`); people, stopped vehicles and new tracks never are. The cone
+starts at the track's estimate when last seen, whose uncertainty is added to the position's.
 """
 
 from __future__ import annotations
