@@ -3,6 +3,8 @@ motion check (:mod:`cblrs.matching.fusion.reachable`)."""
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 
 from cblrs.detections import CLASS_NAMES, CameraMessage, Tracks
@@ -10,6 +12,7 @@ from cblrs.matching.base import Observations
 from cblrs.matching.fusion import FusionConfig, FusionTracker, NoiseModel
 from cblrs.matching.fusion.gaussian import largest_sigma
 from cblrs.matching.fusion.reachable import ReachableCone
+from cblrs.matching.fusion.state import table_from_state, table_state
 from cblrs.matching.fusion.table import FusionContext, Measured, TrackTable
 from cblrs.plane import PlaneSet, PlaneSpec
 
@@ -196,3 +199,20 @@ def test_the_association_gate_leaves_a_detection_a_coasting_car_cannot_reach():
             timestamp=10.0,
         )
         assert by_motion.tolist() == expected
+
+
+def test_what_the_cone_needs_travels_with_the_saved_state():
+    car = one_track(CAR)
+    car.heading[0], car.heading_time[0], car.heading_sigma[0] = (0.0, 1.0), 9.9, 0.05
+    car.heading_xy[0], car.heading_speed[0] = (2.0, 30.4), 6.0
+    car.seen_covariance[0] = [[0.2, 0.05], [0.05, 0.3]]
+    saved = json.loads(json.dumps(table_state(car)))
+    restored = table_from_state(saved, models=2, cameras=1)
+    for mine, theirs in zip(car.columns(), restored.columns(), strict=True):
+        np.testing.assert_array_equal(mine, theirs)
+    # A state saved before these columns: no motion recorded, the prediction's covariance.
+    for key in ("heading_xy", "heading_speed", "seen_covariance"):
+        saved.pop(key)
+    old = table_from_state(saved, models=2, cameras=1)
+    assert np.isnan(old.heading_xy).all() and old.heading_speed.tolist() == [0.0]
+    np.testing.assert_array_equal(old.seen_covariance, car.covariance[:, :2, :2])
