@@ -35,6 +35,16 @@ RING_RADIUS_M = 12.0
 LANE_OFFSET_M = 2.0
 ARM_LENGTH_M = 31.0
 MIN_GAP_M = 8.0
+ENTRY_RADIUS_M = 15.0
+"""Radius of the curves from an arm's lane onto the ring and off it, metres.
+
+The low end of the entry radii of urban single-lane roundabouts, 15 to 30 m (50 to 100 ft;
+NCHRP Report 672, *Roundabouts: An Informational Guide*, 2nd ed., 2010, section 6.5.4
+"Entry curves"), and well above a car's minimum turning radius (a turning circle of 10-12 m
+kerb to kerb, about 5-6 m radius; the tracker's ``class_turn_radius_m`` holds cars to 5 m).
+Until issue 19's second pass a car turned about 80 degrees at one waypoint where the lane
+met the ring, which no car can do.
+"""
 _IMAGE_SIZE = (1280, 720)
 
 
@@ -47,16 +57,54 @@ def _arm_point(angle_deg: float, along_m: float, offset_m: float) -> tuple[float
     )
 
 
+def _entry_curve(angle_deg: float) -> list[tuple[float, float]]:
+    """The entry curve of the arm at ``angle_deg``: from the inbound lane onto the ring.
+
+    A circle of radius ENTRY_RADIUS_M tangent to the inbound lane (offset LANE_OFFSET_M,
+    driven towards the centre) and, from outside, to the ring (RING_RADIUS_M): a right turn
+    onto the counter-clockwise ring. Returns points from where the lane stops being straight
+    to where the car joins the ring, about every 5 degrees of heading.
+    """
+    radius, offset = ENTRY_RADIUS_M, LANE_OFFSET_M
+    # In the arm's frame (arm along +x): centre (cx, offset + radius), at RING_RADIUS_M +
+    # radius from the roundabout's centre.
+    centre_y = offset + radius
+    centre_x = math.sqrt((RING_RADIUS_M + radius) ** 2 - centre_y**2)
+    joins = math.atan2(centre_y, centre_x)  # the ring's angle where the curve meets it
+    # Round the curve's centre from straight below it (on the lane) to facing the
+    # roundabout's centre (on the ring), clockwise: the car turns right by 90 - joins degrees.
+    first, last = -0.5 * math.pi, joins - math.pi
+    steps = max(2, int(math.degrees(first - last) / 5.0) + 1)
+    local = [
+        (centre_x + radius * math.cos(turn), centre_y + radius * math.sin(turn))
+        for turn in np.linspace(first, last, steps).tolist()
+    ]
+    rotation = math.radians(angle_deg)
+    cos, sin = math.cos(rotation), math.sin(rotation)
+    return [(x * cos - y * sin, x * sin + y * cos) for x, y in local]
+
+
+def _joins_ring_deg() -> float:
+    """How far round the ring (degrees from the arm's axis) the entry curve meets it."""
+    centre_y = LANE_OFFSET_M + ENTRY_RADIUS_M
+    centre_x = math.sqrt((RING_RADIUS_M + ENTRY_RADIUS_M) ** 2 - centre_y**2)
+    return math.degrees(math.atan2(centre_y, centre_x))
+
+
 def car_path(origin: str, destination: str, speed: float, start_s: float) -> WaypointPath:
     """In on ``origin``'s inbound lane, counter-clockwise round the ring, out on
-    ``destination``'s outbound lane."""
+    ``destination``'s outbound lane.
+
+    Entry and exit are curves of radius ENTRY_RADIUS_M tangent to the lane and to the ring
+    (:func:`_entry_curve`; an exit is an entry mirrored about its arm's axis), so a car
+    never turns tighter than it can.
+    """
     entry_arm, exit_arm = ARMS[origin], ARMS[destination]
     # Inbound lanes lie counter-clockwise of the arm's axis (driving on the right, towards the
     # centre), outbound lanes clockwise of it.
-    meet = math.sqrt(RING_RADIUS_M**2 - LANE_OFFSET_M**2)
-    side = math.degrees(math.asin(LANE_OFFSET_M / RING_RADIUS_M))
-    start_angle = entry_arm + side
-    end_angle = exit_arm - side
+    joins = _joins_ring_deg()
+    start_angle = entry_arm + joins
+    end_angle = exit_arm - joins
     sweep = (end_angle - start_angle) % 360.0
     arc = [
         (
@@ -65,14 +113,21 @@ def car_path(origin: str, destination: str, speed: float, start_s: float) -> Way
         )
         for step in np.linspace(0.0, sweep, max(2, int(sweep / 8.0) + 1)).tolist()
     ]
+    entry = _entry_curve(entry_arm)
+    # The exit curve: the exit arm's entry curve mirrored about the arm's axis, driven
+    # backwards (from the ring out onto the outbound lane).
+    axis = math.radians(exit_arm)
+    mirror = np.array([[math.cos(2 * axis), math.sin(2 * axis)],
+                       [math.sin(2 * axis), -math.cos(2 * axis)]])
+    exit_curve = [tuple(mirror @ np.asarray(point)) for point in reversed(_entry_curve(exit_arm))]
     points = (
         _arm_point(entry_arm, ARM_LENGTH_M, LANE_OFFSET_M),
-        _arm_point(entry_arm, meet, LANE_OFFSET_M),
+        *entry,
         *arc[1:-1],
-        _arm_point(exit_arm, meet, -LANE_OFFSET_M),
+        *exit_curve,
         _arm_point(exit_arm, ARM_LENGTH_M, -LANE_OFFSET_M),
     )
-    return WaypointPath(tuple(points), speed, start_s)
+    return WaypointPath(tuple((float(x), float(y)) for x, y in points), speed, start_s)
 
 
 def roundabout_traffic_world(
