@@ -117,8 +117,9 @@ def car_path(origin: str, destination: str, speed: float, start_s: float) -> Way
     # The exit curve: the exit arm's entry curve mirrored about the arm's axis, driven
     # backwards (from the ring out onto the outbound lane).
     axis = math.radians(exit_arm)
-    mirror = np.array([[math.cos(2 * axis), math.sin(2 * axis)],
-                       [math.sin(2 * axis), -math.cos(2 * axis)]])
+    mirror = np.array(
+        [[math.cos(2 * axis), math.sin(2 * axis)], [math.sin(2 * axis), -math.cos(2 * axis)]]
+    )
     exit_curve = [tuple(mirror @ np.asarray(point)) for point in reversed(_entry_curve(exit_arm))]
     points = (
         _arm_point(entry_arm, ARM_LENGTH_M, LANE_OFFSET_M),
@@ -156,19 +157,22 @@ def roundabout_traffic_world(
         while True:
             path = car_path(origin, destination, speed, start)
             xy = path.sample(grid).xy
-            if all(
-                not (np.hypot(*(xy - other).T) < MIN_GAP_M).any() for other in occupied
-            ):
+            if all(not (np.hypot(*(xy - other).T) < MIN_GAP_M).any() for other in occupied):
                 break
             start += 0.5
         occupied.append(xy)
         objects.append(MovingObject(index + 1, "car", class_size("car", rng), path))
         start += float(rng.uniform(2.0, 4.0))
     cameras = tuple(
-        Camera.from_pose(name, (x, y, 10.0), math.degrees(math.atan2(-y, -x)), 20.0, 700.0,
-                         _IMAGE_SIZE)
-        for name, x, y in (("NE", 27.0, 27.0), ("NW", -27.0, 27.0), ("SW", -27.0, -27.0),
-                           ("SE", 27.0, -27.0))
+        Camera.from_pose(
+            name, (x, y, 10.0), math.degrees(math.atan2(-y, -x)), 20.0, 700.0, _IMAGE_SIZE
+        )
+        for name, x, y in (
+            ("NE", 27.0, 27.0),
+            ("NW", -27.0, 27.0),
+            ("SW", -27.0, -27.0),
+            ("SE", 27.0, -27.0),
+        )
     )
     monument = (Structure((0.0, 0.0), (8.0, 8.0, 6.0), 45.0, "monument"),)
     return WorldSpec(
