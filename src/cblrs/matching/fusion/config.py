@@ -134,6 +134,10 @@ class FusionConfig:
             detects nothing) moves. 0: moving tracks need the cameras like any other.
         tentative_max_age_s: a tentative track unseen this long is dropped, seconds.
         max_age_s: a confirmed track unseen this long is dropped, seconds.
+        vehicle_footprint: move each vehicle detection along its camera's ray from where its
+            box's target pixel lands to the footprint centre that put it there, by the
+            class's size and the track's heading (:mod:`~cblrs.matching.fusion.footprint`;
+            needs camera heights in ``camera_positions``). People are not moved.
         end_off_plane: a track missed at an instant whose prediction lies off every plane,
             moving away from it, has left the located area and is dropped at once (no camera
             can locate it there); False keeps it coasting for ``max_age_s``.
@@ -186,6 +190,7 @@ class FusionConfig:
     tentative_max_age_s: float = 1.0
     max_age_s: float = 2.0
     end_off_plane: bool = True
+    vehicle_footprint: bool = True
     report_coasting_s: float = 0.0
     max_window_s: float = DEFAULT_MAX_WINDOW_S
     window_fraction: float = DEFAULT_WINDOW_FRACTION

@@ -30,6 +30,7 @@ from cblrs.matching.fusion.birth import Births
 from cblrs.matching.fusion.clocks import ClockLearning
 from cblrs.matching.fusion.config import FusionConfig
 from cblrs.matching.fusion.coverage import Coverage
+from cblrs.matching.fusion.footprint import Footprint
 from cblrs.matching.fusion.gaussian import fuse, ray_covariance
 from cblrs.matching.fusion.motion import MotionCheck
 from cblrs.matching.fusion.noise import NoiseModel
@@ -118,6 +119,9 @@ class FusionTracker:
         self.motion = MotionCheck(self.context)
         self.coverage = Coverage(self.planes, len(self.camera_ids))
         self.births = Births(self.context)
+        self.footprint = Footprint(
+            self.camera_ids, config.camera_positions if config.vehicle_footprint else None
+        )
         self.clock_learning = ClockLearning(self.context, self._clock)
         self.reset()
 
@@ -196,6 +200,7 @@ class FusionTracker:
                 world_xy, valid = plane.decode(colours)
                 located.append(world_xy[valid])
             self.coverage.set_view(camera, np.concatenate(located))
+            self.footprint.set_view(camera, reference)
 
     @property
     def track_count(self) -> int:
@@ -304,6 +309,11 @@ class FusionTracker:
                 raw, world_xy=raw.world_xy - np.where(plain, shift, 0.0)[:, None]
                 * self.measured.direction
             )
+        if self.footprint.enabled:
+            # A vehicle's box target lands short of its footprint centre (footprint module):
+            # by the average over headings until the track's heading is known (step 4c).
+            observed = dataclasses.replace(
+                observed, world_xy=self.footprint.centre(observed, self.measured))
 
         # Where each camera locates things (coverage module, for multi-view confirmation).
         self.coverage.learn(observed.world_xy, observed.camera)
@@ -314,6 +324,10 @@ class FusionTracker:
                                                   covariance, assigned, timestamp)
         # 4b. vehicles cannot turn on the spot (motion module).
         assigned = self.motion.check(self.tracks, observed, covariance, assigned, timestamp)
+        if self.footprint.enabled:
+            # 4c. the footprint centre by the heading of the track each view was given.
+            observed = dataclasses.replace(observed, world_xy=self.footprint.refine(
+                observed, self.measured, self.tracks, assigned))
         matched = assigned >= 0
         located_xy = observed.world_xy
         if matched.any() and np.any(lag[matched] != 0):
