@@ -64,7 +64,7 @@ def _recovered(footprint: Footprint, located: np.ndarray, heading_deg: float | N
     shift = footprint.shift(
         np.array([distance]), direction, np.array([0]), np.array([CAR]), heading
     )
-    return located + shift[0] * direction[0]
+    return located + shift[0]
 
 
 def test_half_extent_is_half_the_length_along_and_half_the_width_across():
@@ -95,10 +95,11 @@ def test_a_car_box_target_is_moved_to_its_footprint_centre(centre, heading_deg):
     before = (located - centre) @ ray
     after = (_recovered(footprint, located, heading_deg) - centre) @ ray
     # Along the ray the box target lands up to 1.35 m short; moved by the heading, within
-    # 8 cm. (Across the ray the box's centre column is not quite the centre's, up to 0.2 m
-    # here: not this stage's business, it moves along the ray only.)
+    # 8 cm; and within 15 cm in all (across the ray the box's centre column is not the
+    # centre's: modelled without the camera's tilt, so a few centimetres remain).
     assert abs(after) < 0.08
     assert abs(after) < abs(before)
+    assert np.linalg.norm(_recovered(footprint, located, heading_deg) - centre) < 0.15
 
 
 def test_the_heading_matters_and_an_unknown_one_is_averaged():
@@ -124,8 +125,8 @@ def test_people_and_cameras_without_height_are_not_moved():
     shift = footprint.shift(
         np.array([25.0, 25.0, 25.0]), ray, np.array([0, 0, 1]), np.array([PERSON, CAR, CAR])
     )
-    assert shift[0] == 0.0 and shift[2] == 0.0
-    assert shift[1] > 0.3
+    assert (shift[0] == 0.0).all() and (shift[2] == 0.0).all()
+    assert shift[1][0] > 0.3  # away from the camera, along its ray
     assert not Footprint(["a"], {"a": (0.0, 0.0)}).enabled
     assert not Footprint(["a"], None).enabled
 

@@ -8,7 +8,9 @@ observations of one point. Per instant:
 1. decode all colours to world positions (metres); give each detection a covariance
    elongated along the ray from its camera (a box edge's pixel error moves a foot point
    along the viewing direction far more than across it) and remove the learned along-ray
-   bias;
+   bias; move a vehicle's detection along its ray from where its box's target pixel
+   landed to its footprint centre (:mod:`~cblrs.matching.fusion.footprint`: by the
+   class's size, averaged over headings, and by its track's heading once it has one);
 2. predict every track to the instant with an interacting multiple-model filter: two
    constant-velocity Kalman filters, one steady and one manoeuvring (white-noise
    accelerations of a quarter of and twice the class's: a person walking straight

@@ -9,17 +9,21 @@ vehicle's extent along the ray: ``e = |L/2 cos(phi)| + |W/2 sin(phi)|`` for a fo
 length ``L`` and width ``W`` whose heading makes an angle ``phi`` with the ray. Lying along
 the ray a car's near edge is 2.25 m nearer than its centre; across it, 0.9 m.
 
-:class:`Footprint` moves each vehicle detection along its camera's ray to the footprint
-centre that would have put the target pixel where it is: a camera at height ``H`` sees the
-box bottom (near ground edge, ``rho - e`` along the ray) at depression ``atan(H / (rho - e))``
-and the box top (far roof edge, height ``h``) at ``atan((H - h) / (rho + e))``; the target's
-depression is between them at the targeting fraction, and its ground point is ``H / tan`` of
-it. Angles stand in for image rows (the box spans a few degrees, where they are
-proportional). Before association the heading is unknown and the shift is its average over
-headings; once a detection is given a track whose heading is known, the shift is that
-heading's. Only classes with a size below (vehicles) move; people keep their foot point,
-and cameras whose height is unknown are left alone. Only the matcher changes: cameras still
-send one colour per box.
+:class:`Footprint` moves each vehicle detection to the footprint centre that would have put
+the target pixel where it is. Image rows measure depth along the camera's *viewing
+direction* (learned from its reference image), not along the ray to the car, so the extent
+``e`` is taken along that direction: a camera at height ``H`` sees the box bottom (near
+ground edge, ``rho - e`` deep) at depression ``atan(H / (rho - e))`` and the box top (far
+roof edge, height ``h``) at ``atan((H - h) / (rho + e))``; the target's depression is
+between them at the targeting fraction, and its ground point is ``H / tan`` of it (angles
+stand in for image rows: the box spans a few degrees, where they are proportional). Image
+columns are ``side / depth``: seen obliquely, a car's near end spreads wider than its far
+end, so the box's centre column is not the centre's, and the detection moves across too.
+Before association the heading is unknown and the shift is its average over headings; once
+a detection is given a track whose heading is known, the shift is that heading's. Only
+classes with a size below (vehicles) move; people keep their foot point, and cameras whose
+height is unknown are left alone. Only the matcher changes: cameras still send one colour
+per box.
 """
 
 from __future__ import annotations
@@ -94,8 +98,8 @@ class Footprint:
         >>> footprint = Footprint(["a"], {"a": (0.0, 0.0, 10.0)})
         >>> car = np.array([CLASS_NAMES.index("car")])
         >>> ray = np.array([[1.0, 0.0]])
-        >>> round(float(footprint.shift(np.array([25.0]), ray, np.array([0]), car)[0]), 2)
-        0.67
+        >>> footprint.shift(np.array([25.0]), ray, np.array([0]), car).round(2)
+        array([[0.96, 0.  ]])
     """
 
     def __init__(
@@ -165,7 +169,13 @@ class Footprint:
         class_id: np.ndarray,
         heading: np.ndarray | None = None,
     ) -> np.ndarray:
-        """(N,) metres to move each detection away from its camera along its ray.
+        """(N, 2) metres to move each detection to its footprint centre.
+
+        Along the camera's viewing direction (image rows) by the row model of the module
+        docstring; across it (image columns) because the box's centre column is not the
+        centre's: seen obliquely, a car's near end spreads wider in the image than its far
+        end. Columns are ``side / forward`` of the footprint's corners (the roof's corners
+        spread the same to a few per cent and are left out).
 
         Args:
             distance: (N,) ground distance from the camera to where the target landed.
@@ -176,39 +186,55 @@ class Footprint:
                 None: all unknown.
         """
         count = len(distance)
-        shift = np.zeros(count)
+        shift = np.zeros((count, 2))
         rows = np.flatnonzero(self.applies(camera, class_id)) if count else np.zeros(0, int)
         if not len(rows):
             return shift
         slot = _slot(class_id[rows])
-        length, width, height = self.size[slot].T
+        length, width, height = (column[:, None] for column in self.size[slot].T)
         ray = direction[rows]
         forward = self.forward[camera[rows]]
         forward = np.where(np.isfinite(forward), forward, ray)
-        # Depth along the viewing direction: what image rows measure.
-        slant = np.clip(np.einsum("ij,ij->i", ray, forward), 0.2, 1.0)
+        side = np.column_stack([-forward[:, 1], forward[:, 0]])
+        located = distance[rows, None] * ray
+        # The target in the camera's frame: depth along its viewing direction (rows) and
+        # side over depth (columns).
+        depth = np.maximum(np.einsum("ij,ij->i", located, forward), 1e-3)[:, None]
+        column = (np.einsum("ij,ij->i", located, side) / depth[:, 0])[:, None]
         if heading is None:
             heading = np.full((count, 2), np.nan)
-        cosine = np.abs(np.einsum("ij,ij->i", heading[rows], forward))
-        unknown = ~np.isfinite(cosine)
-        # Unknown headings: every heading of a quarter turn, equally likely.
-        angles = (np.arange(_HEADING_SAMPLES) + 0.5) * (0.5 * np.pi / _HEADING_SAMPLES)
-        cos_grid = np.where(
-            unknown[:, None],
-            np.cos(angles)[None],
-            np.clip(np.nan_to_num(cosine), 0.0, 1.0)[:, None],
+        along = np.einsum("ij,ij->i", heading[rows], forward)
+        across = np.einsum("ij,ij->i", heading[rows], side)
+        unknown = ~np.isfinite(along)
+        # Unknown headings: every heading of a half turn, equally likely.
+        angles = (np.arange(_HEADING_SAMPLES) + 0.5) * (np.pi / _HEADING_SAMPLES)
+        head_f = np.where(unknown[:, None], np.cos(angles)[None], np.nan_to_num(along)[:, None])
+        head_s = np.where(unknown[:, None], np.sin(angles)[None], np.nan_to_num(across)[:, None])
+        extent = half_extent(length, width, head_f, head_s)
+        # Footprint corners relative to the centre, (K, samples, 4) forward and side.
+        signs = np.array([[1, 1], [1, -1], [-1, 1], [-1, -1]], np.float64)
+        corner_f = (
+            signs[:, 0] * (0.5 * length * head_f)[..., None]
+            - signs[:, 1] * (0.5 * width * head_s)[..., None]
         )
-        sin_grid = np.sqrt(np.maximum(1.0 - cos_grid**2, 0.0))
-        extent = half_extent(length[:, None], width[:, None], cos_grid, sin_grid)
-        target = (distance[rows] * slant)[:, None]
+        corner_s = (
+            signs[:, 0] * (0.5 * length * head_s)[..., None]
+            + signs[:, 1] * (0.5 * width * head_f)[..., None]
+        )
         camera_height = self.camera_height[camera[rows]][:, None]
-        centre = target.copy()
+        fraction = self.fraction[slot][:, None]
+        centre_f = np.broadcast_to(depth, extent.shape).copy()
+        centre_s = centre_f * column
         for _ in range(_ITERATIONS):
-            centre = target - target_offset(
-                centre, camera_height, extent, height[:, None], self.fraction[slot][:, None]
+            centre_f = depth - target_offset(centre_f, camera_height, extent, height, fraction)
+            corners = (centre_s[..., None] + corner_s) / np.maximum(
+                centre_f[..., None] + corner_f, 1e-3
             )
-        # The centre lies on the target's image column, i.e. on its ray.
-        shift[rows] = np.mean(centre - target, axis=1) / slant
+            middle = 0.5 * (corners.max(axis=-1) + corners.min(axis=-1))
+            centre_s = centre_f * (column - (middle - centre_s / centre_f))
+        move_f = np.mean(centre_f, axis=1) - depth[:, 0]
+        move_s = np.mean(centre_s, axis=1) - (depth * column)[:, 0]
+        shift[rows] = move_f[:, None] * forward + move_s[:, None] * side
         return shift
 
     def centre(
@@ -217,10 +243,9 @@ class Footprint:
         """(N, 2) footprint centres of the detections (others unchanged)."""
         if not self.enabled or not len(observed.world_xy):
             return observed.world_xy
-        shift = self.shift(
+        return observed.world_xy + self.shift(
             measured.distance, measured.direction, observed.camera, observed.class_id, heading
         )
-        return observed.world_xy + shift[:, None] * measured.direction
 
     def refine(
         self,
@@ -249,7 +274,7 @@ class Footprint:
             measured.distance, measured.direction, observed.camera, observed.class_id, heading
         )
         moved = observed.world_xy.copy()
-        moved[rows] += (after - before)[rows, None] * measured.direction[rows]
+        moved[rows] += (after - before)[rows]
         return moved
 
 
