@@ -296,7 +296,9 @@ def track_scene(
             (:class:`~cblrs.datasets.clocks.ClockSimulation`); None: one synchronised capture.
         **matcher_options: options for :func:`make_matcher`. For ``"fusion"`` the cameras'
             ground positions are passed as ``camera_positions`` unless given (the noise
-            model grows with distance from the camera).
+            model grows with distance from the camera), and ``vehicle_footprint`` is off
+            unless given when ``targeting`` is not ``"box"`` (its targets are not the
+            fixed box positions the footprint stage assumes).
 
     Returns:
         The tracks and bookkeeping; see :class:`TrackingResult`.
@@ -315,6 +317,10 @@ def track_scene(
     if isinstance(matcher, str):
         if matcher == "fusion" and "camera_positions" not in matcher_options:
             matcher_options["camera_positions"] = camera_positions(scene)
+        if matcher == "fusion" and targeting != "box":
+            # Other targeting already aims at the footprint centre (or somewhere the
+            # matcher cannot know): the matcher must not move the detections again.
+            matcher_options.setdefault("vehicle_footprint", False)
         matcher = make_matcher(
             matcher, references[0].planes if references else scene_planes(scene, bits),
             scene.camera_names, **matcher_options,

@@ -1,5 +1,6 @@
 """The footprint stage: a vehicle's box target moved along its ray to its footprint centre."""
 
+import dataclasses
 import math
 
 import numpy as np
@@ -170,3 +171,20 @@ def test_tracked_cars_land_nearer_their_footprint_centres():
         ).tracks
         located[on] = evaluate(scene.ground_truth, tracks).LocA
     assert located[True] > located[False] + 1.0
+
+
+def test_geometric_targeting_turns_the_stage_off():
+    # Geometric targeting already aims at the footprint centre: moving it again would be
+    # wrong, so track_scene turns the stage off unless told otherwise.
+    world = dataclasses.replace(_car_world(), duration_s=1.5)
+    scene = SyntheticWorld(world).scene()
+    references = render_scene_references(scene)
+    default = track_scene(scene, references=references, targeting="geometric").tracks
+    off = track_scene(
+        scene, references=references, targeting="geometric", vehicle_footprint=False
+    ).tracks
+    on = track_scene(
+        scene, references=references, targeting="geometric", vehicle_footprint=True
+    ).tracks
+    assert np.array_equal(default.world_xy, off.world_xy)
+    assert not np.array_equal(default.world_xy, on.world_xy)
