@@ -12,8 +12,7 @@ from cblrs.matching import FusionTracker, MatcherError
 from cblrs.matching.base import Observations
 from cblrs.matching.fusion.low_confidence import LowConfidence
 
-WHOLE_PLAZA = np.array([[x, y] for x in np.arange(-9.5, 30, 1.0)
-                        for y in np.arange(-9.5, 30, 1.0)])
+WHOLE_PLAZA = np.array([[x, y] for x in np.arange(-9.5, 30, 1.0) for y in np.arange(-9.5, 30, 1.0)])
 SURE, WEAK = 0.9, 0.3
 
 
@@ -23,11 +22,24 @@ def message(camera: str, frame: int, points, scores) -> CameraMessage:
     colour, valid = PLANES[0].encode(points)
     assert valid.all()
     count = len(points)
-    boxes = np.column_stack([np.arange(count) * 50.0, np.zeros(count),
-                             np.arange(count) * 50.0 + 30.0, np.full(count, 80.0)])
-    return CameraMessage(camera, frame, frame * 0.5, frame, boxes,
-                         np.asarray(scores, float).reshape(-1), np.zeros(count, np.int64),
-                         colour.astype(np.int64))
+    boxes = np.column_stack(
+        [
+            np.arange(count) * 50.0,
+            np.zeros(count),
+            np.arange(count) * 50.0 + 30.0,
+            np.full(count, 80.0),
+        ]
+    )
+    return CameraMessage(
+        camera,
+        frame,
+        frame * 0.5,
+        frame,
+        boxes,
+        np.asarray(scores, float).reshape(-1),
+        np.zeros(count, np.int64),
+        colour.astype(np.int64),
+    )
 
 
 def tracker(seen_by=(0, 1, 2), **options) -> FusionTracker:
@@ -56,8 +68,9 @@ def test_boxes_without_scores_track_exactly_as_without_the_stage():
     # Annotated boxes carry confidence 1: the stage must change nothing for them.
     instants = sequence(seed=3)
     with_stage = run(FusionTracker(PLANES, CAMERAS, camera_positions=CAMERA_XY), instants)
-    without = run(FusionTracker(PLANES, CAMERAS, camera_positions=CAMERA_XY,
-                                high_confidence=0.0), instants)
+    without = run(
+        FusionTracker(PLANES, CAMERAS, camera_positions=CAMERA_XY, high_confidence=0.0), instants
+    )
     assert len(with_stage) > 0
     np.testing.assert_array_equal(with_stage.track_id, without.track_id)
     np.testing.assert_array_equal(with_stage.world_xy, without.world_xy)
@@ -75,8 +88,7 @@ def test_a_weak_box_alone_never_starts_a_track(seen_by):
 
 
 def test_two_cameras_weak_boxes_of_one_place_start_nothing():
-    frames = [{"north": ([[6.0, 6.0]], [WEAK]), "east": ([[6.1, 6.0]], [WEAK])}
-              for _ in range(12)]
+    frames = [{"north": ([[6.0, 6.0]], [WEAK]), "east": ([[6.1, 6.0]], [WEAK])} for _ in range(12)]
     assert len(track(tracker(), frames)) == 0
 
 
@@ -86,8 +98,9 @@ def test_a_weak_box_confirms_another_cameras_sure_box_at_once():
     person = [[6.0, 6.0]]
     alone = track(tracker(), [{"north": (person, [SURE])} for _ in range(4)])
     assert len(alone) == 0
-    confirmed = track(tracker(), [{"north": (person, [SURE]), "east": (person, [WEAK])}
-                                  for _ in range(4)])
+    confirmed = track(
+        tracker(), [{"north": (person, [SURE]), "east": (person, [WEAK])} for _ in range(4)]
+    )
     assert confirmed.frame.tolist() == [0, 1, 2, 3]
     assert set(confirmed.track_id.tolist()) == {1}
 
@@ -108,18 +121,20 @@ def frames_of_a_walker_hidden_from(hidden: dict[str, float], start: int = 6, end
 
 def test_a_weak_view_extends_a_track_only_with_a_second_view():
     # North and east lose the walker for four frames; south sees him weakly.
-    lone = track(tracker(), frames_of_a_walker_hidden_from({"north": 0, "east": 0,
-                                                            "south": WEAK}))
+    lone = track(tracker(), frames_of_a_walker_hidden_from({"north": 0, "east": 0, "south": WEAK}))
     # South alone, where the others look and see nothing, is weak evidence: the track
     # coasts through (not reported) and keeps its id.
     assert sorted(set(lone.frame.tolist())) == [*range(6), *range(10, 16)]
     assert set(lone.track_id.tolist()) == {1}
     # Two cameras' weak views of him, or one where only that camera sees the ground,
     # extend the track.
-    two = track(tracker(), frames_of_a_walker_hidden_from({"north": 0, "east": WEAK,
-                                                           "south": WEAK}))
-    alone_there = track(tracker(seen_by=(2,)), frames_of_a_walker_hidden_from(
-        {"north": 0, "east": 0, "south": WEAK}))
+    two = track(
+        tracker(), frames_of_a_walker_hidden_from({"north": 0, "east": WEAK, "south": WEAK})
+    )
+    alone_there = track(
+        tracker(seen_by=(2,)),
+        frames_of_a_walker_hidden_from({"north": 0, "east": 0, "south": WEAK}),
+    )
     for tracks in (two, alone_there):
         assert sorted(set(tracks.frame.tolist())) == list(range(16))
         assert set(tracks.track_id.tolist()) == {1}
@@ -143,9 +158,14 @@ def test_a_weak_second_box_of_one_camera_neither_displaces_nor_duplicates():
 
 def observations(xy, camera, scores) -> Observations:
     count = len(camera)
-    return Observations(np.asarray(xy, float), np.zeros((count, 3), np.int64),
-                        np.asarray(camera), np.zeros((count, 4)), np.asarray(scores, float),
-                        np.zeros(count, np.int64))
+    return Observations(
+        np.asarray(xy, float),
+        np.zeros((count, 3), np.int64),
+        np.asarray(camera),
+        np.zeros((count, 4)),
+        np.asarray(scores, float),
+        np.zeros(count, np.int64),
+    )
 
 
 def test_kept_rules_on_one_window():
@@ -154,7 +174,9 @@ def test_kept_rules_on_one_window():
     tracks = fusion.tracks  # no tracks: every detection is a leftover
     observed = observations(
         [[0.0, 0.0], [0.1, 0.0], [5.0, 5.0], [5.1, 5.0], [9.0, 9.0], [12.0, 0.0]],
-        [0, 1, 0, 1, 2, 2], [SURE, WEAK, WEAK, WEAK, SURE, WEAK])
+        [0, 1, 0, 1, 2, 2],
+        [SURE, WEAK, WEAK, WEAK, SURE, WEAK],
+    )
     covariance = np.tile(np.eye(2) * 0.04, (len(observed), 1, 1))
     kept = stage.kept(tracks, observed, covariance, np.full(len(observed), -1))
     # Sure ones always; a weak one next to another camera's sure one; not weak pairs, not

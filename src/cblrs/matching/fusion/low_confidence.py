@@ -70,7 +70,10 @@ class LowConfidence:
         return observed.confidence >= self.context.config.high_confidence
 
     def associate(
-        self, tracks: TrackTable, measured: Measured, observed: Observations,
+        self,
+        tracks: TrackTable,
+        measured: Measured,
+        observed: Observations,
         covariance: np.ndarray,
     ) -> np.ndarray:
         """Track row of each detection (-1: none): high-confidence detections first, then the
@@ -82,17 +85,17 @@ class LowConfidence:
             # Nothing to hold back: the association stage alone (identical results for
             # boxes without scores).
             assigned = association.associate(tracks, measured, observed, covariance)
-            return association.join_observed(tracks, measured, observed, covariance,
-                                             assigned)
+            return association.join_observed(tracks, measured, observed, covariance, assigned)
         assigned = np.full(len(observed), -1, np.int64)
         strong = np.flatnonzero(high)
         if len(strong):
             assigned[strong] = association.associate(
-                tracks, take_measured(measured, strong), take(observed, strong),
-                covariance[strong])
+                tracks, take_measured(measured, strong), take(observed, strong), covariance[strong]
+            )
         weak = np.flatnonzero(~high)
         weak_track = association.associate(
-            tracks, take_measured(measured, weak), take(observed, weak), covariance[weak])
+            tracks, take_measured(measured, weak), take(observed, weak), covariance[weak]
+        )
         # A camera that already gave the track a strong box gives it nothing more.
         taken = np.zeros((len(tracks.ids), self.context.camera_count), dtype=bool)
         matched = assigned >= 0
@@ -102,8 +105,13 @@ class LowConfidence:
         assigned[weak[ok]] = weak_track[ok]
         return association.join_observed(tracks, measured, observed, covariance, assigned)
 
-    def kept(self, tracks: TrackTable, observed: Observations, covariance: np.ndarray,
-             assigned: np.ndarray) -> np.ndarray:
+    def kept(
+        self,
+        tracks: TrackTable,
+        observed: Observations,
+        covariance: np.ndarray,
+        assigned: np.ndarray,
+    ) -> np.ndarray:
         """(N,) bool: the detections the tracker keeps (steps 4 and 5 of the module notes).
 
         Every high-confidence one; a low-confidence one assigned to a track when the
@@ -123,9 +131,12 @@ class LowConfidence:
         if len(leftover) and not high[leftover].all():
             class_id = observed.class_id[leftover]
             labels = cluster_detections(
-                observed.world_xy[leftover], observed.camera[leftover],
-                largest_sigma(covariance[leftover]), self.context.config.cluster_sigmas,
-                class_id, self.context.config.cluster_radius_m
+                observed.world_xy[leftover],
+                observed.camera[leftover],
+                largest_sigma(covariance[leftover]),
+                self.context.config.cluster_sigmas,
+                class_id,
+                self.context.config.cluster_radius_m
                 * self.context.class_scale[self.context.class_slot(class_id)],
                 covariance=covariance[leftover],
             )
@@ -135,8 +146,9 @@ class LowConfidence:
             keep[leftover] |= sure[labels]
         return keep
 
-    def _track_confirms(self, tracks: TrackTable, observed: Observations,
-                        assigned: np.ndarray, high: np.ndarray) -> np.ndarray:
+    def _track_confirms(
+        self, tracks: TrackTable, observed: Observations, assigned: np.ndarray, high: np.ndarray
+    ) -> np.ndarray:
         """(T,) bool: tracks whose low-confidence views of this instant they may keep."""
         count = len(tracks.ids)
         matched = assigned >= 0
@@ -158,14 +170,20 @@ class LowConfidence:
 def take(observed: Observations, index: np.ndarray) -> Observations:
     """The detections at ``index`` (a mask or indices)."""
     return Observations(
-        world_xy=observed.world_xy[index], colour=observed.colour[index],
-        camera=observed.camera[index], xyxy=observed.xyxy[index],
-        confidence=observed.confidence[index], class_id=observed.class_id[index],
+        world_xy=observed.world_xy[index],
+        colour=observed.colour[index],
+        camera=observed.camera[index],
+        xyxy=observed.xyxy[index],
+        confidence=observed.confidence[index],
+        class_id=observed.class_id[index],
     )
 
 
 def take_measured(measured: Measured, index: np.ndarray) -> Measured:
     """The rays and noise of the detections at ``index``."""
-    return Measured(measured.distance[index], measured.along_distance[index],
-                    measured.direction[index], measured.sigma[index])
-
+    return Measured(
+        measured.distance[index],
+        measured.along_distance[index],
+        measured.direction[index],
+        measured.sigma[index],
+    )
