@@ -75,26 +75,34 @@ class LowConfidence:
         measured: Measured,
         observed: Observations,
         covariance: np.ndarray,
+        timestamp: float | None = None,
     ) -> np.ndarray:
         """Track row of each detection (-1: none): high-confidence detections first, then the
         low-confidence ones against what the first pass left, then leftovers join tracks
-        seen at this instant (steps 1-3 of the module notes)."""
+        seen at this instant (steps 1-3 of the module notes). ``timestamp``: as for
+        :meth:`Association.associate`."""
         high = self.is_high(observed)
         association = self.association
         if high.all() or len(tracks.ids) == 0:
             # Nothing to hold back: the association stage alone (identical results for
             # boxes without scores).
-            assigned = association.associate(tracks, measured, observed, covariance)
-            return association.join_observed(tracks, measured, observed, covariance, assigned)
+            assigned = association.associate(tracks, measured, observed, covariance, timestamp)
+            return association.join_observed(
+                tracks, measured, observed, covariance, assigned, timestamp
+            )
         assigned = np.full(len(observed), -1, np.int64)
         strong = np.flatnonzero(high)
         if len(strong):
             assigned[strong] = association.associate(
-                tracks, take_measured(measured, strong), take(observed, strong), covariance[strong]
+                tracks,
+                take_measured(measured, strong),
+                take(observed, strong),
+                covariance[strong],
+                timestamp,
             )
         weak = np.flatnonzero(~high)
         weak_track = association.associate(
-            tracks, take_measured(measured, weak), take(observed, weak), covariance[weak]
+            tracks, take_measured(measured, weak), take(observed, weak), covariance[weak], timestamp
         )
         # A camera that already gave the track a strong box gives it nothing more.
         taken = np.zeros((len(tracks.ids), self.context.camera_count), dtype=bool)
@@ -103,7 +111,9 @@ class LowConfidence:
         ok = weak_track >= 0
         ok[ok] = ~taken[weak_track[ok], observed.camera[weak[ok]]]
         assigned[weak[ok]] = weak_track[ok]
-        return association.join_observed(tracks, measured, observed, covariance, assigned)
+        return association.join_observed(
+            tracks, measured, observed, covariance, assigned, timestamp
+        )
 
     def kept(
         self,

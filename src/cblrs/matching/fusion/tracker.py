@@ -314,7 +314,7 @@ class FusionTracker:
         # 3. associate, high-confidence detections first (low_confidence and association
         # modules); 4. leftovers join tracks seen at this instant.
         assigned = self.low_confidence.associate(self.tracks, self.measured, observed,
-                                                 covariance)
+                                                 covariance, timestamp)
         # 4b. vehicles cannot turn on the spot (motion module).
         assigned = self.motion.check(self.tracks, observed, covariance, assigned, timestamp)
         # 4c. low-confidence detections neither a multi-view track nor another camera's
@@ -408,6 +408,7 @@ class FusionTracker:
                 self.tracks.mode_probability[seen_now],
             )
             velocity_covariance = self.tracks.covariance[seen_now, 2:4, 2:4]
+            self.tracks.seen_covariance[seen_now] = self.tracks.covariance[seen_now, :2, :2]
             self.tracks.velocity_sigma[seen_now] = np.sqrt(np.maximum(
                 velocity_covariance[:, 0, 0] + velocity_covariance[:, 1, 1], 0.0))
             self.tracks.evidence += np.bincount(rows, minlength=track_count)
