@@ -92,6 +92,16 @@ def test_two_cameras_weak_boxes_of_one_place_start_nothing():
     assert len(track(tracker(), frames)) == 0
 
 
+def test_three_cameras_weak_boxes_of_one_place_start_a_track():
+    # Somebody every camera sees weakly (hidden in every view, or a multi-view detector
+    # whose boxes share one score) is no one camera's mistake.
+    place = [[6.0, 6.0]]
+    frames = [{camera: (place, [WEAK]) for camera in CAMERAS} for _ in range(4)]
+    tracks = track(tracker(), frames)
+    assert tracks.frame.tolist() == [0, 1, 2, 3]
+    assert set(tracks.track_id.tolist()) == {1}
+
+
 def test_a_weak_box_confirms_another_cameras_sure_box_at_once():
     # North is sure of somebody, east sees him weakly: a track seen by two cameras from the
     # first frame (multi-view confirmation needs two where two cameras see the ground).

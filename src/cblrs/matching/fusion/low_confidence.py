@@ -25,9 +25,13 @@ made multi-view. Scores at or above ``high_confidence``
 5. an unassigned low-confidence detection is kept only when it clusters with an
    unassigned high-confidence detection of another camera (the birth stage's clustering,
    so the views that confirm each other are the views that start one track together:
-   a second camera for the new track at once). Alone, or with other weak boxes only, it
-   is dropped: two cameras' weak boxes of one place are, on the real detector's
-   MultiviewX boxes, mostly a thing both take for a person (docs/real-frames.md).
+   a second camera for the new track at once), or with weak ones of two other cameras
+   (:data:`WEAK_VIEWS_TO_START`: three cameras each seeing somebody weakly at one place
+   is no one camera's mistake; it is a person hidden in every view, or a multi-view
+   detector whose boxes all carry the score of one ground-plane detection). Alone, or
+   with one other camera's weak box, it is dropped: two cameras' weak boxes of one place
+   were, on the real detector's MultiviewX boxes, mostly a thing both take for a person
+   (docs/real-frames.md).
 
 Dropped detections reach neither the filters, the noise model, the clocks nor the births.
 High-confidence detections are treated exactly as without this stage, so boxes that carry
@@ -44,6 +48,9 @@ from cblrs.matching.fusion.birth import cluster_detections
 from cblrs.matching.fusion.coverage import Coverage
 from cblrs.matching.fusion.gaussian import largest_sigma
 from cblrs.matching.fusion.table import FusionContext, Measured, TrackTable
+
+WEAK_VIEWS_TO_START = 3
+"""Cameras whose low-confidence detections of one place start a track without a sure one."""
 
 
 class LowConfidence:
@@ -127,7 +134,8 @@ class LowConfidence:
         Every high-confidence one; a low-confidence one assigned to a track when the
         track's views of this instant are multi-view evidence (or no second camera sees
         its place); an unassigned low-confidence one when it clusters with an unassigned
-        high-confidence detection of another camera.
+        high-confidence detection of another camera, or with unassigned detections of
+        ``WEAK_VIEWS_TO_START - 1`` other cameras.
         """
         high = self.is_high(observed)
         keep = high.copy()
@@ -153,7 +161,8 @@ class LowConfidence:
             # A cluster holds at most one detection per camera: a high-confidence member
             # is another camera's sure view of the same place.
             sure = np.bincount(labels, high[leftover].astype(np.float64)) > 0
-            keep[leftover] |= sure[labels]
+            seen_weakly = np.bincount(labels) >= WEAK_VIEWS_TO_START
+            keep[leftover] |= (sure | seen_weakly)[labels]
         return keep
 
     def _track_confirms(
