@@ -14,7 +14,9 @@ observations of one point. Per instant:
    accelerations of a quarter of and twice the class's: a person walking straight
    hardly accelerates, one turning or stopping does), weighed
    by how well each has been predicting;
-3. associate: groups of precise detections are assigned across cameras as one observation;
+3. associate, the detections the detector is sure of (``high_confidence``) first, then the
+   low-confidence ones, which a track keeps only with a second view (they never start a
+   track alone); in each pass, groups of precise detections are assigned across cameras as one observation;
    the rest camera by camera, most precise camera first, each against the tracks as
    corrected by the cameras before it (as a Kalman filter processes independent sensors),
    then once more against the tracks corrected by all other cameras. Each step is a
@@ -65,6 +67,8 @@ The package follows these steps: :mod:`~cblrs.matching.fusion.config` (parameter
 algebra all steps share), :mod:`~cblrs.matching.fusion.association` (3, 4),
 :mod:`~cblrs.matching.fusion.motion` (4, 7: vehicles' turns),
 :mod:`~cblrs.matching.fusion.reachable` (3, 4: where a vehicle can be),
+:mod:`~cblrs.matching.fusion.low_confidence` (3, 4: boxes below ``high_confidence``
+only where a track seen by two cameras or another camera's sure view confirms them),
 :mod:`~cblrs.matching.fusion.birth` (6, 7), :mod:`~cblrs.matching.fusion.coverage` (7: where
 each camera sees), :mod:`~cblrs.matching.fusion.clocks` (camera clocks),
 :mod:`~cblrs.matching.fusion.table` (what the stages share), :mod:`~cblrs.matching.fusion.state`
