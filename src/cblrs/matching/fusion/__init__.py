@@ -16,8 +16,8 @@ observations of one point. Per instant:
    by how well each has been predicting;
 3. associate, the detections the detector is sure of (``high_confidence``) first, then the
    low-confidence ones, which a track keeps only with a second view (they never start a
-   track alone); in each pass, groups of precise detections are assigned across cameras as one observation;
-   the rest camera by camera, most precise camera first, each against the tracks as
+   track alone); in each pass, groups of precise detections are assigned across cameras
+   as one observation; the rest camera by camera, most precise camera first, each against the tracks as
    corrected by the cameras before it (as a Kalman filter processes independent sensors),
    then once more against the tracks corrected by all other cameras. Each step is a
    Hungarian assignment on the negative log-likelihood, gated by Mahalanobis distance,
