@@ -17,9 +17,9 @@ observations of one point. Per instant:
 3. associate, the detections the detector is sure of (``high_confidence``) first, then the
    low-confidence ones, which a track keeps only with a second view (they never start a
    track alone); in each pass, groups of precise detections are assigned across cameras
-   as one observation; the rest camera by camera, most precise camera first, each against the tracks as
-   corrected by the cameras before it (as a Kalman filter processes independent sensors),
-   then once more against the tracks corrected by all other cameras. Each step is a
+   as one observation; the rest camera by camera, most precise camera first, each against
+   the tracks as corrected by the cameras before it (as a Kalman filter processes
+   independent sensors), then once more against the tracks corrected by all other cameras. Each step is a
    Hungarian assignment on the negative log-likelihood, gated by Mahalanobis distance,
    a metric cap, class, and for a moving vehicle its reachable cone (a car neither
    reverses nor jumps across the road; a track takes at most one detection from each camera). An
