@@ -14,12 +14,10 @@ observations of one point. Per instant:
    accelerations of a quarter of and twice the class's: a person walking straight
    hardly accelerates, one turning or stopping does), weighed
    by how well each has been predicting;
-3. associate, the detections the detector is sure of (``high_confidence``) first, then the
-   low-confidence ones, which a track keeps only with a second view (they never start a
-   track alone); in each pass, groups of precise detections are assigned across cameras
-   as one observation; the rest camera by camera, most precise camera first, each against
-   the tracks as corrected by the cameras before it (as a Kalman filter processes
-   independent sensors), then once more against the tracks corrected by all other cameras. Each step is a
+3. associate: groups of precise detections are assigned across cameras as one observation;
+   the rest camera by camera, most precise camera first, each against the tracks as
+   corrected by the cameras before it (as a Kalman filter processes independent sensors),
+   then once more against the tracks corrected by all other cameras. Each step is a
    Hungarian assignment on the negative log-likelihood, gated by Mahalanobis distance,
    a metric cap, class, and for a moving vehicle its reachable cone (a car neither
    reverses nor jumps across the road; a track takes at most one detection from each camera). An
@@ -27,7 +25,8 @@ observations of one point. Per instant:
    cameras are assigned again in the reverse order, and each connected group of tracks
    and detections where the two assignments differ keeps the more likely one (the sum of
    the cameras' innovation costs, an unassigned detection costing as much as one at the
-   gate);
+   gate); detections scoring below ``high_confidence`` are associated after the others,
+   and a track keeps them only with a second view (they never start a track alone);
 4. let leftovers join a track other cameras saw at this instant when they are consistent
    with its fused position (the gate must not split one object's views); then release the
    detections of a vehicle track that would have had to turn tighter than its class can
