@@ -15,7 +15,6 @@ from cblrs.analytics.config import (
     ZoneLeft,
 )
 from cblrs.analytics.engine import Analytics
-from cblrs.analytics.site import SitePlaces, check_tracks_on_site, load_site_places
 from cblrs.analytics.tables import AnalyticsResult, analyse_tracks, write_result
 
 __all__ = [
@@ -34,3 +33,15 @@ __all__ = [
     "load_site_places",
     "write_result",
 ]
+
+_SITE_NAMES = ("SitePlaces", "check_tracks_on_site", "load_site_places")
+
+
+def __getattr__(name: str):
+    """The site helpers, imported on first use: they load :mod:`cblrs.site` (its schema
+    models take a third of a second to build), which a matcher without a site never needs."""
+    if name in _SITE_NAMES:
+        import importlib
+
+        return getattr(importlib.import_module("cblrs.analytics.site"), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
