@@ -25,12 +25,9 @@ __all__ = [
     "Event",
     "HeatmapGrid",
     "LineCrossing",
-    "SitePlaces",
     "ZoneEntered",
     "ZoneLeft",
     "analyse_tracks",
-    "check_tracks_on_site",
-    "load_site_places",
     "write_result",
 ]
 
@@ -38,8 +35,9 @@ _SITE_NAMES = ("SitePlaces", "check_tracks_on_site", "load_site_places")
 
 
 def __getattr__(name: str):
-    """The site helpers, imported on first use: they load :mod:`cblrs.site` (its schema
-    models take a third of a second to build), which a matcher without a site never needs."""
+    """The site helpers of :mod:`cblrs.analytics.site` (documented there, so not in
+    ``__all__``), imported on first use: they load :mod:`cblrs.site`, whose schema models take
+    a third of a second of CPU to build, and a matcher without a site never needs them."""
     if name in _SITE_NAMES:
         import importlib
 
