@@ -320,6 +320,7 @@ def run(args: argparse.Namespace) -> int:
         address, http_token = http_settings(args)
         metrics = ServiceMetrics(plane_id, names)
     tell_views(matcher, names, args.references, site, images)  # where each camera sees the ground
+    images.clear()  # 12 MB a camera: not kept for the matcher's life
     store = RuntimeStore(args.db)
     if uses_nats(args):
         # An empty store is rebuilt from the plane's stream (e.g. on a new host).
