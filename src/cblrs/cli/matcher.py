@@ -177,13 +177,10 @@ def parse_options(items: list[str]) -> dict[str, Any]:
     return options
 
 
-def read_references(
-    folder: Path,
-) -> tuple[list[str], Any, dict[str, list[int]], dict[Path, Any]]:
-    """Camera ids (file-name order), the planes of a folder of reference PNGs, each
-    camera's plane ids (a site's cameras may each hold only their own plane), and the images
-    read, by path (the tracker's views are made from them: a 16-bit PNG takes a tenth of a
-    second of CPU to decode)."""
+def read_references(folder: Path) -> tuple[list[str], Any, dict[str, list[int]], dict]:
+    """Camera ids (file-name order), the planes of a folder of reference PNGs, each camera's
+    plane ids (a site's cameras may each hold only their own plane), and the images by path
+    (for the tracker's views: a 16-bit PNG takes a tenth of a CPU-second to decode)."""
     # lazy: a subcommand imports the library when it runs, so its --help starts fast
     from cblrs.plane import PlaneSet
     from cblrs.reference import ReferenceImage
@@ -320,7 +317,6 @@ def run(args: argparse.Namespace) -> int:
         address, http_token = http_settings(args)
         metrics = ServiceMetrics(plane_id, names)
     tell_views(matcher, names, args.references, site, images)  # where each camera sees the ground
-    images.clear()  # 12 MB a camera: not kept for the matcher's life
     store = RuntimeStore(args.db)
     if uses_nats(args):
         # An empty store is rebuilt from the plane's stream (e.g. on a new host).
