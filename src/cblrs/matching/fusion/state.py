@@ -36,6 +36,7 @@ def table_state(tracks: TrackTable) -> dict:
         "heading_time": [value if math.isfinite(value) else None
                          for value in tracks.heading_time.tolist()],
         "heading_sigma": tracks.heading_sigma.tolist(),
+        "born": tracks.born.tolist(),
     }
 
 
@@ -74,6 +75,10 @@ def table_from_state(state: dict, models: int, cameras: int) -> TrackTable:
                               np.float64).reshape(-1),
         heading_sigma=np.asarray(state.get("heading_sigma", np.zeros(count)),
                                  np.float64).reshape(-1),
+        # States saved before the column existed: born when last seen (only the stitching
+        # stage reads it, to tell which lost tracks a new track may continue).
+        born=None if state.get("born") is None else np.asarray(state["born"],
+                                                               np.float64).reshape(-1),
     )
     if len({len(column) for column in tracks.columns()}) != 1:
         raise MatcherError("the saved fusion-tracker state has columns of different lengths.")

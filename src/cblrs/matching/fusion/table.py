@@ -46,6 +46,9 @@ class TrackTable:
             never), for the motion check of vehicles.
         heading_time: (T,) when that was, seconds (-inf: never).
         heading_sigma: (T,) its uncertainty then, radians.
+        born: (T,) when the track was first seen, seconds (for the stitching stage: a new
+            track can continue a lost one only if it was born after that one was last
+            seen). Defaults to ``last_seen``.
     """
 
     ids: np.ndarray
@@ -62,6 +65,11 @@ class TrackTable:
     heading: np.ndarray
     heading_time: np.ndarray
     heading_sigma: np.ndarray
+    born: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        if self.born is None:
+            self.born = np.array(self.last_seen, np.float64, copy=True)
 
     @classmethod
     def empty(cls, models: int, cameras: int) -> TrackTable:
@@ -73,6 +81,7 @@ class TrackTable:
             mode_probability=np.zeros((0, models)), evidence=np.zeros(0, np.int64),
             last_seen=np.zeros(0), seen_by=np.zeros((0, cameras)), velocity_sigma=np.zeros(0),
             heading=np.zeros((0, 2)), heading_time=np.zeros(0), heading_sigma=np.zeros(0),
+            born=np.zeros(0),
         )
 
     def __len__(self) -> int:
@@ -83,7 +92,7 @@ class TrackTable:
         return (self.ids, self.class_id, self.state, self.covariance, self.mode_state,
                 self.mode_covariance, self.mode_probability, self.evidence, self.last_seen,
                 self.seen_by, self.velocity_sigma, self.heading, self.heading_time,
-                self.heading_sigma)
+                self.heading_sigma, self.born)
 
     def select(self, keep: np.ndarray) -> TrackTable:
         """The rows where ``keep`` (a (T,) mask or indices)."""

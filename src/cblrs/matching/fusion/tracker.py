@@ -3,7 +3,8 @@
 :class:`FusionTracker` runs the steps of its update in order; each step lives in the module
 named after it (the package docstring, :mod:`cblrs.matching.fusion`, describes them):
 ``noise`` (1, measurement noise), ``tracker`` (2, prediction; 5, the filter update),
-``association`` (3, 4), ``birth`` (6, 7), ``clocks`` (camera clocks), ``state`` (snapshots).
+``association`` (3, 4), ``birth`` (6, 7), ``stitching`` (7, new tracks continuing lost ones),
+``clocks`` (camera clocks), ``state`` (snapshots).
 """
 
 from __future__ import annotations
@@ -34,6 +35,7 @@ from cblrs.matching.fusion.gaussian import fuse, ray_covariance
 from cblrs.matching.fusion.motion import MotionCheck
 from cblrs.matching.fusion.noise import NoiseModel
 from cblrs.matching.fusion.state import STATE_VERSION, table_from_state, table_state
+from cblrs.matching.fusion.stitching import Stitching
 from cblrs.matching.fusion.table import FusionContext, Measured, TrackTable, largest_boxes
 from cblrs.matching.timing import (
     Window,
@@ -119,6 +121,7 @@ class FusionTracker:
         self.coverage = Coverage(self.planes, len(self.camera_ids))
         self.births = Births(self.context)
         self.clock_learning = ClockLearning(self.context, self._clock)
+        self.stitching = Stitching(self.context, self._class_acceleration)
         self.reset()
 
     def reset(self) -> None:
@@ -132,6 +135,7 @@ class FusionTracker:
         self._clock.reset()
         self.clock_learning.reset()
         self.coverage.reset()
+        self.stitching.reset()
         self._reported: dict[int, set[int]] = {}
 
     def get_state(self) -> dict:
@@ -148,6 +152,7 @@ class FusionTracker:
             "reported": [[frame, sorted(ids)] for frame, ids in self._reported.items()],
             "clock_turn": self.clock_learning.turn,
             "coverage": self.coverage.get_state(),
+            "stitching": self.stitching.get_state(),
         }
 
     def set_state(self, state: dict) -> None:
@@ -170,6 +175,7 @@ class FusionTracker:
             self._reported = {int(frame): set(ids) for frame, ids in state["reported"]}
             self.clock_learning.turn = int(state["clock_turn"])
             self.coverage.set_state(state.get("coverage"))
+            self.stitching.set_state(state.get("stitching"))
         except (KeyError, TypeError, ValueError, IndexError) as error:
             raise MatcherError(f"the saved fusion-tracker state is incomplete: {error}.") from None
 
@@ -344,9 +350,12 @@ class FusionTracker:
         report_box = np.concatenate([report_box, born.box])
         cameras_of_track = np.concatenate([cameras_of_track, born.cameras])
 
-        # 7. merge duplicates, drop tracks unseen too long, confirm, report.
+        # 7. merge duplicates, drop tracks unseen too long (the stitching stage keeps those
+        # another track may continue), confirm, report.
         keep = self.births.merge_duplicates(self.tracks, seen_now, cameras_of_track)
-        keep &= self._alive(timestamp, seen_now)
+        aged, departed = self._ended(timestamp, seen_now)
+        self.stitching.remember(self.tracks.select(keep & aged & ~departed), timestamp)
+        keep &= ~(aged | departed)
         self.tracks = self.tracks.select(keep)
         seen_now, report_camera, report_box = seen_now[keep], report_camera[keep], report_box[keep]
 
@@ -356,7 +365,13 @@ class FusionTracker:
             count = int(turned.sum())
             self.tracks.ids[turned] = self._next_id + np.arange(count)
             self._next_id += count
-        report = self._confirm(timestamp, seen_now)
+        # A new track that continues a lost one takes its id (stitching module).
+        confirmable = self._confirmable()
+        stitches = self.stitching.decide(self.tracks, confirmable, timestamp)
+        confirmable &= ~stitches.hold
+        confirmable[stitches.rows] = False
+        self.tracks.ids[stitches.rows] = stitches.ids
+        report = self._confirm(timestamp, seen_now, confirmable)
         self.clock_learning.record(self.tracks, timestamp, seen_now & (self.tracks.ids >= 0),
                                    located_xy,
                                 observed.camera, raw_time_of_camera)
@@ -406,9 +421,8 @@ class FusionTracker:
             self._clock.corroboration(observed.camera, np.zeros(len(observed), dtype=bool))
         return seen_now, report_camera, report_box, cameras_of_track
 
-    def _confirm(self, timestamp: float, seen_now: np.ndarray) -> np.ndarray:
-        """Step 7: give confirmed ids to tentative tracks with enough evidence; the mask of
-        tracks to report (confirmed, and seen now or coasting briefly)."""
+    def _confirmable(self) -> np.ndarray:
+        """Step 7: (T,) bool, the tentative tracks with enough evidence to be confirmed."""
         tracks = self.tracks
         newly_confirmed = (tracks.ids < 0) & (tracks.evidence >= self.config.confirm_evidence)
         if self.config.confirm_cameras > 1 and newly_confirmed.any():
@@ -424,6 +438,13 @@ class FusionTracker:
                     speed > 3.0 * tracks.velocity_sigma[candidates])
                 needed[moving] = 1
             newly_confirmed[candidates[cameras_seen < needed]] = False
+        return newly_confirmed
+
+    def _confirm(
+        self, timestamp: float, seen_now: np.ndarray, newly_confirmed: np.ndarray
+    ) -> np.ndarray:
+        """Step 7: give new ids to the tracks ``newly_confirmed``; the mask of tracks to
+        report (confirmed, and seen now or coasting briefly)."""
         count = int(newly_confirmed.sum())
         self.tracks.ids[newly_confirmed] = self._next_id + np.arange(count)
         self._next_id += count
@@ -548,14 +569,15 @@ class FusionTracker:
             departed &= (distance > 0) & (speed_out > 3.0 * self.tracks.velocity_sigma)
         return departed
 
-    def _alive(self, timestamp: float, seen_now: np.ndarray) -> np.ndarray:
+    def _ended(self, timestamp: float, seen_now: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(T,) bool each: tracks unseen too long, and tracks that left the located area."""
         age = timestamp - self.tracks.last_seen
         limit = np.where(self.tracks.ids >= 0, self.config.max_age_s,
                          self.config.tentative_max_age_s)
-        alive = age <= limit
-        if self.config.end_off_plane and len(alive):
-            alive &= seen_now | ~self._departed()
-        return alive
+        departed = np.zeros(len(age), dtype=bool)
+        if self.config.end_off_plane and len(age):
+            departed = ~seen_now & self._departed()
+        return age > limit, departed
 
 
 def _subset(observed: Observations, mask: np.ndarray) -> Observations:
