@@ -141,10 +141,11 @@ class FusionConfig:
             seen may continue it and take its id (the stitching stage,
             :mod:`~cblrs.matching.fusion.stitching`): a confirmed track dropped for being
             unseen too long is kept this long for it, seconds (0: no stitching).
-        stitch_delay_s: a new track that may continue a lost one is held back (tentative,
-            not reported) until this long after its first detection, so that its velocity is
-            known when its position and velocity are compared with the lost track's; the
-            stitching stage's delay, seconds (ids once reported are never rewritten).
+        stitch_delay_s: a new track that may continue a lost one and whose velocity is not
+            clearly known yet is held back (tentative, not reported) until its velocity is
+            known or this long after its first detection, seconds; 0: decided when it would
+            be confirmed, with what is known then (a track two cameras confirm at once is
+            not stitched). Ids once reported are never rewritten either way.
         stitch_sigmas: a new track continues a lost one when their (x, y, vx, vy) states are
             within this many standard deviations of each other (Mahalanobis distance under
             the sum of their covariances), and no other pair could be it.
@@ -198,7 +199,7 @@ class FusionConfig:
     max_age_s: float = 2.0
     end_off_plane: bool = True
     stitch_gap_s: float = 3.0
-    stitch_delay_s: float = 1.0
+    stitch_delay_s: float = 0.0
     stitch_sigmas: float = 3.0
     report_coasting_s: float = 0.0
     max_window_s: float = DEFAULT_MAX_WINDOW_S

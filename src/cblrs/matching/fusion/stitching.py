@@ -1,32 +1,37 @@
 """Repair after assignment (step 7 of the fusion tracker's update): a new track that continues a
 lost one takes its id.
 
-An object nobody sees for a moment (hidden in a crowd, behind a bus, missed by the detector)
+An object nobody sees for a while (hidden in a crowd, behind a bus, missed by the detector)
 leaves its track coasting; when it is seen again its track may not take it back (it walked off
-its prediction, a neighbour's view was nearer), a new track is born, and the object has two
-ids. The association's gates cannot simply be widened for coasting tracks: a wide gate takes
-the neighbour too. This stage looks at the two ends instead, once both are known:
+its prediction, a neighbour's view was nearer), the track is dropped after ``max_age_s``, a
+new track is born, and the object has two ids. The association's gates cannot simply be
+widened for coasting tracks: a wide gate takes the neighbour too. This stage looks at the two
+ends instead, once both are known:
 
-* **lost tracks**: confirmed tracks unseen now (still coasting in the table) and confirmed
-  tracks dropped for being unseen too long (:meth:`Stitching.remember`; not those that left
-  the located area, nor merged duplicates), kept up to ``stitch_gap_s`` after they were last
-  seen and predicted with the tracker's motion model;
+* **lost tracks**: confirmed tracks the tracker dropped for being unseen too long
+  (:meth:`Stitching.remember`; not those that left the located area, nor merged duplicates),
+  predicted with the tracker's motion model. While a track still coasts the association may
+  take it back; the stage leaves it to the association;
 * **new tracks**: tentative tracks about to be confirmed, born after the lost track was last
-  seen (two tracks seen at one instant are two objects).
+  seen (two tracks seen at one instant are two objects) and within ``stitch_gap_s`` of it.
 
-A new track continues a lost one when they are alike in position *and* velocity: the
-Mahalanobis distance of the difference of their (x, y, vx, vy) states, under the sum of their
-covariances, is within ``stitch_sigmas``. Their velocities must agree, so a new track that
-may continue a lost one is held back (kept tentative, not reported) until
-``stitch_delay_s`` after its first detection, while its own velocity settles: that is the
-delay of this stage, and ids are never rewritten — a row once reported keeps its id, which
-is what the matcher service publishes and stores. A new track with no lost track near it is
-confirmed as before, without delay.
+A new track continues a lost one when both clearly move (a track that stood still says
+nothing of where it went) and they are alike where they meet: the new track's first position
+(its state moved back along its velocity) against the lost track's last one moved across the
+gap at the mean of their velocities, and the two velocities — the (x, y, vx, vy) difference
+within ``stitch_sigmas`` of the sum of their covariances, and the positions within the
+association's cap (``max_gate_m``). Only unambiguous pairs are joined: the new track has one
+lost track within the test and that lost track no other tentative track that could be it. In a
+crowd two people lost side by side are left apart (two new ids) rather than risk swapping
+them; two cars are told apart by their velocities (opposite lanes, a car overtaking).
 
-Only unambiguous pairs are joined: the new track has one lost track within the gate and that
-lost track has no other tentative track within it. In a crowd two people lost side by side
-are left apart (two new ids) rather than risk swapping them; two cars are told apart by their
-velocities (opposite lanes, or a car overtaking), which is why the test includes them.
+**Delay**: none by default. The decision is taken when the new track would be confirmed, with
+its velocity as known then; a track confirmed before its velocity is known (two cameras see it
+at once) is not stitched. With ``stitch_delay_s`` > 0 such a track, if a lost track could be
+it, is held back (tentative, not reported) until its velocity is clearly known or that long
+after its first detection. Either way ids are never rewritten: a row once reported keeps its
+id, which is what the matcher service publishes and stores, and a restarted or re-tracking
+service restores the lost tracks with the tracker's state.
 """
 
 from __future__ import annotations
@@ -130,6 +135,7 @@ class Stitching:
         if not self.enabled:
             return Stitches.none(count)
         self._advance(timestamp)
+        self._forget(tracks, timestamp)
         config = self.context.config
         ended = self.lost
         fresh = np.flatnonzero(tracks.ids < 0)  # every tentative track, for ambiguity
@@ -240,7 +246,7 @@ class Stitching:
         return close
 
     def _advance(self, timestamp: float) -> None:
-        """Predict the lost tracks to ``timestamp`` and forget those lost too long ago."""
+        """Predict the lost tracks to ``timestamp``."""
         config = self.context.config
         if self._time is not None and timestamp > self._time and len(self.lost):
             lost = self.lost
@@ -257,11 +263,20 @@ class Stitching:
                 lost.mode_state, lost.mode_covariance, lost.mode_probability
             )
         self._time = timestamp if self._time is None else max(self._time, timestamp)
-        if len(self.lost):
-            # A new track born from now on cannot continue these any more (one born
-            # earlier is decided within the delay).
-            horizon = config.stitch_gap_s + config.stitch_delay_s
-            self.lost = self.lost.select(timestamp - self.lost.last_seen <= horizon)
+
+    def _forget(self, tracks: TrackTable, timestamp: float) -> None:
+        """Forget the lost tracks no new track can continue any more: lost longer than
+        ``stitch_gap_s`` ago, and no tentative track (one may wait for a second camera
+        to confirm it) born within the gap after they were last seen."""
+        if not len(self.lost):
+            return
+        gap = self.context.config.stitch_gap_s
+        keep = timestamp - self.lost.last_seen <= gap
+        if not keep.all():
+            born = tracks.born[tracks.ids < 0]
+            after = born[None, :] - self.lost.last_seen[:, None]
+            keep |= ((after > 0) & (after <= gap)).any(axis=1)
+            self.lost = self.lost.select(keep)
 
 
 def _moving(tracks: TrackTable) -> np.ndarray:
