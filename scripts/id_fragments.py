@@ -1,7 +1,7 @@
 """Where a scene's extra identities come from: each id born after the first frame, classified.
 
     python scripts/id_fragments.py crowd [--seed 1] [--option stitch_gap_s=0] [--dataset DIR]
-    python scripts/id_fragments.py distorted
+    python scripts/id_fragments.py distorted --localisation
 
 Tracks one case of ``cblrs experiment tracking`` (exact boxes, ``fusion`` defaults unless
 ``--option`` sets some) and matches its rows to the ground truth frame by frame (Hungarian, 1 m).
@@ -9,7 +9,9 @@ Each id born after the first frame is then the *first* id of its person (seen la
 taken *after a track ended* (the person's previous id was not reported again: a gap to
 stitch), the id taken *after a swap* (the previous id went on with someone else), or *junk*
 (never within 1 m of anyone in its first frames). Also printed: how many ground-truth rows no
-camera has a box for (occluded in every view), and the lengths of those stretches.
+camera has a box for (occluded in every view), and the lengths of those stretches; with
+``--localisation``, the views' ground error by distance from the image centre (do the reference
+images undo the lenses' distortion at the edges?).
 """
 
 from __future__ import annotations
@@ -25,7 +27,7 @@ from scipy.optimize import linear_sum_assignment
 
 from cblrs.evaluation.metrics import evaluate
 from cblrs.experiments.tracking import Case, TrackingSetup, build_scene
-from cblrs.pipeline import render_scene_references, track_scene
+from cblrs.pipeline import camera_messages, render_scene_references, track_scene
 
 
 def matches(ground_truth, tracks, radius_m: float = 1.0) -> dict[tuple[int, int], int]:
@@ -112,6 +114,39 @@ def unseen(scene) -> tuple[int, int, Counter]:
     return missing, len(truth.frame), stretches
 
 
+def localisation(scene, references) -> list[tuple[str, int, float]]:
+    """Median ground error of the located views (box bottom-centre looked up in the camera's
+    reference image) against the ground truth, by distance of the foot pixel from the image
+    centre: (band, views, metres). Bands are quarters of the half-diagonal."""
+    truth = scene.ground_truth
+    where = {
+        (int(f), int(t)): xy
+        for f, t, xy in zip(truth.frame, truth.track_id, truth.world_xy, strict=True)
+    }
+    errors: list[list[float]] = [[], [], [], []]
+    for message in camera_messages(scene, references):
+        camera = scene.camera_names.index(message.camera_id)
+        detections = scene.detections[int(np.flatnonzero(scene.frames == message.frame)[0])][camera]
+        world_xy, valid, _ = references[camera].planes.decode(message.colour)
+        width, height = scene.cameras[camera].image_size
+        foot = np.column_stack(
+            [(detections.xyxy[:, 0] + detections.xyxy[:, 2]) / 2, detections.xyxy[:, 3]]
+        )
+        radius = np.hypot(foot[:, 0] - width / 2, foot[:, 1] - height / 2) / np.hypot(
+            width / 2, height / 2
+        )
+        for index in np.flatnonzero(valid):
+            true_xy = where.get((int(message.frame), int(detections.object_id[index])))
+            if true_xy is not None:
+                band = min(int(radius[index] * 4), 3)
+                errors[band].append(float(np.linalg.norm(world_xy[index] - true_xy)))
+    names = ("0-25 %", "25-50 %", "50-75 %", "75-100 %")
+    return [
+        (name, len(values), float(np.median(values)) if values else float("nan"))
+        for name, values in zip(names, errors, strict=True)
+    ]
+
+
 def main(argv: list[str]) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("scene", choices=("crowd", "distorted", "roundabout", "crossroads"))
@@ -124,6 +159,11 @@ def main(argv: list[str]) -> int:
         help="a fusion option NAME=JSON, e.g. stitch_gap_s=0",
     )
     parser.add_argument("--dataset", type=Path, default=None, help="WILDTRACK (crowd)")
+    parser.add_argument(
+        "--localisation",
+        action="store_true",
+        help="also the views' ground error by distance from the image centre",
+    )
     args = parser.parse_args(argv)
     options = {}
     for text in args.option:
@@ -137,7 +177,8 @@ def main(argv: list[str]) -> int:
             return 2
     case = Case(args.scene, args.seed, args.size)
     scene = build_scene(case, TrackingSetup(wildtrack=args.dataset))
-    tracks = track_scene(scene, references=render_scene_references(scene), **options).tracks
+    references = render_scene_references(scene)
+    tracks = track_scene(scene, references=references, **options).tracks
     metrics = evaluate(scene.ground_truth, tracks)
     people = len(np.unique(scene.ground_truth.track_id))
     print(
@@ -158,6 +199,15 @@ def main(argv: list[str]) -> int:
         f"({100 * missing / rows:.1f} %); stretches (frames: count): "
         + ", ".join(f"{length}: {count}" for length, count in sorted(stretches.items()))
     )
+    if args.localisation:
+        print(
+            "views' ground error by the foot pixel's distance from the image centre "
+            "(share of the half-diagonal): "
+            + ", ".join(
+                f"{band} {error:.2f} m ({views} views)"
+                for band, views, error in localisation(scene, references)
+            )
+        )
     return 0
 
 
