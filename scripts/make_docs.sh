@@ -199,7 +199,7 @@ if command -v mosquitto > /dev/null && [[ -x /usr/bin/chromium ]]; then
     fi
 fi
 
-echo "== MQTT runtime: throughput and latency through Mosquitto (about 6 minutes)" >&2
+echo "== MQTT runtime: throughput and latency through Mosquitto (about 10 minutes)" >&2
 if command -v mosquitto > /dev/null; then
     mqtt_repeats=3
     [[ "${QUICK:-0}" == "1" ]] && mqtt_repeats=1
@@ -207,10 +207,10 @@ if command -v mosquitto > /dev/null; then
     # Capture -> tracks at a subscriber, 20 cameras x 10 fps, with and without TCP_NODELAY.
     {
         cblrs bench mqtt --cameras 20 --fps 10 --runs matcher/paced \
-            --repeats "$mqtt_repeats" --paced-seconds 10 --markdown
+            --repeats "$mqtt_repeats" --paced-seconds 30 --markdown
         echo
         cblrs bench mqtt --cameras 20 --fps 10 --runs matcher/paced \
-            --repeats "$mqtt_repeats" --paced-seconds 10 --nagle --markdown
+            --repeats "$mqtt_repeats" --paced-seconds 30 --nagle --markdown
     } > "$results/bench_mqtt_nagle.md"
 fi
 

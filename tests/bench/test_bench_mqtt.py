@@ -35,6 +35,12 @@ def test_a_short_run_reports_what_the_matcher_stored_and_the_subscriber_saw(caps
     # Where a group's time went: waiting for its last camera, then the path to the tracks.
     assert 0 <= paced["last_member_p50_ms"] <= paced["last_member_p99_ms"] < 5000
     assert 0 <= paced["after_last_p50_ms"] <= paced["after_last_p99_ms"] < 5000
+    # ... the latter split at the group's release from the ordering buffer.
+    assert 0 <= paced["to_release_p50_ms"] <= paced["to_release_p99_ms"] < 5000
+    assert 0 < paced["after_release_p50_ms"] <= paced["after_release_p99_ms"] < 5000
+    # The frames after each camera's first ten (the ordering knows every frame period).
+    assert 0 < paced["subscriber_steady_updates"] < paced["subscriber_updates"]
+    assert 0 < paced["subscriber_steady_p50_ms"] <= paced["subscriber_steady_p99_ms"] < 5000
     full_speed = rows[("transport", "max")]
     assert full_speed["received"] == full_speed["messages"] == 200
     assert full_speed["received_per_s"] > 0
@@ -80,3 +86,4 @@ def test_by_default_cameras_have_their_own_clocks_and_full_speed_matcher_rows_ti
     row = document["results"][0]
     assert row["received"] == row["messages"] == 100
     assert row["tracker_alone_per_s"] > 0 and row["tracked_per_s"] > 0
+    assert row["tracker_alone_wall_per_s"] > 0  # the same, in wall time at the run's load

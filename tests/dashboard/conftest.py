@@ -11,16 +11,14 @@ from __future__ import annotations
 import os
 import socket
 import subprocess
-import sys
 import threading
-import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import NamedTuple
 
-import numpy as np
 import pytest
 import yaml
+from dashboard_helpers import ADMIN, REPO, VIEWER, cblrs_command, wait_until
 
 from cblrs.cli.main import main
 from cblrs.dashboard.browser import browser_problem, chromium_page
@@ -31,19 +29,6 @@ from cblrs.runtime.broker.mosquitto_config import (
     free_port,
     write_broker_config,
 )
-from cblrs.site import load_site
-
-REPO = Path(__file__).resolve().parents[2]
-ADMIN = ("alice", "alice-admin-password")
-VIEWER = ("bob", "bob-viewer-password")
-
-
-def wait_until(predicate: Callable[[], object], timeout: float, what: str) -> None:
-    deadline = time.monotonic() + timeout
-    while not predicate():
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out after {timeout} s waiting for {what}")
-        time.sleep(0.05)
 
 
 @pytest.fixture
@@ -107,10 +92,6 @@ def wildtrack_site(wildtrack_root, tmp_path_factory) -> Path:
     return path
 
 
-def cblrs_command(*arguments: str) -> list[str]:
-    return [sys.executable, "-m", "cblrs.cli.main", *arguments]
-
-
 class Served(NamedTuple):
     """A running `cblrs dashboard`: its process, base URL and the URL it printed (with
     no --users: the login link of the run)."""
@@ -132,40 +113,6 @@ def users_file(tmp_path_factory) -> Path:
             input=password + "\n", capture_output=True, text=True, timeout=60)
         assert result.returncode == 0, result.stderr
     return path
-
-
-def site_copy(site: Path, path: Path, change: Callable[[dict], object] | None = None) -> Path:
-    """Write a copy of ``site`` to ``path`` (calibration paths made absolute, so that the copy
-    finds them from its own folder), after ``change(document)`` if given."""
-    document = yaml.safe_load(site.read_text())
-    for camera in document["cameras"]:
-        if "calibration" in camera:
-            camera["calibration"]["file"] = str((site.parent
-                                                 / camera["calibration"]["file"]).resolve())
-    if change is not None:
-        change(document)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(yaml.safe_dump(document, sort_keys=False))
-    return path
-
-
-def calibration_points(site_path: Path, camera: str = "CVLab1", count: int = 8) -> dict:
-    """A save request for ``camera``: ground points it sees and their pixels (from the
-    site's own calibration), as the calibration page would send them."""
-    truth = load_site(site_path).camera(camera).camera
-    grid = np.array([(x, y) for x in np.arange(-4.0, 10.0, 1.5)
-                     for y in np.arange(-10.0, 28.0, 1.5)])
-    pixels, valid = truth.world_to_pixel(grid)
-    width, height = truth.image_size
-    inside = valid & (pixels[:, 0] > 50) & (pixels[:, 0] < width - 50) \
-        & (pixels[:, 1] > 50) & (pixels[:, 1] < height - 50)
-    grid, pixels = grid[inside], pixels[inside]
-    chosen = np.linspace(0, len(grid) - 1, count).astype(int)
-    points = [{"u": float(u), "v": float(v), "x": float(x), "y": float(y), "name": f"p{i + 1}"}
-              for i, ((u, v), (x, y)) in enumerate(zip(pixels[chosen], grid[chosen],
-                                                      strict=True))]
-    return {"camera": camera, "image_size": [int(width), int(height)], "points": points,
-            "model": "auto", "unit": "metres"}
 
 
 @pytest.fixture
@@ -224,20 +171,3 @@ def serve_app() -> Iterator[Callable[[object], str]]:
         listener.close()
 
 
-def login(page, url: str, user: tuple[str, str], path: str = "") -> None:
-    """Log ``page`` in on the dashboard at ``url`` through its login form, then open
-    ``path`` (the form sends the browser there)."""
-    page.goto(f"{url}{path}")
-    page.wait_for_url(lambda address: "/login" in address, timeout=60_000)
-    page.fill("#user-name", user[0])
-    page.fill("#password", user[1])
-    # the page fixture skipped the test already when Playwright is missing
-    from playwright.sync_api import TimeoutError as PlaywrightTimeout
-
-    page.click("#login-button")
-    try:
-        # scrypt makes a login take a good part of a second, seconds on a loaded machine
-        page.wait_for_url(lambda address: "/login" not in address, timeout=90_000)
-    except PlaywrightTimeout:
-        raise AssertionError(f"{user[0]} was not logged in: "
-                             f"{page.inner_text('#login-message')!r}") from None

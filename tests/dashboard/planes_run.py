@@ -21,12 +21,12 @@ from urllib.parse import urlsplit
 
 import numpy as np
 import yaml
+from dashboard_helpers import cblrs_command
 
 from cblrs.datasets.city import CityScenes, city_scenes, city_site_document, street_world
 from cblrs.detections import CameraMessage
 from cblrs.runtime.transport.topics import detections_topic
 from cblrs.runtime.wire import encode_message
-from conftest import cblrs_command
 
 PLANES = (1, 2)
 FRAMES = range(100, 250)

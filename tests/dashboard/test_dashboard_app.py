@@ -9,6 +9,7 @@ import subprocess
 
 import numpy as np
 import pytest
+from dashboard_helpers import cblrs_command
 
 from cblrs.analytics import load_site_places
 from cblrs.dashboard.app import DashboardConfig, create_app
@@ -21,7 +22,6 @@ from cblrs.runtime.matcher.store import RuntimeStore
 from cblrs.runtime.outputs.online_analytics import OnlineAnalytics
 from cblrs.runtime.wire import decode_tracks, encode_tracks
 from cblrs.site import load_site
-from conftest import cblrs_command
 
 EPOCH = 1_700_000_000.0
 

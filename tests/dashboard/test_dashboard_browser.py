@@ -19,6 +19,7 @@ import time
 from pathlib import Path
 
 import pytest
+from dashboard_helpers import VIEWER, cblrs_command, login, wait_until
 
 from cblrs.datasets import load_scene
 from cblrs.runtime.camera.camera_node import CameraNode, camera_last_will
@@ -28,7 +29,6 @@ from cblrs.runtime.outputs.analytics_store import count_summary, read_counts
 from cblrs.runtime.transport.mqtt_transport import MqttTransport
 from cblrs.runtime.transport.protocol import Will
 from cblrs.site import load_site
-from conftest import VIEWER, cblrs_command, login, wait_until
 
 pytestmark = [pytest.mark.mqtt, pytest.mark.slow]
 

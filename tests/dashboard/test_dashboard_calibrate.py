@@ -17,11 +17,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import yaml
+from dashboard_helpers import ADMIN, login, wait_until
 
 from cblrs.cli.main import main
 from cblrs.reference import ReferenceImage
 from cblrs.site import load_site
-from conftest import ADMIN, login, wait_until
 
 CAMERA = "Camera1"
 

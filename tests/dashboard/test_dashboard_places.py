@@ -14,12 +14,12 @@ from pathlib import Path
 
 import pytest
 import yaml
+from dashboard_helpers import ADMIN, VIEWER
 
 from cblrs.dashboard.app import DashboardConfig, create_app
 from cblrs.dashboard.auth import Authenticator
 from cblrs.dashboard.places_editor import MATCHER_NOTE
 from cblrs.site import load_site
-from conftest import ADMIN, VIEWER
 
 ORIGIN = "http://127.0.0.1"
 SITE = {

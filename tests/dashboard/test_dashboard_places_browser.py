@@ -13,9 +13,9 @@ from __future__ import annotations
 
 import pytest
 import yaml
+from dashboard_helpers import ADMIN, VIEWER, login, wait_until
 
 from cblrs.site import load_site
-from conftest import ADMIN, VIEWER, login, wait_until
 
 SITE = {
     "version": 1,

@@ -16,6 +16,7 @@ import os
 import time
 
 import pytest
+from dashboard_helpers import VIEWER
 from planes_run import (
     PLANES,
     SITE_ID,
@@ -35,7 +36,6 @@ from cblrs.runtime.broker.mosquitto_config import (
     write_broker_config,
 )
 from cblrs.runtime.transport.mqtt_transport import MqttTransport
-from conftest import VIEWER
 
 pytestmark = [pytest.mark.slow]
 

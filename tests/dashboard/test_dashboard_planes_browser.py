@@ -18,6 +18,7 @@ import secrets
 import time
 
 import pytest
+from dashboard_helpers import wait_until
 from planes_run import city_two_planes
 
 from cblrs.dashboard.app import DashboardConfig, create_app
@@ -34,7 +35,6 @@ from cblrs.runtime.transport.topics import (
 )
 from cblrs.runtime.wire import encode_status, encode_tracks
 from cblrs.site import load_site
-from conftest import wait_until
 
 pytestmark = pytest.mark.mqtt
 

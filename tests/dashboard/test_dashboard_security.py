@@ -20,13 +20,13 @@ from urllib.parse import urlsplit
 
 import pytest
 import yaml
+from dashboard_helpers import ADMIN, VIEWER, calibration_points, cblrs_command, site_copy
 
 from cblrs.cli.main import main
 from cblrs.dashboard.app import STATIC, DashboardConfig, create_app
 from cblrs.dashboard.auth import Authenticator, LoginLimiter, LoginRefused
 from cblrs.dashboard.users import Role
 from cblrs.site import load_site
-from conftest import ADMIN, VIEWER, calibration_points, cblrs_command, site_copy
 
 EVIL = "http://evil.example"
 

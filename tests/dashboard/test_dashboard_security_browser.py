@@ -25,6 +25,7 @@ import time
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 
 import pytest
+from dashboard_helpers import ADMIN, VIEWER, calibration_points, login, site_copy, wait_until
 
 from cblrs.dashboard.app import DashboardConfig, create_app
 from cblrs.dashboard.auth import Authenticator
@@ -33,7 +34,6 @@ from cblrs.runtime.outputs.events import encode_alert, encode_event, encode_live
 from cblrs.runtime.transport.mqtt_transport import MqttTransport
 from cblrs.runtime.transport.topics import alerts_topic, events_topic, live_topic
 from cblrs.site import load_site
-from conftest import ADMIN, VIEWER, calibration_points, login, site_copy, wait_until
 
 
 def payload(where: str) -> str:

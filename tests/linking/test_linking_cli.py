@@ -71,6 +71,8 @@ def test_link_writes_global_tracks_handovers_and_counts(street, tmp_path, capsys
         (["linker", "--site", "SITE", "--db", "x.db", "--max-wait", "0"], 2,
          "--max-wait must be a finite number greater than 0"),
         (["linker", "--stats", "missing.db"], 1, "linker database missing.db does not exist"),
+        (["linker", "--site", "SITE", "--prepare", "--backbone", "nats://127.0.0.1:9",
+          "--username", "admin"], 2, "--prepare with the admin's login: give --client-id"),
     ],
 )
 def test_mistakes_are_one_sentence(street, tmp_path, capsys, monkeypatch, arguments, code,

@@ -37,6 +37,8 @@ def one_track(class_id: int, velocity=(0.0, 6.0), last_seen=10.0, at=(2.0, 33.0)
         last_seen=np.array([last_seen]), seen_by=np.full((1, 2), last_seen),
         velocity_sigma=np.array([velocity_sigma]), heading=np.zeros((1, 2)),
         heading_time=np.array([-np.inf]), heading_sigma=np.zeros(1),
+        # Its position was well estimated when last seen; the prediction since is not.
+        seen_covariance=np.eye(2)[None] * 0.1,
     )
     return table.extend(row)
 

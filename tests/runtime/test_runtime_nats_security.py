@@ -5,6 +5,7 @@ flows (cameras, matcher, viewer, admin) still work."""
 
 from __future__ import annotations
 
+import asyncio
 import json
 import os
 import socket
@@ -20,12 +21,14 @@ from waiting import wait_until
 from cblrs.runtime.broker.nats_auth import NatsSecurityError, role_permissions, write_nats_security
 from cblrs.runtime.broker.nats_server import NatsCluster, find_nats_server
 from cblrs.runtime.transport.mqtt_transport import MqttTransport
+from cblrs.runtime.transport.nats_fanin import NatsFanIn, linker_consumer
 from cblrs.runtime.transport.nats_transport import (
     LeaseSettings,
     NatsSettings,
     NatsTransport,
     detections_stream,
     lease_key,
+    tracks_stream,
 )
 from cblrs.runtime.transport.protocol import TransportError
 
@@ -34,6 +37,7 @@ pytestmark = pytest.mark.nats
 SITE = "north"
 CAMERAS = ("CVLab1", "CVLab2")
 MATCHERS = {"matcher1": [1], "matcher2": [2]}
+LINKERS = ("linker1", "linker2")
 WAIT = 60.0
 """Generous: the suite runs beside other work on two cores; conditions are waited for."""
 
@@ -49,7 +53,8 @@ def backbone(tmp_path_factory):
     pytest.importorskip("nats", reason="nats-py is not installed (pip install -e '.[nats]')")
     pytest.importorskip("bcrypt", reason="bcrypt is not installed (pip install -e '.[nats]')")
     folder = tmp_path_factory.mktemp("secure-nats")
-    security = write_nats_security(folder / "servers", CAMERAS, MATCHERS, site=SITE, tls=True)
+    security = write_nats_security(folder / "servers", CAMERAS, MATCHERS, site=SITE, tls=True,
+                                   linkers=LINKERS)
     cluster = NatsCluster.create(folder / "nodes", 1, mqtt=True, security=security).start()
     # The admin prepares both planes (streams, consumers, the lease bucket), as
     # `cblrs matcher --prepare` with the admin's login does.
@@ -62,6 +67,13 @@ def backbone(tmp_path_factory):
         admin.publish(f"cblrs/{plane}/tracks", b'{"plane": %d, "tracks": []}' % plane)
         assert admin.flush(WAIT)
         admin.close()
+    # ... and linker1's consumers on both planes' tracks streams (`cblrs linker --prepare`).
+    prepared = NatsFanIn("admin", security.settings("admin", cluster.url, manage=True),
+                         durable=linker_consumer("linker1"), planes=(1, 2))
+    for plane in (1, 2):
+        prepared.subscribe(f"cblrs/{plane}/tracks", lambda delivery: None)
+    prepared.connect()
+    prepared.close()
     bucket = NatsTransport("admin", security.settings("admin", cluster.url, manage=True),
                            lease=LeaseSettings("setup", 10.0))
     bucket.open()
@@ -286,6 +298,105 @@ def test_a_viewer_reads_tracks_and_publishes_nothing(backbone, clients):
         viewer.subscribe("cblrs/1/+/detections", Collector())
 
 
+def linker_of_both_planes(backbone, clients, user: str, handler, durable: str = "linker1"):
+    security, cluster = backbone
+    linker = NatsFanIn(user, security.settings(user, cluster.url, publish_timeout_s=0.5),
+                       durable=linker_consumer(durable), planes=(1, 2))
+    clients.append(linker)
+    for plane in (1, 2):
+        linker.subscribe(f"cblrs/{plane}/tracks", handler)
+    return linker
+
+
+def test_a_linker_reads_every_planes_tracks_through_its_own_consumers(backbone, clients):
+    handed: list[bytes] = []
+    linker = linker_of_both_planes(backbone, clients, "linker1",
+                                   lambda delivery: handed.append(delivery.payload))
+    linker.connect()
+    updates = {plane: b'{"plane": %d, "tracks": [{"timestamp": 7%d.0}]}' % (plane, plane)
+               for plane in (1, 2)}
+    for plane, payload in updates.items():
+        matcher = connect(backbone, clients, f"matcher{plane}")
+        matcher.publish(f"cblrs/{plane}/tracks", payload)
+        assert matcher.flush(WAIT) and matcher.refused_publishes == 0
+    wait_until(lambda: set(updates.values()) <= set(handed), WAIT, "both planes' updates")
+    # Its own outputs go out; a plane's tracks it may not write.
+    viewer = connect(backbone, clients, "viewer")
+    site = Collector()
+    viewer.subscribe("cblrs/0/tracks", site)
+    linker.publish("cblrs/0/tracks", b'{"plane": 0, "tracks": []}')
+    linker.publish("cblrs/1/tracks", b'{"plane": 1, "tracks": [{"timestamp": 99.0}]}')
+    assert linker.flush(WAIT) and linker.publisher.refused_publishes == 1
+    assert site.wait_for(1, WAIT)
+    # Killed without acknowledging: its successor (the same login) gets them again at once.
+    linker.close(unclean=True)
+    again: list[bytes] = []
+    successor = linker_of_both_planes(
+        backbone, clients, "linker1",
+        lambda delivery: (again.append(delivery.payload), delivery.ack()))
+    successor.connect()
+    wait_until(lambda: set(updates.values()) <= set(again), WAIT, "the updates again")
+    assert successor.refused_subscriptions == []
+    assert all(not transport.refused_subjects for transport in successor.planes.values())
+
+
+@pytest.mark.parametrize("user", ["linker2", "CVLab1", "viewer", "matcher1"])
+def test_nobody_else_reads_a_linkers_consumer(backbone, clients, user):
+    rogue = linker_of_both_planes(backbone, clients, user, lambda delivery: delivery.ack())
+    with pytest.raises(TransportError, match=r"cannot read the NATS consumer "
+                       r"cblrs-linker-linker1 .*may not use \$js\.api\.consumer\.info"):
+        rogue.connect()
+
+
+async def _raw_request(settings: NatsSettings, subject: str, payload: bytes) -> list[str]:
+    """Send one request as a bare nats-py client of ``settings``' login (an attacker's own
+    client, not cblrs'); the servers' errors."""
+    import nats
+
+    errors: list[str] = []
+
+    async def on_error(error: Exception) -> None:
+        errors.append(str(error).lower())
+
+    client = await nats.connect(
+        servers=list(settings.servers), user=settings.username, password=settings.password,
+        tls=settings.tls_context(), inbox_prefix=settings.inbox_prefix, error_cb=on_error,
+        allow_reconnect=False, connect_timeout=5)
+    try:
+        try:
+            await client.request(subject, payload, timeout=2)
+        except Exception:  # a refused request is never answered
+            pass
+        await client.flush(5)
+    finally:
+        await client.close()
+    return errors
+
+
+def test_a_linker_may_not_create_delete_or_take_other_consumers(backbone):
+    """Creating its own consumer would let a linker point a delivery subject anywhere (here:
+    plane 1's track updates written into plane 2's tracks stream); the admin creates it."""
+    security, cluster = backbone
+    settings = security.settings("linker1", cluster.url)
+    stream, consumer = tracks_stream(1, SITE), linker_consumer("linker1")
+    evil = json.dumps({"stream_name": stream, "config": {
+        "durable_name": consumer, "name": consumer, "deliver_subject": f"cblrs.{SITE}.2.tracks",
+        "filter_subject": f"cblrs.{SITE}.1.tracks", "ack_policy": "none"}}).encode()
+    for subject, payload in (
+        (f"$JS.API.CONSUMER.CREATE.{stream}.{consumer}.cblrs.{SITE}.1.tracks", evil),
+        (f"$JS.API.CONSUMER.CREATE.{stream}.{consumer}", evil),
+        (f"$JS.API.CONSUMER.DURABLE.CREATE.{stream}.{consumer}", evil),
+        (f"$JS.API.CONSUMER.DELETE.{stream}.{consumer}", b""),
+        (f"$JS.API.CONSUMER.INFO.{stream}.cblrs-linker-linker2", b""),
+        (f"$JS.API.CONSUMER.MSG.NEXT.{detections_stream(1, SITE)}.cblrs-plane-1", b"1"),
+    ):
+        errors = asyncio.run(_raw_request(settings, subject, payload))
+        assert any("permissions violation" in error and subject.lower() in error
+                   for error in errors), (subject, errors)
+    info = admin_call(backbone, lambda js: js.consumer_info(stream, consumer))
+    assert info.config.deliver_subject is None  # still the admin's pull consumer
+
+
 # -- the MQTT listener, the routes, the files ---------------------------------------------
 
 
@@ -344,7 +455,7 @@ def test_a_client_certificate_cannot_join_the_cluster_as_a_route(tmp_path):
 def test_the_servers_folder_holds_hashes_and_each_client_its_own_secrets(backbone):
     security, cluster = backbone
     passwords = security.credentials()
-    assert set(passwords) == {*CAMERAS, *MATCHERS, "viewer", "admin"}
+    assert set(passwords) == {*CAMERAS, *MATCHERS, *LINKERS, "viewer", "admin"}
     config = cluster.configs[0].config_path.read_text()
     for user, password in passwords.items():
         assert password not in config
@@ -378,6 +489,15 @@ def test_the_servers_folder_holds_hashes_and_each_client_its_own_secrets(backbon
           "$JS.API.CONSUMER.CREATE.CBLRS_north_P3.cblrs-plane-3",
           "$JS.API.CONSUMER.DELETE.CBLRS_north_P3.cblrs-plane-3"]),
         ("viewer", "viewer", (), [], ["cblrs.north.1.tracks", "cblrs.north.1.alerts"]),
+        ("linker", "l.1", (3,), ["cblrs.north.0.tracks", "cblrs.north.0.linkers.l//1.status",
+                                 "$JS.API.CONSUMER.MSG.NEXT.CBLRS_north_P3_TRACKS.cblrs-linker-l_d1",
+                                 "$JS.ACK.CBLRS_north_P3_TRACKS.cblrs-linker-l_d1.1.2.3.4.5"],
+         ["cblrs.north.3.tracks", "cblrs.north.0.linkers.other.status",
+          "$JS.API.CONSUMER.CREATE.CBLRS_north_P3_TRACKS.cblrs-linker-l_d1",
+          "$JS.API.CONSUMER.DELETE.CBLRS_north_P3_TRACKS.cblrs-linker-l_d1",
+          "$JS.API.CONSUMER.MSG.NEXT.CBLRS_north_P3_TRACKS.cblrs-linker-other",
+          "$JS.API.CONSUMER.MSG.NEXT.CBLRS_north_P4_TRACKS.cblrs-linker-l_d1",
+          "$JS.API.CONSUMER.MSG.NEXT.CBLRS_north_P3.cblrs-plane-3"]),
     ],
 )
 def test_role_permissions_allow_exactly_the_roles_subjects(role, name, planes, allowed, refused):

@@ -31,7 +31,10 @@ Rates:
   in the inbox and acknowledged), to the track output (matcher: the group committed by the
   tracker process and its update handed to the transport, in the service's process), and —
   the figure a user sees — to the track update's arrival at a *separate subscriber process*
-  (a paho client on ``cblrs/<plane>/tracks``, one sample per update, i.e. per frame).
+  (a paho client on ``cblrs/<plane>/tracks``, one sample per update, i.e. per frame), over
+  every frame and over the frames after each camera's first :data:`WARM_UP_FRAMES`; each
+  group's time after its last camera's message is split at its release from the ordering
+  buffer (the service's ``on_released`` observer hook).
 
 Camera clocks: by default each simulated camera stamps and publishes its frames with its own
 clock, as real cameras do: offsets spread over 10 ms (``--clock-spread-ms``) and a per-frame
@@ -45,8 +48,9 @@ acknowledgement) then wait for the previous one's TCP acknowledgement.
 
 Matcher rows at ``max`` also time the tracker alone on the same messages (ordered as the
 service orders them, messages built from inbox entries, ``matcher.update``; no broker, store
-or pipe), in messages per second of CPU (what it does with a core of its own), and print
-the service's tracked rate as a share of it.
+or pipe), in messages per second of CPU (what it does with a core of its own) and of wall
+time (what it does in one process at the run's load), and print the service's tracked rate
+as a share of each.
 
 Printed figures are medians over ``--repeats`` runs, with the machine (CPU, cores, load
 average at start and end). Not a test: nothing is asserted.
@@ -60,20 +64,17 @@ Usage::
 
 from __future__ import annotations
 
-import argparse
 import gc
 import json
 import math
 import multiprocessing
 import os
-import platform
 import socket
 import statistics
 import subprocess
 import tempfile
 import threading
 import time
-from importlib import metadata
 from pathlib import Path
 from typing import Any
 
@@ -92,6 +93,14 @@ from cblrs.bench.mqtt_load import (
     stages_line,
     tracker_alone,
 )
+from cblrs.bench.mqtt_report import (
+    WARM_UP_FRAMES,
+    clocks_text,
+    format_value,
+    machine,
+    markdown_table,
+    median_of,
+)
 from cblrs.matching import make_matcher
 from cblrs.plane import PlaneSet
 from cblrs.runtime.broker.mosquitto_config import MosquittoProcess, free_port, write_broker_config
@@ -102,7 +111,6 @@ from cblrs.runtime.transport.topics import detections_filter, tracks_topic
 from cblrs.runtime.wire import ValidationPolicy
 
 RECEIVERS = ("broker", "paho", "transport", "matcher")
-
 
 DEFAULT_RUNS = ("broker/max", "paho/max", "transport/max", "matcher/max", "paho/paced",
                 "matcher/paced")
@@ -118,15 +126,19 @@ _timestamp_decoder = msgspec.json.Decoder(_Timestamp)
 class Probe:
     """Observer of the matcher service: receipt and track-output times per message, and per
     group where the time went: from the group's mean capture time to the receipt of its last
-    message (waiting for the last camera and receiving it), then to the track output
-    (ordering, the tracker process, publishing)."""
+    message (waiting for the last camera and receiving it), then to the track output, split
+    into the wait in the ordering buffer (until the group is released to the tracker
+    process) and what follows (the pipe, the tracker process, its commit, publishing)."""
 
     def __init__(self) -> None:
         self.receipt: list[float] = []
         self.tracked: list[float] = []
         self.last_member: list[float] = []
         self.after_last: list[float] = []
+        self.to_release: list[float] = []
+        self.after_release: list[float] = []
         self._stored_at: dict[tuple[str, int], float] = {}
+        self._released_at: dict[float, float] = {}
         self.last_stored = 0.0
         self.last_group = 0.0
         self.stored = 0
@@ -138,15 +150,23 @@ class Probe:
         self.last_stored = wall_time
         self.stored += len(messages)
 
+    def on_released(self, timestamps, wall_time) -> None:
+        for timestamp in timestamps:
+            self._released_at[timestamp] = wall_time
+
     def on_group(self, timestamp, messages, tracks, wall_time) -> None:
         self.tracked.extend(wall_time - message.timestamp for message in messages)
         self.last_group = wall_time
         stored = [self._stored_at.pop((message.camera_id, message.sequence), math.nan)
                   for message in messages]
+        released = self._released_at.pop(timestamp, math.nan)
         if messages and not any(math.isnan(value) for value in stored):
             capture = statistics.fmean(message.timestamp for message in messages)
             self.last_member.append(max(stored) - capture)
             self.after_last.append(wall_time - max(stored))
+            if not math.isnan(released):
+                self.to_release.append(released - max(stored))
+                self.after_release.append(wall_time - released)
 
 
 class _Receiver:
@@ -202,10 +222,10 @@ _update_decoder = msgspec.json.Decoder(_TrackUpdate)
 
 
 def track_subscriber(port: int, nagle: bool, ready, stop, results) -> None:
-    """Child process: a paho client on the tracks topic; capture -> arrival latency of each
-    track update (its rows carry the frame's capture time)."""
+    """Child process: a paho client on the tracks topic; ``(capture time, capture -> arrival
+    latency)`` of each track update (its rows carry the frame's capture time)."""
 
-    latencies: list[float] = []
+    latencies: list[tuple[float, float]] = []
     client = mqtt.Client(callback_api_version=CallbackAPIVersion.VERSION2,
                          client_id="bench-tracks", protocol=mqtt.MQTTv5)
     if not nagle:
@@ -216,7 +236,7 @@ def track_subscriber(port: int, nagle: bool, ready, stop, results) -> None:
         now = time.time()
         update = _update_decoder.decode(message.payload)
         if update.tracks:
-            latencies.append(now - update.tracks[0].timestamp)
+            latencies.append((update.tracks[0].timestamp, now - update.tracks[0].timestamp))
 
     client.on_message = on_message
     client.on_subscribe = lambda *args: ready.set()
@@ -247,7 +267,7 @@ def run_once(receiver_kind: str, publisher_kind: str, cameras: int, frames: int,
                                                                      ""))
         broker = MosquittoProcess.from_files(files).start()
         subscriber_process = None
-        subscriber_latencies: list[float] = []
+        subscriber_latencies: list[tuple[float, float]] = []
         subscriber_results: multiprocessing.Queue = multiprocessing.Queue()
         subscriber_stop = multiprocessing.Event()
         receiver = _Receiver(total, paced)
@@ -346,7 +366,9 @@ def run_once(receiver_kind: str, publisher_kind: str, cameras: int, frames: int,
         "tracked_per_s": math.nan, "late": 0, "rejected": 0,
         "receipt_p50_ms": math.nan, "receipt_p99_ms": math.nan,
         "track_p50_ms": math.nan, "track_p99_ms": math.nan,
-        "subscriber_p50_ms": math.nan, "subscriber_p99_ms": math.nan, "nagle": nagle,
+        "subscriber_p50_ms": math.nan, "subscriber_p99_ms": math.nan,
+        "subscriber_steady_p50_ms": math.nan, "subscriber_steady_p99_ms": math.nan,
+        "nagle": nagle,
         "clock_spread_ms": 1000 * clocks.spread_s, "clock_jitter_ms": 1000 * clocks.jitter_s,
     }
     if paced and receiver.receipt:
@@ -364,13 +386,26 @@ def run_once(receiver_kind: str, publisher_kind: str, cameras: int, frames: int,
             row["track_p99_ms"] = 1000 * float(np.percentile(probe.tracked, 99))
             if probe.last_member:
                 for name, values in (("last_member", probe.last_member),
-                                     ("after_last", probe.after_last)):
-                    row[f"{name}_p50_ms"] = 1000 * float(np.percentile(values, 50))
-                    row[f"{name}_p99_ms"] = 1000 * float(np.percentile(values, 99))
+                                     ("after_last", probe.after_last),
+                                     ("to_release", probe.to_release),
+                                     ("after_release", probe.after_release)):
+                    if values:
+                        row[f"{name}_p50_ms"] = 1000 * float(np.percentile(values, 50))
+                        row[f"{name}_p99_ms"] = 1000 * float(np.percentile(values, 99))
             if subscriber_latencies:
-                row["subscriber_p50_ms"] = 1000 * float(np.percentile(subscriber_latencies, 50))
-                row["subscriber_p99_ms"] = 1000 * float(np.percentile(subscriber_latencies, 99))
-                row["subscriber_updates"] = len(subscriber_latencies)
+                latencies = [latency for _, latency in subscriber_latencies]
+                row["subscriber_p50_ms"] = 1000 * float(np.percentile(latencies, 50))
+                row["subscriber_p99_ms"] = 1000 * float(np.percentile(latencies, 99))
+                row["subscriber_updates"] = len(latencies)
+                # After the warm-up: until the ordering and the fusion tracker know each
+                # camera's frame period, a frame's window waits for the next frame.
+                settled = report["start"] + WARM_UP_FRAMES / fps
+                steady = [latency for capture, latency in subscriber_latencies
+                          if capture >= settled]
+                if steady:
+                    row["subscriber_steady_p50_ms"] = 1000 * float(np.percentile(steady, 50))
+                    row["subscriber_steady_p99_ms"] = 1000 * float(np.percentile(steady, 99))
+                    row["subscriber_steady_updates"] = len(steady)
     return row
 
 
@@ -383,101 +418,6 @@ def _process_cpu_seconds(service: MatcherService) -> float:
     except (OSError, IndexError):
         return math.nan
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
-
-
-def median_of(runs: list[dict]) -> dict:
-    """One row from repeated runs: the median of every float, the fewest messages received."""
-    merged = dict(runs[0])
-    for key, value in runs[0].items():
-        if isinstance(value, float):
-            merged[key] = statistics.median(run[key] for run in runs)
-    merged["received"] = min(run["received"] for run in runs)
-    merged["flushed"] = all(run["flushed"] for run in runs)
-    merged["repeats"] = len(runs)
-    return merged
-
-
-def machine() -> dict:
-    """CPU model, cores, Python, Mosquitto and paho-mqtt versions of this machine."""
-    model = platform.processor() or platform.machine()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                model = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    versions: dict[str, str | None] = {}
-    for package in ("paho-mqtt", "msgspec", "numpy"):
-        try:
-            versions[package] = metadata.version(package)
-        except metadata.PackageNotFoundError:
-            versions[package] = None
-    try:
-        mosquitto = subprocess.run(["mosquitto", "-h"], capture_output=True, text=True,
-                                   timeout=10).stdout.splitlines()[0]
-    except (OSError, IndexError, subprocess.SubprocessError):
-        mosquitto = None
-    return {"cpu": model, "cores": os.cpu_count(), "python": platform.python_version(),
-            "mosquitto": mosquitto, **versions}
-
-
-def _format(value: float, width: int = 7, digits: int = 1) -> str:
-    return " " * (width - 1) + "-" if math.isnan(value) else f"{value:{width}.{digits}f}"
-
-
-def markdown_table(info: dict, rows: list[dict], args: argparse.Namespace) -> str:
-    """The results as a markdown table with the machine and settings above it."""
-
-    def cell(value: float, digits: int = 1) -> str:
-        return "–" if math.isnan(value) else f"{value:.{digits}f}"
-
-    def pair(first: float, second: float) -> str:
-        return "–" if math.isnan(first) else f"{cell(first)} / {cell(second)}"
-
-    def tracked(row: dict) -> str:
-        alone = row.get("tracker_alone_per_s")
-        if alone is None or math.isnan(row["tracked_per_s"]):
-            return cell(row["tracked_per_s"], 0)
-        return (f"{row['tracked_per_s']:.0f} ({100 * row['tracked_per_s'] / alone:.0f} % of "
-                f"{alone:.0f})")
-
-    lines = [
-        f"QoS 1 on loopback, {args.people} detections per message, {args.fps:g} fps when paced, "
-        f"{args.matcher} matcher; publishers: {args.publisher} (one connection per camera, "
-        f"other processes); {_clocks_text(args)}. {info['cpu']}, {info['cores']} cores, "
-        f"Python {info['python']}, "
-        f"{info['mosquitto']}, paho-mqtt {info['paho-mqtt']}; "
-        + ("Nagle's algorithm on (no TCP_NODELAY); " if args.nagle else "TCP_NODELAY on; ")
-        + "load average "
-        f"{info['load_start'][0]:.2f} at start, {info['load_end'][0]:.2f} at end (a shared "
-        f"machine); medians of {args.repeats} runs.",
-        "",
-        "| cameras | receiver | rate | received msg/s | tracked msg/s (% of the tracker alone, "
-        "msg per CPU s) "
-        "| receipt p50 / p99 ms | track output p50 / p99 ms "
-        "| **tracks at a subscriber** p50 / p99 ms | lost |",
-        "|---:|---|---|---:|---:|---:|---:|---:|---:|",
-    ]
-    for row in rows:
-        lines.append(
-            f"| {row['cameras']} | {row['receiver']} | {row['rate']} "
-            f"| {row['received_per_s']:.0f} | {tracked(row)} "
-            f"| {pair(row['receipt_p50_ms'], row['receipt_p99_ms'])} "
-            f"| {pair(row['track_p50_ms'], row['track_p99_ms'])} "
-            f"| {pair(row['subscriber_p50_ms'], row['subscriber_p99_ms'])} "
-            f"| {row['messages'] - row['received']} |"
-        )
-    return "\n".join(lines)
-
-
-def _clocks_text(args: Any) -> str:
-    """How the simulated cameras stamp their frames, in words."""
-    spread, jitter = args.clock_spread_ms, args.clock_jitter_ms
-    if not spread and not jitter:
-        return "every camera stamps a frame with the same time (idealised clocks)"
-    return (f"camera clocks: offsets spread over {spread:g} ms, per-frame jitter "
-            f"{jitter:g} ms (sd)")
 
 
 def check_runs(runs: list[str]) -> str | None:
@@ -516,7 +456,7 @@ def run_mqtt_benchmark(args: Any) -> int:
     if not (args.json or args.markdown):
         print(f"{info['cpu']}, {info['cores']} cores, Python {info['python']}, "
               f"{info['mosquitto']}, paho-mqtt {info['paho-mqtt']}; publisher: "
-              f"{args.publisher}; {_clocks_text(args)}; load average "
+              f"{args.publisher}; {clocks_text(args)}; load average "
               f"{info['load_start'][0]:.2f}", flush=True)
         print(f"{'cams':>4s} {'receiver':9s} {'rate':5s} {'msgs':>6s} {'recv/s':>8s} "
               f"{'track/s':>8s} | {'receipt p50':>11s} {'p99 ms':>7s} | {'track p50':>9s} "
@@ -536,21 +476,22 @@ def run_mqtt_benchmark(args: Any) -> int:
             if receiver == "matcher" and not paced:
                 # The tracker's own rate on the same messages, between the service's runs.
                 for repeat, one in enumerate(runs):
-                    one["tracker_alone_per_s"] = tracker_alone(
-                        cameras, args.people, args.matcher, min(frames, 600),
-                        CameraClocks(args.clock_spread_ms / 1000, args.clock_jitter_ms / 1000,
-                                     seed=repeat))
+                    one["tracker_alone_per_s"], one["tracker_alone_wall_per_s"] = \
+                        tracker_alone(cameras, args.people, args.matcher, min(frames, 600),
+                                      CameraClocks(args.clock_spread_ms / 1000,
+                                                   args.clock_jitter_ms / 1000, seed=repeat))
             row = median_of(runs)
             row["runs"] = runs
             rows.append(row)
             if not (args.json or args.markdown):
                 print(
                     f"{cameras:4d} {receiver:9s} {rate:5s} {row['messages']:6d} "
-                    f"{row['received_per_s']:8.0f} {_format(row['tracked_per_s'], 8, 0)} | "
-                    f"{_format(row['receipt_p50_ms'], 11)} {_format(row['receipt_p99_ms'])} | "
-                    f"{_format(row['track_p50_ms'], 9)} {_format(row['track_p99_ms'])} | "
-                    f"{_format(row['subscriber_p50_ms'], 10)} "
-                    f"{_format(row['subscriber_p99_ms'])} | "
+                    f"{row['received_per_s']:8.0f} {format_value(row['tracked_per_s'], 8, 0)} | "
+                    f"{format_value(row['receipt_p50_ms'], 11)} "
+                    f"{format_value(row['receipt_p99_ms'])} | "
+                    f"{format_value(row['track_p50_ms'], 9)} {format_value(row['track_p99_ms'])} | "
+                    f"{format_value(row['subscriber_p50_ms'], 10)} "
+                    f"{format_value(row['subscriber_p99_ms'])} | "
                     f"{row['messages'] - row['received']:4d} {row['late']:4d}",
                     flush=True,
                 )
@@ -560,15 +501,26 @@ def run_mqtt_benchmark(args: Any) -> int:
                           f"{row['tracker_cpu_us_per_message']:.0f} us", flush=True)
                 if "tracker_alone_per_s" in row:
                     print(f"{'':20s} the tracker alone on these messages: "
-                          f"{row['tracker_alone_per_s']:.0f} msg per CPU second; the service "
-                          "tracked "
+                          f"{row['tracker_alone_per_s']:.0f} msg per CPU second, "
+                          f"{row['tracker_alone_wall_per_s']:.0f} msg/s of wall time in this "
+                          "process (the same load); the service tracked "
                           f"{100 * row['tracked_per_s'] / row['tracker_alone_per_s']:.0f} % "
-                          "of it", flush=True)
+                          f"and {100 * row['tracked_per_s'] / row['tracker_alone_wall_per_s']:.0f}"
+                          " % of them", flush=True)
                 if "last_member_p50_ms" in row:
                     print(f"{'':20s} capture -> last member received p50/p99 "
                           f"{row['last_member_p50_ms']:.1f}/{row['last_member_p99_ms']:.1f} ms,"
                           f" then -> track output {row['after_last_p50_ms']:.1f}/"
-                          f"{row['after_last_p99_ms']:.1f} ms", flush=True)
+                          f"{row['after_last_p99_ms']:.1f} ms (in the ordering buffer "
+                          f"{row.get('to_release_p50_ms', math.nan):.1f}/"
+                          f"{row.get('to_release_p99_ms', math.nan):.1f} ms, then tracker "
+                          f"process and publishing {row.get('after_release_p50_ms', math.nan):.1f}"
+                          f"/{row.get('after_release_p99_ms', math.nan):.1f} ms)", flush=True)
+                if not math.isnan(row["subscriber_steady_p50_ms"]):
+                    print(f"{'':20s} tracks at the subscriber after each camera's first "
+                          f"{WARM_UP_FRAMES} frames p50/p99 "
+                          f"{row['subscriber_steady_p50_ms']:.1f}/"
+                          f"{row['subscriber_steady_p99_ms']:.1f} ms", flush=True)
     info["load_end"] = list(os.getloadavg())
     document = {"machine": info, "publisher": args.publisher, "repeats": args.repeats,
                 "fps": args.fps, "people": args.people, "matcher": args.matcher,

@@ -6,6 +6,7 @@ import argparse
 import sys
 import threading
 import time
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -21,15 +22,23 @@ def register(subparsers) -> None:
         help="run the site's linker: every plane's tracks -> global ids and site counts",
         description=(
             "Subscribe to every plane's track updates (cblrs/<plane>/tracks: MQTT with a "
-            "persistent session, or a durable NATS consumer), give each track one global id "
+            "persistent session, or on NATS the linker's durable consumer on each plane's "
+            "tracks stream, named after --client-id), give each track one global id "
             "across planes (the site file's links), count the site's places on the global "
             "tracks, keep everything in a SQLite file (--db) and publish the global tracks on "
             "cblrs/0/tracks, the site's events on cblrs/0/events and its live counts on "
-            "cblrs/0/live. Restarting on the same --db resumes where it stopped. With --stats "
-            "DB, print the counters stored in DB and exit."
+            "cblrs/0/live. Restarting on the same --db resumes where it stopped (killed too: "
+            "the backbone keeps what came meanwhile). With --stats DB, print the counters "
+            "stored in DB and exit; with --prepare, create the linker's session or consumers "
+            "and exit."
         ),
     )
     parser.add_argument("--stats", type=Path, metavar="DB", help="print a database's counters")
+    parser.add_argument(
+        "--prepare", action="store_true",
+        help="create the linker's persistent session (MQTT) or, with the NATS admin's login, "
+        "every plane's tracks stream and the consumers of the linker named by --client-id, "
+        "then exit: the backbone keeps the planes' tracks for it from then on")
     parser.add_argument("--site", type=Path, metavar="SITE.yaml",
                         help="site file with planes, links and places")
     parser.add_argument("--db", type=Path,
@@ -75,24 +84,52 @@ def show_stats(path: Path, as_json: bool) -> int:
     return 0
 
 
-def linker_transport(args: argparse.Namespace, client_id: str, will: Any) -> Any:
-    """The linker's transport: MQTT with a persistent session, or NATS."""
+def linker_transport(args: argparse.Namespace, client_id: str, will: Any,
+                     planes: Sequence[int], replay: bool = False) -> Any:
+    """The linker's transport: MQTT with a persistent session, or on NATS its durable
+    consumer on every plane's tracks stream (``replay``: from the streams' first messages,
+    for an empty database)."""
     if uses_nats(args):
         # lazy: a subcommand imports the library when it runs, so its --help starts fast
-        from cblrs.runtime.transport.nats_transport import NatsTransport
+        from cblrs.runtime.transport.nats_fanin import NatsFanIn, linker_consumer
 
-        return NatsTransport(client_id, nats_settings(args, publish_window=64), will=will)
+        # --prepare (with the admin's login) creates the streams and consumers; a linker's
+        # own login may not (see docs/security.md).
+        settings = nats_settings(args, publish_window=64,
+                                 manage=True if args.prepare else None)
+        return NatsFanIn(client_id, settings, durable=linker_consumer(client_id),
+                         planes=planes, replay=replay, will=will)
     from cblrs.runtime.transport.mqtt_transport import MqttTransport
 
     return MqttTransport(client_id, mqtt_settings(args), persistent=True, will=will)
+
+
+def prepare(args: argparse.Namespace, linker_id: str, planes: Sequence[int]) -> int:
+    """``--prepare``: create the linker's session or consumers, deliver nothing, exit."""
+    # lazy: a subcommand imports the library when it runs, so its --help starts fast
+    from cblrs.runtime.transport.topics import tracks_topic
+
+    transport = linker_transport(args, linker_id, None, planes)
+    for plane in planes:
+        # Not acknowledged: whatever comes now is delivered again to the linker.
+        transport.subscribe(tracks_topic(plane), lambda delivery: None, qos=1)
+    transport.connect()
+    transport.close()
+    if not args.quiet:
+        print(f"prepared: the backbone keeps planes {', '.join(map(str, planes))}' tracks for "
+              f"linker {linker_id} from now on", file=sys.stderr)
+    return 0
 
 
 def run(args: argparse.Namespace) -> int:
     """Run ``cblrs linker`` with its parsed arguments; the exit code."""
     if args.stats is not None:
         return show_stats(args.stats, args.json)
-    if args.site is None or args.db is None:
+    if args.site is None or (args.db is None and not args.prepare):
         raise UsageError("give --site SITE and --db FILE (or --stats DB).")
+    if args.prepare and uses_nats(args) and args.username and not args.client_id:
+        raise UsageError("--prepare with the admin's login: give --client-id LINKER, the "
+                         "linker whose consumers it creates.")
     check_non_negative(args.delay, "--delay")
     check_positive(args.max_wait, "--max-wait")
     check_non_negative(args.decision, "--decision")
@@ -125,9 +162,14 @@ def run(args: argparse.Namespace) -> int:
     linker_id = validate_client_id(args.client_id or args.username or "linker", "client id")
     will = Will(linker_status_topic(linker_id), encode_status(linker_id, "offline",
                                                               role="linker"))
+    if args.prepare:
+        return prepare(args, linker_id, planes.ids)
     store = LinkerStore(args.db)
+    # An empty database links from the streams' first messages (a consumer that served
+    # another database before has passed them).
+    replay = store.linker_state() is None
     service = LinkerService(
-        linker_transport(args, linker_id, will), store, linker, planes.ids,
+        linker_transport(args, linker_id, will, planes.ids, replay), store, linker, planes.ids,
         site={"planes": planes.to_list(), "links": [link.to_dict() for link in site.links]},
         analytics=analytics, delay_s=args.delay, max_wait_s=args.max_wait,
         linker_id=linker_id, live_interval_s=args.live_interval or None,

@@ -19,7 +19,8 @@ observations of one point. Per instant:
    corrected by the cameras before it (as a Kalman filter processes independent sensors),
    then once more against the tracks corrected by all other cameras. Each step is a
    Hungarian assignment on the negative log-likelihood, gated by Mahalanobis distance,
-   a metric cap and class (a track takes at most one detection from each camera). An
+   a metric cap, class, and for a moving vehicle its reachable cone (a car neither
+   reverses nor jumps across the road; a track takes at most one detection from each camera). An
    early wrong choice propagates to the cameras after it, so where tracks compete the
    cameras are assigned again in the reverse order, and each connected group of tracks
    and detections where the two assignments differ keeps the more likely one (the sum of
@@ -28,7 +29,9 @@ observations of one point. Per instant:
 4. let leftovers join a track other cameras saw at this instant when they are consistent
    with its fused position (the gate must not split one object's views); then release the
    detections of a vehicle track that would have had to turn tighter than its class can
-   (the motion check: a coasting car must not take the next car on the opposite lane);
+   (the motion check: a coasting car must not take the next car on the opposite lane; the
+   fused position is tested against the cone in its noise across the cone's edge, and a
+   track whose velocity a wrong view threw off is still held to its last well-known motion);
 5. fuse each track's detections in information form (inverse covariances) and update the
    filter once, adding an object-level noise common to all views;
 6. cluster the remaining detections across cameras (at most one per camera per cluster,
@@ -64,6 +67,7 @@ The package follows these steps: :mod:`~cblrs.matching.fusion.config` (parameter
 :mod:`~cblrs.matching.fusion.noise` (1), :mod:`~cblrs.matching.fusion.gaussian` (the Gaussian
 algebra all steps share), :mod:`~cblrs.matching.fusion.association` (3, 4),
 :mod:`~cblrs.matching.fusion.motion` (4, 7: vehicles' turns),
+:mod:`~cblrs.matching.fusion.reachable` (3, 4: where a vehicle can be),
 :mod:`~cblrs.matching.fusion.birth` (6, 7), :mod:`~cblrs.matching.fusion.coverage` (7: where
 each camera sees), :mod:`~cblrs.matching.fusion.stitching` (7: new tracks continuing lost
 ones), :mod:`~cblrs.matching.fusion.clocks` (camera clocks),

@@ -3,9 +3,12 @@
 Groups of precise detections are assigned across cameras as one observation; the rest camera
 by camera, most precise first, then in the reverse order where tracks compete, keeping the
 more likely assignment of each contested group. Leftovers then join a track other cameras saw
-at this instant when they are consistent with its fused position. To try another association,
-change this module: :meth:`Association.associate` and :meth:`Association.join_observed` are
-what the tracker calls.
+at this instant when they are consistent with its fused position. Given the window's time, a
+pair whose detection a vehicle track cannot have reached (outside its reachable cone,
+:mod:`cblrs.matching.fusion.reachable`: a car does not reverse or jump across the road) is
+not gated at all, so the assignment looks for that detection's own track. To try another
+association, change this module: :meth:`Association.associate` and
+:meth:`Association.join_observed` are what the tracker calls.
 """
 
 from __future__ import annotations
@@ -23,6 +26,7 @@ from cblrs.matching.fusion.gaussian import (
     largest_sigma,
     mahalanobis_squared,
 )
+from cblrs.matching.fusion.reachable import ReachableCone
 from cblrs.matching.fusion.table import FusionContext, Measured, TrackTable
 from cblrs.matching.graph import component_labels
 from cblrs.matching.solvers import linear_sum_assignment
@@ -43,21 +47,28 @@ class Association:
 
     def __init__(self, context: FusionContext):
         self.context = context
+        self.cone = ReachableCone(context)
 
     def associate(
         self, tracks: TrackTable, measured: Measured, observed: Observations,
-        covariance: np.ndarray,
+        covariance: np.ndarray, timestamp: float | None = None,
     ) -> np.ndarray:
-        """Track row of each detection (-1: none); one detection per camera per track."""
-        return _Run(self.context, tracks, measured)._associate(observed, covariance)
+        """Track row of each detection (-1: none); one detection per camera per track.
+
+        ``timestamp`` (the window's time, seconds) turns on the reachable-cone gate of
+        vehicle tracks; None gates by position alone.
+        """
+        return _Run(self.context, tracks, measured, timestamp, self.cone)._associate(
+            observed, covariance)
 
     def join_observed(
         self, tracks: TrackTable, measured: Measured, observed: Observations,
-        covariance: np.ndarray, assigned: np.ndarray,
+        covariance: np.ndarray, assigned: np.ndarray, timestamp: float | None = None,
     ) -> np.ndarray:
-        """``assigned`` with leftovers joined to tracks other cameras saw at this instant."""
-        return _Run(self.context, tracks, measured)._join_observed(observed, covariance,
-                                                                     assigned)
+        """``assigned`` with leftovers joined to tracks other cameras saw at this instant
+        (``timestamp`` as in :meth:`associate`)."""
+        return _Run(self.context, tracks, measured, timestamp, self.cone)._join_observed(
+            observed, covariance, assigned)
 
     def joint_cost(
         self, tracks: TrackTable, measured: Measured, observed: Observations,
@@ -72,10 +83,26 @@ class Association:
 class _Run:
     """One association: the stage's inputs held for its steps, which call each other."""
 
-    def __init__(self, context: FusionContext, tracks: TrackTable, measured: Measured):
+    def __init__(
+        self, context: FusionContext, tracks: TrackTable, measured: Measured,
+        timestamp: float | None = None, cone: ReachableCone | None = None,
+    ):
         self.context = context
         self.tracks = tracks
         self.measured = measured
+        self.timestamp = timestamp
+        self.cone = cone if cone is not None else ReachableCone(context)
+        self._limits: tuple[np.ndarray, ...] | None = None  # computed at the first gate
+
+    def _reachable(self, columns: np.ndarray, xy: np.ndarray, covariance: np.ndarray) -> np.ndarray:
+        """(K,) bool: each position lies within its vehicle track's reachable cone (all True
+        without a timestamp)."""
+        if self.timestamp is None:
+            return np.ones(len(columns), dtype=bool)
+        if self._limits is None:
+            self._limits = self.cone.limits(self.tracks, self.timestamp)
+        return self.cone.feasible(self.tracks, self.timestamp, columns, xy, covariance,
+                                  self._limits)
 
     def _associate(self, observed: Observations, covariance: np.ndarray) -> np.ndarray:
         """Track row of each detection (-1: none); one detection per camera per track.
@@ -339,6 +366,9 @@ class _Run:
                        - innovation[:, 0, 1] * innovation[:, 1, 0])
         mahalanobis = mahalanobis_squared(world_xy[rows] - state[columns, :2], innovation)
         inside = mahalanobis <= self.context.config.gate_sigmas**2
+        if inside.any():
+            inside[inside] = self._reachable(columns[inside], world_xy[rows[inside]],
+                                             covariance[rows[inside]])
         # Negative log-likelihood of the innovation (constant dropped).
         cost = mahalanobis[inside] + np.log(determinant[inside])
         return rows[inside], columns[inside], cost
@@ -431,6 +461,10 @@ class _Run:
         allowed = (
             (normalised <= self.context.config.cluster_sigmas) | (distance <= floor[rows])
         ) & ~taken[seen[columns], observed.camera[leftover[rows]]]
+        if allowed.any():
+            allowed[allowed] = self._reachable(
+                seen[columns[allowed]], observed.world_xy[leftover[rows[allowed]]],
+                covariance[leftover[rows[allowed]]])
         joined = assign_per_camera(
             rows[allowed], columns[allowed], normalised[allowed], observed.camera[leftover],
             self.context.camera_count,

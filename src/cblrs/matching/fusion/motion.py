@@ -32,7 +32,8 @@ from __future__ import annotations
 import numpy as np
 
 from cblrs.matching.base import Observations
-from cblrs.matching.fusion.gaussian import fuse, largest_sigma
+from cblrs.matching.fusion.gaussian import fuse
+from cblrs.matching.fusion.reachable import ReachableCone
 from cblrs.matching.fusion.table import FusionContext, TrackTable
 
 
@@ -48,32 +49,22 @@ class MotionCheck:
 
     def __init__(self, context: FusionContext):
         self.context = context
+        self.cone = ReachableCone(context)
 
     def turn_limits(
         self, tracks: TrackTable, timestamp: float
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Where each track was last seen, its heading, and how far it can have turned.
-
-        Returns:
-            ``(anchor (T, 2) metres, heading (T, 2) unit vectors, limit (T,) radians; inf:
-            not checked)``.
-        """
-        count = len(tracks)
-        limit = np.full(count, np.inf)
-        radius = self.context.class_turn_radius[self.context.class_slot(tracks.class_id)]
-        velocity = tracks.state[:, 2:4]
-        speed = np.hypot(velocity[:, 0], velocity[:, 1])
-        speed_sigma = tracks.velocity_sigma  # when last seen: coasting does not forget it
-        elapsed = np.maximum(timestamp - tracks.last_seen, 0.0)
-        known = np.isfinite(radius) & (speed >= np.maximum(1.0, 3.0 * speed_sigma))
-        limit[known] = np.minimum(speed[known] * elapsed[known] / (2.0 * radius[known]), np.pi)
-        heading = velocity / np.maximum(speed, 1e-12)[:, None]
-        anchor = tracks.state[:, :2] - velocity * elapsed[:, None]
-        return anchor, heading, limit
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Where each track's cone starts, its heading, how far it can have turned, and the
+        start's covariance (:meth:`ReachableCone.limits`)."""
+        return self.cone.limits(tracks, timestamp)
 
     def check(
-        self, tracks: TrackTable, observed: Observations, covariance: np.ndarray,
-        assigned: np.ndarray, timestamp: float,
+        self,
+        tracks: TrackTable,
+        observed: Observations,
+        covariance: np.ndarray,
+        assigned: np.ndarray,
+        timestamp: float,
     ) -> np.ndarray:
         """``assigned`` with the detections of tracks that cannot have moved there set to -1.
 
@@ -87,24 +78,23 @@ class MotionCheck:
         matched = assigned >= 0
         if not matched.any():
             return assigned
-        anchor, heading, limit = self.turn_limits(tracks, timestamp)
+        anchor, heading, limit, anchor_covariance = self.turn_limits(tracks, timestamp)
         rows = assigned[matched]
         checked = np.isfinite(limit)
         if not checked[rows].any():
             return assigned
         fused_xy, fused_covariance, seen = fuse(
-            rows, len(tracks), observed.world_xy[matched], covariance[matched])
+            rows, len(tracks), observed.world_xy[matched], covariance[matched]
+        )
         candidates = np.flatnonzero(seen & checked)
-        offset = fused_xy[candidates] - anchor[candidates]
-        distance = np.hypot(offset[:, 0], offset[:, 1])
-        cosine = np.einsum("ij,ij->i", offset, heading[candidates]) / np.maximum(distance,
-                                                                                  1e-12)
-        excess = np.arccos(np.clip(cosine, -1.0, 1.0)) - limit[candidates]
-        # Distance from the fused position to the cone of reachable directions.
-        outside = np.where(excess <= 0, 0.0,
-                           np.where(excess < np.pi / 2, distance * np.sin(excess), distance))
-        noise = largest_sigma(fused_covariance[candidates] + self.context.object_covariance)
-        impossible = candidates[outside > self.context.config.gate_sigmas * noise]
+        sigmas = self.cone.outside(
+            anchor[candidates],
+            heading[candidates],
+            limit[candidates],
+            fused_xy[candidates],
+            fused_covariance[candidates] + anchor_covariance[candidates],
+        )
+        impossible = candidates[sigmas > self.context.config.gate_sigmas]
         if len(impossible) == 0:
             return assigned
         released = assigned.copy()
@@ -115,7 +105,9 @@ class MotionCheck:
         """(T,) bool: vehicle tracks whose direction turned further than they can turn.
 
         Also records each well-known direction in ``tracks`` (``heading``, ``heading_time``,
-        ``heading_sigma``) for the next call.
+        ``heading_sigma``, with where the track was and its speed: ``heading_xy``,
+        ``heading_speed``) for the next call and for the reachable cone of a track whose
+        motion is no longer well known.
 
         Args:
             tracks: the tracks after this instant's update.
@@ -127,8 +119,9 @@ class MotionCheck:
         radius = self.context.class_turn_radius[self.context.class_slot(tracks.class_id)]
         velocity = tracks.state[:, 2:4]
         speed = np.hypot(velocity[:, 0], velocity[:, 1])
-        known = seen_now & np.isfinite(radius) & (
-            speed >= np.maximum(1.0, 3.0 * tracks.velocity_sigma))
+        known = (
+            seen_now & np.isfinite(radius) & (speed >= np.maximum(1.0, 3.0 * tracks.velocity_sigma))
+        )
         if not known.any():
             return turned
         heading = velocity[known] / speed[known, None]
@@ -136,10 +129,13 @@ class MotionCheck:
         before = np.isfinite(tracks.heading_time[known])
         elapsed = timestamp - tracks.heading_time[known]
         cosine = np.clip(np.einsum("ij,ij->i", heading, tracks.heading[known]), -1.0, 1.0)
-        allowed = (speed[known] * np.where(before, elapsed, 0.0) / radius[known]
-                   + 3.0 * (sigma + tracks.heading_sigma[known]))
+        allowed = speed[known] * np.where(before, elapsed, 0.0) / radius[known] + 3.0 * (
+            sigma + tracks.heading_sigma[known]
+        )
         turned[np.flatnonzero(known)[before & (np.arccos(cosine) > allowed)]] = True
         tracks.heading[known] = heading
         tracks.heading_time[known] = timestamp
         tracks.heading_sigma[known] = sigma
+        tracks.heading_xy[known] = tracks.state[known, :2]
+        tracks.heading_speed[known] = speed[known]
         return turned

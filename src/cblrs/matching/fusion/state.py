@@ -36,6 +36,10 @@ def table_state(tracks: TrackTable) -> dict:
         "heading_time": [value if math.isfinite(value) else None
                          for value in tracks.heading_time.tolist()],
         "heading_sigma": tracks.heading_sigma.tolist(),
+        "heading_xy": [[value if math.isfinite(value) else None for value in row]
+                       for row in tracks.heading_xy.tolist()],
+        "heading_speed": tracks.heading_speed.tolist(),
+        "seen_covariance": tracks.seen_covariance.tolist(),
         "born": tracks.born.tolist(),
     }
 
@@ -75,6 +79,15 @@ def table_from_state(state: dict, models: int, cameras: int) -> TrackTable:
                               np.float64).reshape(-1),
         heading_sigma=np.asarray(state.get("heading_sigma", np.zeros(count)),
                                  np.float64).reshape(-1),
+        # States saved before these columns: no motion recorded (the next one records it).
+        heading_xy=np.array(
+            [[np.nan if value is None else value for value in row]
+             for row in state.get("heading_xy", [[None, None]] * count)], np.float64,
+        ).reshape(-1, 2),
+        heading_speed=np.asarray(state.get("heading_speed", np.zeros(count)),
+                                 np.float64).reshape(-1),
+        seen_covariance=np.asarray(state.get("seen_covariance", covariance[:, :2, :2]),
+                                   np.float64).reshape(-1, 2, 2),
         # States saved before the column existed: born when last seen (only the stitching
         # stage reads it, to tell which lost tracks a new track may continue).
         born=None if state.get("born") is None else np.asarray(state["born"],

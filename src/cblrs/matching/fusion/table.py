@@ -46,6 +46,10 @@ class TrackTable:
             never), for the motion check of vehicles.
         heading_time: (T,) when that was, seconds (-inf: never).
         heading_sigma: (T,) its uncertainty then, radians.
+        heading_xy: (T, 2) where the track was then, metres (NaN: never; default).
+        heading_speed: (T,) its speed then, m/s (0: never; default).
+        seen_covariance: (T, 2, 2) covariance of the position estimated when last seen,
+            square metres (default: that of ``covariance`` now).
         born: (T,) when the track was first seen, seconds (for the stitching stage: a new
             track can continue a lost one only if it was born after that one was last
             seen). Defaults to ``last_seen``.
@@ -65,9 +69,20 @@ class TrackTable:
     heading: np.ndarray
     heading_time: np.ndarray
     heading_sigma: np.ndarray
+    heading_xy: np.ndarray | None = None
+    heading_speed: np.ndarray | None = None
+    seen_covariance: np.ndarray | None = None
     born: np.ndarray | None = None
 
     def __post_init__(self) -> None:
+        # Tables built before these columns existed (births, saved states, tests) start them
+        # as never known.
+        if self.heading_xy is None:
+            self.heading_xy = np.full((len(self.ids), 2), np.nan)
+        if self.heading_speed is None:
+            self.heading_speed = np.zeros(len(self.ids))
+        if self.seen_covariance is None:
+            self.seen_covariance = self.covariance[:, :2, :2].copy()
         if self.born is None:
             self.born = np.array(self.last_seen, np.float64, copy=True)
 
@@ -92,7 +107,8 @@ class TrackTable:
         return (self.ids, self.class_id, self.state, self.covariance, self.mode_state,
                 self.mode_covariance, self.mode_probability, self.evidence, self.last_seen,
                 self.seen_by, self.velocity_sigma, self.heading, self.heading_time,
-                self.heading_sigma, self.born)
+                self.heading_sigma, self.heading_xy, self.heading_speed,
+                self.seen_covariance, self.born)
 
     def select(self, keep: np.ndarray) -> TrackTable:
         """The rows where ``keep`` (a (T,) mask or indices)."""

@@ -314,9 +314,10 @@ class FusionTracker:
         # Where each camera locates things (coverage module, for multi-view confirmation).
         self.coverage.learn(observed.world_xy, observed.camera)
         # 3. associate (association module); 4. leftovers join tracks seen at this instant.
-        assigned = self.association.associate(self.tracks, self.measured, observed, covariance)
+        assigned = self.association.associate(self.tracks, self.measured, observed, covariance,
+                                              timestamp)
         assigned = self.association.join_observed(self.tracks, self.measured, observed,
-                                                  covariance, assigned)
+                                                  covariance, assigned, timestamp)
         # 4b. vehicles cannot turn on the spot (motion module).
         assigned = self.motion.check(self.tracks, observed, covariance, assigned, timestamp)
         matched = assigned >= 0
@@ -411,6 +412,7 @@ class FusionTracker:
                 self.tracks.mode_probability[seen_now],
             )
             velocity_covariance = self.tracks.covariance[seen_now, 2:4, 2:4]
+            self.tracks.seen_covariance[seen_now] = self.tracks.covariance[seen_now, :2, :2]
             self.tracks.velocity_sigma[seen_now] = np.sqrt(np.maximum(
                 velocity_covariance[:, 0, 0] + velocity_covariance[:, 1, 1], 0.0))
             self.tracks.evidence += np.bincount(rows, minlength=track_count)

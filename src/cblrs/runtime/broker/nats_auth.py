@@ -20,16 +20,21 @@ Mosquitto ACL of :mod:`cblrs.runtime.broker.mosquitto_config`:
       viewer V   read     R.*.tracks|events|live|alerts, R.*.*.status, R.*.matchers.*.status,
                  R.0.linkers.*.status (every plane's, and the linker's: plane 0)
                  publish  nothing
-      linker L   read     R.*.tracks, its own inbox
-                 publish  R.0.tracks|events|live, R.0.linkers.L.status
+      linker L   publish  R.0.tracks|events|live, R.0.linkers.L.status; its consumers only
+                 (``LC`` = ``cblrs-linker-L``, on each plane P's tracks stream ``TS``):
+                 $JS.API.CONSUMER.INFO|RESET|MSG.NEXT.TS.LC, $JS.ACK.TS.LC.>
+                 read     R.*.tracks, its own inbox
       admin      everything (streams, consumers, buckets: ``cblrs matcher --prepare``)
 
   Answers (JetStream acknowledgements, pulled messages) reach a client on its own inbox
   prefix ``_INBOX.<user>`` (:attr:`NatsSettings.inbox_prefix`), so nobody reads another's.
   Nobody but the admin may create, change or delete a stream, a consumer or a bucket: a
-  matcher may only read its consumer, pull from it, acknowledge and reset it to replay the
-  stream (a reset cannot point the consumer elsewhere; creating one could set a delivery
-  subject that writes into another plane);
+  matcher (a linker) may only read its consumer (its consumers), pull from it, acknowledge
+  and reset it to replay the stream (a reset cannot point the consumer elsewhere; creating
+  one could set a delivery subject that writes into another plane: a linker allowed to
+  create its own consumer could have plane 1's track updates delivered into plane 2's
+  tracks stream). The admin creates them: ``cblrs matcher --prepare``, ``cblrs linker
+  --prepare``;
 * **TLS** (``tls=True``): a CA signs the servers' certificate (SAN: the nodes' hosts) and one
   certificate per client (``verify``: a client without one is refused before it logs in);
   the routes between nodes use certificates of a *second* CA that only nodes hold, so a
@@ -64,12 +69,14 @@ from cblrs.runtime.broker.credentials import (
     write_private,
 )
 from cblrs.runtime.transport.mqtt_transport import MqttSettings
+from cblrs.runtime.transport.nats_fanin import linker_consumer
 from cblrs.runtime.transport.nats_transport import (
     LEASE_BUCKET,
     NatsSettings,
     detections_stream,
     lease_key,
     subject_root,
+    tracks_stream,
     validate_site,
 )
 from cblrs.runtime.transport.protocol import TransportError
@@ -101,7 +108,7 @@ def role_permissions(
     Args:
         role: "camera", "matcher", "viewer", "linker" or "admin".
         name: the user (a camera's or matcher's id).
-        planes: the planes a matcher serves.
+        planes: the planes a matcher serves, or whose tracks a linker reads.
         site: the site id of the subjects (None: ``cblrs.<plane>...``).
     """
     root = subject_root(site)
@@ -144,11 +151,19 @@ def role_permissions(
                                     f"{root}.0.linkers.*.status", inbox]},
         }
     if role == "linker":
-        return {
-            "publish": {"allow": [f"{root}.0.tracks", f"{root}.0.events", f"{root}.0.live",
-                                  f"{root}.0.linkers.{own}.status"]},
-            "subscribe": {"allow": [f"{root}.*.tracks", inbox]},
-        }
+        publish = [f"{root}.0.tracks", f"{root}.0.events", f"{root}.0.live",
+                   f"{root}.0.linkers.{own}.status"]
+        consumer = linker_consumer(name)
+        for plane in planes:
+            stream = tracks_stream(plane, site)
+            publish += [
+                f"$JS.API.CONSUMER.INFO.{stream}.{consumer}",
+                f"$JS.API.CONSUMER.RESET.{stream}.{consumer}",
+                f"$JS.API.CONSUMER.MSG.NEXT.{stream}.{consumer}",
+                f"$JS.ACK.{stream}.{consumer}.>",
+            ]
+        return {"publish": {"allow": publish},
+                "subscribe": {"allow": [f"{root}.*.tracks", inbox]}}
     raise ValueError(f"unknown role {role!r}")
 
 
@@ -294,7 +309,8 @@ def write_nats_security(
             :func:`cblrs.runtime.broker.mosquitto_config.matcher_planes`).
         site: the site id of the subjects (see :class:`NatsSettings`).
         viewers: read-only logins (dashboards); on NATS a login may be shared.
-        linkers: logins of ``cblrs linker``: every plane's tracks in, the site's out.
+        linkers: logins of ``cblrs linker``: every plane's tracks in (every plane a
+            matcher serves, through the linker's consumers), the site's out.
         admin: the administrator's login (streams, consumers, buckets).
         tls: TLS with client certificates on the client and MQTT ports, and between nodes.
         hosts: the names or addresses the nodes are reached at (the servers' certificate).
@@ -339,9 +355,11 @@ def write_nats_security(
         directory.mkdir(parents=True, exist_ok=True)
         chosen = dict(passwords or {})
         secret = {user: chosen.get(user) or new_password() for user in roles}
+        site_planes = sorted({int(plane) for planes in matchers.values() for plane in planes})
         users = {
             user: (role, bcrypt_hash(secret[user]),
-                   role_permissions(role, user, matchers.get(user, ()), site))
+                   role_permissions(role, user, site_planes if role == "linker"
+                                    else matchers.get(user, ()), site))
             for user, role in roles.items()
         }
         authority = route_authority = None

@@ -168,10 +168,12 @@ class MatcherService:
         groups_per_commit: released groups tracked per store transaction, at most.
         settings: extra identity stored with the database (matcher name and options); a
             reopened database must have been written with the same.
-        observer: optional object with ``on_stored(entries, wall_time)`` and/or
-            ``on_group(timestamp, entries, tracks, wall_time)`` (benchmarks, viewers), called
-            once the entries (:class:`~cblrs.runtime.matcher.store.InboxEntry`) are stored and
-            acknowledged, and once a group's tracks are committed and handed to the
+        observer: optional object with ``on_stored(entries, wall_time)``,
+            ``on_released(timestamps, wall_time)`` and/or ``on_group(timestamp, entries,
+            tracks, wall_time)`` (benchmarks, viewers), called once the entries
+            (:class:`~cblrs.runtime.matcher.store.InboxEntry`) are stored and acknowledged,
+            once groups leave the ordering buffer for the tracker process (their
+            timestamps), and once a group's tracks are committed and handed to the
             transport; ``wall_time`` is the wall clock then.
         wall_clock: seconds since the Unix epoch (for staleness checks and receipt times).
         lease: hold the plane through a lease on the broker (see the module docstring);
@@ -718,6 +720,9 @@ class MatcherService:
                 # From now on a message at or before these timestamps is late; the store
                 # records the same timestamp when the windows are committed.
                 self._inflight.append(batch)
+            if self.observer is not None and hasattr(self.observer, "on_released"):
+                self.observer.on_released([timestamp for timestamp, _ in batch],
+                                          self._wall_clock())
             self._tracker.submit(batch)  # blocks while the tracker process is behind
 
     def _retrack_if_due(self, force: bool = False) -> None:

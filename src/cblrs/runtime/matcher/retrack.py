@@ -72,7 +72,12 @@ from cblrs.runtime.matcher.store import (
     set_meta_value,
     track_rows,
 )
-from cblrs.runtime.outputs.analytics_store import RolledBack, prune_log, read_counts, roll_back
+from cblrs.runtime.outputs.analytics_store import (
+    keep_published,
+    prune_log,
+    read_counts,
+    roll_back,
+)
 
 SNAPSHOTS_SCHEMA = """
 CREATE TABLE IF NOT EXISTS snapshots (
@@ -308,7 +313,7 @@ def retrack(store: RuntimeStore, matcher: Any, camera_ids: Sequence[str],
             check_tracker(cursor, store.path, tracker)
         if recount:
             taken_back = roll_back(cursor, released, int(event_row))
-            _keep_published(taken_back, [item[4] for item in saved] + [rest])
+            keep_published(taken_back, [item[4] for item in saved] + [rest])
         cursor.execute("DELETE FROM tracks WHERE row > ?", (int(track_row),))
         # ``tracks`` counts the rows stored: the re-tracked ones replace those deleted.
         counters["tracks"] = sum(len(tracks) for _, tracks in windows) - cursor.rowcount
@@ -344,32 +349,6 @@ def _counts_at(store: RuntimeStore, released: float) -> dict[tuple[str, str, str
         place, measure, klass = json.loads(key)
         counts[(place, measure, klass)] = counts.get((place, measure, klass), 0.0) - value
     return counts
-
-
-def _keep_published(taken_back: RolledBack, recounted: Sequence[Any]) -> None:
-    """An event counted again that was published before keeps its published mark (it is not
-    published twice); a published event not counted again is taken back by an
-    ``event_retracted`` event, added to the last writes."""
-    found = {row[4] for writes in recounted if writes is not None for row in writes.events}
-    for writes in recounted:
-        if writes is not None:
-            writes.published = taken_back.published
-    last = next(writes for writes in reversed(recounted) if writes is not None)
-    for key, body in taken_back.events:
-        if body.get("kind") == "event_retracted":
-            if body.get("retracted") not in found:  # an earlier correction's: it stands
-                last.events.append((float(body.get("timestamp") or 0.0), "event_retracted",
-                                    str(body.get("place", "")), int(body.get("track") or 0),
-                                    key, json.dumps(body)))
-        elif key in taken_back.published and key not in found:
-            retraction = {"kind": "event_retracted", "timestamp": body.get("timestamp"),
-                          "track": body.get("track"), "place": body.get("place"),
-                          "retracted": key, "retracted_kind": body.get("kind")}
-            retraction_key = f"retracted/{key}"
-            retraction["key"] = retraction_key
-            last.events.append((float(body.get("timestamp") or 0.0), "event_retracted",
-                                str(body.get("place", "")), int(body.get("track") or 0),
-                                retraction_key, json.dumps(retraction)))
 
 
 def state_text(state: Any) -> str:

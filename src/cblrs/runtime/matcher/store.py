@@ -51,6 +51,7 @@ from __future__ import annotations
 
 import fcntl
 import json
+import math
 import os
 import socket
 import sqlite3
@@ -794,18 +795,22 @@ INSERT_TRACKS = (
 
 def track_rows(tracks: Tracks) -> list[tuple]:
     """The ``tracks`` table rows of :class:`Tracks` (NaN boxes and class -1 as NULL)."""
+    if not len(tracks):
+        return []
+    # Whole columns to Python numbers at once (``tolist`` gives the same ints and floats as
+    # converting element by element, several times faster with WILDTRACK-sized groups).
+    boxes = np.asarray(tracks.xyxy, dtype=np.float64)
+    box_values: list[list[float | None]] = boxes.tolist()
+    if not np.isfinite(boxes).all():
+        box_values = [[value if math.isfinite(value) else None for value in row]
+                      for row in box_values]
+    classes = [None if value < 0 else value for value in tracks.class_id.tolist()]
+    world = tracks.world_xy.tolist()
     return [
-        (
-            int(tracks.frame[index]),
-            float(tracks.timestamp[index]),
-            int(tracks.track_id[index]),
-            float(tracks.world_xy[index, 0]),
-            float(tracks.world_xy[index, 1]),
-            int(tracks.camera_id[index]),
-            *(_nullable(value) for value in tracks.xyxy[index]),
-            None if tracks.class_id[index] < 0 else int(tracks.class_id[index]),
-        )
-        for index in range(len(tracks))
+        (frame, timestamp, track_id, x_y[0], x_y[1], camera, *box, class_id)
+        for frame, timestamp, track_id, x_y, camera, box, class_id in zip(
+            tracks.frame.tolist(), tracks.timestamp.tolist(), tracks.track_id.tolist(), world,
+            tracks.camera_id.tolist(), box_values, classes, strict=True)
     ]
 
 
@@ -994,10 +999,6 @@ def _conflicts(cursor: sqlite3.Cursor, row: tuple) -> int:
         (row[0], row[1]),
     ).fetchone()
     return int(stored is not None and tuple(stored) != (row[2], row[3], row[6]))
-
-
-def _nullable(value: float) -> float | None:
-    return None if not np.isfinite(value) else float(value)
 
 
 def _json_default(value: Any) -> Any:

@@ -33,7 +33,7 @@ from __future__ import annotations
 import json
 import sqlite3
 from collections import defaultdict
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -186,21 +186,24 @@ class RolledBack:
     published: set[str] = field(default_factory=set)
 
 
-def roll_back(cursor: sqlite3.Cursor, after: float, event_id: int) -> RolledBack:
+def roll_back(cursor: sqlite3.Cursor, after: float, event_id: int,
+              after_row: int | None = None) -> RolledBack:
     """Take back everything the analytics counted after a snapshot (inside the
-    re-tracking's transaction): the logged increments of groups after ``after`` and the
-    events after id ``event_id``."""
+    re-tracking's transaction): the logged increments of groups after ``after`` (with
+    ``after_row``: the increments logged after that ``count_log`` row, whatever their time;
+    the linker's snapshots) and the events after id ``event_id``."""
     rolled = RolledBack()
     increments: dict[tuple[str, str], float] = defaultdict(float)
+    where, bound = ("released > ?", after) if after_row is None else ("rowid > ?", after_row)
     for table, key, value in cursor.execute(
-            "SELECT tbl, key, value FROM count_log WHERE released > ?", (after,)).fetchall():
+            f"SELECT tbl, key, value FROM count_log WHERE {where}", (bound,)).fetchall():
         increments[(table, key)] += value
     for (table, key), value in increments.items():
         parts = tuple(json.loads(key))
         cursor.execute(_ROLLBACK_SQL[table], (value, *parts))
         if table == "counts":
             rolled.counts[parts] += value  # type: ignore[index]
-    cursor.execute("DELETE FROM count_log WHERE released > ?", (after,))
+    cursor.execute(f"DELETE FROM count_log WHERE {where}", (bound,))
     for key, body, published in cursor.execute(
             "SELECT key, body, published FROM events WHERE id > ? ORDER BY id",
             (int(event_id),)).fetchall():
@@ -209,6 +212,32 @@ def roll_back(cursor: sqlite3.Cursor, after: float, event_id: int) -> RolledBack
             rolled.published.add(key)
     cursor.execute("DELETE FROM events WHERE id > ?", (int(event_id),))
     return rolled
+
+
+def keep_published(taken_back: RolledBack, recounted: Sequence[Any]) -> None:
+    """An event counted again that was published before keeps its published mark (it is not
+    published twice); a published event not counted again is taken back by an
+    ``event_retracted`` event, added to the last writes."""
+    found = {row[4] for writes in recounted if writes is not None for row in writes.events}
+    for writes in recounted:
+        if writes is not None:
+            writes.published = taken_back.published
+    last = next(writes for writes in reversed(recounted) if writes is not None)
+    for key, body in taken_back.events:
+        if body.get("kind") == "event_retracted":
+            if body.get("retracted") not in found:  # an earlier correction's: it stands
+                last.events.append((float(body.get("timestamp") or 0.0), "event_retracted",
+                                    str(body.get("place", "")), int(body.get("track") or 0),
+                                    key, json.dumps(body)))
+        elif key in taken_back.published and key not in found:
+            retraction = {"kind": "event_retracted", "timestamp": body.get("timestamp"),
+                          "track": body.get("track"), "place": body.get("place"),
+                          "retracted": key, "retracted_kind": body.get("kind")}
+            retraction_key = f"retracted/{key}"
+            retraction["key"] = retraction_key
+            last.events.append((float(body.get("timestamp") or 0.0), "event_retracted",
+                                str(body.get("place", "")), int(body.get("track") or 0),
+                                retraction_key, json.dumps(retraction)))
 
 
 def prune_log(cursor: sqlite3.Cursor, until: float) -> None:

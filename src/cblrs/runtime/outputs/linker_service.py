@@ -14,9 +14,17 @@ matchers may run on any host of the backbone), and per batch of deliveries:
    once every plane has passed them. A plane silent for ``max_wait_s`` while others go on is
    left out of the watermark (a matcher that died and is not yet taken over must not stop the
    site); rows it sends later for times already linked are counted ``late_rows``. At start,
-   planes never heard of are waited for ``max_wait_s`` too. A matcher's corrections (its
-   updates with ``corrected_from``: late messages re-tracked, :mod:`cblrs.runtime.matcher.retrack`)
-   are counted ``corrections_ignored`` and not linked: the global tracks keep the first rows;
+   planes never heard of are waited for ``max_wait_s`` too;
+2b. follows a matcher's **corrections** (its updates with ``corrected_from``: late messages
+   re-tracked, :mod:`cblrs.runtime.matcher.retrack`): the first update of a correction
+   replaces the plane's rows after ``corrected_from`` (the store keeps every plane's rows,
+   ``inputs``, for ``SNAPSHOT_HORIZON_S``), its later ones (the same ``corrected_from``, later
+   times) add theirs; the linker goes back to its newest snapshot at or before
+   ``corrected_from`` (one every ``SNAPSHOT_INTERVAL_S`` of its clock), takes back the global
+   rows, hand-overs, events and counts made after it and links every plane's rows since
+   again: the global rows, ids and counts are those of a linker that had the corrected rows
+   from the start. A correction older than the oldest snapshot is counted
+   ``corrections_unlinked`` and not linked;
 3. counts the global rows that became final with the site's **analytics** (the matchers'
    engine, :class:`~cblrs.runtime.outputs.online_analytics.OnlineAnalytics`, on every place of the
    site; lives span a portal's longest transit);
@@ -25,8 +33,9 @@ matchers may run on any host of the backbone), and per batch of deliveries:
    any moment, the linker resumes from its file and the broker delivers again what it had not
    committed;
 5. **publishes** the global rows on ``cblrs/0/tracks`` (plane 0: the site; empty updates too,
-   each row with its ``source_plane`` and ``source_track``), and through the matchers'
-   reporter the site's events on ``cblrs/0/events`` (an outbox: published until the broker
+   each row with its ``source_plane`` and ``source_track``; after going back to a snapshot,
+   with ``corrected_from``: they replace the global rows after that time), and through the
+   matchers' reporter the site's events on ``cblrs/0/events`` (an outbox: published until the broker
    acknowledges) and a live summary on ``cblrs/0/live``.
 
 :meth:`LinkerService.finish` is the end of every stream (everything watched is decided,
@@ -50,7 +59,12 @@ from cblrs.detections import Tracks
 from cblrs.errors import CblrsError
 from cblrs.linking.linker import LinkedRows, PlaneLinker
 from cblrs.runtime.outputs.analytics_service import ServiceReporter
-from cblrs.runtime.outputs.linker_store import LinkerBatch, LinkerStore
+from cblrs.runtime.outputs.linker_store import (
+    SNAPSHOT_INTERVAL_S,
+    LinkerBatch,
+    LinkerStore,
+    Snapshot,
+)
 from cblrs.runtime.transport.protocol import Delivery
 from cblrs.runtime.transport.topics import (
     SITE_PLANE,
@@ -61,7 +75,6 @@ from cblrs.runtime.transport.topics import (
     tracks_topic,
 )
 from cblrs.runtime.wire import (
-    MAX_TRACK_ROWS,
     RejectedMessage,
     RejectReason,
     decode_tracks,
@@ -76,6 +89,10 @@ DEFAULT_DELAY_S = 0.5
 its update's time)."""
 DEFAULT_MAX_WAIT_S = 30.0
 """A plane silent this long while others go on is left out of the watermark."""
+PUBLISH_ROWS = 4000
+"""Global rows per published update, at most: about 660 kB (some 165 bytes a row), under the
+1 MiB packets of the broker `cblrs broker-config` writes (a correction publishes every row
+since its snapshot again at once)."""
 MAX_FUTURE_S = 60.0
 """An update timed further ahead of the linker's clock than this is refused (one bad clock
 would otherwise move a plane's watermark ahead and make every later row late)."""
@@ -145,6 +162,8 @@ class LinkerService:
         self._started_at = 0.0
         self._sequence = 0
         self._last_watermark = -math.inf
+        self._correcting: dict[int, list[float]] = {}  # plane -> [corrected_from, last time]
+        self._snapshot_clock = -math.inf
         self.last_activity = monotonic()
         self.reporter = ServiceReporter(
             transport, store, SITE_PLANE, [],
@@ -167,8 +186,19 @@ class LinkerService:
             self.linker.set_state(state)
         if self.analytics is not None:
             self.analytics.resume(self.store)
+            self.analytics.log_increments = True  # a correction takes back what was counted
         self._clocks = self.store.plane_clocks()
         self._lags = self.store.plane_lags()
+        self._correcting = {int(plane): [float(value) for value in since] for plane, since in
+                            (self.store.get_meta("correcting") or {}).items()}
+        if not self.store.has_snapshots():
+            # The first snapshot: the state it starts from (the rows it holds are inputs).
+            inbox = self.linker.get_state()["inbox"]
+            self.store.commit(LinkerBatch(
+                inputs=[("add", int(plane), _rows(rows)) for plane, rows in inbox.items()],
+                snapshot=self._snapshot()))
+        newest = self.store.snapshot_at(math.inf)
+        self._snapshot_clock = -math.inf if newest is None else newest.clock
         for plane in self.plane_ids:
             self.transport.subscribe(tracks_topic(plane), self._on_delivery, qos=1)
         self.transport.connect()
@@ -218,6 +248,7 @@ class LinkerService:
                 self._count(rows)
                 self.analytics.flush()
                 writes = self.analytics.take_writes()
+            # Nothing after the end is corrected: no snapshot to go back to.
             self.store.commit(LinkerBatch(
                 rows=rows, handovers=self.linker.take_handovers(), state=self.linker.get_state(),
                 counters={"rows_out": len(rows)}, analytics=writes))
@@ -300,23 +331,51 @@ class LinkerService:
                                    delivery.topic, error)
                     continue
                 decoded.append((plane, float(time_of), update, received_at))
-            seen = self.store.seen({(plane, time_of) for plane, time_of, _, _ in decoded})
+            seen = self.store.seen({(plane, time_of) for plane, time_of, update, _ in decoded
+                                    if update.corrected_from is None})
+            seen_corrections = self.store.seen_corrections(
+                {(plane, time_of, float(update.corrected_from))
+                 for plane, time_of, update, _ in decoded if update.corrected_from is not None})
             now = self._monotonic()
+            inputs: list[tuple[str, int, Any]] = []
+            corrections: list[tuple[int, float, float]] = []
+            back_to = math.inf  # the earliest corrected_from of a correction begun here
             for plane, time_of, update, received_at in decoded:
-                key = (plane, time_of)
+                rows = update.tracks
+                if len(rows):
+                    rows = rows[np.argsort(rows.timestamp, kind="stable")]
                 if update.corrected_from is not None:
-                    # A plane's re-tracked rows (late messages): the global tracks keep
-                    # what was linked from the first updates.
-                    counters["corrections_ignored"] += 1
+                    key = (plane, time_of, float(update.corrected_from))
+                    if key in seen_corrections or key in corrections:
+                        counters["duplicates"] += 1
+                        continue
+                    corrections.append(key)
+                    since = float(update.corrected_from)
+                    under_way = self._correcting.get(plane)
+                    if under_way is None or under_way[0] != since or time_of <= under_way[1]:
+                        # A new correction: the plane's rows after ``since`` are replaced.
+                        inputs.append(("cut", plane, since))
+                        back_to = min(back_to, since)
+                    self._correcting[plane] = [since, time_of]
+                    rows = rows[rows.timestamp > since] if len(rows) else rows
+                    if len(rows):
+                        inputs.append(("fix", plane, rows))
+                        if rows.timestamp[0] <= self.linker.clock:  # linked without them
+                            back_to = min(back_to, float(rows.timestamp[0]))
+                    self._heard[plane] = now
+                    counters["corrections"] += 1
                     continue
+                key = (plane, time_of)
                 if key in seen or key in taken:
                     counters["duplicates"] += 1
                     continue
                 taken.add(key)
-                rows = update.tracks
                 if len(rows):
-                    order = np.argsort(rows.timestamp, kind="stable")
-                    counters["late_rows"] += self.linker.push(plane, rows[order])
+                    late = rows.timestamp <= self.linker.clock
+                    if late.any():  # counted, not linked (see PlaneLinker.push)
+                        counters["late_rows"] += self.linker.push(plane, rows[late])
+                    if not late.all():
+                        inputs.append(("add", plane, rows[~late]))
                     lag = time_of - float(np.min(rows.timestamp))
                     self._lags[plane] = max(self._lags.get(plane, 0.0), lag)
                 self._clocks[plane] = max(self._clocks.get(plane, -math.inf), time_of)
@@ -324,6 +383,16 @@ class LinkerService:
                 counters["updates"] += 1
                 counters["rows_in"] += len(rows)
                 updates.append((plane, time_of, received_at, len(rows)))
+            rewound = self._go_back(back_to, inputs, counters) if math.isfinite(back_to) \
+                else None
+            if rewound is None:
+                if math.isfinite(back_to):  # older than every snapshot: not linked again
+                    inputs = [item for item in inputs if item[0] == "add"]
+                    for plane, _, since in corrections:  # nor are its later updates
+                        self._correcting[plane] = [since, math.inf]
+                for operation, plane, rows in inputs:
+                    if operation != "cut":
+                        self.linker.push(plane, rows)
             watermark = self._watermark(now)
             rows_out = LinkedRows.empty()
             if watermark is not None and watermark > self._last_watermark:
@@ -336,19 +405,64 @@ class LinkerService:
                 self._count(rows_out)
                 writes = self.analytics.take_writes()
             counters["rows_out"] += len(rows_out)
+            handovers = self.linker.take_handovers()  # before a snapshot: it holds none
+            snapshot = None
+            if self.linker.clock - self._snapshot_clock >= SNAPSHOT_INTERVAL_S:
+                snapshot = self._snapshot()
+                self._snapshot_clock = self.linker.clock
             self.store.commit(LinkerBatch(
-                updates=updates, rows=rows_out, handovers=self.linker.take_handovers(),
+                updates=updates, rows=rows_out, handovers=handovers,
                 state=self.linker.get_state(), clocks=dict(self._clocks), lags=dict(self._lags),
-                counters=dict(counters), analytics=writes))
+                counters=dict(counters), analytics=writes, inputs=inputs,
+                corrections=corrections, rewound=rewound, snapshot=snapshot,
+                correcting=dict(self._correcting) if corrections else None))
             for delivery, _ in batch:
                 delivery.ack()
-            if watermark is not None and (len(rows_out) or updates):
-                self._publish(rows_out, watermark)
+            if watermark is not None and (len(rows_out) or updates or rewound is not None):
+                self._publish(rows_out, watermark,
+                              None if rewound is None else rewound.emitted_until)
             if batch:
                 self.last_activity = self._monotonic()
         if writes is not None:
             self.reporter.tracked([], {"live": self.analytics.live(),
                                        "events": {"linked": len(writes.events)}})
+
+    def _go_back(self, since: float, inputs: list[tuple[str, int, Any]],
+                 counters: Counter[str]) -> Snapshot | None:
+        """A correction from ``since``: back to the newest snapshot at or before it, then
+        every plane's rows after it again (the stored ones as ``inputs`` changes them);
+        None when no snapshot is that old (counted ``corrections_unlinked``)."""
+        snapshot = self.store.snapshot_at(since)
+        if snapshot is None:
+            counters["corrections_unlinked"] += 1
+            logger.warning("linker %s: a correction from %s is older than every snapshot; "
+                           "not linked again", self.linker_id, since)
+            return None
+        planes = self.store.inputs_after(snapshot.clock)
+        for operation, plane, value in inputs:
+            held = planes.get(plane, Tracks.empty())
+            if operation == "cut":
+                planes[plane] = held[held.timestamp <= value]
+            else:
+                planes[plane] = Tracks.concatenate([held, value])
+        self.linker.set_state({**snapshot.state, "inbox": {}})
+        for plane in sorted(planes):
+            rows = planes[plane]
+            rows = rows[rows.timestamp > snapshot.clock]
+            self.linker.push(plane, rows[np.argsort(rows.timestamp, kind="stable")])
+        if self.analytics is not None and snapshot.analytics is not None:
+            self.analytics.set_state(snapshot.analytics, self.store.counts_at(snapshot.log_row))
+        self._last_watermark = -math.inf
+        self._snapshot_clock = snapshot.clock
+        counters["relinks"] += 1
+        logger.info("linker %s: a correction from %s: linking again from %s", self.linker_id,
+                    since, snapshot.clock)
+        return snapshot
+
+    def _snapshot(self) -> dict[str, Any]:
+        return {"clock": self.linker.clock, "emitted_until": self.linker.emitted_until,
+                "state": self.linker.get_state(),
+                "analytics": None if self.analytics is None else self.analytics.get_state()}
 
     def _count(self, rows: LinkedRows) -> None:
         """Count final global rows, then move the analytics' clock to where every row before
@@ -375,17 +489,20 @@ class LinkerService:
         return min(self._clocks[plane] - self._lags.get(plane, 0.0)
                    for plane in counted) - self.delay_s
 
-    def _publish(self, rows: LinkedRows, watermark: float) -> None:
+    def _publish(self, rows: LinkedRows, watermark: float,
+                 corrected_from: float | None = None) -> None:
         if not self.publish_tracks:
             return
-        for start in range(0, max(len(rows), 1), MAX_TRACK_ROWS):
-            part = slice(start, start + MAX_TRACK_ROWS)
+        for start in range(0, max(len(rows), 1), PUBLISH_ROWS):
+            part = slice(start, start + PUBLISH_ROWS)
             self._sequence += 1
             try:
                 self.transport.publish(site_tracks_topic(), encode_tracks(
                     rows.tracks[part], SITE_PLANE, sequence=self._sequence,
                     timestamp=float(watermark), source_plane=rows.plane_id[part],
-                    source_track=rows.local_track_id[part]), qos=1)
+                    source_track=rows.local_track_id[part],
+                    corrected_from=None if corrected_from is None or start else corrected_from),
+                    qos=1)
             except Exception as error:  # viewers miss an update; the rows are in the store
                 logger.warning("linker %s: could not publish global tracks: %s",
                                self.linker_id, error)
@@ -397,6 +514,17 @@ class LinkerService:
                                    qos=1, retain=True)
         except Exception as error:
             logger.warning("linker %s: could not publish its status: %s", self.linker_id, error)
+
+
+def _rows(rows: list[list[Any]]) -> Tracks:
+    """A linker state's inbox rows ``[time, plane, track, frame, x, y, class]`` as tracks."""
+    if not rows:
+        return Tracks.empty()
+    columns = list(zip(*rows, strict=True))
+    return Tracks(frame=np.array(columns[3], np.int64), timestamp=np.array(columns[0], float),
+                  track_id=np.array(columns[2], np.int64),
+                  world_xy=np.column_stack([columns[4], columns[5]]).astype(float),
+                  class_id=np.array(columns[6], np.int64))
 
 
 def _finite(value: float) -> float | None:

@@ -13,6 +13,14 @@ Tables:
 * ``meta`` — the linker's state (:meth:`~cblrs.linking.PlaneLinker.get_state`), each plane's
   clock, the site it links (a file linked for another site is refused);
 * ``counters`` — updates, rows, duplicates, rejected by reason, late rows, ...;
+* ``inputs`` — every plane row the linker took, for ``SNAPSHOT_HORIZON_S`` behind its clock,
+  and ``snapshots`` — the linker's and the analytics' states every ``SNAPSHOT_INTERVAL_S`` of
+  its clock, with the last global row, hand-over, event and count increment then; and
+  ``corrections`` — the keys ``(plane, update time, corrected_from)`` of the matchers'
+  corrections taken: a plane's correction (late messages re-tracked,
+  :mod:`cblrs.runtime.matcher.retrack`) replaces that plane's inputs after its time, and the
+  linker goes back to the newest snapshot at or before it and links again
+  (:mod:`cblrs.runtime.outputs.linker_service`);
 * ``events``, ``counts``, ``count_bins``, ``od`` — the site's analytics (the matcher's
   tables, :mod:`cblrs.runtime.outputs.analytics_store`), counted on the global rows.
 
@@ -44,7 +52,14 @@ import numpy as np
 from cblrs.detections import Tracks
 from cblrs.errors import CblrsError
 from cblrs.linking.linker import Handover, LinkedRows
-from cblrs.runtime.outputs.analytics_store import ANALYTICS_SCHEMA, AnalyticsWrites, write_analytics
+from cblrs.runtime.outputs.analytics_store import (
+    ANALYTICS_SCHEMA,
+    AnalyticsWrites,
+    keep_published,
+    read_counts,
+    roll_back,
+    write_analytics,
+)
 
 SQLITE_HEADER = b"SQLite format 3\x00"
 _OWN_TABLES = frozenset({"updates", "handovers"})
@@ -80,7 +95,39 @@ CREATE TABLE IF NOT EXISTS handovers (
 );
 CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
 CREATE TABLE IF NOT EXISTS counters (name TEXT PRIMARY KEY, value INTEGER NOT NULL);
+CREATE TABLE IF NOT EXISTS inputs (
+    plane INTEGER NOT NULL,
+    timestamp REAL NOT NULL,
+    frame INTEGER NOT NULL,
+    track_id INTEGER NOT NULL,
+    x REAL NOT NULL,
+    y REAL NOT NULL,
+    class_id INTEGER NOT NULL
+);
+CREATE INDEX IF NOT EXISTS inputs_time ON inputs (timestamp);
+CREATE TABLE IF NOT EXISTS snapshots (
+    clock REAL PRIMARY KEY,
+    emitted_until REAL NOT NULL,
+    track_row INTEGER NOT NULL,
+    handover_row INTEGER NOT NULL,
+    event_row INTEGER NOT NULL,
+    log_row INTEGER NOT NULL,
+    state TEXT NOT NULL,
+    analytics TEXT
+);
+CREATE TABLE IF NOT EXISTS corrections (
+    plane INTEGER NOT NULL,
+    timestamp REAL NOT NULL,
+    corrected_from REAL NOT NULL,
+    PRIMARY KEY (plane, timestamp, corrected_from)
+);
 """ + ANALYTICS_SCHEMA
+
+SNAPSHOT_INTERVAL_S = 5.0
+"""Seconds of the linker's clock between two snapshots."""
+SNAPSHOT_HORIZON_S = 600.0
+"""Snapshots (and inputs) are kept this long behind the newest: a correction from before the
+oldest one is not linked again (the matchers' default ``--late-horizon`` is as long)."""
 
 
 class LinkerStoreError(CblrsError):
@@ -100,6 +147,15 @@ class LinkerBatch:
         lags: each plane's largest lag between an update's time and its earliest row.
         counters: increments of the counters.
         analytics: the site analytics' writes (None without analytics).
+        inputs: in order, ``("add", plane, rows)`` (rows taken), ``("cut", plane, time)`` (a
+            correction begins: the plane's inputs after ``time`` are replaced) and
+            ``("fix", plane, rows)`` (a correction's rows).
+        corrections: keys ``(plane, update time, corrected_from)`` of the corrections taken.
+        rewound: the snapshot the linker went back to (:meth:`LinkerStore.snapshot_at`):
+            the global rows, hand-overs, events and counts after it are taken back first.
+        snapshot: a snapshot to take after the batch (``clock``, ``emitted_until``, ``state``,
+            ``analytics``).
+        correcting: each plane's correction under way (``[corrected_from, update time]``).
     """
 
     updates: list[tuple[int, float, float, int]] = field(default_factory=list)
@@ -110,6 +166,25 @@ class LinkerBatch:
     lags: dict[int, float] = field(default_factory=dict)
     counters: dict[str, int] = field(default_factory=dict)
     analytics: AnalyticsWrites | None = None
+    inputs: list[tuple[str, int, Any]] = field(default_factory=list)
+    corrections: list[tuple[int, float, float]] = field(default_factory=list)
+    rewound: Snapshot | None = None
+    snapshot: dict[str, Any] | None = None
+    correcting: dict[int, list[float]] | None = None
+
+
+@dataclass(frozen=True)
+class Snapshot:
+    """A snapshot the linker can go back to (see the module docstring)."""
+
+    clock: float
+    emitted_until: float
+    track_row: int
+    handover_row: int
+    event_row: int
+    log_row: int
+    state: dict[str, Any]
+    analytics: dict[str, Any] | None
 
 
 class LinkerStore:
@@ -254,6 +329,8 @@ class LinkerStore:
             cursor = self._connection.cursor()
             cursor.execute("BEGIN IMMEDIATE")
             try:
+                if batch.rewound is not None:  # first: what was linked after the snapshot
+                    _take_back(cursor, batch)
                 cursor.executemany("INSERT OR IGNORE INTO updates (plane, timestamp, "
                                    "received_at, rows) VALUES (?, ?, ?, ?)", batch.updates)
                 cursor.executemany("INSERT INTO tracks (timestamp, frame, track_id, x, y, "
@@ -276,8 +353,11 @@ class LinkerStore:
                     "INSERT INTO counters (name, value) VALUES (?, ?) "
                     "ON CONFLICT(name) DO UPDATE SET value = value + excluded.value",
                     [(name, int(value)) for name, value in batch.counters.items() if value])
+                _write_inputs(cursor, batch)
                 if batch.analytics is not None:
                     write_analytics(cursor, batch.analytics)
+                if batch.snapshot is not None:
+                    _write_snapshot(cursor, batch.snapshot)
                 cursor.execute("COMMIT")
             except BaseException:
                 cursor.execute("ROLLBACK")
@@ -353,12 +433,116 @@ class LinkerStore:
             local_track_id=np.array(columns[7], np.int64),
         )
 
+    def snapshot_at(self, time: float) -> Snapshot | None:
+        """The newest snapshot at or before ``time`` (None: none is that old)."""
+        rows = self.query(
+            "SELECT clock, emitted_until, track_row, handover_row, event_row, log_row, state, "
+            "analytics FROM snapshots WHERE clock <= ? ORDER BY clock DESC LIMIT 1", (time,))
+        if not rows:
+            return None
+        clock, emitted, track_row, handover_row, event_row, log_row, state, counted = rows[0]
+        return Snapshot(float(clock), float(emitted), int(track_row), int(handover_row),
+                        int(event_row), int(log_row), json.loads(state),
+                        None if counted is None else json.loads(counted))
+
+    def has_snapshots(self) -> bool:
+        return bool(self.query("SELECT 1 FROM snapshots LIMIT 1"))
+
+    def inputs_after(self, time: float) -> dict[int, Tracks]:
+        """Each plane's inputs after ``time``, in time order."""
+        planes: dict[int, list[tuple]] = {}
+        for row in self.query("SELECT plane, timestamp, frame, track_id, x, y, class_id FROM "
+                              "inputs WHERE timestamp > ? ORDER BY rowid", (time,)):
+            planes.setdefault(int(row[0]), []).append(row[1:])
+        result = {}
+        for plane, rows in planes.items():
+            columns = list(zip(*rows, strict=True))
+            tracks = Tracks(frame=np.array(columns[1], np.int64),
+                            timestamp=np.array(columns[0], np.float64),
+                            track_id=np.array(columns[2], np.int64),
+                            world_xy=np.column_stack([columns[3], columns[4]]).astype(np.float64),
+                            class_id=np.array(columns[5], np.int64))
+            result[plane] = tracks[np.argsort(tracks.timestamp, kind="stable")]
+        return result
+
+    def counts_at(self, log_row: int) -> dict[tuple[str, str, str], float]:
+        """The ``counts`` as they were when the count log ended at ``log_row``."""
+        counts = read_counts(self)
+        for key, value in self.query(
+                "SELECT key, SUM(value) FROM count_log WHERE tbl = 'counts' AND rowid > ? "
+                "GROUP BY key", (log_row,)):
+            place, measure, klass = json.loads(key)
+            counts[(place, measure, klass)] = counts.get((place, measure, klass), 0.0) - value
+        return counts
+
+    def seen_corrections(self, keys: Iterable[tuple[int, float, float]]
+                         ) -> set[tuple[int, float, float]]:
+        """Which correction keys were taken already."""
+        return {key for key in keys if self.query(
+            "SELECT 1 FROM corrections WHERE plane = ? AND timestamp = ? AND corrected_from = ?",
+            key)}
+
     def handovers(self) -> list[Handover]:
         """Every hand-over, in the order decided."""
         return [Handover(int(g), float(t), int(fp), int(ft), int(tp), int(tt), str(kind),
                          float(score))
                 for g, t, fp, ft, tp, tt, kind, score in self.query(
                     "SELECT * FROM handovers ORDER BY rowid")]
+
+
+def _take_back(cursor: sqlite3.Cursor, batch: LinkerBatch) -> None:
+    """Before a batch linked again from a snapshot: delete what was linked after it."""
+    back = batch.rewound
+    assert back is not None
+    cursor.execute("DELETE FROM tracks WHERE row > ?", (back.track_row,))
+    deleted = cursor.rowcount
+    batch.counters["rows_out"] = batch.counters.get("rows_out", 0) - deleted
+    batch.counters["rows_linked_again"] = batch.counters.get("rows_linked_again", 0) + deleted
+    cursor.execute("DELETE FROM handovers WHERE rowid > ?", (back.handover_row,))
+    cursor.execute("DELETE FROM snapshots WHERE clock > ?", (back.clock,))
+    taken_back = roll_back(cursor, back.clock, back.event_row, after_row=back.log_row)
+    if batch.analytics is not None:
+        keep_published(taken_back, [batch.analytics])
+
+
+def _write_inputs(cursor: sqlite3.Cursor, batch: LinkerBatch) -> None:
+    for operation, plane, value in batch.inputs:
+        if operation == "cut":
+            cursor.execute("DELETE FROM inputs WHERE plane = ? AND timestamp > ?",
+                           (int(plane), float(value)))
+            continue
+        cursor.executemany(
+            "INSERT INTO inputs (plane, timestamp, frame, track_id, x, y, class_id) "
+            "VALUES (?, ?, ?, ?, ?, ?, ?)",
+            zip([int(plane)] * len(value), value.timestamp.tolist(), value.frame.tolist(),
+                value.track_id.tolist(), value.world_xy[:, 0].tolist(),
+                value.world_xy[:, 1].tolist(), value.class_id.tolist(), strict=True))
+    cursor.executemany("INSERT OR IGNORE INTO corrections VALUES (?, ?, ?)", batch.corrections)
+    if batch.correcting is not None:
+        _set_meta(cursor, "correcting",
+                  {str(plane): value for plane, value in batch.correcting.items()})
+
+
+def _write_snapshot(cursor: sqlite3.Cursor, snapshot: dict[str, Any]) -> None:
+    """Save a snapshot after the batch's rows, and forget what no snapshot needs."""
+    (track_row,) = cursor.execute("SELECT COALESCE(MAX(row), 0) FROM tracks").fetchone()
+    (handover_row,) = cursor.execute("SELECT COALESCE(MAX(rowid), 0) FROM handovers").fetchone()
+    (event_row,) = cursor.execute("SELECT COALESCE(MAX(id), 0) FROM events").fetchone()
+    (log_row,) = cursor.execute("SELECT COALESCE(MAX(rowid), 0) FROM count_log").fetchone()
+    cursor.execute(
+        "INSERT OR REPLACE INTO snapshots VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
+        (snapshot["clock"], snapshot["emitted_until"], track_row, handover_row, event_row,
+         log_row, json.dumps(snapshot["state"]),
+         None if snapshot.get("analytics") is None else json.dumps(snapshot["analytics"])))
+    # Kept: every snapshot of the horizon, and the newest one before it (so a correction
+    # anywhere in the horizon has one at or before it).
+    cursor.execute("DELETE FROM snapshots WHERE clock < (SELECT MAX(clock) FROM snapshots "
+                   "WHERE clock <= ?)", (snapshot["clock"] - SNAPSHOT_HORIZON_S,))
+    oldest = cursor.execute("SELECT clock, log_row FROM snapshots ORDER BY clock LIMIT 1"
+                            ).fetchone()
+    cursor.execute("DELETE FROM inputs WHERE timestamp <= ?", (oldest[0],))
+    cursor.execute("DELETE FROM corrections WHERE timestamp <= ?", (oldest[0],))
+    cursor.execute("DELETE FROM count_log WHERE rowid <= ?", (oldest[1],))
 
 
 def _set_meta(cursor: sqlite3.Cursor, key: str, value: Any) -> None:

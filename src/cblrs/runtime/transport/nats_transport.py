@@ -21,7 +21,8 @@ behaviour the services rely on, on a NATS server or cluster with JetStream:
   the servers; answers come to the login's own inbox prefix; a refused login, TLS handshake,
   publish or subscription is one sentence (``refused_publishes``, ``refused_subjects``);
 * **durable consumer** (``durable=``): the subscriptions that fall in the plane's detections
-  stream are served by one durable pull consumer with explicit acknowledgements (a runtime
+  stream (``consume="tracks"``: its tracks stream, the linker's way to read a plane's track
+  updates) are served by one durable pull consumer with explicit acknowledgements (a runtime
   login only reads it and resets it to replay): ``delivery.ack()`` acknowledges
   (the matcher does so after its SQLite commit, as on MQTT), un-acknowledged messages come
   again after ``ack_wait_s`` or to the next holder, flagged ``duplicate``; a status message
@@ -444,6 +445,8 @@ class NatsTransport:
         durable: name of the durable consumer that serves the subscriptions falling in a
             plane's detections stream (one per plane: ``cblrs-plane-<plane>``); None:
             subscriptions are plain NATS subscriptions (live only).
+        consume: the stream the durable consumer reads: "detections" (a matcher) or
+            "tracks" (a plane's track updates, events and alerts: a linker).
         replay: on connect, rebuild the durable consumer so that it delivers the stream's
             messages from the first one again (a matcher rebuilding an empty store).
         lease: hold this lease while connected (see :class:`LeaseSettings`).
@@ -463,8 +466,12 @@ class NatsTransport:
         will: Will | None = None,
         on_failure: Callable[[str], None] | None = None,
         persistent: bool = True,
+        consume: str = "detections",
     ):
+        if consume not in ("detections", "tracks"):
+            raise ValueError(f"consume must be 'detections' or 'tracks', got {consume!r}.")
         self.client_id = client_id
+        self.consume = consume
         self.settings = settings or NatsSettings()
         self.durable = durable
         self.replay = replay
@@ -632,7 +639,7 @@ class NatsTransport:
             return
         subject = site_subject(topic_filter, self._site)
         kind = _classify(subject, self._site)
-        if self.durable is not None and kind is not None and kind[0] == "detections":
+        if self.durable is not None and kind is not None and kind[0] == self.consume:
             if self._started:
                 # Widening a consumer's filter later would skip what it had passed already.
                 raise TransportError(
@@ -997,14 +1004,14 @@ class NatsTransport:
                 f"its subscriptions span planes {sorted(planes)}."
             )
         plane = planes.pop()
-        stream = await self._resolve_stream("detections", plane)
+        stream = await self._resolve_stream(self.consume, plane)
         self._consumer_stream = stream
         if self.settings.manages:  # the admin's --prepare: the plane's tracks stream too
             await self._resolve_stream("tracks", plane)
         # A plane's own stream needs no filter when the subscriptions cover it; the legacy
         # stream of every plane does.
         filters: list[str] | None = subjects
-        if stream != LEGACY_DETECTIONS_STREAM and \
+        if stream not in (LEGACY_DETECTIONS_STREAM, LEGACY_TRACKS_STREAM) and \
                 set(subjects) == set(stream_subjects(stream, plane, self._site)):
             filters = None
         self._consumer_config = ConsumerConfig(
