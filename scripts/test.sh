@@ -8,10 +8,13 @@
 #    their own brokers) and chromium (the dashboard's browser tests; Playwright drives it, nothing is downloaded);
 #    tests whose package is missing are skipped with the reason;
 # 2. pip install -e ".[dev]";
-# 3. python -m pytest on every core (pytest-xdist: -n auto, one test file per worker at a
+# 3. python -m pytest with two workers per core (pytest-xdist, one test file per worker at a
 #    time so that a file's module fixtures — rendered references, brokers — are built once;
 #    tests/conftest.py hands the files out longest first, from tests/file_durations.json,
-#    so that no long file is left to run alone at the end);
+#    so that no long file is left to run alone at the end). Two per core, not one: the
+#    broker, fault and `cblrs up` files spend most of their time waiting on the processes
+#    they start (test_runtime_fault_tracks.py: 31 CPU-s in 143 s), and another worker's
+#    file uses the core meanwhile (docs/getting-started.md has the figures);
 #    CBLRS_TEST_WORKERS=N sets the number of workers, 0 runs in this process.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -44,4 +47,5 @@ if (( ${#missing[@]} )) && command -v apt-get > /dev/null 2>&1; then
 fi
 
 pip install -q -e ".[dev]"
-python -m pytest -n "${CBLRS_TEST_WORKERS:-auto}" --dist loadfile "$@"
+cores=$(nproc 2> /dev/null || echo 2)
+python -m pytest -n "${CBLRS_TEST_WORKERS:-$(( 2 * cores ))}" --dist loadfile "$@"

@@ -15,7 +15,6 @@ from cblrs.analytics.config import (
     ZoneLeft,
 )
 from cblrs.analytics.engine import Analytics
-from cblrs.analytics.site import SitePlaces, check_tracks_on_site, load_site_places
 from cblrs.analytics.tables import AnalyticsResult, analyse_tracks, write_result
 
 __all__ = [
@@ -26,11 +25,21 @@ __all__ = [
     "Event",
     "HeatmapGrid",
     "LineCrossing",
-    "SitePlaces",
     "ZoneEntered",
     "ZoneLeft",
     "analyse_tracks",
-    "check_tracks_on_site",
-    "load_site_places",
     "write_result",
 ]
+
+_SITE_NAMES = ("SitePlaces", "check_tracks_on_site", "load_site_places")
+
+
+def __getattr__(name: str):
+    """The site helpers of :mod:`cblrs.analytics.site` (documented there, so not in
+    ``__all__``), imported on first use: they load :mod:`cblrs.site`, whose schema models take
+    a third of a second of CPU to build, and a matcher without a site never needs them."""
+    if name in _SITE_NAMES:
+        import importlib
+
+        return getattr(importlib.import_module("cblrs.analytics.site"), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -25,7 +25,8 @@ observations of one point. Per instant:
    cameras are assigned again in the reverse order, and each connected group of tracks
    and detections where the two assignments differ keeps the more likely one (the sum of
    the cameras' innovation costs, an unassigned detection costing as much as one at the
-   gate);
+   gate); detections scoring below ``high_confidence`` are associated after the others,
+   and a track keeps them only with a second view (they never start a track alone);
 4. let leftovers join a track other cameras saw at this instant when they are consistent
    with its fused position (the gate must not split one object's views); then release the
    detections of a vehicle track that would have had to turn tighter than its class can
@@ -68,6 +69,8 @@ The package follows these steps: :mod:`~cblrs.matching.fusion.config` (parameter
 algebra all steps share), :mod:`~cblrs.matching.fusion.association` (3, 4),
 :mod:`~cblrs.matching.fusion.motion` (4, 7: vehicles' turns),
 :mod:`~cblrs.matching.fusion.reachable` (3, 4: where a vehicle can be),
+:mod:`~cblrs.matching.fusion.low_confidence` (3, 4: boxes below ``high_confidence``
+only where a track seen by two cameras or another camera's sure view confirms them),
 :mod:`~cblrs.matching.fusion.birth` (6, 7), :mod:`~cblrs.matching.fusion.coverage` (7: where
 each camera sees), :mod:`~cblrs.matching.fusion.stitching` (7: new tracks continuing lost
 ones), :mod:`~cblrs.matching.fusion.clocks` (camera clocks),

@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from cblrs.detections import CLASS_NAMES
+from cblrs.detections import CLASS_NAMES, SURE_CONFIDENCE
 from cblrs.matching.base import (
     require,
 )
@@ -132,6 +132,13 @@ class FusionConfig:
             (a sign, a bollard, a reflection); a car or a person whom the second camera
             cannot see (an occluder the reference image does not know, a distance where it
             detects nothing) moves. 0: moving tracks need the cameras like any other.
+        high_confidence: detections scoring below this (the detector's score, 0..1) are
+            low-confidence: they may extend a live track (after the high-confidence ones
+            are associated, and only from a camera that gave the track nothing yet) or
+            start one together with another camera's view of the same place, never alone
+            (:mod:`~cblrs.matching.fusion.low_confidence`). ByteTrack's split (0.5; run the
+            detector lower, 0.1, to have low-confidence boxes at all). 0: every detection
+            is high-confidence.
         tentative_max_age_s: a tentative track unseen this long is dropped, seconds.
         max_age_s: a confirmed track unseen this long is dropped, seconds.
         end_off_plane: a track missed at an instant whose prediction lies off every plane,
@@ -195,6 +202,7 @@ class FusionConfig:
     confirm_evidence: int = 2
     confirm_cameras: int = 2
     confirm_moving_mps: float = 0.5
+    high_confidence: float = SURE_CONFIDENCE
     tentative_max_age_s: float = 1.0
     max_age_s: float = 2.0
     end_off_plane: bool = True
@@ -270,6 +278,12 @@ class FusionConfig:
         require(
             isinstance(self.confirm_moving_mps, (int, float)) and self.confirm_moving_mps >= 0,
             f"confirm_moving_mps must be a number >= 0, got {self.confirm_moving_mps!r}.",
+        )
+        require(
+            isinstance(self.high_confidence, (int, float))
+            and not isinstance(self.high_confidence, bool)
+            and 0.0 <= self.high_confidence <= 1.0,
+            f"high_confidence must be a number within 0..1, got {self.high_confidence!r}.",
         )
         for name in ("class_measurement_sigma_m", "class_acceleration_sigma",
                      "class_turn_radius_m"):

@@ -32,6 +32,7 @@ from cblrs.matching.fusion.clocks import ClockLearning
 from cblrs.matching.fusion.config import FusionConfig
 from cblrs.matching.fusion.coverage import Coverage
 from cblrs.matching.fusion.gaussian import fuse, ray_covariance
+from cblrs.matching.fusion.low_confidence import LowConfidence, take_measured
 from cblrs.matching.fusion.motion import MotionCheck
 from cblrs.matching.fusion.noise import NoiseModel
 from cblrs.matching.fusion.state import STATE_VERSION, table_from_state, table_state
@@ -119,6 +120,7 @@ class FusionTracker:
         self.association = Association(self.context)
         self.motion = MotionCheck(self.context)
         self.coverage = Coverage(self.planes, len(self.camera_ids))
+        self.low_confidence = LowConfidence(self.context, self.association, self.coverage)
         self.births = Births(self.context)
         self.clock_learning = ClockLearning(self.context, self._clock)
         self.stitching = Stitching(self.context, self._class_acceleration)
@@ -311,15 +313,24 @@ class FusionTracker:
                 * self.measured.direction
             )
 
-        # Where each camera locates things (coverage module, for multi-view confirmation).
-        self.coverage.learn(observed.world_xy, observed.camera)
-        # 3. associate (association module); 4. leftovers join tracks seen at this instant.
-        assigned = self.association.associate(self.tracks, self.measured, observed, covariance,
-                                              timestamp)
-        assigned = self.association.join_observed(self.tracks, self.measured, observed,
-                                                  covariance, assigned, timestamp)
+        # Where each camera locates things (coverage module, for multi-view confirmation),
+        # from the detections it is sure of.
+        high = self.low_confidence.is_high(observed)
+        self.coverage.learn(observed.world_xy[high], observed.camera[high])
+        # 3. associate, high-confidence detections first (low_confidence and association
+        # modules); 4. leftovers join tracks seen at this instant.
+        assigned = self.low_confidence.associate(self.tracks, self.measured, observed,
+                                                 covariance, timestamp)
         # 4b. vehicles cannot turn on the spot (motion module).
         assigned = self.motion.check(self.tracks, observed, covariance, assigned, timestamp)
+        # 4c. low-confidence detections neither a multi-view track nor another camera's
+        # sure view confirms are dropped: no filter, noise model, clock or birth sees them.
+        kept = self.low_confidence.kept(self.tracks, observed, covariance, assigned)
+        if not kept.all():
+            raw, observed = _subset(raw, kept), _subset(observed, kept)
+            covariance, base_covariance = covariance[kept], base_covariance[kept]
+            lag, plain, assigned = lag[kept], plain[kept], assigned[kept]
+            self.measured = take_measured(self.measured, kept)
         matched = assigned >= 0
         located_xy = observed.world_xy
         if matched.any() and np.any(lag[matched] != 0):

@@ -51,6 +51,7 @@ from __future__ import annotations
 
 import fcntl
 import json
+import logging
 import math
 import os
 import socket
@@ -835,12 +836,18 @@ def checkpoint_regularly(path: Path, stop: threading.Event, interval_s: float = 
     """Copy the WAL of a shared store into its database file every ``interval_s`` seconds
     until ``stop`` is set (in a thread of one of its writers, on a connection of its own).
 
-    A passive checkpoint does not block the writers: they go on appending to the WAL.
+    A passive checkpoint does not block the writers: they go on appending to the WAL. One
+    that fails is tried again at the next interval and never ends the thread: a database
+    deleted under the matcher failed it ("disk I/O error") and printed a traceback beside the
+    one sentence the matcher says about it (the writers find and report what is wrong).
     """
     connection = sqlite3.connect(str(path), check_same_thread=False)
     try:
         while not stop.wait(interval_s):
-            connection.execute("PRAGMA wal_checkpoint(PASSIVE)")
+            try:
+                connection.execute("PRAGMA wal_checkpoint(PASSIVE)")
+            except sqlite3.Error as error:
+                logging.getLogger(__name__).debug("checkpoint of %s failed: %s", path, error)
     finally:
         connection.close()
 

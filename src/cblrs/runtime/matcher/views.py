@@ -18,7 +18,7 @@ logger = logging.getLogger(__name__)
 
 
 def tell_views(matcher: Any, names: list[str], references: Path | None = None,
-               site: Any = None) -> int:
+               site: Any = None, loaded: dict[Path, Any] | None = None) -> int:
     """Give ``matcher`` (if it takes views) its cameras' ground; the number of cameras told.
 
     Args:
@@ -26,9 +26,13 @@ def tell_views(matcher: Any, names: list[str], references: Path | None = None,
         names: the matcher's cameras.
         references: folder of ``<camera>.png`` reference images (read first), or
         site: a :class:`cblrs.site.Site` whose cameras' references are rendered.
+        loaded: reference images already read, by path: not read again, and let go once
+            the views are set (emptied; 12 MB a camera, the tracker keeps sampled colours).
     """
     set_views = getattr(matcher, "set_views", None)
     if set_views is None:
+        if loaded:
+            loaded.clear()
         return 0
     # lazy: the PNG reader and the renderer are only needed by a fusion matcher
     from cblrs.reference import ReferenceImage
@@ -37,11 +41,15 @@ def tell_views(matcher: Any, names: list[str], references: Path | None = None,
     images = []
     for name in names:
         path = None if references is None else references / f"{name}.png"
-        if path is not None and path.is_file():
+        if path is not None and loaded and path in loaded:
+            images.append(loaded[path])
+        elif path is not None and path.is_file():
             images.append(ReferenceImage.load(path))
         elif site is not None and name in site.camera_names:
             images.append(site.render_reference(name))
     set_views(images)
+    if loaded:
+        loaded.clear()
     logger.info("the tracker knows where %d of %d cameras see the ground (%.1f s)",
                 len(images), len(names), time.perf_counter() - started)
     return len(images)
