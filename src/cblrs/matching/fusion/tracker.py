@@ -327,7 +327,7 @@ class FusionTracker:
         # sure view confirms are dropped: no filter, noise model, clock or birth sees them.
         kept = self.low_confidence.kept(self.tracks, observed, covariance, assigned)
         if not kept.all():
-            raw, observed = _subset(raw, kept), _subset(observed, kept)
+            raw, observed = raw[kept], observed[kept]
             covariance, base_covariance = covariance[kept], base_covariance[kept]
             lag, plain, assigned = lag[kept], plain[kept], assigned[kept]
             self.measured = take_measured(self.measured, kept)
@@ -355,7 +355,7 @@ class FusionTracker:
         )
 
         # 6. births from clusters of what no track took (birth module).
-        born = self.births.birth(_subset(observed, ~matched), covariance[~matched], timestamp)
+        born = self.births.birth(observed[~matched], covariance[~matched], timestamp)
         self.tracks = self.tracks.extend(born.tracks)
         seen_now = np.concatenate([seen_now, np.ones(len(born.tracks), dtype=bool)])
         report_camera = np.concatenate([report_camera, born.camera])
@@ -592,10 +592,3 @@ class FusionTracker:
             departed = ~seen_now & self._departed()
         return age > limit, departed
 
-
-def _subset(observed: Observations, mask: np.ndarray) -> Observations:
-    return Observations(
-        world_xy=observed.world_xy[mask], colour=observed.colour[mask],
-        camera=observed.camera[mask], xyxy=observed.xyxy[mask],
-        confidence=observed.confidence[mask], class_id=observed.class_id[mask],
-    )
