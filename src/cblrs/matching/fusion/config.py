@@ -148,6 +148,18 @@ class FusionConfig:
         end_off_plane: a track missed at an instant whose prediction lies off every plane,
             moving away from it, has left the located area and is dropped at once (no camera
             can locate it there); False keeps it coasting for ``max_age_s``.
+        stitch_gap_s: a new track born at most this long after a confirmed track was last
+            seen may continue it and take its id (the stitching stage,
+            :mod:`~cblrs.matching.fusion.stitching`): a confirmed track dropped for being
+            unseen too long is kept this long for it, seconds (0: no stitching).
+        stitch_delay_s: a new track that may continue a lost one and whose velocity is not
+            clearly known yet is held back (tentative, not reported) until its velocity is
+            known or this long after its first detection, seconds; 0: decided when it would
+            be confirmed, with what is known then (a track two cameras confirm at once is
+            not stitched). Ids once reported are never rewritten either way.
+        stitch_sigmas: a new track continues a lost one when their (x, y, vx, vy) states are
+            within this many standard deviations of each other (Mahalanobis distance under
+            the sum of their covariances), and no other pair could be it.
         report_coasting_s: keep reporting the prediction of a confirmed track that was
             missed for at most this long, seconds (0: report only observed tracks).
         max_window_s: messages are fused in windows of nearby capture times (see
@@ -199,6 +211,9 @@ class FusionConfig:
     max_age_s: float = 2.0
     end_off_plane: bool = True
     vehicle_footprint: bool = True
+    stitch_gap_s: float = 3.0
+    stitch_delay_s: float = 0.0
+    stitch_sigmas: float = 3.0
     report_coasting_s: float = 0.0
     max_window_s: float = DEFAULT_MAX_WINDOW_S
     window_fraction: float = DEFAULT_WINDOW_FRACTION
@@ -212,13 +227,13 @@ class FusionConfig:
             "measurement_sigma_m", "minimum_sigma_m", "acceleration_sigma",
             "initial_velocity_sigma", "gate_sigmas", "max_gate_m", "cluster_sigmas",
             "cluster_radius_m", "tentative_max_age_s", "max_age_s", "max_window_s",
-            "window_fraction", "max_lag_s", "clock_tolerance_s",
+            "window_fraction", "max_lag_s", "clock_tolerance_s", "stitch_sigmas",
         ):
             value = getattr(self, name)
             require(_positive(value), f"{name} must be a positive number, got {value!r}.")
         for name in ("sigma_per_distance", "along_sigma_per_distance", "merge_radius_m",
                      "report_coasting_s", "object_sigma_m", "group_radius_m",
-                     "max_clock_offset_s"):
+                     "max_clock_offset_s", "stitch_gap_s", "stitch_delay_s"):
             value = getattr(self, name)
             require(
                 _positive(value) or value == 0,

@@ -28,6 +28,7 @@ per box.
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Mapping, Sequence
 from typing import Any
 
@@ -125,6 +126,16 @@ class Footprint:
                 self.size[index] = sizes[name]
                 self.fraction[index] = targeting_for(name).vertical
         self.enabled = bool(np.isfinite(self.camera_height).any())
+
+    @classmethod
+    def from_config(cls, camera_ids: Sequence[str], config: Any) -> Footprint:
+        """The tracker's stage: off unless ``config.vehicle_footprint``
+        (:class:`~cblrs.matching.fusion.config.FusionConfig`).
+
+        Step 4d of the tracker: once a detection has a track, :meth:`refine` moves it again
+        by that track's heading.
+        """
+        return cls(camera_ids, config.camera_positions if config.vehicle_footprint else None)
 
     def set_view(self, camera: int, reference: Any) -> None:
         """Learn a camera's viewing direction on the ground from its reference image.
@@ -239,13 +250,14 @@ class Footprint:
 
     def centre(
         self, observed: Observations, measured: Measured, heading: np.ndarray | None = None
-    ) -> np.ndarray:
-        """(N, 2) footprint centres of the detections (others unchanged)."""
+    ) -> Observations:
+        """The detections with vehicles at their footprint centres (others unchanged)."""
         if not self.enabled or not len(observed.world_xy):
-            return observed.world_xy
-        return observed.world_xy + self.shift(
+            return observed
+        shift = self.shift(
             measured.distance, measured.direction, observed.camera, observed.class_id, heading
         )
+        return dataclasses.replace(observed, world_xy=observed.world_xy + shift)
 
     def refine(
         self,
@@ -253,11 +265,11 @@ class Footprint:
         measured: Measured,
         tracks: TrackTable,
         assigned: np.ndarray,
-    ) -> np.ndarray:
-        """(N, 2) centres of detections ``centre`` moved with the average heading, moved
-        again with the heading of the track each was given (where it is known)."""
+    ) -> Observations:
+        """Detections :meth:`centre` moved with the average heading, moved again with the
+        heading of the track each was given (where it is known)."""
         if not self.enabled or not len(observed.world_xy):
-            return observed.world_xy
+            return observed
         heading = np.full((len(assigned), 2), np.nan)
         matched = np.flatnonzero(assigned >= 0)
         known = np.isfinite(tracks.heading_time[assigned[matched]]) & (
@@ -265,7 +277,7 @@ class Footprint:
         )
         rows = matched[known]
         if not len(rows):
-            return observed.world_xy
+            return observed
         heading[rows] = tracks.heading[assigned[rows]]
         before = self.shift(
             measured.distance, measured.direction, observed.camera, observed.class_id
@@ -275,7 +287,7 @@ class Footprint:
         )
         moved = observed.world_xy.copy()
         moved[rows] += (after - before)[rows]
-        return moved
+        return dataclasses.replace(observed, world_xy=moved)
 
 
 def _slot(class_id: np.ndarray) -> np.ndarray:

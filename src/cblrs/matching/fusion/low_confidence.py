@@ -103,13 +103,13 @@ class LowConfidence:
             assigned[strong] = association.associate(
                 tracks,
                 take_measured(measured, strong),
-                take(observed, strong),
+                observed[strong],
                 covariance[strong],
                 timestamp,
             )
         weak = np.flatnonzero(~high)
         weak_track = association.associate(
-            tracks, take_measured(measured, weak), take(observed, weak), covariance[weak], timestamp
+            tracks, take_measured(measured, weak), observed[weak], covariance[weak], timestamp
         )
         # A camera that already gave the track a strong box gives it nothing more.
         taken = np.zeros((len(tracks.ids), self.context.camera_count), dtype=bool)
@@ -184,18 +184,6 @@ class LowConfidence:
         rows = np.flatnonzero(lone)
         confirms[rows] = self.coverage.covering(tracks.state[rows, :2]) < 2
         return confirms
-
-
-def take(observed: Observations, index: np.ndarray) -> Observations:
-    """The detections at ``index`` (a mask or indices)."""
-    return Observations(
-        world_xy=observed.world_xy[index],
-        colour=observed.colour[index],
-        camera=observed.camera[index],
-        xyxy=observed.xyxy[index],
-        confidence=observed.confidence[index],
-        class_id=observed.class_id[index],
-    )
 
 
 def take_measured(measured: Measured, index: np.ndarray) -> Measured:
