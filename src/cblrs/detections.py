@@ -21,6 +21,12 @@ CLASS_NAMES: tuple[str, ...] = ("person", "car", "bicycle", "motorcycle", "bus",
 
 MESSAGE_SCHEMA = "cblrs.detections/1"
 
+SURE_CONFIDENCE = 0.5
+"""Detector score from which a box is one the detector is sure of (ByteTrack's split between
+high- and low-confidence boxes). Below it a box is doubtful: the fusion tracker accepts it only
+where a track or another camera confirms it (``high_confidence``), and at the camera it may
+not hide a sure box's feet (:func:`cblrs.edge.feet_hidden`)."""
+
 
 def class_id_of(name: str) -> int:
     """The index of a class name in :data:`CLASS_NAMES`; ValueError naming the known ones."""

@@ -25,7 +25,12 @@ Policy for locations a camera cannot vouch for (colour ``(0, 0, 0)``, "no locati
   person half hidden behind another ends where the visible part ends, not at the feet,
   and its "foot point" would put the person metres too far. Annotated boxes (WILDTRACK,
   MultiviewX) are drawn around the whole person, hidden parts included, so they keep
-  their location.
+  their location. A doubtful box (scored below :data:`~cblrs.detections.SURE_CONFIDENCE`)
+  counts as the nearer object only for boxes scored lower still: a detector run at a low
+  threshold (to let the tracker confirm weak boxes,
+  :mod:`cblrs.matching.fusion.low_confidence`) also reports a bag, a shadow or a second
+  box around one person, and such a box must not take away the location of a person the
+  detector is sure of.
 
 Vehicles are seen from above and the side, so the bottom of their box is the footprint's
 edge nearest the camera, not its centre (the paper's Fig. 1). With the default targeting the
@@ -42,7 +47,7 @@ from typing import Protocol
 
 import numpy as np
 
-from cblrs.detections import CLASS_NAMES, CameraMessage, Detections
+from cblrs.detections import CLASS_NAMES, SURE_CONFIDENCE, CameraMessage, Detections
 from cblrs.reference import Reference
 from cblrs.targeting import TargetingPosition, target_pixels, targeting_for
 
@@ -186,11 +191,12 @@ def make_message(
         pixels, inside = targeter.target_pixels(detections)
         colours = _box_colours(
             detections.xyxy, detections.class_id, reference, targeting, drop_hidden_feet,
-            targeted=(pixels, inside),
+            targeted=(pixels, inside), confidence=detections.confidence,
         )
     else:
         colours = _box_colours(
-            detections.xyxy, detections.class_id, reference, targeting, drop_hidden_feet
+            detections.xyxy, detections.class_id, reference, targeting, drop_hidden_feet,
+            confidence=detections.confidence,
         )
     return CameraMessage(
         camera_id=camera_id,
@@ -242,9 +248,11 @@ def make_messages(
         ]
     xyxy = np.concatenate([boxes.xyxy for boxes in detections])
     class_id = np.concatenate([boxes.class_id for boxes in detections])
+    confidence = np.concatenate([boxes.confidence for boxes in detections])
     ends = np.cumsum([len(boxes) for boxes in detections])
     colours = _box_colours(
-        xyxy, class_id, reference, targeting, drop_hidden_feet, frame_ends=ends
+        xyxy, class_id, reference, targeting, drop_hidden_feet, frame_ends=ends,
+        confidence=confidence,
     )
     starts = ends - np.array([len(boxes) for boxes in detections])
     return [
@@ -272,13 +280,14 @@ def _box_colours(
     drop_hidden_feet: bool,
     targeted: tuple[np.ndarray, np.ndarray] | None = None,
     frame_ends: np.ndarray | None = None,
+    confidence: np.ndarray | None = None,
 ) -> np.ndarray:
     """(N, 3) int64 colours of boxes, the policy of :func:`make_message`.
 
     ``targeted``: a targeter's ``(pixels, inside)``, replacing the class targeting and its
     depth offsets. ``frame_ends``: the boxes are several frames' one after another, frame k
     ending before row ``frame_ends[k]`` (the hidden-feet rule compares boxes of one frame);
-    None: one frame.
+    None: one frame. ``confidence``: the boxes' scores, for the hidden-feet rule.
     """
     horizontal, vertical = targeting_columns(class_id, targeting)
     offset = depth_offsets(class_id, targeting)
@@ -293,12 +302,13 @@ def _box_colours(
     cut = cut_by_border(xyxy, vertical, horizontal_matters, reference.image_size)
     if drop_hidden_feet:
         if frame_ends is None:
-            cut |= feet_hidden(xyxy, pixels, vertical)
+            cut |= feet_hidden(xyxy, pixels, vertical, confidence=confidence)
         else:
             starts = np.concatenate([[0], frame_ends[:-1]]).tolist()
             for start, end in zip(starts, frame_ends.tolist(), strict=True):
                 cut[start:end] |= feet_hidden(
-                    xyxy[start:end], pixels[start:end], vertical[start:end]
+                    xyxy[start:end], pixels[start:end], vertical[start:end],
+                    confidence=None if confidence is None else confidence[start:end],
                 )
     colours[~(valid & inside) | cut] = 0
     shift = (offset > 0) & ~cut
@@ -333,6 +343,8 @@ def feet_hidden(
     pixels: np.ndarray,
     vertical: np.ndarray,
     tolerance: float = HIDDEN_FEET_TOLERANCE,
+    confidence: np.ndarray | None = None,
+    sure: float = SURE_CONFIDENCE,
 ) -> np.ndarray:
     """(N,) bool: targets in the lower part of a box that lie inside a nearer object's box.
 
@@ -344,6 +356,11 @@ def feet_hidden(
         xyxy: (N, 4) pixel boxes.
         pixels: (N, 2) target pixels.
         vertical: (N,) vertical targeting fractions; only targets below the box centre count.
+        tolerance: how much lower B must reach, as a fraction of A's height.
+        confidence: (N,) detector scores, or None (every box may hide another); a box
+            scored below ``sure`` hides only boxes scored lower still (a doubtful box does
+            not take a sure box's location).
+        sure: the score from which a box may hide any other.
     """
     count = len(xyxy)
     if count < 2:
@@ -358,6 +375,8 @@ def feet_hidden(
             & (xyxy[None, :, 3] > y[:, None] + margin[:, None])
         )
     np.fill_diagonal(inside, False)
+    if confidence is not None:
+        inside &= confidence[None, :] >= np.minimum(confidence[:, None], sure)
     return (vertical > 0.5) & inside.any(axis=1)
 
 

@@ -158,8 +158,8 @@ def register(subparsers) -> None:
                           help="skip the held-out checks")
     tracking.add_argument("--without-rules", action="store_true",
                           help="the tracker without issue 19's rules (tracks leaving the plane "
-                          "end, vehicles cannot turn on the spot, multi-view confirmation), "
-                          "for comparison")
+                          "end, vehicles cannot turn on the spot, multi-view confirmation, "
+                          "stitching), for comparison")
     tracking.add_argument("--sites", type=Path, default=None,
                           help="folder of <scene>.yaml site files (default: the repository's "
                           "sites/)")

@@ -28,6 +28,7 @@ from cblrs.cli.detector_options import (
     real_detections,
 )
 from cblrs.datasets import load_scene, simulate_detections, write_tracks
+from cblrs.detections import SURE_CONFIDENCE
 from cblrs.matching import DEFAULT_MATCHER, MATCHERS
 from cblrs.pipeline import camera_positions, scene_planes, scene_references, track_scene
 from cblrs.plane import PlaneSet
@@ -125,6 +126,12 @@ def register(subparsers) -> None:
         "frames of which some camera's message arrived)",
     )
     add_detector_options(parser, detections_help=DETECTIONS_HELP)
+    parser.add_argument(
+        "--high-confidence", type=float, metavar="S",
+        help="fusion: detections scored below S are low-confidence, kept only where a track "
+        "seen by two cameras or another camera's sure view confirms them (default "
+        f"{SURE_CONFIDENCE}; 0: every detection is sure)",
+    )
     add_clock_options(parser)
     add_output_options(parser)
     parser.set_defaults(handler=run)
@@ -138,6 +145,13 @@ def run(args: argparse.Namespace) -> int:
             raise UsageError(f"--{name.replace('_', '-')} must be >= 0, got {value}.")
     if args.drop > 1:
         raise UsageError(f"--drop is a probability and must be at most 1, got {args.drop}.")
+    if args.high_confidence is not None and (
+        args.matcher != "fusion" or not 0.0 <= args.high_confidence <= 1.0
+    ):
+        raise UsageError(
+            "--high-confidence is a score within 0..1 for --matcher fusion, "
+            f"got {args.high_confidence}."
+        )
     if args.out.is_dir():
         raise UsageError(f"--out {args.out} is a folder; give a file name.")
     source = detection_source(args)
@@ -161,6 +175,8 @@ def run(args: argparse.Namespace) -> int:
     if frame_range is not None:
         scene = scene.select_frames(*frame_range)
     options: dict = {}
+    if args.high_confidence is not None:
+        options["high_confidence"] = args.high_confidence
     started = time.perf_counter()
     key = _load_key(args)
     if args.site is not None:

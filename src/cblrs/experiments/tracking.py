@@ -130,9 +130,11 @@ def default_cases() -> tuple[Case, ...]:
 
 
 WITHOUT_RULES: tuple[tuple[str, Any], ...] = (
-    ("end_off_plane", False), ("class_turn_radius_m", {}), ("confirm_cameras", 1))
+    ("end_off_plane", False), ("class_turn_radius_m", {}), ("confirm_cameras", 1),
+    ("stitch_gap_s", 0.0))
 """Fusion options that turn off issue 19's rules (tracks leaving the plane end, vehicles
-cannot turn on the spot, multi-view confirmation): the tracker as it was before them."""
+cannot turn on the spot, multi-view confirmation, stitching a new track to a lost one): the
+tracker as it was before them."""
 
 SCENES = ("roundabout", "crossroads", "crowd", "distorted", "wildtrack", "multiviewx")
 

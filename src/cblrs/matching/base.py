@@ -85,6 +85,18 @@ class Observations:
     def __len__(self) -> int:
         return len(self.world_xy)
 
+    def __getitem__(self, index: NDArray[np.bool_] | NDArray[np.intp]) -> Observations:
+        """The detections at ``index``, an (N,) boolean mask or integer indices, every
+        column alike."""
+        return Observations(
+            world_xy=self.world_xy[index],
+            colour=self.colour[index],
+            camera=self.camera[index],
+            xyxy=self.xyxy[index],
+            confidence=self.confidence[index],
+            class_id=self.class_id[index],
+        )
+
 
 def camera_index(camera_ids: Sequence[str]) -> dict[str, int]:
     """Map camera names to their indices, refusing duplicates."""

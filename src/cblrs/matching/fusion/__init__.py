@@ -25,7 +25,8 @@ observations of one point. Per instant:
    cameras are assigned again in the reverse order, and each connected group of tracks
    and detections where the two assignments differ keeps the more likely one (the sum of
    the cameras' innovation costs, an unassigned detection costing as much as one at the
-   gate);
+   gate); detections scoring below ``high_confidence`` are associated after the others,
+   and a track keeps them only with a second view (they never start a track alone);
 4. let leftovers join a track other cameras saw at this instant when they are consistent
    with its fused position (the gate must not split one object's views); then release the
    detections of a vehicle track that would have had to turn tighter than its class can
@@ -39,7 +40,10 @@ observations of one point. Per instant:
 7. confirm tracks with enough evidence (camera detections; where two cameras see the
    ground, from both: multi-view confirmation), split vehicle tracks whose direction turned
    further than they can turn, optionally merge duplicates, delete tracks unseen for too
-   long or that left the planes.
+   long or that left the planes; a track about to be confirmed that continues one deleted
+   for being unseen too long (both moving, alike in position where they meet and in
+   velocity, and no other pair could be it) takes that track's id instead of a new one
+   (stitching: decided at confirmation, no id ever rewritten).
 
 Cameras need not be synchronised. Messages are fused in windows of nearby capture times
 (:mod:`cblrs.matching.timing`: a fraction of the shortest frame period wide, one message per
@@ -65,8 +69,11 @@ The package follows these steps: :mod:`~cblrs.matching.fusion.config` (parameter
 algebra all steps share), :mod:`~cblrs.matching.fusion.association` (3, 4),
 :mod:`~cblrs.matching.fusion.motion` (4, 7: vehicles' turns),
 :mod:`~cblrs.matching.fusion.reachable` (3, 4: where a vehicle can be),
+:mod:`~cblrs.matching.fusion.low_confidence` (3, 4: boxes below ``high_confidence``
+only where a track seen by two cameras or another camera's sure view confirms them),
 :mod:`~cblrs.matching.fusion.birth` (6, 7), :mod:`~cblrs.matching.fusion.coverage` (7: where
-each camera sees), :mod:`~cblrs.matching.fusion.clocks` (camera clocks),
+each camera sees), :mod:`~cblrs.matching.fusion.stitching` (7: new tracks continuing lost
+ones), :mod:`~cblrs.matching.fusion.clocks` (camera clocks),
 :mod:`~cblrs.matching.fusion.table` (what the stages share), :mod:`~cblrs.matching.fusion.state`
 (snapshots) and :mod:`~cblrs.matching.fusion.tracker` (the tracker, which runs them: 2 and 5
 are its own).

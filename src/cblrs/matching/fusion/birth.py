@@ -103,6 +103,7 @@ class Births:
             heading=np.zeros((count, 2)),
             heading_time=np.full(count, -np.inf),
             heading_sigma=np.zeros(count),
+            born=np.full(count, timestamp),
         )
         return Born(born, cameras, camera, box)
 

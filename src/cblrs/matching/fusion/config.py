@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from cblrs.detections import CLASS_NAMES
+from cblrs.detections import CLASS_NAMES, SURE_CONFIDENCE
 from cblrs.matching.base import (
     require,
 )
@@ -132,11 +132,30 @@ class FusionConfig:
             (a sign, a bollard, a reflection); a car or a person whom the second camera
             cannot see (an occluder the reference image does not know, a distance where it
             detects nothing) moves. 0: moving tracks need the cameras like any other.
+        high_confidence: detections scoring below this (the detector's score, 0..1) are
+            low-confidence: they may extend a live track (after the high-confidence ones
+            are associated, and only from a camera that gave the track nothing yet) or
+            start one together with another camera's view of the same place, never alone
+            (:mod:`~cblrs.matching.fusion.low_confidence`). ByteTrack's split (0.5; run the
+            detector lower, 0.1, to have low-confidence boxes at all). 0: every detection
+            is high-confidence.
         tentative_max_age_s: a tentative track unseen this long is dropped, seconds.
         max_age_s: a confirmed track unseen this long is dropped, seconds.
         end_off_plane: a track missed at an instant whose prediction lies off every plane,
             moving away from it, has left the located area and is dropped at once (no camera
             can locate it there); False keeps it coasting for ``max_age_s``.
+        stitch_gap_s: a new track born at most this long after a confirmed track was last
+            seen may continue it and take its id (the stitching stage,
+            :mod:`~cblrs.matching.fusion.stitching`): a confirmed track dropped for being
+            unseen too long is kept this long for it, seconds (0: no stitching).
+        stitch_delay_s: a new track that may continue a lost one and whose velocity is not
+            clearly known yet is held back (tentative, not reported) until its velocity is
+            known or this long after its first detection, seconds; 0: decided when it would
+            be confirmed, with what is known then (a track two cameras confirm at once is
+            not stitched). Ids once reported are never rewritten either way.
+        stitch_sigmas: a new track continues a lost one when their (x, y, vx, vy) states are
+            within this many standard deviations of each other (Mahalanobis distance under
+            the sum of their covariances), and no other pair could be it.
         report_coasting_s: keep reporting the prediction of a confirmed track that was
             missed for at most this long, seconds (0: report only observed tracks).
         max_window_s: messages are fused in windows of nearby capture times (see
@@ -183,9 +202,13 @@ class FusionConfig:
     confirm_evidence: int = 2
     confirm_cameras: int = 2
     confirm_moving_mps: float = 0.5
+    high_confidence: float = SURE_CONFIDENCE
     tentative_max_age_s: float = 1.0
     max_age_s: float = 2.0
     end_off_plane: bool = True
+    stitch_gap_s: float = 3.0
+    stitch_delay_s: float = 0.0
+    stitch_sigmas: float = 3.0
     report_coasting_s: float = 0.0
     max_window_s: float = DEFAULT_MAX_WINDOW_S
     window_fraction: float = DEFAULT_WINDOW_FRACTION
@@ -199,13 +222,13 @@ class FusionConfig:
             "measurement_sigma_m", "minimum_sigma_m", "acceleration_sigma",
             "initial_velocity_sigma", "gate_sigmas", "max_gate_m", "cluster_sigmas",
             "cluster_radius_m", "tentative_max_age_s", "max_age_s", "max_window_s",
-            "window_fraction", "max_lag_s", "clock_tolerance_s",
+            "window_fraction", "max_lag_s", "clock_tolerance_s", "stitch_sigmas",
         ):
             value = getattr(self, name)
             require(_positive(value), f"{name} must be a positive number, got {value!r}.")
         for name in ("sigma_per_distance", "along_sigma_per_distance", "merge_radius_m",
                      "report_coasting_s", "object_sigma_m", "group_radius_m",
-                     "max_clock_offset_s"):
+                     "max_clock_offset_s", "stitch_gap_s", "stitch_delay_s"):
             value = getattr(self, name)
             require(
                 _positive(value) or value == 0,
@@ -255,6 +278,12 @@ class FusionConfig:
         require(
             isinstance(self.confirm_moving_mps, (int, float)) and self.confirm_moving_mps >= 0,
             f"confirm_moving_mps must be a number >= 0, got {self.confirm_moving_mps!r}.",
+        )
+        require(
+            isinstance(self.high_confidence, (int, float))
+            and not isinstance(self.high_confidence, bool)
+            and 0.0 <= self.high_confidence <= 1.0,
+            f"high_confidence must be a number within 0..1, got {self.high_confidence!r}.",
         )
         for name in ("class_measurement_sigma_m", "class_acceleration_sigma",
                      "class_turn_radius_m"):

@@ -40,6 +40,7 @@ def table_state(tracks: TrackTable) -> dict:
                        for row in tracks.heading_xy.tolist()],
         "heading_speed": tracks.heading_speed.tolist(),
         "seen_covariance": tracks.seen_covariance.tolist(),
+        "born": tracks.born.tolist(),
     }
 
 
@@ -87,6 +88,10 @@ def table_from_state(state: dict, models: int, cameras: int) -> TrackTable:
                                  np.float64).reshape(-1),
         seen_covariance=np.asarray(state.get("seen_covariance", covariance[:, :2, :2]),
                                    np.float64).reshape(-1, 2, 2),
+        # States saved before the column existed: born when last seen (only the stitching
+        # stage reads it, to tell which lost tracks a new track may continue).
+        born=None if state.get("born") is None else np.asarray(state["born"],
+                                                               np.float64).reshape(-1),
     )
     if len({len(column) for column in tracks.columns()}) != 1:
         raise MatcherError("the saved fusion-tracker state has columns of different lengths.")

@@ -50,6 +50,9 @@ class TrackTable:
         heading_speed: (T,) its speed then, m/s (0: never; default).
         seen_covariance: (T, 2, 2) covariance of the position estimated when last seen,
             square metres (default: that of ``covariance`` now).
+        born: (T,) when the track was first seen, seconds (for the stitching stage: a new
+            track can continue a lost one only if it was born after that one was last
+            seen). Defaults to ``last_seen``.
     """
 
     ids: np.ndarray
@@ -69,6 +72,7 @@ class TrackTable:
     heading_xy: np.ndarray | None = None
     heading_speed: np.ndarray | None = None
     seen_covariance: np.ndarray | None = None
+    born: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         # Tables built before these columns existed (births, saved states, tests) start them
@@ -79,6 +83,8 @@ class TrackTable:
             self.heading_speed = np.zeros(len(self.ids))
         if self.seen_covariance is None:
             self.seen_covariance = self.covariance[:, :2, :2].copy()
+        if self.born is None:
+            self.born = np.array(self.last_seen, np.float64, copy=True)
 
     @classmethod
     def empty(cls, models: int, cameras: int) -> TrackTable:
@@ -90,6 +96,7 @@ class TrackTable:
             mode_probability=np.zeros((0, models)), evidence=np.zeros(0, np.int64),
             last_seen=np.zeros(0), seen_by=np.zeros((0, cameras)), velocity_sigma=np.zeros(0),
             heading=np.zeros((0, 2)), heading_time=np.zeros(0), heading_sigma=np.zeros(0),
+            born=np.zeros(0),
         )
 
     def __len__(self) -> int:
@@ -101,7 +108,7 @@ class TrackTable:
                 self.mode_covariance, self.mode_probability, self.evidence, self.last_seen,
                 self.seen_by, self.velocity_sigma, self.heading, self.heading_time,
                 self.heading_sigma, self.heading_xy, self.heading_speed,
-                self.seen_covariance)
+                self.seen_covariance, self.born)
 
     def select(self, keep: np.ndarray) -> TrackTable:
         """The rows where ``keep`` (a (T,) mask or indices)."""

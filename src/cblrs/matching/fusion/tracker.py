@@ -3,7 +3,8 @@
 :class:`FusionTracker` runs the steps of its update in order; each step lives in the module
 named after it (the package docstring, :mod:`cblrs.matching.fusion`, describes them):
 ``noise`` (1, measurement noise), ``tracker`` (2, prediction; 5, the filter update),
-``association`` (3, 4), ``birth`` (6, 7), ``clocks`` (camera clocks), ``state`` (snapshots).
+``association`` (3, 4), ``birth`` (6, 7), ``stitching`` (7, new tracks continuing lost ones),
+``clocks`` (camera clocks), ``state`` (snapshots).
 """
 
 from __future__ import annotations
@@ -31,9 +32,11 @@ from cblrs.matching.fusion.clocks import ClockLearning
 from cblrs.matching.fusion.config import FusionConfig
 from cblrs.matching.fusion.coverage import Coverage
 from cblrs.matching.fusion.gaussian import fuse, ray_covariance
+from cblrs.matching.fusion.low_confidence import LowConfidence, take_measured
 from cblrs.matching.fusion.motion import MotionCheck
 from cblrs.matching.fusion.noise import NoiseModel
 from cblrs.matching.fusion.state import STATE_VERSION, table_from_state, table_state
+from cblrs.matching.fusion.stitching import Stitching
 from cblrs.matching.fusion.table import FusionContext, Measured, TrackTable, largest_boxes
 from cblrs.matching.timing import (
     Window,
@@ -117,8 +120,10 @@ class FusionTracker:
         self.association = Association(self.context)
         self.motion = MotionCheck(self.context)
         self.coverage = Coverage(self.planes, len(self.camera_ids))
+        self.low_confidence = LowConfidence(self.context, self.association, self.coverage)
         self.births = Births(self.context)
         self.clock_learning = ClockLearning(self.context, self._clock)
+        self.stitching = Stitching(self.context, self._class_acceleration)
         self.reset()
 
     def reset(self) -> None:
@@ -132,6 +137,7 @@ class FusionTracker:
         self._clock.reset()
         self.clock_learning.reset()
         self.coverage.reset()
+        self.stitching.reset()
         self._reported: dict[int, set[int]] = {}
 
     def get_state(self) -> dict:
@@ -148,6 +154,7 @@ class FusionTracker:
             "reported": [[frame, sorted(ids)] for frame, ids in self._reported.items()],
             "clock_turn": self.clock_learning.turn,
             "coverage": self.coverage.get_state(),
+            "stitching": self.stitching.get_state(),
         }
 
     def set_state(self, state: dict) -> None:
@@ -170,6 +177,7 @@ class FusionTracker:
             self._reported = {int(frame): set(ids) for frame, ids in state["reported"]}
             self.clock_learning.turn = int(state["clock_turn"])
             self.coverage.set_state(state.get("coverage"))
+            self.stitching.set_state(state.get("stitching"))
         except (KeyError, TypeError, ValueError, IndexError) as error:
             raise MatcherError(f"the saved fusion-tracker state is incomplete: {error}.") from None
 
@@ -305,15 +313,24 @@ class FusionTracker:
                 * self.measured.direction
             )
 
-        # Where each camera locates things (coverage module, for multi-view confirmation).
-        self.coverage.learn(observed.world_xy, observed.camera)
-        # 3. associate (association module); 4. leftovers join tracks seen at this instant.
-        assigned = self.association.associate(self.tracks, self.measured, observed, covariance,
-                                              timestamp)
-        assigned = self.association.join_observed(self.tracks, self.measured, observed,
-                                                  covariance, assigned, timestamp)
+        # Where each camera locates things (coverage module, for multi-view confirmation),
+        # from the detections it is sure of.
+        high = self.low_confidence.is_high(observed)
+        self.coverage.learn(observed.world_xy[high], observed.camera[high])
+        # 3. associate, high-confidence detections first (low_confidence and association
+        # modules); 4. leftovers join tracks seen at this instant.
+        assigned = self.low_confidence.associate(self.tracks, self.measured, observed,
+                                                 covariance, timestamp)
         # 4b. vehicles cannot turn on the spot (motion module).
         assigned = self.motion.check(self.tracks, observed, covariance, assigned, timestamp)
+        # 4c. low-confidence detections neither a multi-view track nor another camera's
+        # sure view confirms are dropped: no filter, noise model, clock or birth sees them.
+        kept = self.low_confidence.kept(self.tracks, observed, covariance, assigned)
+        if not kept.all():
+            raw, observed = raw[kept], observed[kept]
+            covariance, base_covariance = covariance[kept], base_covariance[kept]
+            lag, plain, assigned = lag[kept], plain[kept], assigned[kept]
+            self.measured = take_measured(self.measured, kept)
         matched = assigned >= 0
         located_xy = observed.world_xy
         if matched.any() and np.any(lag[matched] != 0):
@@ -338,16 +355,19 @@ class FusionTracker:
         )
 
         # 6. births from clusters of what no track took (birth module).
-        born = self.births.birth(_subset(observed, ~matched), covariance[~matched], timestamp)
+        born = self.births.birth(observed[~matched], covariance[~matched], timestamp)
         self.tracks = self.tracks.extend(born.tracks)
         seen_now = np.concatenate([seen_now, np.ones(len(born.tracks), dtype=bool)])
         report_camera = np.concatenate([report_camera, born.camera])
         report_box = np.concatenate([report_box, born.box])
         cameras_of_track = np.concatenate([cameras_of_track, born.cameras])
 
-        # 7. merge duplicates, drop tracks unseen too long, confirm, report.
+        # 7. merge duplicates, drop tracks unseen too long (the stitching stage keeps those
+        # another track may continue), confirm, report.
         keep = self.births.merge_duplicates(self.tracks, seen_now, cameras_of_track)
-        keep &= self._alive(timestamp, seen_now)
+        aged, departed = self._ended(timestamp, seen_now)
+        self.stitching.remember(self.tracks.select(keep & aged & ~departed), timestamp)
+        keep &= ~(aged | departed)
         self.tracks = self.tracks.select(keep)
         seen_now, report_camera, report_box = seen_now[keep], report_camera[keep], report_box[keep]
 
@@ -357,7 +377,13 @@ class FusionTracker:
             count = int(turned.sum())
             self.tracks.ids[turned] = self._next_id + np.arange(count)
             self._next_id += count
-        report = self._confirm(timestamp, seen_now)
+        # A new track that continues a lost one takes its id (stitching module).
+        confirmable = self._confirmable()
+        stitches = self.stitching.decide(self.tracks, confirmable, timestamp)
+        confirmable &= ~stitches.hold
+        confirmable[stitches.rows] = False
+        self.tracks.ids[stitches.rows] = stitches.ids
+        report = self._confirm(timestamp, seen_now, confirmable)
         self.clock_learning.record(self.tracks, timestamp, seen_now & (self.tracks.ids >= 0),
                                    located_xy,
                                 observed.camera, raw_time_of_camera)
@@ -408,9 +434,8 @@ class FusionTracker:
             self._clock.corroboration(observed.camera, np.zeros(len(observed), dtype=bool))
         return seen_now, report_camera, report_box, cameras_of_track
 
-    def _confirm(self, timestamp: float, seen_now: np.ndarray) -> np.ndarray:
-        """Step 7: give confirmed ids to tentative tracks with enough evidence; the mask of
-        tracks to report (confirmed, and seen now or coasting briefly)."""
+    def _confirmable(self) -> np.ndarray:
+        """Step 7: (T,) bool, the tentative tracks with enough evidence to be confirmed."""
         tracks = self.tracks
         newly_confirmed = (tracks.ids < 0) & (tracks.evidence >= self.config.confirm_evidence)
         if self.config.confirm_cameras > 1 and newly_confirmed.any():
@@ -426,6 +451,13 @@ class FusionTracker:
                     speed > 3.0 * tracks.velocity_sigma[candidates])
                 needed[moving] = 1
             newly_confirmed[candidates[cameras_seen < needed]] = False
+        return newly_confirmed
+
+    def _confirm(
+        self, timestamp: float, seen_now: np.ndarray, newly_confirmed: np.ndarray
+    ) -> np.ndarray:
+        """Step 7: give new ids to the tracks ``newly_confirmed``; the mask of tracks to
+        report (confirmed, and seen now or coasting briefly)."""
         count = int(newly_confirmed.sum())
         self.tracks.ids[newly_confirmed] = self._next_id + np.arange(count)
         self._next_id += count
@@ -550,19 +582,13 @@ class FusionTracker:
             departed &= (distance > 0) & (speed_out > 3.0 * self.tracks.velocity_sigma)
         return departed
 
-    def _alive(self, timestamp: float, seen_now: np.ndarray) -> np.ndarray:
+    def _ended(self, timestamp: float, seen_now: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(T,) bool each: tracks unseen too long, and tracks that left the located area."""
         age = timestamp - self.tracks.last_seen
         limit = np.where(self.tracks.ids >= 0, self.config.max_age_s,
                          self.config.tentative_max_age_s)
-        alive = age <= limit
-        if self.config.end_off_plane and len(alive):
-            alive &= seen_now | ~self._departed()
-        return alive
+        departed = np.zeros(len(age), dtype=bool)
+        if self.config.end_off_plane and len(age):
+            departed = ~seen_now & self._departed()
+        return age > limit, departed
 
-
-def _subset(observed: Observations, mask: np.ndarray) -> Observations:
-    return Observations(
-        world_xy=observed.world_xy[mask], colour=observed.colour[mask],
-        camera=observed.camera[mask], xyxy=observed.xyxy[mask],
-        confidence=observed.confidence[mask], class_id=observed.class_id[mask],
-    )
