@@ -23,7 +23,9 @@ import subprocess
 import sys
 import threading
 import time
+from contextlib import contextmanager
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -85,15 +87,66 @@ def undisturbed_tracks(case, epoch: float):
     ).tracks
 
 
+def log_of(database) -> Path:
+    """Where the matcher writing ``database`` logs (beside it)."""
+    return database.with_suffix(".log")
+
+
+def log_tail(database, characters: int = 3000) -> str:
+    try:
+        return log_of(database).read_text(errors="replace")[-characters:]
+    except OSError:
+        return "(no log)"
+
+
+@contextmanager
+def matcher_logs_on_failure(*databases):
+    """A failed assertion also shows the end of each matcher's log (a failure under load is
+    rare: its log is what tells why)."""
+    try:
+        yield
+    except AssertionError as error:
+        logs = "\n".join(
+            f"--- {log_of(database).name}:\n{log_tail(database)}" for database in databases
+        )
+        raise AssertionError(f"{error}\n{logs}") from error
+
+
 def start_matcher(case, cluster, database, client_id, *extra) -> subprocess.Popen:
+    """``cblrs matcher`` on the cluster; its summary on a pipe, its log in a file beside
+    ``database``: not a pipe read only at the end (a matcher that logged more than a pipe
+    holds would block), and readable while it runs when a wait times out."""
     command = [
-        sys.executable, "-m", "cblrs.cli.main", "matcher", "--references", str(case["folder"]),
-        "--db", str(database), "--backbone", cluster.url, "--client-id", client_id,
-        "--window", str(WINDOW_S), "--lease-ttl", str(LEASE_TTL), "--until-cameras-offline",
-        "--idle-exit", "180", "--json", *extra,
+        sys.executable,
+        "-m",
+        "cblrs.cli.main",
+        "matcher",
+        "--references",
+        str(case["folder"]),
+        "--db",
+        str(database),
+        "--backbone",
+        cluster.url,
+        "--client-id",
+        client_id,
+        "--window",
+        str(WINDOW_S),
+        "--lease-ttl",
+        str(LEASE_TTL),
+        "--until-cameras-offline",
+        "--idle-exit",
+        "180",
+        "--json",
+        *extra,
     ]
-    return subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    with open(log_of(database), "a") as log:  # the child keeps its own descriptor
+        return subprocess.Popen(
+            command,
+            stdout=subprocess.PIPE,
+            stderr=log,
+            text=True,
+            env={**os.environ, "PYTHONUNBUFFERED": "1"},
+        )
 
 
 def start_cameras(case, cluster, epoch: float) -> tuple[list[threading.Thread], list[bool]]:
@@ -110,8 +163,16 @@ def start_cameras(case, cluster, epoch: float) -> tuple[list[threading.Thread], 
         def run(index=index, name=name) -> None:
             transport = NatsTransport(f"camera-{name}", settings)
             transport.connect()
-            node = CameraNode(transport, PLANE, name, case["references"][index], realtime=True,
-                              speed=SPEED, epoch=epoch, flush_timeout_s=180.0)
+            node = CameraNode(
+                transport,
+                PLANE,
+                name,
+                case["references"][index],
+                realtime=True,
+                speed=SPEED,
+                epoch=epoch,
+                flush_timeout_s=180.0,
+            )
             report = node.run(scene_source(scene, index), connect=False)
             results.append(report.flushed)
             transport.close()
@@ -132,16 +193,26 @@ def counter(database, name: str) -> int:
         return 0
 
 
-def wait_for_consumer(probe: NatsTransport, timeout: float = 60) -> None:
+def wait_for_consumer(
+    probe: NatsTransport, matcher: subprocess.Popen, database, timeout: float = 60
+) -> None:
+    """Wait for the matcher's durable consumer; a matcher that exited first fails at once,
+    with its log (it once exited on a cluster without a JetStream leader yet, and the
+    wait only timed out)."""
+
     def ready() -> bool:
         try:
-            probe.call(probe.jetstream.consumer_info(detections_stream(PLANE),
-                                                     f"cblrs-plane-{PLANE}"), 5)
+            probe.call(
+                probe.jetstream.consumer_info(detections_stream(PLANE), f"cblrs-plane-{PLANE}"), 5
+            )
             return True
         except Exception:
             return False
 
-    wait_until(ready, timeout, "the matcher's durable consumer")
+    wait_until(
+        lambda: ready() or matcher.poll() is not None, timeout, "the matcher's durable consumer"
+    )
+    assert matcher.poll() is None, f"the matcher exited with {matcher.returncode}"
 
 
 def stream_leader(probe: NatsTransport) -> str | None:
@@ -182,8 +253,9 @@ def assert_exactly_once(database, case, expected) -> dict:
     messages = len(scene.frames) * len(scene.cameras)
     with RuntimeStore(database, read_only=True) as store:
         keys = {(item.message.camera_id, item.message.sequence) for item in store.messages()}
-        expected_keys = {(name, sequence) for name in scene.camera_names
-                         for sequence in range(len(scene.frames))}
+        expected_keys = {
+            (name, sequence) for name in scene.camera_names for sequence in range(len(scene.frames))
+        }
         lost = len(expected_keys - keys)
         counters = store.counters()
         tracks = store.tracks()
@@ -196,8 +268,11 @@ def assert_exactly_once(database, case, expected) -> dict:
     np.testing.assert_array_equal(tracks.track_id, expected.track_id)
     np.testing.assert_array_equal(tracks.world_xy, expected.world_xy)
     rows = set(zip(tracks.timestamp.tolist(), tracks.track_id.tolist(), strict=True))
-    return {"lost": lost, "duplicated_track_rows": len(tracks) - len(rows),
-            "redelivered": counters.get("duplicates", 0)}
+    return {
+        "lost": lost,
+        "duplicated_track_rows": len(tracks) - len(rows),
+        "redelivered": counters.get("duplicates", 0),
+    }
 
 
 def finish(processes, cameras, probe, database, case, epoch, report, record_property) -> None:
@@ -206,12 +281,12 @@ def finish(processes, cameras, probe, database, case, epoch, report, record_prop
         thread.join(240)
     assert all(flushed) and len(flushed) == len(case["scene"].cameras), "a camera lost messages"
     final = processes[-1]
-    out, err = final.communicate(timeout=300)
-    assert final.returncode == 0, err[-2000:]
+    out, _ = final.communicate(timeout=300)
+    assert final.returncode == 0, log_tail(database)
     summary = json.loads(out)
     assert summary["processed"] == len(case["scene"].frames) * len(case["scene"].cameras), {
-        name: summary[name] for name in ("received", "accepted", "duplicates", "late",
-                                         "processed")}
+        name: summary[name] for name in ("received", "accepted", "duplicates", "late", "processed")
+    }
     report.update(assert_exactly_once(database, case, undisturbed_tracks(case, epoch)))
     updates = track_updates_per_group(probe)
     report["duplicated_track_updates"] = sum(count - 1 for count in updates.values())
@@ -256,24 +331,31 @@ def test_stream_leader_killed_mid_stream(case, cluster, tmp_path, record_propert
     database = tmp_path / "matcher.db"
     processes = [start_matcher(case, nats, database, "host-a")]
     try:
-        wait_for_consumer(probe)
-        epoch = time.time() + 2.0
-        cameras = start_cameras(case, nats, epoch)
-        total = len(case["scene"].frames) * len(case["scene"].cameras)
-        wait_until(lambda: counter(database, "accepted") >= total // 4, 60, "a quarter")
-        leader = stream_leader(probe)
-        assert leader is not None
-        at_kill = counter(database, "accepted")
-        killed = time.monotonic()
-        nats.node(leader).kill()
-        wait_until(lambda: counter(database, "accepted") > at_kill, 60, "messages after the kill")
-        recovered = time.monotonic() - killed
-        wait_until(lambda: stream_leader(probe) not in (None, leader), 30, "a new leader")
-        report = {"fault": "stream leader killed", "killed": leader,
-                  "new_leader": stream_leader(probe), "accepted_at_kill": at_kill,
-                  "recover_s": round(recovered, 2)}
-        assert at_kill < total, "the kill was not mid-stream"
-        finish(processes, cameras, probe, database, case, epoch, report, record_property)
+        with matcher_logs_on_failure(database):
+            wait_for_consumer(probe, processes[0], database)
+            epoch = time.time() + 2.0
+            cameras = start_cameras(case, nats, epoch)
+            total = len(case["scene"].frames) * len(case["scene"].cameras)
+            wait_until(lambda: counter(database, "accepted") >= total // 4, 60, "a quarter")
+            leader = stream_leader(probe)
+            assert leader is not None
+            at_kill = counter(database, "accepted")
+            killed = time.monotonic()
+            nats.node(leader).kill()
+            wait_until(
+                lambda: counter(database, "accepted") > at_kill, 60, "messages after the kill"
+            )
+            recovered = time.monotonic() - killed
+            wait_until(lambda: stream_leader(probe) not in (None, leader), 30, "a new leader")
+            report = {
+                "fault": "stream leader killed",
+                "killed": leader,
+                "new_leader": stream_leader(probe),
+                "accepted_at_kill": at_kill,
+                "recover_s": round(recovered, 2),
+            }
+            assert at_kill < total, "the kill was not mid-stream"
+            finish(processes, cameras, probe, database, case, epoch, report, record_property)
     finally:
         _cleanup(processes)
 
@@ -283,41 +365,69 @@ def test_matcher_killed_and_started_on_another_host(case, cluster, tmp_path, rec
     first_database, second_database = tmp_path / "host-a.db", tmp_path / "host-b.db"
     processes = [start_matcher(case, nats, first_database, "host-a")]
     try:
-        wait_for_consumer(probe)
-        # A second matcher while the first holds the plane's lease is refused, in one sentence.
-        # (Asked while host-a is alive: after a kill the lease lives only LEASE_TTL seconds,
-        # less than a loaded machine may take to start a Python process.)
-        refused = subprocess.run(
-            [sys.executable, "-m", "cblrs.cli.main", "matcher", "--references",
-             str(case["folder"]), "--db", str(tmp_path / "host-c.db"), "--backbone", nats.url,
-             "--client-id", "host-c", "--idle-exit", "20", "--quiet"],
-            capture_output=True, text=True, timeout=60)
-        assert refused.returncode == 1, refused.stderr
-        assert "plane 1 is already served by host-a@" in refused.stderr
-        assert len(refused.stderr.strip().splitlines()) == 1, refused.stderr
-        epoch = time.time() + 2.0
-        cameras = start_cameras(case, nats, epoch)
-        total = len(case["scene"].frames) * len(case["scene"].cameras)
-        wait_until(lambda: counter(first_database, "processed") >= total // 4, 60, "a quarter")
-        processes[0].send_signal(signal.SIGKILL)
-        processes[0].wait(10)
-        killed = time.monotonic()
-        processed_at_kill = counter(first_database, "processed")
-        processes.append(start_matcher(case, nats, second_database, "host-b",
-                                       "--lease-wait", "30"))
-        wait_until(lambda: counter(second_database, "processed") >= processed_at_kill
-                   or processes[1].poll() is not None, 120,
-                   "the new host to re-track what the old one had")
-        if processes[1].poll() is not None:  # say why, not only that it did not catch up
-            raise AssertionError(f"the new host exited with {processes[1].returncode}: "
-                                 f"{processes[1].communicate()[1][-3000:]}")
-        recovered = time.monotonic() - killed
-        report = {"fault": "matcher killed, restarted on another host",
-                  "processed_at_kill": processed_at_kill, "recover_s": round(recovered, 2),
-                  "lease_ttl_s": LEASE_TTL}
-        assert processed_at_kill < total, "the kill was not mid-stream"
-        finish(processes, cameras, probe, second_database, case, epoch, report,
-               record_property)
+        with matcher_logs_on_failure(first_database, second_database):
+            wait_for_consumer(probe, processes[0], first_database)
+            # A second matcher while the first holds the plane's lease is refused, in one sentence.
+            # (Asked while host-a is alive: after a kill the lease lives only LEASE_TTL seconds,
+            # less than a loaded machine may take to start a Python process.)
+            refused = subprocess.run(
+                [
+                    sys.executable,
+                    "-m",
+                    "cblrs.cli.main",
+                    "matcher",
+                    "--references",
+                    str(case["folder"]),
+                    "--db",
+                    str(tmp_path / "host-c.db"),
+                    "--backbone",
+                    nats.url,
+                    "--client-id",
+                    "host-c",
+                    "--idle-exit",
+                    "20",
+                    "--quiet",
+                ],
+                capture_output=True,
+                text=True,
+                timeout=60,
+            )
+            assert refused.returncode == 1, refused.stderr
+            assert "plane 1 is already served by host-a@" in refused.stderr
+            assert len(refused.stderr.strip().splitlines()) == 1, refused.stderr
+            epoch = time.time() + 2.0
+            cameras = start_cameras(case, nats, epoch)
+            total = len(case["scene"].frames) * len(case["scene"].cameras)
+            wait_until(lambda: counter(first_database, "processed") >= total // 4, 60, "a quarter")
+            processes[0].send_signal(signal.SIGKILL)
+            processes[0].wait(10)
+            killed = time.monotonic()
+            processed_at_kill = counter(first_database, "processed")
+            processes.append(
+                start_matcher(case, nats, second_database, "host-b", "--lease-wait", "30")
+            )
+            wait_until(
+                lambda: (
+                    counter(second_database, "processed") >= processed_at_kill
+                    or processes[1].poll() is not None
+                ),
+                120,
+                "the new host to re-track what the old one had",
+            )
+            if processes[1].poll() is not None:  # say why, not only that it did not catch up
+                raise AssertionError(
+                    f"the new host exited with {processes[1].returncode}: "
+                    f"{log_tail(second_database)}"
+                )
+            recovered = time.monotonic() - killed
+            report = {
+                "fault": "matcher killed, restarted on another host",
+                "processed_at_kill": processed_at_kill,
+                "recover_s": round(recovered, 2),
+                "lease_ttl_s": LEASE_TTL,
+            }
+            assert processed_at_kill < total, "the kill was not mid-stream"
+            finish(processes, cameras, probe, second_database, case, epoch, report, record_property)
     finally:
         _cleanup(processes)
 
@@ -327,23 +437,61 @@ def test_whole_cluster_restarted_mid_stream(case, cluster, tmp_path, record_prop
     database = tmp_path / "matcher.db"
     processes = [start_matcher(case, nats, database, "host-a")]
     try:
-        wait_for_consumer(probe)
-        epoch = time.time() + 2.0
-        cameras = start_cameras(case, nats, epoch)
-        total = len(case["scene"].frames) * len(case["scene"].cameras)
-        wait_until(lambda: counter(database, "accepted") >= total // 4, 60, "a quarter")
-        at_kill = counter(database, "accepted")
-        killed = time.monotonic()
-        nats.kill()
-        time.sleep(0.5)
-        nats.start()
-        restarted = time.monotonic()
-        wait_until(lambda: counter(database, "accepted") > at_kill, 60,
-                   "messages after the restart")
-        recovered = time.monotonic() - killed
-        report = {"fault": "whole cluster killed and restarted", "accepted_at_kill": at_kill,
-                  "down_s": round(restarted - killed, 2), "recover_s": round(recovered, 2)}
-        assert at_kill < total, "the restart was not mid-stream"
-        finish(processes, cameras, probe, database, case, epoch, report, record_property)
+        with matcher_logs_on_failure(database):
+            wait_for_consumer(probe, processes[0], database)
+            epoch = time.time() + 2.0
+            cameras = start_cameras(case, nats, epoch)
+            total = len(case["scene"].frames) * len(case["scene"].cameras)
+            wait_until(lambda: counter(database, "accepted") >= total // 4, 60, "a quarter")
+            at_kill = counter(database, "accepted")
+            killed = time.monotonic()
+            nats.kill()
+            time.sleep(0.5)
+            nats.start()
+            restarted = time.monotonic()
+            wait_until(
+                lambda: counter(database, "accepted") > at_kill, 60, "messages after the restart"
+            )
+            recovered = time.monotonic() - killed
+            report = {
+                "fault": "whole cluster killed and restarted",
+                "accepted_at_kill": at_kill,
+                "down_s": round(restarted - killed, 2),
+                "recover_s": round(recovered, 2),
+            }
+            assert at_kill < total, "the restart was not mid-stream"
+            finish(processes, cameras, probe, database, case, epoch, report, record_property)
     finally:
         _cleanup(processes)
+
+
+def test_a_matcher_started_before_the_cluster_has_a_jetstream_leader_waits(case, tmp_path):
+    """Started with its cluster (one node of three up: no JetStream meta leader), the
+    matcher waits for JetStream instead of exiting ("cannot open the NATS lease bucket:
+    nats: timeout"), and serves the plane once the other nodes are up."""
+    nats = NatsCluster.create(tmp_path / "nats", nodes=3)
+    database = tmp_path / "matcher.db"
+    probe = NatsTransport("test-probe", NatsSettings.from_url(nats.url))
+    processes = []
+    try:
+        nats.nodes[0].launch().wait_ready()
+        processes.append(start_matcher(case, nats, database, "host-a"))
+        with matcher_logs_on_failure(database):
+            wait_until(
+                lambda: (
+                    "JetStream does not answer yet" in log_tail(database)
+                    or processes[0].poll() is not None
+                ),
+                60,
+                "the matcher to wait",
+            )
+            assert processes[0].poll() is None, "the matcher exited"
+            for node in nats.nodes[1:]:
+                node.launch()
+            wait_until(lambda: _try_connect(probe), 30, "the cluster to accept clients")
+            wait_for_consumer(probe, processes[0], database)
+            assert "holds plane-1" in log_tail(database, 100_000)
+    finally:
+        _cleanup(processes)
+        probe.close(timeout=1)
+        nats.kill()

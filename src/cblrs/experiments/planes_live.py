@@ -65,9 +65,17 @@ class LiveCitySetup:
         timeout_s: longest wait for any one step (a loaded machine is slow).
     """
 
-    world: dict[str, Any] = field(default_factory=lambda: {
-        "seed": 6, "people": 2, "cars": 4, "wanderers": 0, "spawn_s": 3.0,
-        "max_trip_m": 90.0, "fps": 4.0})
+    world: dict[str, Any] = field(
+        default_factory=lambda: {
+            "seed": 6,
+            "people": 2,
+            "cars": 4,
+            "wanderers": 0,
+            "spawn_s": 3.0,
+            "max_trip_m": 90.0,
+            "fps": 4.0,
+        }
+    )
     kill_plane: int | None = 3
     kill_share: float = 0.25
     speed: float = 1.0
@@ -128,11 +136,9 @@ def prepare_city(world: dict[str, Any], folder: Path) -> LiveCity:
         plane_folder = folder / f"plane{plane_id}"
         plane_folder.mkdir(exist_ok=True)
         references[plane_id] = []
-        for camera, reference in zip(scene.cameras, render_scene_references(scene),
-                                     strict=True):
+        for camera, reference in zip(scene.cameras, render_scene_references(scene), strict=True):
             path = reference.save(plane_folder / f"{camera.name}.png")
-            references[plane_id].append(ReferenceImage.load(path,
-                                                            expected_size=camera.image_size))
+            references[plane_id].append(ReferenceImage.load(path, expected_size=camera.image_size))
     return LiveCity(scenes, folder, site, references)
 
 
@@ -145,10 +151,32 @@ def wait_for(condition: Callable[[], object], timeout: float, what: str) -> None
         time.sleep(0.05)
 
 
-def _service(arguments: list[str]) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, "-m", "cblrs.cli.main", *arguments],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            env={**os.environ, "PYTHONUNBUFFERED": "1"})
+def _service(arguments: list[str], log: Path) -> subprocess.Popen:
+    """Start ``cblrs ...``; its stdout (the JSON summary) on a pipe, its log in ``log``.
+
+    The log goes to a file, not a pipe read only at the end: a service that logged more than
+    a pipe holds (64 KiB) would block in its next log call, and the log of a service that
+    made no progress is read while it still runs (:func:`_log_tail`)."""
+    with open(log, "a", encoding="utf-8") as stderr:  # the child keeps its own descriptor
+        return subprocess.Popen(
+            [sys.executable, "-m", "cblrs.cli.main", *arguments],
+            stdout=subprocess.PIPE,
+            stderr=stderr,
+            text=True,
+            env={**os.environ, "PYTHONUNBUFFERED": "1"},
+        )
+
+
+def _log_of(database: Path) -> Path:
+    """Where the service writing ``database`` logs (beside it)."""
+    return database.with_suffix(".log")
+
+
+def _log_tail(log: Path, characters: int = 3000) -> str:
+    try:
+        return log.read_text(encoding="utf-8", errors="replace")[-characters:]
+    except OSError:
+        return "(no log)"
 
 
 def matcher_options(city: LiveCity, plane_id: int) -> dict[str, Any]:
@@ -161,34 +189,81 @@ def matcher_options(city: LiveCity, plane_id: int) -> dict[str, Any]:
     return {"camera_positions": {name: list(positions[name]) for name in names}}
 
 
-def start_matcher(city: LiveCity, url: str, plane_id: int, database: Path, client_id: str,
-                  setup: LiveCitySetup, *extra: str) -> subprocess.Popen:
+def start_matcher(
+    city: LiveCity,
+    url: str,
+    plane_id: int,
+    database: Path,
+    client_id: str,
+    setup: LiveCitySetup,
+    *extra: str,
+) -> subprocess.Popen:
     """``cblrs matcher`` for one plane: the site file (the cameras' positions), the plane's
     references, its cameras in the scene's order (as the in-process tracker has them: within
     a time the tracker takes messages in this order). The site's places are counted by the
     linker, not by the planes."""
-    return _service([
-        "matcher", "--site", str(city.site), "--no-analytics", "--references",
-        str(city.folder / f"plane{plane_id}"), "--plane", str(plane_id), "--cameras",
-        ",".join(city.scenes.planes[plane_id].camera_names), "--db", str(database),
-        "--backbone", url, "--client-id", client_id, "--window",
-        str(setup.window_s), "--lease-ttl", str(setup.lease_ttl_s), "--until-cameras-offline",
-        "--idle-exit", str(setup.timeout_s), "--json", *extra,
-    ])
+    return _service(
+        [
+            "matcher",
+            "--site",
+            str(city.site),
+            "--no-analytics",
+            "--references",
+            str(city.folder / f"plane{plane_id}"),
+            "--plane",
+            str(plane_id),
+            "--cameras",
+            ",".join(city.scenes.planes[plane_id].camera_names),
+            "--db",
+            str(database),
+            "--backbone",
+            url,
+            "--client-id",
+            client_id,
+            "--window",
+            str(setup.window_s),
+            "--lease-ttl",
+            str(setup.lease_ttl_s),
+            "--until-cameras-offline",
+            "--idle-exit",
+            str(setup.timeout_s),
+            "--json",
+            *extra,
+        ],
+        _log_of(database),
+    )
 
 
-def start_linker(city: LiveCity, url: str, database: Path, setup: LiveCitySetup
-                 ) -> subprocess.Popen:
+def start_linker(
+    city: LiveCity, url: str, database: Path, setup: LiveCitySetup
+) -> subprocess.Popen:
     """``cblrs linker`` for the city's site (waits as long as a take-over may take)."""
-    return _service([
-        "linker", "--site", str(city.site), "--db", str(database), "--backbone", url,
-        "--client-id", "linker", "--max-wait", str(10 * setup.timeout_s), "--idle-exit",
-        str(setup.linker_idle_s), "--live-interval", "0", "--json",
-    ])
+    return _service(
+        [
+            "linker",
+            "--site",
+            str(city.site),
+            "--db",
+            str(database),
+            "--backbone",
+            url,
+            "--client-id",
+            "linker",
+            "--max-wait",
+            str(10 * setup.timeout_s),
+            "--idle-exit",
+            str(setup.linker_idle_s),
+            "--live-interval",
+            "0",
+            "--json",
+        ],
+        _log_of(database),
+    )
 
 
-def start_cameras(city: LiveCity, url: str, epoch: float, speed: float
-                  ) -> tuple[list[threading.Thread], list[bool]]:
+def start_cameras(
+    city: LiveCity, url: str, epoch: float, speed: float
+) -> tuple[list[threading.Thread], list[bool]]:
     """One paced camera node per camera of every plane, each with its own NATS connection
     (threads). Returns the threads and the list each appends to whether the stream
     acknowledged all its messages."""
@@ -206,9 +281,16 @@ def start_cameras(city: LiveCity, url: str, epoch: float, speed: float
             def run(plane_id=plane_id, scene=scene, index=index, name=name) -> None:
                 transport = NatsTransport(f"camera-{name}", settings)
                 transport.connect()
-                node = CameraNode(transport, plane_id, name, city.references[plane_id][index],
-                                  realtime=True, speed=speed, epoch=epoch,
-                                  flush_timeout_s=240.0)
+                node = CameraNode(
+                    transport,
+                    plane_id,
+                    name,
+                    city.references[plane_id][index],
+                    realtime=True,
+                    speed=speed,
+                    epoch=epoch,
+                    flush_timeout_s=240.0,
+                )
                 report = node.run(scene_source(scene, index), connect=False)
                 results.append(report.flushed)
                 transport.close()
@@ -236,8 +318,9 @@ def _consumer_ready(probe: Any, plane_id: int) -> bool:
     from cblrs.runtime.transport.nats_transport import detections_stream
 
     try:
-        probe.call(probe.jetstream.consumer_info(detections_stream(plane_id),
-                                                 f"cblrs-plane-{plane_id}"), 5)
+        probe.call(
+            probe.jetstream.consumer_info(detections_stream(plane_id), f"cblrs-plane-{plane_id}"), 5
+        )
         return True
     except Exception:
         return False
@@ -251,14 +334,29 @@ def _jetstream_ready(probe: Any) -> bool:
         return False
 
 
-def _ended(process: subprocess.Popen, what: str) -> None:
+def _ended(process: subprocess.Popen, what: str, log: Path) -> None:
     if process.poll() is not None:
-        raise RuntimeError(f"{what} ended: {process.communicate()[1][-2000:]}")
+        raise RuntimeError(f"{what} ended: {_log_tail(log)}")
 
 
-def run_live_city(city: LiveCity, url: str, probe: Any, folder: Path,
-                  setup: LiveCitySetup | None = None,
-                  report: Callable[[str], None] | None = None) -> LiveCityRun:
+def _wait_for_service(
+    condition: Callable[[], object], timeout: float, what: str, log: Path
+) -> None:
+    """:func:`wait_for`, and on a timeout the end of the log of the service waited for."""
+    try:
+        wait_for(condition, timeout, what)
+    except TimeoutError as error:
+        raise TimeoutError(f"{error}; its log ends: {_log_tail(log)}") from None
+
+
+def run_live_city(
+    city: LiveCity,
+    url: str,
+    probe: Any,
+    folder: Path,
+    setup: LiveCitySetup | None = None,
+    report: Callable[[str], None] | None = None,
+) -> LiveCityRun:
     """Run the city's services on the cluster at ``url`` with the fault of ``setup``.
 
     Args:
@@ -279,25 +377,38 @@ def run_live_city(city: LiveCity, url: str, probe: Any, folder: Path,
     planes = sorted(city.scenes.planes)
     databases = {plane: folder / f"plane{plane}-host-a.db" for plane in planes}
     statuses: list[str] = []
-    probe.subscribe(linker_status_topic("linker"),
-                    lambda delivery: statuses.append(decode_status(delivery.payload).state))
+    probe.subscribe(
+        linker_status_topic("linker"),
+        lambda delivery: statuses.append(decode_status(delivery.payload).state),
+    )
     run = LiveCityRun(city, 0.0, databases, folder / "linker.db")
     # A cluster accepts clients before it has elected its JetStream leader; a matcher that
     # asks for its lease then is refused ("no response from stream").
     wait_for(lambda: _jetstream_ready(probe), setup.timeout_s, "JetStream on the cluster")
     linker = start_linker(city, url, run.linker_database, setup)
-    matchers = {plane: start_matcher(city, url, plane, databases[plane], f"host-a{plane}",
-                                     setup) for plane in planes}
+    matchers = {
+        plane: start_matcher(city, url, plane, databases[plane], f"host-a{plane}", setup)
+        for plane in planes
+    }
     processes = [linker, *matchers.values()]
     try:
         for plane in planes:
-            wait_for(lambda plane=plane: _consumer_ready(probe, plane)
-                     or matchers[plane].poll() is not None, setup.timeout_s,
-                     f"plane {plane}'s matcher")
-            _ended(matchers[plane], f"plane {plane}'s matcher")
-        wait_for(lambda: "online" in statuses or linker.poll() is not None, setup.timeout_s,
-                 "the linker")
-        _ended(linker, "the linker")
+            _wait_for_service(
+                lambda plane=plane: (
+                    _consumer_ready(probe, plane) or matchers[plane].poll() is not None
+                ),
+                setup.timeout_s,
+                f"plane {plane}'s matcher",
+                _log_of(databases[plane]),
+            )
+            _ended(matchers[plane], f"plane {plane}'s matcher", _log_of(databases[plane]))
+        _wait_for_service(
+            lambda: "online" in statuses or linker.poll() is not None,
+            setup.timeout_s,
+            "the linker",
+            _log_of(run.linker_database),
+        )
+        _ended(linker, "the linker", _log_of(run.linker_database))
         run.epoch = time.time() + 2.0
         threads, flushed = start_cameras(city, url, run.epoch, setup.speed)
         say(f"{len(threads)} cameras started, {len(planes)} matchers and the linker up")
@@ -305,36 +416,49 @@ def run_live_city(city: LiveCity, url: str, probe: Any, folder: Path,
             plane = setup.kill_plane
             scene = city.scenes.planes[plane]
             share = int(setup.kill_share * len(scene.frames) * len(scene.cameras))
-            wait_for(lambda: store_counter(databases[plane], "processed") >= share,
-                     setup.timeout_s, f"plane {plane}'s matcher to track {share} messages")
+            _wait_for_service(
+                lambda: store_counter(databases[plane], "processed") >= share,
+                setup.timeout_s,
+                f"plane {plane}'s matcher to track {share} messages",
+                _log_of(databases[plane]),
+            )
             matchers[plane].send_signal(signal.SIGKILL)
             matchers[plane].wait(30)
             killed = time.monotonic()
             run.killed_plane = plane
             run.processed_at_kill = store_counter(databases[plane], "processed")
             replacement = folder / f"plane{plane}-host-b.db"
-            matchers[plane] = start_matcher(city, url, plane, replacement, f"host-b{plane}",
-                                            setup, "--lease-wait", "60")
+            matchers[plane] = start_matcher(
+                city, url, plane, replacement, f"host-b{plane}", setup, "--lease-wait", "60"
+            )
             processes.append(matchers[plane])
             databases[plane] = replacement
             say(f"plane {plane}'s matcher killed after {run.processed_at_kill} messages")
-            wait_for(lambda: store_counter(replacement, "processed") >= run.processed_at_kill
-                     or matchers[plane].poll() is not None,
-                     setup.timeout_s, "the new host to re-track what the old one had")
-            _ended(matchers[plane], f"plane {plane}'s new host")
+            _wait_for_service(
+                lambda: (
+                    store_counter(replacement, "processed") >= run.processed_at_kill
+                    or matchers[plane].poll() is not None
+                ),
+                setup.timeout_s,
+                "the new host to re-track what the old one had",
+                _log_of(replacement),
+            )
+            _ended(matchers[plane], f"plane {plane}'s new host", _log_of(replacement))
             run.recover_s = time.monotonic() - killed
             say(f"plane {plane} taken over in {run.recover_s:.1f} s")
         for thread in threads:
             thread.join(setup.timeout_s)
         run.cameras_flushed = len(flushed) == city.scenes.camera_count and all(flushed)
         for plane, process in matchers.items():
-            out, err = process.communicate(timeout=setup.timeout_s)
+            out, _ = process.communicate(timeout=setup.timeout_s)
             if process.returncode != 0:
-                raise RuntimeError(f"plane {plane}'s matcher failed: {err[-2000:]}")
+                raise RuntimeError(
+                    f"plane {plane}'s matcher failed: {_log_tail(_log_of(databases[plane]))}"
+                )
             run.matcher_summaries[plane] = json.loads(out)
-        out, err = linker.communicate(timeout=setup.timeout_s)
+        out, _ = linker.communicate(timeout=setup.timeout_s)
         if linker.returncode != 0:
-            raise RuntimeError(f"the linker failed: {err[-2000:]}")
+            raise RuntimeError(f"the linker failed: {_log_tail(_log_of(run.linker_database))}")
         run.linker_summary = json.loads(out)
     finally:
         for process in processes:
@@ -364,10 +488,12 @@ def lost_messages(run: LiveCityRun) -> dict[int, int]:
     for plane, database in run.databases.items():
         scene = run.city.scenes.planes[plane]
         with RuntimeStore(database, read_only=True) as store:
-            keys = {(item.message.camera_id, item.message.sequence)
-                    for item in store.messages()}
-        lost[plane] = sum((name, sequence) not in keys for name in scene.camera_names
-                          for sequence in range(len(scene.frames)))
+            keys = {(item.message.camera_id, item.message.sequence) for item in store.messages()}
+        lost[plane] = sum(
+            (name, sequence) not in keys
+            for name in scene.camera_names
+            for sequence in range(len(scene.frames))
+        )
     return lost
 
 
@@ -388,16 +514,25 @@ def live_city_figures(run: LiveCityRun) -> dict[str, Any]:
         late_rows = store.counters().get("late_rows", 0)
     config = site_analytics_config(spec.links)
     counted = analyse_tracks(offline.tracks, spec.places, config)
-    offline_od = {(origin, destination): value for origin, row in counted.od.items()
-                  for destination, value in row.items() if value}
+    offline_od = {
+        (origin, destination): value
+        for origin, row in counted.od.items()
+        for destination, value in row.items()
+        if value
+    }
     same_rows = len(live) == len(offline.tracks) and all(
         np.array_equal(getattr(live, name), getattr(offline.tracks, name))
-        for name in ("frame", "timestamp", "track_id", "world_xy", "class_id"))
+        for name in ("frame", "timestamp", "track_id", "world_xy", "class_id")
+    )
     # Scored on the city's own clock, as the ground truth is.
     linked = replace(live, timestamp=scenes.timestamps[live.frame])
-    single = {plane: (scenes.planes[plane].ground_truth,
-                      replace(tracks, timestamp=scenes.timestamps[tracks.frame]))
-              for plane, tracks in stored.items()}
+    single = {
+        plane: (
+            scenes.planes[plane].ground_truth,
+            replace(tracks, timestamp=scenes.timestamps[tracks.frame]),
+        )
+        for plane, tracks in stored.items()
+    }
     single_idf1 = pooled_idf1(single)
     scores = evaluate(scenes.ground_truth, linked)
     truth_counts = analyse_tracks(scenes.ground_truth, spec.places, config)
@@ -407,26 +542,33 @@ def live_city_figures(run: LiveCityRun) -> dict[str, Any]:
         kinds[item.kind] = kinds.get(item.kind, 0) + 1
     lost = lost_messages(run)
     return {
-        "planes": len(scenes.planes), "cameras": scenes.camera_count,
-        "objects": len(spec.world.objects), "trips": len(spec.trips),
+        "planes": len(scenes.planes),
+        "cameras": scenes.camera_count,
+        "objects": len(spec.world.objects),
+        "trips": len(spec.trips),
         "frames": len(scenes.timestamps),
         "messages": len(scenes.timestamps) * scenes.camera_count,
-        "lost": sum(lost.values()), "cameras_flushed": run.cameras_flushed,
-        "processed": {plane: summary.get("processed")
-                      for plane, summary in run.matcher_summaries.items()},
+        "lost": sum(lost.values()),
+        "cameras_flushed": run.cameras_flushed,
+        "processed": {
+            plane: summary.get("processed") for plane, summary in run.matcher_summaries.items()
+        },
         "killed_plane": run.killed_plane,
         "processed_at_kill": run.processed_at_kill,
         "recover_s": None if run.recover_s is None else round(run.recover_s, 2),
         "linker_updates": run.linker_summary.get("updates"),
         "linker_duplicates": run.linker_summary.get("duplicates", 0),
         "linker_late_rows": late_rows,
-        "linker_equals_offline": same_rows and live_handovers == handovers
+        "linker_equals_offline": same_rows
+        and live_handovers == handovers
         and live_od == offline_od,
         "handovers": kinds,
         "single_plane_idf1": round(single_idf1, 2),
         "linked_idf1": round(float(scores.IDF1), 2),
         "ratio": round(float(scores.IDF1) / single_idf1, 4) if single_idf1 > 0 else None,
-        "ids_linked": scores.num_predicted_ids, "ids_true": scores.num_gt_ids,
-        "od_trips": sum(live_od.values()), "od_error": errors["od_error"],
+        "ids_linked": scores.num_predicted_ids,
+        "ids_true": scores.num_gt_ids,
+        "od_trips": sum(live_od.values()),
+        "od_error": errors["od_error"],
         "seconds": round(run.seconds, 1),
     }

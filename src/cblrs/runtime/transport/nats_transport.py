@@ -100,6 +100,10 @@ LEGACY_TRACKS_STREAM = "CBLRS_TRACKS"
 LEASE_BUCKET = "cblrs_leases"
 LEASE_UNANSWERED_S = 30.0
 """How long a lease is asked for again while JetStream does not answer (seconds)."""
+_NO_PEERS_YET = 10005
+"""JetStream's "no suitable peers for placement": what a replicated bucket gets while its
+cluster is still forming (not every peer known to the meta leader yet); asked again like an
+unanswered request."""
 SITE_PATTERN = r"[A-Za-z][A-Za-z0-9-]{0,31}"
 """Site ids: a letter, then letters, digits or ``-`` (never a plane's decimal token, never a
 character a stream name forbids)."""
@@ -1453,63 +1457,88 @@ class NatsTransport:
         from nats.errors import TimeoutError as NatsTimeoutError
         from nats.js.api import KeyValueConfig
         from nats.js.errors import (
+            APIError,
             BucketNotFoundError,
             KeyNotFoundError,
             KeyWrongLastSequenceError,
             NoStreamResponseError,
+            ServiceUnavailableError,
         )
 
         lease = self.lease
         assert lease is not None
-        try:
-            kv = await self._js.key_value(LEASE_BUCKET)
-        except BucketNotFoundError:
-            if not self.settings.manages:
+        # JetStream may not answer for a moment (a cluster that has just started and not yet
+        # elected its meta leader, or electing the bucket's leader): asked again for this
+        # long, then the error is the answer. Opening the bucket waits too: a matcher started
+        # with its cluster failed there at once ("nats: timeout", 1 run in 15 at load 10).
+        unanswered = (NoStreamResponseError, NoRespondersError, NatsTimeoutError,
+                      ServiceUnavailableError)
+        waited_s = max(lease.wait_s, LEASE_UNANSWERED_S)
+        unanswered_until = time.monotonic() + waited_s
+        said = False
+
+        async def not_yet(error: Exception, what: str, managing: bool = False) -> None:
+            """Wait a moment to ask again, or raise: refused (``managing``: a call only the
+            backbone's admin may make), or unanswered for too long."""
+            nonlocal said
+            if self.refused_subjects:  # not unanswered: refused (the servers said so)
+                if managing:
+                    raise self._refused_management(what, error) from None
+                raise TransportError(f"cannot {what}: {self._denial_or(error)}.") from None
+            if time.monotonic() >= unanswered_until:
                 raise TransportError(
-                    f"the NATS lease bucket {LEASE_BUCKET} does not exist; the backbone's admin "
-                    "creates it (cblrs matcher --prepare with the admin's login)."
+                    f"cannot {what}: JetStream did not answer for {waited_s:g} s "
+                    f"({error or type(error).__name__})."
                 ) from None
+            if not said:
+                said = True
+                logger.warning("%s: JetStream does not answer yet (%s); asking again for "
+                               "the lease %s", self.client_id, error or type(error).__name__,
+                               lease.key)
+            await asyncio.sleep(0.5)
+
+        while True:
             try:
-                kv = await self._js.create_key_value(KeyValueConfig(
-                    bucket=LEASE_BUCKET, history=1, ttl=lease.ttl_s, direct=True,
-                    replicas=await self._replicas()))
+                kv = await self._js.key_value(LEASE_BUCKET)
+                break
+            except BucketNotFoundError:
+                if not self.settings.manages:
+                    raise TransportError(
+                        f"the NATS lease bucket {LEASE_BUCKET} does not exist; the backbone's "
+                        "admin creates it (cblrs matcher --prepare with the admin's login)."
+                    ) from None
+                try:
+                    kv = await self._js.create_key_value(KeyValueConfig(
+                        bucket=LEASE_BUCKET, history=1, ttl=lease.ttl_s, direct=True,
+                        replicas=await self._replicas()))
+                    break
+                except unanswered as error:
+                    await not_yet(error, f"create the lease bucket {LEASE_BUCKET}", True)
+                except APIError as error:
+                    if error.err_code != _NO_PEERS_YET:
+                        raise self._refused_management(
+                            f"create the lease bucket {LEASE_BUCKET}", error) from None
+                    await not_yet(error, f"create the lease bucket {LEASE_BUCKET}", True)
+                except Exception as error:
+                    raise self._refused_management(f"create the lease bucket {LEASE_BUCKET}",
+                                                   error) from None
+            except unanswered as error:
+                await not_yet(error, f"open the NATS lease bucket {LEASE_BUCKET}")
             except Exception as error:
-                raise self._refused_management(f"create the lease bucket {LEASE_BUCKET}",
-                                               error) from None
-        except TransportError:
-            raise
-        except Exception as error:
-            raise TransportError(
-                f"cannot open the NATS lease bucket {LEASE_BUCKET}: {self._denial_or(error)}."
-            ) from None
+                raise TransportError(
+                    f"cannot open the NATS lease bucket {LEASE_BUCKET}: "
+                    f"{self._denial_or(error)}."
+                ) from None
         self._lease_kv = kv
         value = json.dumps({"holder": self.lease_holder, "since": time.time()}).encode()
         deadline = time.monotonic() + lease.wait_s
-        # JetStream may not answer for a moment (a cluster that has just started, or electing
-        # the bucket's leader): asked again for this long, then the error is the answer.
-        unanswered_until = time.monotonic() + max(lease.wait_s, LEASE_UNANSWERED_S)
-        said = False
         while True:
             try:
                 self._lease_revision = await kv.create(lease.key, value)
                 break
-            except (NoStreamResponseError, NoRespondersError, NatsTimeoutError) as error:
-                if self.refused_subjects:  # not unanswered: refused (the servers said so)
-                    raise TransportError(
-                        f"cannot take the lease {lease.key} of {lease.what or 'the plane'}: "
-                        f"{self._denial_or(error)}."
-                    ) from None
-                if time.monotonic() >= unanswered_until:
-                    raise TransportError(
-                        f"cannot take the lease {lease.key} of {lease.what or 'the plane'}: "
-                        f"JetStream did not answer for {max(lease.wait_s, LEASE_UNANSWERED_S):g}"
-                        f" s ({error})."
-                    ) from None
-                if not said:
-                    said = True
-                    logger.warning("%s: JetStream does not answer yet (%s); asking again for "
-                                   "the lease %s", self.client_id, error, lease.key)
-                await asyncio.sleep(0.5)
+            except unanswered as error:
+                await not_yet(error, f"take the lease {lease.key} of "
+                                     f"{lease.what or 'the plane'}")
             except KeyNotFoundError:
                 # nats-py's create() looks the key up after finding it taken; the holder's
                 # lease expired in between: ask again at once.
