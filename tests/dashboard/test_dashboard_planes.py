@@ -13,10 +13,11 @@ only. Refused: requests without a login, and (NATS) a viewer of another site.
 from __future__ import annotations
 
 import os
+import subprocess
 import time
 
 import pytest
-from dashboard_helpers import VIEWER
+from dashboard_helpers import VIEWER, cblrs_command
 from planes_run import (
     PLANES,
     SITE_ID,
@@ -156,6 +157,14 @@ def test_the_overview_shows_every_plane_with_global_ids(run, tmp_path):
             processes.start("matcher", "--site", str(site), "--plane", str(plane), "--db",
                             str(tmp_path / f"matcher{plane}.db"), "--client-id",
                             f"matcher{plane}", *backbone.options(f"matcher{plane}"))
+        if backbone.kind == "nats":
+            # A linker's login may not create its consumers (a create request names where
+            # the plane's updates go): the admin makes them, as `cblrs linker --prepare`.
+            prepared = subprocess.run(
+                cblrs_command("linker", "--site", str(site), "--prepare", "--client-id",
+                              "linker", *backbone.options("admin")),
+                capture_output=True, text=True, timeout=120)
+            assert prepared.returncode == 0, prepared.stderr[-2000:]
         processes.start("linker", "--site", str(site), "--db", str(tmp_path / "linker.db"),
                         "--client-id", "linker", "--max-wait", "10", "--quiet",
                         *backbone.options("linker"))
