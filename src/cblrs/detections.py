@@ -19,6 +19,19 @@ from numpy.typing import NDArray
 CLASS_NAMES: tuple[str, ...] = ("person", "car", "bicycle", "motorcycle", "bus", "truck")
 """Class ids used on the wire: the index into this tuple."""
 
+CLASS_SIZE_PRIORS: dict[str, tuple[float, float, float]] = {
+    "person": (0.5, 0.5, 1.75),
+    "car": (4.5, 1.8, 1.5),
+    "bicycle": (1.8, 0.6, 1.7),
+    "motorcycle": (2.1, 0.8, 1.5),
+    "bus": (12.0, 2.55, 3.2),
+    "truck": (8.0, 2.5, 3.5),
+}
+"""Class-typical length, width, height (metres): a mid-size car, a bicycle or motorcycle with
+its rider, a city bus (12 m, 2.55 m: the EU's maximum width), a rigid truck. One table for the
+synthetic world's boxes, geometric targeting and the matcher's footprint stage (here, where
+the matcher finds it without importing the datasets)."""
+
 MESSAGE_SCHEMA = "cblrs.detections/1"
 
 SURE_CONFIDENCE = 0.5

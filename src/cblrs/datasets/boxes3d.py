@@ -16,6 +16,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cblrs.camera import Camera
+from cblrs.detections import CLASS_SIZE_PRIORS
 
 logger = logging.getLogger(__name__)
 
@@ -244,16 +245,6 @@ def project_box_3d(
         float(base_z),
     )
     return xyxy[0], bool(visible[0])
-
-
-CLASS_SIZE_PRIORS: dict[str, tuple[float, float, float]] = {
-    "person": (0.5, 0.5, 1.75),
-    "car": (4.5, 1.8, 1.5),
-    "bicycle": (1.8, 0.6, 1.7),
-    "motorcycle": (2.1, 0.8, 1.5),
-    "bus": (12.0, 2.55, 3.2),
-    "truck": (8.0, 2.5, 3.5),
-}
 
 
 def class_size(

@@ -34,21 +34,16 @@ from typing import Any
 
 import numpy as np
 
-from cblrs.detections import CLASS_NAMES
+from cblrs.detections import CLASS_NAMES, CLASS_SIZE_PRIORS
 from cblrs.matching.base import Observations
 from cblrs.matching.fusion.table import Measured, TrackTable
 from cblrs.targeting import targeting_for
 
 VEHICLE_SIZES: dict[str, tuple[float, float, float]] = {
-    "car": (4.5, 1.8, 1.5),
-    "truck": (8.0, 2.5, 3.5),
-    "bus": (12.0, 2.55, 3.2),
-    "bicycle": (1.8, 0.6, 1.7),
-    "motorcycle": (2.1, 0.8, 1.5),
+    name: size for name, size in CLASS_SIZE_PRIORS.items() if name != "person"
 }
-"""Class-typical length, width, height (metres): a mid-size car (4.5 x 1.8 x 1.5 m), a rigid
-truck, a city bus (12 m, 2.55 m: the EU's maximum width), a bicycle with rider; the same
-priors as the synthetic world (:data:`cblrs.datasets.boxes3d.CLASS_SIZE_PRIORS`)."""
+"""Length, width, height (metres) of the classes this stage moves: every class of
+:data:`cblrs.detections.CLASS_SIZE_PRIORS` but people, who keep their foot point."""
 
 _HEADING_SAMPLES = 16  # headings over a quarter turn averaged while the heading is unknown
 _ITERATIONS = 3  # fixed-point steps from the located point back to the footprint centre
