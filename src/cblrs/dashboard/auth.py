@@ -491,7 +491,12 @@ class SecurityMiddleware:
 
 
 def safe_next(target: str | None) -> str:
-    """A redirect target after login: a path of this site only (never another host)."""
-    if not target or not target.startswith("/") or target.startswith("//") or "\\" in target:
+    """A redirect target after login: a path of this site only (never another host).
+
+    Browsers drop tabs and newlines from a URL and read ``\\`` as ``/``, so ``/<TAB>/host``
+    would become ``//host``: control characters, spaces and backslashes are refused too.
+    """
+    if (not target or not target.startswith("/") or target.startswith("//")
+            or any(character <= " " or character in "\\\x7f" for character in target)):
         return "/"
     return target
