@@ -18,7 +18,9 @@ authentication with the token as the password: what Prometheus' ``authorization`
 ``basic_auth`` send), and ``/healthz`` and ``/readyz`` answer loopback clients freely and
 others with the token. Without a token the server binds to a loopback address only
 (:func:`check_exposure`): the metrics name the site's cameras, lines and zones and count
-the people crossing them.
+the people crossing them. It then answers only requests whose ``Host`` names a loopback
+address (:func:`loopback_host_header`; 421 otherwise), so that a web page opened on the same
+machine cannot read them through a name of its own pointed at 127.0.0.1 (DNS rebinding).
 
 Metric names (all labelled ``plane``):
 
@@ -62,6 +64,7 @@ import time
 from collections.abc import Callable, Iterable, Mapping
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from typing import Any
+from urllib.parse import urlsplit
 
 from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram
 from prometheus_client.exposition import CONTENT_TYPE_LATEST, generate_latest
@@ -303,6 +306,22 @@ def is_loopback_host(host: str) -> bool:
         return False
 
 
+def loopback_host_header(host_header: str) -> bool:
+    """Whether an HTTP ``Host`` header names this machine literally: a loopback address,
+    ``localhost`` or a name under ``.localhost`` (never resolved: a name an attacker
+    controls can resolve to 127.0.0.1)."""
+    try:
+        host = urlsplit(f"//{host_header}").hostname or ""
+    except ValueError:
+        return False
+    if host == "localhost" or host.endswith(".localhost"):
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
 def check_exposure(host: str, token: str | None) -> None:
     """Refuse to serve the metrics beyond loopback without a token.
 
@@ -384,7 +403,14 @@ class MetricsServer:
                 path = self.path.split("?", 1)[0]
                 route = routes.get(path)
                 headers = {}
-                if route is None:
+                if token is None and not loopback_host_header(self.headers.get("Host", "")):
+                    # Token-less means loopback-only: a page that points a name of its own at
+                    # 127.0.0.1 (DNS rebinding) must not read the site's names and counts.
+                    status, kind = 421, "text/plain; charset=utf-8"
+                    body = b"this server answers loopback host names only (127.0.0.1)\n"
+                    logger.warning("metrics: refused %s for host %r (not a loopback name)",
+                                   path, self.headers.get("Host", "")[:100])
+                elif route is None:
                     status, kind, body = 404, "text/plain; charset=utf-8", b"not found\n"
                 elif not request_allowed(path, self.client_address[0],
                                          self.headers.get("Authorization", ""), token):
