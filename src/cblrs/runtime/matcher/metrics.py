@@ -361,6 +361,33 @@ def _authorized(header: str, token: str) -> bool:
     return hmac.compare_digest(value.encode(), token.encode())
 
 
+class _BoundedServer(ThreadingHTTPServer):
+    """A thread per connection, at most ``max_connections`` at once (the rest closed)."""
+
+    def __init__(self, address: tuple[str, int], handler: Any, max_connections: int):
+        self.max_connections = max(1, int(max_connections))
+        self._slots = threading.BoundedSemaphore(self.max_connections)
+        super().__init__(address, handler)
+
+    def process_request(self, request: Any, client_address: Any) -> None:
+        if not self._slots.acquire(blocking=False):
+            logger.warning("metrics: %d connections open; closed one from %s",
+                           self.max_connections, client_address[0])
+            self.shutdown_request(request)
+            return
+        try:
+            super().process_request(request, client_address)
+        except BaseException:
+            self._slots.release()
+            raise
+
+    def process_request_thread(self, request: Any, client_address: Any) -> None:
+        try:
+            super().process_request_thread(request, client_address)
+        finally:
+            self._slots.release()
+
+
 class MetricsServer:
     """``/metrics``, ``/healthz`` and ``/readyz`` over HTTP, in a thread of its own.
 
@@ -371,6 +398,9 @@ class MetricsServer:
         ready: the ``/readyz`` check.
         token: the token a request must carry (see the module docstring); None: no
             token, and then ``address`` must be a loopback one.
+        idle_timeout_s: a connection that sends nothing for this long is closed.
+        max_connections: connections served at once; past them a new one is closed at
+            once (idle connections must not exhaust the matcher's threads).
 
     Raises:
         MetricsServerError: the address cannot be bound, or is beyond loopback without a
@@ -384,6 +414,8 @@ class MetricsServer:
         health: Check,
         ready: Check,
         token: str | None = None,
+        idle_timeout_s: float = 10.0,
+        max_connections: int = 32,
     ):
         if token is not None and len(token) < MIN_TOKEN_CHARS:
             raise MetricsServerError(
@@ -399,6 +431,8 @@ class MetricsServer:
         }
 
         class Handler(BaseHTTPRequestHandler):
+            timeout = idle_timeout_s  # on the socket: a silent client is let go
+
             def do_GET(self) -> None:
                 path = self.path.split("?", 1)[0]
                 route = routes.get(path)
@@ -440,7 +474,7 @@ class MetricsServer:
                 logger.debug("metrics %s - %s", self.address_string(), format % args)
 
         try:
-            self._server = ThreadingHTTPServer(address, Handler)
+            self._server = _BoundedServer(address, Handler, max_connections)
         except OSError as error:
             raise MetricsServerError(
                 f"cannot serve metrics on {address[0]}:{address[1]}: "
