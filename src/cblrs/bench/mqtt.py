@@ -42,6 +42,11 @@ jitter of 2 ms (``--clock-jitter-ms``), so the frames of one instant arrive a fe
 ``--clock-spread-ms 0 --clock-jitter-ms 0`` stamps every camera's frame with the same time (an
 idealised case, which benchmarks before issue 20 measured).
 
+The matcher is told the cameras' frame rate (``camera_fps``, as ``cblrs matcher --camera-fps``
+is), so it predicts a camera's next frame from its first one on; ``--unknown-fps`` does not
+tell it (before issue 20's fix): until it has measured a camera's period from its first four
+frames, each of those frames waits for the camera's next one.
+
 ``--nagle`` leaves Nagle's algorithm on (no ``TCP_NODELAY`` on the matcher's, the broker's and
 the subscriber's sockets), as cblrs did before issue 10: small packets (a track update, an
 acknowledgement) then wait for the previous one's TCP acknowledgement.
@@ -251,10 +256,11 @@ def track_subscriber(port: int, nagle: bool, ready, stop, results) -> None:
 
 def run_once(receiver_kind: str, publisher_kind: str, cameras: int, frames: int, fps: float,
              paced: bool, people: int, matcher_name: str, nagle: bool = False,
-             clocks: CameraClocks | None = None) -> dict:
+             clocks: CameraClocks | None = None, known_fps: bool = True) -> dict:
     """One run: a Mosquitto on a free port, the receiver in this process, the publishers in
     others; the run's counts, rates and latency percentiles (milliseconds). ``clocks``: when
-    the cameras capture and stamp their frames (default: all at the same instants)."""
+    the cameras capture and stamp their frames (default: all at the same instants);
+    ``known_fps``: the matcher is told the cameras' frame rate."""
     clocks = clocks or CameraClocks()
     total = cameras * frames
     with tempfile.TemporaryDirectory(prefix="cblrs-bench-") as folder:
@@ -303,7 +309,7 @@ def run_once(receiver_kind: str, publisher_kind: str, cameras: int, frames: int,
                                   persistent=True),
                     store, make_matcher(matcher_name, PlaneSet([PLANE]), names), PLANE_ID,
                     names, policy=ValidationPolicy(max_future_s=3600.0), window_s=2.0,
-                    observer=probe,
+                    observer=probe, camera_fps=fps if known_fps else None,
                 )
                 if paced:
                     ready = multiprocessing.Event()
@@ -368,7 +374,7 @@ def run_once(receiver_kind: str, publisher_kind: str, cameras: int, frames: int,
         "track_p50_ms": math.nan, "track_p99_ms": math.nan,
         "subscriber_p50_ms": math.nan, "subscriber_p99_ms": math.nan,
         "subscriber_steady_p50_ms": math.nan, "subscriber_steady_p99_ms": math.nan,
-        "nagle": nagle,
+        "nagle": nagle, "known_fps": known_fps,
         "clock_spread_ms": 1000 * clocks.spread_s, "clock_jitter_ms": 1000 * clocks.jitter_s,
     }
     if paced and receiver.receipt:
@@ -471,7 +477,8 @@ def run_mqtt_benchmark(args: Any) -> int:
             runs = [run_once(receiver, args.publisher, cameras, frames, args.fps, paced,
                              args.people, args.matcher, args.nagle,
                              CameraClocks(args.clock_spread_ms / 1000,
-                                          args.clock_jitter_ms / 1000, seed=repeat))
+                                          args.clock_jitter_ms / 1000, seed=repeat),
+                             known_fps=not getattr(args, "unknown_fps", False))
                     for repeat in range(args.repeats)]
             if receiver == "matcher" and not paced:
                 # The tracker's own rate on the same messages, between the service's runs.

@@ -92,6 +92,14 @@ def register(subparsers) -> None:
         default=2.0,
         help="ordering window, seconds: how long a timestamp waits for a silent camera",
     )
+    parser.add_argument(
+        "--camera-fps",
+        type=float,
+        metavar="FPS",
+        help="the cameras' frame rate (the fastest's), if known: a camera's first frames are "
+        "then released without waiting for its next ones, until its own frame period is "
+        "measured (default: unknown; they wait)",
+    )
     parser.add_argument("--out-tracks", type=Path, help="also write tracks (AI City format; "
                         "its .meta.json keeps the capture times, for cblrs analytics)")
     parser.add_argument(
@@ -212,6 +220,8 @@ def read_references(folder: Path) -> tuple[list[str], Any, dict[str, list[int]],
 def check_arguments(args: argparse.Namespace) -> None:
     """One sentence for every option value that makes no sense (before anything starts)."""
     check_non_negative(args.window, "--window")
+    if args.camera_fps is not None:
+        check_positive(args.camera_fps, "--camera-fps")
     if args.max_age is not None:
         check_positive(args.max_age, "--max-age")
     if args.max_future is not None:
@@ -346,6 +356,7 @@ def run(args: argparse.Namespace) -> int:
         metrics=metrics,
         live_interval_s=args.live_interval or None,
         retrack=retrack_policy(args), alerts=alerts, alert_senders=senders,
+        camera_fps=args.camera_fps,
     )
     if metrics is not None:
 

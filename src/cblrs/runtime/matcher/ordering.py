@@ -79,6 +79,9 @@ class Orderer:
         max_window_s: widest window, seconds.
         window_fraction: window width as a fraction of the shortest frame period.
         slack: a camera's next frame comes at least ``1 - slack`` periods after its last.
+        assumed_period_s: the cameras' frame period as configured (their frame rate), to
+            predict a camera's next frame until its own period is measured (from its first
+            four frames); None: until then a window waits for each camera's next frame.
     """
 
     def __init__(
@@ -90,6 +93,7 @@ class Orderer:
         max_window_s: float = DEFAULT_MAX_WINDOW_S,
         window_fraction: float = DEFAULT_WINDOW_FRACTION,
         slack: float = DEFAULT_SLACK,
+        assumed_period_s: float | None = None,
     ):
         if timeout_s < 0 or not math.isfinite(timeout_s):
             raise ValueError(f"window must be a finite number >= 0, got {timeout_s}.")
@@ -104,7 +108,7 @@ class Orderer:
         self._waiting: list[_Waiting] = []  # sorted by (timestamp, camera)
         self._times: Counter[float] = Counter()
         self._latest = np.full(count, -np.inf)
-        self._periods = PeriodEstimator(count)
+        self._periods = PeriodEstimator(count, assumed_period_s)
         self._last_heard = np.full(count, np.nan)
         self._offline = np.zeros(count, dtype=bool)
         self._silence_origin: float | None = None
@@ -186,7 +190,7 @@ class Orderer:
             passed = self._offline | (self._latest >= end)
             passed[cameras[count:]] = True
             waiting = waiting_for(cameras[:count], times[:count], end, passed, self._latest,
-                                  self._periods.periods, self.slack)
+                                  self._periods.predicted, self.slack)
             if waiting.any() and not self._given_up(members, waiting, now):
                 return None
         del self._waiting[:count]
