@@ -27,7 +27,7 @@ from cblrs.cli.common import (
     format_table,
     print_json,
 )
-from cblrs.cli.late_options import add_late_options, retrack_policy
+from cblrs.cli.late_options import add_late_options, camera_fps, retrack_policy
 from cblrs.cli.metrics_http import add_http_options, http_settings
 from cblrs.errors import CblrsError
 
@@ -91,14 +91,6 @@ def register(subparsers) -> None:
         type=float,
         default=2.0,
         help="ordering window, seconds: how long a timestamp waits for a silent camera",
-    )
-    parser.add_argument(
-        "--camera-fps",
-        type=float,
-        metavar="FPS",
-        help="the cameras' frame rate (the fastest's), if known: a camera's first frames are "
-        "then released without waiting for its next ones, until its own frame period is "
-        "measured (default: unknown; they wait)",
     )
     parser.add_argument("--out-tracks", type=Path, help="also write tracks (AI City format; "
                         "its .meta.json keeps the capture times, for cblrs analytics)")
@@ -220,8 +212,6 @@ def read_references(folder: Path) -> tuple[list[str], Any, dict[str, list[int]],
 def check_arguments(args: argparse.Namespace) -> None:
     """One sentence for every option value that makes no sense (before anything starts)."""
     check_non_negative(args.window, "--window")
-    if args.camera_fps is not None:
-        check_positive(args.camera_fps, "--camera-fps")
     if args.max_age is not None:
         check_positive(args.max_age, "--max-age")
     if args.max_future is not None:
@@ -234,7 +224,7 @@ def check_arguments(args: argparse.Namespace) -> None:
         check_positive(args.stats_interval, "--stats-interval")
     check_non_negative(args.retain_hours, "--retain-hours")
     check_non_negative(args.retain_gb, "--retain-gb")
-    retrack_policy(args)
+    retrack_policy(args), camera_fps(args)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -356,8 +346,7 @@ def run(args: argparse.Namespace) -> int:
         metrics=metrics,
         live_interval_s=args.live_interval or None,
         retrack=retrack_policy(args), alerts=alerts, alert_senders=senders,
-        camera_fps=args.camera_fps,
-    )
+        camera_fps=camera_fps(args))
     if metrics is not None:
 
         def exposition() -> bytes:
