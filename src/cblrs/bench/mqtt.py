@@ -32,7 +32,8 @@ Rates:
   tracker process and its update handed to the transport, in the service's process), and —
   the figure a user sees — to the track update's arrival at a *separate subscriber process*
   (a paho client on ``cblrs/<plane>/tracks``, one sample per update, i.e. per frame), over
-  every frame and over the frames after each camera's first :data:`WARM_UP_FRAMES`; each
+  every frame and over the frames after each camera's first :data:`WARM_UP_FRAMES` (and the
+  slowest update of the first :data:`FIRST_FRAMES` frames); each
   group's time after its last camera's message is split at its release from the ordering
   buffer (the service's ``on_released`` observer hook).
 
@@ -99,6 +100,7 @@ from cblrs.bench.mqtt_load import (
     tracker_alone,
 )
 from cblrs.bench.mqtt_report import (
+    FIRST_FRAMES,
     WARM_UP_FRAMES,
     clocks_text,
     format_value,
@@ -403,8 +405,13 @@ def run_once(receiver_kind: str, publisher_kind: str, cameras: int, frames: int,
                 row["subscriber_p50_ms"] = 1000 * float(np.percentile(latencies, 50))
                 row["subscriber_p99_ms"] = 1000 * float(np.percentile(latencies, 99))
                 row["subscriber_updates"] = len(latencies)
-                # After the warm-up: until the ordering and the fusion tracker know each
-                # camera's frame period, a frame's window waits for the next frame.
+                # After the warm-up: until the ordering knows each camera's frame period
+                # (and is not told the cameras' frame rate), a frame's window waits for
+                # the next frame. The first frames' own figure shows whether they wait.
+                first = [latency for capture, latency in subscriber_latencies
+                         if capture < report["start"] + FIRST_FRAMES / fps]
+                if first:
+                    row["subscriber_first_max_ms"] = 1000 * max(first)
                 settled = report["start"] + WARM_UP_FRAMES / fps
                 steady = [latency for capture, latency in subscriber_latencies
                           if capture >= settled]
@@ -523,6 +530,10 @@ def run_mqtt_benchmark(args: Any) -> int:
                           f"{row.get('to_release_p99_ms', math.nan):.1f} ms, then tracker "
                           f"process and publishing {row.get('after_release_p50_ms', math.nan):.1f}"
                           f"/{row.get('after_release_p99_ms', math.nan):.1f} ms)", flush=True)
+                if "subscriber_first_max_ms" in row:
+                    print(f"{'':20s} tracks at the subscriber of the first {FIRST_FRAMES} "
+                          f"frames: at most {row['subscriber_first_max_ms']:.1f} ms",
+                          flush=True)
                 if not math.isnan(row["subscriber_steady_p50_ms"]):
                     print(f"{'':20s} tracks at the subscriber after each camera's first "
                           f"{WARM_UP_FRAMES} frames p50/p99 "

@@ -21,6 +21,12 @@ the cameras' frame rate (``--unknown-fps``) a frame's window waits for the camer
 frame until then (a run of 10 s at 10 fps has 100 frames, so those few set its p99)."""
 
 
+FIRST_FRAMES = 4
+"""Paced runs also report the subscriber's slowest update of the frames captured in the first
+this many frame periods: the frames the ordering sees before it has measured a camera's
+period (``MINIMUM_INTERVALS + 1`` frames)."""
+
+
 def median_of(runs: list[dict]) -> dict:
     """One row from repeated runs: the median of every float, the fewest messages received."""
     merged = dict(runs[0])

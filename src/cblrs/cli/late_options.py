@@ -5,8 +5,8 @@
 how far back late messages are still tracked (by re-tracking from a snapshot taken before
 them) and how long the matcher waits for a burst of them to end. ``--camera-fps`` tells the
 ordering the cameras' frame rate, so that a camera's first frames are released without
-waiting for its next ones (a camera faster than that is noticed at its second frame; until
-then its frame could come late, and is re-tracked).
+waiting for its next ones (a camera faster than that is noticed at its second frame, which
+could then come late, and is re-tracked).
 """
 
 from __future__ import annotations

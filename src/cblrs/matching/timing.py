@@ -24,8 +24,10 @@ reach the matcher in each camera's own capture order, so for every camera one of
 * its frame period is known and its next frame cannot come before the window's end (a
   camera's next frame comes at least ``1 - slack`` periods after its previous one): this
   releases a window at once when every camera is in it, and does not wait for a slow camera
-  whose next frame is due later;
-* it is in the window with the latest capture time of it (nothing of it can come between).
+  whose next frame is due later; until a camera's period is measured, the cameras' frame
+  rate, if configured, stands in for it (:class:`PeriodEstimator`);
+* it is in the window with the latest capture time of it, or its watermark is at or past
+  that time (nothing of it can come between).
 
 The same rules order raw messages in the matcher service (:mod:`cblrs.runtime.matcher.ordering`) and
 clock-corrected ones inside the fusion tracker (:class:`WindowBuffer`).

@@ -11,8 +11,9 @@ capture order, stamped by their own clocks; the orderer
    shortest camera frame period, one message per camera. Cameras need not share a clock, a
    frame rate nor capture instants: equal timestamps are not required;
 3. **releases** a window, in timestamp order, once no camera can still add a message to it:
-   every camera has moved past it, or is in it, or is known (from its recent frame period)
-   not to capture again before its end, or said "offline". A camera that dropped a frame is
+   every camera has moved past it, or is in it, or is known (from its recent frame period,
+   or the configured frame rate until that is measured) not to capture again before its
+   end, or said "offline". A camera that dropped a frame is
    passed once its next message arrives. So that a dead camera does not stall the plane, a
    window is also released when it has waited ``timeout_s`` *and* each camera it still waits
    for has been silent for ``timeout_s``;
