@@ -233,7 +233,7 @@ def _authenticator(args: argparse.Namespace) -> Any:
     # lazy: a subcommand imports the library when it runs, so its --help starts fast
     from cblrs.dashboard.auth import Authenticator
     from cblrs.dashboard.users import UsersError
-    from cblrs.runtime.matcher.metrics import is_loopback_host
+    from cblrs.runtime.addresses import is_loopback_host
 
     loopback = is_loopback_host(args.host)
     if not loopback and args.users is None:

@@ -58,7 +58,6 @@ import base64
 import hmac
 import ipaddress
 import logging
-import socket
 import threading
 import time
 from collections.abc import Callable, Iterable, Mapping
@@ -70,6 +69,7 @@ from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram
 from prometheus_client.exposition import CONTENT_TYPE_LATEST, generate_latest
 
 from cblrs.errors import CblrsError
+from cblrs.runtime.addresses import is_loopback_host
 
 logger = logging.getLogger(__name__)
 
@@ -289,21 +289,6 @@ def parse_address(text: str) -> tuple[str, int]:
             f"--http {text!r} is not an address; give HOST:PORT, e.g. 127.0.0.1:9100."
         )
     return (host.strip("[]") or "127.0.0.1"), int(port)
-
-
-def is_loopback_host(host: str) -> bool:
-    """Whether every address ``host`` names is a loopback one (``127.0.0.1``, ``::1``,
-    ``localhost``); a name that does not resolve is not."""
-    try:
-        infos = socket.getaddrinfo(host, None, type=socket.SOCK_STREAM)
-    except (OSError, UnicodeError):
-        return False
-    try:
-        return bool(infos) and all(
-            ipaddress.ip_address(str(info[4][0]).split("%")[0]).is_loopback for info in infos
-        )
-    except ValueError:
-        return False
 
 
 def loopback_host_header(host_header: str) -> bool:
