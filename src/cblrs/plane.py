@@ -126,11 +126,11 @@ class PlaneSpec:
             ``(world_xy, valid)``: (N, 2) metres (NaN where invalid) and (N,) bool.
         """
         colours = _colours(colours)
-        valid = (colours[:, 2] == self.plane_id) & (colours[:, :2] <= self.max_value).all(axis=1)
-        step_x, step_y = self.step
+        valid = ((colours[:, 2] == self.plane_id) & (colours[:, 0] <= self.max_value)
+                 & (colours[:, 1] <= self.max_value))
         world_xy = np.full((len(colours), 2), np.nan)
-        world_xy[valid, 0] = self.origin[0] + colours[valid, 0] * step_x
-        world_xy[valid, 1] = self.origin[1] + colours[valid, 1] * step_y
+        # origin + colour * step, column by column (one gather of the valid rows).
+        world_xy[valid] = np.asarray(self.origin) + colours[valid, :2] * np.asarray(self.step)
         return world_xy, valid
 
     def to_dict(self) -> dict:
@@ -265,14 +265,18 @@ def _points(world_xy: NDArray) -> FloatArray:
     return array
 
 
-def _colours(colours: NDArray) -> NDArray[np.int64]:
+def _colours(colours: NDArray) -> NDArray[np.integer]:
     array = np.asarray(colours)
     if array.ndim != 2 or array.shape[1] != 3:
         raise ValueError(f"colours must have shape (N, 3), got {array.shape}")
     if not np.issubdtype(array.dtype, np.integer):
         if not np.all(np.isfinite(array)) or np.any(array != np.round(array)):
             raise ValueError("colours must be whole numbers")
-    array = array.astype(np.int64)
+    # Read only (decoding compares and scales them): unsigned colours, a reference image's,
+    # are used as they are, other integers as int64 without a copy when they are already.
+    if np.issubdtype(array.dtype, np.unsignedinteger):
+        return array
+    array = array.astype(np.int64, copy=False)
     if np.any(array < 0):
         raise ValueError("colours must not be negative")
     return array
