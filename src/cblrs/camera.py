@@ -27,8 +27,8 @@ it reprojects every point identically, has positive depths, keeps ground x, y, a
 
 OpenCV is imported by the methods that call it (lens distortion, projections through a lens
 model, RQ decomposition), not with this module: a WILDTRACK camera read from its files needs
-none of them, and ``cblrs track`` then starts without loading OpenCV (a tenth of a second and
-some 25 MiB); the Rodrigues vector is converted by :func:`rotation_from_vector`, OpenCV's own
+none of them, and ``cblrs track`` then starts without loading OpenCV (40-80 ms of CPU and
+some 30 MiB); the Rodrigues vector is converted by :func:`rotation_from_vector`, OpenCV's own
 arithmetic.
 
 It stays one module because :class:`Camera` is one value type (intrinsics, distortion, pose)
