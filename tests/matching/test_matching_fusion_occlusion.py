@@ -111,3 +111,18 @@ def test_off_when_report_hidden_s_is_zero():
     observed, measured = detections([[0.0, 1.0]], [0])
     hidden.learn(tracks, np.ones(2, dtype=bool), observed, measured, np.array([1]))
     assert hidden.occluded_views == 0.0
+
+
+def test_missed_tracks_are_reported_hidden_only_for_report_hidden_s_behind_taken_detections():
+    hidden = stage(report_hidden_s=1.0)
+    hidden.occluded_views, hidden.occluded_missed = 100.0, 90.0
+    tracks = tracks_at([[1.0, 1.0], [1.0, 1.0]])
+    tracks.last_seen[:] = [9.5, 8.0]  # track 2 was missed for 2 s at time 10
+    observed, measured = detections([[0.0, 1.0], [1.0, 0.0]], [0, 1])
+    reported = np.zeros(2, dtype=bool)
+    assert hidden.missed(tracks, reported, 10.0, observed, measured).tolist() == [True, False]
+    # Already reported: nothing to add.
+    assert not hidden.missed(tracks, np.ones(2, dtype=bool), 10.0, observed, measured).any()
+    # Occluders no track took (a detector's false positives, say) hide nobody.
+    untaken = np.zeros(2, dtype=bool)
+    assert not hidden.missed(tracks, reported, 10.0, observed, measured, untaken).any()

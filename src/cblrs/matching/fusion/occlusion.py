@@ -7,12 +7,18 @@ whoever counts people, still has them. The tracker keeps coasting such a track f
 ``max_age_s`` anyway; this stage decides whether to *report* it meanwhile.
 
 A missed track is hidden at an instant when every camera whose view covers its predicted
-position (:class:`~cblrs.matching.fusion.coverage.Coverage`) has a detection in front of it:
-nearer to the camera, and within a body's width of the track's bearing from the camera (the
-nearer box covers the farther one in that image). A camera that covers the place and sees
-nothing there, or sees only things beside or behind it, would have seen the person: the
-track is not reported. A track whose position no camera covers is not reported either
-(leaving the located area is not being hidden).
+position (:class:`~cblrs.matching.fusion.coverage.Coverage`) has a detection in front of it
+that a track took: nearer to the camera, and within a body's width of the track's bearing
+from the camera (the nearer box covers the farther one in that image). A camera that covers
+the place and sees nothing there, or sees only things beside or behind it, would have seen
+the person: the track is not reported. A track whose position no camera covers is not
+reported either (leaving the located area is not being hidden).
+
+Whether cameras miss people who are hidden at all depends on the boxes: a detector does,
+annotated boxes (WILDTRACK's) do not, and there a person missed by every camera has left.
+The stage learns it online, from the people seen at each instant: of their views that a
+nearer detection hides, the share their camera missed; only above one half are hidden
+tracks reported. Only people (vehicles are left to their own stages).
 
 Needs the cameras' ground positions (``camera_positions``); without them nothing is reported
 hidden.
@@ -25,6 +31,7 @@ import numpy as np
 from cblrs.detections import CLASS_NAMES, CLASS_SIZE_PRIORS
 from cblrs.matching.base import Observations
 from cblrs.matching.fusion.coverage import Coverage
+from cblrs.matching.fusion.low_confidence import take_measured
 from cblrs.matching.fusion.table import FusionContext, Measured, TrackTable
 
 PERSON_HEIGHT_M = CLASS_SIZE_PRIORS["person"][2]
@@ -123,14 +130,17 @@ class Hidden:
 
     def missed(
         self, tracks: TrackTable, report: np.ndarray, timestamp: float,
-        observed: Observations, measured: Measured,
+        observed: Observations, measured: Measured, matched: np.ndarray | None = None,
     ) -> np.ndarray:
         """(T,) bool: the confirmed tracks not in ``report`` (missed now), missed for at most
-        ``report_hidden_s`` and hidden at this instant (:meth:`hidden`)."""
+        ``report_hidden_s`` and hidden at this instant (:meth:`hidden`) behind detections
+        that tracks took (``matched``, (N,) bool; None: any detection)."""
         limit = self.context.config.report_hidden_s
         candidates = ~report & (tracks.ids >= 0) & (timestamp - tracks.last_seen <= limit)
         if limit <= 0 or not candidates.any():
             return np.zeros(len(tracks.ids), dtype=bool)
+        if matched is not None:
+            observed, measured = observed[matched], take_measured(measured, matched)
         return self.hidden(tracks, candidates, observed, measured)
 
     def hidden(

@@ -397,7 +397,8 @@ class FusionTracker:
         confirmable[stitches.rows] = False
         self.tracks.ids[stitches.rows] = stitches.ids
         report = self._confirm(timestamp, seen_now, confirmable)
-        report |= self.hidden.missed(self.tracks, report, timestamp, observed, self.measured)
+        report |= self.hidden.missed(self.tracks, report, timestamp, observed, self.measured,
+                                     matched)
         self.clock_learning.record(self.tracks, timestamp, seen_now & (self.tracks.ids >= 0),
                                    located_xy, observed.camera, raw_time_of_camera)
         return self._report_instants(report, report_camera, report_box, window, timestamp)
