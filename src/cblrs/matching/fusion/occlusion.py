@@ -114,9 +114,10 @@ class Hidden:
             return
         position = tracks.state[rows, :2]
         covering = self.coverage.covered_by(position)
+        of_camera = _by_camera(observed.camera, self.context.camera_count)
         for camera in np.flatnonzero(covering.any(axis=1)).tolist():
             testing = np.flatnonzero(covering[camera])
-            mine = np.flatnonzero(observed.camera == camera)
+            mine = of_camera[camera]
             if len(mine) == 0:
                 continue
             occluded = self._occluded(camera, position[testing], observed, measured, mine,
@@ -166,11 +167,12 @@ class Hidden:
         position = tracks.state[rows, :2]
         covering = self.coverage.covered_by(position)  # (C, K)
         hidden = covering.any(axis=0)
+        of_camera = _by_camera(observed.camera, self.context.camera_count)
         for camera in np.flatnonzero(covering.any(axis=1)).tolist():
             testing = covering[camera] & hidden
             if not testing.any():
                 continue
-            mine = np.flatnonzero(observed.camera == camera)
+            mine = of_camera[camera]
             if len(mine) == 0:
                 hidden &= ~covering[camera]
                 continue
@@ -209,3 +211,10 @@ class Hidden:
         if rows is not None and assigned is not None:
             covered &= assigned[mine][None, :] != rows[:, None]
         return covered.any(axis=1)
+
+
+def _by_camera(camera: np.ndarray, camera_count: int) -> list[np.ndarray]:
+    """The indices of each camera's detections, in one pass: (N,) camera index -> C arrays."""
+    order = np.argsort(camera, kind="stable")
+    bounds = np.searchsorted(camera[order], np.arange(camera_count + 1))
+    return [order[bounds[one]:bounds[one + 1]] for one in range(camera_count)]
