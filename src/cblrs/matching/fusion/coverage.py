@@ -117,12 +117,16 @@ class Coverage:
 
     def covering(self, world_xy: np.ndarray) -> np.ndarray:
         """(T,) int64: how many cameras cover each position (0 off the grid)."""
-        count = np.zeros(len(world_xy), np.int64)
+        return self.covered_by(world_xy).sum(axis=0).astype(np.int64)
+
+    def covered_by(self, world_xy: np.ndarray) -> np.ndarray:
+        """(C, T) bool: which cameras cover each position (none off the grid)."""
+        covered = np.zeros((self.camera_count, len(world_xy)), dtype=bool)
         if len(world_xy) == 0:
-            return count
+            return covered
         column, row, inside = self._cells(world_xy)
-        covered = self.counts[:, column[inside], row[inside]] >= self.covering_count
+        inner = self.counts[:, column[inside], row[inside]] >= self.covering_count
         told = self.has_view
-        covered[told] = self.view[told][:, column[inside], row[inside]]
-        count[inside] = covered.sum(axis=0)
-        return count
+        inner[told] = self.view[told][:, column[inside], row[inside]]
+        covered[:, inside] = inner
+        return covered
