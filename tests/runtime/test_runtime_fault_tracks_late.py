@@ -100,13 +100,13 @@ def _run_item1(case: dict, database: Path, late_sequences=(), updates=None) -> d
                 sender.publish(detections_topic(1, message.camera_id), encode_message(message, 1))
         if late:
             wait_until(lambda: (store.released_timestamp() or 0) > max(
-                m.timestamp for m in late), 30, "the withheld frames' windows to be released")
+                m.timestamp for m in late), 120, "the withheld frames' windows to be released")
         for message in late:
             sender.publish(detections_topic(1, message.camera_id), encode_message(message, 1))
         wait_until(lambda: store.counters().get("processed", 0) == TOTAL - len(late)
                    + store.counters().get("late_tracked", 0)
                    and store.counters().get("late_tracked", 0) == len(late)
-                   and service.drained(), 30, "every message to be tracked")
+                   and service.drained(), 120, "every message to be tracked")
         service.close(flush=True)
         closed = True
         counters = store.counters()

@@ -41,7 +41,7 @@ def test_item1_a_full_broker_queue_loses_nothing(plant, tmp_path):
                for name in CAMERAS]
     # All 80 acknowledged by the broker while the matcher is down; most are dropped.
     wait_until(lambda: "Outgoing messages are being dropped for client matcher1"
-               in plant.broker.process.log_path.read_text(), 30, "the broker to drop")
+               in plant.broker.process.log_path.read_text(), 120, "the broker to drop")
     matcher = plant.start(plant.matcher(database, "--until-cameras-offline", "--idle-exit",
                                         "40"))
     for camera in cameras:
@@ -77,7 +77,7 @@ def test_item2_broker_killed_after_the_cameras_finished_loses_nothing(plant, tmp
     # that one has begun, the first is complete on disk. (Killed at its log line, the
     # broker lost everything: the restart read the previous file.)
     saved = broker_saves(plant)
-    wait_until(lambda: broker_saves(plant) >= saved + 2, 30, "the broker's next save")
+    wait_until(lambda: broker_saves(plant) >= saved + 2, 120, "the broker's next save")
     plant.broker.process.kill()
     plant.broker.start()
     code, out, err = finish(plant.start(plant.matcher(database, "--until-cameras-offline",

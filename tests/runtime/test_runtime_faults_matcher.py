@@ -104,7 +104,7 @@ def test_item10_sigterm_to_the_process_group_stops_cleanly_and_resumes(plant, tm
     tracks = tmp_path / "tracks.txt"
     matcher = plant.start(plant.matcher(database, "--out-tracks", str(tracks)),
                           start_new_session=True)
-    wait_until(lambda: database.exists(), 30, "the matcher")
+    wait_until(lambda: database.exists(), 120, "the matcher")
     cameras = [plant.start(plant.camera(name, "--realtime", "--speed", "10",
                                         "--confirm-timeout", "0"))
                for name in CAMERAS]
@@ -143,7 +143,7 @@ def test_item10_clean_camera_shutdown_keeps_its_final_offline(plant, tmp_path):
                      lambda delivery: (seen.append(decode_status(delivery.payload)),
                                        delivery.ack()))
     viewer.connect()
-    wait_until(lambda: seen, 10, "the retained status")
+    wait_until(lambda: seen, 60, "the retained status")
     viewer.close()
     assert seen[0].state == "offline" and seen[0].timestamp is not None
     shutil.rmtree(tmp_path / "unused", ignore_errors=True)
