@@ -201,10 +201,7 @@ class FusionTracker:
             # Every 4th pixel each way: plenty for metre-sized cells (and an on-demand
             # reference renders only those, not the whole 16-bit frame).
             colours = reference.sampled_colours(4)
-            located = []
-            for plane in reference.planes:
-                world_xy, valid = plane.decode(colours)
-                located.append(world_xy[valid])
+            located = [plane.decode_valid(colours) for plane in reference.planes]
             self.coverage.set_view(camera, np.concatenate(located))
             self.footprint.set_view(camera, reference)
 
