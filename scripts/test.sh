@@ -13,7 +13,7 @@
 #    tests/conftest.py hands the files out longest first, from tests/file_durations.json,
 #    so that no long file is left to run alone at the end). Two per core, not one: the
 #    broker, fault and `cblrs up` files spend most of their time waiting on the processes
-#    they start (test_runtime_fault_tracks.py: 31 CPU-s in 143 s), and another worker's
+#    they start (the fault tests: 31 CPU-s in 143 s), and another worker's
 #    file uses the core meanwhile (docs/getting-started.md has the figures);
 #    CBLRS_TEST_WORKERS=N sets the number of workers, 0 runs in this process.
 set -euo pipefail

@@ -1,4 +1,5 @@
-"""``cblrs track`` from real images through the shipped detector, and from detection files."""
+"""``cblrs track`` from real images through the shipped detector, and from detection files
+(the acceptance run on every MultiviewX image is test_detectors_track_real_images.py)."""
 
 from __future__ import annotations
 
@@ -12,7 +13,6 @@ import numpy as np
 import pytest
 from onnx_models import constant_model
 
-from cblrs.calibration import MULTIVIEWX_GROUND
 from cblrs.cli.main import main
 from cblrs.datasets import load_scene, read_tracks
 from cblrs.datasets.detection_folder import read_detection_folder
@@ -37,25 +37,6 @@ def _write_mot_folder(scene, folder: Path, names: list[str], frame_shift: int = 
                 lines.append(f"{frame + frame_shift},{person},{x0},{y0},{x1 - x0},{y1 - y0},1")
         (folder / f"{name}.txt").write_text("\n".join(lines) + "\n")
     return folder
-
-
-@pytest.mark.slow
-def test_track_from_real_images_with_the_shipped_detector(
-    multiviewx_real_root, yolox_model, tmp_path, capsys
-):
-    """Acceptance: HOTA >= 75 from the real MultiviewX images (default tiling)."""
-    out = tmp_path / "tracks.txt"
-    code, stdout, _ = _track(
-        [str(multiviewx_real_root), "--out", str(out), "--detector", "onnx",
-         "--model", str(yolox_model), "--json", "--quiet"], capsys,
-    )
-    assert code == 0
-    summary = json.loads(stdout)
-    assert summary["source"] == "detector" and summary["detector"]["images"] == 60
-    assert all("whole frame" in plan for plan in summary["detector"]["tiles"].values())
-    scene = load_scene(multiviewx_real_root)
-    metrics = evaluate(scene.ground_truth, read_tracks(out), area=MULTIVIEWX_GROUND)
-    assert metrics.HOTA >= 75.0, metrics.to_dict()
 
 
 def test_track_without_tiles_on_a_few_frames(multiviewx_real_root, yolox_model, tmp_path, capsys):

@@ -2,15 +2,15 @@
 camera`` / ``cblrs matcher`` processes, real WILDTRACK detections. Each test breaks one thing
 the way an operator or a machine would and asserts that no acknowledged message is lost (or
 that the command refuses, in one sentence, before anything is acknowledged). The plant is in
-fault_plant.py; the matcher's side (items 5-12) is in test_runtime_faults_matcher.py.
+fault_plant.py; items 3-4 (no matcher yet, refused publishes, a long outage) are in
+test_runtime_faults_outage.py; the matcher's side (items 5-12) is in
+test_runtime_faults_matcher.py.
 "What cblrs guarantees" in docs/services.md names the test behind each of its lines.
 """
 
 from __future__ import annotations
 
 import json
-import signal
-import time
 
 import pytest
 from fault_plant import (
@@ -20,12 +20,9 @@ from fault_plant import (
     assert_all_stored_once,
     broker_saves,
     finish,
-    one_sentence,
     spool_rows,
 )
 from waiting import wait_until
-
-from cblrs.runtime.matcher.store import RuntimeStore
 
 pytestmark = pytest.mark.mqtt
 
@@ -41,7 +38,7 @@ def test_item1_a_full_broker_queue_loses_nothing(plant, tmp_path):
                for name in CAMERAS]
     # All 80 acknowledged by the broker while the matcher is down; most are dropped.
     wait_until(lambda: "Outgoing messages are being dropped for client matcher1"
-               in plant.broker.process.log_path.read_text(), 30, "the broker to drop")
+               in plant.broker.process.log_path.read_text(), 120, "the broker to drop")
     matcher = plant.start(plant.matcher(database, "--until-cameras-offline", "--idle-exit",
                                         "40"))
     for camera in cameras:
@@ -77,7 +74,7 @@ def test_item2_broker_killed_after_the_cameras_finished_loses_nothing(plant, tmp
     # that one has begun, the first is complete on disk. (Killed at its log line, the
     # broker lost everything: the restart read the previous file.)
     saved = broker_saves(plant)
-    wait_until(lambda: broker_saves(plant) >= saved + 2, 30, "the broker's next save")
+    wait_until(lambda: broker_saves(plant) >= saved + 2, 120, "the broker's next save")
     plant.broker.process.kill()
     plant.broker.start()
     code, out, err = finish(plant.start(plant.matcher(database, "--until-cameras-offline",
@@ -106,96 +103,3 @@ def test_item2_broker_killed_before_it_saved_loses_nothing(plant, tmp_path):
     code, out, err = finish(matcher)
     assert code == 0, err
     assert_all_stored_once(database)
-
-
-# -- item 3 ----------------------------------------------------------------------------------
-
-
-def test_item3_cameras_before_the_first_matcher_lose_nothing(plant, tmp_path):
-    """No matcher has ever subscribed: the broker drops everything. A camera says so (exit 3,
-    nothing claimed), keeps its messages, and sends them when a matcher appears."""
-    plant = plant()
-    database = tmp_path / "plane1.db"
-    early = plant.run(plant.camera("CVLab1", "--confirm-timeout", "1"))
-    assert early.returncode == 3, early.stderr
-    summary = json.loads(early.stdout)
-    assert not summary["confirmed_all"] and summary["unconfirmed"] == PER_CAMERA
-    assert spool_rows(tmp_path / "CVLab1.spool") == PER_CAMERA
-    plain = plant.run([item for item in plant.camera("CVLab2", "--confirm-timeout", "1")
-                       if item != "--json"])
-    assert plain.returncode == 3
-    assert "not yet confirmed by a matcher" in plain.stdout and "all confirmed" not in plain.stdout
-    cameras = [plant.start(plant.camera(name, "--confirm-timeout", "60")) for name in CAMERAS]
-    # Both published again and the broker acknowledged (and dropped) everything.
-    wait_until(lambda: all(spool_rows(tmp_path / f"{name}.spool", state=2) == PER_CAMERA
-                           for name in CAMERAS), 60, "the broker to acknowledge everything")
-    matcher = plant.start(plant.matcher(database, "--until-cameras-offline", "--idle-exit",
-                                        "40"))
-    for camera in cameras:
-        code, out, err = finish(camera)
-        report = json.loads(out)
-        assert code == 0 and report["confirmed_all"], err
-    code, out, err = finish(matcher)
-    assert code == 0, err
-    assert_all_stored_once(database)
-
-
-def test_item3_a_camera_never_claims_what_the_broker_refused(plant, tmp_path):
-    """Wrong credentials for the topic: every publish refused by the ACL; exit 1, one
-    sentence, nothing claimed (it used to print "all acknowledged")."""
-    plant = plant()
-    command = plant.camera("CVLab1", "--confirm-timeout", "0")
-    command[command.index("--username") + 1] = "CVLab2"
-    command[command.index("--password-file") + 1] = str(
-        plant.broker.files.password_files["CVLab2"])
-    result = plant.run(command)
-    assert result.returncode == 1
-    report = json.loads(result.stdout)
-    assert report["refused_by_broker"] >= 1 and not report["flushed"]
-    assert "Not authorized" in one_sentence(result.stderr)
-
-
-# -- item 4 ----------------------------------------------------------------------------------
-
-
-def test_item4_a_long_broker_outage_is_spooled_to_disk(plant, tmp_path):
-    """The broker is away: the camera says so within seconds, spools to disk, survives its
-    own SIGKILL, and its next start delivers everything; a full spool drops the oldest,
-    counted and logged."""
-    plant = plant()
-    database = tmp_path / "plane1.db"
-    assert plant.run(plant.matcher(database, "--prepare")).returncode == 0
-    plant.broker.stop()
-    camera = plant.start(plant.camera("CVLab1", "--flush-timeout", "600"))
-    started = time.monotonic()
-    wait_until(lambda: spool_rows(tmp_path / "CVLab1.spool") == PER_CAMERA, 30, "a full spool")
-    camera.send_signal(signal.SIGKILL)
-    _, err = camera.communicate()
-    assert "cannot reach the MQTT broker" in err and "Connection refused" in err, err
-    assert time.monotonic() - started < 30
-    # A small spool: its policy when full (drop the oldest, count, say so).
-    small = plant.run(plant.camera("CVLab2", "--flush-timeout", "1", "--spool-max-mb", "0.02"))
-    assert small.returncode == 3
-    report = json.loads(small.stdout)
-    kept = spool_rows(tmp_path / "CVLab2.spool")
-    assert report["dropped_from_spool"] == PER_CAMERA - kept > 0
-    assert "is full" in small.stderr and "dropped the" in small.stderr
-    plant.broker.start()
-    matcher = plant.start(plant.matcher(database, "--until-cameras-offline", "--idle-exit",
-                                        "30"))
-    resumed = [plant.start(plant.camera(name, "--confirm-timeout", "60", replay=False))
-               for name in CAMERAS]
-    for camera in resumed:
-        code, out, err = finish(camera)
-        report = json.loads(out)
-        assert code == 0 and report["confirmed_all"] and report["messages"] == 0, err
-    code, out, err = finish(matcher)
-    assert code == 0, err
-    with RuntimeStore(database, read_only=True) as store:
-        keys = {(m.message.camera_id, m.message.sequence) for m in store.messages()}
-    assert {("CVLab1", sequence) for sequence in range(PER_CAMERA)} <= keys
-    assert {key for key in keys if key[0] == "CVLab2"} == {
-        ("CVLab2", sequence) for sequence in range(PER_CAMERA - kept, PER_CAMERA)}
-
-
-# -- item 5 ----------------------------------------------------------------------------------

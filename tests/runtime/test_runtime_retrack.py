@@ -1,6 +1,7 @@
 """Re-tracking late messages from snapshots (issue 20 item 1), at the store's level: which
 snapshot is used, what is replaced, what stays untracked. The services and real processes
-are tested in ``test_runtime_fault_tracks.py`` (item 1) and ``test_runtime_services.py``."""
+are tested in ``test_runtime_fault_tracks_late.py`` and
+``test_runtime_fault_tracks_late_mqtt.py`` (item 1) and ``test_runtime_services.py``."""
 
 from __future__ import annotations
 
