@@ -53,6 +53,10 @@ class TrackTable:
         born: (T,) when the track was first seen, seconds (for the stitching stage: a new
             track can continue a lost one only if it was born after that one was last
             seen). Defaults to ``last_seen``.
+        located: (T, 2) where the track was located at the instant it was last updated,
+            when that is sharper than the filter's estimate, metres (NaN: use ``state``;
+            default). Only reported, never used to associate
+            (:mod:`~cblrs.matching.fusion.vehicle_noise`).
     """
 
     ids: np.ndarray
@@ -73,6 +77,7 @@ class TrackTable:
     heading_speed: np.ndarray | None = None
     seen_covariance: np.ndarray | None = None
     born: np.ndarray | None = None
+    located: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         # Tables built before these columns existed (births, saved states, tests) start them
@@ -85,6 +90,8 @@ class TrackTable:
             self.seen_covariance = self.covariance[:, :2, :2].copy()
         if self.born is None:
             self.born = np.array(self.last_seen, np.float64, copy=True)
+        if self.located is None:
+            self.located = np.full((len(self.ids), 2), np.nan)
 
     @classmethod
     def empty(cls, models: int, cameras: int) -> TrackTable:
@@ -108,7 +115,7 @@ class TrackTable:
                 self.mode_covariance, self.mode_probability, self.evidence, self.last_seen,
                 self.seen_by, self.velocity_sigma, self.heading, self.heading_time,
                 self.heading_sigma, self.heading_xy, self.heading_speed,
-                self.seen_covariance, self.born)
+                self.seen_covariance, self.born, self.located)
 
     def select(self, keep: np.ndarray) -> TrackTable:
         """The rows where ``keep`` (a (T,) mask or indices)."""
