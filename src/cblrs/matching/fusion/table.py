@@ -162,6 +162,11 @@ class FusionContext:
         noise: the learned measurement-noise model.
         class_turn_radius: (K + 1,) smallest turning radius of each class, metres (inf:
             turns on the spot).
+        class_velocity_sigma: (K + 1,) how fast an object of each class may be moving when
+            its velocity is not known yet, m/s: ``initial_velocity_sigma`` (a person's)
+            scaled like the class's acceleration (7.5 m/s for a car). A new track's velocity
+            uncertainty, and how far a detection captured a little before or after the
+            window's time may have moved per second before its track's velocity compensates it.
     """
 
     config: FusionConfig
@@ -172,12 +177,19 @@ class FusionContext:
     noise: NoiseModel
     object_covariance: np.ndarray = field(init=False)
     class_turn_radius: np.ndarray = field(init=False)
+    class_velocity_sigma: np.ndarray = field(init=False)
 
     def __post_init__(self) -> None:
         self.object_covariance = self.config.object_sigma_m**2 * np.eye(2)
         self.class_turn_radius = np.array(
             [self.config.class_turn_radius_m.get(name, np.inf) for name in CLASS_NAMES]
             + [np.inf])
+        config = self.config
+        acceleration = np.array(
+            [config.class_acceleration_sigma.get(name, config.acceleration_sigma)
+             for name in CLASS_NAMES] + [config.acceleration_sigma])
+        self.class_velocity_sigma = (
+            config.initial_velocity_sigma * acceleration / config.acceleration_sigma)
 
     @property
     def camera_count(self) -> int:

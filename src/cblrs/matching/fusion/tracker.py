@@ -95,11 +95,6 @@ class FusionTracker:
         self._class_acceleration = np.array(
             [config.class_acceleration_sigma.get(name, config.acceleration_sigma)
              for name in CLASS_NAMES] + [config.acceleration_sigma])
-        # How far an object may move per second, to widen the gate of a detection captured
-        # a little before or after the window's time (before its track's velocity is known
-        # to compensate it): the initial velocity uncertainty, scaled like the acceleration.
-        self._class_speed = (
-            config.initial_velocity_sigma * self._class_acceleration / config.acceleration_sigma)
         self._windows = WindowBuffer(
             len(self.camera_ids), config.max_window_s, config.window_fraction)
         self._clock = ClockModel(
@@ -301,7 +296,8 @@ class FusionTracker:
         if np.any(lag != 0):
             # Until a detection is given a track, its motion over its lag is unknown: widen
             # its gate by how far the class moves in that time.
-            covariance = covariance + ((lag * self._class_speed[slot]) ** 2)[:, None, None] * (
+            speed = self.context.class_velocity_sigma[slot]
+            covariance = covariance + ((lag * speed) ** 2)[:, None, None] * (
                 np.eye(2)[None])
         plain = self._class_extra[slot] == 0
         observed = raw
