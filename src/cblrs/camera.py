@@ -32,6 +32,7 @@ whose methods are the projections every stage uses; the file readers are in
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -290,6 +291,36 @@ class Camera:
     def has_distortion(self) -> bool:
         """Whether any lens distortion coefficient is non-zero."""
         return bool(np.any(self.distortion != 0))
+
+    @property
+    def field_radius(self) -> float:
+        """Largest normalised radius (``hypot(x/z, y/z)``) the lens model images one-to-one.
+
+        A polynomial lens model is only a lens within the field it was fitted on: past the
+        radius where its radial map ``r -> r * radial(r)`` stops growing, it folds back and
+        would put points seen at wider angles onto pixels that already image nearer ones (a
+        real lens shows nothing there; :meth:`undistort_pixels` gives such pixels no
+        position). Infinite without distortion or when the map keeps growing (searched up
+        to a radius of 20, about 87 degrees off axis). Tangential terms are ignored.
+        """
+        cached = self.__dict__.get("_field_radius")
+        if cached is None:
+            cached = _field_radius(self.distortion)
+            # A pure function of this frozen camera; cached on the instance.
+            object.__setattr__(self, "_field_radius", cached)
+        return cached
+
+    def in_field(self, world_xyz: NDArray) -> BoolArray:
+        """(N,) bool: world points (N, 3) in front of the camera and within its lens's field
+        (:attr:`field_radius`); needs a posed camera."""
+        camera_xyz = self.to_camera_frame(world_xyz)
+        depth = camera_xyz[:, 2]
+        front = depth > _MIN_DEPTH_M
+        if not np.isfinite(self.field_radius):
+            return front
+        with np.errstate(divide="ignore", invalid="ignore"):
+            radius = np.hypot(camera_xyz[:, 0], camera_xyz[:, 1]) / depth
+        return front & (radius < self.field_radius)
 
     @property
     def centre(self) -> FloatArray:
@@ -560,6 +591,23 @@ class Camera:
             f"Camera({self.name!r}, {self.image_size[0]}x{self.image_size[1]}, "
             f"{kind}{lens}{mirrored})"
         )
+
+
+def _field_radius(distortion: FloatArray, largest: float = 20.0) -> float:
+    """Where OpenCV's radial model ``r (1 + k1 r^2 + k2 r^4 + k3 r^6) / (1 + k4 r^2 + k5 r^4
+    + k6 r^6)`` first stops increasing (normalised radius; inf if it does not by ``largest``)."""
+    coefficients = np.zeros(8)
+    coefficients[: min(distortion.size, 8)] = distortion[:8]
+    k1, k2, _, _, k3, k4, k5, k6 = coefficients
+    if not (k1 or k2 or k3):
+        return math.inf
+    radius = np.linspace(0.0, largest, 200_001)
+    r2 = radius**2
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        mapped = radius * (1 + r2 * (k1 + r2 * (k2 + r2 * k3))) / (
+            1 + r2 * (k4 + r2 * (k5 + r2 * k6)))
+    falling = np.flatnonzero(~(np.diff(mapped) > 0))
+    return math.inf if len(falling) == 0 else float(radius[falling[0]])
 
 
 def ground_depth_sign(

@@ -164,3 +164,16 @@ def test_undistort_marks_folded_pixels_invalid():
     undistorted = camera.undistort_pixels(np.array([[0.0, 0.0], [320.0, 180.0]]))
     assert np.isnan(undistorted[0]).all()
     np.testing.assert_allclose(undistorted[1], [320.0, 180.0], atol=1e-6)
+
+
+def test_field_radius_is_where_the_radial_model_folds_back():
+    # r (1 + k1 r^2) stops growing at r = 1 / sqrt(-3 k1).
+    camera = posed_camera(distortion=np.array([-0.3, 0.0, 0.0, 0.0]))
+    assert camera.field_radius == pytest.approx(1 / np.sqrt(0.9), abs=1e-3)
+    assert posed_camera().field_radius == np.inf
+    assert posed_camera(distortion=np.array([0.1, 0.0, 0.0, 0.0])).field_radius == np.inf
+    # In front and within the field; beyond it; behind the camera.
+    rotation, translation = camera._pose()
+    camera_xyz = np.array([[0.5, 0.0, 1.0], [1.2, 0.0, 1.0], [0.1, 0.0, -1.0]])
+    world = (camera_xyz - translation) @ rotation
+    np.testing.assert_array_equal(camera.in_field(world), [True, False, False])

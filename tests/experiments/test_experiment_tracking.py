@@ -60,3 +60,25 @@ def test_a_small_case_runs_end_to_end_and_reports():
 def test_cli_refuses_an_unknown_scene(capsys):
     assert main(["experiment", "tracking", "--scenes", "moon"]) == 2
     assert "--scenes must list some of" in capsys.readouterr().err
+
+
+def test_scenes_tracked_side_by_side_give_the_same_rows_in_the_same_order():
+    cases = (
+        Case("distorted", seed=3, size=6, boxes="exact"),
+        Case("distorted", seed=3, size=6, boxes="sim", box_seed=2),
+        Case("distorted", seed=4, size=5, boxes="exact"),
+    )
+    alone = run_tracking(TrackingSetup(cases=cases))["rows"]
+    side_by_side = run_tracking(TrackingSetup(cases=cases), jobs=2)["rows"]
+
+    def without_time(rows):
+        return [{key: value for key, value in row.items() if key != "seconds"} for row in rows]
+
+    assert [row["scene"] for row in side_by_side] == [
+        "distorted 6 people, seed 3", "distorted 6 people, seed 3", "distorted 5 people, seed 4"]
+    assert without_time(side_by_side) == without_time(alone)
+
+
+def test_cli_refuses_no_jobs(capsys):
+    assert main(["experiment", "tracking", "--scenes", "distorted", "--jobs", "0"]) == 2
+    assert "--jobs must be at least 1" in capsys.readouterr().err

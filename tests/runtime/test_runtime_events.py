@@ -10,7 +10,7 @@ import pytest
 
 from cblrs.detections import Tracks
 from cblrs.runtime.outputs.events import decode_event, decode_live, encode_event, encode_live
-from cblrs.runtime.transport.nats_transport import message_id
+from cblrs.runtime.transport.nats_subjects import message_id
 from cblrs.runtime.wire import RejectedMessage, RejectReason, decode_tracks, encode_tracks
 
 LINE = {"kind": "line_crossed", "timestamp": 12.5, "track": 7, "place": "gate",

@@ -23,10 +23,8 @@ from cblrs.reference import ReferenceImage
 from cblrs.runtime.broker.nats_server import NatsCluster, find_nats_server
 from cblrs.runtime.matcher.store import RuntimeStore
 from cblrs.runtime.transport.mqtt_transport import MqttSettings, MqttTransport
-from cblrs.runtime.transport.nats_transport import (
-    LeaseSettings,
-    NatsSettings,
-    NatsTransport,
+from cblrs.runtime.transport.nats_settings import LeaseSettings, NatsSettings
+from cblrs.runtime.transport.nats_subjects import (
     detections_stream,
     message_id,
     site_subject,
@@ -35,6 +33,7 @@ from cblrs.runtime.transport.nats_transport import (
     subject_to_topic,
     topic_to_subject,
 )
+from cblrs.runtime.transport.nats_transport import NatsTransport
 from cblrs.runtime.transport.protocol import TransportError
 
 pytestmark = pytest.mark.nats

@@ -22,14 +22,9 @@ from cblrs.runtime.broker.nats_auth import NatsSecurityError, role_permissions, 
 from cblrs.runtime.broker.nats_server import NatsCluster, find_nats_server
 from cblrs.runtime.transport.mqtt_transport import MqttTransport
 from cblrs.runtime.transport.nats_fanin import NatsFanIn, linker_consumer
-from cblrs.runtime.transport.nats_transport import (
-    LeaseSettings,
-    NatsSettings,
-    NatsTransport,
-    detections_stream,
-    lease_key,
-    tracks_stream,
-)
+from cblrs.runtime.transport.nats_settings import LeaseSettings, NatsSettings
+from cblrs.runtime.transport.nats_subjects import detections_stream, lease_key, tracks_stream
+from cblrs.runtime.transport.nats_transport import NatsTransport
 from cblrs.runtime.transport.protocol import TransportError
 
 pytestmark = pytest.mark.nats
@@ -501,7 +496,7 @@ def test_the_servers_folder_holds_hashes_and_each_client_its_own_secrets(backbon
     ],
 )
 def test_role_permissions_allow_exactly_the_roles_subjects(role, name, planes, allowed, refused):
-    from cblrs.runtime.transport.nats_transport import subject_matches
+    from cblrs.runtime.transport.nats_subjects import subject_matches
 
     permissions = role_permissions(role, name, planes, SITE)
     publish = permissions["publish"].get("allow", [])
@@ -513,7 +508,7 @@ def test_role_permissions_allow_exactly_the_roles_subjects(role, name, planes, a
 
 
 def test_viewers_read_alerts_and_cameras_do_not():
-    from cblrs.runtime.transport.nats_transport import subject_matches
+    from cblrs.runtime.transport.nats_subjects import subject_matches
 
     def reads(role: str, name: str, subject: str) -> bool:
         allowed = role_permissions(role, name, (1,), SITE)["subscribe"]["allow"]

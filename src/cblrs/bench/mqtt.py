@@ -32,7 +32,8 @@ Rates:
   tracker process and its update handed to the transport, in the service's process), and —
   the figure a user sees — to the track update's arrival at a *separate subscriber process*
   (a paho client on ``cblrs/<plane>/tracks``, one sample per update, i.e. per frame), over
-  every frame and over the frames after each camera's first :data:`WARM_UP_FRAMES`; each
+  every frame and over the frames after each camera's first :data:`WARM_UP_FRAMES` (and the
+  slowest update of the first :data:`FIRST_FRAMES` frames); each
   group's time after its last camera's message is split at its release from the ordering
   buffer (the service's ``on_released`` observer hook).
 
@@ -41,6 +42,11 @@ clock, as real cameras do: offsets spread over 10 ms (``--clock-spread-ms``) and
 jitter of 2 ms (``--clock-jitter-ms``), so the frames of one instant arrive a few ms apart.
 ``--clock-spread-ms 0 --clock-jitter-ms 0`` stamps every camera's frame with the same time (an
 idealised case, which benchmarks before issue 20 measured).
+
+The matcher is told the cameras' frame rate (``camera_fps``, as ``cblrs matcher --camera-fps``
+is), so it predicts a camera's next frame from its first one on; ``--unknown-fps`` does not
+tell it (before issue 20's fix): until it has measured a camera's period from its first four
+frames, each of those frames waits for the camera's next one.
 
 ``--nagle`` leaves Nagle's algorithm on (no ``TCP_NODELAY`` on the matcher's, the broker's and
 the subscriber's sockets), as cblrs did before issue 10: small packets (a track update, an
@@ -94,6 +100,7 @@ from cblrs.bench.mqtt_load import (
     tracker_alone,
 )
 from cblrs.bench.mqtt_report import (
+    FIRST_FRAMES,
     WARM_UP_FRAMES,
     clocks_text,
     format_value,
@@ -251,10 +258,11 @@ def track_subscriber(port: int, nagle: bool, ready, stop, results) -> None:
 
 def run_once(receiver_kind: str, publisher_kind: str, cameras: int, frames: int, fps: float,
              paced: bool, people: int, matcher_name: str, nagle: bool = False,
-             clocks: CameraClocks | None = None) -> dict:
+             clocks: CameraClocks | None = None, known_fps: bool = True) -> dict:
     """One run: a Mosquitto on a free port, the receiver in this process, the publishers in
     others; the run's counts, rates and latency percentiles (milliseconds). ``clocks``: when
-    the cameras capture and stamp their frames (default: all at the same instants)."""
+    the cameras capture and stamp their frames (default: all at the same instants);
+    ``known_fps``: the matcher is told the cameras' frame rate."""
     clocks = clocks or CameraClocks()
     total = cameras * frames
     with tempfile.TemporaryDirectory(prefix="cblrs-bench-") as folder:
@@ -303,7 +311,7 @@ def run_once(receiver_kind: str, publisher_kind: str, cameras: int, frames: int,
                                   persistent=True),
                     store, make_matcher(matcher_name, PlaneSet([PLANE]), names), PLANE_ID,
                     names, policy=ValidationPolicy(max_future_s=3600.0), window_s=2.0,
-                    observer=probe,
+                    observer=probe, camera_fps=fps if known_fps else None,
                 )
                 if paced:
                     ready = multiprocessing.Event()
@@ -368,7 +376,7 @@ def run_once(receiver_kind: str, publisher_kind: str, cameras: int, frames: int,
         "track_p50_ms": math.nan, "track_p99_ms": math.nan,
         "subscriber_p50_ms": math.nan, "subscriber_p99_ms": math.nan,
         "subscriber_steady_p50_ms": math.nan, "subscriber_steady_p99_ms": math.nan,
-        "nagle": nagle,
+        "nagle": nagle, "known_fps": known_fps,
         "clock_spread_ms": 1000 * clocks.spread_s, "clock_jitter_ms": 1000 * clocks.jitter_s,
     }
     if paced and receiver.receipt:
@@ -397,8 +405,13 @@ def run_once(receiver_kind: str, publisher_kind: str, cameras: int, frames: int,
                 row["subscriber_p50_ms"] = 1000 * float(np.percentile(latencies, 50))
                 row["subscriber_p99_ms"] = 1000 * float(np.percentile(latencies, 99))
                 row["subscriber_updates"] = len(latencies)
-                # After the warm-up: until the ordering and the fusion tracker know each
-                # camera's frame period, a frame's window waits for the next frame.
+                # After the warm-up: until the ordering knows each camera's frame period
+                # (and is not told the cameras' frame rate), a frame's window waits for
+                # the next frame. The first frames' own figure shows whether they wait.
+                first = [latency for capture, latency in subscriber_latencies
+                         if capture < report["start"] + FIRST_FRAMES / fps]
+                if first:
+                    row["subscriber_first_max_ms"] = 1000 * max(first)
                 settled = report["start"] + WARM_UP_FRAMES / fps
                 steady = [latency for capture, latency in subscriber_latencies
                           if capture >= settled]
@@ -471,7 +484,8 @@ def run_mqtt_benchmark(args: Any) -> int:
             runs = [run_once(receiver, args.publisher, cameras, frames, args.fps, paced,
                              args.people, args.matcher, args.nagle,
                              CameraClocks(args.clock_spread_ms / 1000,
-                                          args.clock_jitter_ms / 1000, seed=repeat))
+                                          args.clock_jitter_ms / 1000, seed=repeat),
+                             known_fps=not getattr(args, "unknown_fps", False))
                     for repeat in range(args.repeats)]
             if receiver == "matcher" and not paced:
                 # The tracker's own rate on the same messages, between the service's runs.
@@ -516,6 +530,10 @@ def run_mqtt_benchmark(args: Any) -> int:
                           f"{row.get('to_release_p99_ms', math.nan):.1f} ms, then tracker "
                           f"process and publishing {row.get('after_release_p50_ms', math.nan):.1f}"
                           f"/{row.get('after_release_p99_ms', math.nan):.1f} ms)", flush=True)
+                if "subscriber_first_max_ms" in row:
+                    print(f"{'':20s} tracks at the subscriber of the first {FIRST_FRAMES} "
+                          f"frames: at most {row['subscriber_first_max_ms']:.1f} ms",
+                          flush=True)
                 if not math.isnan(row["subscriber_steady_p50_ms"]):
                     print(f"{'':20s} tracks at the subscriber after each camera's first "
                           f"{WARM_UP_FRAMES} frames p50/p99 "

@@ -15,10 +15,16 @@ from typing import Any
 
 WARM_UP_FRAMES = 10
 """Paced runs also report the subscriber's latency of the frames after each camera's first
-this many: the ordering and the fusion tracker learn a camera's frame period from its first
-``MINIMUM_INTERVALS + 1`` (4) frames (:mod:`cblrs.matching.timing`), and until then a
-frame's window waits for the camera's next frame (in each of the two, so by up to two frame
-periods); a run of 10 s at 10 fps has 100 frames, so those few set its p99."""
+this many: the ordering learns a camera's frame period from its first
+``MINIMUM_INTERVALS + 1`` (4) frames (:mod:`cblrs.matching.timing`), and when it is not told
+the cameras' frame rate (``--unknown-fps``) a frame's window waits for the camera's next
+frame until then (a run of 10 s at 10 fps has 100 frames, so those few set its p99)."""
+
+
+FIRST_FRAMES = 4
+"""Paced runs also report the subscriber's slowest update of the frames captured in the first
+this many frame periods: the frames the ordering sees before it has measured a camera's
+period (``MINIMUM_INTERVALS + 1`` frames)."""
 
 
 def median_of(runs: list[dict]) -> dict:
@@ -103,6 +109,8 @@ def markdown_table(info: dict, rows: list[dict], args: argparse.Namespace) -> st
         f"Python {info['python']}, "
         f"{info['mosquitto']}, paho-mqtt {info['paho-mqtt']}; "
         + ("Nagle's algorithm on (no TCP_NODELAY); " if args.nagle else "TCP_NODELAY on; ")
+        + ("the matcher not told the cameras' frame rate (--unknown-fps); "
+           if getattr(args, "unknown_fps", False) else "")
         + "load average "
         f"{info['load_start'][0]:.2f} at start, {info['load_end'][0]:.2f} at end (a shared "
         f"machine); medians of {args.repeats} runs.",

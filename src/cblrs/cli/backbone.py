@@ -79,7 +79,7 @@ def nats_settings(args: argparse.Namespace, **options: Any) -> Any:
     """:class:`NatsSettings` from ``--backbone``, the login options and ``options``."""
     # lazy: a subcommand imports the library when it runs, so its --help starts fast
     from cblrs.cli.camera import read_password
-    from cblrs.runtime.transport.nats_transport import NatsSettings
+    from cblrs.runtime.transport.nats_settings import NatsSettings
     from cblrs.runtime.transport.protocol import TransportError
 
     try:
@@ -110,7 +110,9 @@ def matcher_transport(
             start (the store is rebuilt from the stream).
     """
     # lazy: a subcommand imports the library when it runs, so its --help starts fast
-    from cblrs.runtime.transport.nats_transport import LeaseSettings, NatsTransport, lease_key
+    from cblrs.runtime.transport.nats_settings import LeaseSettings
+    from cblrs.runtime.transport.nats_subjects import lease_key
+    from cblrs.runtime.transport.nats_transport import NatsTransport
 
     if args.lease_ttl <= 0 or args.lease_wait < 0 or args.retention_hours <= 0:
         raise UsageError("--lease-ttl and --retention-hours must be > 0, --lease-wait >= 0.")

@@ -215,6 +215,9 @@ def register(subparsers) -> None:
     mqtt.add_argument("--clock-jitter-ms", type=float, default=2.0, metavar="MS",
                       help="per-frame jitter of every camera's stamps, standard deviation in "
                       "ms (default 2)")
+    mqtt.add_argument("--unknown-fps", action="store_true",
+                      help="do not tell the matcher the cameras' frame rate (cblrs matcher "
+                      "--camera-fps): each camera's first frames wait for its next ones")
     mqtt.add_argument("--nagle", action="store_true",
                       help="leave Nagle's algorithm on (no TCP_NODELAY), as before issue 10")
     mqtt.add_argument("--stages", action="store_true",

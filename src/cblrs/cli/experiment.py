@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import sys
 from pathlib import Path
 from typing import Any
@@ -171,6 +172,9 @@ def register(subparsers) -> None:
                           help="MultiviewX folder (default ../shared/data/multiviewx)")
     tracking.add_argument("--model", type=Path, default=None,
                           help="ONNX detector (default ../shared/models/yolox_nano.onnx)")
+    tracking.add_argument("--jobs", type=int, default=None,
+                          help="scenes tracked at once, one process each (default: the "
+                               "machine's cores; the rows do not depend on it)")
     tracking.add_argument("--out", type=Path, help="write JSON and markdown here")
     add_output_options(tracking)
     tracking.set_defaults(handler=run, experiment="tracking")
@@ -391,9 +395,12 @@ def run_tracking_command(args: argparse.Namespace) -> tuple[dict[str, Any], str]
     setup = TrackingSetup(cases=cases, wildtrack=args.dataset, multiviewx=args.multiviewx,
                           model=args.model, sites=args.sites,
                           matcher_options=WITHOUT_RULES if args.without_rules else ())
+    jobs = args.jobs if args.jobs is not None else (os.cpu_count() or 1)
+    if jobs < 1:
+        raise UsageError(f"--jobs must be at least 1, got {args.jobs}.")
     show = not args.quiet and sys.stderr.isatty()
     result = run_tracking(setup, report=(lambda line: print(line, file=sys.stderr)) if show
-                          else None)
+                          else None, jobs=jobs)
     text = tracking_report(result)
     if args.out is not None:
         _write(args.out, "tracking_without_rules" if args.without_rules else "tracking", result,

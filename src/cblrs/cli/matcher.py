@@ -27,7 +27,7 @@ from cblrs.cli.common import (
     format_table,
     print_json,
 )
-from cblrs.cli.late_options import add_late_options, retrack_policy
+from cblrs.cli.late_options import add_late_options, camera_fps, retrack_policy
 from cblrs.cli.metrics_http import add_http_options, http_settings
 from cblrs.errors import CblrsError
 
@@ -224,7 +224,7 @@ def check_arguments(args: argparse.Namespace) -> None:
         check_positive(args.stats_interval, "--stats-interval")
     check_non_negative(args.retain_hours, "--retain-hours")
     check_non_negative(args.retain_gb, "--retain-gb")
-    retrack_policy(args)
+    retrack_policy(args), camera_fps(args)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -346,7 +346,7 @@ def run(args: argparse.Namespace) -> int:
         metrics=metrics,
         live_interval_s=args.live_interval or None,
         retrack=retrack_policy(args), alerts=alerts, alert_senders=senders,
-    )
+        camera_fps=camera_fps(args))
     if metrics is not None:
 
         def exposition() -> bytes:

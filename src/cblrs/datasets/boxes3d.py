@@ -10,6 +10,7 @@ entirely behind the near plane is invisible.
 from __future__ import annotations
 
 import logging
+import math
 import warnings
 
 import numpy as np
@@ -130,7 +131,8 @@ def project_boxes_3d_unclipped(
     """Image bounding boxes of 3D boxes, not clipped to the image.
 
     Same arguments as :func:`project_boxes_3d`. Returns ``(xyxy, in_front)``: (N, 4) pixels
-    (NaN where nothing is in front of the camera) and (N,) bool.
+    (NaN where nothing is in front of the camera, or where the box reaches past the lens's
+    field, :attr:`Camera.field_radius`) and (N,) bool.
     """
     corners = box_corners_3d(centre_xy, size_lwh, yaw_deg, base_z)
     count = len(corners)
@@ -150,6 +152,14 @@ def project_boxes_3d_unclipped(
         projected, _ = camera.project_points(world)
         pixels[keep] = projected
     in_front: BoolArray = np.asarray(keep.any(axis=1), dtype=bool)
+    if math.isfinite(camera.field_radius) and keep.any():
+        # Past its field a polynomial lens model folds back and would image the box on
+        # pixels that show nearer ground (Camera.field_radius): a box reaching beyond the
+        # field is not seen, as one whose image misses the sensor.
+        outside = np.zeros(keep.shape, dtype=bool)
+        outside[keep] = ~camera.in_field(points[keep])
+        in_front &= ~outside.any(axis=1)
+        pixels[outside.any(axis=1)] = np.nan
     with np.errstate(invalid="ignore"), warnings.catch_warnings():
         # Rows with nothing in front are all-NaN; they are excluded by `in_front` anyway.
         warnings.simplefilter("ignore", category=RuntimeWarning)

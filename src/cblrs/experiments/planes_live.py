@@ -315,7 +315,7 @@ def store_counter(database: Path, name: str) -> int:
 
 
 def _consumer_ready(probe: Any, plane_id: int) -> bool:
-    from cblrs.runtime.transport.nats_transport import detections_stream
+    from cblrs.runtime.transport.nats_subjects import detections_stream
 
     try:
         probe.call(

@@ -24,8 +24,10 @@ reach the matcher in each camera's own capture order, so for every camera one of
 * its frame period is known and its next frame cannot come before the window's end (a
   camera's next frame comes at least ``1 - slack`` periods after its previous one): this
   releases a window at once when every camera is in it, and does not wait for a slow camera
-  whose next frame is due later;
-* it is in the window with the latest capture time of it (nothing of it can come between).
+  whose next frame is due later; until a camera's period is measured, the cameras' frame
+  rate, if configured, stands in for it (:class:`PeriodEstimator`);
+* it is in the window with the latest capture time of it, or its watermark is at or past
+  that time (nothing of it can come between).
 
 The same rules order raw messages in the matcher service (:mod:`cblrs.runtime.matcher.ordering`) and
 clock-corrected ones inside the fusion tracker (:class:`WindowBuffer`).
@@ -69,18 +71,29 @@ class PeriodEstimator:
     Times must be observed in each camera's capture order; a time not after the camera's
     previous one is ignored.
 
+    Until a camera's period is known, its next frame cannot be predicted and a window it is
+    in waits for that frame; ``assumed`` (the cameras' frame period as configured, e.g. from
+    their frame rate) predicts it meanwhile (:attr:`predicted`), shortened by any shorter
+    interval seen, so a camera faster than assumed is noticed at its second frame.
+
     Args:
         camera_count: number of cameras C (cameras are indices 0..C-1).
+        assumed: the shortest frame period to expect of a camera whose period is not known
+            yet, seconds; None: nothing is assumed (such a camera's next frame is awaited).
     """
 
-    def __init__(self, camera_count: int):
+    def __init__(self, camera_count: int, assumed: float | None = None):
+        if assumed is not None and not (assumed > 0 and math.isfinite(assumed)):
+            raise ValueError(f"an assumed frame period must be > 0 s, got {assumed}.")
         self.camera_count = int(camera_count)
+        self.assumed = None if assumed is None else float(assumed)
         self.reset()
 
     def reset(self) -> None:
         """Forget everything learnt or tracked: back to the state of a new instance."""
         self._times: list[list[float]] = [[] for _ in range(self.camera_count)]
         self._period = np.full(self.camera_count, np.nan)
+        self._shortest = np.full(self.camera_count, np.inf)  # shortest interval seen
         self._last = np.full(self.camera_count, -np.inf)
 
     def observe(self, camera: int, timestamp: float) -> None:
@@ -92,6 +105,8 @@ class PeriodEstimator:
         if len(times) > PERIOD_INTERVALS + 1:
             del times[0]
         self._last[camera] = timestamp
+        if len(times) > 1:
+            self._shortest[camera] = min(self._shortest[camera], times[-1] - times[-2])
         if len(times) > MINIMUM_INTERVALS:
             # The shortest recent interval: a dropped frame only lengthens intervals, and a
             # period taken too long would predict a camera's next frame too late (a window
@@ -103,6 +118,15 @@ class PeriodEstimator:
     def periods(self) -> FloatArray:
         """(C,) frame period of each camera, seconds; NaN while unknown."""
         return self._period
+
+    @property
+    def predicted(self) -> FloatArray:
+        """(C,) the periods that predict each camera's next frame, seconds: the known period,
+        else the assumed one (or a shorter interval seen); NaN where neither is known."""
+        if self.assumed is None:
+            return self._period
+        return np.where(np.isnan(self._period), np.fmin(self.assumed, self._shortest),
+                        self._period)
 
     @property
     def last(self) -> FloatArray:
@@ -163,6 +187,7 @@ def waiting_for(
     last: FloatArray,
     periods: FloatArray,
     slack: float = DEFAULT_SLACK,
+    delivered: FloatArray | None = None,
 ) -> BoolArray:
     """The cameras that could still add a message to a window (see the module docstring).
 
@@ -176,6 +201,8 @@ def waiting_for(
             -inf if none.
         periods: (C,) frame periods, seconds, NaN where unknown.
         slack: a camera's next frame comes at least ``1 - slack`` periods after its last.
+        delivered: (C,) a watermark per camera: every message it captured at or before this
+            time has been delivered, seconds (NaN or -inf where none is known); None: none.
 
     Returns:
         (C,) bool; the window is complete when none is set.
@@ -185,9 +212,12 @@ def waiting_for(
     with np.errstate(invalid="ignore"):
         settled = passed | (next_due >= end)
         # A camera in the window cannot add a message before its own latest one, nor (with
-        # a known period) before its next frame is due: only a message after the window's
-        # latest member could still come, and that would not change the members.
+        # a known period) before its next frame is due, nor at or before its watermark:
+        # only a message after the window's latest member could still come, and that would
+        # not change the members.
         quiet = (last >= latest) | (next_due >= latest)
+        if delivered is not None:
+            quiet |= delivered >= latest
     present = np.zeros(len(passed), dtype=bool)
     present[member_cameras] = True
     return ~(settled | (present & quiet))
@@ -201,10 +231,11 @@ def window_complete(
     last: FloatArray,
     periods: FloatArray,
     slack: float = DEFAULT_SLACK,
+    delivered: FloatArray | None = None,
 ) -> bool:
     """Whether no further message can join a window (:func:`waiting_for` is all False)."""
     return not waiting_for(member_cameras, member_times, end, passed, last, periods,
-                           slack).any()
+                           slack, delivered).any()
 
 
 @dataclass(frozen=True)
@@ -306,12 +337,13 @@ class WindowBuffer:
         if not final:
             passed = np.zeros(self.camera_count, dtype=bool)
             passed[cameras[order[count:]]] = True
+            delivered = self._watermark - offsets  # in corrected time
             with np.errstate(invalid="ignore"):
-                passed |= self._watermark - offsets >= end
+                passed |= delivered >= end
             last = self._fused_last - offsets
             np.maximum.at(last, cameras[members], corrected[members])
             if not window_complete(cameras[members], corrected[members], end, passed, last,
-                                   self.periods.periods, self.slack):
+                                   self.periods.periods, self.slack, delivered):
                 return None
         window = Window(
             messages=[self._messages[index] for index in members.tolist()],

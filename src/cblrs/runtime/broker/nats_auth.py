@@ -70,9 +70,9 @@ from cblrs.runtime.broker.credentials import (
 )
 from cblrs.runtime.transport.mqtt_transport import MqttSettings
 from cblrs.runtime.transport.nats_fanin import linker_consumer
-from cblrs.runtime.transport.nats_transport import (
+from cblrs.runtime.transport.nats_settings import NatsSettings
+from cblrs.runtime.transport.nats_subjects import (
     LEASE_BUCKET,
-    NatsSettings,
     detections_stream,
     lease_key,
     subject_root,

@@ -198,6 +198,10 @@ class MatcherService:
             :class:`~cblrs.runtime.outputs.alert_service.AlertService`; None (or no rules): none.
         alert_senders: webhook name -> :class:`cblrs.alerts.WebhookSender` (their secrets
             read: :func:`cblrs.runtime.outputs.alert_service.make_senders`).
+        camera_fps: the cameras' frame rate (the fastest of them), if known: ordering
+            predicts a camera's next frame from it until the camera's own period is measured
+            (its first four frames), so its first frames do not wait for their successors;
+            a camera found faster is predicted from its intervals at once. None: they wait.
     """
 
     def __init__(
@@ -228,6 +232,7 @@ class MatcherService:
         retrack: RetrackPolicy | None = RetrackPolicy(),  # noqa: B008 (frozen)
         alerts: Any = None,
         alert_senders: dict[str, Any] | None = None,
+        camera_fps: float | None = None,
     ):
         if window_s < 0 or not math.isfinite(window_s):
             raise ValueError(f"window must be a finite number >= 0, got {window_s}.")
@@ -249,8 +254,12 @@ class MatcherService:
         self.window_s = float(window_s)
         self.publish_tracks = publish_tracks
         self.max_buffered_groups = int(max_buffered_groups)
-        self._orderer = Orderer(self.camera_ids, timeout_s=self.window_s,
-                                max_buffered_groups=self.max_buffered_groups)
+        if camera_fps is not None and not (camera_fps > 0 and math.isfinite(camera_fps)):
+            raise ValueError(f"camera fps must be a finite number > 0, got {camera_fps}.")
+        self.camera_fps = camera_fps
+        self._orderer = Orderer(
+            self.camera_ids, timeout_s=self.window_s, max_buffered_groups=self.max_buffered_groups,
+            assumed_period_s=None if camera_fps is None else 1.0 / camera_fps)
         self.batch_size = int(batch_size)
         self.groups_per_commit = max(1, int(groups_per_commit))
         self.observer = observer

@@ -11,8 +11,9 @@ capture order, stamped by their own clocks; the orderer
    shortest camera frame period, one message per camera. Cameras need not share a clock, a
    frame rate nor capture instants: equal timestamps are not required;
 3. **releases** a window, in timestamp order, once no camera can still add a message to it:
-   every camera has moved past it, or is in it, or is known (from its recent frame period)
-   not to capture again before its end, or said "offline". A camera that dropped a frame is
+   every camera has moved past it, or is in it, or is known (from its recent frame period,
+   or the configured frame rate until that is measured) not to capture again before its
+   end, or said "offline". A camera that dropped a frame is
    passed once its next message arrives. So that a dead camera does not stall the plane, a
    window is also released when it has waited ``timeout_s`` *and* each camera it still waits
    for has been silent for ``timeout_s``;
@@ -79,6 +80,9 @@ class Orderer:
         max_window_s: widest window, seconds.
         window_fraction: window width as a fraction of the shortest frame period.
         slack: a camera's next frame comes at least ``1 - slack`` periods after its last.
+        assumed_period_s: the cameras' frame period as configured (their frame rate), to
+            predict a camera's next frame until its own period is measured (from its first
+            four frames); None: until then a window waits for each camera's next frame.
     """
 
     def __init__(
@@ -90,6 +94,7 @@ class Orderer:
         max_window_s: float = DEFAULT_MAX_WINDOW_S,
         window_fraction: float = DEFAULT_WINDOW_FRACTION,
         slack: float = DEFAULT_SLACK,
+        assumed_period_s: float | None = None,
     ):
         if timeout_s < 0 or not math.isfinite(timeout_s):
             raise ValueError(f"window must be a finite number >= 0, got {timeout_s}.")
@@ -104,7 +109,7 @@ class Orderer:
         self._waiting: list[_Waiting] = []  # sorted by (timestamp, camera)
         self._times: Counter[float] = Counter()
         self._latest = np.full(count, -np.inf)
-        self._periods = PeriodEstimator(count)
+        self._periods = PeriodEstimator(count, assumed_period_s)
         self._last_heard = np.full(count, np.nan)
         self._offline = np.zeros(count, dtype=bool)
         self._silence_origin: float | None = None
@@ -186,7 +191,7 @@ class Orderer:
             passed = self._offline | (self._latest >= end)
             passed[cameras[count:]] = True
             waiting = waiting_for(cameras[:count], times[:count], end, passed, self._latest,
-                                  self._periods.periods, self.slack)
+                                  self._periods.predicted, self.slack)
             if waiting.any() and not self._given_up(members, waiting, now):
                 return None
         del self._waiting[:count]

@@ -58,6 +58,10 @@ import traceback
 from collections.abc import Sequence
 from typing import Any
 
+# The fork server preloads this module: np.unique imports numpy.ma at its first call (numpy
+# 2), 30-100 ms that would otherwise delay the first frame's tracks.
+import numpy.ma  # noqa: F401
+
 from cblrs.detections import Tracks
 from cblrs.errors import CblrsError
 from cblrs.runtime.matcher.retrack import RetrackPolicy, Snapshots, retrack, state_text

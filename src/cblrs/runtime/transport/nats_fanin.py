@@ -22,12 +22,9 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import Any
 
-from cblrs.runtime.transport.nats_transport import (
-    NatsSettings,
-    NatsTransport,
-    _classify,
-    site_subject,
-)
+from cblrs.runtime.transport.nats_settings import NatsSettings
+from cblrs.runtime.transport.nats_subjects import _classify, site_subject
+from cblrs.runtime.transport.nats_transport import NatsTransport
 from cblrs.runtime.transport.protocol import Handler, Will
 from cblrs.runtime.transport.topics import validate_client_id
 

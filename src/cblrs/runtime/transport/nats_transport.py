@@ -58,8 +58,9 @@ Example:
 
 It stays one module because :class:`NatsTransport` (about 900 lines) is one asyncio state
 machine — connection, JetStream streams and consumers, the ordered publishing window,
-acknowledgements, leases — whose parts share its event loop and state; the subject mapping,
-stream names and message ids beside it are what only this transport uses.
+acknowledgements, leases — whose parts share its event loop and state. The subject mapping,
+stream names and message ids are in :mod:`~cblrs.runtime.transport.nats_subjects`, the
+settings in :mod:`~cblrs.runtime.transport.nats_settings` (both usable without nats-py).
 """
 
 from __future__ import annotations
@@ -77,37 +78,35 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable, Coroutine
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from typing import Any
 
-import msgspec
-
-from cblrs.runtime.transport.protocol import Handler, TransportError, Will, _HandlerTable, _Incoming
-from cblrs.runtime.transport.topics import (
-    MAX_PLANE_ID,
-    ROOT,
-    topic_matches,
-    validate_filter,
-    validate_topic,
+from cblrs.runtime.transport.nats_settings import LeaseSettings, NatsSettings
+from cblrs.runtime.transport.nats_subjects import (
+    LEASE_BUCKET,
+    LEGACY_DETECTIONS_STREAM,
+    LEGACY_TRACKS_STREAM,
+    _classify,
+    detections_stream,
+    message_id,
+    site_subject,
+    site_topic,
+    stream_of,
+    stream_subjects,
+    subject_root,
+    tracks_stream,
 )
+from cblrs.runtime.transport.protocol import Handler, TransportError, Will, _HandlerTable, _Incoming
+from cblrs.runtime.transport.topics import validate_filter, validate_topic
 
 logger = logging.getLogger(__name__)
 
-LEGACY_DETECTIONS_STREAM = "CBLRS"
-"""The one stream of every plane that cblrs before per-plane streams created (still used by a
-deployment that has it; see :meth:`NatsTransport._resolve_stream`)."""
-LEGACY_TRACKS_STREAM = "CBLRS_TRACKS"
-LEASE_BUCKET = "cblrs_leases"
 LEASE_UNANSWERED_S = 30.0
 """How long a lease is asked for again while JetStream does not answer (seconds)."""
 _NO_PEERS_YET = 10005
 """JetStream's "no suitable peers for placement": what a replicated bucket gets while its
 cluster is still forming (not every peer known to the meta leader yet); asked again like an
 unanswered request."""
-SITE_PATTERN = r"[A-Za-z][A-Za-z0-9-]{0,31}"
-"""Site ids: a letter, then letters, digits or ``-`` (never a plane's decimal token, never a
-character a stream name forbids)."""
-_SITE = re.compile(SITE_PATTERN)
 _GIVE_UP_S = 120.0
 """How long the consumer's restart or state may stay unanswerable before the transport goes
 on without it (a cluster still recovering answers within that; a refusal never does)."""
@@ -122,316 +121,6 @@ def _import_nats() -> Any:
             "the NATS backbone needs nats-py: pip install cblrs[nats]"
         ) from None
     return nats
-
-
-# --------------------------------------------------------------------------- subjects
-
-
-@functools.lru_cache(maxsize=4096)
-def topic_to_subject(topic: str) -> str:
-    """An MQTT topic (or filter) as the NATS subject the server's MQTT listener uses."""
-    levels = []
-    for level in topic.split("/"):
-        if level == "+":
-            levels.append("*")
-        elif level == "#":
-            levels.append(">")
-        else:
-            levels.append(level.replace(".", "//"))
-    return ".".join(levels)
-
-
-@functools.lru_cache(maxsize=4096)
-def subject_to_topic(subject: str) -> str:
-    """The MQTT topic of a NATS subject (inverse of :func:`topic_to_subject`)."""
-    return "/".join(token.replace("//", ".") for token in subject.split("."))
-
-
-def subject_matches(pattern: str, subject: str) -> bool:
-    """NATS subject matching with ``*`` (one token) and ``>`` (one or more tokens)."""
-    return topic_matches(
-        subject_to_topic(pattern.replace(">", "#").replace("*", "+")), subject_to_topic(subject)
-    )
-
-
-def validate_site(site: str) -> str:
-    """Return ``site`` if it is a usable site id (see :data:`SITE_PATTERN`), else raise."""
-    if not isinstance(site, str) or not _SITE.fullmatch(site):
-        raise TransportError(
-            f"site id {site!r} is not usable: use a letter, then up to 31 letters, digits or "
-            "'-'."
-        )
-    return site
-
-
-def subject_root(site: str | None = None) -> str:
-    """``cblrs`` (no site: the layout of a cluster with one site) or ``cblrs.<site>``."""
-    return ROOT if site is None else f"{ROOT}.{site}"
-
-
-@functools.lru_cache(maxsize=4096)
-def site_subject(topic: str, site: str | None = None) -> str:
-    """The subject of an MQTT topic (or filter) for ``site``: ``cblrs/1/c/detections`` is
-    ``cblrs.<site>.1.c.detections`` (``cblrs.1.c.detections`` without a site)."""
-    subject = topic_to_subject(topic)
-    if site is None:
-        return subject
-    head, dot, rest = subject.partition(".")
-    return f"{ROOT}.{site}{dot}{rest}" if head == ROOT else subject
-
-
-@functools.lru_cache(maxsize=4096)
-def site_topic(subject: str, site: str | None = None) -> str:
-    """The MQTT topic of a subject of ``site`` (inverse of :func:`site_subject`)."""
-    if site is not None and subject.startswith(f"{ROOT}.{site}."):
-        subject = ROOT + subject[len(ROOT) + len(site) + 1:]
-    return subject_to_topic(subject)
-
-
-def detections_stream(plane_id: int, site: str | None = None) -> str:
-    """The stream of one plane's detections and camera status: ``CBLRS_P<plane>`` or
-    ``CBLRS_<site>_P<plane>``."""
-    return f"CBLRS_P{plane_id}" if site is None else f"CBLRS_{site}_P{plane_id}"
-
-
-def tracks_stream(plane_id: int, site: str | None = None) -> str:
-    """The stream of one plane's track updates, analytics events and alerts."""
-    return detections_stream(plane_id, site) + "_TRACKS"
-
-
-def stream_subjects(stream: str, plane_id: int, site: str | None = None) -> list[str]:
-    """The subjects ``stream`` (one of a plane's two) stores."""
-    root = subject_root(site)
-    if stream == tracks_stream(plane_id, site):
-        return [f"{root}.{plane_id}.tracks", f"{root}.{plane_id}.events",
-                f"{root}.{plane_id}.alerts"]
-    return [f"{root}.{plane_id}.*.detections", f"{root}.{plane_id}.*.status"]
-
-
-def lease_key(plane_id: int, site: str | None = None) -> str:
-    """The plane's key in the lease bucket: ``plane-<plane>`` or ``<site>.plane-<plane>``."""
-    return f"plane-{plane_id}" if site is None else f"{site}.plane-{plane_id}"
-
-
-def _classify(subject: str, site: str | None) -> tuple[str, int] | None:
-    """``("detections" | "tracks", plane)`` for a subject (or filter) a plane's stream holds."""
-    root = subject_root(site) + "."
-    if not subject.startswith(root):
-        return None
-    tokens = subject[len(root):].split(".")
-    plane = tokens[0]
-    if not plane.isdigit() or plane != str(int(plane)) or not 1 <= int(plane) <= MAX_PLANE_ID:
-        return None
-    if len(tokens) == 3 and tokens[2] in ("detections", "status"):
-        return "detections", int(plane)
-    if len(tokens) == 2 and tokens[1] in ("tracks", "events", "alerts"):
-        return "tracks", int(plane)
-    return None
-
-
-def stream_of(subject: str, site: str | None = None) -> str | None:
-    """The stream that stores ``subject`` (a plane's detections or tracks stream), or None
-    (a plain NATS subject, e.g. a matcher's status or the live summary)."""
-    kind = _classify(subject, site)
-    if kind is None:
-        return None
-    maker = detections_stream if kind[0] == "detections" else tracks_stream
-    return maker(kind[1], site)
-
-
-class _MessageKey(msgspec.Struct):
-    camera: str
-    sequence: int
-    plane: int
-
-
-class _TrackRow(msgspec.Struct):
-    timestamp: float
-
-
-class _TracksKey(msgspec.Struct):
-    plane: int
-    tracks: list[_TrackRow]
-
-
-class _EventKey(msgspec.Struct):
-    plane: int
-    key: str
-
-
-class _AlertKey(msgspec.Struct):
-    plane: int
-    episode: str
-    state: str
-
-
-_message_key = msgspec.json.Decoder(_MessageKey)
-_tracks_key = msgspec.json.Decoder(_TracksKey)
-_event_key = msgspec.json.Decoder(_EventKey)
-_alert_key = msgspec.json.Decoder(_AlertKey)
-
-
-def message_id(subject: str, payload: bytes) -> str | None:
-    """The ``Nats-Msg-Id`` a publish on ``subject`` carries, or None.
-
-    Detections: ``<plane>.<camera>.<sequence>`` (the matcher's de-duplication key too); track
-    updates: ``tracks.<plane>.<capture timestamp>`` (one update per plane and timestamp
-    group), so a matcher that re-tracks groups after a failover does not store them twice;
-    analytics events: ``events.<plane>.<key>`` (the event's natural identity), so an event
-    published again (after a matcher restart, or counted again by a rebuilt plane) is stored
-    once; alerts: ``alerts.<plane>.<episode>.<state>`` (what receivers de-duplicate on), so
-    an alert published again after a lost acknowledgement is stored once.
-    """
-    try:
-        if subject.endswith(".detections"):
-            key = _message_key.decode(payload)
-            return f"{key.plane}.{key.camera}.{key.sequence}"
-        if subject.endswith(".tracks"):
-            update = _tracks_key.decode(payload)
-            if update.tracks:
-                return f"tracks.{update.plane}.{update.tracks[0].timestamp!r}"
-        if subject.endswith(".events"):
-            event = _event_key.decode(payload)
-            return f"events.{event.plane}.{event.key}"
-        if subject.endswith(".alerts"):
-            alert = _alert_key.decode(payload)
-            return f"alerts.{alert.plane}.{alert.episode}.{alert.state}"
-    except msgspec.DecodeError:
-        return None  # the matcher rejects and counts it; nothing to de-duplicate by
-    return None
-
-
-# --------------------------------------------------------------------------- settings
-
-
-@dataclass(frozen=True)
-class LeaseSettings:
-    """A lease that one client at a time holds (e.g. a plane's matcher).
-
-    Attributes:
-        key: the key in the ``cblrs_leases`` bucket (letters, digits, ``-_``).
-        ttl_s: how long the lease outlives its holder's last renewal; the bucket keeps the
-            TTL it was created with.
-        wait_s: how long :meth:`NatsTransport.connect` waits for a held lease to free up
-            before refusing.
-        what: what the lease guards, for messages (e.g. "plane 1").
-    """
-
-    key: str
-    ttl_s: float = 10.0
-    wait_s: float = 0.0
-    what: str = ""
-
-
-@dataclass(frozen=True)
-class NatsSettings:
-    """How to reach a NATS server or cluster and how the streams and consumer are set up.
-
-    Attributes:
-        servers: ``nats://host:port`` of one or more nodes (the client fails over).
-        username: user name (None: none).
-        password: password; from the environment or a 0600 file, never the repository.
-        ca_file: CA certificate that signed the servers' (TLS; None: no TLS).
-        cert_file: this client's certificate, when the servers require one.
-        key_file: the certificate's private key.
-        site: the site id every subject is prefixed with (``cblrs.<site>.<plane>...``), so
-            several sites share one cluster; None: ``cblrs.<plane>...``.
-        manage: create missing streams and the lease bucket (an administrator's right);
-            None: when there is no username (a local server without users). Without it a
-            missing stream or bucket is one sentence saying who creates it.
-        connect_timeout_s: how long ``connect()`` waits for a server.
-        reconnect_wait_s: delay between reconnection attempts.
-        replicas: stream replicas; None: 3 on a cluster, else 1.
-        retention_s: how long the streams keep messages (the replay horizon of a plane).
-        duplicate_window_s: how long JetStream remembers message ids.
-        ack_wait_s: redelivery of an un-acknowledged message after this long.
-        max_ack_pending: deliveries awaiting acknowledgement, at most.
-        pull_batch: messages asked for per pull request.
-        heartbeat_s: idle heartbeat of pull requests (a silent consumer is asked again).
-        publish_timeout_s: wait for a stream's acknowledgement before sending again.
-        publish_window: stream publishes sent and awaiting acknowledgement at once; they
-            leave in order on one connection, and what is not acknowledged is sent again in
-            that order.
-    """
-
-    servers: tuple[str, ...] = ("nats://127.0.0.1:4222",)
-    username: str | None = None
-    password: str | None = field(default=None, repr=False)
-    ca_file: str | os.PathLike | None = None
-    cert_file: str | os.PathLike | None = None
-    key_file: str | os.PathLike | None = None
-    site: str | None = None
-    manage: bool | None = None
-    connect_timeout_s: float = 5.0
-    reconnect_wait_s: float = 0.25
-    replicas: int | None = None
-    retention_s: float = 7 * 24 * 3600.0
-    duplicate_window_s: float = 600.0
-    ack_wait_s: float = 30.0
-    max_ack_pending: int = 20_000
-    pull_batch: int = 500
-    heartbeat_s: float = 1.0
-    publish_timeout_s: float = 2.0
-    publish_window: int = 256
-
-    def __post_init__(self) -> None:
-        if self.site is not None:
-            validate_site(self.site)
-        if self.publish_window < 1:
-            raise ValueError(f"publish_window must be at least 1, got {self.publish_window}.")
-
-    @property
-    def manages(self) -> bool:
-        """Whether this client creates missing streams and buckets (see ``manage``)."""
-        return self.username is None if self.manage is None else self.manage
-
-    @property
-    def inbox_prefix(self) -> str:
-        """Where answers to this client go: ``_INBOX.<user>`` with a username (its
-        permissions let only it read there), else ``_INBOX``."""
-        if self.username is None:
-            return "_INBOX"
-        return f"_INBOX.{self.username.replace('.', '//')}"
-
-    def tls_context(self) -> ssl.SSLContext | None:
-        """The TLS context of ``ca_file``/``cert_file``/``key_file`` (None without TLS).
-
-        Raises:
-            TransportError: a file is missing or unreadable.
-        """
-        if self.ca_file is None:
-            return None
-        try:
-            context = ssl.create_default_context(cafile=str(self.ca_file))
-            if self.cert_file is not None:
-                context.load_cert_chain(str(self.cert_file),
-                                        None if self.key_file is None else str(self.key_file))
-        except (OSError, ssl.SSLError) as error:
-            raise TransportError(f"cannot use the TLS files for NATS: {error}.") from None
-        return context
-
-    @classmethod
-    def from_url(cls, url: str, **options: Any) -> NatsSettings:
-        """Settings from ``nats://host:port[,host:port...]`` (also ``nats://a,nats://b``).
-
-        Raises:
-            ValueError: not a nats:// address.
-        """
-        text = url.strip()
-        if not text.startswith("nats://"):
-            raise ValueError(f"{url!r} is not a nats:// address (nats://host:port[,host:port]).")
-        servers = []
-        for part in text[len("nats://"):].split(","):
-            part = part.strip().removeprefix("nats://")
-            if not part:
-                continue
-            host, _, port = part.rpartition(":") if ":" in part else (part, "", "4222")
-            if not port.isdigit():
-                raise ValueError(f"{url!r}: {part!r} is not host:port.")
-            servers.append(f"nats://{host or '127.0.0.1'}:{port}")
-        if not servers:
-            raise ValueError(f"{url!r} names no server.")
-        return cls(servers=tuple(servers), **options)
 
 
 # --------------------------------------------------------------------------- transport
@@ -1666,8 +1355,3 @@ def _ack_metadata(reply: str) -> tuple[int, float, int, int]:
                 int(tokens[offset + 4]), int(tokens[offset + 6]))
     except (IndexError, ValueError):
         return 1, time.time(), 0, 1
-
-
-def with_servers(settings: NatsSettings, url: str) -> NatsSettings:
-    """``settings`` pointed at the servers of ``url`` (``nats://host:port[,...]``)."""
-    return replace(settings, servers=NatsSettings.from_url(url).servers)

@@ -1,0 +1,152 @@
+"""How a client reaches the NATS backbone: servers, login, TLS, streams' and consumers' set-up.
+
+:class:`NatsSettings` (and :class:`LeaseSettings`, a lease one client at a time holds) are plain
+data, importable without the nats-py client: the CLI builds them from its options,
+:mod:`~cblrs.runtime.broker.nats_auth` from a site's logins, and
+:class:`~cblrs.runtime.transport.nats_transport.NatsTransport` connects with them.
+"""
+
+from __future__ import annotations
+
+import os
+import ssl
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+from cblrs.runtime.transport.nats_subjects import validate_site
+from cblrs.runtime.transport.protocol import TransportError
+
+
+@dataclass(frozen=True)
+class LeaseSettings:
+    """A lease that one client at a time holds (e.g. a plane's matcher).
+
+    Attributes:
+        key: the key in the ``cblrs_leases`` bucket (letters, digits, ``-_``).
+        ttl_s: how long the lease outlives its holder's last renewal; the bucket keeps the
+            TTL it was created with.
+        wait_s: how long :meth:`NatsTransport.connect` waits for a held lease to free up
+            before refusing.
+        what: what the lease guards, for messages (e.g. "plane 1").
+    """
+
+    key: str
+    ttl_s: float = 10.0
+    wait_s: float = 0.0
+    what: str = ""
+
+
+@dataclass(frozen=True)
+class NatsSettings:
+    """How to reach a NATS server or cluster and how the streams and consumer are set up.
+
+    Attributes:
+        servers: ``nats://host:port`` of one or more nodes (the client fails over).
+        username: user name (None: none).
+        password: password; from the environment or a 0600 file, never the repository.
+        ca_file: CA certificate that signed the servers' (TLS; None: no TLS).
+        cert_file: this client's certificate, when the servers require one.
+        key_file: the certificate's private key.
+        site: the site id every subject is prefixed with (``cblrs.<site>.<plane>...``), so
+            several sites share one cluster; None: ``cblrs.<plane>...``.
+        manage: create missing streams and the lease bucket (an administrator's right);
+            None: when there is no username (a local server without users). Without it a
+            missing stream or bucket is one sentence saying who creates it.
+        connect_timeout_s: how long ``connect()`` waits for a server.
+        reconnect_wait_s: delay between reconnection attempts.
+        replicas: stream replicas; None: 3 on a cluster, else 1.
+        retention_s: how long the streams keep messages (the replay horizon of a plane).
+        duplicate_window_s: how long JetStream remembers message ids.
+        ack_wait_s: redelivery of an un-acknowledged message after this long.
+        max_ack_pending: deliveries awaiting acknowledgement, at most.
+        pull_batch: messages asked for per pull request.
+        heartbeat_s: idle heartbeat of pull requests (a silent consumer is asked again).
+        publish_timeout_s: wait for a stream's acknowledgement before sending again.
+        publish_window: stream publishes sent and awaiting acknowledgement at once; they
+            leave in order on one connection, and what is not acknowledged is sent again in
+            that order.
+    """
+
+    servers: tuple[str, ...] = ("nats://127.0.0.1:4222",)
+    username: str | None = None
+    password: str | None = field(default=None, repr=False)
+    ca_file: str | os.PathLike | None = None
+    cert_file: str | os.PathLike | None = None
+    key_file: str | os.PathLike | None = None
+    site: str | None = None
+    manage: bool | None = None
+    connect_timeout_s: float = 5.0
+    reconnect_wait_s: float = 0.25
+    replicas: int | None = None
+    retention_s: float = 7 * 24 * 3600.0
+    duplicate_window_s: float = 600.0
+    ack_wait_s: float = 30.0
+    max_ack_pending: int = 20_000
+    pull_batch: int = 500
+    heartbeat_s: float = 1.0
+    publish_timeout_s: float = 2.0
+    publish_window: int = 256
+
+    def __post_init__(self) -> None:
+        if self.site is not None:
+            validate_site(self.site)
+        if self.publish_window < 1:
+            raise ValueError(f"publish_window must be at least 1, got {self.publish_window}.")
+
+    @property
+    def manages(self) -> bool:
+        """Whether this client creates missing streams and buckets (see ``manage``)."""
+        return self.username is None if self.manage is None else self.manage
+
+    @property
+    def inbox_prefix(self) -> str:
+        """Where answers to this client go: ``_INBOX.<user>`` with a username (its
+        permissions let only it read there), else ``_INBOX``."""
+        if self.username is None:
+            return "_INBOX"
+        return f"_INBOX.{self.username.replace('.', '//')}"
+
+    def tls_context(self) -> ssl.SSLContext | None:
+        """The TLS context of ``ca_file``/``cert_file``/``key_file`` (None without TLS).
+
+        Raises:
+            TransportError: a file is missing or unreadable.
+        """
+        if self.ca_file is None:
+            return None
+        try:
+            context = ssl.create_default_context(cafile=str(self.ca_file))
+            if self.cert_file is not None:
+                context.load_cert_chain(str(self.cert_file),
+                                        None if self.key_file is None else str(self.key_file))
+        except (OSError, ssl.SSLError) as error:
+            raise TransportError(f"cannot use the TLS files for NATS: {error}.") from None
+        return context
+
+    @classmethod
+    def from_url(cls, url: str, **options: Any) -> NatsSettings:
+        """Settings from ``nats://host:port[,host:port...]`` (also ``nats://a,nats://b``).
+
+        Raises:
+            ValueError: not a nats:// address.
+        """
+        text = url.strip()
+        if not text.startswith("nats://"):
+            raise ValueError(f"{url!r} is not a nats:// address (nats://host:port[,host:port]).")
+        servers = []
+        for part in text[len("nats://"):].split(","):
+            part = part.strip().removeprefix("nats://")
+            if not part:
+                continue
+            host, _, port = part.rpartition(":") if ":" in part else (part, "", "4222")
+            if not port.isdigit():
+                raise ValueError(f"{url!r}: {part!r} is not host:port.")
+            servers.append(f"nats://{host or '127.0.0.1'}:{port}")
+        if not servers:
+            raise ValueError(f"{url!r} names no server.")
+        return cls(servers=tuple(servers), **options)
+
+
+def with_servers(settings: NatsSettings, url: str) -> NatsSettings:
+    """``settings`` pointed at the servers of ``url`` (``nats://host:port[,...]``)."""
+    return replace(settings, servers=NatsSettings.from_url(url).servers)
