@@ -73,7 +73,7 @@ def test_a_refined_track_is_reported_where_its_views_are_not_where_it_was_predic
     assigned = np.array([0, 0])
     refined = noise.refined(tracks, np.array([CAR, CAR]), assigned)
     located = noise.locate(tracks, world_xy, _measured(world_xy, camera), refined,
-                           np.zeros((2, 2, 2)), assigned)
+                           np.zeros((2, 2, 2)), assigned, np.array([CAR, CAR]))
     assert np.isnan(located[1]).all()  # no refined views: the filter's estimate
     assert np.hypot(*(located[0] - truth)) < 0.15
     # Reported only at the instant it was located; coasting tracks report the filter.
@@ -93,8 +93,10 @@ def test_the_noise_is_learned_from_the_refined_views_and_saved():
         world_xy = np.repeat(truth, 2, axis=0) + rng.normal(0.0, 0.05, (20, 2))
         camera = np.tile([0, 1], 10)
         noise.learn(world_xy, _measured(world_xy, camera), np.ones(20, bool),
-                    np.repeat(np.arange(10), 2))
+                    np.repeat(np.arange(10), 2), np.full(20, CAR))
     assert noise.model.sigma_m < 0.5 * prior
+    # Each class apart: a bus's noise is not a car's.
+    assert noise.models[CLASS_NAMES.index("bus")].sigma_m == prior
     restored = VehicleNoise(_context())
     restored.set_state(noise.get_state())
     assert restored.model.sigma_m == noise.model.sigma_m

@@ -350,7 +350,8 @@ class FusionTracker:
             self.context.noise.learn(raw.world_xy, self.measured.distance,
                                      np.where(plain, assigned, -1), self.measured.direction,
                                      self.measured.along_distance)
-            self.vehicle_noise.learn(observed.world_xy, self.measured, refined, assigned)
+            self.vehicle_noise.learn(observed.world_xy, self.measured, refined, assigned,
+                                     observed.class_id)
         # 5. fuse each track's views and update its filter once.
         seen_now, report_camera, report_box, cameras_of_track = self._update_tracks(
             observed, covariance, base_covariance, assigned, timestamp, refined)
@@ -415,7 +416,7 @@ class FusionTracker:
             # Vehicles refined by their heading: where they are, reported (vehicle_noise).
             self.tracks.located = self.vehicle_noise.locate(
                 self.tracks, observed.world_xy, self.measured, refined,
-                covariance - base_covariance, assigned)
+                covariance - base_covariance, assigned, observed.class_id)
             (self.tracks.mode_state[seen_now], self.tracks.mode_covariance[seen_now],
              self.tracks.mode_probability[seen_now]) = kalman.update_models(
                 self.tracks.mode_state[seen_now], self.tracks.mode_covariance[seen_now],

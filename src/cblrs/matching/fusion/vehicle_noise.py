@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from cblrs.detections import CLASS_NAMES
 from cblrs.matching.fusion.gaussian import fuse, ray_covariance
 from cblrs.matching.fusion.noise import NoiseModel
 from cblrs.matching.fusion.table import FusionContext, Measured, TrackTable
@@ -50,12 +51,20 @@ class VehicleNoise:
         self.context = context
         self.enabled = enabled
         config = context.config
-        self.model = NoiseModel(config.measurement_sigma_m, config.along_sigma_per_distance,
-                                config.sigma_per_distance)
+        # One model per class slot: a bus's box, and its error, are larger than a car's.
+        self.models = [NoiseModel(config.measurement_sigma_m, config.along_sigma_per_distance,
+                                  config.sigma_per_distance)
+                       for _ in range(len(context.class_extra))]
+
+    @property
+    def model(self) -> NoiseModel:
+        """The model of cars."""
+        return self.models[CLASS_NAMES.index("car")]
 
     def reset(self) -> None:
         """Forget what was learnt."""
-        self.model.reset()
+        for model in self.models:
+            model.reset()
 
     def refined(
         self, tracks: TrackTable, class_id: np.ndarray, assigned: np.ndarray
@@ -74,7 +83,7 @@ class VehicleNoise:
 
     def learn(
         self, world_xy: np.ndarray, measured: Measured, refined: np.ndarray,
-        assigned: np.ndarray,
+        assigned: np.ndarray, class_id: np.ndarray,
     ) -> None:
         """Learn from the refined detections' disagreement per track.
 
@@ -83,15 +92,20 @@ class VehicleNoise:
             measured: their rays and distances.
             refined: (N,) bool, from :meth:`refined`.
             assigned: (N,) int64 track row of each detection.
+            class_id: (N,) their classes (each class's noise is learned apart).
         """
         if refined.sum() < 2:
             return
-        self.model.learn(world_xy, measured.distance, np.where(refined, assigned, -1),
-                         measured.direction, measured.along_distance)
+        slot = FusionContext.class_slot(class_id)
+        for index in np.unique(slot[refined]).tolist():
+            self.models[index].learn(world_xy, measured.distance,
+                                     np.where(refined & (slot == index), assigned, -1),
+                                     measured.direction, measured.along_distance)
 
     def locate(
         self, tracks: TrackTable, world_xy: np.ndarray, measured: Measured,
         refined: np.ndarray, lag_covariance: np.ndarray, assigned: np.ndarray,
+        class_id: np.ndarray,
     ) -> np.ndarray:
         """(T, 2) where each track with refined detections is, NaN for the others.
 
@@ -107,12 +121,18 @@ class VehicleNoise:
             refined: (N,) bool, from :meth:`refined`.
             lag_covariance: (N, 2, 2) added to each detection's noise for its capture lag.
             assigned: (N,) int64 track row of each detection.
+            class_id: (N,) their classes.
         """
         located = np.full((len(tracks), 2), np.nan)
         if not refined.any():
             return located
-        along, lateral = self.model.variances(measured.distance[refined],
-                                              measured.along_distance[refined])
+        along = np.zeros(int(refined.sum()))
+        lateral = np.zeros(int(refined.sum()))
+        slot = FusionContext.class_slot(class_id[refined])
+        for index in np.unique(slot).tolist():
+            mine = slot == index
+            along[mine], lateral[mine] = self.models[index].variances(
+                measured.distance[refined][mine], measured.along_distance[refined][mine])
         floor = self.context.config.minimum_sigma_m ** 2
         noise = ray_covariance(measured.direction[refined], np.maximum(along, floor),
                                np.maximum(lateral, floor)) + lag_covariance[refined]
@@ -136,12 +156,11 @@ class VehicleNoise:
         return position
 
     def get_state(self) -> dict:
-        """The learnt model as JSON-ready data."""
-        return self.model.get_state()
+        """The learnt models as JSON-ready data."""
+        return {"models": [model.get_state() for model in self.models]}
 
     def set_state(self, state: dict | None) -> None:
         """Restore :meth:`get_state` (None: start afresh, a state saved before this stage)."""
-        if state is None:
-            self.model.reset()
-        else:
-            self.model.set_state(state)
+        self.reset()
+        for model, saved in zip(self.models, (state or {}).get("models", []), strict=False):
+            model.set_state(saved)
