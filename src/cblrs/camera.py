@@ -25,6 +25,12 @@ such a camera (the ground it sees lies behind it) and returns this equivalent de
 it reprojects every point identically, has positive depths, keeps ground x, y, and records
 ``height_axis = -1`` so that heights stay heights (metres above the ground) in every method.
 
+OpenCV is imported by the methods that call it (lens distortion, projections through a lens
+model, RQ decomposition), not with this module: a WILDTRACK camera read from its files needs
+none of them, and ``cblrs track`` then starts without loading OpenCV (40-80 ms of CPU and
+some 30 MiB); the Rodrigues vector is converted by :func:`rotation_from_vector`, OpenCV's own
+arithmetic.
+
 It stays one module because :class:`Camera` is one value type (intrinsics, distortion, pose)
 whose methods are the projections every stage uses; the file readers are in
 :mod:`cblrs.calibration`.
@@ -36,7 +42,6 @@ import math
 from dataclasses import dataclass, field, replace
 from typing import Any
 
-import cv2
 import numpy as np
 from numpy.typing import NDArray
 
@@ -51,6 +56,26 @@ _MIN_DEPTH_M = 1e-6
 # horizon, where rounding decides the side and the hit point is meaningless. The limit is a
 # world distance, so it does not depend on how a bare homography happens to be scaled.
 MAX_WORLD_DISTANCE_M = 1e7
+_DOUBLE_EPSILON = float(np.finfo(np.float64).eps)  # OpenCV's DBL_EPSILON
+
+
+def rotation_from_vector(vector: NDArray) -> FloatArray:
+    """The (3, 3) rotation of a Rodrigues vector (axis times angle, radians).
+
+    OpenCV's ``cv2.Rodrigues`` arithmetic step by step (the angle from the sum of squares,
+    the axis scaled by its inverse, ``cos I + (1 - cos) r r^T + sin [r]x``), so the matrices
+    are bit for bit OpenCV's (tested), without importing OpenCV.
+    """
+    x, y, z = (float(value) for value in np.asarray(vector, np.float64).ravel())
+    theta = math.sqrt(x * x + y * y + z * z)
+    if theta < _DOUBLE_EPSILON:
+        return np.eye(3)
+    cosine, sine = math.cos(theta), math.sin(theta)
+    inverse = 1.0 / theta
+    x, y, z = x * inverse, y * inverse, z * inverse
+    outer = np.array([[x * x, x * y, x * z], [x * y, y * y, y * z], [x * z, y * z, z * z]])
+    cross = np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+    return cosine * np.eye(3) + (1.0 - cosine) * outer + sine * cross
 
 
 def _as_points(points: NDArray[np.floating] | list, name: str) -> FloatArray:
@@ -181,7 +206,7 @@ class Camera:
         """
         rotation = np.asarray(rotation, dtype=np.float64)
         if rotation.shape in ((3,), (3, 1), (1, 3)):
-            rotation = cv2.Rodrigues(rotation.reshape(3, 1))[0]
+            rotation = rotation_from_vector(rotation)
         intrinsics = _check_matrix(intrinsics, (3, 3), "intrinsics")
         rotation = _check_matrix(rotation, (3, 3), "rotation")
         translation = _check_matrix(np.asarray(translation, dtype=np.float64).ravel(), (3,), "t")
@@ -266,6 +291,8 @@ class Camera:
         # det(K R) > 0 for positive focal lengths and a proper rotation.
         if np.linalg.det(projection[:, :3]) < 0:
             projection = -projection
+        import cv2  # lazy: see the module notes
+
         intrinsics, rotation = cv2.RQDecomp3x3(projection[:, :3])[1:3]
         # RQ is unique only up to the signs of K's diagonal; make them positive.
         signs = np.diag(np.sign(np.diag(intrinsics)))
@@ -372,6 +399,8 @@ class Camera:
         if not self.has_distortion or len(pixels) == 0:
             return pixels.copy()
         assert self.intrinsics is not None
+        import cv2  # lazy: see the module notes
+
         criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 40, 1e-9)
         finite = np.isfinite(pixels).all(axis=1)
         undistorted = np.full_like(pixels, np.nan)
@@ -399,6 +428,8 @@ class Camera:
         inverse_k = np.linalg.inv(self.intrinsics)
         normalised = np.column_stack([pixels, np.ones(len(pixels))]) @ inverse_k.T
         rays = normalised.reshape(-1, 1, 3)
+        import cv2  # lazy: see the module notes
+
         projected, _ = cv2.projectPoints(
             rays, np.zeros(3), np.zeros(3), self.intrinsics, self.distortion
         )
@@ -460,6 +491,8 @@ class Camera:
         valid = camera_xyz[:, 2] > _MIN_DEPTH_M
         pixels = np.full((len(world_xyz), 2), np.nan)
         if valid.any():
+            import cv2  # lazy: see the module notes
+
             projected, _ = cv2.projectPoints(
                 camera_xyz[valid].reshape(-1, 1, 3),
                 np.zeros(3),
@@ -519,6 +552,8 @@ class Camera:
         grid_x, grid_y = np.meshgrid(coarse_x, coarse_y)
         coarse = self.undistort_pixels(np.column_stack([grid_x.ravel(), grid_y.ravel()]))
         coarse = coarse.reshape(rows, columns, 2).astype(np.float32)
+        import cv2  # lazy: see the module notes
+
         fine = cv2.resize(coarse, (columns * step, rows * step), interpolation=cv2.INTER_LINEAR)[
             pad * step : pad * step + height, pad * step : pad * step + width
         ]

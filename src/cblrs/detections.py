@@ -50,11 +50,10 @@ def class_id_of(name: str) -> int:
 
 
 def _column(value: Any, dtype: Any, shape: tuple[int | None, ...], name: str) -> NDArray:
+    # Every column here is (N,) or (N, k): only the first size is free, so the check is one
+    # tuple comparison (this runs for every column of every message, window and table).
     array = np.asarray(value, dtype=dtype)
-    if array.ndim != len(shape) or any(
-        expected is not None and actual != expected
-        for actual, expected in zip(array.shape, shape, strict=False)
-    ):
+    if array.ndim != len(shape) or array.shape[1:] != shape[1:]:
         wanted = "(" + ", ".join("N" if size is None else str(size) for size in shape) + ")"
         raise ValueError(f"{name} must have shape {wanted}, got {array.shape}")
     return array
@@ -66,8 +65,9 @@ class _Columns:
     _row_columns: tuple[str, ...] = ()
 
     def _validate_lengths(self) -> None:
-        lengths = {name: len(getattr(self, name)) for name in self._row_columns}
-        if len(set(lengths.values())) > 1:
+        sizes = [len(getattr(self, name)) for name in self._row_columns]
+        if sizes.count(sizes[0]) != len(sizes):
+            lengths = dict(zip(self._row_columns, sizes, strict=True))
             raise ValueError(f"columns of {type(self).__name__} differ in length: {lengths}")
 
     def __len__(self) -> int:

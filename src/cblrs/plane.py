@@ -126,12 +126,40 @@ class PlaneSpec:
             ``(world_xy, valid)``: (N, 2) metres (NaN where invalid) and (N,) bool.
         """
         colours = _colours(colours)
-        valid = (colours[:, 2] == self.plane_id) & (colours[:, :2] <= self.max_value).all(axis=1)
-        step_x, step_y = self.step
+        valid = self._valid(colours)
         world_xy = np.full((len(colours), 2), np.nan)
-        world_xy[valid, 0] = self.origin[0] + colours[valid, 0] * step_x
-        world_xy[valid, 1] = self.origin[1] + colours[valid, 1] * step_y
+        world_xy[valid, 0], world_xy[valid, 1] = self._cells_of(colours, valid)
         return world_xy, valid
+
+    def decode_valid(self, colours: NDArray) -> FloatArray:
+        """The world points of the colours that are this plane's, in order: what
+        ``world_xy[valid]`` of :meth:`decode` holds, without the (N, 2) array of every colour
+        (a reference image's sampled colours are some 130,000).
+
+        Args:
+            colours: (N, 3) integer RGB values in this plane's bit depth.
+
+        Returns:
+            (M, 2) metres, M the number of valid colours.
+        """
+        colours = _colours(colours)
+        valid = self._valid(colours)
+        world_xy = np.empty((int(np.count_nonzero(valid)), 2))
+        world_xy[:, 0], world_xy[:, 1] = self._cells_of(colours, valid)
+        return world_xy
+
+    def _valid(self, colours: NDArray[np.integer]) -> BoolArray:
+        return ((colours[:, 2] == self.plane_id) & (colours[:, 0] <= self.max_value)
+                & (colours[:, 1] <= self.max_value))
+
+    def _cells_of(self, colours: NDArray[np.integer], valid: BoolArray
+                  ) -> tuple[FloatArray, FloatArray]:
+        """x and y of the valid colours' cell centres: origin + colour * step, each column
+        gathered on its own (a gather of (N, 2) rows, or arithmetic mixing the colours'
+        integers with floats in 2-D, costs several times more)."""
+        step_x, step_y = self.step
+        return (self.origin[0] + colours[:, 0][valid] * step_x,
+                self.origin[1] + colours[:, 1][valid] * step_y)
 
     def to_dict(self) -> dict:
         """JSON-ready fields (the inverse of :meth:`from_dict`)."""
@@ -265,14 +293,18 @@ def _points(world_xy: NDArray) -> FloatArray:
     return array
 
 
-def _colours(colours: NDArray) -> NDArray[np.int64]:
+def _colours(colours: NDArray) -> NDArray[np.integer]:
     array = np.asarray(colours)
     if array.ndim != 2 or array.shape[1] != 3:
         raise ValueError(f"colours must have shape (N, 3), got {array.shape}")
     if not np.issubdtype(array.dtype, np.integer):
         if not np.all(np.isfinite(array)) or np.any(array != np.round(array)):
             raise ValueError("colours must be whole numbers")
-    array = array.astype(np.int64)
+    # Read only (decoding compares and scales them): unsigned colours, a reference image's,
+    # are used as they are, other integers as int64 without a copy when they are already.
+    if np.issubdtype(array.dtype, np.unsignedinteger):
+        return array
+    array = array.astype(np.int64, copy=False)
     if np.any(array < 0):
         raise ValueError("colours must not be negative")
     return array

@@ -21,7 +21,6 @@ from functools import cached_property
 from pathlib import Path
 from typing import Any, cast
 
-import cv2
 import numpy as np
 from numpy.typing import NDArray
 
@@ -128,6 +127,8 @@ class ReferenceImage:
 
     def to_png_bytes(self) -> bytes:
         """The reference as PNG bytes (8 or 16 bit, its plane spec in a ``tEXt`` chunk)."""
+        import cv2  # lazy: reading a reference's colours needs no OpenCV (cblrs track)
+
         ok, encoded = cv2.imencode(".png", np.ascontiguousarray(self.pixels[..., ::-1]))
         if not ok:
             raise ReferenceImageError("OpenCV could not encode the reference image as PNG.")
@@ -205,6 +206,8 @@ class ReferenceImage:
                 f"{source}: planes are {planes.bits}-bit but the image says {bits}-bit."
             )
         _check_image_data(chunks, source)
+        import cv2  # lazy: reading a reference's colours needs no OpenCV (cblrs track)
+
         decoded = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
         if decoded is None:
             raise ReferenceImageError(f"{source}: the PNG image data is corrupt.")
@@ -436,6 +439,8 @@ def render_reference(
         map_y = np.arange(height, dtype=np.float64)[:, None]
     matrices = _code_matrices(camera, planes, encoded_planes, encode_matrix)
     channels = _plane_codes(planes, matrices, map_x, map_y, (height, width))
+    import cv2  # lazy: reading a reference's colours needs no OpenCV (cblrs track)
+
     pixels = cast(NDArray[np.unsignedinteger], cv2.merge(channels))
     return ReferenceImage(pixels=pixels, planes=encoded_planes, camera_name=camera.name)
 

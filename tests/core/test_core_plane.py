@@ -168,3 +168,18 @@ def test_around_covers_the_points_with_margin():
     assert (plane.width, plane.length) == (6.0, 4.0)
     with pytest.raises(PlaneError, match="zero points"):
         PlaneSpec.around(np.zeros((0, 2)))
+
+
+@pytest.mark.parametrize("bits, dtype", [(16, np.uint16), (16, np.int64), (8, np.uint8)])
+def test_decode_valid_is_the_valid_rows_of_decode(bits, dtype):
+    plane = PlaneSpec(2, (-3.0, 1.5), 12.0, 36.0, bits=bits)
+    generator = np.random.default_rng(bits)
+    top = plane.max_value if dtype != np.int64 else plane.max_value + 3
+    colours = generator.integers(0, top + 1, (5000, 3)).astype(dtype)
+    colours[::3, 2] = 2  # a third of this plane's colours, the rest mostly other planes'
+    world_xy, valid = plane.decode(colours)
+    assert 0 < valid.sum() < len(colours)
+    np.testing.assert_array_equal(plane.decode_valid(colours), world_xy[valid])
+    # Unsigned colours are read as they are: the same points as their int64 values.
+    np.testing.assert_array_equal(plane.decode(colours.astype(np.int64))[0], world_xy)
+    assert plane.decode_valid(np.zeros((0, 3), dtype)).shape == (0, 2)

@@ -11,7 +11,9 @@ Each request carries the alert as JSON and three headers:
 
 An attempt fails on a connection error, a time-out, a 5xx or a 429 answer, and is retried
 after ``backoff_s * 2**n`` seconds (capped at ``max_backoff_s``) up to ``retries`` times; any
-other 4xx answer is final (the receiver refused the request: retrying would not change it).
+other 4xx answer is final (the receiver refused the request: retrying would not change it),
+and so is a redirect, which is never followed (a receiver could otherwise send the matcher's
+requests to an address of the matcher's own network).
 """
 
 from __future__ import annotations
@@ -38,6 +40,17 @@ logger = logging.getLogger(__name__)
 SIGNATURE_HEADER = "X-Cblrs-Signature"
 TIMESTAMP_HEADER = "X-Cblrs-Timestamp"
 EPISODE_HEADER = "X-Cblrs-Episode"
+
+
+class _NoRedirects(urllib.request.HTTPRedirectHandler):
+    """Never follow a redirect: a receiver could point the matcher at an address of its own
+    network (a metadata service, a port on loopback), with the alert's headers."""
+
+    def redirect_request(self, *args: Any, **kwargs: Any) -> None:
+        return None
+
+
+_OPENER = urllib.request.build_opener(_NoRedirects)
 
 
 def sign(secret: bytes, timestamp: str, body: bytes) -> str:
@@ -168,9 +181,13 @@ class WebhookSender:
                      SIGNATURE_HEADER: sign(self._secret, timestamp, payload)},
         )
         try:
-            with urllib.request.urlopen(request, timeout=self.webhook.timeout_s) as answer:
+            with _OPENER.open(request, timeout=self.webhook.timeout_s) as answer:
                 return int(answer.status), "", False
         except urllib.error.HTTPError as error:
+            if 300 <= error.code < 400:
+                where = str(error.headers.get("Location", ""))[:200]
+                return error.code, (f"HTTP {error.code}: a redirect (to {where!r}) is not "
+                                    "followed; give the webhook's final address"), True
             retry = error.code >= 500 or error.code == 429
             return error.code, f"HTTP {error.code} {error.reason}", not retry
         except (urllib.error.URLError, OSError) as error:

@@ -18,7 +18,13 @@ from cblrs.analytics.site import (
     site_extent,
     with_site_time,
 )
-from cblrs.analytics.tables import AnalyticsResult, analyse_tracks, json_safe, write_result
+from cblrs.analytics.tables import (
+    AnalyticsResult,
+    analyse_tracks,
+    json_safe,
+    open_private,
+    write_result,
+)
 from cblrs.datasets.aicity import (
     TrackMetadata,
     apply_track_metadata,
@@ -205,6 +211,7 @@ def write_plots(
     written = []
     for name, figure in figures.items():
         path = out / name
-        figure.savefig(path, dpi=110)
+        with open_private(path, "wb") as handle:  # plots of people's movements too
+            figure.savefig(handle, dpi=110, format="png")
         written.append(path)
     return written

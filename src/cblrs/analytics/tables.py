@@ -10,9 +10,10 @@ from __future__ import annotations
 import csv
 import json
 import math
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import IO, Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -231,14 +232,18 @@ def _mean(values: NDArray[np.float64]) -> float:
 
 
 def write_result(result: AnalyticsResult, out: str | Path) -> list[Path]:
-    """Write the tables as CSV files and ``analytics.json`` into ``out``; returns the paths."""
+    """Write the tables as CSV files and ``analytics.json`` into ``out``; returns the paths.
+
+    The files describe people's movements (each crossing's track, time and position), so
+    they are written readable by their owner only (0600; a new ``out`` folder 0700).
+    """
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    out.mkdir(parents=True, exist_ok=True, mode=0o700)
     written = []
 
     def table(name: str, rows: list[dict[str, Any]], columns: list[str]) -> None:
         path = out / name
-        with path.open("w", newline="") as handle:
+        with open_private(path, "w", newline="") as handle:
             writer = csv.DictWriter(handle, fieldnames=columns)
             writer.writeheader()
             for row in rows:
@@ -275,13 +280,24 @@ def write_result(result: AnalyticsResult, out: str | Path) -> list[Path]:
            *(["end"] if calendar else []), "dwell_s", "entered", "exited"])
     if result.heatmap is not None:
         path = out / "heatmap.csv"
-        np.savetxt(path, result.heatmap, delimiter=",", fmt="%.4g",
-                   header="person-seconds per cell; row 0 = lowest y (see analytics.json)")
+        with open_private(path, "w") as handle:
+            np.savetxt(handle, result.heatmap, delimiter=",", fmt="%.4g",
+                       header="person-seconds per cell; row 0 = lowest y (see "
+                       "analytics.json)")
         written.append(path)
     path = out / "analytics.json"
-    path.write_text(json.dumps(json_safe(result.to_json()), indent=1) + "\n")
+    with open_private(path, "w") as handle:
+        handle.write(json.dumps(json_safe(result.to_json()), indent=1) + "\n")
     written.append(path)
     return written
+
+
+def open_private(path: Path, mode: str, **options: Any) -> IO[Any]:
+    """Open ``path`` for writing (truncated), readable and writable by its owner only, also
+    when it existed with a wider mode."""
+    descriptor = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    os.fchmod(descriptor, 0o600)
+    return os.fdopen(descriptor, mode, **options)
 
 
 def _local(name: str, timestamp: float, calendar: LocalCalendar | None) -> dict[str, str]:

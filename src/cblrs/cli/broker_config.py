@@ -59,6 +59,11 @@ def register(subparsers) -> None:
         help="TLS-only listener; generates a CA, a server and one client certificate per user",
     )
     parser.add_argument(
+        "--allow-plaintext", action="store_true",
+        help="accept a listener beyond loopback without TLS (passwords and messages cross the "
+        "network in clear): only on a network already encrypted and trusted, e.g. a VPN",
+    )
+    parser.add_argument(
         "--no-persistence",
         action="store_true",
         help="do not keep queued messages across broker restarts",
@@ -186,6 +191,7 @@ def run(args: argparse.Namespace) -> int:
         run_as=args.run_as,
         ca_directory=args.ca_dir,
         clients_directory=args.clients_dir,
+        allow_plaintext=args.allow_plaintext,
     )
     if args.json:
         print_json({**files.to_dict(), "start": ["mosquitto", "-c", str(files.config)]})
@@ -277,7 +283,7 @@ def _run_nats(args: argparse.Namespace, cameras: list[str],
         ([] if args.no_viewer else ["viewer"]),
         linkers=_names(args.linkers, "--linkers") if args.linkers else (),
         admin=args.admin, tls=not args.no_tls, ca_directory=args.ca_dir,
-        clients_directory=args.clients_dir,
+        clients_directory=args.clients_dir, allow_plaintext=args.allow_plaintext,
     )
     security = files.security
     if args.json:

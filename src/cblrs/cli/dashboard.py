@@ -87,7 +87,7 @@ def run(args: argparse.Namespace) -> int:
         import uvicorn
 
         # lazy: a subcommand imports the library when it runs, so its --help starts fast
-        from cblrs.dashboard.app import DashboardConfig, create_app
+        from cblrs.dashboard.app import DashboardConfig, create_app, server_config
     except ImportError:
         raise UsageError(
             "the dashboard needs Starlette and uvicorn: pip install cblrs[dashboard]."
@@ -178,11 +178,8 @@ def run(args: argparse.Namespace) -> int:
         print("cblrs dashboard: warning: passwords and session cookies cross the network in "
               "clear; give --tls-cert and --tls-key, or serve it behind a TLS proxy (--origin "
               "https://...).", file=sys.stderr, flush=True)
-    server = uvicorn.Server(uvicorn.Config(
-        create_app(config, auth), log_level="warning", access_log=False, lifespan="off",
-        ssl_certfile=str(args.tls_cert) if args.tls_cert else None,
-        ssl_keyfile=str(args.tls_key) if args.tls_key else None,
-    ))
+    server = uvicorn.Server(server_config(create_app(config, auth), args.tls_cert,
+                                          args.tls_key))
     try:
         server.run(sockets=[listener])
     finally:
@@ -236,7 +233,7 @@ def _authenticator(args: argparse.Namespace) -> Any:
     # lazy: a subcommand imports the library when it runs, so its --help starts fast
     from cblrs.dashboard.auth import Authenticator
     from cblrs.dashboard.users import UsersError
-    from cblrs.runtime.matcher.metrics import is_loopback_host
+    from cblrs.runtime.addresses import is_loopback_host
 
     loopback = is_loopback_host(args.host)
     if not loopback and args.users is None:

@@ -89,7 +89,10 @@ def run(args: argparse.Namespace) -> int:
         lines += [f"{item.global_id},{item.timestamp!r},{item.from_plane},{item.from_track},"
                   f"{item.to_plane},{item.to_track},{item.kind},{item.score:.4f}"
                   for item in result.handovers]
-        args.handovers.write_text("\n".join(lines) + "\n")
+        from cblrs.analytics.tables import open_private
+
+        with open_private(args.handovers, "w") as handle:  # who went where: the owner's only
+            handle.write("\n".join(lines) + "\n")
         summary["handovers_file"] = str(args.handovers)
     if args.analytics is not None:
         if not len(site.places):

@@ -32,8 +32,6 @@ from cblrs.detections import SURE_CONFIDENCE
 from cblrs.matching import DEFAULT_MATCHER, MATCHERS
 from cblrs.pipeline import camera_positions, scene_planes, scene_references, track_scene
 from cblrs.plane import PlaneSet
-from cblrs.privacy.frame import positions_to_pseudo, render_pseudo_reference, tracks_to_site
-from cblrs.privacy.key import PseudoKey
 
 
 def register(subparsers) -> None:
@@ -179,6 +177,13 @@ def run(args: argparse.Namespace) -> int:
         options["high_confidence"] = args.high_confidence
     started = time.perf_counter()
     key = _load_key(args)
+    if key is not None:
+        # lazy: pseudo coordinates only with --key (tracking without it need not load them)
+        from cblrs.privacy.frame import (
+            positions_to_pseudo,
+            render_pseudo_reference,
+            tracks_to_site,
+        )
     if args.site is not None:
         # lazy: a subcommand imports the library when it runs, so its --help starts fast
         from cblrs.site import load_site
@@ -288,7 +293,12 @@ def run(args: argparse.Namespace) -> int:
 
 def _load_key(args: argparse.Namespace):
     """The ``--key`` file's key, or None."""
-    return None if args.key is None else PseudoKey.load(args.key)
+    if args.key is None:
+        return None
+    # lazy: pseudo coordinates only with --key (tracking without it need not load them)
+    from cblrs.privacy.key import PseudoKey
+
+    return PseudoKey.load(args.key)
 
 
 def _score(dataset: Path, scene, result) -> dict:

@@ -485,6 +485,24 @@ def create_app(config: DashboardConfig, auth: Any) -> Any:
     return app
 
 
+def server_config(app: Any, tls_cert: Path | None = None, tls_key: Path | None = None) -> Any:
+    """uvicorn's configuration for the dashboard's application ``app``.
+
+    ``X-Forwarded-For`` and ``X-Forwarded-Proto`` are ignored (uvicorn trusts them from
+    127.0.0.1 by default): the login back-off and the log count the address of the
+    connection, which a client on the same machine cannot choose (behind a proxy: the
+    proxy's).
+    """
+    import uvicorn  # optional extra: pip install cblrs[dashboard]
+
+    return uvicorn.Config(
+        app, log_level="warning", access_log=False, lifespan="off", proxy_headers=False,
+        server_header=False,
+        ssl_certfile=str(tls_cert) if tls_cert else None,
+        ssl_keyfile=str(tls_key) if tls_key else None,
+    )
+
+
 def _optional_float(value: Any) -> float | None:
     if value is None or value == "":
         return None

@@ -442,7 +442,8 @@ def requires(role: Role, page: bool = False) -> Callable[[Endpoint], Endpoint]:
 
 class SecurityMiddleware:
     """ASGI middleware: security headers on every response; every state-changing request
-    same-origin, JSON and at most :data:`MAX_BODY_BYTES`; loopback host names only when
+    same-origin, JSON and at most :data:`MAX_BODY_BYTES` (announced or, chunked, counted as it
+    arrives); loopback host names only when
     bound to loopback (see the module docstring)."""
 
     def __init__(self, app: Any, auth: Authenticator):
@@ -487,11 +488,49 @@ class SecurityMiddleware:
             response = JSONResponse({"error": problem}, status_code=status)
             await response(scope, receive, send_with_headers)
             return
-        await self.app(scope, receive, send_with_headers)
+        if request.method in SAFE_METHODS:
+            await self.app(scope, receive, send_with_headers)
+            return
+        # A chunked body has no Content-Length: count what arrives, stop at the limit.
+        received = 0
+        started = False
+
+        async def limited_receive() -> MutableMapping[str, Any]:
+            nonlocal received
+            message = await receive()
+            if message["type"] == "http.request":
+                received += len(message.get("body", b""))
+                if received > MAX_BODY_BYTES:
+                    raise _BodyTooLarge
+            return message
+
+        async def send_started(message: MutableMapping[str, Any]) -> None:
+            nonlocal started
+            started = started or message["type"] == "http.response.start"
+            await send_with_headers(message)
+
+        try:
+            await self.app(scope, limited_receive, send_started)
+        except _BodyTooLarge:
+            logger.warning("dashboard: refused %s %s: the request body is too large (over "
+                           "%d bytes, chunked)", request.method, path, MAX_BODY_BYTES)
+            if not started:
+                response = JSONResponse({"error": "the request body is too large."},
+                                        status_code=413, headers={"Connection": "close"})
+                await response(scope, receive, send_with_headers)
+
+
+class _BodyTooLarge(Exception):
+    """A request body grew past :data:`MAX_BODY_BYTES` while it was read."""
 
 
 def safe_next(target: str | None) -> str:
-    """A redirect target after login: a path of this site only (never another host)."""
-    if not target or not target.startswith("/") or target.startswith("//") or "\\" in target:
+    """A redirect target after login: a path of this site only (never another host).
+
+    Browsers drop tabs and newlines from a URL and read ``\\`` as ``/``, so ``/<TAB>/host``
+    would become ``//host``: control characters, spaces and backslashes are refused too.
+    """
+    if (not target or not target.startswith("/") or target.startswith("//")
+            or any(character <= " " or character in "\\\x7f" for character in target)):
         return "/"
     return target

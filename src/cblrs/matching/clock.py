@@ -440,7 +440,7 @@ class ClockModel:
         """Keep offsets relative to the median camera (a common shift is unobservable)."""
         informed = self._information >= self.minimum_information
         if informed.sum() >= 2:
-            self.offsets -= float(np.median(self.offsets[informed]))
+            self.offsets -= _median(self.offsets[informed])
 
     def _report(self, time_s: float) -> None:
         off = np.abs(self.offsets) > self.tolerance_s
@@ -693,3 +693,16 @@ def _inverse_2x2(matrices: FloatArray) -> tuple[FloatArray, FloatArray]:
     inverse[:, 1, 0] = -c / determinant
     inverse[:, 1, 1] = a / determinant
     return inverse, determinant
+
+
+def _median(values: FloatArray) -> float:
+    """``float(np.median(values))`` of a few values (one per camera), without its overhead
+    (a tenth of a millisecond, every window): the middle value, or the two middle ones added
+    and halved, as np.median's mean of them computes it."""
+    ordered = np.sort(values)
+    if len(ordered) == 0 or np.isnan(ordered[-1]):  # NaN sorts last
+        return float(np.median(values))
+    middle = len(ordered) // 2
+    if len(ordered) % 2:
+        return float(ordered[middle])
+    return float((ordered[middle - 1] + ordered[middle]) / 2)

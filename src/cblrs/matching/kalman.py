@@ -39,11 +39,15 @@ def predict(
     transition = np.eye(4)
     transition[0, 2] = transition[1, 3] = dt
     state = state @ transition.T
-    block = np.array([[dt**4 / 4, dt**3 / 2], [dt**3 / 2, dt**2]])
+    # The same block on (x, vx) and (y, vy), written element by element: np.ix_ and
+    # broadcast_to cost more than the arithmetic, several times a window.
     unit_noise = np.zeros((4, 4))
-    unit_noise[np.ix_([0, 2], [0, 2])] = block
-    unit_noise[np.ix_([1, 3], [1, 3])] = block
-    variance = np.broadcast_to(np.asarray(acceleration_sigma, np.float64) ** 2, (len(state),))
+    unit_noise[0, 0] = unit_noise[1, 1] = dt**4 / 4
+    unit_noise[0, 2] = unit_noise[2, 0] = unit_noise[1, 3] = unit_noise[3, 1] = dt**3 / 2
+    unit_noise[2, 2] = unit_noise[3, 3] = dt**2
+    variance = np.asarray(acceleration_sigma, np.float64) ** 2
+    if variance.ndim == 0:
+        variance = np.full(len(state), variance)
     covariance = transition @ covariance @ transition.T + variance[:, None, None] * unit_noise
     return state, covariance
 

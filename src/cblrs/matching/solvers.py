@@ -7,9 +7,9 @@ The trackers call two compiled SciPy routines: the rectangular assignment solver
 for every ``cblrs track`` process, more than loading WILDTRACK and rendering its colours.
 The two routines live in their own extension modules (``scipy.optimize._lsap`` and
 ``scipy.optimize._slsqplib``), which need only numpy; this module loads those two
-without running ``scipy.optimize``'s package initialisation, registered under their own
-names (a later ``import scipy.optimize`` uses the very same modules). Same compiled code,
-same results, bit for bit (tested against the public functions).
+without running ``scipy.optimize``'s package initialisation (nor ``scipy``'s), registered
+under their own names (a later ``import scipy.optimize`` uses the very same modules). Same
+compiled code, same results, bit for bit (tested against the public functions).
 
 Should a SciPy release move them, the public functions are imported instead: slower to
 start, same answers.
@@ -20,6 +20,7 @@ from __future__ import annotations
 import importlib.machinery
 import importlib.util
 import logging
+import os
 import sys
 from collections.abc import Callable
 from types import ModuleType
@@ -38,10 +39,14 @@ def _extension(package: str, name: str) -> ModuleType | None:
     if full in sys.modules:
         return sys.modules[full]
     try:
-        parent = importlib.util.find_spec(package)  # imports only the top package (scipy)
-        if parent is None or parent.submodule_search_locations is None:
+        # The top package's folder, found without importing it (scipy's __init__ alone is
+        # 20 ms of start-up: its test utilities, subprocess, version parsing).
+        top, *inner = package.split(".")
+        found = importlib.util.find_spec(top)
+        if found is None or found.submodule_search_locations is None:
             return None
-        spec = importlib.machinery.PathFinder.find_spec(full, parent.submodule_search_locations)
+        folders = [os.path.join(folder, *inner) for folder in found.submodule_search_locations]
+        spec = importlib.machinery.PathFinder.find_spec(full, folders)
         if spec is None or not isinstance(spec.loader, importlib.machinery.ExtensionFileLoader):
             return None
         module = importlib.util.module_from_spec(spec)

@@ -117,8 +117,7 @@ class SiteRunner:
 
     def _spawn(self, child: Child) -> None:
         environment = {**os.environ, "PYTHONUNBUFFERED": "1"}
-        child.log.parent.mkdir(parents=True, exist_ok=True)
-        with child.log.open("ab") as log:
+        with _private_log(child.log) as log:
             log.write(f"---- {time.strftime('%Y-%m-%dT%H:%M:%S')} cblrs up starts: "
                       f"{' '.join(child.spec.argv)}\n".encode())
             log.flush()
@@ -390,6 +389,18 @@ class SiteRunner:
         if self.unconfirmed_cameras() and not stopped:
             return CAMERA_UNCONFIRMED
         return 0
+
+
+def _private_log(path: Path) -> Any:
+    """Open a child's log for appending, readable by this user only (folder 0700, file
+    0600, also when an older run left them open to others): the dashboard's log holds its
+    admin login link, and the others name cameras and logins."""
+    path.parent.mkdir(parents=True, exist_ok=True, mode=0o700)
+    if path.parent.stat().st_uid == os.getuid():
+        os.chmod(path.parent, 0o700)
+    handle = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o600)
+    os.fchmod(handle, 0o600)
+    return os.fdopen(handle, "ab")
 
 
 def _signal_group(child: Child, signum: int) -> None:

@@ -12,9 +12,18 @@
   }
 
   function nextPath() {
+    // Only a page of this site. Browsers drop tabs and newlines from a URL and read "\" as
+    // "/", so "/<TAB>/host" would become "//host": refuse those characters, resolve the
+    // target as the browser will, and go to the absolute URL only if it stays here ("/.//host"
+    // resolves to the path "//host", which as a relative link would name another host).
     const target = params.get("next") || "/";
-    // Only a path of this site: never "//host", "/\host" or another scheme.
-    return /^\/(?![\/\\])/.test(target) ? target : "/";
+    if (!target.startsWith("/") || /[\u0000-\u0020\u007f\\]/.test(target)) return "/";
+    try {
+      const resolved = new URL(target, location.origin);
+      return resolved.origin === location.origin ? resolved.href : "/";
+    } catch (error) {
+      return "/";
+    }
   }
 
   form.addEventListener("submit", async (event) => {

@@ -48,7 +48,10 @@ observations of one point. Per instant:
    long or that left the planes; a track about to be confirmed that continues one deleted
    for being unseen too long (both moving, alike in position where they meet and in
    velocity, and no other pair could be it) takes that track's id instead of a new one
-   (stitching: decided at confirmation, no id ever rewritten).
+   (stitching: decided at confirmation, no id ever rewritten); report the confirmed tracks
+   seen now, and, once the cameras are known to miss the people nearer ones hide, a person
+   missed by every camera whose every covering view has someone right in front of them
+   (hidden, for at most ``report_hidden_s``).
 
 Cameras need not be synchronised. Messages are fused in windows of nearby capture times
 (:mod:`cblrs.matching.timing`: a fraction of the shortest frame period wide, one message per
@@ -78,7 +81,8 @@ algebra all steps share), :mod:`~cblrs.matching.fusion.association` (3, 4),
 only where a track seen by two cameras or another camera's sure view confirms them),
 :mod:`~cblrs.matching.fusion.birth` (6, 7), :mod:`~cblrs.matching.fusion.coverage` (7: where
 each camera sees), :mod:`~cblrs.matching.fusion.stitching` (7: new tracks continuing lost
-ones), :mod:`~cblrs.matching.fusion.clocks` (camera clocks),
+ones), :mod:`~cblrs.matching.fusion.occlusion` (7: people hidden behind others),
+:mod:`~cblrs.matching.fusion.clocks` (camera clocks),
 :mod:`~cblrs.matching.fusion.table` (what the stages share), :mod:`~cblrs.matching.fusion.state`
 (snapshots) and :mod:`~cblrs.matching.fusion.tracker` (the tracker, which runs them: 2 and 5
 are its own).

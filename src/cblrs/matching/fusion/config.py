@@ -164,6 +164,14 @@ class FusionConfig:
             the sum of their covariances), and no other pair could be it.
         report_coasting_s: keep reporting the prediction of a confirmed track that was
             missed for at most this long, seconds (0: report only observed tracks).
+        report_hidden_s: also report a confirmed track missed for at most this long,
+            seconds, at the instants it is hidden: every camera whose view covers its
+            predicted position has a detection in front of it (nearer, within
+            ``occluder_width_m`` of its bearing), so none could have seen it (a person
+            walking behind another in a crowd; :mod:`~cblrs.matching.fusion.occlusion`).
+            A track that a covering camera should have seen is not reported. 0: off.
+        occluder_width_m: how far beside the line of sight from a camera to a missed
+            track a nearer detection still hides it, metres (about a body's width).
         max_window_s: messages are fused in windows of nearby capture times (see
             :mod:`cblrs.matching.timing`), at most this wide, seconds.
         window_fraction: window width as a fraction of the shortest camera frame period.
@@ -217,6 +225,8 @@ class FusionConfig:
     stitch_delay_s: float = 0.0
     stitch_sigmas: float = 3.0
     report_coasting_s: float = 0.0
+    report_hidden_s: float = 2.0
+    occluder_width_m: float = 0.5
     max_window_s: float = DEFAULT_MAX_WINDOW_S
     window_fraction: float = DEFAULT_WINDOW_FRACTION
     max_lag_s: float = 0.5
@@ -234,7 +244,8 @@ class FusionConfig:
             value = getattr(self, name)
             require(_positive(value), f"{name} must be a positive number, got {value!r}.")
         for name in ("sigma_per_distance", "along_sigma_per_distance", "merge_radius_m",
-                     "report_coasting_s", "object_sigma_m", "group_radius_m",
+                     "report_coasting_s", "report_hidden_s", "occluder_width_m",
+                     "object_sigma_m", "group_radius_m",
                      "max_clock_offset_s", "stitch_gap_s", "stitch_delay_s"):
             value = getattr(self, name)
             require(

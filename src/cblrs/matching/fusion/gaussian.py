@@ -159,3 +159,23 @@ def _tree_pairs(points_xy: np.ndarray, targets_xy: np.ndarray, radius_m: float) 
     squared = dx * dx + dy * dy
     keep = squared <= radius_m * radius_m
     return {"i": rows[keep], "j": columns[keep], "v": np.sqrt(squared[keep])}
+
+
+def camera_rays(world_xy: np.ndarray, camera_xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rays from cameras to points on the ground.
+
+    Args:
+        world_xy: (N, 2) points, metres.
+        camera_xy: (N, 2) the ground position of each point's camera (NaN: not placed).
+
+    Returns:
+        (N,) metres from each point's camera (0 where the camera is not placed) and (N, 2)
+        unit vectors from the camera to the point ((1, 0) where unknown).
+    """
+    offset = world_xy - camera_xy
+    distance = np.linalg.norm(offset, axis=1)
+    known = np.isfinite(distance) & (distance > 0)
+    direction = np.zeros_like(offset)
+    direction[:, 0] = 1.0
+    direction[known] = offset[known] / distance[known, None]
+    return np.where(known, distance, 0.0), direction

@@ -4,8 +4,8 @@
 named after it (the package docstring, :mod:`cblrs.matching.fusion`, describes them):
 ``noise`` (1, measurement noise), ``tracker`` (2, prediction; 5, the filter update),
 ``association`` (3, 4), ``birth`` (6, 7), ``stitching`` (7, new tracks continuing lost ones),
-``clocks`` (camera clocks), ``state`` (snapshots), ``vehicle_noise`` (5, where a vehicle
-refined by its heading is reported).
+``occlusion`` (7, people hidden behind others), ``clocks`` (camera clocks), ``state``
+(snapshots), ``vehicle_noise`` (5, where a vehicle refined by its heading is reported).
 """
 
 from __future__ import annotations
@@ -33,10 +33,11 @@ from cblrs.matching.fusion.clocks import ClockLearning
 from cblrs.matching.fusion.config import FusionConfig
 from cblrs.matching.fusion.coverage import Coverage
 from cblrs.matching.fusion.footprint import Footprint
-from cblrs.matching.fusion.gaussian import fuse, ray_covariance
+from cblrs.matching.fusion.gaussian import camera_rays, fuse, ray_covariance
 from cblrs.matching.fusion.low_confidence import LowConfidence, take_measured
 from cblrs.matching.fusion.motion import MotionCheck
 from cblrs.matching.fusion.noise import NoiseModel
+from cblrs.matching.fusion.occlusion import Hidden
 from cblrs.matching.fusion.state import STATE_VERSION, table_from_state, table_state
 from cblrs.matching.fusion.stitching import Stitching
 from cblrs.matching.fusion.table import FusionContext, Measured, TrackTable, largest_boxes
@@ -111,6 +112,7 @@ class FusionTracker:
         self.motion = MotionCheck(self.context)
         self.coverage = Coverage(self.planes, len(self.camera_ids))
         self.low_confidence = LowConfidence(self.context, self.association, self.coverage)
+        self.hidden = Hidden(self.context, self.coverage)
         self.births = Births(self.context)
         self.footprint = Footprint.from_config(self.camera_ids, config)
         self.vehicle_noise = VehicleNoise(self.context, self.footprint.enabled)
@@ -131,6 +133,7 @@ class FusionTracker:
         self.coverage.reset()
         self.stitching.reset()
         self.vehicle_noise.reset()
+        self.hidden.reset()
         self._reported: dict[int, set[int]] = {}
 
     def get_state(self) -> dict:
@@ -149,6 +152,7 @@ class FusionTracker:
             "coverage": self.coverage.get_state(),
             "stitching": self.stitching.get_state(),
             "vehicle_noise": self.vehicle_noise.get_state(),
+            "hidden": self.hidden.get_state(),
         }
 
     def set_state(self, state: dict) -> None:
@@ -173,6 +177,7 @@ class FusionTracker:
             self.coverage.set_state(state.get("coverage"))
             self.stitching.set_state(state.get("stitching"))
             self.vehicle_noise.set_state(state.get("vehicle_noise"))
+            self.hidden.set_state(state.get("hidden"))
         except (KeyError, TypeError, ValueError, IndexError) as error:
             raise MatcherError(f"the saved fusion-tracker state is incomplete: {error}.") from None
 
@@ -194,10 +199,7 @@ class FusionTracker:
             # Every 4th pixel each way: plenty for metre-sized cells (and an on-demand
             # reference renders only those, not the whole 16-bit frame).
             colours = reference.sampled_colours(4)
-            located = []
-            for plane in reference.planes:
-                world_xy, valid = plane.decode(colours)
-                located.append(world_xy[valid])
+            located = [plane.decode_valid(colours) for plane in reference.planes]
             self.coverage.set_view(camera, np.concatenate(located))
             self.footprint.set_view(camera, reference)
 
@@ -356,6 +358,7 @@ class FusionTracker:
         seen_now, report_camera, report_box, cameras_of_track = self._update_tracks(
             observed, covariance, base_covariance, assigned, timestamp, refined)
 
+        self.hidden.learn(self.tracks, seen_now, observed, self.measured, assigned)  # occlusion
         # 6. births from clusters of what no track took (birth module).
         born = self.births.birth(observed[~matched], covariance[~matched], timestamp)
         self.tracks = self.tracks.extend(born.tracks)
@@ -386,9 +389,10 @@ class FusionTracker:
         confirmable[stitches.rows] = False
         self.tracks.ids[stitches.rows] = stitches.ids
         report = self._confirm(timestamp, seen_now, confirmable)
+        report |= self.hidden.missed(self.tracks, report, timestamp, observed, self.measured,
+                                     matched)
         self.clock_learning.record(self.tracks, timestamp, seen_now & (self.tracks.ids >= 0),
-                                   located_xy,
-                                observed.camera, raw_time_of_camera)
+                                   located_xy, observed.camera, raw_time_of_camera)
         return self._report_instants(report, report_camera, report_box, window, timestamp)
 
     def _update_tracks(
@@ -534,24 +538,13 @@ class FusionTracker:
         else:
             self._time = timestamp
 
-    def _camera_rays(self, observed: Observations) -> tuple[np.ndarray, np.ndarray]:
-        """(N,) metres from each detection's camera (0 where the camera is not placed) and
-        (N, 2) unit vectors from the camera to the detection ((1, 0) where unknown)."""
-        offset = observed.world_xy - self._camera_xy[observed.camera]
-        distance = np.linalg.norm(offset, axis=1)
-        known = np.isfinite(distance) & (distance > 0)
-        direction = np.zeros_like(offset)
-        direction[:, 0] = 1.0
-        direction[known] = offset[known] / distance[known, None]
-        return np.where(known, distance, 0.0), direction
-
     def _measurement_covariance(self, observed: Observations) -> np.ndarray:
         """(N, 2, 2) ground covariance of each detection, elongated along its camera's ray.
 
         Also sets ``measured`` (rays and the largest standard
         deviation of each detection, for neighbour searches).
         """
-        distance, direction = self._camera_rays(observed)
+        distance, direction = camera_rays(observed.world_xy, self._camera_xy[observed.camera])
         along_distance = distance * self._along_scale[observed.camera]
         extra = self._class_extra[FusionContext.class_slot(observed.class_id)] ** 2
         along, lateral = self.context.noise.variances(distance, along_distance)

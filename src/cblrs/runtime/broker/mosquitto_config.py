@@ -80,6 +80,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from cblrs.runtime.addresses import is_loopback_host
 from cblrs.runtime.broker.credentials import (
     ClientFiles,
     CredentialsError,
@@ -260,6 +261,7 @@ def write_broker_config(
     run_as: str | None = None,
     ca_directory: str | os.PathLike | None = None,
     clients_directory: str | os.PathLike | None = None,
+    allow_plaintext: bool = False,
 ) -> BrokerFiles:
     """Write a Mosquitto configuration for a set of cameras, matchers and viewers.
 
@@ -290,12 +292,16 @@ def write_broker_config(
             ``mosquitto`` user when generated as root; the files it reads are handed to it).
         ca_directory: where the CA's private key goes with ``tls`` (default ``<out>-ca``).
         clients_directory: where each client's folder goes (default ``<out>-clients``).
+        allow_plaintext: accept a listener beyond loopback without TLS (the passwords and
+            every message then cross the network in clear: for a network already encrypted
+            and trusted, e.g. a VPN).
 
     Returns:
         The paths written.
 
     Raises:
-        BrokerError: invalid names or limits, or an unknown ``run_as`` user.
+        BrokerError: invalid names or limits, an unknown ``run_as`` user, or a listener
+            beyond loopback without TLS (unless ``allow_plaintext``).
     """
     directory = Path(directory).resolve()
     for name in cameras:
@@ -318,6 +324,11 @@ def write_broker_config(
         raise BrokerError("give at least one camera or matcher (or allow anonymous access).")
     if not 0 < port < 65536:
         raise BrokerError(f"port must be 1..65535, got {port}.")
+    if not tls and not allow_plaintext and not is_loopback_host(bind):
+        raise BrokerError(
+            f"a listener on {bind} without TLS would take passwords and detections across "
+            "the network in clear: add TLS (--tls), or --allow-plaintext for a network that "
+            "is already encrypted and trusted.")
     if queue_bytes <= 0:
         raise BrokerError(f"the queue limit must be positive, got {queue_bytes} bytes.")
     if autosave_s < 1:

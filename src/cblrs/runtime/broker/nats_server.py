@@ -38,6 +38,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from cblrs.errors import CblrsError
+from cblrs.runtime.addresses import is_loopback_host
 from cblrs.runtime.broker.mosquitto import free_port
 from cblrs.runtime.broker.nats_auth import NatsSecurity, NatsSecurityError, write_nats_security
 
@@ -433,6 +434,7 @@ def write_nats_backbone(
     ca_directory: str | Path | None = None,
     clients_directory: str | Path | None = None,
     linkers: Sequence[str] = (),
+    allow_plaintext: bool = False,
 ) -> NatsBackboneFiles:
     """Write a secured NATS backbone: users, permissions and certificates
     (:func:`~cblrs.runtime.broker.nats_auth.write_nats_security`) and one configuration per node
@@ -455,13 +457,29 @@ def write_nats_backbone(
         linkers: logins of ``cblrs linker``.
         ca_directory: where the CAs' keys go (default ``<directory>-ca``).
         clients_directory: where the clients' folders go (default ``<directory>-clients``).
+        allow_plaintext: accept one node beyond loopback without TLS (passwords and messages
+            then cross the network in clear: for a network already encrypted and trusted).
+            Never a cluster beyond loopback: without TLS its routes authenticate nothing,
+            and any server that reaches a route port joins it and reads every subject.
 
     Raises:
-        NatsSecurityError: see :func:`~cblrs.runtime.broker.nats_auth.write_nats_security`.
+        NatsSecurityError: see :func:`~cblrs.runtime.broker.nats_auth.write_nats_security`;
+            also nodes beyond loopback without TLS (see ``allow_plaintext``).
     """
     directory = Path(directory).resolve()
     if not hosts or len(set(hosts)) != len(hosts):
         raise NatsSecurityError(f"give each node its own host, got {list(hosts)}.")
+    outside = [host for host in hosts if not is_loopback_host(host)]
+    if not tls and outside and len(hosts) > 1:
+        raise NatsSecurityError(
+            f"a cluster on {', '.join(outside)} needs TLS: without it the routes between "
+            "its nodes authenticate nothing (any server reaching a route port joins the "
+            "cluster and reads every subject); drop --no-tls.")
+    if not tls and outside and not allow_plaintext:
+        raise NatsSecurityError(
+            f"a node on {outside[0]} without TLS would take passwords and detections across "
+            "the network in clear: drop --no-tls, or add --allow-plaintext for a network "
+            "that is already encrypted and trusted.")
     security = write_nats_security(
         directory, cameras, matchers, site=site, viewers=viewers, linkers=linkers, admin=admin,
         tls=tls, hosts=hosts, ca_directory=ca_directory, clients_directory=clients_directory)

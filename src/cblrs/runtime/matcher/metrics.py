@@ -18,7 +18,9 @@ authentication with the token as the password: what Prometheus' ``authorization`
 ``basic_auth`` send), and ``/healthz`` and ``/readyz`` answer loopback clients freely and
 others with the token. Without a token the server binds to a loopback address only
 (:func:`check_exposure`): the metrics name the site's cameras, lines and zones and count
-the people crossing them.
+the people crossing them. It then answers only requests whose ``Host`` names a loopback
+address (:func:`loopback_host_header`; 421 otherwise), so that a web page opened on the same
+machine cannot read them through a name of its own pointed at 127.0.0.1 (DNS rebinding).
 
 Metric names (all labelled ``plane``):
 
@@ -56,17 +58,18 @@ import base64
 import hmac
 import ipaddress
 import logging
-import socket
 import threading
 import time
 from collections.abc import Callable, Iterable, Mapping
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from typing import Any
+from urllib.parse import urlsplit
 
 from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram
 from prometheus_client.exposition import CONTENT_TYPE_LATEST, generate_latest
 
 from cblrs.errors import CblrsError
+from cblrs.runtime.addresses import is_loopback_host
 
 logger = logging.getLogger(__name__)
 
@@ -288,17 +291,18 @@ def parse_address(text: str) -> tuple[str, int]:
     return (host.strip("[]") or "127.0.0.1"), int(port)
 
 
-def is_loopback_host(host: str) -> bool:
-    """Whether every address ``host`` names is a loopback one (``127.0.0.1``, ``::1``,
-    ``localhost``); a name that does not resolve is not."""
+def loopback_host_header(host_header: str) -> bool:
+    """Whether an HTTP ``Host`` header names this machine literally: a loopback address,
+    ``localhost`` or a name under ``.localhost`` (never resolved: a name an attacker
+    controls can resolve to 127.0.0.1)."""
     try:
-        infos = socket.getaddrinfo(host, None, type=socket.SOCK_STREAM)
-    except (OSError, UnicodeError):
+        host = urlsplit(f"//{host_header}").hostname or ""
+    except ValueError:
         return False
+    if host == "localhost" or host.endswith(".localhost"):
+        return True
     try:
-        return bool(infos) and all(
-            ipaddress.ip_address(str(info[4][0]).split("%")[0]).is_loopback for info in infos
-        )
+        return ipaddress.ip_address(host).is_loopback
     except ValueError:
         return False
 
@@ -342,6 +346,33 @@ def _authorized(header: str, token: str) -> bool:
     return hmac.compare_digest(value.encode(), token.encode())
 
 
+class _BoundedServer(ThreadingHTTPServer):
+    """A thread per connection, at most ``max_connections`` at once (the rest closed)."""
+
+    def __init__(self, address: tuple[str, int], handler: Any, max_connections: int):
+        self.max_connections = max(1, int(max_connections))
+        self._slots = threading.BoundedSemaphore(self.max_connections)
+        super().__init__(address, handler)
+
+    def process_request(self, request: Any, client_address: Any) -> None:
+        if not self._slots.acquire(blocking=False):
+            logger.warning("metrics: %d connections open; closed one from %s",
+                           self.max_connections, client_address[0])
+            self.shutdown_request(request)
+            return
+        try:
+            super().process_request(request, client_address)
+        except BaseException:
+            self._slots.release()
+            raise
+
+    def process_request_thread(self, request: Any, client_address: Any) -> None:
+        try:
+            super().process_request_thread(request, client_address)
+        finally:
+            self._slots.release()
+
+
 class MetricsServer:
     """``/metrics``, ``/healthz`` and ``/readyz`` over HTTP, in a thread of its own.
 
@@ -352,6 +383,9 @@ class MetricsServer:
         ready: the ``/readyz`` check.
         token: the token a request must carry (see the module docstring); None: no
             token, and then ``address`` must be a loopback one.
+        idle_timeout_s: a connection that sends nothing for this long is closed.
+        max_connections: connections served at once; past them a new one is closed at
+            once (idle connections must not exhaust the matcher's threads).
 
     Raises:
         MetricsServerError: the address cannot be bound, or is beyond loopback without a
@@ -365,6 +399,8 @@ class MetricsServer:
         health: Check,
         ready: Check,
         token: str | None = None,
+        idle_timeout_s: float = 10.0,
+        max_connections: int = 32,
     ):
         if token is not None and len(token) < MIN_TOKEN_CHARS:
             raise MetricsServerError(
@@ -380,11 +416,20 @@ class MetricsServer:
         }
 
         class Handler(BaseHTTPRequestHandler):
+            timeout = idle_timeout_s  # on the socket: a silent client is let go
+
             def do_GET(self) -> None:
                 path = self.path.split("?", 1)[0]
                 route = routes.get(path)
                 headers = {}
-                if route is None:
+                if token is None and not loopback_host_header(self.headers.get("Host", "")):
+                    # Token-less means loopback-only: a page that points a name of its own at
+                    # 127.0.0.1 (DNS rebinding) must not read the site's names and counts.
+                    status, kind = 421, "text/plain; charset=utf-8"
+                    body = b"this server answers loopback host names only (127.0.0.1)\n"
+                    logger.warning("metrics: refused %s for host %r (not a loopback name)",
+                                   path, self.headers.get("Host", "")[:100])
+                elif route is None:
                     status, kind, body = 404, "text/plain; charset=utf-8", b"not found\n"
                 elif not request_allowed(path, self.client_address[0],
                                          self.headers.get("Authorization", ""), token):
@@ -414,7 +459,7 @@ class MetricsServer:
                 logger.debug("metrics %s - %s", self.address_string(), format % args)
 
         try:
-            self._server = ThreadingHTTPServer(address, Handler)
+            self._server = _BoundedServer(address, Handler, max_connections)
         except OSError as error:
             raise MetricsServerError(
                 f"cannot serve metrics on {address[0]}:{address[1]}: "
