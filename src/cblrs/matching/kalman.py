@@ -121,11 +121,12 @@ def update(
 
 
 def initial_covariance(
-    count: int, position_variance: FloatArray | float, velocity_sigma: float
+    count: int, position_variance: FloatArray | float, velocity_sigma: FloatArray | float
 ) -> FloatArray:
     """(count, 4, 4) covariance of newly born tracks: measured position, unknown velocity.
 
-    ``position_variance`` is a scalar or (count,) isotropic variance, or (count, 2, 2).
+    ``position_variance`` is a scalar or (count,) isotropic variance, or (count, 2, 2);
+    ``velocity_sigma`` a scalar or (count,) standard deviation of each velocity component.
     """
     covariance = np.zeros((count, 4, 4))
     covariance[:, :2, :2] = measurement_matrices(position_variance, count)

@@ -36,7 +36,10 @@ observations of one point. Per instant:
    fused position is tested against the cone in its noise across the cone's edge, and a
    track whose velocity a wrong view threw off is still held to its last well-known motion);
 5. fuse each track's detections in information form (inverse covariances) and update the
-   filter once, adding an object-level noise common to all views;
+   filter once, adding an object-level noise common to all views; a vehicle whose views were
+   refined with its heading is reported where those views put it under their own learned
+   noise (:mod:`~cblrs.matching.fusion.vehicle_noise`; the filter keeps the class's wider
+   noise, which association needs);
 6. cluster the remaining detections across cameras (at most one per camera per cluster,
    complete linkage on the Mahalanobis distance) and start a tentative track per cluster;
 7. confirm tracks with enough evidence (camera detections; where two cameras see the

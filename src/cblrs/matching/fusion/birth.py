@@ -77,14 +77,17 @@ class Births:
         )
         state = np.zeros((count, 4))
         state[:, :2] = position
+        cluster_class = np.zeros(count, np.int64)
+        cluster_class[labels] = leftovers.class_id  # one class per cluster
+        # A new track's velocity is unknown: up to a walking pace for a person, a driving
+        # one for a car (FusionContext.class_velocity_sigma). Started at a person's
+        # uncertainty, a car's track would lag its views for a second.
         covariance = kalman.initial_covariance(
             count, position_covariance + self.context.object_covariance,
-            self.context.config.initial_velocity_sigma,
+            self.context.class_velocity_sigma[self.context.class_slot(cluster_class)],
         )
         cameras[labels, leftovers.camera] = True
         camera, box = largest_boxes(leftovers, np.ones(len(labels), dtype=bool), labels, count)
-        cluster_class = np.zeros(count, np.int64)
-        cluster_class[labels] = leftovers.class_id  # one class per cluster
         models = self.context.models
         config = self.context.config
         born = TrackTable(

@@ -97,7 +97,9 @@ class FusionConfig:
             0.25 m/s^2 and 2 m/s^2 for a person); ``(1.0,)`` is a single constant-velocity
             filter.
         model_sojourn_s: mean time spent in each of those models, seconds (one per model).
-        initial_velocity_sigma: velocity uncertainty of a new track, m/s.
+        initial_velocity_sigma: velocity uncertainty of a new person's track, m/s; other
+            classes' scale like their acceleration (``class_acceleration_sigma``: 7.5 m/s
+            for a car).
         gate_sigmas: Mahalanobis gate on the innovation (standard deviations).
         max_gate_m: cap on the distance between a track and a detection it takes, metres
             (larger for a detection whose own noise is larger: ``gate_sigmas`` times its

@@ -53,6 +53,10 @@ class TrackTable:
         born: (T,) when the track was first seen, seconds (for the stitching stage: a new
             track can continue a lost one only if it was born after that one was last
             seen). Defaults to ``last_seen``.
+        located: (T, 2) where the track was located at the instant it was last updated,
+            when that is sharper than the filter's estimate, metres (NaN: use ``state``;
+            default). Only reported, never used to associate
+            (:mod:`~cblrs.matching.fusion.vehicle_noise`).
     """
 
     ids: np.ndarray
@@ -73,6 +77,7 @@ class TrackTable:
     heading_speed: np.ndarray | None = None
     seen_covariance: np.ndarray | None = None
     born: np.ndarray | None = None
+    located: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         # Tables built before these columns existed (births, saved states, tests) start them
@@ -85,6 +90,8 @@ class TrackTable:
             self.seen_covariance = self.covariance[:, :2, :2].copy()
         if self.born is None:
             self.born = np.array(self.last_seen, np.float64, copy=True)
+        if self.located is None:
+            self.located = np.full((len(self.ids), 2), np.nan)
 
     @classmethod
     def empty(cls, models: int, cameras: int) -> TrackTable:
@@ -108,7 +115,7 @@ class TrackTable:
                 self.mode_covariance, self.mode_probability, self.evidence, self.last_seen,
                 self.seen_by, self.velocity_sigma, self.heading, self.heading_time,
                 self.heading_sigma, self.heading_xy, self.heading_speed,
-                self.seen_covariance, self.born)
+                self.seen_covariance, self.born, self.located)
 
     def select(self, keep: np.ndarray) -> TrackTable:
         """The rows where ``keep`` (a (T,) mask or indices)."""
@@ -155,6 +162,11 @@ class FusionContext:
         noise: the learned measurement-noise model.
         class_turn_radius: (K + 1,) smallest turning radius of each class, metres (inf:
             turns on the spot).
+        class_velocity_sigma: (K + 1,) how fast an object of each class may be moving when
+            its velocity is not known yet, m/s: ``initial_velocity_sigma`` (a person's)
+            scaled like the class's acceleration (7.5 m/s for a car). A new track's velocity
+            uncertainty, and how far a detection captured a little before or after the
+            window's time may have moved per second before its track's velocity compensates it.
     """
 
     config: FusionConfig
@@ -165,12 +177,19 @@ class FusionContext:
     noise: NoiseModel
     object_covariance: np.ndarray = field(init=False)
     class_turn_radius: np.ndarray = field(init=False)
+    class_velocity_sigma: np.ndarray = field(init=False)
 
     def __post_init__(self) -> None:
         self.object_covariance = self.config.object_sigma_m**2 * np.eye(2)
         self.class_turn_radius = np.array(
             [self.config.class_turn_radius_m.get(name, np.inf) for name in CLASS_NAMES]
             + [np.inf])
+        config = self.config
+        acceleration = np.array(
+            [config.class_acceleration_sigma.get(name, config.acceleration_sigma)
+             for name in CLASS_NAMES] + [config.acceleration_sigma])
+        self.class_velocity_sigma = (
+            config.initial_velocity_sigma * acceleration / config.acceleration_sigma)
 
     @property
     def camera_count(self) -> int:

@@ -4,8 +4,8 @@
 named after it (the package docstring, :mod:`cblrs.matching.fusion`, describes them):
 ``noise`` (1, measurement noise), ``tracker`` (2, prediction; 5, the filter update),
 ``association`` (3, 4), ``birth`` (6, 7), ``stitching`` (7, new tracks continuing lost ones),
-``occlusion`` (7, people hidden behind others),
-``clocks`` (camera clocks), ``state`` (snapshots).
+``occlusion`` (7, people hidden behind others), ``clocks`` (camera clocks), ``state``
+(snapshots), ``vehicle_noise`` (5, where a vehicle refined by its heading is reported).
 """
 
 from __future__ import annotations
@@ -41,10 +41,8 @@ from cblrs.matching.fusion.occlusion import Hidden
 from cblrs.matching.fusion.state import STATE_VERSION, table_from_state, table_state
 from cblrs.matching.fusion.stitching import Stitching
 from cblrs.matching.fusion.table import FusionContext, Measured, TrackTable, largest_boxes
-from cblrs.matching.timing import (
-    Window,
-    WindowBuffer,
-)
+from cblrs.matching.fusion.vehicle_noise import VehicleNoise
+from cblrs.matching.timing import Window, WindowBuffer
 from cblrs.plane import PlaneSet
 
 _REPORTED_FRAMES = 64  # frames remembered to report each track at most once per frame
@@ -91,25 +89,15 @@ class FusionTracker:
         config = self.config
         # Per class id (index into CLASS_NAMES; one extra slot for unknown ids).
         self._class_extra = np.array(
-            [config.class_measurement_sigma_m.get(name, 0.0) for name in CLASS_NAMES] + [0.0]
-        )
+            [config.class_measurement_sigma_m.get(name, 0.0) for name in CLASS_NAMES] + [0.0])
         # Gate caps and cluster radii scale with the class's size relative to a person.
         self._class_scale = np.hypot(self._class_extra, config.measurement_sigma_m) / (
-            config.measurement_sigma_m
-        )
+            config.measurement_sigma_m)
         self._class_acceleration = np.array(
             [config.class_acceleration_sigma.get(name, config.acceleration_sigma)
-             for name in CLASS_NAMES] + [config.acceleration_sigma]
-        )
-        # How far an object may move per second, to widen the gate of a detection captured
-        # a little before or after the window's time (before its track's velocity is known
-        # to compensate it): the initial velocity uncertainty, scaled like the acceleration.
-        self._class_speed = (
-            config.initial_velocity_sigma * self._class_acceleration / config.acceleration_sigma
-        )
+             for name in CLASS_NAMES] + [config.acceleration_sigma])
         self._windows = WindowBuffer(
-            len(self.camera_ids), config.max_window_s, config.window_fraction
-        )
+            len(self.camera_ids), config.max_window_s, config.window_fraction)
         self._clock = ClockModel(
             len(self.camera_ids), config.clock_tolerance_s, config.max_clock_offset_s,
             estimate=config.estimate_clocks,
@@ -127,6 +115,7 @@ class FusionTracker:
         self.hidden = Hidden(self.context, self.coverage)
         self.births = Births(self.context)
         self.footprint = Footprint.from_config(self.camera_ids, config)
+        self.vehicle_noise = VehicleNoise(self.context, self.footprint.enabled)
         self.clock_learning = ClockLearning(self.context, self._clock)
         self.stitching = Stitching(self.context, self._class_acceleration)
         self.reset()
@@ -143,6 +132,7 @@ class FusionTracker:
         self.clock_learning.reset()
         self.coverage.reset()
         self.stitching.reset()
+        self.vehicle_noise.reset()
         self.hidden.reset()
         self._reported: dict[int, set[int]] = {}
 
@@ -161,6 +151,7 @@ class FusionTracker:
             "clock_turn": self.clock_learning.turn,
             "coverage": self.coverage.get_state(),
             "stitching": self.stitching.get_state(),
+            "vehicle_noise": self.vehicle_noise.get_state(),
             "hidden": self.hidden.get_state(),
         }
 
@@ -185,6 +176,7 @@ class FusionTracker:
             self.clock_learning.turn = int(state["clock_turn"])
             self.coverage.set_state(state.get("coverage"))
             self.stitching.set_state(state.get("stitching"))
+            self.vehicle_noise.set_state(state.get("vehicle_noise"))
             self.hidden.set_state(state.get("hidden"))
         except (KeyError, TypeError, ValueError, IndexError) as error:
             raise MatcherError(f"the saved fusion-tracker state is incomplete: {error}.") from None
@@ -306,7 +298,8 @@ class FusionTracker:
         if np.any(lag != 0):
             # Until a detection is given a track, its motion over its lag is unknown: widen
             # its gate by how far the class moves in that time.
-            covariance = covariance + ((lag * self._class_speed[slot]) ** 2)[:, None, None] * (
+            speed = self.context.class_velocity_sigma[slot]
+            covariance = covariance + ((lag * speed) ** 2)[:, None, None] * (
                 np.eye(2)[None])
         plain = self._class_extra[slot] == 0
         observed = raw
@@ -340,6 +333,7 @@ class FusionTracker:
             lag, plain, assigned = lag[kept], plain[kept], assigned[kept]
             self.measured = take_measured(self.measured, kept)
         observed = self.footprint.refine(observed, self.measured, self.tracks, assigned)  # 4d
+        refined = self.vehicle_noise.refined(self.tracks, observed.class_id, assigned)
         matched = assigned >= 0
         located_xy = observed.world_xy
         if matched.any() and np.any(lag[matched] != 0):
@@ -358,10 +352,11 @@ class FusionTracker:
             self.context.noise.learn(raw.world_xy, self.measured.distance,
                                      np.where(plain, assigned, -1), self.measured.direction,
                                      self.measured.along_distance)
+            self.vehicle_noise.learn(observed.world_xy, self.measured, refined, assigned,
+                                     observed.class_id)
         # 5. fuse each track's views and update its filter once.
         seen_now, report_camera, report_box, cameras_of_track = self._update_tracks(
-            observed, covariance, base_covariance, assigned, timestamp
-        )
+            observed, covariance, base_covariance, assigned, timestamp, refined)
 
         self.hidden.learn(self.tracks, seen_now, observed, self.measured, assigned)  # occlusion
         # 6. births from clusters of what no track took (birth module).
@@ -402,7 +397,7 @@ class FusionTracker:
 
     def _update_tracks(
         self, observed: Observations, covariance: np.ndarray, base_covariance: np.ndarray,
-        assigned: np.ndarray, timestamp: float,
+        assigned: np.ndarray, timestamp: float, refined: np.ndarray,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Step 5: fuse each track's detections in information form and update its filter once.
 
@@ -421,18 +416,19 @@ class FusionTracker:
             self.clock_learning.learn(self.tracks, self.measured, observed, base_covariance,
                                       matched, rows, timestamp)
             fused_xy, fused_covariance, seen_now = fuse(
-                rows, track_count, observed.world_xy[matched], covariance[matched]
-            )
+                rows, track_count, observed.world_xy[matched], covariance[matched])
+            # Vehicles refined by their heading: where they are, reported (vehicle_noise).
+            self.tracks.located = self.vehicle_noise.locate(
+                self.tracks, observed.world_xy, self.measured, refined,
+                covariance - base_covariance, assigned, observed.class_id)
             (self.tracks.mode_state[seen_now], self.tracks.mode_covariance[seen_now],
              self.tracks.mode_probability[seen_now]) = kalman.update_models(
                 self.tracks.mode_state[seen_now], self.tracks.mode_covariance[seen_now],
                 self.tracks.mode_probability[seen_now], fused_xy[seen_now],
-                fused_covariance[seen_now] + self.context.object_covariance,
-            )
+                fused_covariance[seen_now] + self.context.object_covariance)
             self.tracks.state[seen_now], self.tracks.covariance[seen_now] = kalman.combine(
                 self.tracks.mode_state[seen_now], self.tracks.mode_covariance[seen_now],
-                self.tracks.mode_probability[seen_now],
-            )
+                self.tracks.mode_probability[seen_now])
             velocity_covariance = self.tracks.covariance[seen_now, 2:4, 2:4]
             self.tracks.seen_covariance[seen_now] = self.tracks.covariance[seen_now, :2, :2]
             self.tracks.velocity_sigma[seen_now] = np.sqrt(np.maximum(
@@ -505,7 +501,7 @@ class FusionTracker:
             reported.update(self.tracks.ids[rows].tolist())
             instant = float(window.times[frames == frame].mean()) if len(distinct) > 1 else (
                 float(window.times.mean()))
-            position = self.tracks.state[rows, :2]
+            position = self.vehicle_noise.position(self.tracks, rows, timestamp)
             if instant != timestamp:
                 position = position + (instant - timestamp) * self.tracks.state[rows, 2:4]
             parts.append(Tracks(
