@@ -469,6 +469,10 @@ def _flush(store: RuntimeStore, matcher: Any, analytics: Any, released: float, t
     flush = getattr(matcher, "flush", None)
     tracks = flush() if flush is not None else Tracks.empty()
     if not len(tracks) and analytics is None:
+        # Nothing to commit, but the state is saved once more: the one saved last may be up to
+        # STATE_INTERVAL_S of groups old (replayed on a restart), and what the service reports
+        # at its end (its cameras' clocks) is read from it.
+        store.save_matcher_state(state_text(matcher.get_state()), tracker=tracker)
         return updates
     report = _Report(analytics)
     report.count(tracks, released)
