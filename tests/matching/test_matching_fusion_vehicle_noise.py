@@ -73,7 +73,7 @@ def test_a_refined_track_is_reported_where_its_views_are_not_where_it_was_predic
     assigned = np.array([0, 0])
     refined = noise.refined(tracks, np.array([CAR, CAR]), assigned)
     located = noise.locate(tracks, world_xy, _measured(world_xy, camera), refined,
-                           np.zeros((2, 2, 2)), assigned, np.array([CAR, CAR]))
+                           np.zeros((2, 2, 2)), assigned, np.array([CAR, CAR]), 0.0)
     assert np.isnan(located[1]).all()  # no refined views: the filter's estimate
     assert np.hypot(*(located[0] - truth)) < 0.15
     # Reported only at the instant it was located; coasting tracks report the filter.

@@ -41,6 +41,12 @@ def table_state(tracks: TrackTable) -> dict:
         "heading_speed": tracks.heading_speed.tolist(),
         "seen_covariance": tracks.seen_covariance.tolist(),
         "born": tracks.born.tolist(),
+        # Vehicles' turning filters (NaN / -inf: none yet).
+        "turn_state": [[value if math.isfinite(value) else None for value in row]
+                       for row in tracks.turn_state.tolist()],
+        "turn_covariance": tracks.turn_covariance.tolist(),
+        "turn_time": [value if math.isfinite(value) else None
+                      for value in tracks.turn_time.tolist()],
     }
 
 
@@ -92,6 +98,15 @@ def table_from_state(state: dict, models: int, cameras: int) -> TrackTable:
         # stage reads it, to tell which lost tracks a new track may continue).
         born=None if state.get("born") is None else np.asarray(state["born"],
                                                                np.float64).reshape(-1),
+        # States saved before the turning filter: none yet (the next refined view starts it).
+        turn_state=None if state.get("turn_state") is None else np.array(
+            [[np.nan if value is None else value for value in row]
+             for row in state["turn_state"]], np.float64).reshape(-1, 5),
+        turn_covariance=None if state.get("turn_covariance") is None else np.asarray(
+            state["turn_covariance"], np.float64).reshape(-1, 5, 5),
+        turn_time=None if state.get("turn_time") is None else np.array(
+            [-np.inf if value is None else value for value in state["turn_time"]],
+            np.float64).reshape(-1),
     )
     if len({len(column) for column in tracks.columns()}) != 1:
         raise MatcherError("the saved fusion-tracker state has columns of different lengths.")

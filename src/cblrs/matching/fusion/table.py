@@ -57,6 +57,11 @@ class TrackTable:
             when that is sharper than the filter's estimate, metres (NaN: use ``state``;
             default). Only reported, never used to associate
             (:mod:`~cblrs.matching.fusion.vehicle_noise`).
+        turn_state: (T, 5) a vehicle's turning filter, x, y, speed, heading, turn rate
+            (m, m, m/s, rad, rad/s; NaN: none yet; default), for the position it is
+            reported at (:mod:`~cblrs.matching.fusion.turning`).
+        turn_covariance: (T, 5, 5) its covariance (default zeros).
+        turn_time: (T,) its time, seconds (-inf: none; default).
     """
 
     ids: np.ndarray
@@ -78,6 +83,9 @@ class TrackTable:
     seen_covariance: np.ndarray | None = None
     born: np.ndarray | None = None
     located: np.ndarray | None = None
+    turn_state: np.ndarray | None = None
+    turn_covariance: np.ndarray | None = None
+    turn_time: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         # Tables built before these columns existed (births, saved states, tests) start them
@@ -92,6 +100,12 @@ class TrackTable:
             self.born = np.array(self.last_seen, np.float64, copy=True)
         if self.located is None:
             self.located = np.full((len(self.ids), 2), np.nan)
+        if self.turn_state is None:
+            self.turn_state = np.full((len(self.ids), 5), np.nan)
+        if self.turn_covariance is None:
+            self.turn_covariance = np.zeros((len(self.ids), 5, 5))
+        if self.turn_time is None:
+            self.turn_time = np.full(len(self.ids), -np.inf)
 
     @classmethod
     def empty(cls, models: int, cameras: int) -> TrackTable:
@@ -115,7 +129,8 @@ class TrackTable:
                 self.mode_covariance, self.mode_probability, self.evidence, self.last_seen,
                 self.seen_by, self.velocity_sigma, self.heading, self.heading_time,
                 self.heading_sigma, self.heading_xy, self.heading_speed,
-                self.seen_covariance, self.born, self.located)
+                self.seen_covariance, self.born, self.located, self.turn_state,
+                self.turn_covariance, self.turn_time)
 
     def select(self, keep: np.ndarray) -> TrackTable:
         """The rows where ``keep`` (a (T,) mask or indices)."""

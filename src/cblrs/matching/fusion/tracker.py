@@ -420,7 +420,7 @@ class FusionTracker:
             # Vehicles refined by their heading: where they are, reported (vehicle_noise).
             self.tracks.located = self.vehicle_noise.locate(
                 self.tracks, observed.world_xy, self.measured, refined,
-                covariance - base_covariance, assigned, observed.class_id)
+                covariance - base_covariance, assigned, observed.class_id, timestamp)
             (self.tracks.mode_state[seen_now], self.tracks.mode_covariance[seen_now],
              self.tracks.mode_probability[seen_now]) = kalman.update_models(
                 self.tracks.mode_state[seen_now], self.tracks.mode_covariance[seen_now],

@@ -28,6 +28,7 @@ from cblrs.detections import CLASS_NAMES
 from cblrs.matching.fusion.gaussian import fuse, ray_covariance
 from cblrs.matching.fusion.noise import NoiseModel
 from cblrs.matching.fusion.table import FusionContext, Measured, TrackTable
+from cblrs.matching.fusion.turning import TurnFilter
 
 
 class VehicleNoise:
@@ -55,6 +56,7 @@ class VehicleNoise:
         self.models = [NoiseModel(config.measurement_sigma_m, config.along_sigma_per_distance,
                                   config.sigma_per_distance)
                        for _ in range(len(context.class_extra))]
+        self.turning = TurnFilter(context)
 
     @property
     def model(self) -> NoiseModel:
@@ -105,23 +107,26 @@ class VehicleNoise:
     def locate(
         self, tracks: TrackTable, world_xy: np.ndarray, measured: Measured,
         refined: np.ndarray, lag_covariance: np.ndarray, assigned: np.ndarray,
-        class_id: np.ndarray,
+        class_id: np.ndarray, timestamp: float,
     ) -> np.ndarray:
         """(T, 2) where each track with refined detections is, NaN for the others.
 
         The refined detections of a track are fused under the learned noise (plus what
-        their capture lag adds, ``lag_covariance``) and the track's prediction (before its
-        update) is corrected by them, as a Kalman update would; the filter itself is left
-        to the tracker's update with the wide noise, so association is unchanged.
+        their capture lag adds, ``lag_covariance``) and given to the track's turning filter
+        (:class:`~cblrs.matching.fusion.turning.TurnFilter`, started from the track's
+        prediction before its update); the tracker's filter itself is left to its update
+        with the wide noise, so association is unchanged.
 
         Args:
-            tracks: the tracks, predicted to the window's time and not yet updated.
+            tracks: the tracks, predicted to the window's time and not yet updated (their
+                turning filters are updated in place).
             world_xy: (N, 2) the detections at the window's time, metres.
             measured: their rays and distances.
             refined: (N,) bool, from :meth:`refined`.
             lag_covariance: (N, 2, 2) added to each detection's noise for its capture lag.
             assigned: (N,) int64 track row of each detection.
             class_id: (N,) their classes.
+            timestamp: the window's time, seconds.
         """
         located = np.full((len(tracks), 2), np.nan)
         if not refined.any():
@@ -138,11 +143,9 @@ class VehicleNoise:
                                np.maximum(lateral, floor)) + lag_covariance[refined]
         fused_xy, fused_covariance, seen = fuse(assigned[refined], len(tracks),
                                                 world_xy[refined], noise)
-        prior = tracks.state[seen, :2]
-        prior_covariance = tracks.covariance[seen, :2, :2]
-        total = prior_covariance + fused_covariance[seen] + self.context.object_covariance
-        gain = prior_covariance @ np.linalg.inv(total)
-        located[seen] = prior + np.einsum("kij,kj->ki", gain, fused_xy[seen] - prior)
+        rows = np.flatnonzero(seen)
+        located[rows] = self.turning.locate(tracks, rows, fused_xy[rows],
+                                            fused_covariance[rows], timestamp)
         return located
 
     @staticmethod
