@@ -121,3 +121,9 @@ def test_a_car_on_a_ring_seen_through_jittered_boxes_is_reported_on_its_ring():
     # on average and 0.12 m outwards.
     assert np.mean(errors) < 0.2
     assert abs(np.mean(outwards)) < 0.06
+
+
+def test_only_cars_are_reported_from_their_turning_filter():
+    turning = TurnFilter(_context())
+    classes = np.array([CAR, CLASS_NAMES.index("bus"), CLASS_NAMES.index("person"), -1])
+    assert turning.applies(classes).tolist() == [True, False, False, False]

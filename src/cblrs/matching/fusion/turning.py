@@ -8,7 +8,8 @@ roundabout's ring it turns all the time), the reported position then follows eac
 instant's views and their noise: with a detector's jittered boxes, two or three views of a
 car scatter a couple of decimetres, and one view alone lies metres along its camera's ray.
 
-:class:`TurnFilter` runs, for each such vehicle, a second filter on those views alone: a
+:class:`TurnFilter` runs, for each such car (:data:`TURNING_CLASSES`; other vehicles keep
+each instant's correction), a second filter on those views alone: a
 coordinated-turn (CTRV) model, state ``(x, y, speed, heading, turn rate)``, which carries a
 car round an arc instead of along its tangent, so it can average several instants' views
 without lagging. Its noise is the class's: white longitudinal acceleration of the
@@ -31,6 +32,14 @@ from cblrs.detections import CLASS_NAMES
 from cblrs.matching.fusion.table import FusionContext, TrackTable
 
 _STATE = 5  # x, y, speed, heading, turn rate
+
+TURNING_CLASSES = ("car",)
+"""The classes reported from the turning filter. The filter averages a vehicle's views over
+time, so it helps where their errors are noise, not where one camera's view of the vehicle
+is off by metres instant after instant: a bus's or a truck's box is placed by a class-typical
+size that a real one misses by metres (at the simulated crossroads a stopped bus's views lay
+2.3 m apart, one camera's with a sharp learned noise, and the filter settled on it: buses
+0.65 -> 1.34 m off, bicycles 0.20 -> 0.23 m). Those keep each instant's correction."""
 
 
 class TurnFilter:
@@ -64,7 +73,12 @@ class TurnFilter:
         # Turn-rate acceleration: the class's acceleration over its turning radius (zero
         # for classes that turn on the spot; they are not vehicles and never filtered).
         radius = context.class_turn_radius
+        self.classes = np.array([name in TURNING_CLASSES for name in CLASS_NAMES] + [False])
         self.turn_acceleration = np.where(np.isfinite(radius), accel / radius, 0.0)
+
+    def applies(self, class_id: np.ndarray) -> np.ndarray:
+        """(K,) bool: the tracks of these classes are reported from their turning filter."""
+        return self.classes[FusionContext.class_slot(class_id)]
 
     def locate(
         self,

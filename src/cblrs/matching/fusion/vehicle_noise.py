@@ -114,8 +114,9 @@ class VehicleNoise:
         The refined detections of a track are fused under the learned noise (plus what
         their capture lag adds, ``lag_covariance``) and given to the track's turning filter
         (:class:`~cblrs.matching.fusion.turning.TurnFilter`, started from the track's
-        prediction before its update); the tracker's filter itself is left to its update
-        with the wide noise, so association is unchanged.
+        prediction before its update; cars) or correct that prediction, as a Kalman update
+        would (other vehicles); the tracker's filter itself is left to its update with the
+        wide noise, so association is unchanged.
 
         Args:
             tracks: the tracks, predicted to the window's time and not yet updated (their
@@ -144,8 +145,23 @@ class VehicleNoise:
         fused_xy, fused_covariance, seen = fuse(assigned[refined], len(tracks),
                                                 world_xy[refined], noise)
         rows = np.flatnonzero(seen)
-        located[rows] = self.turning.locate(tracks, rows, fused_xy[rows],
-                                            fused_covariance[rows], timestamp)
+        turning = self.turning.applies(tracks.class_id[rows])
+        # A turning model needs a heading: a car that is not clearly moving (stopped at a
+        # light, queueing) keeps each instant's correction, and its filter starts afresh.
+        speed = np.hypot(tracks.state[rows, 2], tracks.state[rows, 3])
+        moving = speed >= np.maximum(1.0, 3.0 * tracks.velocity_sigma[rows])
+        tracks.turn_state[rows[turning & ~moving]] = np.nan
+        turning &= moving
+        filtered = rows[turning]
+        located[filtered] = self.turning.locate(tracks, filtered, fused_xy[filtered],
+                                                fused_covariance[filtered], timestamp)
+        # Other vehicles: the track's prediction corrected by this instant's views alone.
+        other = rows[~turning]
+        prior = tracks.state[other, :2]
+        prior_covariance = tracks.covariance[other, :2, :2]
+        total = prior_covariance + fused_covariance[other] + self.context.object_covariance
+        gain = prior_covariance @ np.linalg.inv(total)
+        located[other] = prior + np.einsum("kij,kj->ki", gain, fused_xy[other] - prior)
         return located
 
     @staticmethod
