@@ -127,3 +127,28 @@ def test_only_cars_are_reported_from_their_turning_filter():
     turning = TurnFilter(_context())
     classes = np.array([CAR, CLASS_NAMES.index("bus"), CLASS_NAMES.index("person"), -1])
     assert turning.applies(classes).tolist() == [True, False, False, False]
+
+
+def test_a_car_that_is_not_clearly_moving_keeps_each_instant_correction():
+    from test_matching_fusion_vehicle_noise import _measured, _tracks
+
+    from cblrs.matching.fusion.vehicle_noise import VehicleNoise
+
+    noise = VehicleNoise(_context())
+    tracks = _tracks([CAR, CAR], [True, True])
+    tracks.state[1, 2:] = 0.0  # stopped at a light: no heading to turn from
+    world_xy = np.array([[10.1, 10.0], [10.0, 10.1]])
+    assigned = np.array([0, 1])
+    refined = noise.refined(tracks, np.array([CAR, CAR]), assigned)
+    located = noise.locate(
+        tracks,
+        world_xy,
+        _measured(world_xy, np.array([0, 1])),
+        refined,
+        np.zeros((2, 2, 2)),
+        assigned,
+        np.array([CAR, CAR]),
+        0.0,
+    )
+    assert np.isfinite(located).all()
+    assert np.isfinite(tracks.turn_state[0]).all() and np.isnan(tracks.turn_state[1]).all()
