@@ -128,8 +128,9 @@ def decode_messages(
             np.zeros((0, 4)), np.zeros(0), np.zeros(0, np.int64),
         )
     colour = np.concatenate([message.colour for message in messages])
-    camera = np.concatenate(
-        [np.full(len(message), cameras[message.camera_id], np.int64) for message in messages]
+    camera = np.repeat(
+        np.array([cameras[message.camera_id] for message in messages], np.int64),
+        [len(message) for message in messages],
     )
     world_xy, valid, _ = planes.decode(colour)
     return Observations(

@@ -355,13 +355,15 @@ class ClockModel:
         horizon = float(time_s) - 2.5 * self.max_offset_s - self.search_every_s
         while self._history and self._history[0][0] < horizon:
             self._history.popleft()
-        for one in np.unique(camera).tolist():
+        first: dict[int, int] = {}  # each camera's first detection
+        for index, one in enumerate(camera.tolist()):
+            first.setdefault(one, index)
+        for one in sorted(first):
             samples = self._samples[one]
-            mine = camera == one
-            stamp = float(raw_time[mine][0])
+            stamp = float(raw_time[first[one]])
             if samples and stamp - samples[-1][0] < self.history_step_s:
                 continue
-            samples.append((stamp, world_xy[mine].copy()))
+            samples.append((stamp, world_xy[camera == one].copy()))
             while samples and samples[0][0] - self.offsets[one] < horizon:
                 samples.popleft()
 
@@ -443,6 +445,9 @@ class ClockModel:
             self.offsets -= _median(self.offsets[informed])
 
     def _report(self, time_s: float) -> None:
+        if not self._flagged.any() and float(np.abs(self.offsets).max(initial=0.0)) <= (
+                self.tolerance_s):
+            return  # no camera off, none was: nothing to report or change
         off = np.abs(self.offsets) > self.tolerance_s
         back = np.abs(self.offsets) <= 0.5 * self.tolerance_s
         for camera in np.flatnonzero(off & ~self._flagged).tolist():

@@ -226,7 +226,8 @@ def largest_boxes(
     boxes = observed.xyxy[matched]
     area = (boxes[:, 2] - boxes[:, 0]) * (boxes[:, 3] - boxes[:, 1])
     order = np.lexsort((area, rows))  # by track, then by area ascending
-    last_of_track = np.r_[rows[order][1:] != rows[order][:-1], True]
+    sorted_rows = rows[order]
+    last_of_track = np.append(sorted_rows[1:] != sorted_rows[:-1], True)
     best = order[last_of_track]
     camera = np.full(track_count, -1, np.int64)
     box = np.full((track_count, 4), np.nan)

@@ -96,6 +96,9 @@ class FusionTracker:
         self._class_acceleration = np.array(
             [config.class_acceleration_sigma.get(name, config.acceleration_sigma)
              for name in CLASS_NAMES] + [config.acceleration_sigma])
+        # The motion models' constants, as the filter's prediction takes them.
+        self._model_factors = np.asarray(config.model_acceleration_factors)[None]
+        self._model_sojourn = np.asarray(config.model_sojourn_s)
         self._windows = WindowBuffer(
             len(self.camera_ids), config.max_window_s, config.window_fraction)
         self._clock = ClockModel(
@@ -126,6 +129,7 @@ class FusionTracker:
         self._next_id = 1
         self.context.noise.reset()
         self.tracks = TrackTable.empty(self.context.models, len(self.camera_ids))
+        self._no_tracks = TrackTable.empty(self.context.models, len(self.camera_ids))  # read only
         self.measured = Measured.empty()
         self._windows.reset()
         self._clock.reset()
@@ -360,21 +364,27 @@ class FusionTracker:
 
         self.hidden.learn(self.tracks, seen_now, observed, self.measured, assigned)  # occlusion
         # 6. births from clusters of what no track took (birth module).
-        born = self.births.birth(observed[~matched], covariance[~matched], timestamp)
-        self.tracks = self.tracks.extend(born.tracks)
-        seen_now = np.concatenate([seen_now, np.ones(len(born.tracks), dtype=bool)])
-        report_camera = np.concatenate([report_camera, born.camera])
-        report_box = np.concatenate([report_box, born.box])
-        cameras_of_track = np.concatenate([cameras_of_track, born.cameras])
+        if not matched.all():  # (nothing is left to start a track most windows)
+            born = self.births.birth(observed[~matched], covariance[~matched], timestamp)
+            if len(born.tracks):
+                self.tracks = self.tracks.extend(born.tracks)
+                seen_now = np.concatenate([seen_now, np.ones(len(born.tracks), dtype=bool)])
+                report_camera = np.concatenate([report_camera, born.camera])
+                report_box = np.concatenate([report_box, born.box])
+                cameras_of_track = np.concatenate([cameras_of_track, born.cameras])
 
         # 7. merge duplicates, drop tracks unseen too long (the stitching stage keeps those
         # another track may continue), confirm, report.
         keep = self.births.merge_duplicates(self.tracks, seen_now, cameras_of_track)
         aged, departed = self._ended(timestamp, seen_now)
-        self.stitching.remember(self.tracks.select(keep & aged & ~departed), timestamp)
+        ended = keep & aged & ~departed
+        self.stitching.remember(
+            self.tracks.select(ended) if ended.any() else self._no_tracks, timestamp)
         keep &= ~(aged | departed)
-        self.tracks = self.tracks.select(keep)
-        seen_now, report_camera, report_box = seen_now[keep], report_camera[keep], report_box[keep]
+        if not keep.all():  # (the table is rebuilt only when a track goes)
+            self.tracks = self.tracks.select(keep)
+            seen_now, report_camera, report_box = (
+                seen_now[keep], report_camera[keep], report_box[keep])
 
         # A vehicle track that turned further than it can is another vehicle from now on.
         turned = self.motion.split(self.tracks, seen_now, timestamp) & (self.tracks.ids >= 0)
@@ -526,9 +536,7 @@ class FusionTracker:
                 tracks.mode_state, tracks.mode_covariance, tracks.mode_probability = (
                     kalman.predict_models(
                         tracks.mode_state, tracks.mode_covariance, tracks.mode_probability, dt,
-                        acceleration[:, None]
-                        * np.asarray(self.config.model_acceleration_factors)[None],
-                        np.asarray(self.config.model_sojourn_s),
+                        acceleration[:, None] * self._model_factors, self._model_sojourn,
                     )
                 )
                 tracks.state, tracks.covariance = kalman.combine(
