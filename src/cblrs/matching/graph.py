@@ -11,6 +11,8 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
+_SMALL_GRAPH = 256  # nodes + edges up to which Python's union-find beats numpy's rounds
+
 
 def component_labels(
     node_count: int, first: NDArray[np.integer], second: NDArray[np.integer]
@@ -41,6 +43,8 @@ def component_labels(
     if len(first) and (min(first.min(), second.min()) < 0
                        or max(first.max(), second.max()) >= node_count):
         raise ValueError(f"edge ends must lie in 0..{node_count - 1}")
+    if node_count + len(first) <= _SMALL_GRAPH:
+        return _small_component_labels(node_count, first.tolist(), second.tolist())
     # Every node points to a node of lower or equal index; a root points to itself. Each
     # round hooks the root of every edge's higher end under the lower root, then jumps
     # pointers until each node points at its root. The lowest node of a component is never
@@ -63,3 +67,27 @@ def component_labels(
     # components by their lowest node.
     number = np.cumsum(root == np.arange(node_count)) - 1
     return number[root].astype(np.int64, copy=False)
+
+
+def _small_component_labels(node_count: int, first: list[int], second: list[int]
+                            ) -> NDArray[np.int64]:
+    """:func:`component_labels` of a small graph: the same labels, from a union-find in
+    Python (a window's graph of a few detections and tracks costs microseconds, not the
+    numpy calls of the vectorised rounds). Roots are kept at the lowest node."""
+    root = list(range(node_count))
+
+    def find(node: int) -> int:
+        while root[node] != node:
+            root[node] = root[root[node]]
+            node = root[node]
+        return node
+
+    for one, other in zip(first, second, strict=True):
+        one, other = find(one), find(other)
+        if one < other:
+            root[other] = one
+        elif other < one:
+            root[one] = other
+    number: dict[int, int] = {}
+    return np.array([number.setdefault(find(node), len(number)) for node in range(node_count)],
+                    np.int64)

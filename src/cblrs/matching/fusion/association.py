@@ -402,8 +402,9 @@ class _Run:
         if not grouped.any():
             return assigned
         members, labels = precise[grouped], labels[grouped]
-        _, labels = np.unique(labels, return_inverse=True)
-        labels = labels.reshape(-1)
+        used = np.zeros(int(labels.max()) + 1, dtype=bool)  # labels renumbered 0..G-1
+        used[labels] = True
+        labels = (np.cumsum(used) - 1)[labels]
         group_count = int(labels.max()) + 1
         position, group_covariance, _ = fuse(
             labels, group_count, observed.world_xy[members], covariance[members]
@@ -511,8 +512,7 @@ def assign_per_camera(
     # pairs go to the solver, camera by camera.
     column_key = columns * camera_count + camera[rows]
     per_row = np.bincount(rows, minlength=count)
-    _, key_index, per_key = np.unique(column_key, return_inverse=True, return_counts=True)
-    trivial = (per_row[rows] == 1) & (per_key[key_index] == 1)
+    trivial = (per_row[rows] == 1) & (np.bincount(column_key)[column_key] == 1)
     if unassigned_cost is not None:
         taken = trivial & (cost <= unassigned_cost[rows])
     else:

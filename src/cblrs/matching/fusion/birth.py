@@ -201,10 +201,10 @@ def cluster_detections(
     component = component_labels(count, first, second)
     size = np.bincount(component)
     edges = np.bincount(component[first], minlength=len(size))
-    cameras_in = np.bincount(
-        np.unique(component * (int(camera.max()) + 1) + camera) // (int(camera.max()) + 1),
-        minlength=len(size),
-    )
+    camera_slots = int(camera.max()) + 1
+    has_camera = np.zeros(len(size) * camera_slots, dtype=bool)
+    has_camera[component * camera_slots + camera] = True
+    cameras_in = has_camera.reshape(len(size), camera_slots).sum(axis=1)
     clean = (edges == size * (size - 1) // 2) & (cameras_in == size)
     label = component.copy()
     bad = np.flatnonzero(~clean)
@@ -224,10 +224,8 @@ def cluster_detections(
             label[members] = next_label + local
             next_label += len(members)
     # Renumber by first appearance so labels are stable and deterministic.
-    _, first_index, inverse = np.unique(label, return_index=True, return_inverse=True)
-    rank = np.empty(len(first_index), np.int64)
-    rank[np.argsort(first_index, kind="stable")] = np.arange(len(first_index))
-    return rank[inverse.reshape(-1)]
+    number: dict[int, int] = {}
+    return np.array([number.setdefault(one, len(number)) for one in label.tolist()], np.int64)
 
 
 def _greedy_complete_linkage(
