@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-_SMALL_GRAPH = 256  # nodes + edges up to which Python's union-find beats numpy's rounds
+_SMALL_GRAPH = 200  # nodes + edges up to which a search in Python beats numpy's rounds
 
 
 def component_labels(
@@ -71,23 +71,24 @@ def component_labels(
 
 def _small_component_labels(node_count: int, first: list[int], second: list[int]
                             ) -> NDArray[np.int64]:
-    """:func:`component_labels` of a small graph: the same labels, from a union-find in
-    Python (a window's graph of a few detections and tracks costs microseconds, not the
-    numpy calls of the vectorised rounds). Roots are kept at the lowest node."""
-    root = list(range(node_count))
-
-    def find(node: int) -> int:
-        while root[node] != node:
-            root[node] = root[root[node]]
-            node = root[node]
-        return node
-
+    """:func:`component_labels` of a small graph: the same labels, by a search in Python (a
+    window's graph of a few detections and tracks costs microseconds, not the numpy calls of
+    the vectorised rounds). Components are numbered as found, from the lowest node up."""
+    neighbours: list[list[int]] = [[] for _ in range(node_count)]
     for one, other in zip(first, second, strict=True):
-        one, other = find(one), find(other)
-        if one < other:
-            root[other] = one
-        elif other < one:
-            root[one] = other
-    number: dict[int, int] = {}
-    return np.array([number.setdefault(find(node), len(number)) for node in range(node_count)],
-                    np.int64)
+        neighbours[one].append(other)
+        neighbours[other].append(one)
+    label = [-1] * node_count
+    count = 0
+    for start in range(node_count):
+        if label[start] >= 0:
+            continue
+        label[start] = count
+        stack = [start]
+        while stack:
+            for other in neighbours[stack.pop()]:
+                if label[other] < 0:
+                    label[other] = count
+                    stack.append(other)
+        count += 1
+    return np.array(label, np.int64)

@@ -93,11 +93,18 @@ class _Run:
         self.timestamp = timestamp
         self.cone = cone if cone is not None else ReachableCone(context)
         self._limits: tuple[np.ndarray, ...] | None = None  # computed at the first gate
+        self._turning: bool | None = None  # some track has a reachable cone (first gate)
 
     def _reachable(self, columns: np.ndarray, xy: np.ndarray, covariance: np.ndarray) -> np.ndarray:
         """(K,) bool: each position lies within its vehicle track's reachable cone (all True
         without a timestamp)."""
         if self.timestamp is None:
+            return np.ones(len(columns), dtype=bool)
+        if self._turning is None:  # only a class with a turning radius has a cone
+            context = self.context
+            self._turning = bool(np.isfinite(
+                context.class_turn_radius[context.class_slot(self.tracks.class_id)]).any())
+        if not self._turning:
             return np.ones(len(columns), dtype=bool)
         if self._limits is None:
             self._limits = self.cone.limits(self.tracks, self.timestamp)

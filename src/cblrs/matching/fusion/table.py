@@ -24,6 +24,8 @@ from cblrs.matching.base import Observations
 from cblrs.matching.fusion.config import FusionConfig
 from cblrs.matching.fusion.noise import NoiseModel
 
+_FEW_BOXES = 64  # boxes up to which largest_boxes picks in Python
+
 
 @dataclass
 class TrackTable:
@@ -225,12 +227,25 @@ def largest_boxes(
     """
     boxes = observed.xyxy[matched]
     area = (boxes[:, 2] - boxes[:, 0]) * (boxes[:, 3] - boxes[:, 1])
+    camera = np.full(track_count, -1, np.int64)
+    box = np.full((track_count, 4), np.nan)
+    if len(area) <= _FEW_BOXES and not np.isnan(area).any():
+        # A window's few boxes in Python: the last of the largest per track, as below.
+        largest: dict[int, tuple[float, int]] = {}
+        for index, (row, one) in enumerate(zip(rows.tolist(), area.tolist(), strict=True)):
+            if row not in largest or one >= largest[row][0]:
+                largest[row] = (one, index)
+        if largest:
+            track = np.fromiter(largest, np.int64, len(largest))
+            best = np.fromiter((index for _, index in largest.values()), np.int64,
+                               len(largest))
+            camera[track] = observed.camera[matched][best]
+            box[track] = boxes[best]
+        return camera, box
     order = np.lexsort((area, rows))  # by track, then by area ascending
     sorted_rows = rows[order]
     last_of_track = np.append(sorted_rows[1:] != sorted_rows[:-1], True)
     best = order[last_of_track]
-    camera = np.full(track_count, -1, np.int64)
-    box = np.full((track_count, 4), np.nan)
     camera[rows[best]] = observed.camera[matched][best]
     box[rows[best]] = boxes[best]
     return camera, box
