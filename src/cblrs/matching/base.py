@@ -133,14 +133,16 @@ def decode_messages(
         [len(message) for message in messages],
     )
     world_xy, valid, _ = planes.decode(colour)
-    return Observations(
-        world_xy=world_xy[valid],
-        colour=colour[valid],
-        camera=camera[valid],
-        xyxy=np.concatenate([message.xyxy for message in messages])[valid],
-        confidence=np.concatenate([message.confidence for message in messages])[valid],
-        class_id=np.concatenate([message.class_id for message in messages])[valid],
+    observations = Observations(
+        world_xy=world_xy,
+        colour=colour,
+        camera=camera,
+        xyxy=np.concatenate([message.xyxy for message in messages]),
+        confidence=np.concatenate([message.confidence for message in messages]),
+        class_id=np.concatenate([message.class_id for message in messages]),
     )
+    # (Usually every detection is located: then the fresh concatenated columns as they are.)
+    return observations if valid.all() else observations[valid]
 
 
 def instant_frame(messages: Sequence[CameraMessage]) -> int:

@@ -592,7 +592,7 @@ class FusionTracker:
         limit = np.where(self.tracks.ids >= 0, self.config.max_age_s,
                          self.config.tentative_max_age_s)
         departed = np.zeros(len(age), dtype=bool)
-        if self.config.end_off_plane and len(age):
+        if self.config.end_off_plane and len(age) and not seen_now.all():
             departed = ~seen_now & self._departed()
         return age > limit, departed
 
