@@ -127,6 +127,14 @@ def update(
     if len(state) == 0:
         return state.copy(), covariance.copy()
     innovation_inverse, _ = inverse_2x2(innovation_covariance(covariance, measurement_variance))
+    return _update(state, covariance, measurement_xy, innovation_inverse)
+
+
+def _update(
+    state: FloatArray, covariance: FloatArray, measurement_xy: FloatArray,
+    innovation_inverse: FloatArray,
+) -> tuple[FloatArray, FloatArray]:
+    """:func:`update` given the inverse of the innovation covariance."""
     gain = covariance[:, :, :2] @ innovation_inverse  # (T, 4, 2)
     residual = measurement_xy - state[:, :2]
     state = state + np.einsum("tij,tj->ti", gain, residual)
@@ -271,8 +279,8 @@ def update_models(
         residual = measurement_xy - state[:, :2]
         squared = np.einsum("ti,tij,tj->t", residual, inverse, residual)
         log_likelihood[:, mode] = -0.5 * (squared + np.log(determinant))
-        new_state[:, mode], new_covariance[:, mode] = update(
-            state, covariance, measurement_xy, measurement
+        new_state[:, mode], new_covariance[:, mode] = _update(
+            state, covariance, measurement_xy, inverse
         )
     log_likelihood -= log_likelihood.max(axis=1, keepdims=True)
     weighted = probability * np.exp(log_likelihood)
