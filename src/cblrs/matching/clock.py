@@ -235,11 +235,12 @@ class ClockModel:
         weighted = np.einsum("nij,nj->ni", information, world_xy)
         # Sums over each track's views (bincount: far faster than np.add.at).
         groups = int(track.max()) + 1
-        total = np.stack([np.bincount(track, information[:, 0, 0], groups),
-                          np.bincount(track, information[:, 0, 1], groups),
-                          np.bincount(track, information[:, 1, 1], groups)], axis=1)
-        vector = np.stack([np.bincount(track, weighted[:, 0], groups),
-                           np.bincount(track, weighted[:, 1], groups)], axis=1)
+        # The five sums in one bincount, each adding its terms in view order as five would.
+        terms = np.column_stack([information[:, 0, 0], information[:, 0, 1],
+                                 information[:, 1, 1], weighted])  # (N, 5)
+        keys = (np.asarray(track, np.int64)[:, None] * 5 + np.arange(5)).reshape(-1)
+        sums = np.bincount(keys, terms.reshape(-1), 5 * groups).reshape(groups, 5)
+        total, vector = sums[:, :3], sums[:, 3:]
         label = track
         others = np.empty_like(information)  # the information of the other views
         others[:, 0, 0] = total[track, 0] - information[:, 0, 0]
@@ -355,12 +356,9 @@ class ClockModel:
         horizon = float(time_s) - 2.5 * self.max_offset_s - self.search_every_s
         while self._history and self._history[0][0] < horizon:
             self._history.popleft()
-        first: dict[int, int] = {}  # each camera's first detection
-        for index, one in enumerate(camera.tolist()):
-            first.setdefault(one, index)
-        for one in sorted(first):
+        cameras, first = np.unique(camera, return_index=True)  # each one's first detection
+        for one, stamp in zip(cameras.tolist(), raw_time[first].tolist(), strict=True):
             samples = self._samples[one]
-            stamp = float(raw_time[first[one]])
             if samples and stamp - samples[-1][0] < self.history_step_s:
                 continue
             samples.append((stamp, world_xy[camera == one].copy()))
