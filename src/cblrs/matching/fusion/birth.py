@@ -24,6 +24,8 @@ from cblrs.matching.fusion.gaussian import (
 from cblrs.matching.fusion.table import FusionContext, TrackTable, largest_boxes
 from cblrs.matching.graph import component_labels
 
+_FEW_DETECTIONS = 64  # clusters renumbered in Python up to this many detections
+
 
 @dataclass
 class Born:
@@ -224,8 +226,14 @@ def cluster_detections(
             label[members] = next_label + local
             next_label += len(members)
     # Renumber by first appearance so labels are stable and deterministic.
-    number: dict[int, int] = {}
-    return np.array([number.setdefault(one, len(number)) for one in label.tolist()], np.int64)
+    if count <= _FEW_DETECTIONS:  # (in Python: the same numbers, fewer numpy calls)
+        number: dict[int, int] = {}
+        return np.array([number.setdefault(one, len(number)) for one in label.tolist()],
+                        np.int64)
+    _, first_index, inverse = np.unique(label, return_index=True, return_inverse=True)
+    rank = np.empty(len(first_index), np.int64)
+    rank[np.argsort(first_index, kind="stable")] = np.arange(len(first_index))
+    return rank[inverse.reshape(-1)]
 
 
 def _greedy_complete_linkage(

@@ -207,7 +207,8 @@ class FusionContext:
     def class_slot(class_id: np.ndarray) -> np.ndarray:
         """Index into the per-class arrays: the class id, or the last slot for unknown ids."""
         class_id = np.asarray(class_id, np.int64)
-        return np.where((class_id >= 0) & (class_id < len(CLASS_NAMES)), class_id,
+        # (A negative id wraps to a huge unsigned one: one comparison tests both ends.)
+        return np.where(class_id.astype(np.uint64) < len(CLASS_NAMES), class_id,
                         len(CLASS_NAMES))
 
 
