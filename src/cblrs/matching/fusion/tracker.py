@@ -431,20 +431,22 @@ class FusionTracker:
             self.tracks.located = self.vehicle_noise.locate(
                 self.tracks, observed.world_xy, self.measured, refined,
                 covariance - base_covariance, assigned, observed.class_id)
-            (self.tracks.mode_state[seen_now], self.tracks.mode_covariance[seen_now],
-             self.tracks.mode_probability[seen_now]) = kalman.update_models(
-                self.tracks.mode_state[seen_now], self.tracks.mode_covariance[seen_now],
-                self.tracks.mode_probability[seen_now], fused_xy[seen_now],
-                fused_covariance[seen_now] + self.context.object_covariance)
-            self.tracks.state[seen_now], self.tracks.covariance[seen_now] = kalman.combine(
-                self.tracks.mode_state[seen_now], self.tracks.mode_covariance[seen_now],
-                self.tracks.mode_probability[seen_now])
-            velocity_covariance = self.tracks.covariance[seen_now, 2:4, 2:4]
-            self.tracks.seen_covariance[seen_now] = self.tracks.covariance[seen_now, :2, :2]
-            self.tracks.velocity_sigma[seen_now] = np.sqrt(np.maximum(
+            # Every track seen (the usual window): whole columns, not copies of all their rows.
+            now = slice(None) if seen_now.all() else seen_now
+            (self.tracks.mode_state[now], self.tracks.mode_covariance[now],
+             self.tracks.mode_probability[now]) = kalman.update_models(
+                self.tracks.mode_state[now], self.tracks.mode_covariance[now],
+                self.tracks.mode_probability[now], fused_xy[now],
+                fused_covariance[now] + self.context.object_covariance)
+            self.tracks.state[now], self.tracks.covariance[now] = kalman.combine(
+                self.tracks.mode_state[now], self.tracks.mode_covariance[now],
+                self.tracks.mode_probability[now])
+            velocity_covariance = self.tracks.covariance[now, 2:4, 2:4]
+            self.tracks.seen_covariance[now] = self.tracks.covariance[now, :2, :2]
+            self.tracks.velocity_sigma[now] = np.sqrt(np.maximum(
                 velocity_covariance[:, 0, 0] + velocity_covariance[:, 1, 1], 0.0))
             self.tracks.evidence += np.bincount(rows, minlength=track_count)
-            self.tracks.last_seen[seen_now] = timestamp
+            self.tracks.last_seen[now] = timestamp
             cameras_of_track[rows, observed.camera[matched]] = True
             report_camera, report_box = largest_boxes(observed, matched, rows, track_count)
         else:
