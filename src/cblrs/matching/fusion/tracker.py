@@ -4,7 +4,8 @@
 named after it (the package docstring, :mod:`cblrs.matching.fusion`, describes them):
 ``noise`` (1, measurement noise), ``tracker`` (2, prediction; 5, the filter update),
 ``association`` (3, 4), ``birth`` (6, 7), ``stitching`` (7, new tracks continuing lost ones),
-``occlusion`` (7, people hidden behind others), ``clocks`` (camera clocks), ``state``
+``occlusion`` (7, people hidden behind others), ``support`` (7, tracks the other covering
+cameras never see), ``clocks`` (camera clocks), ``state``
 (snapshots), ``vehicle_noise`` (5, where a vehicle refined by its heading is reported).
 """
 
