@@ -217,6 +217,52 @@ def test_a_matcher_cannot_take_another_planes_lease(backbone):
         rogue.open()
 
 
+async def _publish_with_reply(settings: NatsSettings, subject: str, payload: bytes,
+                             reply: str) -> None:
+    """Publish once as a bare nats-py client of ``settings``' login, naming ``reply`` as the
+    subject to answer on (nats-server checks a publish's subject, never its reply subject)."""
+    import nats
+
+    client = await nats.connect(
+        servers=list(settings.servers), user=settings.username, password=settings.password,
+        tls=settings.tls_context(), inbox_prefix=settings.inbox_prefix, allow_reconnect=False,
+        connect_timeout=5)
+    try:
+        await client.publish(subject, payload, reply=reply)
+        await client.flush(5)
+    finally:
+        await client.close()
+
+
+def test_a_forged_reply_into_the_lease_does_not_stop_the_matcher(backbone, clients):
+    """A camera publishes its own detections naming the plane's lease key as the reply:
+    JetStream writes its acknowledgement there. The holder's next renewal finds a write that
+    is no lease record and keeps the plane (before: it stepped down, "taken over by another
+    matcher", and the plane had no matcher; any camera could stop every plane of the site)."""
+    security, cluster = backbone
+    matcher = NatsTransport(
+        "matcher1", security.settings("matcher1", cluster.url), durable="cblrs-plane-1",
+        lease=LeaseSettings(lease_key(1, SITE), 3.0, what="plane 1"))
+    clients.append(matcher)
+    matcher.subscribe("cblrs/1/+/detections", lambda delivery: delivery.ack())
+    matcher.subscribe("cblrs/1/+/status", lambda delivery: delivery.ack())
+    matcher.connect()
+    key = f"$KV.cblrs_leases.{lease_key(1, SITE)}"
+    asyncio.run(_publish_with_reply(
+        security.settings("CVLab1", cluster.url), f"cblrs.{SITE}.1.CVLab1.detections",
+        _detections("CVLab1", 7), reply=key))
+
+    async def _entry(js):
+        return await (await js.key_value("cblrs_leases")).get(lease_key(1, SITE))
+
+    forged = admin_call(backbone, _entry)
+    assert b'"stream"' in forged.value  # JetStream's acknowledgement, written by the camera
+    wait_until(lambda: matcher.lease_lost or admin_call(backbone, _entry).revision
+               > forged.revision, WAIT, "the holder's next renewal")
+    assert not matcher.lease_lost
+    assert b"matcher1@" in admin_call(backbone, _entry).value
+
+
 def test_a_matcher_cannot_consume_another_planes_detections(backbone, clients):
     security, cluster = backbone
     rogue = NatsTransport("matcher2", security.settings("matcher2", cluster.url),

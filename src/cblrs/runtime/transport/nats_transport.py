@@ -1234,6 +1234,10 @@ class NatsTransport:
                 await asyncio.sleep(0.05)
                 continue
             except KeyWrongLastSequenceError:
+                forged = await self._forged_lease(kv)
+                if forged is not None:
+                    self._lease_revision = await kv.update(lease.key, value, last=forged)
+                    break
                 holder, age = await self._lease_holder(kv)
                 if time.monotonic() >= deadline:
                     raise TransportError(
@@ -1250,6 +1254,29 @@ class NatsTransport:
                 ) from None
         logger.info("%s: holds %s", self.client_id, lease.key)
         self._lease_task = asyncio.get_running_loop().create_task(self._renew_lease(value))
+
+    async def _forged_lease(self, kv: Any) -> int | None:
+        """The revision of the lease key if what it holds is no lease record, else None.
+
+        nats-server checks a publish's subject against the login's permissions, never its
+        reply subject: any login that may publish into a stream can name the lease key as the
+        reply, and JetStream writes its acknowledgement (``{"stream": ..., "seq": ...}``) there.
+        Such a write claims nothing; the holder (or a newcomer) writes over it.
+        """
+        try:
+            entry = await kv.get(self.lease.key)  # type: ignore[union-attr]
+        except Exception:  # no entry (expired or deleted): nothing forged
+            return None
+        try:
+            record = json.loads(entry.value or b"")
+        except ValueError:
+            record = None
+        if isinstance(record, dict) and isinstance(record.get("holder"), str):
+            return None
+        logger.warning("%s: %s held a write that is no lease record (%.80r), such as a "
+                       "forged reply; writing over it", self.client_id,
+                       self.lease.key, entry.value)
+        return entry.revision
 
     async def _lease_holder(self, kv: Any) -> tuple[str, float]:
         try:
@@ -1283,8 +1310,18 @@ class NatsTransport:
                 last_renewal = time.monotonic()
                 self._resume_deliveries()
             except KeyWrongLastSequenceError:
-                self._lose_lease(f"{lease.what or lease.key} was taken over by another matcher")
-                return
+                forged = await self._forged_lease(self._lease_kv)
+                if forged is None:
+                    self._lose_lease(
+                        f"{lease.what or lease.key} was taken over by another matcher")
+                    return
+                try:
+                    self._lease_revision = await self._lease_kv.update(
+                        lease.key, value, last=forged)
+                except KeyWrongLastSequenceError:
+                    continue  # written again meanwhile: looked at again at the next renewal
+                last_renewal = time.monotonic()
+                self._resume_deliveries()
             except asyncio.CancelledError:
                 raise
             except Exception as error:
