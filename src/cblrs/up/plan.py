@@ -498,6 +498,7 @@ def prepare(plan: SitePlan, *, render: bool = True) -> list[str]:
     plan.out.mkdir(parents=True, exist_ok=True)
     for folder in (plan.logs_dir, plan.out / "spool", plan.references_dir):
         folder.mkdir(parents=True, exist_ok=True)
+    os.chmod(plan.logs_dir, 0o700)  # the dashboard's log holds its admin login link
     saved = read_state(plan.out) or {}
     users = users_of(plan)
     fits = (plan.broker_config.is_file() and saved.get("users") == users
