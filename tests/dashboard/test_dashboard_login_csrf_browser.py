@@ -11,8 +11,7 @@ from dashboard_helpers import VIEWER
 from test_dashboard_security_browser import EvilSite, evil_page
 
 
-def test_another_site_cannot_log_the_browser_in(users_file, wildtrack_site, start_dashboard,
-                                                page):
+def test_another_site_cannot_log_the_browser_in(users_file, wildtrack_site, start_dashboard, page):
     url = start_dashboard("--site", str(wildtrack_site), "--users", str(users_file)).url
     evil = EvilSite(evil_page(f"{url}api/login", {"user": VIEWER[0], "password": VIEWER[1]}))
     try:
@@ -24,7 +23,10 @@ def test_another_site_cannot_log_the_browser_in(users_file, wildtrack_site, star
             assert response is not None and response.status in (400, 403), form
             if response.status == 403:
                 assert "another site" in json.loads(response.text())["error"]
-        assert not [cookie for cookie in page.context.cookies(url)
-                    if cookie["name"].endswith("cblrs_session")]
+        assert not [
+            cookie
+            for cookie in page.context.cookies(url)
+            if cookie["name"].endswith("cblrs_session")
+        ]
     finally:
         evil.close()

@@ -16,9 +16,12 @@ def _login(url: str, user: tuple[str, str]) -> str:
     parts = urlsplit(url)
     connection = http.client.HTTPConnection(parts.hostname, parts.port, timeout=120)
     try:
-        connection.request("POST", "/api/login", json.dumps({"user": user[0],
-                                                             "password": user[1]}),
-                           {"Content-Type": "application/json", "Origin": url.rstrip("/")})
+        connection.request(
+            "POST",
+            "/api/login",
+            json.dumps({"user": user[0], "password": user[1]}),
+            {"Content-Type": "application/json", "Origin": url.rstrip("/")},
+        )
         response = connection.getresponse()
         response.read()
         assert response.status == 200
@@ -37,12 +40,22 @@ def _open_stream(url: str, cookie: str) -> tuple[int, http.client.HTTPConnection
     return response.status, connection, body
 
 
-def test_a_viewer_cannot_open_streams_without_limit(wildtrack_site, users_file, start_broker,
-                                                    start_dashboard):
+def test_a_viewer_cannot_open_streams_without_limit(
+    wildtrack_site, users_file, start_broker, start_dashboard
+):
     broker = start_broker(cameras=["CVLab1"], matchers=["matcher1"])
-    url = start_dashboard("--site", str(wildtrack_site), "--users", str(users_file),
-                          "--broker", broker.address, "--username", "viewer",
-                          "--password-file", str(broker.password_file("viewer"))).url
+    url = start_dashboard(
+        "--site",
+        str(wildtrack_site),
+        "--users",
+        str(users_file),
+        "--broker",
+        broker.address,
+        "--username",
+        "viewer",
+        "--password-file",
+        str(broker.password_file("viewer")),
+    ).url
     viewer, again = _login(url, VIEWER), _login(url, VIEWER)  # two sessions, one user
     held = []
     try:
@@ -56,7 +69,8 @@ def test_a_viewer_cannot_open_streams_without_limit(wildtrack_site, users_file, 
             assert status == 429
             assert json.loads(body)["error"] == (
                 f"{VIEWER[0]} has {STREAMS_PER_USER} live streams and replays open, the most "
-                "one user may; close a page first.")
+                "one user may; close a page first."
+            )
         status, connection, _ = _open_stream(url, _login(url, ADMIN))  # another user's own
         held.append(connection)
         assert status == 200
