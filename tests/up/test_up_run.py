@@ -31,8 +31,14 @@ def stored_keys(database) -> set[tuple[str, int]]:
 
 def test_until_done_stores_and_tracks_every_message(small_site, tmp_path, require_mosquitto):
     out = tmp_path / "state"
+    # WILDTRACK's annotated frames are 2 per second: the matcher is told so by the site file
+    small_site.write_text(small_site.read_text().replace("name: small-live\n",
+                                                         "name: small-live\ncamera_fps: 2\n"))
     code, summary, err = run_up(small_site, out, "--fast", "--until-done")
     assert code == 0, err
+    log = (out / "logs" / "matcher-1.log").read_text()
+    assert "--camera-fps 2.0" in log and "cameras CVLab1, CVLab2" in log
+    assert "cameras at 2 fps at most" in log
     assert summary["stopped_by"] == "done" and summary["failure"] is None
     states = {name: info["state"] for name, info in summary["processes"].items()}
     assert states == {"broker": "stopped", "matcher-1": "finished", "dashboard": "stopped",

@@ -390,9 +390,8 @@ def run(args: argparse.Namespace) -> int:
     if not args.quiet:
         print(
             f"matcher {matcher_id}: plane {plane_id}, cameras {', '.join(names)}, db {args.db}"
-            + (" (preparing: exits once subscribed)" if args.prepare else ""),
-            file=sys.stderr,
-        )
+            + (f", cameras at {args.camera_fps:g} fps at most" if args.camera_fps else "")
+            + (" (preparing: exits once subscribed)" if args.prepare else ""), file=sys.stderr)
         print(position_summary(site, names, options, args.matcher), file=sys.stderr)
         if analytics is not None:
             print(f"analytics: {len(analytics.places.lines)} counting lines, "
