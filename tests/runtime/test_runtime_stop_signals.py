@@ -41,8 +41,10 @@ def stop(process: subprocess.Popen) -> tuple[int, str, str, float]:
     """SIGTERM; exit code, stdout, stderr and how long it took to end."""
     sent = time.monotonic()
     process.send_signal(signal.SIGTERM)
-    code, out, err = finish(process, timeout=60)
-    return code, out, err, time.monotonic() - sent
+    code, out, err = finish(process, timeout=90)
+    took = time.monotonic() - sent
+    print(f"camera: ended {took:.1f} s after SIGTERM, exit {code}")  # pytest -s shows it
+    return code, out, err, took
 
 
 def assert_clean(err: str) -> None:
@@ -148,8 +150,10 @@ def stop_group(process: subprocess.Popen) -> tuple[int, str, float]:
     how long it took to end."""
     sent = time.monotonic()
     os.killpg(process.pid, signal.SIGTERM)
-    out, _ = process.communicate(timeout=60)
-    return process.returncode, out, time.monotonic() - sent
+    out, _ = process.communicate(timeout=90)
+    took = time.monotonic() - sent
+    print(f"matcher: ended {took:.1f} s after SIGTERM, exit {process.returncode}")
+    return process.returncode, out, took
 
 
 def test_matcher_sigterm_while_connecting_ends_the_start_up(plant, tmp_path, silent_server):
