@@ -85,6 +85,37 @@ def test_sigterm_during_the_final_flush_with_the_broker_down_ends_it(plant, tmp_
     assert spool_rows(spool) == PER_CAMERA
 
 
+def test_a_second_sigterm_ends_a_stop_that_waits_for_a_hung_broker(plant, tmp_path):
+    """The broker hangs (stopped: its connections stay open, nothing is answered) while the
+    camera sends: its clean stop waits for it (some 6 s); a second SIGTERM ends it at once,
+    the unacknowledged messages kept in the spool. Before: a second signal changed nothing."""
+    plant = plant()
+    spool = tmp_path / "CVLab1.spool"
+    log_path = tmp_path / "camera.log"
+    command = plant.camera("CVLab1", "--realtime")
+    command[command.index("--epoch") + 1] = repr(time.time())  # paced from now: 20 s
+    with open(log_path, "w") as log:
+        camera = start_logged(command, log)
+        plant.processes.append(camera)
+        wait_until(lambda: spool_rows(spool) >= 2, 120, "the camera to send")
+        os.kill(plant.broker.process.pid, signal.SIGSTOP)
+        try:
+            camera.send_signal(signal.SIGTERM)
+            wait_until(lambda: "SIGTERM: stopping" in log_path.read_text(), 30,
+                       "the clean stop to begin")
+            code, _out, took = stop_group(camera, "camera (second SIGTERM)")
+        finally:
+            os.kill(plant.broker.process.pid, signal.SIGCONT)
+    err = log_path.read_text()
+    assert took < 4.0, (took, err)
+    assert code == 3, err
+    assert "Traceback" not in err, err
+    last = err.strip().splitlines()[-1]
+    assert last.startswith("cblrs camera: stopped by SIGTERM at once; ") and last.endswith(
+        f"messages kept in {spool}, sent at the next start."), err
+    assert spool_rows(spool) >= 2
+
+
 @pytest.fixture
 def silent_server():
     """A TCP port that accepts connections and never answers (a broker or a stream hung)."""
@@ -145,14 +176,14 @@ def start_logged(command: list[str], log) -> subprocess.Popen:
                             env=ENVIRONMENT, start_new_session=True)
 
 
-def stop_group(process: subprocess.Popen) -> tuple[int, str, float]:
+def stop_group(process: subprocess.Popen, what: str = "matcher") -> tuple[int, str, float]:
     """SIGTERM to the process group (what systemd and cblrs up send); exit code, stdout and
     how long it took to end."""
     sent = time.monotonic()
     os.killpg(process.pid, signal.SIGTERM)
     out, _ = process.communicate(timeout=90)
     took = time.monotonic() - sent
-    print(f"matcher: ended {took:.1f} s after SIGTERM, exit {process.returncode}")
+    print(f"{what}: ended {took:.1f} s after SIGTERM, exit {process.returncode}")
     return process.returncode, out, took
 
 

@@ -448,8 +448,8 @@ class CameraNode:
                 clear_will = getattr(self.transport, "clear_will", None)
                 if clear_will is not None:
                     clear_will()
-            remaining = max(0.5, deadline - time.monotonic()) if not stopping else 2.0
-            self.transport.flush(remaining)
+            remaining = max(0.5, deadline - time.monotonic())
+            self.transport.flush(min(remaining, 2.0) if stopping else remaining)
         return final
 
     def _fill(self, report: CameraReport, spool: Spool) -> None:
