@@ -88,8 +88,8 @@ def systemd_units(plan: SitePlan, mosquitto: str = "/usr/sbin/mosquitto",
             log = str(plan.logs_dir / f"{spec.name}.log").replace("%", "%%")
             lines += [f"StandardOutput=append:{log}", "StandardError=inherit", "UMask=0077"]
         if spec.role == "camera":
-            # Its clean stop waits for the matcher's confirmations (--flush-timeout 30 s and
-            # --confirm-timeout 10 s at most); exit 3 leaves messages in its spool.
+            # A stop waits 5 s at most for the broker and ends within 15 s even when blocked
+            # (cblrs.cli.stopping); exit 3 leaves messages in its spool.
             lines += ["TimeoutStopSec=50", "SuccessExitStatus=3"]
         elif spec.role == "matcher":
             lines += ["TimeoutStopSec=40"]
