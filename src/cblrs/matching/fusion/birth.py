@@ -60,6 +60,10 @@ class Births:
 
     def birth(self, leftovers: Observations, covariance: np.ndarray, timestamp: float) -> Born:
         """Start a tentative track per cross-camera cluster of unassigned detections."""
+        if not len(leftovers):  # (most windows: every detection has a track)
+            return Born(TrackTable.empty(self.context.models, self.context.camera_count),
+                        np.zeros((0, self.context.camera_count), dtype=bool),
+                        np.zeros(0, np.int64), np.zeros((0, 4)))
         sigma = largest_sigma(covariance)
         labels = cluster_detections(
             leftovers.world_xy, leftovers.camera, sigma,

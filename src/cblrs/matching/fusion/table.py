@@ -134,7 +134,9 @@ class TrackTable:
         return TrackTable(*(column[keep] for column in self.columns()))
 
     def extend(self, other: TrackTable) -> TrackTable:
-        """These rows, then ``other``'s."""
+        """These rows, then ``other``'s (this table itself when ``other`` has none)."""
+        if not len(other):
+            return self
         return TrackTable(*(np.concatenate([mine, theirs]) for mine, theirs in zip(
             self.columns(), other.columns(), strict=True)))
 

@@ -98,9 +98,6 @@ class FusionTracker:
         self._class_acceleration = np.array(
             [config.class_acceleration_sigma.get(name, config.acceleration_sigma)
              for name in CLASS_NAMES] + [config.acceleration_sigma])
-        # The motion models' constants, as the filter's prediction takes them.
-        self._model_factors = np.asarray(config.model_acceleration_factors)[None]
-        self._model_sojourn = np.asarray(config.model_sojourn_s)
         self._windows = WindowBuffer(
             len(self.camera_ids), config.max_window_s, config.window_fraction)
         self._clock = ClockModel(
@@ -132,7 +129,6 @@ class FusionTracker:
         self._next_id = 1
         self.context.noise.reset()
         self.tracks = TrackTable.empty(self.context.models, len(self.camera_ids))
-        self._no_tracks = TrackTable.empty(self.context.models, len(self.camera_ids))  # read only
         self.measured = Measured.empty()
         self._windows.reset()
         self._clock.reset()
@@ -370,27 +366,21 @@ class FusionTracker:
         # Which cameras saw each track, of those that could have (support module).
         self.support.learn(self.tracks, seen_now, cameras_of_track, window.cameras, timestamp)
         # 6. births from clusters of what no track took (birth module).
-        if not matched.all():  # (nothing is left to start a track most windows)
-            born = self.births.birth(observed[~matched], covariance[~matched], timestamp)
-            if len(born.tracks):
-                self.tracks = self.tracks.extend(born.tracks)
-                seen_now = np.concatenate([seen_now, np.ones(len(born.tracks), dtype=bool)])
-                report_camera = np.concatenate([report_camera, born.camera])
-                report_box = np.concatenate([report_box, born.box])
-                cameras_of_track = np.concatenate([cameras_of_track, born.cameras])
+        born = self.births.birth(observed[~matched], covariance[~matched], timestamp)
+        self.tracks = self.tracks.extend(born.tracks)
+        seen_now = np.concatenate([seen_now, np.ones(len(born.tracks), dtype=bool)])
+        report_camera = np.concatenate([report_camera, born.camera])
+        report_box = np.concatenate([report_box, born.box])
+        cameras_of_track = np.concatenate([cameras_of_track, born.cameras])
 
         # 7. merge duplicates, drop tracks unseen too long (the stitching stage keeps those
         # another track may continue), confirm, report.
         keep = self.births.merge_duplicates(self.tracks, seen_now, cameras_of_track)
         aged, departed = self._ended(timestamp, seen_now)
-        ended = keep & aged & ~departed
-        self.stitching.remember(
-            self.tracks.select(ended) if ended.any() else self._no_tracks, timestamp)
-        keep &= ~(aged | departed)
-        if not keep.all():  # (the table is rebuilt only when a track goes)
-            self.tracks = self.tracks.select(keep)
-            seen_now, report_camera, report_box = (
-                seen_now[keep], report_camera[keep], report_box[keep])
+        self.stitching.remember(self.tracks.select(keep & aged & ~departed), timestamp)
+        if not (keep := keep & ~(aged | departed)).all():  # (rebuilt only when a track goes)
+            self.tracks, seen_now = self.tracks.select(keep), seen_now[keep]
+            report_camera, report_box = report_camera[keep], report_box[keep]
 
         # A vehicle track that turned further than it can is another vehicle from now on.
         turned = self.motion.split(self.tracks, seen_now, timestamp) & (self.tracks.ids >= 0)
@@ -441,22 +431,20 @@ class FusionTracker:
             self.tracks.located = self.vehicle_noise.locate(
                 self.tracks, observed.world_xy, self.measured, refined,
                 covariance - base_covariance, assigned, observed.class_id)
-            # Every track seen (the usual window): whole columns, not copies of all their rows.
-            now = slice(None) if seen_now.all() else seen_now
-            (self.tracks.mode_state[now], self.tracks.mode_covariance[now],
-             self.tracks.mode_probability[now]) = kalman.update_models(
-                self.tracks.mode_state[now], self.tracks.mode_covariance[now],
-                self.tracks.mode_probability[now], fused_xy[now],
-                fused_covariance[now] + self.context.object_covariance)
-            self.tracks.state[now], self.tracks.covariance[now] = kalman.combine(
-                self.tracks.mode_state[now], self.tracks.mode_covariance[now],
-                self.tracks.mode_probability[now])
-            velocity_covariance = self.tracks.covariance[now, 2:4, 2:4]
-            self.tracks.seen_covariance[now] = self.tracks.covariance[now, :2, :2]
-            self.tracks.velocity_sigma[now] = np.sqrt(np.maximum(
+            (self.tracks.mode_state[seen_now], self.tracks.mode_covariance[seen_now],
+             self.tracks.mode_probability[seen_now]) = kalman.update_models(
+                self.tracks.mode_state[seen_now], self.tracks.mode_covariance[seen_now],
+                self.tracks.mode_probability[seen_now], fused_xy[seen_now],
+                fused_covariance[seen_now] + self.context.object_covariance)
+            self.tracks.state[seen_now], self.tracks.covariance[seen_now] = kalman.combine(
+                self.tracks.mode_state[seen_now], self.tracks.mode_covariance[seen_now],
+                self.tracks.mode_probability[seen_now])
+            velocity_covariance = self.tracks.covariance[seen_now, 2:4, 2:4]
+            self.tracks.seen_covariance[seen_now] = self.tracks.covariance[seen_now, :2, :2]
+            self.tracks.velocity_sigma[seen_now] = np.sqrt(np.maximum(
                 velocity_covariance[:, 0, 0] + velocity_covariance[:, 1, 1], 0.0))
             self.tracks.evidence += np.bincount(rows, minlength=track_count)
-            self.tracks.last_seen[now] = timestamp
+            self.tracks.last_seen[seen_now] = timestamp
             cameras_of_track[rows, observed.camera[matched]] = True
             report_camera, report_box = largest_boxes(observed, matched, rows, track_count)
         else:
@@ -548,7 +536,9 @@ class FusionTracker:
                 tracks.mode_state, tracks.mode_covariance, tracks.mode_probability = (
                     kalman.predict_models(
                         tracks.mode_state, tracks.mode_covariance, tracks.mode_probability, dt,
-                        acceleration[:, None] * self._model_factors, self._model_sojourn,
+                        acceleration[:, None]
+                        * np.asarray(self.config.model_acceleration_factors)[None],
+                        np.asarray(self.config.model_sojourn_s),
                     )
                 )
                 tracks.state, tracks.covariance = kalman.combine(
