@@ -58,19 +58,44 @@ def backbone(tmp_path, wildtrack_site):  # noqa: F811 (the fixture imported abov
 
 def login(backbone, user: str) -> list[str]:
     security, cluster = backbone
-    return ["--backbone", cluster.url, "--username", user, "--password-file",
-            str(security.clients[user].password_file)]
+    return [
+        "--backbone",
+        cluster.url,
+        "--username",
+        user,
+        "--password-file",
+        str(security.clients[user].password_file),
+    ]
 
 
 def matcher_command(site: Path, database: Path, backbone, user: str = MATCHER) -> list[str]:
-    return [sys.executable, "-m", "cblrs.cli.main", "matcher", "--site", str(site), "--db",
-            str(database), "--client-id", MATCHER, "--window", "1", "--lease-wait", "30",
-            *login(backbone, user)]
+    return [
+        sys.executable,
+        "-m",
+        "cblrs.cli.main",
+        "matcher",
+        "--site",
+        str(site),
+        "--db",
+        str(database),
+        "--client-id",
+        MATCHER,
+        "--window",
+        "1",
+        "--lease-wait",
+        "30",
+        *login(backbone, user),
+    ]
 
 
 def start(command: list[str]) -> subprocess.Popen:
-    return subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    return subprocess.Popen(
+        command,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env={**os.environ, "PYTHONUNBUFFERED": "1"},
+    )
 
 
 def stored_alerts(backbone) -> list[tuple[str, str]]:
@@ -85,8 +110,9 @@ def stored_alerts(backbone) -> list[tuple[str, str]]:
         payloads, sequence = [], 1
         while True:
             try:
-                message = await jetstream.get_msg(tracks_stream(1), sequence,
-                                                  subject="cblrs.1.alerts", next=True)
+                message = await jetstream.get_msg(
+                    tracks_stream(1), sequence, subject="cblrs.1.alerts", next=True
+                )
             except NotFoundError:
                 return payloads
             payloads.append(message.data)
@@ -114,9 +140,15 @@ class Heartbeat:
         sequence = 0
         while not self._stop.wait(0.2):
             message = CameraMessage(
-                camera_id="CVLab1", sequence=sequence, timestamp=time.time(), frame=sequence,
-                xyxy=np.zeros((0, 4)), confidence=np.zeros(0),
-                class_id=np.zeros(0, dtype=np.int64), colour=np.zeros((0, 3), dtype=np.int64))
+                camera_id="CVLab1",
+                sequence=sequence,
+                timestamp=time.time(),
+                frame=sequence,
+                xyxy=np.zeros((0, 4)),
+                confidence=np.zeros(0),
+                class_id=np.zeros(0, dtype=np.int64),
+                colour=np.zeros((0, 3), dtype=np.int64),
+            )
             self.transport.publish(detections_topic(1, "CVLab1"), encode_message(message, 1))
             sequence += 1
 
@@ -127,11 +159,15 @@ class Heartbeat:
 
 
 def test_an_episode_is_stored_once_in_the_stream_across_a_matcher_kill(
-        wildtrack_site, backbone, tmp_path):  # noqa: F811 (the fixture imported above)
+    wildtrack_site,  # noqa: F811 (the fixture imported above)
+    backbone,
+    tmp_path,
+):
     security, cluster = backbone
     site = tmp_path / "site.yaml"
-    site.write_text(yaml.safe_dump({**wildtrack_site, "alerts": {"rules": [RULE]}},
-                                   sort_keys=False))
+    site.write_text(
+        yaml.safe_dump({**wildtrack_site, "alerts": {"rules": [RULE]}}, sort_keys=False)
+    )
     database = tmp_path / "matcher.db"
     # The plane's tracks stream as an older cblrs made it, without the alerts' subject: the
     # admin's preparation adds it.
@@ -141,15 +177,23 @@ def test_an_episode_is_stored_once_in_the_stream_across_a_matcher_kill(
     async def old_stream(jetstream) -> None:
         from nats.js.api import StreamConfig
 
-        await jetstream.add_stream(StreamConfig(
-            name=tracks_stream(1), subjects=["cblrs.1.tracks", "cblrs.1.events"],
-            duplicate_window=600.0))
+        await jetstream.add_stream(
+            StreamConfig(
+                name=tracks_stream(1),
+                subjects=["cblrs.1.tracks", "cblrs.1.events"],
+                duplicate_window=600.0,
+            )
+        )
 
     admin.call(old_stream(admin.jetstream), 10)
     admin.close()
-    prepared = subprocess.run([*matcher_command(site, database, backbone, "admin"),
-                               "--prepare"], capture_output=True, text=True, timeout=120,
-                              env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    prepared = subprocess.run(
+        [*matcher_command(site, database, backbone, "admin"), "--prepare"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        env={**os.environ, "PYTHONUNBUFFERED": "1"},
+    )
     assert prepared.returncode == 0, prepared.stderr
 
     viewer = NatsTransport("viewer", security.settings("viewer", cluster.url))
@@ -160,8 +204,14 @@ def test_an_episode_is_stored_once_in_the_stream_across_a_matcher_kill(
     heartbeat = None
     try:
         processes.append(start(matcher_command(site, database, backbone)))
-        wait_until(lambda: delivered(database).get(f"{EPISODE} fired") == ["cblrs/backbone"]
-                   or processes[0].poll() is not None, 60, "the 'fired' delivered")
+        wait_until(
+            lambda: (
+                delivered(database).get(f"{EPISODE} fired") == ["cblrs/backbone"]
+                or processes[0].poll() is not None
+            ),
+            60,
+            "the 'fired' delivered",
+        )
         assert processes[0].poll() is None, processes[0].communicate()[1]
         assert stored_alerts(backbone) == [(EPISODE, "fired")]
         wait_until(lambda: alerts.deliveries, 10, "the alert at the viewer")
@@ -175,19 +225,26 @@ def test_an_episode_is_stored_once_in_the_stream_across_a_matcher_kill(
         processes.append(start(matcher_command(site, database, backbone)))
         # The restarted matcher (once the killed one's lease has expired) evaluates the rule
         # for several seconds without firing again.
-        wait_until(lambda: alert_clock(database) > restarted_at + 3
-                   or processes[1].poll() is not None, 90, "the restarted matcher's alerts")
+        wait_until(
+            lambda: alert_clock(database) > restarted_at + 3 or processes[1].poll() is not None,
+            90,
+            "the restarted matcher's alerts",
+        )
         assert processes[1].poll() is None, processes[1].communicate()[1]
         assert stored_alerts(backbone) == [(EPISODE, "fired")]
 
         heartbeat = Heartbeat(backbone)  # CVLab1 comes back: the episode clears
-        wait_until(lambda: delivered(database).get(f"{EPISODE} cleared") == ["cblrs/backbone"],
-                   60, "the 'cleared' delivered")
+        wait_until(
+            lambda: delivered(database).get(f"{EPISODE} cleared") == ["cblrs/backbone"],
+            60,
+            "the 'cleared' delivered",
+        )
         assert stored_alerts(backbone) == [(EPISODE, "fired"), (EPISODE, "cleared")]
         wait_until(lambda: len(alerts.deliveries) >= 2, 10, "the 'cleared' at the viewer")
-        assert [(item.episode, item.state) for item in map(
-            decode_alert, (d.payload for d in alerts.deliveries))] == [
-            (EPISODE, "fired"), (EPISODE, "cleared")]
+        assert [
+            (item.episode, item.state)
+            for item in map(decode_alert, (d.payload for d in alerts.deliveries))
+        ] == [(EPISODE, "fired"), (EPISODE, "cleared")]
         processes[1].send_signal(signal.SIGINT)
         _, err = processes[1].communicate(timeout=60)
         assert processes[1].returncode == 0, err

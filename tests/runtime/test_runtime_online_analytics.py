@@ -94,11 +94,16 @@ def start_cameras(case, broker, epoch: float) -> list[threading.Thread]:
     for index, name in enumerate(scene.camera_names):
 
         def run(index=index, name=name) -> None:
-            transport = MqttTransport(f"online-{name}", broker.settings(name), persistent=False,
-                                      will=Will(*camera_last_will(1, name)))
+            transport = MqttTransport(
+                f"online-{name}",
+                broker.settings(name),
+                persistent=False,
+                will=Will(*camera_last_will(1, name)),
+            )
             transport.connect()
-            node = CameraNode(transport, 1, name, case["references"][index], epoch=epoch,
-                              flush_timeout_s=30.0)
+            node = CameraNode(
+                transport, 1, name, case["references"][index], epoch=epoch, flush_timeout_s=30.0
+            )
             node.run(paced(scene_source(scene, index), PACE_S), connect=False)
             transport.close()
 
@@ -110,24 +115,54 @@ def start_cameras(case, broker, epoch: float) -> list[threading.Thread]:
 
 def matcher_command(site_file: Path, database: Path, broker, http_port: int) -> list[str]:
     return [
-        sys.executable, "-m", "cblrs.cli.main", "matcher", "--site", str(site_file),
-        "--db", str(database), "--broker", f"127.0.0.1:{broker.port}",
-        "--username", MATCHER, "--password-file", str(broker.files.password_files[MATCHER]),
-        "--window", "5", "--until-cameras-offline", "--idle-exit", "30",
-        "--http", f"127.0.0.1:{http_port}", "--json",
+        sys.executable,
+        "-m",
+        "cblrs.cli.main",
+        "matcher",
+        "--site",
+        str(site_file),
+        "--db",
+        str(database),
+        "--broker",
+        f"127.0.0.1:{broker.port}",
+        "--username",
+        MATCHER,
+        "--password-file",
+        str(broker.files.password_files[MATCHER]),
+        "--window",
+        "5",
+        "--until-cameras-offline",
+        "--idle-exit",
+        "30",
+        "--http",
+        f"127.0.0.1:{http_port}",
+        "--json",
     ]
 
 
 def offline_counts(tracks_file: Path, site_file: Path, out: Path) -> dict:
     """`cblrs analytics` on a tracks file, read back from its analytics.json."""
-    code = main(["analytics", str(tracks_file), "--site", str(site_file), "--fps", "10",
-                 "--out", str(out), "--no-plots", "--json"])
+    code = main(
+        [
+            "analytics",
+            str(tracks_file),
+            "--site",
+            str(site_file),
+            "--fps",
+            "10",
+            "--out",
+            str(out),
+            "--no-plots",
+            "--json",
+        ]
+    )
     assert code == 0
     return json.loads((out / "analytics.json").read_text())
 
 
-def test_online_counts_equal_offline_and_survive_sigkill(case, site_file, start_mosquitto,
-                                                          tmp_path):
+def test_online_counts_equal_offline_and_survive_sigkill(
+    case, site_file, start_mosquitto, tmp_path
+):
     scene = case["scene"]
     names = scene.camera_names
     # A camera user of its own for the spy: the broker takes the user name as the client
@@ -163,8 +198,12 @@ def test_online_counts_equal_offline_and_survive_sigkill(case, site_file, start_
         delivery.ack()
 
     viewer.subscribe(matcher_status_topic(1, MATCHER), on_status)
-    first = subprocess.Popen(matcher_command(site_file, database, broker, free_port()),
-                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=environment)
+    first = subprocess.Popen(
+        matcher_command(site_file, database, broker, free_port()),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        env=environment,
+    )
     epoch = float(int(time.time()) - 600)
     try:
         wait_until(matcher_online.is_set, 60, "the matcher to come online")
@@ -185,9 +224,13 @@ def test_online_counts_equal_offline_and_survive_sigkill(case, site_file, start_
     with RuntimeStore(database, read_only=True) as store:
         events_at_kill = len(read_events(store))
     http_port = free_port()
-    second = subprocess.Popen(matcher_command(site_file, database, broker, http_port),
-                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                              env=environment)
+    second = subprocess.Popen(
+        matcher_command(site_file, database, broker, http_port),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=environment,
+    )
     # The restarted matcher's metrics, scraped while it runs.
     scraped: dict[str, str] = {}
 
@@ -212,8 +255,11 @@ def test_online_counts_equal_offline_and_survive_sigkill(case, site_file, start_
     with RuntimeStore(database, read_only=True) as store:
         committed = {event.body["key"] for event in read_events(store)}
     assert committed, "no event was committed"
-    wait_until(lambda: {decode_event(p).key for p in list(received)} >= committed, 30,
-               "every committed event at the viewer")
+    wait_until(
+        lambda: {decode_event(p).key for p in list(received)} >= committed,
+        30,
+        "every committed event at the viewer",
+    )
     viewer.close()
     spy.close()
     assert second.returncode == 0, err
@@ -255,17 +301,27 @@ def test_online_counts_equal_offline_and_survive_sigkill(case, site_file, start_
         if row["visits"]:
             # Times differ by float rounding only: online ones carry the 1.7e9 s epoch.
             assert zone["mean_dwell_s"] == pytest.approx(row["mean_dwell_s"], abs=1e-4)
-    offline_od = {(origin, destination): value
-                  for origin, row in offline["od"].items()
-                  for destination, value in row.items() if value}
+    offline_od = {
+        (origin, destination): value
+        for origin, row in offline["od"].items()
+        for destination, value in row.items()
+        if value
+    }
     assert od == offline_od
 
     # `cblrs matcher --stats` shows the persistent counts.
-    stats = subprocess.run([sys.executable, "-m", "cblrs.cli.main", "matcher", "--stats",
-                            str(database)], capture_output=True, text=True, check=True).stdout
+    stats = subprocess.run(
+        [sys.executable, "-m", "cblrs.cli.main", "matcher", "--stats", str(database)],
+        capture_output=True,
+        text=True,
+        check=True,
+    ).stdout
     north = counts["lines"]["north_flow"]
-    shown = re.search(r"line north_flow \+/-\s+(\d+) / (\d+) \(counted when: past 0\.5 m each "
-                      r"side, through the segment\)", stats)
+    shown = re.search(
+        r"line north_flow \+/-\s+(\d+) / (\d+) \(counted when: past 0\.5 m each "
+        r"side, through the segment\)",
+        stats,
+    )
     assert shown is not None, stats
     assert (int(shown[1]), int(shown[2])) == (north.get("positive", 0), north.get("negative", 0))
 
@@ -284,16 +340,19 @@ def test_online_counts_equal_offline_and_survive_sigkill(case, site_file, start_
             assert counts["lines"].get(row["line"], {}).get(row["direction"], 0) == row["count"]
 
     keys = [decode_event(payload).key for payload in received]
-    print(f"\nkilled at {killed_at}/{total} messages processed, {events_at_kill} events; "
-          f"after the restart: {crossings} crossings, {len(stored_events)} events, "
-          f"{len(received)} event deliveries to the viewer ({len(received) - len(set(keys))} "
-          f"repeated), lines {counts['lines']}")
+    print(
+        f"\nkilled at {killed_at}/{total} messages processed, {events_at_kill} events; "
+        f"after the restart: {crossings} crossings, {len(stored_events)} events, "
+        f"{len(received)} event deliveries to the viewer ({len(received) - len(set(keys))} "
+        f"repeated), lines {counts['lines']}"
+    )
 
     # Every committed event reached the viewer, once per key; none reached the camera user.
     assert set(keys) == {event.body["key"] for event in stored_events}
     assert len(stored_events) == (
-        crossings + sum(row["entries"] + row["appeared"] + row["visits"]
-                        for row in offline["zones"]))
+        crossings
+        + sum(row["entries"] + row["appeared"] + row["visits"] for row in offline["zones"])
+    )
     assert not spied, "a camera user read the analytics events"
 
     # Metrics of the restarted matcher.
@@ -301,6 +360,10 @@ def test_online_counts_equal_offline_and_survive_sigkill(case, site_file, start_
         assert scraped["/healthz"].startswith("ok")
         assert scraped["/readyz"].startswith("ok")
         metrics = scraped["/metrics"]
-        for name in ("cblrs_messages_received_total", "cblrs_capture_to_track_seconds_bucket",
-                     "cblrs_stage_duration_seconds_bucket", "cblrs_camera_last_seen"):
+        for name in (
+            "cblrs_messages_received_total",
+            "cblrs_capture_to_track_seconds_bucket",
+            "cblrs_stage_duration_seconds_bucket",
+            "cblrs_camera_last_seen",
+        ):
             assert name in metrics
