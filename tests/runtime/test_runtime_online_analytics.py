@@ -56,6 +56,19 @@ pytestmark = [pytest.mark.mqtt, pytest.mark.slow]
 REPO = Path(__file__).resolve().parents[2]
 FRAMES = (0, 595)  # 120 annotated frames, 60 s of the scene
 PACE_S = 0.04  # seconds between a camera's frames: the replay runs at ~12x
+HOLDS = (40, 80)
+"""Each camera stops after these many frames until the test lets it go on: a third of the
+way in (the first matcher is killed while they wait, so the kill is mid-stream however slow
+the machine), then two thirds (the restarted matcher is scraped while they wait, so it is
+running); between the two they publish while no matcher runs."""
+WAIT = 120.0
+"""The bound of a wait for an event: it only fails the test, it never delays it."""
+METRICS = (
+    "cblrs_messages_received_total",
+    "cblrs_capture_to_track_seconds_bucket",
+    "cblrs_stage_duration_seconds_bucket",
+    "cblrs_camera_last_seen",
+)
 MATCHER = "matcher1"
 
 
@@ -79,13 +92,18 @@ def case(wildtrack_root, site_file):
     return {"site": site, "scene": scene, "references": references}
 
 
-def paced(frames, seconds: float):
-    for frame in frames:
+def paced(frames, seconds: float, holds: dict[int, threading.Event]):
+    """The frames, ``seconds`` apart; after the n-th, wait for ``holds[n]`` if there is one."""
+    for count, frame in enumerate(frames, 1):
         yield frame
         time.sleep(seconds)
+        if count in holds:
+            assert holds[count].wait(WAIT), f"the test never let the cameras past frame {count}"
 
 
-def start_cameras(case, broker, epoch: float) -> list[threading.Thread]:
+def start_cameras(
+    case, broker, epoch: float, holds: dict[int, threading.Event]
+) -> list[threading.Thread]:
     """One camera node per camera, each logged in as its own broker user, paced."""
     from cblrs.runtime.camera.sources import scene_source
 
@@ -104,7 +122,7 @@ def start_cameras(case, broker, epoch: float) -> list[threading.Thread]:
             node = CameraNode(
                 transport, 1, name, case["references"][index], epoch=epoch, flush_timeout_s=30.0
             )
-            node.run(paced(scene_source(scene, index), PACE_S), connect=False)
+            node.run(paced(scene_source(scene, index), PACE_S, holds), connect=False)
             transport.close()
 
         thread = threading.Thread(target=run, daemon=True)
@@ -133,7 +151,7 @@ def matcher_command(site_file: Path, database: Path, broker, http_port: int) -> 
         "5",
         "--until-cameras-offline",
         "--idle-exit",
-        "30",
+        str(WAIT),
         "--http",
         f"127.0.0.1:{http_port}",
         "--json",
@@ -205,22 +223,24 @@ def test_online_counts_equal_offline_and_survive_sigkill(
         env=environment,
     )
     epoch = float(int(time.time()) - 600)
+    holds = {count: threading.Event() for count in HOLDS}
     try:
-        wait_until(matcher_online.is_set, 60, "the matcher to come online")
-        threads = start_cameras(case, broker, epoch)
+        wait_until(matcher_online.is_set, WAIT, "the matcher to come online")
+        threads = start_cameras(case, broker, epoch, holds)
 
         def processed() -> int:
             with RuntimeStore(database, read_only=True) as store:
                 return store.counters().get("processed", 0)
 
-        wait_until(lambda: processed() >= total // 4, 60, "a quarter to be processed")
+        wait_until(lambda: processed() >= total // 4, WAIT, "a quarter to be processed")
         first.send_signal(signal.SIGKILL)
-        first.wait(10)
+        first.wait(WAIT)
         killed_at = processed()
     finally:
         if first.poll() is None:
             first.kill()
             first.wait()
+        holds[HOLDS[0]].set()  # the cameras go on while no matcher runs
     with RuntimeStore(database, read_only=True) as store:
         events_at_kill = len(read_events(store))
     http_port = free_port()
@@ -231,33 +251,34 @@ def test_online_counts_equal_offline_and_survive_sigkill(
         text=True,
         env=environment,
     )
-    # The restarted matcher's metrics, scraped while it runs.
+    # The restarted matcher's metrics, scraped while it runs (the cameras wait meanwhile).
     scraped: dict[str, str] = {}
 
     def scrape(path: str) -> str:
         with urllib.request.urlopen(f"http://127.0.0.1:{http_port}{path}", timeout=5) as answer:
             return answer.read().decode()
 
-    def reachable() -> bool:
+    def scraped_all() -> bool:
         try:
-            scraped["/readyz"] = scrape("/readyz")
-            return True
+            for path in ("/readyz", "/healthz", "/metrics"):
+                scraped[path] = scrape(path)
         except OSError:
             return second.poll() is not None
+        return all(name in scraped["/metrics"] for name in METRICS)
 
-    wait_until(reachable, 60, "the restarted matcher's /readyz")
-    if second.poll() is None:
-        scraped["/healthz"] = scrape("/healthz")
-        scraped["/metrics"] = scrape("/metrics")
-    out, err = second.communicate(timeout=120)
+    try:
+        wait_until(scraped_all, WAIT, "the restarted matcher's metrics")
+    finally:
+        holds[HOLDS[1]].set()
+    out, err = second.communicate(timeout=2 * WAIT)
     for thread in threads:
-        thread.join(30)
+        thread.join(WAIT)
     with RuntimeStore(database, read_only=True) as store:
         committed = {event.body["key"] for event in read_events(store)}
     assert committed, "no event was committed"
     wait_until(
         lambda: {decode_event(p).key for p in list(received)} >= committed,
-        30,
+        WAIT,
         "every committed event at the viewer",
     )
     viewer.close()
@@ -356,14 +377,7 @@ def test_online_counts_equal_offline_and_survive_sigkill(
     assert not spied, "a camera user read the analytics events"
 
     # Metrics of the restarted matcher.
-    if scraped.get("/metrics"):
-        assert scraped["/healthz"].startswith("ok")
-        assert scraped["/readyz"].startswith("ok")
-        metrics = scraped["/metrics"]
-        for name in (
-            "cblrs_messages_received_total",
-            "cblrs_capture_to_track_seconds_bucket",
-            "cblrs_stage_duration_seconds_bucket",
-            "cblrs_camera_last_seen",
-        ):
-            assert name in metrics
+    assert scraped["/healthz"].startswith("ok")
+    assert scraped["/readyz"].startswith("ok")
+    for name in METRICS:
+        assert name in scraped["/metrics"]
