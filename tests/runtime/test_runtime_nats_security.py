@@ -764,8 +764,12 @@ def test_the_generated_backbone_runs_cameras_matcher_and_viewer_end_to_end(
             str(database),
             "--client-id",
             "matcher1",
+            # A camera process may start many seconds after the other under load: its
+            # frames wait for it (its "offline" at the end ends every wait, so a long
+            # window costs no time); a 5 s window released the first camera's frames
+            # without it and counted the other's late.
             "--window",
-            "5",
+            "120",
         ]
         refused = run(*matcher_options, "--prepare", *login("matcher1"))
         assert refused.returncode == 1
@@ -782,7 +786,7 @@ def test_the_generated_backbone_runs_cameras_matcher_and_viewer_end_to_end(
                 *matcher_options,
                 "--until-cameras-offline",
                 "--idle-exit",
-                "60",
+                "240",
                 "--json",
                 *login("matcher1"),
             ],
@@ -822,9 +826,9 @@ def test_the_generated_backbone_runs_cameras_matcher_and_viewer_end_to_end(
             for name in names
         ]
         for camera in cameras:
-            output, error = camera.communicate(timeout=240)
+            output, error = camera.communicate(timeout=480)
             assert camera.returncode == 0, (output, error)
-        output, error = matcher.communicate(timeout=240)
+        output, error = matcher.communicate(timeout=480)
         assert matcher.returncode == 0, error
     finally:
         for process in [*locals().get("cameras", []), locals().get("matcher")]:
