@@ -147,8 +147,13 @@ def matcher_command(site_file: Path, database: Path, broker, http_port: int) -> 
         MATCHER,
         "--password-file",
         str(broker.files.password_files[MATCHER]),
+        # A restarted matcher gets its session's backlog from the broker camera by camera: on
+        # a loaded machine a camera's part could come more than 5 s after another's, and a
+        # 5 s window released frames without it (late, re-tracked: the events published
+        # before the re-tracking were no longer the stored ones). The cameras' "offline"
+        # at the end ends every wait, so the longer window costs no time.
         "--window",
-        "5",
+        "60",
         "--until-cameras-offline",
         "--idle-exit",
         str(WAIT),
