@@ -41,6 +41,15 @@ def plaza():
     return scene, render_scene_references(scene)
 
 
+@pytest.fixture(scope="module")
+def plaza_synchronised_hota(plaza) -> float:
+    """HOTA of the plaza at 10 and 15 fps, synchronised: the baseline of every spread (one
+    run for the module; the tracker is deterministic)."""
+    scene, references = plaza
+    base = ClockSimulation(camera_fps=(10.0, 15.0), drop=0.1, seed=1)
+    return hota(scene, track_scene(scene, references=references, clocks=base))
+
+
 @pytest.mark.parametrize("seed", [0, 1])
 def test_wildtrack_with_clock_offsets_of_50_ms(wildtrack, seed):
     scene, references = wildtrack
@@ -56,17 +65,15 @@ def test_wildtrack_with_clock_offsets_of_50_ms(wildtrack, seed):
 
 
 @pytest.mark.parametrize("spread_s", [0.02, 0.05])
-def test_plaza_at_10_and_15_fps_with_clock_offsets(plaza, spread_s):
+def test_plaza_at_10_and_15_fps_with_clock_offsets(plaza, plaza_synchronised_hota, spread_s):
     """Cameras at 10 and 15 fps: capture instants 33 ms apart, clocks off by up to ±50 ms.
     Every captured frame is reported once per track, and HOTA stays within a point."""
     scene, references = plaza
-    base = ClockSimulation(camera_fps=(10.0, 15.0), drop=0.1, seed=1)
     offsets = ClockSimulation(
         offset_s=spread_s, jitter_s=0.003, camera_fps=(10.0, 15.0), drop=0.1, seed=1
     )
-    synchronised = track_scene(scene, references=references, clocks=base)
     unsynchronised = track_scene(scene, references=references, clocks=offsets)
-    assert hota(scene, unsynchronised) >= hota(scene, synchronised) - 1.0
+    assert hota(scene, unsynchronised) >= plaza_synchronised_hota - 1.0
     assert one_row_per_frame_and_track(unsynchronised.tracks)
     # Frames 1, 5, 7, ... (30 fps) are captured by no camera: they are not reported.
     assert set(unsynchronised.tracks.frame.tolist()) <= set(unsynchronised.captured_frames)
