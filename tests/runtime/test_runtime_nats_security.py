@@ -827,7 +827,7 @@ def test_the_generated_backbone_runs_cameras_matcher_and_viewer_end_to_end(
         ]
         for camera in cameras:
             output, error = camera.communicate(timeout=480)
-            assert camera.returncode == 0, (output, error)
+            assert camera.returncode == 0, f"{output}\n{error[-4000:]}"  # not cut short
         output, error = matcher.communicate(timeout=480)
         assert matcher.returncode == 0, error
     finally:
