@@ -12,6 +12,7 @@ import socket
 import ssl
 import stat
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -226,7 +227,9 @@ def test_a_camera_cannot_read_tracks_detections_or_another_inbox(backbone, clien
         await camera._nc.flush()
 
     camera.call(spy(None), 10)
-    assert "_inbox.matcher1.>" in camera.refused_subscriptions
+    # The servers' -ERR may come after the flush's PONG (seen once at load 15).
+    wait_until(lambda: "_inbox.matcher1.>" in camera.refused_subscriptions, WAIT,
+               "the refusal of _INBOX.matcher1.>")
 
 
 def test_a_site_cannot_publish_into_another_site(backbone, clients):
@@ -264,6 +267,56 @@ def test_a_matcher_cannot_take_another_planes_lease(backbone):
         r"the login matcher2 may not use \$kv\.cblrs_leases\.north\.plane-1",
     ):
         rogue.open()
+
+
+async def _publish_with_reply(settings: NatsSettings, subject: str, payload: bytes,
+                             reply: str, until: Callable[[], bool] | None = None) -> None:
+    """Publish once as a bare nats-py client of ``settings``' login, naming ``reply`` as the
+    subject to answer on (nats-server checks a publish's subject, never its reply subject);
+    connected until ``until()`` (a pull's answers stop when the puller leaves)."""
+    import nats
+
+    client = await nats.connect(
+        servers=list(settings.servers), user=settings.username, password=settings.password,
+        tls=settings.tls_context(), inbox_prefix=settings.inbox_prefix, allow_reconnect=False,
+        connect_timeout=5)
+    try:
+        await client.publish(subject, payload, reply=reply)
+        await client.flush(5)
+        deadline = time.monotonic() + WAIT
+        while until is not None and not until() and time.monotonic() < deadline:
+            await asyncio.sleep(0.05)
+    finally:
+        await client.close()
+
+
+def test_a_forged_reply_into_the_lease_does_not_stop_the_matcher(backbone, clients,
+                                                                    caplog):
+    """A camera publishes its own detections naming the plane's lease key as the reply:
+    JetStream writes its acknowledgement there. The holder's next renewal finds a write that
+    is no lease record and keeps the plane (before: it stepped down, "taken over by another
+    matcher", and the plane had no matcher; any camera could stop every plane of the site)."""
+    security, cluster = backbone
+    matcher = NatsTransport(
+        "matcher1", security.settings("matcher1", cluster.url), durable="cblrs-plane-1",
+        lease=LeaseSettings(lease_key(1, SITE), 3.0, what="plane 1"))
+    clients.append(matcher)
+    matcher.subscribe("cblrs/1/+/detections", lambda delivery: delivery.ack())
+    matcher.subscribe("cblrs/1/+/status", lambda delivery: delivery.ack())
+    matcher.connect()
+    key = f"$KV.cblrs_leases.{lease_key(1, SITE)}"
+    asyncio.run(_publish_with_reply(
+        security.settings("CVLab1", cluster.url), f"cblrs.{SITE}.1.CVLab1.detections",
+        _detections("CVLab1", 7), reply=key))
+
+    async def _entry(js):
+        return await (await js.key_value("cblrs_leases")).get(lease_key(1, SITE))
+
+    wait_until(lambda: matcher.lease_lost or "no lease record" in caplog.text, WAIT,
+               "the holder's next renewal")
+    assert not matcher.lease_lost
+    assert '"stream":"CBLRS_north_P1"' in caplog.text  # JetStream's acknowledgement was there
+    assert b"matcher1@" in admin_call(backbone, _entry).value
 
 
 def test_a_matcher_cannot_consume_another_planes_detections(backbone, clients):
@@ -883,3 +936,70 @@ def test_a_matchers_own_login_gets_what_a_dead_holder_left_unacknowledged_at_onc
     # Not by ack_wait's redelivery: the successor reset its consumer to the floor at start.
     assert "consumer cblrs-plane-2 reset to deliver them again" in caplog.text
     assert not successor.refused_subjects
+
+
+def test_messages_a_matcher_moves_into_another_planes_stream_do_not_stall_it(backbone, clients):
+    """A pull's answers go to the reply subject the puller names, unchecked by nats-server:
+    matcher1 pulls plane 1's detections from its own consumer naming a plane 2 subject, and
+    plane 2's stream stores them (under their plane 1 subjects). matcher2's consumer hands them
+    out; matcher2 ends them at once (before: held unacknowledged and handed out again every
+    ack_wait; enough of them fill max_ack_pending and plane 2 stops)."""
+    security, cluster = backbone
+    camera = connect(backbone, clients, "CVLab1")
+    for sequence in range(200, 205):
+        camera.publish("cblrs/1/CVLab1/detections", _detections("CVLab1", sequence))
+    assert camera.flush(WAIT)
+    stream, consumer = detections_stream(1, SITE), "cblrs-plane-1"
+    pending = admin_call(backbone, lambda js: js.consumer_info(stream, consumer)).num_pending
+    plane_2 = detections_stream(2, SITE)
+    before = admin_call(backbone, lambda js: js.stream_info(plane_2)).state.messages
+    asyncio.run(_publish_with_reply(
+        security.settings("matcher1", cluster.url),
+        f"$JS.API.CONSUMER.MSG.NEXT.{stream}.{consumer}",
+        json.dumps({"batch": pending, "no_wait": True}).encode(),
+        reply=f"cblrs.{SITE}.2.CVLab2.detections",
+        until=lambda: admin_call(backbone, lambda js: js.stream_info(plane_2)).state.messages
+        >= before + pending))
+    received: list[bytes] = []
+    matcher = NatsTransport("matcher2", security.settings("matcher2", cluster.url),
+                            durable="cblrs-plane-2")
+    clients.append(matcher)
+    matcher.subscribe("cblrs/2/+/detections",
+                      lambda delivery: (received.append(delivery.payload), delivery.ack()))
+    matcher.subscribe("cblrs/2/+/status", lambda delivery: delivery.ack())
+    matcher.connect()
+    own = connect(backbone, clients, "CVLab2")
+    own.publish("cblrs/2/CVLab2/detections", _detections("CVLab2", 300, plane=2))
+    assert own.flush(WAIT)
+    wait_until(lambda: _detections("CVLab2", 300, plane=2) in received, WAIT, "plane 2's own")
+
+    def settled():
+        info = admin_call(backbone, lambda js: js.consumer_info(plane_2, "cblrs-plane-2"))
+        return info.num_pending == 0 and info.num_ack_pending == 0
+
+    wait_until(settled, WAIT, "nothing left unacknowledged on plane 2")
+    assert not any(b'"CVLab1"' in payload for payload in received)
+
+
+def test_messages_moved_onto_a_viewers_subject_are_dropped_not_kept(backbone, clients):
+    """The same move onto a subject a viewer (a dashboard) reads: the messages keep their own
+    subjects, which the viewer did not subscribe to. Dropped and counted (before: kept for a
+    handler that never comes, so a matcher that pulled and released the same messages again
+    and again grew every dashboard's memory without bound)."""
+    security, cluster = backbone
+    viewer = connect(backbone, clients, "viewer")
+    seen = Collector()
+    viewer.subscribe("cblrs/2/tracks", seen)
+    camera = connect(backbone, clients, "CVLab1")
+    for sequence in range(400, 403):
+        camera.publish("cblrs/1/CVLab1/detections", _detections("CVLab1", sequence))
+    assert camera.flush(WAIT)
+    stream, consumer = detections_stream(1, SITE), "cblrs-plane-1"
+    pending = admin_call(backbone, lambda js: js.consumer_info(stream, consumer)).num_pending
+    asyncio.run(_publish_with_reply(
+        security.settings("matcher1", cluster.url),
+        f"$JS.API.CONSUMER.MSG.NEXT.{stream}.{consumer}",
+        json.dumps({"batch": pending, "no_wait": True}).encode(),
+        reply=f"cblrs.{SITE}.2.tracks", until=lambda: viewer.moved_messages >= pending))
+    assert viewer.moved_messages == pending
+    assert seen.deliveries == [] and viewer._handlers._orphans == []

@@ -57,6 +57,9 @@ class TrackTable:
             when that is sharper than the filter's estimate, metres (NaN: use ``state``;
             default). Only reported, never used to associate
             (:mod:`~cblrs.matching.fusion.vehicle_noise`).
+        support_seen: (T, C) time each camera saw the track, recently (seconds, forgotten
+            over ``support_memory_s``; the support stage, :mod:`~cblrs.matching.fusion.support`).
+        support_covered: (T, C) time each camera could have seen it, the same way.
     """
 
     ids: np.ndarray
@@ -78,6 +81,8 @@ class TrackTable:
     seen_covariance: np.ndarray | None = None
     born: np.ndarray | None = None
     located: np.ndarray | None = None
+    support_seen: np.ndarray | None = None
+    support_covered: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         # Tables built before these columns existed (births, saved states, tests) start them
@@ -92,6 +97,10 @@ class TrackTable:
             self.born = np.array(self.last_seen, np.float64, copy=True)
         if self.located is None:
             self.located = np.full((len(self.ids), 2), np.nan)
+        if self.support_seen is None:
+            self.support_seen = np.zeros(self.seen_by.shape)
+        if self.support_covered is None:
+            self.support_covered = np.zeros(self.seen_by.shape)
 
     @classmethod
     def empty(cls, models: int, cameras: int) -> TrackTable:
@@ -115,7 +124,8 @@ class TrackTable:
                 self.mode_covariance, self.mode_probability, self.evidence, self.last_seen,
                 self.seen_by, self.velocity_sigma, self.heading, self.heading_time,
                 self.heading_sigma, self.heading_xy, self.heading_speed,
-                self.seen_covariance, self.born, self.located)
+                self.seen_covariance, self.born, self.located, self.support_seen,
+                self.support_covered)
 
     def select(self, keep: np.ndarray) -> TrackTable:
         """The rows where ``keep`` (a (T,) mask or indices)."""
