@@ -228,8 +228,11 @@ def test_a_camera_cannot_read_tracks_detections_or_another_inbox(backbone, clien
 
     camera.call(spy(None), 10)
     # The servers' -ERR may come after the flush's PONG (seen once at load 15).
-    wait_until(lambda: "_inbox.matcher1.>" in camera.refused_subscriptions, WAIT,
-               "the refusal of _INBOX.matcher1.>")
+    wait_until(
+        lambda: "_inbox.matcher1.>" in camera.refused_subscriptions,
+        WAIT,
+        "the refusal of _INBOX.matcher1.>",
+    )
 
 
 def test_a_site_cannot_publish_into_another_site(backbone, clients):
@@ -269,17 +272,27 @@ def test_a_matcher_cannot_take_another_planes_lease(backbone):
         rogue.open()
 
 
-async def _publish_with_reply(settings: NatsSettings, subject: str, payload: bytes,
-                             reply: str, until: Callable[[], bool] | None = None) -> None:
+async def _publish_with_reply(
+    settings: NatsSettings,
+    subject: str,
+    payload: bytes,
+    reply: str,
+    until: Callable[[], bool] | None = None,
+) -> None:
     """Publish once as a bare nats-py client of ``settings``' login, naming ``reply`` as the
     subject to answer on (nats-server checks a publish's subject, never its reply subject);
     connected until ``until()`` (a pull's answers stop when the puller leaves)."""
     import nats
 
     client = await nats.connect(
-        servers=list(settings.servers), user=settings.username, password=settings.password,
-        tls=settings.tls_context(), inbox_prefix=settings.inbox_prefix, allow_reconnect=False,
-        connect_timeout=5)
+        servers=list(settings.servers),
+        user=settings.username,
+        password=settings.password,
+        tls=settings.tls_context(),
+        inbox_prefix=settings.inbox_prefix,
+        allow_reconnect=False,
+        connect_timeout=5,
+    )
     try:
         await client.publish(subject, payload, reply=reply)
         await client.flush(5)
@@ -290,30 +303,40 @@ async def _publish_with_reply(settings: NatsSettings, subject: str, payload: byt
         await client.close()
 
 
-def test_a_forged_reply_into_the_lease_does_not_stop_the_matcher(backbone, clients,
-                                                                    caplog):
+def test_a_forged_reply_into_the_lease_does_not_stop_the_matcher(backbone, clients, caplog):
     """A camera publishes its own detections naming the plane's lease key as the reply:
     JetStream writes its acknowledgement there. The holder's next renewal finds a write that
     is no lease record and keeps the plane (before: it stepped down, "taken over by another
     matcher", and the plane had no matcher; any camera could stop every plane of the site)."""
     security, cluster = backbone
     matcher = NatsTransport(
-        "matcher1", security.settings("matcher1", cluster.url), durable="cblrs-plane-1",
-        lease=LeaseSettings(lease_key(1, SITE), 3.0, what="plane 1"))
+        "matcher1",
+        security.settings("matcher1", cluster.url),
+        durable="cblrs-plane-1",
+        lease=LeaseSettings(lease_key(1, SITE), 3.0, what="plane 1"),
+    )
     clients.append(matcher)
     matcher.subscribe("cblrs/1/+/detections", lambda delivery: delivery.ack())
     matcher.subscribe("cblrs/1/+/status", lambda delivery: delivery.ack())
     matcher.connect()
     key = f"$KV.cblrs_leases.{lease_key(1, SITE)}"
-    asyncio.run(_publish_with_reply(
-        security.settings("CVLab1", cluster.url), f"cblrs.{SITE}.1.CVLab1.detections",
-        _detections("CVLab1", 7), reply=key))
+    asyncio.run(
+        _publish_with_reply(
+            security.settings("CVLab1", cluster.url),
+            f"cblrs.{SITE}.1.CVLab1.detections",
+            _detections("CVLab1", 7),
+            reply=key,
+        )
+    )
 
     async def _entry(js):
         return await (await js.key_value("cblrs_leases")).get(lease_key(1, SITE))
 
-    wait_until(lambda: matcher.lease_lost or "no lease record" in caplog.text, WAIT,
-               "the holder's next renewal")
+    wait_until(
+        lambda: matcher.lease_lost or "no lease record" in caplog.text,
+        WAIT,
+        "the holder's next renewal",
+    )
     assert not matcher.lease_lost
     assert '"stream":"CBLRS_north_P1"' in caplog.text  # JetStream's acknowledgement was there
     assert b"matcher1@" in admin_call(backbone, _entry).value
@@ -953,19 +976,26 @@ def test_messages_a_matcher_moves_into_another_planes_stream_do_not_stall_it(bac
     pending = admin_call(backbone, lambda js: js.consumer_info(stream, consumer)).num_pending
     plane_2 = detections_stream(2, SITE)
     before = admin_call(backbone, lambda js: js.stream_info(plane_2)).state.messages
-    asyncio.run(_publish_with_reply(
-        security.settings("matcher1", cluster.url),
-        f"$JS.API.CONSUMER.MSG.NEXT.{stream}.{consumer}",
-        json.dumps({"batch": pending, "no_wait": True}).encode(),
-        reply=f"cblrs.{SITE}.2.CVLab2.detections",
-        until=lambda: admin_call(backbone, lambda js: js.stream_info(plane_2)).state.messages
-        >= before + pending))
+    asyncio.run(
+        _publish_with_reply(
+            security.settings("matcher1", cluster.url),
+            f"$JS.API.CONSUMER.MSG.NEXT.{stream}.{consumer}",
+            json.dumps({"batch": pending, "no_wait": True}).encode(),
+            reply=f"cblrs.{SITE}.2.CVLab2.detections",
+            until=lambda: (
+                admin_call(backbone, lambda js: js.stream_info(plane_2)).state.messages
+                >= before + pending
+            ),
+        )
+    )
     received: list[bytes] = []
-    matcher = NatsTransport("matcher2", security.settings("matcher2", cluster.url),
-                            durable="cblrs-plane-2")
+    matcher = NatsTransport(
+        "matcher2", security.settings("matcher2", cluster.url), durable="cblrs-plane-2"
+    )
     clients.append(matcher)
-    matcher.subscribe("cblrs/2/+/detections",
-                      lambda delivery: (received.append(delivery.payload), delivery.ack()))
+    matcher.subscribe(
+        "cblrs/2/+/detections", lambda delivery: (received.append(delivery.payload), delivery.ack())
+    )
     matcher.subscribe("cblrs/2/+/status", lambda delivery: delivery.ack())
     matcher.connect()
     own = connect(backbone, clients, "CVLab2")
@@ -996,10 +1026,14 @@ def test_messages_moved_onto_a_viewers_subject_are_dropped_not_kept(backbone, cl
     assert camera.flush(WAIT)
     stream, consumer = detections_stream(1, SITE), "cblrs-plane-1"
     pending = admin_call(backbone, lambda js: js.consumer_info(stream, consumer)).num_pending
-    asyncio.run(_publish_with_reply(
-        security.settings("matcher1", cluster.url),
-        f"$JS.API.CONSUMER.MSG.NEXT.{stream}.{consumer}",
-        json.dumps({"batch": pending, "no_wait": True}).encode(),
-        reply=f"cblrs.{SITE}.2.tracks", until=lambda: viewer.moved_messages >= pending))
+    asyncio.run(
+        _publish_with_reply(
+            security.settings("matcher1", cluster.url),
+            f"$JS.API.CONSUMER.MSG.NEXT.{stream}.{consumer}",
+            json.dumps({"batch": pending, "no_wait": True}).encode(),
+            reply=f"cblrs.{SITE}.2.tracks",
+            until=lambda: viewer.moved_messages >= pending,
+        )
+    )
     assert viewer.moved_messages == pending
     assert seen.deliveries == [] and viewer._handlers._orphans == []
