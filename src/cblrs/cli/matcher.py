@@ -342,8 +342,8 @@ def run(args: argparse.Namespace) -> int:
         analytics=analytics,
         metrics=metrics,
         live_interval_s=args.live_interval or None,
-        retrack=retrack_policy(args), alerts=alerts, alert_senders=senders,
-        camera_fps=camera_fps(args))
+        retrack=retrack_policy(args), alerts=None if args.prepare else alerts,
+        alert_senders=senders, camera_fps=camera_fps(args))
     if metrics is not None:
 
         def exposition() -> bytes:
