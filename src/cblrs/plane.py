@@ -264,6 +264,10 @@ class PlaneSet(Sequence[PlaneSpec]):
             (0 where invalid).
         """
         colours = _colours(colours)
+        if len(self._planes) == 1:  # (the same arrays, without merging planes)
+            plane = self._planes[0]
+            world_xy, valid = plane.decode(colours)
+            return world_xy, valid, np.where(valid, plane.plane_id, 0)
         world_xy = np.full((len(colours), 2), np.nan)
         valid = np.zeros(len(colours), dtype=bool)
         plane_ids = np.zeros(len(colours), dtype=np.int64)

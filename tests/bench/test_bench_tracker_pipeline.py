@@ -21,8 +21,14 @@ def test_tracker_grid_and_plot(tmp_path, capsys):
     assert by_combo[(1, 40)]["detections_per_frame"] > by_combo[(1, 10)]["detections_per_frame"]
     assert by_combo[(2, 40)]["detections_per_frame"] > by_combo[(1, 40)]["detections_per_frame"]
     assert all(row["detections_per_second"] > 0 for row in result["rows"])
+    # next to the wall time, the process's CPU time: what a loaded machine does not inflate
+    for row in result["rows"]:
+        per_frame = row["cpu_microseconds_per_detection"] * row["detections_per_frame"] / 1000
+        assert row["cpu_milliseconds_per_frame"] > 0
+        assert per_frame == pytest.approx(row["cpu_milliseconds_per_frame"])
+        assert 0 < row["cpu_share"]
     assert (tmp_path / "tracker_throughput.png").read_bytes().startswith(b"\x89PNG")
-    assert (tmp_path / "bench_tracker.md").exists()
+    assert "CPU µs/detection" in (tmp_path / "bench_tracker.md").read_text()
 
 
 def test_pipeline_on_wildtrack(wildtrack_root, capsys):

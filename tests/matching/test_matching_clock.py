@@ -47,11 +47,13 @@ def test_estimated_offsets_converge_to_the_true_ones(plaza):
     scene, references = plaza
     clocks = ClockSimulation(offset_s=0.05, jitter_s=0.003, drop=0.1, seed=3)
     truth = np.array([clock.offset_s for clock in camera_clocks(scene, clocks)])
-    matcher = make_matcher("fusion", scene_planes(scene), scene.camera_names,
-                           camera_positions=camera_positions(scene))
+    matcher = make_matcher(
+        "fusion", scene_planes(scene), scene.camera_names, camera_positions=camera_positions(scene)
+    )
     errors = []
-    for timestamp, window in ordered_windows(camera_messages(scene, references, None, clocks),
-                                             scene.camera_names):
+    for timestamp, window in ordered_windows(
+        camera_messages(scene, references, None, clocks), scene.camera_names
+    ):
         matcher.update(timestamp, window)
         errors.append((timestamp, np.abs(relative_error_ms(matcher._clock.offsets, truth)).max()))
     early = max(error for timestamp, error in errors if timestamp < 3.0)
@@ -66,15 +68,17 @@ def test_estimated_offsets_converge_to_the_true_ones(plaza):
 
 def test_a_wrong_clock_is_found_reported_and_corrected_on_synthetic_data(plaza, caplog):
     scene, references = plaza
-    clocks = ClockSimulation(offset_s=0.02, jitter_s=0.003, drop=0.1, seed=1,
-                             clock_errors={"NE": 2.0})
+    clocks = ClockSimulation(
+        offset_s=0.02, jitter_s=0.003, drop=0.1, seed=1, clock_errors={"NE": 2.0}
+    )
     with caplog.at_level(logging.WARNING, logger="cblrs.matching.fusion"):
         corrected = track_scene(scene, references=references, clocks=clocks)
     report = corrected.clocks["NE"]
     truth = {clock.camera: clock.offset_s for clock in camera_clocks(scene, clocks)}
     assert report["beyond_tolerance"] and report["coarse_corrections"] == 1
-    assert report["offset_s"] == pytest.approx(truth["NE"] - np.median(list(truth.values())),
-                                               abs=0.03)
+    assert report["offset_s"] == pytest.approx(
+        truth["NE"] - np.median(list(truth.values())), abs=0.03
+    )
     assert "camera NE: clock off by +2.0" in caplog.text
     trusting = track_scene(scene, references=references, clocks=clocks, estimate_clocks=False)
     frames = corrected.captured_frames
@@ -89,8 +93,9 @@ def test_a_wrong_clock_is_found_reported_and_corrected_on_synthetic_data(plaza, 
 def test_a_camera_two_seconds_off_is_found_on_wildtrack(wildtrack, error_s):
     """CVLab4 sees few people and many of them stand: its clock is found all the same."""
     scene, references = wildtrack
-    clocks = ClockSimulation(offset_s=0.02, jitter_s=0.003, drop=0.1, seed=1,
-                             clock_errors={"CVLab4": error_s})
+    clocks = ClockSimulation(
+        offset_s=0.02, jitter_s=0.003, drop=0.1, seed=1, clock_errors={"CVLab4": error_s}
+    )
     corrected = track_scene(scene, references=references, clocks=clocks)
     report = corrected.clocks["CVLab4"]
     assert report["beyond_tolerance"] and report["coarse_corrections"] == 1
@@ -137,9 +142,11 @@ def test_a_bias_that_follows_the_flow_is_not_taken_for_a_clock():
             camera_0 = position + noise[0]
             camera_1 = position + bias - velocity * true_offset + noise[1]
             model.learn(
-                np.repeat([0, 1], 20), np.tile(np.arange(20), 2),
+                np.repeat([0, 1], 20),
+                np.tile(np.arange(20), 2),
                 np.concatenate([camera_0, camera_1]),
-                np.tile(0.02**2 * np.eye(2), (40, 1, 1)), np.concatenate([velocity, velocity]),
+                np.tile(0.02**2 * np.eye(2), (40, 1, 1)),
+                np.concatenate([velocity, velocity]),
             )
         model.end_window(0.0)
         step = model.solve()
@@ -156,8 +163,14 @@ def test_the_coarse_search_finds_a_lag_of_seconds():
         time_s = step * 0.1
         truth = start + velocity * time_s
         # Camera 1's clock is 1.5 s ahead: what it saw at time t it stamps t + 1.5.
-        model.record(time_s, truth, np.zeros(30, np.int64), np.ones(30, np.int64), truth,
-                     np.full(30, time_s + 1.5))
+        model.record(
+            time_s,
+            truth,
+            np.zeros(30, np.int64),
+            np.ones(30, np.int64),
+            truth,
+            np.full(30, time_s + 1.5),
+        )
     found = model._best_lag(1)
     assert found is not None
     lag, gain = found
@@ -170,10 +183,21 @@ def test_clock_model_state_round_trip():
     for step in range(50):
         velocity = rng.normal(0, 1, (10, 2))
         positions = rng.uniform(0, 10, (10, 2))
-        model.learn(np.repeat([0, 1], 5), np.tile(np.arange(5), 2), positions,
-                    np.tile(0.01 * np.eye(2), (10, 1, 1)), velocity)
-        model.record(step * 0.1, positions, np.full(10, -1), np.repeat([0, 1], 5), positions,
-                     np.full(10, step * 0.1))
+        model.learn(
+            np.repeat([0, 1], 5),
+            np.tile(np.arange(5), 2),
+            positions,
+            np.tile(0.01 * np.eye(2), (10, 1, 1)),
+            velocity,
+        )
+        model.record(
+            step * 0.1,
+            positions,
+            np.full(10, -1),
+            np.repeat([0, 1], 5),
+            positions,
+            np.full(10, step * 0.1),
+        )
         model.end_window(step * 0.1)
     copy = ClockModel(3)
     copy.set_state(json.loads(json.dumps(model.get_state())))

@@ -51,3 +51,21 @@ def test_clusters_are_complete_linkage_with_one_view_per_camera(seed):
                          and compatible[np.ix_(one, other)].all())
             assert not mergeable
 
+
+
+def test_cluster_labels_of_a_few_detections_number_as_the_vectorised_path(monkeypatch):
+    """Up to _FEW_DETECTIONS detections are renumbered in Python, more with numpy: the same
+    labels (numbered by first member)."""
+    from cblrs.matching.fusion import birth
+
+    generator = np.random.default_rng(5)
+    for _ in range(50):
+        count = int(generator.integers(1, 60))
+        world_xy = generator.uniform(0, 6, (count, 2))
+        camera = generator.integers(0, 4, count)
+        few = birth.cluster_detections(world_xy, camera, 0.3, 3.0)
+        monkeypatch.setattr(birth, "_FEW_DETECTIONS", -1)
+        many = birth.cluster_detections(world_xy, camera, 0.3, 3.0)
+        monkeypatch.undo()
+        assert few.dtype == many.dtype == np.int64
+        np.testing.assert_array_equal(few, many)

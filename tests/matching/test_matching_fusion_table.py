@@ -45,3 +45,30 @@ def test_track_table_selects_and_extends_every_column_alike():
     kept = both.select(np.array([False, True, True, False]))
     assert kept.ids.tolist() == [-1, 5] and kept.state[0].tolist() == [4.0, 5.0, 6.0, 7.0]
     assert all(len(column) == 2 for column in kept.columns())
+
+
+def test_largest_boxes_of_a_few_boxes_picks_as_the_sorted_path(monkeypatch):
+    """A window's few boxes are compared in Python, many through a sort; ties of area go to
+    the later detection either way, and a NaN box takes the sorted path."""
+    from cblrs.matching.fusion import table
+
+    generator = np.random.default_rng(3)
+    for trial in range(200):
+        count = int(generator.integers(1, 40))
+        boxes = generator.integers(0, 4, (count, 4)).astype(float)  # many equal areas
+        if trial % 10 == 0:
+            boxes[generator.integers(0, count), 1] = np.nan
+        observed = Observations(
+            world_xy=np.zeros((count, 2)), colour=np.zeros((count, 3), np.int64),
+            camera=generator.integers(0, 5, count), xyxy=boxes,
+            class_id=np.zeros(count, np.int64), confidence=np.ones(count),
+        )
+        matched = generator.random(count) < 0.7
+        matched[0] = True
+        rows = generator.integers(0, 8, int(matched.sum()))
+        few = largest_boxes(observed, matched, rows, track_count=8)
+        monkeypatch.setattr(table, "_FEW_BOXES", -1)
+        sorted_path = largest_boxes(observed, matched, rows, track_count=8)
+        monkeypatch.undo()
+        np.testing.assert_array_equal(few[0], sorted_path[0])
+        np.testing.assert_array_equal(few[1], sorted_path[1])

@@ -60,3 +60,25 @@ def test_degenerate_graphs(node_count, first, second, expected):
 def test_bad_edges_are_refused(first, second, message):
     with pytest.raises(ValueError, match=message):
         component_labels(3, np.array(first), np.array(second))
+
+
+@pytest.mark.parametrize("seed", range(20))
+def test_small_graphs_searched_in_python_label_as_the_vectorised_rounds(seed, monkeypatch):
+    """Graphs of up to _SMALL_GRAPH nodes and edges take a search in Python; larger ones the
+    vectorised rounds. Both give the same labels (cliques: a window's views of one person)."""
+    from cblrs.matching import graph
+
+    generator = np.random.default_rng(seed)
+    node_count = int(generator.integers(1, 40))
+    clique = generator.permutation(node_count)[: int(generator.integers(1, 11))]
+    pairs = [(int(a), int(b)) for a in clique for b in clique if a < b]
+    extra = int(generator.integers(0, node_count))
+    first = np.array([a for a, _ in pairs] + generator.integers(0, node_count, extra).tolist())
+    second = np.array([b for _, b in pairs] + generator.integers(0, node_count, extra).tolist())
+    assert node_count + len(first) <= graph._SMALL_GRAPH
+    small = component_labels(node_count, first, second)
+    monkeypatch.setattr(graph, "_SMALL_GRAPH", -1)
+    rounds = component_labels(node_count, first, second)
+    assert small.dtype == rounds.dtype == np.int64
+    np.testing.assert_array_equal(small, rounds)
+    np.testing.assert_array_equal(small, _scipy_labels(node_count, first, second))

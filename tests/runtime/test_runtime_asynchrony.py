@@ -38,8 +38,9 @@ PLANE = 1
 
 
 def fusion(scene):
-    return make_matcher("fusion", scene_planes(scene), scene.camera_names,
-                        camera_positions=camera_positions(scene))
+    return make_matcher(
+        "fusion", scene_planes(scene), scene.camera_names, camera_positions=camera_positions(scene)
+    )
 
 
 def replay(scene, references, clocks, make_transport, store, timeout=120.0):
@@ -47,14 +48,14 @@ def replay(scene, references, clocks, make_transport, store, timeout=120.0):
     names = scene.camera_names
     matcher = fusion(scene)
     matcher.set_views(references)  # as `cblrs matcher` does from its references
-    service = MatcherService(make_transport("matcher"), store, matcher, PLANE, names,
-                             window_s=5.0)
+    service = MatcherService(make_transport("matcher"), store, matcher, PLANE, names, window_s=5.0)
     service.start()
 
     def camera(index: int) -> None:
         name = names[index]
-        transport = make_transport(name, persistent=False,
-                                   will=Will(*camera_last_will(PLANE, name)))
+        transport = make_transport(
+            name, persistent=False, will=Will(*camera_last_will(PLANE, name))
+        )
         node = CameraNode(transport, PLANE, name, references[index], epoch=clocks.epoch_s)
         node.run(scene_source(scene, index, replace(clocks, epoch_s=0.0)))
         transport.close()
@@ -65,8 +66,9 @@ def replay(scene, references, clocks, make_transport, store, timeout=120.0):
     for thread in threads:
         thread.join(timeout)
     assert all(not thread.is_alive() for thread in threads), "a camera node hung"
-    wait_until(lambda: service.cameras_done() and service.drained(), timeout,
-               "the matcher to finish")
+    wait_until(
+        lambda: service.cameras_done() and service.drained(), timeout, "the matcher to finish"
+    )
     service.close(flush=True)
     return service.stats()
 
@@ -85,23 +87,47 @@ def plaza():
 
 EPOCH = float(int(time.time()) - 3600)
 CASES = {
-    "wildtrack ±50 ms": ("wildtrack", ClockSimulation(
-        offset_s=0.05, jitter_s=0.003, drop=0.1, seed=1, epoch_s=EPOCH)),
-    "wildtrack one clock 2 s ahead": ("wildtrack", ClockSimulation(
-        offset_s=0.02, jitter_s=0.003, drop=0.1, seed=2, clock_errors={"CVLab3": 2.0},
-        epoch_s=EPOCH)),
-    "plaza 10 + 15 fps ±50 ms": ("plaza", ClockSimulation(
-        offset_s=0.05, jitter_s=0.003, drop=0.1, camera_fps=(10.0, 15.0), seed=3,
-        epoch_s=EPOCH)),
+    "wildtrack ±50 ms": (
+        "wildtrack",
+        ClockSimulation(offset_s=0.05, jitter_s=0.003, drop=0.1, seed=1, epoch_s=EPOCH),
+    ),
+    "wildtrack one clock 2 s ahead": (
+        "wildtrack",
+        ClockSimulation(
+            offset_s=0.02,
+            jitter_s=0.003,
+            drop=0.1,
+            seed=2,
+            clock_errors={"CVLab3": 2.0},
+            epoch_s=EPOCH,
+        ),
+    ),
+    "plaza 10 + 15 fps ±50 ms": (
+        "plaza",
+        ClockSimulation(
+            offset_s=0.05, jitter_s=0.003, drop=0.1, camera_fps=(10.0, 15.0), seed=3, epoch_s=EPOCH
+        ),
+    ),
 }
 
 
+@pytest.fixture(scope="module")
+def in_process_runs() -> dict:
+    """Case -> the in-process run, tracked once for both transports (deterministic)."""
+    return {}
+
+
 @pytest.mark.parametrize("case", list(CASES))
-def test_unsynchronised_replay_equals_the_in_process_run(case, request, make_transport,
-                                                         tmp_path):
+def test_unsynchronised_replay_equals_the_in_process_run(
+    case, request, make_transport, tmp_path, in_process_runs
+):
     scene_name, clocks = CASES[case]
     scene, references = request.getfixturevalue(scene_name)
-    expected = track_scene(scene, fusion(scene), references=references, clocks=clocks)
+    if case not in in_process_runs:
+        in_process_runs[case] = track_scene(
+            scene, fusion(scene), references=references, clocks=clocks
+        )
+    expected = in_process_runs[case]
     with RuntimeStore(tmp_path / "matcher.db") as store:
         stats = replay(scene, references, clocks, make_transport, store)
         tracks = store.tracks()
@@ -123,8 +149,14 @@ def test_unsynchronised_replay_equals_the_in_process_run(case, request, make_tra
 
 def _message(camera: str, sequence: int, timestamp: float) -> bytes:
     message = CameraMessage(
-        camera, sequence, timestamp, sequence, np.array([[0.0, 0, 10, 10]]), np.array([0.9]),
-        np.array([0]), np.array([[1000 + 100 * sequence, 2000, PLANE]]),
+        camera,
+        sequence,
+        timestamp,
+        sequence,
+        np.array([[0.0, 0, 10, 10]]),
+        np.array([0.9]),
+        np.array([0]),
+        np.array([[1000 + 100 * sequence, 2000, PLANE]]),
     )
     return encode_message(message, PLANE)
 
@@ -142,10 +174,18 @@ def service(tmp_path):
     broker = InProcessBroker()
     groups = _Groups()
     store = RuntimeStore(tmp_path / "matcher.db")
-    matcher = make_matcher("fusion", PlaneSet([PlaneSpec(PLANE, (0.0, 0.0), 20.0, 20.0)]),
-                           ["A", "B"])
-    running = MatcherService(InProcessTransport(broker, "matcher"), store, matcher, PLANE,
-                             ["A", "B"], window_s=3600.0, observer=groups)
+    matcher = make_matcher(
+        "fusion", PlaneSet([PlaneSpec(PLANE, (0.0, 0.0), 20.0, 20.0)]), ["A", "B"]
+    )
+    running = MatcherService(
+        InProcessTransport(broker, "matcher"),
+        store,
+        matcher,
+        PLANE,
+        ["A", "B"],
+        window_s=3600.0,
+        observer=groups,
+    )
     running.start()
     publisher = InProcessTransport(broker, "publisher", persistent=False)
     publisher.connect()
@@ -173,6 +213,10 @@ def test_service_releases_despite_a_dropped_frame(service):
     service.publish("B", 2, now + 0.304)  # B's next frame: the one at 0.2 s was lost
     wait_until(lambda: len(service.groups.groups) == 4, 10, "the windows after the loss")
     assert [cameras for _, cameras in service.groups.groups] == [
-        ["A", "B"], ["A", "B"], ["A"], ["A", "B"]]
+        ["A", "B"],
+        ["A", "B"],
+        ["A"],
+        ["A", "B"],
+    ]
     stats = service.service.stats()
     assert stats["late"] == 0 and stats["processed"] == 7

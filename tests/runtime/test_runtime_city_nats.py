@@ -82,8 +82,9 @@ def undisturbed_tracks(city, plane_id: int, epoch: float):
     scene = city.scenes.planes[plane_id]
     return track_scene(
         replace(scene, timestamps=epoch + scene.timestamps / SETUP.speed),
-        matcher=make_matcher("fusion", scene_planes(scene), scene.camera_names,
-                             **matcher_options(city, plane_id)),
+        matcher=make_matcher(
+            "fusion", scene_planes(scene), scene.camera_names, **matcher_options(city, plane_id)
+        ),
         references=city.references[plane_id],
     ).tracks
 
@@ -94,8 +95,9 @@ def assert_exactly_once(database, scene, expected) -> None:
     messages = len(scene.frames) * len(scene.cameras)
     with RuntimeStore(database, read_only=True) as store:
         keys = {(item.message.camera_id, item.message.sequence) for item in store.messages()}
-        expected_keys = {(name, sequence) for name in scene.camera_names
-                         for sequence in range(len(scene.frames))}
+        expected_keys = {
+            (name, sequence) for name in scene.camera_names for sequence in range(len(scene.frames))
+        }
         lost = len(expected_keys - keys)
         counters = store.counters()
         tracks = store.tracks()
@@ -109,8 +111,7 @@ def assert_exactly_once(database, scene, expected) -> None:
     np.testing.assert_array_equal(tracks.world_xy, expected.world_xy)
 
 
-def test_city_on_a_nats_cluster_with_a_matcher_host_killed(cluster, tmp_path,
-                                                            record_property):
+def test_city_on_a_nats_cluster_with_a_matcher_host_killed(cluster, tmp_path, record_property):
     nats, probe = cluster
     city = prepare_city(SETUP.world, tmp_path / "city")
     run = run_live_city(city, nats.url, probe, tmp_path, SETUP)
@@ -119,14 +120,17 @@ def test_city_on_a_nats_cluster_with_a_matcher_host_killed(cluster, tmp_path,
     assert run.killed_plane == 3 and run.databases[3].name == "plane3-host-b.db"
     scene = scenes.planes[3]
     assert 0 < run.processed_at_kill < len(scene.frames) * len(scene.cameras), (
-        "the kill was not mid-stream")
+        "the kill was not mid-stream"
+    )
     for plane, summary in run.matcher_summaries.items():
-        assert summary["processed"] == len(scenes.timestamps) * len(
-            scenes.planes[plane].cameras), summary
+        assert summary["processed"] == len(scenes.timestamps) * len(scenes.planes[plane].cameras), (
+            summary
+        )
     # Every plane: nothing lost, tracked once, the tracks of an undisturbed run.
     for plane, database in run.databases.items():
-        assert_exactly_once(database, scenes.planes[plane],
-                            undisturbed_tracks(city, plane, run.epoch))
+        assert_exactly_once(
+            database, scenes.planes[plane], undisturbed_tracks(city, plane, run.epoch)
+        )
     figures = live_city_figures(run)
     print("\nCity on NATS:", json.dumps(figures))
     for key, value in figures.items():

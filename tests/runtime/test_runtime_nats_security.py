@@ -12,6 +12,7 @@ import socket
 import ssl
 import stat
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -48,14 +49,18 @@ def backbone(tmp_path_factory):
     pytest.importorskip("nats", reason="nats-py is not installed (pip install -e '.[nats]')")
     pytest.importorskip("bcrypt", reason="bcrypt is not installed (pip install -e '.[nats]')")
     folder = tmp_path_factory.mktemp("secure-nats")
-    security = write_nats_security(folder / "servers", CAMERAS, MATCHERS, site=SITE, tls=True,
-                                   linkers=LINKERS)
+    security = write_nats_security(
+        folder / "servers", CAMERAS, MATCHERS, site=SITE, tls=True, linkers=LINKERS
+    )
     cluster = NatsCluster.create(folder / "nodes", 1, mqtt=True, security=security).start()
     # The admin prepares both planes (streams, consumers, the lease bucket), as
     # `cblrs matcher --prepare` with the admin's login does.
     for plane in (1, 2):
-        admin = NatsTransport("admin", security.settings("admin", cluster.url, manage=True),
-                              durable=f"cblrs-plane-{plane}")
+        admin = NatsTransport(
+            "admin",
+            security.settings("admin", cluster.url, manage=True),
+            durable=f"cblrs-plane-{plane}",
+        )
         admin.subscribe(f"cblrs/{plane}/+/detections", lambda delivery: None)
         admin.subscribe(f"cblrs/{plane}/+/status", lambda delivery: None)
         admin.connect()
@@ -63,14 +68,21 @@ def backbone(tmp_path_factory):
         assert admin.flush(WAIT)
         admin.close()
     # ... and linker1's consumers on both planes' tracks streams (`cblrs linker --prepare`).
-    prepared = NatsFanIn("admin", security.settings("admin", cluster.url, manage=True),
-                         durable=linker_consumer("linker1"), planes=(1, 2))
+    prepared = NatsFanIn(
+        "admin",
+        security.settings("admin", cluster.url, manage=True),
+        durable=linker_consumer("linker1"),
+        planes=(1, 2),
+    )
     for plane in (1, 2):
         prepared.subscribe(f"cblrs/{plane}/tracks", lambda delivery: None)
     prepared.connect()
     prepared.close()
-    bucket = NatsTransport("admin", security.settings("admin", cluster.url, manage=True),
-                           lease=LeaseSettings("setup", 10.0))
+    bucket = NatsTransport(
+        "admin",
+        security.settings("admin", cluster.url, manage=True),
+        lease=LeaseSettings("setup", 10.0),
+    )
     bucket.open()
     bucket.close()
     yield security, cluster
@@ -98,11 +110,15 @@ def connect(backbone, clients, user: str, **settings) -> NatsTransport:
 
 def matcher_of_plane_1(backbone, clients, received: list) -> NatsTransport:
     matcher = NatsTransport(
-        "matcher1", backbone[0].settings("matcher1", backbone[1].url), durable="cblrs-plane-1",
-        lease=LeaseSettings(lease_key(1, SITE), 10.0, what="plane 1"))
+        "matcher1",
+        backbone[0].settings("matcher1", backbone[1].url),
+        durable="cblrs-plane-1",
+        lease=LeaseSettings(lease_key(1, SITE), 10.0, what="plane 1"),
+    )
     clients.append(matcher)
-    matcher.subscribe("cblrs/1/+/detections",
-                      lambda delivery: (received.append(delivery.payload), delivery.ack()))
+    matcher.subscribe(
+        "cblrs/1/+/detections", lambda delivery: (received.append(delivery.payload), delivery.ack())
+    )
     matcher.subscribe("cblrs/1/+/status", lambda delivery: delivery.ack())
     matcher.connect()
     return matcher
@@ -125,10 +141,16 @@ def admin_call(backbone, coroutine_of):
 def test_an_anonymous_client_is_refused(backbone, clients):
     _, cluster = backbone
     security = backbone[0]
-    anonymous = NatsTransport("anonymous", NatsSettings.from_url(
-        cluster.url, ca_file=security.clients["CVLab1"].ca_file,
-        cert_file=security.clients["CVLab1"].cert_file,
-        key_file=security.clients["CVLab1"].key_file, connect_timeout_s=2))
+    anonymous = NatsTransport(
+        "anonymous",
+        NatsSettings.from_url(
+            cluster.url,
+            ca_file=security.clients["CVLab1"].ca_file,
+            cert_file=security.clients["CVLab1"].cert_file,
+            key_file=security.clients["CVLab1"].key_file,
+            connect_timeout_s=2,
+        ),
+    )
     with pytest.raises(TransportError, match=r"refused the login \(none\)"):
         anonymous.open()
     config = cluster.configs[0].config_path.read_text()
@@ -138,9 +160,15 @@ def test_an_anonymous_client_is_refused(backbone, clients):
 def test_a_wrong_password_is_refused(backbone):
     security, cluster = backbone
     settings = security.settings("CVLab1", cluster.url)
-    stolen = NatsSettings.from_url(cluster.url, username="CVLab1", password="guessed",
-                                   ca_file=settings.ca_file, cert_file=settings.cert_file,
-                                   key_file=settings.key_file, connect_timeout_s=2)
+    stolen = NatsSettings.from_url(
+        cluster.url,
+        username="CVLab1",
+        password="guessed",
+        ca_file=settings.ca_file,
+        cert_file=settings.cert_file,
+        key_file=settings.key_file,
+        connect_timeout_s=2,
+    )
     with pytest.raises(TransportError, match="refused the login CVLab1"):
         NatsTransport("CVLab1", stolen).open()
 
@@ -148,11 +176,18 @@ def test_a_wrong_password_is_refused(backbone):
 def test_a_client_without_a_certificate_or_without_tls_is_refused(backbone):
     security, cluster = backbone
     settings = security.settings("CVLab1", cluster.url, connect_timeout_s=2)
-    for attempt in (NatsSettings.from_url(cluster.url, username="CVLab1",
-                                          password=settings.password, ca_file=settings.ca_file,
-                                          connect_timeout_s=2),
-                    NatsSettings.from_url(cluster.url, username="CVLab1",
-                                          password=settings.password, connect_timeout_s=2)):
+    for attempt in (
+        NatsSettings.from_url(
+            cluster.url,
+            username="CVLab1",
+            password=settings.password,
+            ca_file=settings.ca_file,
+            connect_timeout_s=2,
+        ),
+        NatsSettings.from_url(
+            cluster.url, username="CVLab1", password=settings.password, connect_timeout_s=2
+        ),
+    ):
         with pytest.raises(TransportError, match="cannot connect to NATS"):
             NatsTransport("CVLab1", attempt).open()
 
@@ -180,8 +215,11 @@ def test_a_camera_publishes_its_own_detections_but_not_another_cameras(backbone,
 def test_a_camera_cannot_read_tracks_detections_or_another_inbox(backbone, clients):
     camera = connect(backbone, clients, "CVLab1")
     for topic_filter in ("cblrs/1/tracks", "cblrs/1/+/detections", "cblrs/#"):
-        with pytest.raises(TransportError, match="refused the subscription to "
-                           r"cblrs\.north\..* the login CVLab1 may not read it"):
+        with pytest.raises(
+            TransportError,
+            match="refused the subscription to "
+            r"cblrs\.north\..* the login CVLab1 may not read it",
+        ):
             camera.subscribe(topic_filter, Collector())
 
     async def spy(jetstream) -> None:
@@ -189,15 +227,26 @@ def test_a_camera_cannot_read_tracks_detections_or_another_inbox(backbone, clien
         await camera._nc.flush()
 
     camera.call(spy(None), 10)
-    assert "_inbox.matcher1.>" in camera.refused_subscriptions
+    # The servers' -ERR may come after the flush's PONG (seen once at load 15).
+    wait_until(
+        lambda: "_inbox.matcher1.>" in camera.refused_subscriptions,
+        WAIT,
+        "the refusal of _INBOX.matcher1.>",
+    )
 
 
 def test_a_site_cannot_publish_into_another_site(backbone, clients):
     security, cluster = backbone
-    south = NatsSettings.from_url(cluster.url, **{
-        **{name: getattr(security.settings("CVLab1", cluster.url), name)
-           for name in ("username", "password", "ca_file", "cert_file", "key_file")},
-        "site": "south"})
+    south = NatsSettings.from_url(
+        cluster.url,
+        **{
+            **{
+                name: getattr(security.settings("CVLab1", cluster.url), name)
+                for name in ("username", "password", "ca_file", "cert_file", "key_file")
+            },
+            "site": "south",
+        },
+    )
     camera = NatsTransport("CVLab1", south)
     clients.append(camera)
     camera.connect()
@@ -210,21 +259,101 @@ def test_a_site_cannot_publish_into_another_site(backbone, clients):
 
 def test_a_matcher_cannot_take_another_planes_lease(backbone):
     security, cluster = backbone
-    rogue = NatsTransport("matcher2", security.settings("matcher2", cluster.url),
-                          lease=LeaseSettings(lease_key(1, SITE), 10.0, what="plane 1"))
-    with pytest.raises(TransportError, match=r"cannot take the lease north\.plane-1 of plane 1: "
-                       r"the login matcher2 may not use \$kv\.cblrs_leases\.north\.plane-1"):
+    rogue = NatsTransport(
+        "matcher2",
+        security.settings("matcher2", cluster.url),
+        lease=LeaseSettings(lease_key(1, SITE), 10.0, what="plane 1"),
+    )
+    with pytest.raises(
+        TransportError,
+        match=r"cannot take the lease north\.plane-1 of plane 1: "
+        r"the login matcher2 may not use \$kv\.cblrs_leases\.north\.plane-1",
+    ):
         rogue.open()
+
+
+async def _publish_with_reply(
+    settings: NatsSettings,
+    subject: str,
+    payload: bytes,
+    reply: str,
+    until: Callable[[], bool] | None = None,
+) -> None:
+    """Publish once as a bare nats-py client of ``settings``' login, naming ``reply`` as the
+    subject to answer on (nats-server checks a publish's subject, never its reply subject);
+    connected until ``until()`` (a pull's answers stop when the puller leaves)."""
+    import nats
+
+    client = await nats.connect(
+        servers=list(settings.servers),
+        user=settings.username,
+        password=settings.password,
+        tls=settings.tls_context(),
+        inbox_prefix=settings.inbox_prefix,
+        allow_reconnect=False,
+        connect_timeout=5,
+    )
+    try:
+        await client.publish(subject, payload, reply=reply)
+        await client.flush(5)
+        deadline = time.monotonic() + WAIT
+        while until is not None and not until() and time.monotonic() < deadline:
+            await asyncio.sleep(0.05)
+    finally:
+        await client.close()
+
+
+def test_a_forged_reply_into_the_lease_does_not_stop_the_matcher(backbone, clients, caplog):
+    """A camera publishes its own detections naming the plane's lease key as the reply:
+    JetStream writes its acknowledgement there. The holder's next renewal finds a write that
+    is no lease record and keeps the plane (before: it stepped down, "taken over by another
+    matcher", and the plane had no matcher; any camera could stop every plane of the site)."""
+    security, cluster = backbone
+    matcher = NatsTransport(
+        "matcher1",
+        security.settings("matcher1", cluster.url),
+        durable="cblrs-plane-1",
+        lease=LeaseSettings(lease_key(1, SITE), 3.0, what="plane 1"),
+    )
+    clients.append(matcher)
+    matcher.subscribe("cblrs/1/+/detections", lambda delivery: delivery.ack())
+    matcher.subscribe("cblrs/1/+/status", lambda delivery: delivery.ack())
+    matcher.connect()
+    key = f"$KV.cblrs_leases.{lease_key(1, SITE)}"
+    asyncio.run(
+        _publish_with_reply(
+            security.settings("CVLab1", cluster.url),
+            f"cblrs.{SITE}.1.CVLab1.detections",
+            _detections("CVLab1", 7),
+            reply=key,
+        )
+    )
+
+    async def _entry(js):
+        return await (await js.key_value("cblrs_leases")).get(lease_key(1, SITE))
+
+    wait_until(
+        lambda: matcher.lease_lost or "no lease record" in caplog.text,
+        WAIT,
+        "the holder's next renewal",
+    )
+    assert not matcher.lease_lost
+    assert '"stream":"CBLRS_north_P1"' in caplog.text  # JetStream's acknowledgement was there
+    assert b"matcher1@" in admin_call(backbone, _entry).value
 
 
 def test_a_matcher_cannot_consume_another_planes_detections(backbone, clients):
     security, cluster = backbone
-    rogue = NatsTransport("matcher2", security.settings("matcher2", cluster.url),
-                          durable="cblrs-plane-1")
+    rogue = NatsTransport(
+        "matcher2", security.settings("matcher2", cluster.url), durable="cblrs-plane-1"
+    )
     clients.append(rogue)
     rogue.subscribe("cblrs/1/+/detections", lambda delivery: None)
-    with pytest.raises(TransportError, match="cannot read the NATS consumer cblrs-plane-1 .*"
-                       r"the login matcher2 may not use \$js\.api\.consumer\.info"):
+    with pytest.raises(
+        TransportError,
+        match="cannot read the NATS consumer cblrs-plane-1 .*"
+        r"the login matcher2 may not use \$js\.api\.consumer\.info",
+    ):
         rogue.connect()
 
 
@@ -237,17 +366,26 @@ def test_nobody_but_the_admin_deletes_or_creates_a_stream(backbone, clients, use
     stream = detections_stream(1, SITE)
     for attempt, subject in (
         (client.jetstream.delete_stream(stream), f"$js.api.stream.delete.{stream.lower()}"),
-        (client.jetstream.add_stream(StreamConfig(name="EVIL", subjects=["cblrs.north.>"])),
-         "$js.api.stream.create.evil"),
-        (client.jetstream.delete_consumer(stream, "cblrs-plane-1"),
-         f"$js.api.consumer.delete.{stream.lower()}.cblrs-plane-1"),
-        (client.jetstream.delete_key_value("cblrs_leases"),
-         "$js.api.stream.delete.kv_cblrs_leases"),
+        (
+            client.jetstream.add_stream(StreamConfig(name="EVIL", subjects=["cblrs.north.>"])),
+            "$js.api.stream.create.evil",
+        ),
+        (
+            client.jetstream.delete_consumer(stream, "cblrs-plane-1"),
+            f"$js.api.consumer.delete.{stream.lower()}.cblrs-plane-1",
+        ),
+        (
+            client.jetstream.delete_key_value("cblrs_leases"),
+            "$js.api.stream.delete.kv_cblrs_leases",
+        ),
     ):
         with pytest.raises(Exception):  # noqa: B017 - the servers answer nothing: a timeout
             client.call(attempt, 3)
-        wait_until(lambda subject=subject: subject in client.refused_subjects, WAIT,
-                   f"the servers' refusal of {subject}")
+        wait_until(
+            lambda subject=subject: subject in client.refused_subjects,
+            WAIT,
+            f"the servers' refusal of {subject}",
+        )
     names = admin_call(backbone, lambda js: js.streams_info())
     assert {info.config.name for info in names} >= {stream, "KV_cblrs_leases"}
     assert "EVIL" not in {info.config.name for info in names}
@@ -272,11 +410,16 @@ def test_a_matcher_serves_its_plane_end_to_end_and_replays_it(backbone, clients)
     matcher.close()
     replayed: list[bytes] = []
     again = NatsTransport(
-        "matcher1", backbone[0].settings("matcher1", backbone[1].url), durable="cblrs-plane-1",
-        replay=True, lease=LeaseSettings(lease_key(1, SITE), 10.0, what="plane 1"))
+        "matcher1",
+        backbone[0].settings("matcher1", backbone[1].url),
+        durable="cblrs-plane-1",
+        replay=True,
+        lease=LeaseSettings(lease_key(1, SITE), 10.0, what="plane 1"),
+    )
     clients.append(again)
-    again.subscribe("cblrs/1/+/detections",
-                    lambda delivery: (replayed.append(delivery.payload), delivery.ack()))
+    again.subscribe(
+        "cblrs/1/+/detections", lambda delivery: (replayed.append(delivery.payload), delivery.ack())
+    )
     again.subscribe("cblrs/1/+/status", lambda delivery: delivery.ack())
     again.connect()
     wait_until(lambda: _detections("CVLab2", 100) in replayed, WAIT, "the replay")
@@ -295,8 +438,12 @@ def test_a_viewer_reads_tracks_and_publishes_nothing(backbone, clients):
 
 def linker_of_both_planes(backbone, clients, user: str, handler, durable: str = "linker1"):
     security, cluster = backbone
-    linker = NatsFanIn(user, security.settings(user, cluster.url, publish_timeout_s=0.5),
-                       durable=linker_consumer(durable), planes=(1, 2))
+    linker = NatsFanIn(
+        user,
+        security.settings(user, cluster.url, publish_timeout_s=0.5),
+        durable=linker_consumer(durable),
+        planes=(1, 2),
+    )
     clients.append(linker)
     for plane in (1, 2):
         linker.subscribe(f"cblrs/{plane}/tracks", handler)
@@ -305,11 +452,14 @@ def linker_of_both_planes(backbone, clients, user: str, handler, durable: str = 
 
 def test_a_linker_reads_every_planes_tracks_through_its_own_consumers(backbone, clients):
     handed: list[bytes] = []
-    linker = linker_of_both_planes(backbone, clients, "linker1",
-                                   lambda delivery: handed.append(delivery.payload))
+    linker = linker_of_both_planes(
+        backbone, clients, "linker1", lambda delivery: handed.append(delivery.payload)
+    )
     linker.connect()
-    updates = {plane: b'{"plane": %d, "tracks": [{"timestamp": 7%d.0}]}' % (plane, plane)
-               for plane in (1, 2)}
+    updates = {
+        plane: b'{"plane": %d, "tracks": [{"timestamp": 7%d.0}]}' % (plane, plane)
+        for plane in (1, 2)
+    }
     for plane, payload in updates.items():
         matcher = connect(backbone, clients, f"matcher{plane}")
         matcher.publish(f"cblrs/{plane}/tracks", payload)
@@ -327,8 +477,11 @@ def test_a_linker_reads_every_planes_tracks_through_its_own_consumers(backbone, 
     linker.close(unclean=True)
     again: list[bytes] = []
     successor = linker_of_both_planes(
-        backbone, clients, "linker1",
-        lambda delivery: (again.append(delivery.payload), delivery.ack()))
+        backbone,
+        clients,
+        "linker1",
+        lambda delivery: (again.append(delivery.payload), delivery.ack()),
+    )
     successor.connect()
     wait_until(lambda: set(updates.values()) <= set(again), WAIT, "the updates again")
     assert successor.refused_subscriptions == []
@@ -338,8 +491,11 @@ def test_a_linker_reads_every_planes_tracks_through_its_own_consumers(backbone, 
 @pytest.mark.parametrize("user", ["linker2", "CVLab1", "viewer", "matcher1"])
 def test_nobody_else_reads_a_linkers_consumer(backbone, clients, user):
     rogue = linker_of_both_planes(backbone, clients, user, lambda delivery: delivery.ack())
-    with pytest.raises(TransportError, match=r"cannot read the NATS consumer "
-                       r"cblrs-linker-linker1 .*may not use \$js\.api\.consumer\.info"):
+    with pytest.raises(
+        TransportError,
+        match=r"cannot read the NATS consumer "
+        r"cblrs-linker-linker1 .*may not use \$js\.api\.consumer\.info",
+    ):
         rogue.connect()
 
 
@@ -354,9 +510,15 @@ async def _raw_request(settings: NatsSettings, subject: str, payload: bytes) -> 
         errors.append(str(error).lower())
 
     client = await nats.connect(
-        servers=list(settings.servers), user=settings.username, password=settings.password,
-        tls=settings.tls_context(), inbox_prefix=settings.inbox_prefix, error_cb=on_error,
-        allow_reconnect=False, connect_timeout=5)
+        servers=list(settings.servers),
+        user=settings.username,
+        password=settings.password,
+        tls=settings.tls_context(),
+        inbox_prefix=settings.inbox_prefix,
+        error_cb=on_error,
+        allow_reconnect=False,
+        connect_timeout=5,
+    )
     try:
         try:
             await client.request(subject, payload, timeout=2)
@@ -374,9 +536,18 @@ def test_a_linker_may_not_create_delete_or_take_other_consumers(backbone):
     security, cluster = backbone
     settings = security.settings("linker1", cluster.url)
     stream, consumer = tracks_stream(1, SITE), linker_consumer("linker1")
-    evil = json.dumps({"stream_name": stream, "config": {
-        "durable_name": consumer, "name": consumer, "deliver_subject": f"cblrs.{SITE}.2.tracks",
-        "filter_subject": f"cblrs.{SITE}.1.tracks", "ack_policy": "none"}}).encode()
+    evil = json.dumps(
+        {
+            "stream_name": stream,
+            "config": {
+                "durable_name": consumer,
+                "name": consumer,
+                "deliver_subject": f"cblrs.{SITE}.2.tracks",
+                "filter_subject": f"cblrs.{SITE}.1.tracks",
+                "ack_policy": "none",
+            },
+        }
+    ).encode()
     for subject, payload in (
         (f"$JS.API.CONSUMER.CREATE.{stream}.{consumer}.cblrs.{SITE}.1.tracks", evil),
         (f"$JS.API.CONSUMER.CREATE.{stream}.{consumer}", evil),
@@ -386,8 +557,9 @@ def test_a_linker_may_not_create_delete_or_take_other_consumers(backbone):
         (f"$JS.API.CONSUMER.MSG.NEXT.{detections_stream(1, SITE)}.cblrs-plane-1", b"1"),
     ):
         errors = asyncio.run(_raw_request(settings, subject, payload))
-        assert any("permissions violation" in error and subject.lower() in error
-                   for error in errors), (subject, errors)
+        assert any(
+            "permissions violation" in error and subject.lower() in error for error in errors
+        ), (subject, errors)
     info = admin_call(backbone, lambda js: js.consumer_info(stream, consumer))
     assert info.config.deliver_subject is None  # still the admin's pull consumer
 
@@ -400,8 +572,11 @@ def test_the_mqtt_listener_has_the_same_users(backbone, clients):
     port = cluster.mqtt_ports[0]
     received: list[bytes] = []
     matcher_of_plane_1(backbone, clients, received)
-    camera = MqttTransport("cblrs-camera-1-CVLab1", security.mqtt_settings(
-        "CVLab1", "127.0.0.1", port, connect_timeout_s=5), persistent=False)
+    camera = MqttTransport(
+        "cblrs-camera-1-CVLab1",
+        security.mqtt_settings("CVLab1", "127.0.0.1", port, connect_timeout_s=5),
+        persistent=False,
+    )
     camera.connect()
     try:
         camera.publish("cblrs/north/1/CVLab1/detections", _detections("CVLab1", 500))
@@ -415,8 +590,9 @@ def test_the_mqtt_listener_has_the_same_users(backbone, clients):
     from dataclasses import replace
 
     with pytest.raises(TransportError, match="refused the connection"):
-        MqttTransport("anonymous", replace(anonymous, username=None, password=None),
-                      persistent=False).connect()
+        MqttTransport(
+            "anonymous", replace(anonymous, username=None, password=None), persistent=False
+        ).connect()
 
 
 def test_a_client_certificate_cannot_join_the_cluster_as_a_route(tmp_path):
@@ -468,31 +644,60 @@ def test_the_servers_folder_holds_hashes_and_each_client_its_own_secrets(backbon
         assert stat.S_IMODE(os.stat(files.directory).st_mode) == 0o700
         assert stat.S_IMODE(os.stat(files.key_file).st_mode) == 0o600
         assert sorted(path.name for path in files.directory.iterdir()) == sorted(
-            ["ca.crt", f"{user}.crt", f"{user}.key", f"{user}.password"])
+            ["ca.crt", f"{user}.crt", f"{user}.key", f"{user}.password"]
+        )
     assert 'http: "127.0.0.1:' in config  # monitoring pages list clients: loopback only
 
 
 @pytest.mark.parametrize(
     ("role", "name", "planes", "allowed", "refused"),
     [
-        ("camera", "cam.1", (), ["cblrs.north.7.cam//1.detections"],
-         ["cblrs.north.7.cam2.detections", "$JS.API.STREAM.DELETE.X", "cblrs.north.7.alerts"]),
-        ("matcher", "m", (3,), ["cblrs.north.3.tracks", "$KV.cblrs_leases.north.plane-3",
-                                "$JS.ACK.CBLRS_north_P3.cblrs-plane-3.1.2.3.4.5",
-                                "cblrs.north.3.alerts"],
-         ["cblrs.north.4.tracks", "$KV.cblrs_leases.north.plane-4", "cblrs.north.4.alerts",
-          "$JS.API.CONSUMER.CREATE.CBLRS_north_P3.cblrs-plane-3",
-          "$JS.API.CONSUMER.DELETE.CBLRS_north_P3.cblrs-plane-3"]),
+        (
+            "camera",
+            "cam.1",
+            (),
+            ["cblrs.north.7.cam//1.detections"],
+            ["cblrs.north.7.cam2.detections", "$JS.API.STREAM.DELETE.X", "cblrs.north.7.alerts"],
+        ),
+        (
+            "matcher",
+            "m",
+            (3,),
+            [
+                "cblrs.north.3.tracks",
+                "$KV.cblrs_leases.north.plane-3",
+                "$JS.ACK.CBLRS_north_P3.cblrs-plane-3.1.2.3.4.5",
+                "cblrs.north.3.alerts",
+            ],
+            [
+                "cblrs.north.4.tracks",
+                "$KV.cblrs_leases.north.plane-4",
+                "cblrs.north.4.alerts",
+                "$JS.API.CONSUMER.CREATE.CBLRS_north_P3.cblrs-plane-3",
+                "$JS.API.CONSUMER.DELETE.CBLRS_north_P3.cblrs-plane-3",
+            ],
+        ),
         ("viewer", "viewer", (), [], ["cblrs.north.1.tracks", "cblrs.north.1.alerts"]),
-        ("linker", "l.1", (3,), ["cblrs.north.0.tracks", "cblrs.north.0.linkers.l//1.status",
-                                 "$JS.API.CONSUMER.MSG.NEXT.CBLRS_north_P3_TRACKS.cblrs-linker-l_d1",
-                                 "$JS.ACK.CBLRS_north_P3_TRACKS.cblrs-linker-l_d1.1.2.3.4.5"],
-         ["cblrs.north.3.tracks", "cblrs.north.0.linkers.other.status",
-          "$JS.API.CONSUMER.CREATE.CBLRS_north_P3_TRACKS.cblrs-linker-l_d1",
-          "$JS.API.CONSUMER.DELETE.CBLRS_north_P3_TRACKS.cblrs-linker-l_d1",
-          "$JS.API.CONSUMER.MSG.NEXT.CBLRS_north_P3_TRACKS.cblrs-linker-other",
-          "$JS.API.CONSUMER.MSG.NEXT.CBLRS_north_P4_TRACKS.cblrs-linker-l_d1",
-          "$JS.API.CONSUMER.MSG.NEXT.CBLRS_north_P3.cblrs-plane-3"]),
+        (
+            "linker",
+            "l.1",
+            (3,),
+            [
+                "cblrs.north.0.tracks",
+                "cblrs.north.0.linkers.l//1.status",
+                "$JS.API.CONSUMER.MSG.NEXT.CBLRS_north_P3_TRACKS.cblrs-linker-l_d1",
+                "$JS.ACK.CBLRS_north_P3_TRACKS.cblrs-linker-l_d1.1.2.3.4.5",
+            ],
+            [
+                "cblrs.north.3.tracks",
+                "cblrs.north.0.linkers.other.status",
+                "$JS.API.CONSUMER.CREATE.CBLRS_north_P3_TRACKS.cblrs-linker-l_d1",
+                "$JS.API.CONSUMER.DELETE.CBLRS_north_P3_TRACKS.cblrs-linker-l_d1",
+                "$JS.API.CONSUMER.MSG.NEXT.CBLRS_north_P3_TRACKS.cblrs-linker-other",
+                "$JS.API.CONSUMER.MSG.NEXT.CBLRS_north_P4_TRACKS.cblrs-linker-l_d1",
+                "$JS.API.CONSUMER.MSG.NEXT.CBLRS_north_P3.cblrs-plane-3",
+            ],
+        ),
     ],
 )
 def test_role_permissions_allow_exactly_the_roles_subjects(role, name, planes, allowed, refused):
@@ -535,7 +740,6 @@ def test_write_nats_security_refuses(tmp_path, cameras, matchers, options, messa
         write_nats_security(tmp_path / "servers", cameras, matchers, tls=False, **options)
 
 
-
 # -- the whole recipe, as the commands print it ---------------------------------------------
 
 
@@ -569,57 +773,138 @@ def test_the_generated_backbone_runs_cameras_matcher_and_viewer_end_to_end(
     environment = {**os.environ, "PYTHONUNBUFFERED": "1"}
 
     def run(*arguments: str, timeout: float = 120) -> subprocess.CompletedProcess:
-        return subprocess.run([*cli, *arguments], capture_output=True, text=True,
-                              timeout=timeout, env=environment)
+        return subprocess.run(
+            [*cli, *arguments], capture_output=True, text=True, timeout=timeout, env=environment
+        )
 
-    written = run("broker-config", "--backbone", "nats", "--out", str(out), "--cameras",
-                  ",".join(names), "--matchers", "matcher1=1", "--site-id", SITE, "--port",
-                  str(port), "--mqtt-port", str(mqtt_port), "--monitor-port", str(monitor_port),
-                  "--json")
+    written = run(
+        "broker-config",
+        "--backbone",
+        "nats",
+        "--out",
+        str(out),
+        "--cameras",
+        ",".join(names),
+        "--matchers",
+        "matcher1=1",
+        "--site-id",
+        SITE,
+        "--port",
+        str(port),
+        "--mqtt-port",
+        str(mqtt_port),
+        "--monitor-port",
+        str(monitor_port),
+        "--json",
+    )
     assert written.returncode == 0, written.stderr
     files = json.loads(written.stdout)
     node = files["nodes"][0]
-    server = NatsServerProcess(NatsNodeConfig(
-        "n1", Path(node["config"]).parent, node["port"], node["monitor_port"],
-        mqtt_port=node["mqtt_port"])).start()
+    server = NatsServerProcess(
+        NatsNodeConfig(
+            "n1",
+            Path(node["config"]).parent,
+            node["port"],
+            node["monitor_port"],
+            mqtt_port=node["mqtt_port"],
+        )
+    ).start()
     clients = files["clients"]
 
     def login(user: str) -> list[str]:
         client = clients[user]
-        return ["--backbone", files["url"], "--site-id", SITE, "--username", user,
-                "--password-file", client["password_file"], "--ca-file", client["ca_file"],
-                "--cert-file", client["cert_file"], "--key-file", client["key_file"]]
+        return [
+            "--backbone",
+            files["url"],
+            "--site-id",
+            SITE,
+            "--username",
+            user,
+            "--password-file",
+            client["password_file"],
+            "--ca-file",
+            client["ca_file"],
+            "--cert-file",
+            client["cert_file"],
+            "--key-file",
+            client["key_file"],
+        ]
 
     try:
         database = tmp_path / "plane1.db"
-        matcher_options = ["matcher", "--references", str(references), "--db", str(database),
-                           "--client-id", "matcher1", "--window", "5"]
+        matcher_options = [
+            "matcher",
+            "--references",
+            str(references),
+            "--db",
+            str(database),
+            "--client-id",
+            "matcher1",
+            # A camera process may start many seconds after the other under load: its
+            # frames wait for it (its "offline" at the end ends every wait, so a long
+            # window costs no time); a 5 s window released the first camera's frames
+            # without it and counted the other's late.
+            "--window",
+            "120",
+        ]
         refused = run(*matcher_options, "--prepare", *login("matcher1"))
         assert refused.returncode == 1
-        assert "cannot create the lease bucket cblrs_leases: the login matcher1 may not use " \
-            "$js.api.stream.create.kv_cblrs_leases; only the backbone's admin may" in \
-            refused.stderr, refused.stderr
+        assert (
+            "cannot create the lease bucket cblrs_leases: the login matcher1 may not use "
+            "$js.api.stream.create.kv_cblrs_leases; only the backbone's admin may" in refused.stderr
+        ), refused.stderr
         assert "Traceback" not in refused.stderr
         prepared = run(*matcher_options, "--prepare", *login("admin"))
         assert prepared.returncode == 0, prepared.stderr
         matcher = subprocess.Popen(
-            [*cli, *matcher_options, "--until-cameras-offline", "--idle-exit", "60", "--json",
-             *login("matcher1")], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-            env=environment)
+            [
+                *cli,
+                *matcher_options,
+                "--until-cameras-offline",
+                "--idle-exit",
+                "240",
+                "--json",
+                *login("matcher1"),
+            ],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            env=environment,
+        )
         epoch = time.time() - 300
         cameras = [
             subprocess.Popen(
-                [*cli, "camera", "--dataset", str(wildtrack_root), "--camera", name,
-                 "--references", str(references), "--frames", "0:45", "--epoch", str(epoch),
-                 "--spool", str(tmp_path / f"{name}.spool"), "--confirm-timeout", "120",
-                 "--json", *login(name)],
-                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=environment)
+                [
+                    *cli,
+                    "camera",
+                    "--dataset",
+                    str(wildtrack_root),
+                    "--camera",
+                    name,
+                    "--references",
+                    str(references),
+                    "--frames",
+                    "0:45",
+                    "--epoch",
+                    str(epoch),
+                    "--spool",
+                    str(tmp_path / f"{name}.spool"),
+                    "--confirm-timeout",
+                    "120",
+                    "--json",
+                    *login(name),
+                ],
+                stdout=subprocess.PIPE,
+                stderr=subprocess.PIPE,
+                text=True,
+                env=environment,
+            )
             for name in names
         ]
         for camera in cameras:
-            output, error = camera.communicate(timeout=240)
-            assert camera.returncode == 0, (output, error)
-        output, error = matcher.communicate(timeout=240)
+            output, error = camera.communicate(timeout=480)
+            assert camera.returncode == 0, f"{output}\n{error[-4000:]}"  # not cut short
+        output, error = matcher.communicate(timeout=480)
         assert matcher.returncode == 0, error
     finally:
         for process in [*locals().get("cameras", []), locals().get("matcher")]:
@@ -647,8 +932,9 @@ def test_a_matchers_own_login_gets_what_a_dead_holder_left_unacknowledged_at_onc
     def hold(delivery) -> None:  # acknowledges nothing, then dies
         held.append(delivery.payload)
 
-    dying = NatsTransport("matcher2", security.settings("matcher2", cluster.url),
-                          durable="cblrs-plane-2")
+    dying = NatsTransport(
+        "matcher2", security.settings("matcher2", cluster.url), durable="cblrs-plane-2"
+    )
     dying.subscribe("cblrs/2/+/detections", hold)
     dying.subscribe("cblrs/2/+/status", lambda delivery: delivery.ack())
     dying.connect()
@@ -659,11 +945,13 @@ def test_a_matchers_own_login_gets_what_a_dead_holder_left_unacknowledged_at_onc
     wait_until(lambda: len(held) >= 2, WAIT, "the deliveries to the dying matcher")
     dying.close(unclean=True)
     again: list[bytes] = []
-    successor = NatsTransport("matcher2", security.settings("matcher2", cluster.url),
-                              durable="cblrs-plane-2")
+    successor = NatsTransport(
+        "matcher2", security.settings("matcher2", cluster.url), durable="cblrs-plane-2"
+    )
     clients.append(successor)
-    successor.subscribe("cblrs/2/+/detections",
-                        lambda delivery: (again.append(delivery.payload), delivery.ack()))
+    successor.subscribe(
+        "cblrs/2/+/detections", lambda delivery: (again.append(delivery.payload), delivery.ack())
+    )
     successor.subscribe("cblrs/2/+/status", lambda delivery: delivery.ack())
     with caplog.at_level("INFO", logger="cblrs.runtime.transport.nats_transport"):
         successor.connect()
@@ -671,3 +959,81 @@ def test_a_matchers_own_login_gets_what_a_dead_holder_left_unacknowledged_at_onc
     # Not by ack_wait's redelivery: the successor reset its consumer to the floor at start.
     assert "consumer cblrs-plane-2 reset to deliver them again" in caplog.text
     assert not successor.refused_subjects
+
+
+def test_messages_a_matcher_moves_into_another_planes_stream_do_not_stall_it(backbone, clients):
+    """A pull's answers go to the reply subject the puller names, unchecked by nats-server:
+    matcher1 pulls plane 1's detections from its own consumer naming a plane 2 subject, and
+    plane 2's stream stores them (under their plane 1 subjects). matcher2's consumer hands them
+    out; matcher2 ends them at once (before: held unacknowledged and handed out again every
+    ack_wait; enough of them fill max_ack_pending and plane 2 stops)."""
+    security, cluster = backbone
+    camera = connect(backbone, clients, "CVLab1")
+    for sequence in range(200, 205):
+        camera.publish("cblrs/1/CVLab1/detections", _detections("CVLab1", sequence))
+    assert camera.flush(WAIT)
+    stream, consumer = detections_stream(1, SITE), "cblrs-plane-1"
+    pending = admin_call(backbone, lambda js: js.consumer_info(stream, consumer)).num_pending
+    plane_2 = detections_stream(2, SITE)
+    before = admin_call(backbone, lambda js: js.stream_info(plane_2)).state.messages
+    asyncio.run(
+        _publish_with_reply(
+            security.settings("matcher1", cluster.url),
+            f"$JS.API.CONSUMER.MSG.NEXT.{stream}.{consumer}",
+            json.dumps({"batch": pending, "no_wait": True}).encode(),
+            reply=f"cblrs.{SITE}.2.CVLab2.detections",
+            until=lambda: (
+                admin_call(backbone, lambda js: js.stream_info(plane_2)).state.messages
+                >= before + pending
+            ),
+        )
+    )
+    received: list[bytes] = []
+    matcher = NatsTransport(
+        "matcher2", security.settings("matcher2", cluster.url), durable="cblrs-plane-2"
+    )
+    clients.append(matcher)
+    matcher.subscribe(
+        "cblrs/2/+/detections", lambda delivery: (received.append(delivery.payload), delivery.ack())
+    )
+    matcher.subscribe("cblrs/2/+/status", lambda delivery: delivery.ack())
+    matcher.connect()
+    own = connect(backbone, clients, "CVLab2")
+    own.publish("cblrs/2/CVLab2/detections", _detections("CVLab2", 300, plane=2))
+    assert own.flush(WAIT)
+    wait_until(lambda: _detections("CVLab2", 300, plane=2) in received, WAIT, "plane 2's own")
+
+    def settled():
+        info = admin_call(backbone, lambda js: js.consumer_info(plane_2, "cblrs-plane-2"))
+        return info.num_pending == 0 and info.num_ack_pending == 0
+
+    wait_until(settled, WAIT, "nothing left unacknowledged on plane 2")
+    assert not any(b'"CVLab1"' in payload for payload in received)
+
+
+def test_messages_moved_onto_a_viewers_subject_are_dropped_not_kept(backbone, clients):
+    """The same move onto a subject a viewer (a dashboard) reads: the messages keep their own
+    subjects, which the viewer did not subscribe to. Dropped and counted (before: kept for a
+    handler that never comes, so a matcher that pulled and released the same messages again
+    and again grew every dashboard's memory without bound)."""
+    security, cluster = backbone
+    viewer = connect(backbone, clients, "viewer")
+    seen = Collector()
+    viewer.subscribe("cblrs/2/tracks", seen)
+    camera = connect(backbone, clients, "CVLab1")
+    for sequence in range(400, 403):
+        camera.publish("cblrs/1/CVLab1/detections", _detections("CVLab1", sequence))
+    assert camera.flush(WAIT)
+    stream, consumer = detections_stream(1, SITE), "cblrs-plane-1"
+    pending = admin_call(backbone, lambda js: js.consumer_info(stream, consumer)).num_pending
+    asyncio.run(
+        _publish_with_reply(
+            security.settings("matcher1", cluster.url),
+            f"$JS.API.CONSUMER.MSG.NEXT.{stream}.{consumer}",
+            json.dumps({"batch": pending, "no_wait": True}).encode(),
+            reply=f"cblrs.{SITE}.2.tracks",
+            until=lambda: viewer.moved_messages >= pending,
+        )
+    )
+    assert viewer.moved_messages == pending
+    assert seen.deliveries == [] and viewer._handlers._orphans == []

@@ -56,6 +56,19 @@ pytestmark = [pytest.mark.mqtt, pytest.mark.slow]
 REPO = Path(__file__).resolve().parents[2]
 FRAMES = (0, 595)  # 120 annotated frames, 60 s of the scene
 PACE_S = 0.04  # seconds between a camera's frames: the replay runs at ~12x
+HOLDS = (40, 80)
+"""Each camera stops after these many frames until the test lets it go on: a third of the
+way in (the first matcher is killed while they wait, so the kill is mid-stream however slow
+the machine), then two thirds (the restarted matcher is scraped while they wait, so it is
+running); between the two they publish while no matcher runs."""
+WAIT = 120.0
+"""The bound of a wait for an event: it only fails the test, it never delays it."""
+METRICS = (
+    "cblrs_messages_received_total",
+    "cblrs_capture_to_track_seconds_bucket",
+    "cblrs_stage_duration_seconds_bucket",
+    "cblrs_camera_last_seen",
+)
 MATCHER = "matcher1"
 
 
@@ -79,13 +92,18 @@ def case(wildtrack_root, site_file):
     return {"site": site, "scene": scene, "references": references}
 
 
-def paced(frames, seconds: float):
-    for frame in frames:
+def paced(frames, seconds: float, holds: dict[int, threading.Event]):
+    """The frames, ``seconds`` apart; after the n-th, wait for ``holds[n]`` if there is one."""
+    for count, frame in enumerate(frames, 1):
         yield frame
         time.sleep(seconds)
+        if count in holds:
+            assert holds[count].wait(WAIT), f"the test never let the cameras past frame {count}"
 
 
-def start_cameras(case, broker, epoch: float) -> list[threading.Thread]:
+def start_cameras(
+    case, broker, epoch: float, holds: dict[int, threading.Event]
+) -> list[threading.Thread]:
     """One camera node per camera, each logged in as its own broker user, paced."""
     from cblrs.runtime.camera.sources import scene_source
 
@@ -94,12 +112,17 @@ def start_cameras(case, broker, epoch: float) -> list[threading.Thread]:
     for index, name in enumerate(scene.camera_names):
 
         def run(index=index, name=name) -> None:
-            transport = MqttTransport(f"online-{name}", broker.settings(name), persistent=False,
-                                      will=Will(*camera_last_will(1, name)))
+            transport = MqttTransport(
+                f"online-{name}",
+                broker.settings(name),
+                persistent=False,
+                will=Will(*camera_last_will(1, name)),
+            )
             transport.connect()
-            node = CameraNode(transport, 1, name, case["references"][index], epoch=epoch,
-                              flush_timeout_s=30.0)
-            node.run(paced(scene_source(scene, index), PACE_S), connect=False)
+            node = CameraNode(
+                transport, 1, name, case["references"][index], epoch=epoch, flush_timeout_s=30.0
+            )
+            node.run(paced(scene_source(scene, index), PACE_S, holds), connect=False)
             transport.close()
 
         thread = threading.Thread(target=run, daemon=True)
@@ -110,24 +133,59 @@ def start_cameras(case, broker, epoch: float) -> list[threading.Thread]:
 
 def matcher_command(site_file: Path, database: Path, broker, http_port: int) -> list[str]:
     return [
-        sys.executable, "-m", "cblrs.cli.main", "matcher", "--site", str(site_file),
-        "--db", str(database), "--broker", f"127.0.0.1:{broker.port}",
-        "--username", MATCHER, "--password-file", str(broker.files.password_files[MATCHER]),
-        "--window", "5", "--until-cameras-offline", "--idle-exit", "30",
-        "--http", f"127.0.0.1:{http_port}", "--json",
+        sys.executable,
+        "-m",
+        "cblrs.cli.main",
+        "matcher",
+        "--site",
+        str(site_file),
+        "--db",
+        str(database),
+        "--broker",
+        f"127.0.0.1:{broker.port}",
+        "--username",
+        MATCHER,
+        "--password-file",
+        str(broker.files.password_files[MATCHER]),
+        # A restarted matcher gets its session's backlog from the broker camera by camera: on
+        # a loaded machine a camera's part could come more than 5 s after another's, and a
+        # 5 s window released frames without it (late, re-tracked: the events published
+        # before the re-tracking were no longer the stored ones). The cameras' "offline"
+        # at the end ends every wait, so the longer window costs no time.
+        "--window",
+        "60",
+        "--until-cameras-offline",
+        "--idle-exit",
+        str(WAIT),
+        "--http",
+        f"127.0.0.1:{http_port}",
+        "--json",
     ]
 
 
 def offline_counts(tracks_file: Path, site_file: Path, out: Path) -> dict:
     """`cblrs analytics` on a tracks file, read back from its analytics.json."""
-    code = main(["analytics", str(tracks_file), "--site", str(site_file), "--fps", "10",
-                 "--out", str(out), "--no-plots", "--json"])
+    code = main(
+        [
+            "analytics",
+            str(tracks_file),
+            "--site",
+            str(site_file),
+            "--fps",
+            "10",
+            "--out",
+            str(out),
+            "--no-plots",
+            "--json",
+        ]
+    )
     assert code == 0
     return json.loads((out / "analytics.json").read_text())
 
 
-def test_online_counts_equal_offline_and_survive_sigkill(case, site_file, start_mosquitto,
-                                                          tmp_path):
+def test_online_counts_equal_offline_and_survive_sigkill(
+    case, site_file, start_mosquitto, tmp_path
+):
     scene = case["scene"]
     names = scene.camera_names
     # A camera user of its own for the spy: the broker takes the user name as the client
@@ -163,57 +221,71 @@ def test_online_counts_equal_offline_and_survive_sigkill(case, site_file, start_
         delivery.ack()
 
     viewer.subscribe(matcher_status_topic(1, MATCHER), on_status)
-    first = subprocess.Popen(matcher_command(site_file, database, broker, free_port()),
-                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=environment)
+    first = subprocess.Popen(
+        matcher_command(site_file, database, broker, free_port()),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        env=environment,
+    )
     epoch = float(int(time.time()) - 600)
+    holds = {count: threading.Event() for count in HOLDS}
     try:
-        wait_until(matcher_online.is_set, 60, "the matcher to come online")
-        threads = start_cameras(case, broker, epoch)
+        wait_until(matcher_online.is_set, WAIT, "the matcher to come online")
+        threads = start_cameras(case, broker, epoch, holds)
 
         def processed() -> int:
             with RuntimeStore(database, read_only=True) as store:
                 return store.counters().get("processed", 0)
 
-        wait_until(lambda: processed() >= total // 4, 60, "a quarter to be processed")
+        wait_until(lambda: processed() >= total // 4, WAIT, "a quarter to be processed")
         first.send_signal(signal.SIGKILL)
-        first.wait(10)
+        first.wait(WAIT)
         killed_at = processed()
     finally:
         if first.poll() is None:
             first.kill()
             first.wait()
+        holds[HOLDS[0]].set()  # the cameras go on while no matcher runs
     with RuntimeStore(database, read_only=True) as store:
         events_at_kill = len(read_events(store))
     http_port = free_port()
-    second = subprocess.Popen(matcher_command(site_file, database, broker, http_port),
-                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                              env=environment)
-    # The restarted matcher's metrics, scraped while it runs.
+    second = subprocess.Popen(
+        matcher_command(site_file, database, broker, http_port),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=environment,
+    )
+    # The restarted matcher's metrics, scraped while it runs (the cameras wait meanwhile).
     scraped: dict[str, str] = {}
 
     def scrape(path: str) -> str:
         with urllib.request.urlopen(f"http://127.0.0.1:{http_port}{path}", timeout=5) as answer:
             return answer.read().decode()
 
-    def reachable() -> bool:
+    def scraped_all() -> bool:
         try:
-            scraped["/readyz"] = scrape("/readyz")
-            return True
+            for path in ("/readyz", "/healthz", "/metrics"):
+                scraped[path] = scrape(path)
         except OSError:
             return second.poll() is not None
+        return all(name in scraped["/metrics"] for name in METRICS)
 
-    wait_until(reachable, 60, "the restarted matcher's /readyz")
-    if second.poll() is None:
-        scraped["/healthz"] = scrape("/healthz")
-        scraped["/metrics"] = scrape("/metrics")
-    out, err = second.communicate(timeout=120)
+    try:
+        wait_until(scraped_all, WAIT, "the restarted matcher's metrics")
+    finally:
+        holds[HOLDS[1]].set()
+    out, err = second.communicate(timeout=2 * WAIT)
     for thread in threads:
-        thread.join(30)
+        thread.join(WAIT)
     with RuntimeStore(database, read_only=True) as store:
         committed = {event.body["key"] for event in read_events(store)}
     assert committed, "no event was committed"
-    wait_until(lambda: {decode_event(p).key for p in list(received)} >= committed, 30,
-               "every committed event at the viewer")
+    wait_until(
+        lambda: {decode_event(p).key for p in list(received)} >= committed,
+        WAIT,
+        "every committed event at the viewer",
+    )
     viewer.close()
     spy.close()
     assert second.returncode == 0, err
@@ -255,17 +327,27 @@ def test_online_counts_equal_offline_and_survive_sigkill(case, site_file, start_
         if row["visits"]:
             # Times differ by float rounding only: online ones carry the 1.7e9 s epoch.
             assert zone["mean_dwell_s"] == pytest.approx(row["mean_dwell_s"], abs=1e-4)
-    offline_od = {(origin, destination): value
-                  for origin, row in offline["od"].items()
-                  for destination, value in row.items() if value}
+    offline_od = {
+        (origin, destination): value
+        for origin, row in offline["od"].items()
+        for destination, value in row.items()
+        if value
+    }
     assert od == offline_od
 
     # `cblrs matcher --stats` shows the persistent counts.
-    stats = subprocess.run([sys.executable, "-m", "cblrs.cli.main", "matcher", "--stats",
-                            str(database)], capture_output=True, text=True, check=True).stdout
+    stats = subprocess.run(
+        [sys.executable, "-m", "cblrs.cli.main", "matcher", "--stats", str(database)],
+        capture_output=True,
+        text=True,
+        check=True,
+    ).stdout
     north = counts["lines"]["north_flow"]
-    shown = re.search(r"line north_flow \+/-\s+(\d+) / (\d+) \(counted when: past 0\.5 m each "
-                      r"side, through the segment\)", stats)
+    shown = re.search(
+        r"line north_flow \+/-\s+(\d+) / (\d+) \(counted when: past 0\.5 m each "
+        r"side, through the segment\)",
+        stats,
+    )
     assert shown is not None, stats
     assert (int(shown[1]), int(shown[2])) == (north.get("positive", 0), north.get("negative", 0))
 
@@ -284,23 +366,23 @@ def test_online_counts_equal_offline_and_survive_sigkill(case, site_file, start_
             assert counts["lines"].get(row["line"], {}).get(row["direction"], 0) == row["count"]
 
     keys = [decode_event(payload).key for payload in received]
-    print(f"\nkilled at {killed_at}/{total} messages processed, {events_at_kill} events; "
-          f"after the restart: {crossings} crossings, {len(stored_events)} events, "
-          f"{len(received)} event deliveries to the viewer ({len(received) - len(set(keys))} "
-          f"repeated), lines {counts['lines']}")
+    print(
+        f"\nkilled at {killed_at}/{total} messages processed, {events_at_kill} events; "
+        f"after the restart: {crossings} crossings, {len(stored_events)} events, "
+        f"{len(received)} event deliveries to the viewer ({len(received) - len(set(keys))} "
+        f"repeated), lines {counts['lines']}"
+    )
 
     # Every committed event reached the viewer, once per key; none reached the camera user.
     assert set(keys) == {event.body["key"] for event in stored_events}
     assert len(stored_events) == (
-        crossings + sum(row["entries"] + row["appeared"] + row["visits"]
-                        for row in offline["zones"]))
+        crossings
+        + sum(row["entries"] + row["appeared"] + row["visits"] for row in offline["zones"])
+    )
     assert not spied, "a camera user read the analytics events"
 
     # Metrics of the restarted matcher.
-    if scraped.get("/metrics"):
-        assert scraped["/healthz"].startswith("ok")
-        assert scraped["/readyz"].startswith("ok")
-        metrics = scraped["/metrics"]
-        for name in ("cblrs_messages_received_total", "cblrs_capture_to_track_seconds_bucket",
-                     "cblrs_stage_duration_seconds_bucket", "cblrs_camera_last_seen"):
-            assert name in metrics
+    assert scraped["/healthz"].startswith("ok")
+    assert scraped["/readyz"].startswith("ok")
+    for name in METRICS:
+        assert name in scraped["/metrics"]

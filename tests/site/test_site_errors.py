@@ -133,7 +133,7 @@ CASES = [
         _set("camras", []),
         r"^site\.yaml: camras: unknown key "
         r"\(allowed: version, name, planes, cameras, map, places, links, alerts, timezone, "
-        r"opening_hours\)",
+        r"opening_hours, camera_fps\)",
     ),
     (
         "two geometries",
@@ -195,6 +195,27 @@ CASES = [
         "a ground noise of zero",
         _set("cameras[1].ground_m", 0),
         r"^site\.yaml: cameras\[1\]\.ground_m: Input should be greater than 0\.$",
+    ),
+    (
+        "a camera frame rate of zero",
+        _set("cameras[2].fps", 0),
+        r"^site\.yaml: cameras\[2\]\.fps: expected a frame rate: frames per second, a number "
+        r"above 0 and at most 1000 \(got 0\)\.$",
+    ),
+    (
+        "a camera frame rate in words",
+        _set("cameras[0].fps", "ten"),
+        r"^site\.yaml: cameras\[0\]\.fps: expected a frame rate: .*, e\.g\. 10 \(got 'ten'\)\.$",
+    ),
+    (
+        "an infinite site camera frame rate",
+        _set("camera_fps", float("inf")),
+        r"^site\.yaml: camera_fps: expected a frame rate: .* \(got inf\)\.$",
+    ),
+    (
+        "a site camera frame rate of yes",
+        _set("camera_fps", True),
+        r"^site\.yaml: camera_fps: expected a frame rate: .* \(got True\)\.$",
     ),
     (
         "a missing calibration file",

@@ -46,6 +46,35 @@ def test_one_matcher_per_plane_and_each_camera_on_its_plane(tmp_path):
     assert specs["dashboard"].after == ("broker", "matcher-1", "matcher-2")
 
 
+def _matcher_fps(plan, plane: int) -> str | None:
+    argv = plan.matcher_spec(plane).argv
+    return argv[argv.index("--camera-fps") + 1] if "--camera-fps" in argv else None
+
+
+def test_each_matcher_is_told_its_fastest_cameras_frame_rate(tmp_path):
+    """A camera's fps, else the site's camera_fps, else its source's fps; the plane's matcher
+    gets the fastest (its first frames then wait for no successor), and none when a camera
+    of the plane has no rate (too low a rate makes a faster camera's frames late)."""
+    dataset = ", source: {kind: dataset, path: gate.txt}"
+    site = write_site(tmp_path, [("a", SOURCE + ", plane: 1"), ("b", dataset + ", plane: 1"),
+                                 ("c", dataset + ", plane: 2, fps: 25")])
+    plan = make_plan(site, tmp_path / "state", broker_port=0)
+    assert [camera.fps for camera in plan.cameras] == [10.0, None, 25.0]
+    assert (_matcher_fps(plan, 1), _matcher_fps(plan, 2)) == (None, "25.0")
+    text = site.read_text().replace("b, image_size", "b, fps: 12.5, image_size")
+    site.write_text(text)
+    plan = make_plan(site, tmp_path / "state", broker_port=0)
+    assert (_matcher_fps(plan, 1), _matcher_fps(plan, 2)) == ("12.5", "25.0")
+    # The site's camera_fps is the default of every camera without its own fps.
+    site.write_text(text.replace("name: two-planes", "name: two-planes\ncamera_fps: 30"))
+    plan = make_plan(site, tmp_path / "state", broker_port=0)
+    assert [camera.fps for camera in plan.cameras] == [30.0, 12.5, 25.0]
+    assert (_matcher_fps(plan, 1), _matcher_fps(plan, 2)) == ("30.0", "25.0")
+    # The cameras need not be told: their rate is their source's.
+    assert all("--camera-fps" not in spec.argv for spec in plan.processes()
+               if spec.role != "matcher")
+
+
 def test_a_camera_without_a_plane_on_a_site_of_two_is_one_sentence(tmp_path):
     site = write_site(tmp_path, [("a", SOURCE)])
     with pytest.raises(UpError, match=r"camera 'a' needs plane: \(the site has planes 1, 2\)"):

@@ -14,7 +14,10 @@ from up_helpers import (
     ENVIRONMENT,
     PER_CAMERA,
     first_tracks_on_the_map,
+    left_in,
+    processes,
     run_up,
+    site_groups,
     up_command,
 )
 
@@ -31,8 +34,14 @@ def stored_keys(database) -> set[tuple[str, int]]:
 
 def test_until_done_stores_and_tracks_every_message(small_site, tmp_path, require_mosquitto):
     out = tmp_path / "state"
+    # WILDTRACK's annotated frames are 2 per second: the matcher is told so by the site file
+    small_site.write_text(small_site.read_text().replace("name: small-live\n",
+                                                         "name: small-live\ncamera_fps: 2\n"))
     code, summary, err = run_up(small_site, out, "--fast", "--until-done")
     assert code == 0, err
+    log = (out / "logs" / "matcher-1.log").read_text()
+    assert "--camera-fps 2.0" in log and "cameras CVLab1, CVLab2" in log
+    assert "cameras at 2 fps at most" in log
     assert summary["stopped_by"] == "done" and summary["failure"] is None
     states = {name: info["state"] for name, info in summary["processes"].items()}
     assert states == {"broker": "stopped", "matcher-1": "finished", "dashboard": "stopped",
@@ -66,6 +75,7 @@ def test_sigterm_mid_run_stops_within_seconds_and_a_restart_finishes(
             assert process.poll() is None, process.communicate()[1]
             assert time.monotonic() < deadline, "no message stored within 60 s"
             time.sleep(0.1)
+        groups = site_groups(out)
         sent = time.monotonic()
         process.send_signal(signal.SIGTERM)
         stdout, stderr = process.communicate(timeout=60)
@@ -76,6 +86,7 @@ def test_sigterm_mid_run_stops_within_seconds_and_a_restart_finishes(
             process.communicate()
     assert process.returncode == 0, stderr
     assert stopped_in < 15, stopped_in
+    assert len(groups) == 4 and left_in(groups) == []  # broker, matcher, 2 cameras: no orphan
     summary = json.loads(stdout)
     assert summary["stopped_by"] == "signal"
     assert {info["state"] for info in summary["processes"].values()} == {"stopped"}, summary
@@ -88,6 +99,33 @@ def test_sigterm_mid_run_stops_within_seconds_and_a_restart_finishes(
     assert stored_keys(out / "plane1.db") == EXPECTED
     assert again["planes"]["1"]["pending"] == 0
     assert again["planes"]["1"]["counters"]["duplicates"] >= len(first)
+
+
+def test_when_cblrs_up_dies_its_children_stop_and_none_is_left(small_site, tmp_path,
+                                                               require_mosquitto):
+    """cblrs up killed (SIGKILL: no clean stop of its own): Linux's parent-death signal
+    sends each child SIGTERM, and every process of the site ends (the matcher's tracker
+    process too) without anyone's help. After an interrupted run, cameras were seen
+    ignoring SIGTERM: tests/runtime/test_runtime_stop_signals.py stops each phase."""
+    out = tmp_path / "state"
+    process = subprocess.Popen(up_command(small_site, out, "--no-dashboard", "--speed", "2"),
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                               env=ENVIRONMENT)
+    try:
+        deadline = time.monotonic() + 60
+        while sum(database_counts(out / "plane1.db")["stored"].values()) < 8:
+            assert process.poll() is None, process.communicate()[1]
+            assert time.monotonic() < deadline, "no message stored within 60 s"
+            time.sleep(0.1)
+        groups = site_groups(out)
+        assert len(groups) == 4, processes()
+    finally:
+        process.kill()
+        process.communicate()
+    deadline = time.monotonic() + 30
+    while left_in(groups):
+        assert time.monotonic() < deadline, left_in(groups)
+        time.sleep(0.2)
 
 
 def test_a_camera_without_a_source_is_one_sentence(small_site, tmp_path, require_mosquitto):

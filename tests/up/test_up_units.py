@@ -113,3 +113,14 @@ def test_unit_commands_quote_what_systemd_would_split(tmp_path, small_site):
     camera = units["cblrs-small-live-camera-CVLab1.service"]
     line = next(line for line in camera.splitlines() if line.startswith("ExecStart="))
     assert f'"{tmp_path}/state 100%%/references/CVLab1.png"' in line
+
+
+def test_the_dashboards_login_link_stays_out_of_the_journal(small_site, tmp_path):
+    """Without --users the dashboard prints a link that logs in as admin: the unit sends its
+    output to the state folder's log, which only its user reads, not to the journal (which
+    the adm and systemd-journal groups read; before, the link landed there)."""
+    out, units, _ = write_units(small_site, tmp_path)
+    service = read_unit(units / "cblrs-small-live-dashboard.service")["Service"]
+    assert service["StandardOutput"] == f"append:{out / 'logs' / 'dashboard.log'}"
+    assert service["StandardError"] == "inherit" and service["UMask"] == "0077"
+    assert (out / "logs").stat().st_mode & 0o777 == 0o700

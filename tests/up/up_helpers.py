@@ -68,3 +68,29 @@ def first_tracks_on_the_map(url: str, timeout: float) -> list:
                 stream.close()
                 return item["rows"]
     raise AssertionError(f"no tracks on the map within {timeout} s")
+
+
+def processes() -> list[tuple[int, int, str]]:
+    """Every live process now: (pid, process group, command line), from ``ps``; zombies are
+    left out (they have ended: whoever adopted them reaps them, or not, as pid 1 does in
+    some containers)."""
+    listing = subprocess.run(["ps", "-ww", "-eo", "pid=,pgid=,stat=,args="],
+                             capture_output=True, text=True, check=True).stdout
+    rows = []
+    for line in listing.splitlines():
+        pid, group, state, *args = line.split(None, 3)
+        if not state.startswith("Z"):
+            rows.append((int(pid), int(group), args[0] if args else ""))
+    return rows
+
+
+def site_groups(out: Path) -> set[int]:
+    """The process groups of a running site's children: each runs in a group of its own,
+    with what it starts (the matcher's tracker process); their command lines name ``out``."""
+    return {group for pid, group, args in processes()
+            if str(out) in args and " up " not in args}
+
+
+def left_in(groups: set[int]) -> list[str]:
+    """The processes still alive in ``groups``."""
+    return [f"{pid} {args}" for pid, group, args in processes() if group in groups]

@@ -91,27 +91,36 @@ def measure_throughput(
 ) -> dict:
     """Detections per second of a matcher on a synthetic load (one core, median of repeats).
 
-    The first ``warmup_frames`` frames (track births) are processed untimed.
+    The first ``warmup_frames`` frames (track births) are processed untimed. Each run is timed
+    in wall seconds and in CPU seconds of this process (:func:`time.process_time`: every
+    thread's, BLAS's too); on a machine other jobs load, wall time grows with their share of
+    the cores, CPU time much less (caches and memory bandwidth are shared still).
 
     Returns:
         ``{"matcher", "live_tracks", "cameras", "frames", "detections_per_frame",
-        "detections_per_second", "milliseconds_per_frame", "repeats", "final_tracks"}``.
+        "detections_per_second", "milliseconds_per_frame", "cpu_milliseconds_per_frame",
+        "cpu_microseconds_per_detection", "cpu_share", "repeats", "final_tracks"}``: wall
+        figures are the median run's by wall time, CPU figures the median run's by CPU
+        time; ``cpu_share`` is the CPU seconds over the wall seconds of the runs (below 1:
+        the process waited for a core).
     """
     load = synthetic_load(live_tracks, cameras, frames + warmup_frames, seed)
     timed = load.instants[warmup_frames:]
     detections = sum(len(message) for _, messages in timed for message in messages)
-    durations = []
+    durations, cpu_durations = [], []
     final_tracks = 0
     for _ in range(repeats):
         instance = make_matcher(matcher, load.planes, load.camera_ids)
         for timestamp, messages in load.instants[:warmup_frames]:
             instance.update(timestamp, messages)
-        start = time.perf_counter()
+        start, cpu_start = time.perf_counter(), time.process_time()
         for timestamp, messages in timed:
             output = instance.update(timestamp, messages)
+        cpu_durations.append(time.process_time() - cpu_start)
         durations.append(time.perf_counter() - start)
         final_tracks = len(output)
     seconds = statistics.median(durations)
+    cpu_seconds = statistics.median(cpu_durations)
     return {
         "matcher": matcher,
         "live_tracks": live_tracks,
@@ -120,6 +129,9 @@ def measure_throughput(
         "detections_per_frame": detections / len(timed),
         "detections_per_second": detections / seconds,
         "milliseconds_per_frame": 1000.0 * seconds / len(timed),
+        "cpu_milliseconds_per_frame": 1000.0 * cpu_seconds / len(timed),
+        "cpu_microseconds_per_detection": 1e6 * cpu_seconds / max(1, detections),
+        "cpu_share": sum(cpu_durations) / max(sum(durations), 1e-9),
         "repeats": repeats,
         "final_tracks": final_tracks,
     }

@@ -5,7 +5,6 @@ from __future__ import annotations
 import argparse
 import logging
 import os
-import signal
 import sys
 import time
 from pathlib import Path
@@ -13,122 +12,26 @@ from typing import Any
 
 from cblrs.cli.backbone import add_backbone_options, camera_transport, uses_nats
 from cblrs.cli.common import InputError, UsageError, add_output_options, print_json
+from cblrs.cli.mqtt_options import (  # noqa: F401 (the other commands import them from here)
+    PASSWORD_ENVIRONMENT,
+    add_mqtt_options,
+    connect_or_queue,
+    mqtt_settings,
+    parse_broker,
+    read_password,
+)
+from cblrs.cli.stopping import Interrupted, install_stop_handlers  # noqa: F401
 
 logger = logging.getLogger(__name__)
 
-PASSWORD_ENVIRONMENT = "CBLRS_MQTT_PASSWORD"
 DEFAULT_SPOOL_FOLDER = Path("~/.local/state/cblrs/spool")
 SPOOL_ENVIRONMENT = "CBLRS_SPOOL_DIR"
 """Folder of the default spool files, instead of :data:`DEFAULT_SPOOL_FOLDER`."""
 EXIT_UNCONFIRMED = 3
 """Exit code of ``cblrs camera`` when messages remain in its spool."""
-
-
-def add_mqtt_options(parser: argparse.ArgumentParser) -> None:
-    """Broker address, login and TLS options shared by ``camera`` and ``matcher``."""
-    group = parser.add_argument_group("broker")
-    group.add_argument(
-        "--broker",
-        default="127.0.0.1:1883",
-        metavar="HOST[:PORT]",
-        help="MQTT broker (default 127.0.0.1:1883)",
-    )
-    group.add_argument("--username", help="MQTT user name (default: anonymous)")
-    group.add_argument(
-        "--password-file",
-        type=Path,
-        help=f"file holding the MQTT password (default: ${PASSWORD_ENVIRONMENT})",
-    )
-    group.add_argument("--ca-file", type=Path, help="CA certificate of the broker; enables TLS")
-    group.add_argument("--cert-file", type=Path, help="client certificate (PEM) for TLS")
-    group.add_argument("--key-file", type=Path, help="client certificate key (PEM) for TLS")
-    group.add_argument(
-        "--client-id",
-        help="MQTT client id (cameras: cblrs-camera-PLANE-CAMERA; matchers: the user name or "
-        "matcherPLANE); a restarted matcher resumes its session under the same id",
-    )
-
-
-def parse_broker(text: str) -> tuple[str, int]:
-    """``HOST[:PORT]`` -> (host, port); one sentence for anything else."""
-    host, separator, port_text = text.rpartition(":") if ":" in text else (text, "", "1883")
-    if not host.strip():
-        raise UsageError(f"--broker {text!r} names no host; write HOST or HOST:PORT.")
-    if not (port_text.isascii() and port_text.isdigit()) or not 1 <= int(port_text) <= 65535:
-        raise UsageError(
-            f"--broker {text!r}: the port must be a number from 1 to 65535."
-            if separator else f"--broker {text!r} must be HOST or HOST:PORT."
-        )
-    return host.strip(), int(port_text)
-
-
-def mqtt_settings(args: argparse.Namespace) -> Any:
-    """:class:`MqttSettings` from the broker options; the password never comes from argv."""
-    # lazy: a subcommand imports the library when it runs, so its --help starts fast
-    from cblrs.runtime.transport.mqtt_transport import MqttSettings
-
-    host, port = parse_broker(args.broker)
-    password = read_password(args)
-    for name in ("ca_file", "cert_file", "key_file"):
-        path = getattr(args, name)
-        if path is not None and not path.is_file():
-            raise InputError(f"--{name.replace('_', '-')} {path} does not exist.")
-    return MqttSettings(
-        host=host,
-        port=port,
-        username=args.username,
-        password=password,
-        ca_file=args.ca_file,
-        cert_file=args.cert_file,
-        key_file=args.key_file,
-        protocol=getattr(args, "mqtt_version", "5"),
-    )
-
-
-def read_password(args: argparse.Namespace) -> str | None:
-    """The password of ``--password-file`` (or the environment, with ``--username``)."""
-    if args.password_file is not None:
-        try:
-            return args.password_file.read_text().strip()
-        except OSError as error:
-            raise UsageError(
-                f"cannot read --password-file {args.password_file}: {error}."
-            ) from None
-    if args.username is not None:
-        return os.environ.get(PASSWORD_ENVIRONMENT)
-    return None
-
-
-def connect_or_queue(transport: Any, where: str = "in memory") -> None:
-    """Connect; if the broker cannot be reached, say so at once and keep trying.
-
-    A refused login is an error; an absent broker is not: messages wait (``where``) meanwhile.
-    """
-    # lazy: a subcommand imports the library when it runs, so its --help starts fast
-    from cblrs.runtime.transport.protocol import TransportError
-
-    try:
-        transport.connect()
-    except TransportError as error:
-        if "refused the connection" in str(error):
-            raise
-        logger.warning(
-            "%s Messages wait %s; reconnecting every %g s at most.",
-            str(error).rstrip("."), where,
-            getattr(transport.settings, "reconnect_max_s", 5.0),
-        )
-        transport.connect(wait=False)
-
-
-def install_stop_handlers(stop) -> None:
-    """Call ``stop()`` on SIGINT / SIGTERM (main thread only)."""
-
-    def handle(signum, frame) -> None:
-        logger.info("%s: stopping", signal.Signals(signum).name)
-        stop()
-
-    signal.signal(signal.SIGINT, handle)
-    signal.signal(signal.SIGTERM, handle)
+STOP_DEADLINE_S = 15.0
+"""A stopped camera ends within this long even if a library call blocks it (a stream that
+stopped sending); its clean stop waits STOP_FLUSH_S (5 s) for the broker at most."""
 
 
 def register(subparsers) -> None:
@@ -290,7 +193,7 @@ def register(subparsers) -> None:
     )
     add_backbone_options(parser, matcher=False)
     add_output_options(parser)
-    parser.set_defaults(handler=run)
+    parser.set_defaults(handler=run, stop_signals=(STOP_DEADLINE_S, EXIT_UNCONFIRMED))
 
 
 def load_reference(args: argparse.Namespace, expected_size: tuple[int, int] | None):
@@ -464,7 +367,25 @@ def check_delivery_options(args: argparse.Namespace) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    """Run ``cblrs camera`` with its parsed arguments; the exit code."""
+    """Run ``cblrs camera`` with its parsed arguments; the exit code.
+
+    SIGINT/SIGTERM (:mod:`cblrs.cli.stopping`): while it starts, it stops at once; once it
+    sends, it stops after the current frame, waits a few seconds for the broker and keeps
+    the rest in its spool; a second signal stops it at once."""
+    held: dict[str, Any] = {}
+    try:
+        return _run(args, args.signals, held)
+    except Interrupted as interrupted:
+        where = ("while starting" if "spool" not in held
+                 else "at once" if "sending" in held else "while connecting")
+        kept = held.get("unconfirmed", 0)
+        print(f"cblrs camera: stopped by {interrupted.name} {where}; "
+              + (f"{kept} messages kept in {held['spool']}, sent at the next start."
+                 if kept else "nothing left to send."), file=sys.stderr)
+        return EXIT_UNCONFIRMED if kept else 0
+
+
+def _run(args: argparse.Namespace, signals: Any, held: dict[str, Any]) -> int:
     # lazy: a subcommand imports the library when it runs, so its --help starts fast
     from cblrs.runtime.camera.camera_node import CameraNode, camera_last_will
     from cblrs.runtime.camera.spool import Spool, run_identity
@@ -492,6 +413,7 @@ def run(args: argparse.Namespace) -> int:
     spool_path = args.spool if args.spool is not None else folder / f"{plane_id}-{args.camera}.db"
     spool = Spool(spool_path, max_bytes=int(args.spool_max_mb * 2**20),
                   run=run_identity(vars(args), plane_id))
+    held["spool"] = spool_path
     if len(spool):
         logger.info("camera %s: %d unconfirmed messages from an earlier run are sent first",
                     args.camera, len(spool))
@@ -521,20 +443,26 @@ def run(args: argparse.Namespace) -> int:
         resend_after_s=args.resend_after,
         clear_retained=True,
     )
-    install_stop_handlers(node.stop)
     started = time.perf_counter()
     try:
+        # A signal while connecting (a broker that does not answer) ends it at once.
         connect_or_queue(transport, f"in the spool {spool_path}")
+        signals.arm(node.stop)
+        held["sending"] = True
         report = node.run(frames, connect=False)
     except BaseException:
+        held["unconfirmed"] = len(spool)
         transport.close(unclean=True, timeout=1.0)
         spool.close()
         raise
-    transport.close(timeout=2.0)
+    # Stopped by a signal: what the broker has not taken stays in the spool anyway.
+    transport.close(timeout=1.0 if signals.received else 2.0)
     spool.close()
+    signals.finished()
     summary = report.to_dict()
     summary["wall_s"] = time.perf_counter() - started
     summary["spool"] = str(spool_path)
+    summary["stopped_by"] = signals.received
     if args.json:
         print_json(summary)
     else:

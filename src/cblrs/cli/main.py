@@ -10,6 +10,12 @@ Exit codes, the same for every subcommand: 0 success; 2 a usage error (argparse'
 (:class:`cblrs.errors.CblrsError`, e.g. :class:`~cblrs.cli.common.InputError` for a missing
 file, unreadable data, an unreachable broker); 130 interrupted. Errors are printed as one
 sentence on stderr; anything else is a bug and keeps its traceback.
+
+A service command that sets ``stop_signals=(deadline_s, watchdog exit code)`` among its
+parser's defaults (``camera``, ``matcher``) gets SIGINT/SIGTERM handled by
+:class:`~cblrs.cli.stopping.StopSignals` (``args.signals``): it arms it once it can stop
+cleanly; a signal before that, or a second one, ends it at once with one line (exit 0 while
+starting, 128 + the signal's number when a clean stop was cut short).
 """
 
 from __future__ import annotations
@@ -22,6 +28,7 @@ import sys
 from cblrs import __version__
 from cblrs.cli.common import UsageError, resolve_dataset
 from cblrs.cli.examples import decorate
+from cblrs.cli.stopping import Interrupted, StopSignals
 from cblrs.errors import CblrsError
 
 # Subcommand modules, in the order `cblrs --help` lists them, with the one line `cblrs --help`
@@ -124,6 +131,11 @@ def main(argv: list[str] | None = None) -> int:
     if not getattr(args, "handler", None):
         parser.print_help()
         return 2
+    signals = None
+    if getattr(args, "stop_signals", None) is not None:
+        deadline_s, code = args.stop_signals
+        signals = args.signals = StopSignals(f"cblrs {args.command}", deadline_s,
+                                             lambda: code).install()
     try:
         resolve_dataset(args)
         return int(args.handler(args) or 0)
@@ -133,8 +145,16 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"cblrs {args.command}: interrupted", file=sys.stderr)
         return 130
+    except Interrupted as interrupted:
+        armed = signals is not None and signals.armed
+        print(f"cblrs {args.command}: stopped by {interrupted.name} "
+              + ("at once (a second signal)." if armed else "while starting."), file=sys.stderr)
+        return interrupted.exit_code if armed else 0
     except BrokenPipeError:
         return 0
+    finally:
+        if signals is not None:
+            signals.restore()
 
 
 if __name__ == "__main__":

@@ -14,11 +14,7 @@ from pathlib import Path
 from typing import Any
 
 from cblrs.cli.backbone import add_backbone_options, matcher_transport, uses_nats
-from cblrs.cli.camera import (
-    add_mqtt_options,
-    install_stop_handlers,
-    mqtt_settings,
-)
+from cblrs.cli.camera import add_mqtt_options, mqtt_settings
 from cblrs.cli.common import (
     InputError,
     UsageError,
@@ -160,7 +156,8 @@ def register(subparsers) -> None:
     add_backbone_options(parser, matcher=True)
     parser.add_argument("--json", action="store_true", help="print the final summary as JSON")
     parser.add_argument("--quiet", action="store_true", help="no progress output")
-    parser.set_defaults(handler=run)
+    # SIGTERM: a clean stop; ended by a watchdog (exit 1) after 25 s (cblrs up waits 30 s)
+    parser.set_defaults(handler=run, stop_signals=(25.0, 1))
 
 
 def parse_options(items: list[str]) -> dict[str, Any]:
@@ -345,8 +342,8 @@ def run(args: argparse.Namespace) -> int:
         analytics=analytics,
         metrics=metrics,
         live_interval_s=args.live_interval or None,
-        retrack=retrack_policy(args), alerts=alerts, alert_senders=senders,
-        camera_fps=camera_fps(args))
+        retrack=retrack_policy(args), alerts=None if args.prepare else alerts,
+        alert_senders=senders, camera_fps=camera_fps(args))
     if metrics is not None:
 
         def exposition() -> bytes:
@@ -360,7 +357,6 @@ def run(args: argparse.Namespace) -> int:
         except Exception:
             store.close()
             raise
-    install_stop_handlers(stop.set)
     started = time.perf_counter()
     # What is alive now (modules, the matcher) stays for the life of the process: keep it out
     # of the garbage collector's full passes, which otherwise pause every thread for tens of
@@ -387,12 +383,12 @@ def run(args: argparse.Namespace) -> int:
         transport.close(unclean=False, timeout=1.0)
         store.close()
         raise
+    args.signals.arm(stop.set)  # until now a signal ends the start-up at once (cli.stopping)
     if not args.quiet:
         print(
             f"matcher {matcher_id}: plane {plane_id}, cameras {', '.join(names)}, db {args.db}"
-            + (" (preparing: exits once subscribed)" if args.prepare else ""),
-            file=sys.stderr,
-        )
+            + (f", cameras at {args.camera_fps:g} fps at most" if args.camera_fps else "")
+            + (" (preparing: exits once subscribed)" if args.prepare else ""), file=sys.stderr)
         print(position_summary(site, names, options, args.matcher), file=sys.stderr)
         if analytics is not None:
             print(f"analytics: {len(analytics.places.lines)} counting lines, "

@@ -43,6 +43,8 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import weakref
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -61,6 +63,10 @@ STATIC = Path(__file__).parent / "static"
 KEEPALIVE_S = 15.0
 """A live stream says something this often when the plane is quiet (and checks that its
 session is still open)."""
+STREAMS_PER_USER = 8
+"""Live streams and replays one user may hold open at once, over all their sessions and
+tokens (a page holds one): each holds a queue or a database connection, so one viewer could
+otherwise take up the dashboard's memory and connections by opening them by the thousand."""
 
 
 @dataclass
@@ -166,6 +172,39 @@ def create_app(config: DashboardConfig, auth: Any) -> Any:
     scene_cache: dict[str, Any] = {}
     places_lock = asyncio.Lock()  # one save of the site file at a time
     logins = asyncio.Semaphore(2)  # scrypt takes 128 MiB and a good part of a second each
+    open_streams: dict[str, int] = {}  # user -> live streams and replays open
+
+    def take_stream(user: str) -> Callable[[], None] | None:
+        """Count one more stream of ``user``: the call that releases it, or None (at the
+        limit)."""
+        if open_streams.get(user, 0) >= STREAMS_PER_USER:
+            logger.warning("dashboard: refused a stream to %s: %d open", user,
+                           STREAMS_PER_USER)
+            return None
+        open_streams[user] = open_streams.get(user, 0) + 1
+        released = False
+
+        def release() -> None:
+            nonlocal released
+            if not released:
+                released = True
+                left = open_streams.pop(user, 1) - 1
+                if left > 0:
+                    open_streams[user] = left
+
+        return release
+
+    def streaming(body: Any, release: Callable[[], None]) -> Any:
+        """The event stream of ``body``, whose end (or a body never started, when the page
+        left first) gives its slot back."""
+        weakref.finalize(body, release)
+        return StreamingResponse(body, media_type="text/event-stream",
+                                 headers={"Cache-Control": "no-cache"})
+
+    def too_many_streams(user: str) -> Any:
+        return JSONResponse({"error": f"{user} has {STREAMS_PER_USER} live streams and "
+                                      "replays open, the most one user may; close a page "
+                                      "first."}, status_code=429)
 
     def scene(plane: int | None = -1) -> dict[str, Any]:
         """The scene of ``plane`` (None: every plane; the default: the configured one)."""
@@ -279,6 +318,9 @@ def create_app(config: DashboardConfig, auth: Any) -> Any:
         except ValueError as error:
             return refusal(error, 404)
         identity = request.state.identity
+        release = take_stream(identity.user)
+        if release is None:
+            return too_many_streams(identity.user)
         subscriber = feed.subscribe(asyncio.get_running_loop(), plane)
 
         async def body():
@@ -293,9 +335,9 @@ def create_app(config: DashboardConfig, auth: Any) -> Any:
                     yield sse(item)
             finally:
                 feed.unsubscribe(subscriber)
+                release()
 
-        return StreamingResponse(body(), media_type="text/event-stream",
-                                 headers={"Cache-Control": "no-cache"})
+        return streaming(body(), release)
 
     def open_replay() -> StoreReplay:
         if config.database is None:
@@ -321,17 +363,22 @@ def create_app(config: DashboardConfig, auth: Any) -> Any:
             start = float(start_text) if start_text else None
         except ValueError:
             return JSONResponse({"error": "speed and start must be numbers."}, status_code=400)
+        identity = request.state.identity
+        release = take_stream(identity.user)
+        if release is None:
+            return too_many_streams(identity.user)
         try:
             stored = open_replay()
         except ReplayError as error:
+            release()
             return JSONResponse({"error": str(error)}, status_code=404)
         messages = stored.messages(speed, start)
         try:
             first = await messages.__anext__()  # errors (speed, empty run) as an answer
         except ReplayError as error:
             stored.close()
+            release()
             return JSONResponse({"error": str(error)}, status_code=400)
-        identity = request.state.identity
 
         async def body():
             try:
@@ -343,9 +390,9 @@ def create_app(config: DashboardConfig, auth: Any) -> Any:
                     yield sse(item)
             finally:
                 stored.close()
+                release()
 
-        return StreamingResponse(body(), media_type="text/event-stream",
-                                 headers={"Cache-Control": "no-cache"})
+        return streaming(body(), release)
 
     # -- calibration (admins) -------------------------------------------------------------
 

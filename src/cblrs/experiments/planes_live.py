@@ -4,8 +4,8 @@ The street of :mod:`cblrs.datasets.city` is written as a site file and every pla
 are rendered to references; then, on a :class:`~cblrs.runtime.broker.nats_server.NatsCluster`
 of three nodes:
 
-1. ``cblrs linker --site ... --backbone nats://...`` and one ``cblrs matcher --backbone
-   nats://...`` per plane start (processes);
+1. one ``cblrs matcher --backbone nats://...`` per plane starts, then, once they are up,
+   ``cblrs linker --site ... --backbone nats://...`` (processes);
 2. one camera node per camera (threads, paced in real time: the fusion tracker's ages and
    motion models are in seconds) publishes its plane's messages to JetStream;
 3. once the chosen plane's matcher has tracked a share of its messages it is killed
@@ -385,12 +385,11 @@ def run_live_city(
     # A cluster accepts clients before it has elected its JetStream leader; a matcher that
     # asks for its lease then is refused ("no response from stream").
     wait_for(lambda: _jetstream_ready(probe), setup.timeout_s, "JetStream on the cluster")
-    linker = start_linker(city, url, run.linker_database, setup)
     matchers = {
         plane: start_matcher(city, url, plane, databases[plane], f"host-a{plane}", setup)
         for plane in planes
     }
-    processes = [linker, *matchers.values()]
+    processes = list(matchers.values())
     try:
         for plane in planes:
             _wait_for_service(
@@ -402,6 +401,11 @@ def run_live_city(
                 _log_of(databases[plane]),
             )
             _ended(matchers[plane], f"plane {plane}'s matcher", _log_of(databases[plane]))
+        # The linker starts once the matchers are up: its --idle-exit counts from its start,
+        # and four matchers starting on a loaded machine took longer than that (it ended
+        # before the first track update). It reads the planes' streams from their start.
+        linker = start_linker(city, url, run.linker_database, setup)
+        processes.append(linker)
         _wait_for_service(
             lambda: "online" in statuses or linker.poll() is not None,
             setup.timeout_s,

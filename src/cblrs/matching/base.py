@@ -128,18 +128,21 @@ def decode_messages(
             np.zeros((0, 4)), np.zeros(0), np.zeros(0, np.int64),
         )
     colour = np.concatenate([message.colour for message in messages])
-    camera = np.concatenate(
-        [np.full(len(message), cameras[message.camera_id], np.int64) for message in messages]
+    camera = np.repeat(
+        np.array([cameras[message.camera_id] for message in messages], np.int64),
+        [len(message) for message in messages],
     )
     world_xy, valid, _ = planes.decode(colour)
-    return Observations(
-        world_xy=world_xy[valid],
-        colour=colour[valid],
-        camera=camera[valid],
-        xyxy=np.concatenate([message.xyxy for message in messages])[valid],
-        confidence=np.concatenate([message.confidence for message in messages])[valid],
-        class_id=np.concatenate([message.class_id for message in messages])[valid],
+    observations = Observations(
+        world_xy=world_xy,
+        colour=colour,
+        camera=camera,
+        xyxy=np.concatenate([message.xyxy for message in messages]),
+        confidence=np.concatenate([message.confidence for message in messages]),
+        class_id=np.concatenate([message.class_id for message in messages]),
     )
+    # (Usually every detection is located: then the fresh concatenated columns as they are.)
+    return observations if valid.all() else observations[valid]
 
 
 def instant_frame(messages: Sequence[CameraMessage]) -> int:

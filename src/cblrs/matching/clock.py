@@ -235,11 +235,12 @@ class ClockModel:
         weighted = np.einsum("nij,nj->ni", information, world_xy)
         # Sums over each track's views (bincount: far faster than np.add.at).
         groups = int(track.max()) + 1
-        total = np.stack([np.bincount(track, information[:, 0, 0], groups),
-                          np.bincount(track, information[:, 0, 1], groups),
-                          np.bincount(track, information[:, 1, 1], groups)], axis=1)
-        vector = np.stack([np.bincount(track, weighted[:, 0], groups),
-                           np.bincount(track, weighted[:, 1], groups)], axis=1)
+        # The five sums in one bincount, each adding its terms in view order as five would.
+        terms = np.column_stack([information[:, 0, 0], information[:, 0, 1],
+                                 information[:, 1, 1], weighted])  # (N, 5)
+        keys = (np.asarray(track, np.int64)[:, None] * 5 + np.arange(5)).reshape(-1)
+        sums = np.bincount(keys, terms.reshape(-1), 5 * groups).reshape(groups, 5)
+        total, vector = sums[:, :3], sums[:, 3:]
         label = track
         others = np.empty_like(information)  # the information of the other views
         others[:, 0, 0] = total[track, 0] - information[:, 0, 0]
@@ -355,13 +356,12 @@ class ClockModel:
         horizon = float(time_s) - 2.5 * self.max_offset_s - self.search_every_s
         while self._history and self._history[0][0] < horizon:
             self._history.popleft()
-        for one in np.unique(camera).tolist():
+        cameras, first = np.unique(camera, return_index=True)  # each one's first detection
+        for one, stamp in zip(cameras.tolist(), raw_time[first].tolist(), strict=True):
             samples = self._samples[one]
-            mine = camera == one
-            stamp = float(raw_time[mine][0])
             if samples and stamp - samples[-1][0] < self.history_step_s:
                 continue
-            samples.append((stamp, world_xy[mine].copy()))
+            samples.append((stamp, world_xy[camera == one].copy()))
             while samples and samples[0][0] - self.offsets[one] < horizon:
                 samples.popleft()
 
@@ -443,6 +443,9 @@ class ClockModel:
             self.offsets -= _median(self.offsets[informed])
 
     def _report(self, time_s: float) -> None:
+        if not self._flagged.any() and float(np.abs(self.offsets).max(initial=0.0)) <= (
+                self.tolerance_s):
+            return  # no camera off, none was: nothing to report or change
         off = np.abs(self.offsets) > self.tolerance_s
         back = np.abs(self.offsets) <= 0.5 * self.tolerance_s
         for camera in np.flatnonzero(off & ~self._flagged).tolist():

@@ -11,6 +11,8 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
+_SMALL_GRAPH = 200  # nodes + edges up to which a search in Python beats numpy's rounds
+
 
 def component_labels(
     node_count: int, first: NDArray[np.integer], second: NDArray[np.integer]
@@ -41,6 +43,8 @@ def component_labels(
     if len(first) and (min(first.min(), second.min()) < 0
                        or max(first.max(), second.max()) >= node_count):
         raise ValueError(f"edge ends must lie in 0..{node_count - 1}")
+    if node_count + len(first) <= _SMALL_GRAPH:
+        return _small_component_labels(node_count, first.tolist(), second.tolist())
     # Every node points to a node of lower or equal index; a root points to itself. Each
     # round hooks the root of every edge's higher end under the lower root, then jumps
     # pointers until each node points at its root. The lowest node of a component is never
@@ -63,3 +67,28 @@ def component_labels(
     # components by their lowest node.
     number = np.cumsum(root == np.arange(node_count)) - 1
     return number[root].astype(np.int64, copy=False)
+
+
+def _small_component_labels(node_count: int, first: list[int], second: list[int]
+                            ) -> NDArray[np.int64]:
+    """:func:`component_labels` of a small graph: the same labels, by a search in Python (a
+    window's graph of a few detections and tracks costs microseconds, not the numpy calls of
+    the vectorised rounds). Components are numbered as found, from the lowest node up."""
+    neighbours: list[list[int]] = [[] for _ in range(node_count)]
+    for one, other in zip(first, second, strict=True):
+        neighbours[one].append(other)
+        neighbours[other].append(one)
+    label = [-1] * node_count
+    count = 0
+    for start in range(node_count):
+        if label[start] >= 0:
+            continue
+        label[start] = count
+        stack = [start]
+        while stack:
+            for other in neighbours[stack.pop()]:
+                if label[other] < 0:
+                    label[other] = count
+                    stack.append(other)
+        count += 1
+    return np.array(label, np.int64)

@@ -36,20 +36,39 @@ def predict(
     """
     if dt <= 0.0 or len(state) == 0:
         return state.copy(), covariance.copy()
+    transition, unit_noise = _motion_matrices(float(dt))
+    state = state @ transition.T
+    variance = np.asarray(acceleration_sigma, np.float64) ** 2
+    if variance.ndim == 0:
+        variance = np.full(len(state), variance)
+    covariance = transition @ covariance @ transition.T + variance[:, None, None] * unit_noise
+    return state, covariance
+
+
+def _motion_matrices(dt: float) -> tuple[FloatArray, FloatArray]:
+    """The transition and unit process noise over ``dt`` (read only): kept for the last few
+    steps, since a stream's steps repeat (its frame period)."""
+    cached = _MOTION_CACHE.get(dt)
+    if cached is not None:
+        return cached
     transition = np.eye(4)
     transition[0, 2] = transition[1, 3] = dt
-    state = state @ transition.T
     # The same block on (x, vx) and (y, vy), written element by element: np.ix_ and
     # broadcast_to cost more than the arithmetic, several times a window.
     unit_noise = np.zeros((4, 4))
     unit_noise[0, 0] = unit_noise[1, 1] = dt**4 / 4
     unit_noise[0, 2] = unit_noise[2, 0] = unit_noise[1, 3] = unit_noise[3, 1] = dt**3 / 2
     unit_noise[2, 2] = unit_noise[3, 3] = dt**2
-    variance = np.asarray(acceleration_sigma, np.float64) ** 2
-    if variance.ndim == 0:
-        variance = np.full(len(state), variance)
-    covariance = transition @ covariance @ transition.T + variance[:, None, None] * unit_noise
-    return state, covariance
+    transition.flags.writeable = unit_noise.flags.writeable = False
+    if len(_MOTION_CACHE) >= _MOTION_CACHE_SIZE:
+        del _MOTION_CACHE[next(iter(_MOTION_CACHE))]
+    _MOTION_CACHE[dt] = transition, unit_noise
+    return transition, unit_noise
+
+
+_MOTION_CACHE: dict[float, tuple[FloatArray, FloatArray]] = {}
+_MOTION_CACHE_SIZE = 16
+_SWITCH_CACHE: dict[tuple[float, bytes], FloatArray] = {}  # transition_matrix, read only
 
 
 def measurement_matrices(measurement_variance: FloatArray | float, count: int) -> FloatArray:
@@ -83,12 +102,9 @@ def inverse_2x2(matrices: FloatArray) -> tuple[FloatArray, FloatArray]:
     a, b = matrices[:, 0, 0], matrices[:, 0, 1]
     c, d = matrices[:, 1, 0], matrices[:, 1, 1]
     determinant = a * d - b * c
-    inverse = np.empty_like(matrices)
-    inverse[:, 0, 0] = d / determinant
-    inverse[:, 0, 1] = -b / determinant
-    inverse[:, 1, 0] = -c / determinant
-    inverse[:, 1, 1] = a / determinant
-    return inverse, determinant
+    # (d, -b, -c, a) / determinant, element by element as written out, in one division.
+    inverse = np.stack((d, -b, -c, a), axis=1) / determinant[:, None]
+    return inverse.reshape(matrices.shape), determinant
 
 
 def update(
@@ -111,6 +127,14 @@ def update(
     if len(state) == 0:
         return state.copy(), covariance.copy()
     innovation_inverse, _ = inverse_2x2(innovation_covariance(covariance, measurement_variance))
+    return _update(state, covariance, measurement_xy, innovation_inverse)
+
+
+def _update(
+    state: FloatArray, covariance: FloatArray, measurement_xy: FloatArray,
+    innovation_inverse: FloatArray,
+) -> tuple[FloatArray, FloatArray]:
+    """:func:`update` given the inverse of the innovation covariance."""
     gain = covariance[:, :, :2] @ innovation_inverse  # (T, 4, 2)
     residual = measurement_xy - state[:, :2]
     state = state + np.einsum("tij,tj->ti", gain, residual)
@@ -197,7 +221,14 @@ def predict_models(
     """
     if dt <= 0.0 or len(mode_state) == 0:
         return mode_state.copy(), mode_covariance.copy(), probability.copy()
-    transition = transition_matrix(dt, sojourn_s)
+    sojourn = np.asarray(sojourn_s, np.float64)
+    key = (float(dt), sojourn.tobytes())
+    transition = _SWITCH_CACHE.get(key)
+    if transition is None:  # (a stream's steps repeat: its frame period)
+        transition = transition_matrix(dt, sojourn)
+        if len(_SWITCH_CACHE) >= _MOTION_CACHE_SIZE:
+            del _SWITCH_CACHE[next(iter(_SWITCH_CACHE))]
+        _SWITCH_CACHE[key] = transition
     predicted = probability @ transition  # (T, M)
     weight = transition[None] * probability[:, :, None] / np.maximum(
         predicted[:, None, :], 1e-300
@@ -248,8 +279,8 @@ def update_models(
         residual = measurement_xy - state[:, :2]
         squared = np.einsum("ti,tij,tj->t", residual, inverse, residual)
         log_likelihood[:, mode] = -0.5 * (squared + np.log(determinant))
-        new_state[:, mode], new_covariance[:, mode] = update(
-            state, covariance, measurement_xy, measurement
+        new_state[:, mode], new_covariance[:, mode] = _update(
+            state, covariance, measurement_xy, inverse
         )
     log_likelihood -= log_likelihood.max(axis=1, keepdims=True)
     weighted = probability * np.exp(log_likelihood)

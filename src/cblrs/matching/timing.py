@@ -35,8 +35,8 @@ clock-corrected ones inside the fusion tracker (:class:`WindowBuffer`).
 
 from __future__ import annotations
 
-import itertools
 import math
+import operator
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -112,7 +112,7 @@ class PeriodEstimator:
             # period taken too long would predict a camera's next frame too late (a window
             # released before that frame arrived); one taken too short only waits longer.
             # (A handful of numbers: plain Python is faster than numpy here.)
-            self._period[camera] = min(b - a for a, b in itertools.pairwise(times))
+            self._period[camera] = min(map(operator.sub, times[1:], times[:-1]))
 
     @property
     def periods(self) -> FloatArray:

@@ -12,6 +12,7 @@ A site file is YAML (``.yaml``/``.yml``) or JSON (``.json``) holding::
     pseudo: {key_id}                            # a pseudo site (cblrs.privacy)
     timezone: Europe/Zurich                     # IANA zone of local times (cblrs.localtime)
     opening_hours: {mon-fri: "07:00-19:00", sun: closed}   # counting and alerts (idem)
+    camera_fps: 10                              # cameras' frame rate when they give no fps
 
 Every section but ``version`` may be left out; each command checks what it needs. A camera's
 geometry is exactly one of: ``calibration`` (a file: cblrs camera JSON, an AI City
@@ -45,7 +46,7 @@ from pydantic import (
 from cblrs.errors import CblrsError
 from cblrs.localtime import LocalCalendar, LocalTimeError, OpeningHours, time_zone
 from cblrs.names import check_name
-from cblrs.site.sources import DetectorModel, SourceModel
+from cblrs.site.sources import DetectorModel, FrameRate, SourceModel
 
 SITE_VERSION = 1
 
@@ -256,6 +257,9 @@ class CameraModel(_Strict):
     plane: int | None = Field(default=None, ge=1, le=65535)
     # What `cblrs up` runs for this camera (absent: the camera runs elsewhere, or not yet).
     source: SourceModel | None = None
+    # The frames per second it sends (default: the site's camera_fps, else its source's fps);
+    # `cblrs up` tells its plane's matcher the fastest (cblrs matcher --camera-fps).
+    fps: FrameRate | None = None
 
     @model_validator(mode="before")
     @classmethod
@@ -398,6 +402,7 @@ class SiteModel(_Strict):
     alerts: dict[str, Any] | None = None  # cblrs.alerts.rules checks it
     timezone: Annotated[str | None, AfterValidator(_zone_name)] = None
     opening_hours: Annotated[dict[str, Any] | None, AfterValidator(_hours)] = None
+    camera_fps: FrameRate | None = None  # a camera's fps when it gives none (cblrs up)
 
     @model_validator(mode="after")
     def _hours_need_zone(self) -> SiteModel:

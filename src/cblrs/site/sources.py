@@ -29,6 +29,23 @@ def _colour(value: Any) -> list[float]:
     return [float(item) for item in value]
 
 
+MAX_FPS = 1000.0
+
+
+def _frame_rate(value: Any) -> float:
+    """A camera's frame rate: a finite number of frames per second in (0, 1000]."""
+    what = f"expected a frame rate: frames per second, a number above 0 and at most {MAX_FPS:g}"
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        raise ValueError(f"{what}, e.g. 10 (got {value!r})")
+    if not (math.isfinite(value) and 0 < value <= MAX_FPS):
+        raise ValueError(f"{what} (got {value!r})")
+    return float(value)
+
+
+FrameRate = Annotated[float, BeforeValidator(_frame_rate)]
+"""A frame rate key of the site file (a camera's ``fps``, the site's ``camera_fps``)."""
+
+
 class DetectorModel(_Strict):
     """The detector a camera runs on its frames (``cblrs camera --detector``)."""
 
@@ -71,7 +88,7 @@ class SourceModel(_Strict):
     path: str | None = None
     url: str | None = None
     frames: Annotated[str | None, AfterValidator(_frame_range)] = None
-    fps: float | None = Field(default=None, gt=0)
+    fps: FrameRate | None = None
     format: Literal["mot", "aicity"] = "mot"
     detector: DetectorModel | None = None
     realtime: bool = True

@@ -54,11 +54,13 @@ class UpError(CblrsError):
 
 @dataclass(frozen=True)
 class CameraRun:
-    """One camera ``cblrs up`` runs: its name, the plane it publishes to and its source."""
+    """One camera ``cblrs up`` runs: its name, the plane it publishes to, its source and the
+    frames per second it sends (None: not known)."""
 
     name: str
     plane: int
     source: SourceModel
+    fps: float | None = None
 
 
 @dataclass(frozen=True)
@@ -228,10 +230,22 @@ class SitePlan:
              self.matcher_user(plane), *self.login(ADMIN)], ("broker",))
             for plane in self.planes]
 
+    def camera_fps(self, plane: int) -> float | None:
+        """The frame rate the matcher of ``plane`` is told (``--camera-fps``): its fastest
+        camera's; None when a camera of the plane has none (a rate set too low would make a
+        faster camera's frames late, so an unknown one is not guessed)."""
+        rates = [camera.fps for camera in self.cameras if camera.plane == plane]
+        if not rates or any(rate is None for rate in rates):
+            return None
+        return max(rate for rate in rates if rate is not None)
+
     def matcher_spec(self, plane: int, until_done: bool = False) -> ProcessSpec:
         argv = [*self.command, "matcher", "--site", str(self.site_path), "--plane", str(plane),
                 "--db", str(self.database(plane)), "--out-tracks", str(self.tracks_file(plane)),
                 *self.login(self.matcher_user(plane))]
+        fps = self.camera_fps(plane)
+        if fps is not None:
+            argv += ["--camera-fps", repr(fps)]
         if until_done:
             argv.append("--until-cameras-offline")
         return ProcessSpec(f"matcher-{plane}", "matcher", argv, ("broker",))
@@ -387,7 +401,9 @@ def make_plan(
         if plane is None:
             raise UpError(f"{site_path.name}: camera {spec.name!r} needs plane: (the site has "
                           f"planes {', '.join(map(str, planes))}).")
-        cameras.append(CameraRun(spec.name, plane, spec.source))
+        fps = next((rate for rate in (spec.fps, site.model.camera_fps, spec.source.fps)
+                    if rate is not None), None)
+        cameras.append(CameraRun(spec.name, plane, spec.source, fps))
         if check_files:
             for what, value in _files_of(spec.source):
                 if not (site.folder / value).exists():
@@ -498,6 +514,7 @@ def prepare(plan: SitePlan, *, render: bool = True) -> list[str]:
     plan.out.mkdir(parents=True, exist_ok=True)
     for folder in (plan.logs_dir, plan.out / "spool", plan.references_dir):
         folder.mkdir(parents=True, exist_ok=True)
+    os.chmod(plan.logs_dir, 0o700)  # the dashboard's log holds its admin login link
     saved = read_state(plan.out) or {}
     users = users_of(plan)
     fits = (plan.broker_config.is_file() and saved.get("users") == users

@@ -81,9 +81,15 @@ def systemd_units(plan: SitePlan, mosquitto: str = "/usr/sbin/mosquitto",
         if spec.role != "broker":
             lines += [f"User={user}", f"WorkingDirectory={plan.out}",
                       "Environment=PYTHONUNBUFFERED=1"]
+        if spec.role == "dashboard":
+            # Its output holds the admin login link: into a log only its user reads (the
+            # logs folder 0700, the file 0600 through the umask), never the journal, which
+            # the adm and systemd-journal groups read.
+            log = str(plan.logs_dir / f"{spec.name}.log").replace("%", "%%")
+            lines += [f"StandardOutput=append:{log}", "StandardError=inherit", "UMask=0077"]
         if spec.role == "camera":
-            # Its clean stop waits for the matcher's confirmations (--flush-timeout 30 s and
-            # --confirm-timeout 10 s at most); exit 3 leaves messages in its spool.
+            # A stop waits 5 s at most for the broker and ends within 15 s even when blocked
+            # (cblrs.cli.stopping); exit 3 leaves messages in its spool.
             lines += ["TimeoutStopSec=50", "SuccessExitStatus=3"]
         elif spec.role == "matcher":
             lines += ["TimeoutStopSec=40"]

@@ -51,7 +51,9 @@ observations of one point. Per instant:
    (stitching: decided at confirmation, no id ever rewritten); report the confirmed tracks
    seen now, and, once the cameras are known to miss the people nearer ones hide, a person
    missed by every camera whose every covering view has someone right in front of them
-   (hidden, for at most ``report_hidden_s``).
+   (hidden, for at most ``report_hidden_s``); a track that the other cameras covering its
+   place keep not seeing, not moving, is neither confirmed nor reported (support: a
+   detector's persistent false positive).
 
 Cameras need not be synchronised. Messages are fused in windows of nearby capture times
 (:mod:`cblrs.matching.timing`: a fraction of the shortest frame period wide, one message per
@@ -82,6 +84,7 @@ only where a track seen by two cameras or another camera's sure view confirms th
 :mod:`~cblrs.matching.fusion.birth` (6, 7), :mod:`~cblrs.matching.fusion.coverage` (7: where
 each camera sees), :mod:`~cblrs.matching.fusion.stitching` (7: new tracks continuing lost
 ones), :mod:`~cblrs.matching.fusion.occlusion` (7: people hidden behind others),
+:mod:`~cblrs.matching.fusion.support` (7: tracks the other covering cameras never see),
 :mod:`~cblrs.matching.fusion.clocks` (camera clocks),
 :mod:`~cblrs.matching.fusion.table` (what the stages share), :mod:`~cblrs.matching.fusion.state`
 (snapshots) and :mod:`~cblrs.matching.fusion.tracker` (the tracker, which runs them: 2 and 5

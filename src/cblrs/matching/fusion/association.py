@@ -93,11 +93,18 @@ class _Run:
         self.timestamp = timestamp
         self.cone = cone if cone is not None else ReachableCone(context)
         self._limits: tuple[np.ndarray, ...] | None = None  # computed at the first gate
+        self._turning: bool | None = None  # some track has a reachable cone (first gate)
 
     def _reachable(self, columns: np.ndarray, xy: np.ndarray, covariance: np.ndarray) -> np.ndarray:
         """(K,) bool: each position lies within its vehicle track's reachable cone (all True
         without a timestamp)."""
         if self.timestamp is None:
+            return np.ones(len(columns), dtype=bool)
+        if self._turning is None:  # only a class with a turning radius has a cone
+            context = self.context
+            self._turning = bool(np.isfinite(
+                context.class_turn_radius[context.class_slot(self.tracks.class_id)]).any())
+        if not self._turning:
             return np.ones(len(columns), dtype=bool)
         if self._limits is None:
             self._limits = self.cone.limits(self.tracks, self.timestamp)
@@ -402,8 +409,9 @@ class _Run:
         if not grouped.any():
             return assigned
         members, labels = precise[grouped], labels[grouped]
-        _, labels = np.unique(labels, return_inverse=True)
-        labels = labels.reshape(-1)
+        used = np.zeros(int(labels.max()) + 1, dtype=bool)  # labels renumbered 0..G-1
+        used[labels] = True
+        labels = (np.cumsum(used) - 1)[labels]
         group_count = int(labels.max()) + 1
         position, group_covariance, _ = fuse(
             labels, group_count, observed.world_xy[members], covariance[members]
@@ -511,8 +519,7 @@ def assign_per_camera(
     # pairs go to the solver, camera by camera.
     column_key = columns * camera_count + camera[rows]
     per_row = np.bincount(rows, minlength=count)
-    _, key_index, per_key = np.unique(column_key, return_inverse=True, return_counts=True)
-    trivial = (per_row[rows] == 1) & (per_key[key_index] == 1)
+    trivial = (per_row[rows] == 1) & (np.bincount(column_key)[column_key] == 1)
     if unassigned_cost is not None:
         taken = trivial & (cost <= unassigned_cost[rows])
     else:

@@ -24,6 +24,8 @@ from cblrs.matching.fusion.gaussian import (
 from cblrs.matching.fusion.table import FusionContext, TrackTable, largest_boxes
 from cblrs.matching.graph import component_labels
 
+_FEW_DETECTIONS = 64  # clusters renumbered in Python up to this many detections
+
 
 @dataclass
 class Born:
@@ -58,6 +60,10 @@ class Births:
 
     def birth(self, leftovers: Observations, covariance: np.ndarray, timestamp: float) -> Born:
         """Start a tentative track per cross-camera cluster of unassigned detections."""
+        if not len(leftovers):  # (most windows: every detection has a track)
+            return Born(TrackTable.empty(self.context.models, self.context.camera_count),
+                        np.zeros((0, self.context.camera_count), dtype=bool),
+                        np.zeros(0, np.int64), np.zeros((0, 4)))
         sigma = largest_sigma(covariance)
         labels = cluster_detections(
             leftovers.world_xy, leftovers.camera, sigma,
@@ -201,10 +207,10 @@ def cluster_detections(
     component = component_labels(count, first, second)
     size = np.bincount(component)
     edges = np.bincount(component[first], minlength=len(size))
-    cameras_in = np.bincount(
-        np.unique(component * (int(camera.max()) + 1) + camera) // (int(camera.max()) + 1),
-        minlength=len(size),
-    )
+    camera_slots = int(camera.max()) + 1
+    has_camera = np.zeros(len(size) * camera_slots, dtype=bool)
+    has_camera[component * camera_slots + camera] = True
+    cameras_in = has_camera.reshape(len(size), camera_slots).sum(axis=1)
     clean = (edges == size * (size - 1) // 2) & (cameras_in == size)
     label = component.copy()
     bad = np.flatnonzero(~clean)
@@ -224,6 +230,10 @@ def cluster_detections(
             label[members] = next_label + local
             next_label += len(members)
     # Renumber by first appearance so labels are stable and deterministic.
+    if count <= _FEW_DETECTIONS:  # (in Python: the same numbers, fewer numpy calls)
+        number: dict[int, int] = {}
+        return np.array([number.setdefault(one, len(number)) for one in label.tolist()],
+                        np.int64)
     _, first_index, inverse = np.unique(label, return_index=True, return_inverse=True)
     rank = np.empty(len(first_index), np.int64)
     rank[np.argsort(first_index, kind="stable")] = np.arange(len(first_index))

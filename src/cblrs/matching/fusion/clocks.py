@@ -56,10 +56,13 @@ class ClockLearning:
         recent = tracks.seen_by[rows] >= timestamp - _CORROBORATION_S
         recent[np.arange(len(rows)), camera] = False
         corroborated = recent.any(axis=1) & (tracks.ids[rows] >= 0)
-        self.clock.corroboration(
-            np.concatenate([camera, observed.camera[~matched]]),
-            np.concatenate([corroborated, np.zeros(int((~matched).sum()), dtype=bool)]),
-        )
+        if len(camera) == len(matched):  # every detection has a track
+            self.clock.corroboration(camera, corroborated)
+        else:
+            self.clock.corroboration(
+                np.concatenate([camera, observed.camera[~matched]]),
+                np.concatenate([corroborated, np.zeros(int((~matched).sum()), dtype=bool)]),
+            )
         if not corroborated.any():
             return
         use = np.flatnonzero(corroborated)
@@ -71,12 +74,13 @@ class ClockLearning:
             use = use[ids % share == self.turn % share]
             self.turn += 1
         track_rows = rows[use]
-        direction = measured.direction[matched][use]
+        views = np.flatnonzero(matched)[use]
+        direction = measured.direction[views]
         across = None
         if np.isfinite(self.context.camera_xy[camera[use], 0]).all():
             across = np.column_stack([-direction[:, 1], direction[:, 0]])
         self.clock.add_views(
-            camera[use], track_rows, observed.world_xy[matched][use], covariance[matched][use],
+            camera[use], track_rows, observed.world_xy[views], covariance[views],
             tracks.state[track_rows, 2:4], across, tracks.state[track_rows, :2],
             tracks.covariance[track_rows, :2, :2] + self.context.object_covariance,
         )

@@ -141,6 +141,16 @@ class FusionConfig:
             (:mod:`~cblrs.matching.fusion.low_confidence`). ByteTrack's split (0.5; run the
             detector lower, 0.1, to have low-confidence boxes at all). 0: every detection
             is high-confidence.
+        support_ratio: a track not clearly moving whose other covering cameras (all but the
+            one that sees it most) could have seen it for ``support_evidence_s``
+            camera-seconds and saw it less than this share of that time is neither
+            confirmed nor reported (the support stage,
+            :mod:`~cblrs.matching.fusion.support`: a detector's persistent false positive,
+            seen by one camera where others look). 0: off.
+        support_evidence_s: camera-seconds the other covering cameras must have had to
+            see a track before the support stage judges it.
+        support_memory_s: the support stage forgets what the cameras saw over this time
+            constant, seconds.
         tentative_max_age_s: a tentative track unseen this long is dropped, seconds.
         max_age_s: a confirmed track unseen this long is dropped, seconds.
         vehicle_footprint: move each vehicle detection along its camera's ray from where its
@@ -217,6 +227,9 @@ class FusionConfig:
     confirm_cameras: int = 2
     confirm_moving_mps: float = 0.5
     high_confidence: float = SURE_CONFIDENCE
+    support_ratio: float = 0.1
+    support_evidence_s: float = 2.0
+    support_memory_s: float = 10.0
     tentative_max_age_s: float = 1.0
     max_age_s: float = 2.0
     end_off_plane: bool = True
@@ -240,6 +253,7 @@ class FusionConfig:
             "initial_velocity_sigma", "gate_sigmas", "max_gate_m", "cluster_sigmas",
             "cluster_radius_m", "tentative_max_age_s", "max_age_s", "max_window_s",
             "window_fraction", "max_lag_s", "clock_tolerance_s", "stitch_sigmas",
+            "support_evidence_s", "support_memory_s",
         ):
             value = getattr(self, name)
             require(_positive(value), f"{name} must be a positive number, got {value!r}.")
@@ -302,6 +316,11 @@ class FusionConfig:
             and not isinstance(self.high_confidence, bool)
             and 0.0 <= self.high_confidence <= 1.0,
             f"high_confidence must be a number within 0..1, got {self.high_confidence!r}.",
+        )
+        require(
+            isinstance(self.support_ratio, (int, float))
+            and not isinstance(self.support_ratio, bool) and 0.0 <= self.support_ratio <= 1.0,
+            f"support_ratio must be a number within 0..1, got {self.support_ratio!r}.",
         )
         for name in ("class_measurement_sigma_m", "class_acceleration_sigma",
                      "class_turn_radius_m"):

@@ -26,6 +26,7 @@ import numpy as np
 from cblrs.plane import PlaneSet
 
 _MAX_CELLS = 250_000  # per camera: a finer grid over a very large plane is coarsened
+_FEW = 64  # detections counted one by one rather than through np.unique
 
 
 class Coverage:
@@ -84,8 +85,13 @@ class Coverage:
         column, row, inside = self._cells(world_xy[learning])
         flat = np.ravel_multi_index(
             (camera[learning][inside], column[inside], row[inside]), self.counts.shape)
-        cells, added = np.unique(flat, return_counts=True)
         # Saturating: a cell only needs to reach covering_count.
+        if len(flat) <= _FEW:  # (a window's few detections: cheaper than np.unique)
+            counts = self.counts.reshape(-1)
+            for cell in flat.tolist():
+                counts[cell] = min(counts[cell] + 1, self.covering_count)
+            return
+        cells, added = np.unique(flat, return_counts=True)
         self.counts.flat[cells] = np.minimum(self.counts.flat[cells] + added,
                                              self.covering_count)
 

@@ -78,12 +78,13 @@ def fuse(
     """
     information, _ = kalman.inverse_2x2(covariance)
     weighted = np.einsum("nij,nj->ni", information, world_xy)
-    total = np.zeros((count, 2, 2))
-    vector = np.zeros((count, 2))
-    for row in range(2):
-        vector[:, row] = np.bincount(labels, weighted[:, row], count)
-        for column in range(2):
-            total[:, row, column] = np.bincount(labels, information[:, row, column], count)
+    # The information matrices' and vectors' sums per label in one bincount: each of the six
+    # sums adds its terms in detection order, as six bincounts would.
+    terms = np.concatenate([information.reshape(-1, 4), weighted], axis=1)  # (N, 6)
+    keys = (np.asarray(labels, np.int64)[:, None] * 6 + np.arange(6)).reshape(-1)
+    sums = np.bincount(keys, terms.reshape(-1), 6 * count).reshape(count, 6)
+    total = sums[:, :4].reshape(count, 2, 2)
+    vector = sums[:, 4:]
     present = np.bincount(labels, minlength=count) > 0
     fused_covariance = np.full((count, 2, 2), np.nan)
     position = np.full((count, 2), np.nan)

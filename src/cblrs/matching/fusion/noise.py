@@ -15,6 +15,8 @@ from cblrs.matching.fusion.gaussian import (
 )
 from cblrs.matching.solvers import nnls
 
+_IDENTITY = np.eye(2)[None]  # read only
+
 
 class NoiseModel:
     """Online estimate of the detector's ground-position noise, along and across the ray.
@@ -167,18 +169,20 @@ class NoiseModel:
                                         first, second)
         # Per pair and coefficient, the (2, 2) matrix it multiplies in the sum of the two
         # covariances: along-ray constant and distance terms, across-ray ones.
-        identity = np.eye(2)[None]
+        identity = _IDENTITY
         parts = np.zeros((len(first), 4, 2, 2))
         for one in (first, second):
-            outer = direction[one][:, :, None] * direction[one][:, None, :]
+            ray = direction[one]
+            outer = ray[:, :, None] * ray[:, None, :]
             squared = (distance[one] ** 2)[:, None, None]
             along_squared = (along_distance[one] ** 2)[:, None, None]
             if isotropic:
                 outer = 0.5 * np.broadcast_to(identity, outer.shape)
+            across = identity - outer
             parts[:, 0] += outer
             parts[:, 1] += along_squared * outer
-            parts[:, 2] += identity - outer
-            parts[:, 3] += squared * (identity - outer)
+            parts[:, 2] += across
+            parts[:, 3] += squared * across
         # Whiten each pair by its covariance under the current model (``L^-1`` of its
         # Cholesky factor): the fit is then Fisher scoring for the variance components,
         # where every pair carries about the same information. Unweighted, the large
@@ -195,8 +199,9 @@ class NoiseModel:
         # beyond is shrunk so a wrong association cannot inflate the noise.
         squared = np.sum(difference**2, axis=1)
         limit = 2.0 * self.clip_sigmas**2
-        with np.errstate(divide="ignore", invalid="ignore"):
-            shrink = np.where(squared > limit, np.sqrt(limit / squared), 1.0)
+        shrink = np.ones(len(squared))
+        far = squared > limit  # (so never 0: no division by zero to silence)
+        shrink[far] = np.sqrt(limit / squared[far])
         difference = difference * shrink[:, None]
         root_two = np.sqrt(2.0)
         features = np.stack(

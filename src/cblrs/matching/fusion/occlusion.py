@@ -109,13 +109,17 @@ class Hidden:
         self._turn += 1
         if self.occluded_views >= _SETTLED_VIEWS and self._turn % 10:
             return
+        # Only a placed camera can find a view hidden (see _occluded).
+        placed = np.isfinite(self.context.camera_xy).all(axis=1)
+        if self.context.config.occluder_width_m <= 0 or not placed.any():
+            return
         rows = np.flatnonzero(seen_now & (tracks.ids >= 0) & (tracks.class_id == _PERSON))
         if len(rows) == 0:
             return
         position = tracks.state[rows, :2]
         covering = self.coverage.covered_by(position)
         of_camera = _by_camera(observed.camera, self.context.camera_count)
-        for camera in np.flatnonzero(covering.any(axis=1)).tolist():
+        for camera in np.flatnonzero(covering.any(axis=1) & placed).tolist():
             testing = np.flatnonzero(covering[camera])
             mine = of_camera[camera]
             if len(mine) == 0:

@@ -41,6 +41,8 @@ def table_state(tracks: TrackTable) -> dict:
         "heading_speed": tracks.heading_speed.tolist(),
         "seen_covariance": tracks.seen_covariance.tolist(),
         "born": tracks.born.tolist(),
+        "support_seen": tracks.support_seen.tolist(),
+        "support_covered": tracks.support_covered.tolist(),
         # Vehicles' turning filters (NaN / -inf: none yet).
         "turn_state": [[value if math.isfinite(value) else None for value in row]
                        for row in tracks.turn_state.tolist()],
@@ -98,6 +100,9 @@ def table_from_state(state: dict, models: int, cameras: int) -> TrackTable:
         # stage reads it, to tell which lost tracks a new track may continue).
         born=None if state.get("born") is None else np.asarray(state["born"],
                                                                np.float64).reshape(-1),
+        # States saved before the support stage: nothing counted yet.
+        support_seen=_optional(state, "support_seen", cameras),
+        support_covered=_optional(state, "support_covered", cameras),
         # States saved before the turning filter: none yet (the next refined view starts it).
         turn_state=None if state.get("turn_state") is None else np.array(
             [[np.nan if value is None else value for value in row]
@@ -111,3 +116,9 @@ def table_from_state(state: dict, models: int, cameras: int) -> TrackTable:
     if len({len(column) for column in tracks.columns()}) != 1:
         raise MatcherError("the saved fusion-tracker state has columns of different lengths.")
     return tracks
+
+
+def _optional(state: dict, key: str, cameras: int) -> np.ndarray | None:
+    """A saved (T, C) column, or None (the table's default) in a state saved without it."""
+    value = state.get(key)
+    return None if value is None else np.asarray(value, np.float64).reshape(-1, cameras)

@@ -24,6 +24,8 @@ from cblrs.matching.base import Observations
 from cblrs.matching.fusion.config import FusionConfig
 from cblrs.matching.fusion.noise import NoiseModel
 
+_FEW_BOXES = 64  # boxes up to which largest_boxes picks in Python
+
 
 @dataclass
 class TrackTable:
@@ -57,6 +59,9 @@ class TrackTable:
             when that is sharper than the filter's estimate, metres (NaN: use ``state``;
             default). Only reported, never used to associate
             (:mod:`~cblrs.matching.fusion.vehicle_noise`).
+        support_seen: (T, C) time each camera saw the track, recently (seconds, forgotten
+            over ``support_memory_s``; the support stage, :mod:`~cblrs.matching.fusion.support`).
+        support_covered: (T, C) time each camera could have seen it, the same way.
         turn_state: (T, 5) a vehicle's turning filter, x, y, speed, heading, turn rate
             (m, m, m/s, rad, rad/s; NaN: none yet; default), for the position it is
             reported at (:mod:`~cblrs.matching.fusion.turning`).
@@ -83,6 +88,8 @@ class TrackTable:
     seen_covariance: np.ndarray | None = None
     born: np.ndarray | None = None
     located: np.ndarray | None = None
+    support_seen: np.ndarray | None = None
+    support_covered: np.ndarray | None = None
     turn_state: np.ndarray | None = None
     turn_covariance: np.ndarray | None = None
     turn_time: np.ndarray | None = None
@@ -100,6 +107,10 @@ class TrackTable:
             self.born = np.array(self.last_seen, np.float64, copy=True)
         if self.located is None:
             self.located = np.full((len(self.ids), 2), np.nan)
+        if self.support_seen is None:
+            self.support_seen = np.zeros(self.seen_by.shape)
+        if self.support_covered is None:
+            self.support_covered = np.zeros(self.seen_by.shape)
         if self.turn_state is None:
             self.turn_state = np.full((len(self.ids), 5), np.nan)
         if self.turn_covariance is None:
@@ -129,15 +140,17 @@ class TrackTable:
                 self.mode_covariance, self.mode_probability, self.evidence, self.last_seen,
                 self.seen_by, self.velocity_sigma, self.heading, self.heading_time,
                 self.heading_sigma, self.heading_xy, self.heading_speed,
-                self.seen_covariance, self.born, self.located, self.turn_state,
-                self.turn_covariance, self.turn_time)
+                self.seen_covariance, self.born, self.located, self.support_seen,
+                self.support_covered, self.turn_state, self.turn_covariance, self.turn_time)
 
     def select(self, keep: np.ndarray) -> TrackTable:
         """The rows where ``keep`` (a (T,) mask or indices)."""
         return TrackTable(*(column[keep] for column in self.columns()))
 
     def extend(self, other: TrackTable) -> TrackTable:
-        """These rows, then ``other``'s."""
+        """These rows, then ``other``'s (this table itself when ``other`` has none)."""
+        if not len(other):
+            return self
         return TrackTable(*(np.concatenate([mine, theirs]) for mine, theirs in zip(
             self.columns(), other.columns(), strict=True)))
 
@@ -220,7 +233,8 @@ class FusionContext:
     def class_slot(class_id: np.ndarray) -> np.ndarray:
         """Index into the per-class arrays: the class id, or the last slot for unknown ids."""
         class_id = np.asarray(class_id, np.int64)
-        return np.where((class_id >= 0) & (class_id < len(CLASS_NAMES)), class_id,
+        # (A negative id wraps to a huge unsigned one: one comparison tests both ends.)
+        return np.where(class_id.astype(np.uint64) < len(CLASS_NAMES), class_id,
                         len(CLASS_NAMES))
 
 
@@ -240,11 +254,25 @@ def largest_boxes(
     """
     boxes = observed.xyxy[matched]
     area = (boxes[:, 2] - boxes[:, 0]) * (boxes[:, 3] - boxes[:, 1])
-    order = np.lexsort((area, rows))  # by track, then by area ascending
-    last_of_track = np.r_[rows[order][1:] != rows[order][:-1], True]
-    best = order[last_of_track]
     camera = np.full(track_count, -1, np.int64)
     box = np.full((track_count, 4), np.nan)
+    if len(area) <= _FEW_BOXES and not np.isnan(area).any():
+        # A window's few boxes in Python: the last of the largest per track, as below.
+        largest: dict[int, tuple[float, int]] = {}
+        for index, (row, one) in enumerate(zip(rows.tolist(), area.tolist(), strict=True)):
+            if row not in largest or one >= largest[row][0]:
+                largest[row] = (one, index)
+        if largest:
+            track = np.fromiter(largest, np.int64, len(largest))
+            best = np.fromiter((index for _, index in largest.values()), np.int64,
+                               len(largest))
+            camera[track] = observed.camera[matched][best]
+            box[track] = boxes[best]
+        return camera, box
+    order = np.lexsort((area, rows))  # by track, then by area ascending
+    sorted_rows = rows[order]
+    last_of_track = np.append(sorted_rows[1:] != sorted_rows[:-1], True)
+    best = order[last_of_track]
     camera[rows[best]] = observed.camera[matched][best]
     box[rows[best]] = boxes[best]
     return camera, box

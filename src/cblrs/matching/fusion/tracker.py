@@ -4,7 +4,8 @@
 named after it (the package docstring, :mod:`cblrs.matching.fusion`, describes them):
 ``noise`` (1, measurement noise), ``tracker`` (2, prediction; 5, the filter update),
 ``association`` (3, 4), ``birth`` (6, 7), ``stitching`` (7, new tracks continuing lost ones),
-``occlusion`` (7, people hidden behind others), ``clocks`` (camera clocks), ``state``
+``occlusion`` (7, people hidden behind others), ``support`` (7, tracks the other covering
+cameras never see), ``clocks`` (camera clocks), ``state``
 (snapshots), ``vehicle_noise`` (5, where a vehicle refined by its heading is reported).
 """
 
@@ -40,6 +41,7 @@ from cblrs.matching.fusion.noise import NoiseModel
 from cblrs.matching.fusion.occlusion import Hidden
 from cblrs.matching.fusion.state import STATE_VERSION, table_from_state, table_state
 from cblrs.matching.fusion.stitching import Stitching
+from cblrs.matching.fusion.support import Support
 from cblrs.matching.fusion.table import FusionContext, Measured, TrackTable, largest_boxes
 from cblrs.matching.fusion.vehicle_noise import VehicleNoise
 from cblrs.matching.timing import Window, WindowBuffer
@@ -118,6 +120,7 @@ class FusionTracker:
         self.vehicle_noise = VehicleNoise(self.context, self.footprint.enabled)
         self.clock_learning = ClockLearning(self.context, self._clock)
         self.stitching = Stitching(self.context, self._class_acceleration)
+        self.support = Support(self.context, self.coverage)
         self.reset()
 
     def reset(self) -> None:
@@ -134,6 +137,7 @@ class FusionTracker:
         self.stitching.reset()
         self.vehicle_noise.reset()
         self.hidden.reset()
+        self.support.reset()
         self._reported: dict[int, set[int]] = {}
 
     def get_state(self) -> dict:
@@ -359,6 +363,8 @@ class FusionTracker:
             observed, covariance, base_covariance, assigned, timestamp, refined)
 
         self.hidden.learn(self.tracks, seen_now, observed, self.measured, assigned)  # occlusion
+        # Which cameras saw each track, of those that could have (support module).
+        self.support.learn(self.tracks, seen_now, cameras_of_track, window.cameras, timestamp)
         # 6. births from clusters of what no track took (birth module).
         born = self.births.birth(observed[~matched], covariance[~matched], timestamp)
         self.tracks = self.tracks.extend(born.tracks)
@@ -372,9 +378,9 @@ class FusionTracker:
         keep = self.births.merge_duplicates(self.tracks, seen_now, cameras_of_track)
         aged, departed = self._ended(timestamp, seen_now)
         self.stitching.remember(self.tracks.select(keep & aged & ~departed), timestamp)
-        keep &= ~(aged | departed)
-        self.tracks = self.tracks.select(keep)
-        seen_now, report_camera, report_box = seen_now[keep], report_camera[keep], report_box[keep]
+        if not (keep := keep & ~(aged | departed)).all():  # (rebuilt only when a track goes)
+            self.tracks, seen_now = self.tracks.select(keep), seen_now[keep]
+            report_camera, report_box = report_camera[keep], report_box[keep]
 
         # A vehicle track that turned further than it can is another vehicle from now on.
         turned = self.motion.split(self.tracks, seen_now, timestamp) & (self.tracks.ids >= 0)
@@ -383,7 +389,10 @@ class FusionTracker:
             self.tracks.ids[turned] = self._next_id + np.arange(count)
             self._next_id += count
         # A new track that continues a lost one takes its id (stitching module).
-        confirmable = self._confirmable()
+        # Tracks the other covering cameras never see (support module) are not confirmed,
+        # nor reported.
+        unsupported = self.support.unsupported(self.tracks)
+        confirmable = self._confirmable() & ~unsupported
         stitches = self.stitching.decide(self.tracks, confirmable, timestamp)
         confirmable &= ~stitches.hold
         confirmable[stitches.rows] = False
@@ -391,6 +400,7 @@ class FusionTracker:
         report = self._confirm(timestamp, seen_now, confirmable)
         report |= self.hidden.missed(self.tracks, report, timestamp, observed, self.measured,
                                      matched)
+        report &= ~unsupported
         self.clock_learning.record(self.tracks, timestamp, seen_now & (self.tracks.ids >= 0),
                                    located_xy, observed.camera, raw_time_of_camera)
         return self._report_instants(report, report_camera, report_box, window, timestamp)
@@ -584,7 +594,7 @@ class FusionTracker:
         limit = np.where(self.tracks.ids >= 0, self.config.max_age_s,
                          self.config.tentative_max_age_s)
         departed = np.zeros(len(age), dtype=bool)
-        if self.config.end_off_plane and len(age):
+        if self.config.end_off_plane and len(age) and not seen_now.all():
             departed = ~seen_now & self._departed()
         return age > limit, departed
 

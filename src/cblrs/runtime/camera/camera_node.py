@@ -99,6 +99,11 @@ _REMINDER_S = 60.0
 # later than _FIRST_WAIT_WARN_S): the replay is silent until then.
 _FIRST_WAIT_SAID_S = 1.0
 _FIRST_WAIT_WARN_S = 10.0
+STOP_FLUSH_S = 5.0
+"""A stopped node waits at most this long for the broker to take what it sent (the spool
+keeps the rest), also when the stop comes during a longer wait at the end of its source."""
+STOP_OFFLINE_S = 1.0
+"""... and no longer than this while it has no connection to the broker."""
 
 
 def camera_last_will(plane_id: int, camera_id: str) -> tuple[str, bytes]:
@@ -392,20 +397,32 @@ class CameraNode:
         False when the node was stopped before its source ended: its stream has not ended
         (a restart goes on with it), so its "offline" is not the final one."""
         stopping = self._stop.is_set() or failing
-        flush_timeout = min(self.flush_timeout_s, 5.0) if stopping else self.flush_timeout_s
-        deadline = time.monotonic() + flush_timeout
+        deadline = time.monotonic() + (min(self.flush_timeout_s, STOP_FLUSH_S) if stopping
+                                       else self.flush_timeout_s)
         reminded = time.monotonic()
+        offline_since: float | None = None
         while self._refusal is None and time.monotonic() < deadline:
             counts = spool.counts()
             if counts["waiting"] == 0 and counts["handed"] == 0:
                 break
-            if time.monotonic() - reminded >= 10.0 and not getattr(self.transport, "connected",
-                                                                  True):
-                reminded = time.monotonic()
+            now = time.monotonic()
+            connected = getattr(self.transport, "connected", True)
+            offline_since = None if connected else (offline_since or now)
+            if self._stop.is_set() and not stopping:
+                # Stopped during the wait (a signal): the spool keeps what is not taken.
+                stopping = True
+                deadline = min(deadline, now + STOP_FLUSH_S)
+            if stopping and offline_since is not None and now - offline_since >= STOP_OFFLINE_S:
+                break  # no broker to take them: a stop does not wait for one
+            if now - reminded >= 10.0 and not connected:
+                reminded = now
                 logger.warning("camera %s: waiting for the MQTT broker to take %d messages",
                                self.camera_id, counts["waiting"] + counts["handed"])
             self._wake.set()
-            time.sleep(0.02)
+            if stopping:
+                time.sleep(0.02)
+            else:
+                self._stop.wait(0.02)  # a stop cuts the wait short
         counts = spool.counts()
         all_handed = self._refusal is None and counts["waiting"] == 0 and counts["handed"] == 0
         if all_handed and not self._answers:
@@ -413,10 +430,13 @@ class CameraNode:
             all_handed = self.transport.flush(max(0.0, deadline - time.monotonic()))
         # Flushed: the broker acknowledged every message (later re-sends change nothing).
         self._flushed = all_handed
+        stopping = stopping or self._stop.is_set()
         if (all_handed and self.confirm_timeout_s > 0 and not stopping):
             confirm_deadline = time.monotonic() + self.confirm_timeout_s
             while len(spool) and time.monotonic() < confirm_deadline and self._refusal is None:
-                time.sleep(0.02)
+                if self._stop.wait(0.02):
+                    stopping = True  # stopped during the wait: what is unconfirmed stays
+                    break
         # Nothing may follow the final "offline": stop the pump before publishing it.
         self._pump_stop.set()
         self._wake.set()
@@ -428,8 +448,8 @@ class CameraNode:
                 clear_will = getattr(self.transport, "clear_will", None)
                 if clear_will is not None:
                     clear_will()
-            remaining = max(0.5, deadline - time.monotonic()) if not stopping else 2.0
-            self.transport.flush(remaining)
+            remaining = max(0.5, deadline - time.monotonic())
+            self.transport.flush(min(remaining, 2.0) if stopping else remaining)
         return final
 
     def _fill(self, report: CameraReport, spool: Spool) -> None:
@@ -666,7 +686,10 @@ class CameraNode:
         if epoch is None and not self.realtime:
             # As fast as possible: place the whole recording in the recent past, which needs
             # its last timestamp, so read the (finite) recorded source up front.
-            pending = list(iterator)
+            for frame in iterator:  # a stop ends the reading (a detector may be slow)
+                if self._stop.is_set():
+                    break
+                pending.append(frame)
             iterator = iter(())
             times = [frame.timestamp for frame in pending if frame.timestamp is not None]
             if times:

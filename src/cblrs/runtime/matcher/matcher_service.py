@@ -429,7 +429,10 @@ class MatcherService:
                     if clear_will is not None:
                         clear_will()
             finally:
-                self.transport.close()
+                # Without a broker nothing more is acknowledged: waiting would only hold the
+                # stop (what is not, a restart sends again).
+                self.transport.close(timeout=5.0 if getattr(self.transport, "connected", True)
+                                     else 1.0)
 
     def _announce(self, state: str) -> None:
         """The matcher's retained, timestamped status (cameras watch it)."""

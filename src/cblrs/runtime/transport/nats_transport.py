@@ -97,7 +97,7 @@ from cblrs.runtime.transport.nats_subjects import (
     tracks_stream,
 )
 from cblrs.runtime.transport.protocol import Handler, TransportError, Will, _HandlerTable, _Incoming
-from cblrs.runtime.transport.topics import validate_filter, validate_topic
+from cblrs.runtime.transport.topics import topic_matches, validate_filter, validate_topic
 
 logger = logging.getLogger(__name__)
 
@@ -175,6 +175,10 @@ class NatsTransport:
         self.refused_publishes = 0
         """Stream publishes refused for good (a stream limit, a subject this login may not
         publish on); retried ones don't count."""
+        self.moved_messages = 0
+        """Messages that reached a subscription or a consumer under a subject not its own:
+        JetStream delivered them onto a subject another login named as a pull's reply (see
+        docs/security.md, "Reply subjects"); dropped (a consumer's: ended), never handed out."""
         self.reordered = 0
         """Publishes stored after a later one of this client: sent again after a failure
         (e.g. a stream leader lost) while a later one in the window was stored."""
@@ -549,9 +553,12 @@ class NatsTransport:
         site = self._site
 
         async def deliver(msg: Any) -> None:
-            self._handlers.dispatch(_Incoming(
-                site_topic(msg.subject, site), msg.data, False, False, 0, _no_ack,
-                (topic_filter,)))
+            topic = site_topic(msg.subject, site)
+            if not topic_matches(topic_filter, topic):  # moved here (kept its own subject)
+                self._moved(topic)
+                return
+            self._handlers.dispatch(_Incoming(topic, msg.data, False, False, 0, _no_ack,
+                                              (topic_filter,)))
 
         subject = site_subject(topic_filter, site)
         self._core[topic_filter] = await self._nc.subscribe(subject, cb=deliver)
@@ -962,6 +969,14 @@ class NatsTransport:
             self._caught_up = pending == 0
         self._last_delivery = consumer_sequence
         topic = site_topic(msg.subject, self._site)
+        if not any(topic_matches(topic_filter, topic) for topic_filter in self._bound):
+            # Not this consumer's: moved into its stream by a pull that named one of the
+            # stream's subjects as its reply (nats-server never checks a reply subject; the
+            # stream keeps the message's own subject). Ended, never handed out again.
+            self._moved(topic)
+            if self._nc is not None and reply:
+                await self._nc.publish(reply, b"+TERM")
+            return
         retain = topic.endswith("/status") and stamp < self._connected_at
         if self.lease_lost:
             return
@@ -971,6 +986,13 @@ class NatsTransport:
             self._held.append(item)
         else:
             self._handlers.dispatch(item)
+
+    def _moved(self, topic: str) -> None:
+        self.moved_messages += 1
+        if self.moved_messages & (self.moved_messages - 1) == 0:  # 1st, 2nd, 4th, ...
+            logger.warning("%s: dropped %d messages that came under a subject not subscribed "
+                           "(the last on %s): another login moved them here",
+                           self.client_id, self.moved_messages, topic)
 
     def _queue_ack(self, reply: str) -> None:
         """Acknowledge (any thread): queued, sent in batches by the loop."""
@@ -1234,6 +1256,10 @@ class NatsTransport:
                 await asyncio.sleep(0.05)
                 continue
             except KeyWrongLastSequenceError:
+                forged = await self._forged_lease(kv)
+                if forged is not None:
+                    self._lease_revision = await kv.update(lease.key, value, last=forged)
+                    break
                 holder, age = await self._lease_holder(kv)
                 if time.monotonic() >= deadline:
                     raise TransportError(
@@ -1250,6 +1276,29 @@ class NatsTransport:
                 ) from None
         logger.info("%s: holds %s", self.client_id, lease.key)
         self._lease_task = asyncio.get_running_loop().create_task(self._renew_lease(value))
+
+    async def _forged_lease(self, kv: Any) -> int | None:
+        """The revision of the lease key if what it holds is no lease record, else None.
+
+        nats-server checks a publish's subject against the login's permissions, never its
+        reply subject: any login that may publish into a stream can name the lease key as the
+        reply, and JetStream writes its acknowledgement (``{"stream": ..., "seq": ...}``) there.
+        Such a write claims nothing; the holder (or a newcomer) writes over it.
+        """
+        try:
+            entry = await kv.get(self.lease.key)  # type: ignore[union-attr]
+        except Exception:  # no entry (expired or deleted): nothing forged
+            return None
+        try:
+            record = json.loads(entry.value or b"")
+        except ValueError:
+            record = None
+        if isinstance(record, dict) and isinstance(record.get("holder"), str):
+            return None
+        logger.warning("%s: %s held a write that is no lease record (%.80r), such as a "
+                       "forged reply; writing over it", self.client_id,
+                       self.lease.key, entry.value)
+        return entry.revision
 
     async def _lease_holder(self, kv: Any) -> tuple[str, float]:
         try:
@@ -1283,8 +1332,18 @@ class NatsTransport:
                 last_renewal = time.monotonic()
                 self._resume_deliveries()
             except KeyWrongLastSequenceError:
-                self._lose_lease(f"{lease.what or lease.key} was taken over by another matcher")
-                return
+                forged = await self._forged_lease(self._lease_kv)
+                if forged is None:
+                    self._lose_lease(
+                        f"{lease.what or lease.key} was taken over by another matcher")
+                    return
+                try:
+                    self._lease_revision = await self._lease_kv.update(
+                        lease.key, value, last=forged)
+                except KeyWrongLastSequenceError:
+                    continue  # written again meanwhile: looked at again at the next renewal
+                last_renewal = time.monotonic()
+                self._resume_deliveries()
             except asyncio.CancelledError:
                 raise
             except Exception as error:
