@@ -102,9 +102,14 @@ def paced(frames, seconds: float, holds: dict[int, threading.Event]):
 
 
 def start_cameras(
-    case, broker, epoch: float, holds: dict[int, threading.Event]
+    case, broker, epoch: float, holds: dict[int, threading.Event] | None = None
 ) -> list[threading.Thread]:
-    """One camera node per camera, each logged in as its own broker user, paced."""
+    """One camera node per camera, each logged in as its own broker user, paced.
+
+    ``holds`` stops every camera after its n-th frame until ``holds[n]`` is set (none: no stop);
+    test_runtime_alerts starts its cameras with this function too, without holds.
+    """
+    holds = holds or {}
     from cblrs.runtime.camera.sources import scene_source
 
     scene = case["scene"]
