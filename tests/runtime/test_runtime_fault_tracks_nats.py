@@ -147,7 +147,9 @@ def test_item3_resent_messages_reach_a_confirmation_on_nats(case, nats, tmp_path
     for process in resent:
         code, out, err = finish(process)
         report = json.loads(out)
-        assert code == 0 and report["confirmed_all"], err[-3000:]
+        if not (code == 0 and report["confirmed_all"]):  # the matcher's side of it too
+            second.kill()
+            pytest.fail(f"camera exit {code}: {err[-3000:]}\nmatcher: {finish(second)[2][-3000:]}")
         assert report["messages"] == 0
     code, out, err = finish(second)
     assert code == 0, err[-3000:]

@@ -322,6 +322,27 @@ def test_plane_lease_refuses_a_second_holder_until_released(server, transports):
     transports.append(second)
 
 
+def test_a_clean_close_releases_a_lease_whose_last_renewal_it_did_not_see(server, transports):
+    """A renewal the close cancelled can be stored without its revision reaching the client:
+    the release's delete then named a stale revision, was refused, and the plane stayed held
+    for the lease's TTL (a restarted matcher was refused; CI failed once so). The key is read
+    again and deleted if it still holds this client's record."""
+    settings = NatsSettings.from_url(server.url)
+    lease = LeaseSettings("plane-45", ttl_s=30.0, what="plane 45")
+    first = NatsTransport("matcher-a", settings, lease=lease)
+    first.open()
+
+    async def renewed_unseen() -> None:  # the renewal's write, its answer lost
+        entry = await first._lease_kv.get(lease.key)
+        await first._lease_kv.update(lease.key, entry.value, last=entry.revision)
+
+    first.call(renewed_unseen())
+    first.close()
+    second = NatsTransport("matcher-b", settings, lease=lease)
+    second.open()  # wait_s 0: refused at once if the plane were still held
+    transports.append(second)
+
+
 def test_a_lease_is_asked_again_while_jetstream_does_not_answer(server, transports,
                                                                 monkeypatch):
     """A cluster that has just started (or elects the bucket's leader) may answer "no

@@ -237,6 +237,7 @@ class NatsTransport:
         self._last_activity = 0.0
         self._lease_task: asyncio.Task | None = None
         self._lease_revision = 0
+        self._lease_value = b""  # what this client writes into its lease key
         self._lease_kv: Any = None
         self.lease_holder = f"{client_id}@{socket.gethostname()}:{os.getpid()}"
 
@@ -538,16 +539,34 @@ class NatsTransport:
             return
         if release and self.lease is not None and self._lease_kv is not None \
                 and not self.lease_lost:
-            try:
-                await self._lease_kv.delete(self.lease.key, last=self._lease_revision)
-            except Exception as error:  # it expires anyway
-                logger.debug("lease release failed: %s", error)
+            await self._release_lease()
         try:
             await nc.flush(timeout=2)
         except Exception:
             pass
         await nc.close()
         self._connected.clear()
+
+    async def _release_lease(self) -> None:
+        """Delete the lease key so that the next matcher takes the plane at once.
+
+        A renewal cancelled by the close may have been stored without its new revision
+        reaching this client: the delete's expected revision is then stale and refused. The
+        key is read again and deleted at its revision if it still holds this client's record
+        (else the plane would stay held for the lease's TTL: a restarted matcher without
+        --lease-wait was refused, and its cameras never confirmed; CI failed once so)."""
+        kv, key = self._lease_kv, self.lease.key  # type: ignore[union-attr]
+        try:
+            await kv.delete(key, last=self._lease_revision)
+            return
+        except Exception as error:
+            logger.debug("lease release at revision %d failed: %s", self._lease_revision, error)
+        try:
+            entry = await kv.get(key)
+            if entry.value == self._lease_value:
+                await kv.delete(key, last=entry.revision)
+        except Exception as error:  # it expires anyway
+            logger.debug("lease release failed: %s", error)
 
     async def _subscribe_core(self, topic_filter: str) -> None:
         site = self._site
@@ -1242,6 +1261,7 @@ class NatsTransport:
                 ) from None
         self._lease_kv = kv
         value = json.dumps({"holder": self.lease_holder, "since": time.time()}).encode()
+        self._lease_value = value
         deadline = time.monotonic() + lease.wait_s
         while True:
             try:
