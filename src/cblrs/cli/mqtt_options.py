@@ -82,11 +82,17 @@ def read_password(args: argparse.Namespace) -> str | None:
     """The password of ``--password-file`` (or the environment, with ``--username``)."""
     if args.password_file is not None:
         try:
-            return args.password_file.read_text().strip()
+            mode = args.password_file.stat().st_mode
+            password = args.password_file.read_text().strip()
         except OSError as error:
             raise UsageError(
                 f"cannot read --password-file {args.password_file}: {error}."
             ) from None
+        if mode & 0o077:  # warned, not refused: the login works, the secret is exposed
+            logger.warning(
+                "--password-file %s is readable by other users of this machine (mode %04o); "
+                "chmod 600 it", args.password_file, mode & 0o7777)
+        return password
     if args.username is not None:
         return os.environ.get(PASSWORD_ENVIRONMENT)
     return None
