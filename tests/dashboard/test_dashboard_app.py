@@ -194,6 +194,7 @@ def test_dashboard_refused_by_the_broker_says_so(wildtrack_site, start_broker, t
     broker = start_broker(cameras=["CVLab1"], matchers=["matcher1"])
     wrong = tmp_path / "wrong.password"
     wrong.write_text("not-the-password\n")
+    wrong.chmod(0o600)  # private, as a password file should be (else a warning line first)
     cases = [
         (["--username", "viewer", "--password-file", str(wrong)], "not authorized"),
         ([], "not authorized"),  # anonymous
