@@ -78,7 +78,7 @@ def uses_nats(args: argparse.Namespace) -> bool:
 def nats_settings(args: argparse.Namespace, **options: Any) -> Any:
     """:class:`NatsSettings` from ``--backbone``, the login options and ``options``."""
     # lazy: a subcommand imports the library when it runs, so its --help starts fast
-    from cblrs.cli.camera import read_password
+    from cblrs.cli.mqtt_options import read_password
     from cblrs.runtime.transport.nats_settings import NatsSettings
     from cblrs.runtime.transport.protocol import TransportError
 

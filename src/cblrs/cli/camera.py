@@ -12,15 +12,8 @@ from typing import Any
 
 from cblrs.cli.backbone import add_backbone_options, camera_transport, uses_nats
 from cblrs.cli.common import InputError, UsageError, add_output_options, print_json
-from cblrs.cli.mqtt_options import (  # noqa: F401 (the other commands import them from here)
-    PASSWORD_ENVIRONMENT,
-    add_mqtt_options,
-    connect_or_queue,
-    mqtt_settings,
-    parse_broker,
-    read_password,
-)
-from cblrs.cli.stopping import Interrupted, install_stop_handlers  # noqa: F401
+from cblrs.cli.mqtt_options import add_mqtt_options, connect_or_queue, mqtt_settings
+from cblrs.cli.stopping import Interrupted
 
 logger = logging.getLogger(__name__)
 

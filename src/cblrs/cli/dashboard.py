@@ -13,8 +13,8 @@ from pathlib import Path
 from typing import Any
 
 from cblrs.cli.backbone import add_backbone_options, nats_settings, uses_nats
-from cblrs.cli.camera import add_mqtt_options, mqtt_settings
 from cblrs.cli.common import InputError, UsageError, add_output_options, check_positive
+from cblrs.cli.mqtt_options import add_mqtt_options, mqtt_settings
 
 logger = logging.getLogger(__name__)
 

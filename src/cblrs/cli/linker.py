@@ -11,8 +11,9 @@ from pathlib import Path
 from typing import Any
 
 from cblrs.cli.backbone import add_backbone_options, nats_settings, uses_nats
-from cblrs.cli.camera import add_mqtt_options, install_stop_handlers, mqtt_settings
 from cblrs.cli.common import UsageError, check_non_negative, check_positive, print_json
+from cblrs.cli.mqtt_options import add_mqtt_options, mqtt_settings
+from cblrs.cli.stopping import install_stop_handlers
 
 
 def register(subparsers) -> None:

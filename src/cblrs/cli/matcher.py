@@ -14,7 +14,6 @@ from pathlib import Path
 from typing import Any
 
 from cblrs.cli.backbone import add_backbone_options, matcher_transport, uses_nats
-from cblrs.cli.camera import add_mqtt_options, mqtt_settings
 from cblrs.cli.common import (
     InputError,
     UsageError,
@@ -25,6 +24,7 @@ from cblrs.cli.common import (
 )
 from cblrs.cli.late_options import add_late_options, camera_fps, retrack_policy
 from cblrs.cli.metrics_http import add_http_options, http_settings
+from cblrs.cli.mqtt_options import add_mqtt_options, mqtt_settings
 from cblrs.errors import CblrsError
 
 logger = logging.getLogger(__name__)
