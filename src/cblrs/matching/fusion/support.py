@@ -120,7 +120,5 @@ class Support:
             & (other_seen < config.support_ratio * other_covered)
         )
         if config.confirm_moving_mps > 0 and result.any():
-            speed = np.hypot(tracks.state[:, 2], tracks.state[:, 3])
-            moving = (speed > config.confirm_moving_mps) & (speed > 3.0 * tracks.velocity_sigma)
-            result &= ~moving
+            result &= ~tracks.clearly_moving(config.confirm_moving_mps)
         return result

@@ -143,6 +143,14 @@ class TrackTable:
                 self.seen_covariance, self.born, self.located, self.support_seen,
                 self.support_covered, self.turn_state, self.turn_covariance, self.turn_time)
 
+    def clearly_moving(self, min_speed_mps: float, rows: np.ndarray | None = None) -> np.ndarray:
+        """Which tracks (of ``rows``; default all) move faster than ``min_speed_mps`` and
+        than three standard deviations of their velocity: a bool array, one per row."""
+        state = self.state if rows is None else self.state[rows]
+        sigma = self.velocity_sigma if rows is None else self.velocity_sigma[rows]
+        speed = np.hypot(state[:, 2], state[:, 3])
+        return (speed > min_speed_mps) & (speed > 3.0 * sigma)
+
     def select(self, keep: np.ndarray) -> TrackTable:
         """The rows where ``keep`` (a (T,) mask or indices)."""
         return TrackTable(*(column[keep] for column in self.columns()))

@@ -463,10 +463,7 @@ class FusionTracker:
             covering = self.coverage.covering(tracks.state[candidates, :2])
             needed = np.clip(covering, 1, self.config.confirm_cameras)
             if self.config.confirm_moving_mps > 0:
-                speed = np.hypot(tracks.state[candidates, 2], tracks.state[candidates, 3])
-                moving = (speed > self.config.confirm_moving_mps) & (
-                    speed > 3.0 * tracks.velocity_sigma[candidates])
-                needed[moving] = 1
+                needed[tracks.clearly_moving(self.config.confirm_moving_mps, candidates)] = 1
             newly_confirmed[candidates[cameras_seen < needed]] = False
         return newly_confirmed
 
