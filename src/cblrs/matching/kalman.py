@@ -102,9 +102,15 @@ def inverse_2x2(matrices: FloatArray) -> tuple[FloatArray, FloatArray]:
     a, b = matrices[:, 0, 0], matrices[:, 0, 1]
     c, d = matrices[:, 1, 0], matrices[:, 1, 1]
     determinant = a * d - b * c
-    # (d, -b, -c, a) / determinant, element by element as written out, in one division.
-    inverse = np.stack((d, -b, -c, a), axis=1) / determinant[:, None]
+    # (d, -b, -c, a) / determinant, element by element as written out, in one division: one
+    # gather and one negation cost less than stacking four columns.
+    inverse = matrices.reshape(len(matrices), 4)[:, _ADJUGATE_ORDER]
+    np.negative(inverse[:, 1:3], out=inverse[:, 1:3])
+    inverse /= determinant[:, None]
     return inverse.reshape(matrices.shape), determinant
+
+
+_ADJUGATE_ORDER = np.array([3, 1, 2, 0])  # (d, b, c, a) of a row-major (a, b, c, d)
 
 
 def update(
