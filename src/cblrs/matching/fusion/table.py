@@ -25,6 +25,7 @@ from cblrs.matching.fusion.config import FusionConfig
 from cblrs.matching.fusion.noise import NoiseModel
 
 _FEW_BOXES = 64  # boxes up to which largest_boxes picks in Python
+_UNKNOWN_SLOT = np.uint64(len(CLASS_NAMES))  # the per-class arrays' slot of unknown ids
 
 
 @dataclass
@@ -241,9 +242,8 @@ class FusionContext:
     def class_slot(class_id: np.ndarray) -> np.ndarray:
         """Index into the per-class arrays: the class id, or the last slot for unknown ids."""
         class_id = np.asarray(class_id, np.int64)
-        # (A negative id wraps to a huge unsigned one: one comparison tests both ends.)
-        return np.where(class_id.astype(np.uint64) < len(CLASS_NAMES), class_id,
-                        len(CLASS_NAMES))
+        # (A negative id wraps to a huge unsigned one: one minimum clips both ends.)
+        return np.minimum(class_id.astype(np.uint64), _UNKNOWN_SLOT).astype(np.int64)
 
 
 def largest_boxes(
