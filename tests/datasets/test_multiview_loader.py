@@ -170,6 +170,23 @@ def test_malformed_annotation_names_the_file(
         load_scene(multiviewx_root)
 
 
+def test_numbers_written_otherwise_load_alike(multiviewx_root: Path) -> None:
+    # Integers and numbers as JSON expects them take msgspec's typed decoder; a file writing
+    # them as strings or 7.0 takes the general path, which converts them the same way.
+    expected = load_scene(multiviewx_root)
+    (multiviewx_root / "annotations_positions" / "00000.json").write_text(json.dumps([{
+        "personID": "7", "positionID": 123456.0, "note": "extra keys are ignored",
+        "views": [{"viewNum": 0, "xmin": "10", "ymin": 20, "xmax": 50.0, "ymax": "120"},
+                  {"viewNum": 2.0, "xmin": -5, "ymin": 900, "xmax": 40, "ymax": 1100}],
+    }]))
+    scene = load_scene(multiviewx_root)
+    for got, want in zip(scene.detections[0], expected.detections[0], strict=True):
+        np.testing.assert_array_equal(got.xyxy, want.xyxy)
+        np.testing.assert_array_equal(got.object_id, want.object_id)
+    np.testing.assert_array_equal(scene.ground_truth.world_xy, expected.ground_truth.world_xy)
+    np.testing.assert_array_equal(scene.ground_truth.track_id, expected.ground_truth.track_id)
+
+
 def test_missing_calibration_is_a_clear_error(multiviewx_root: Path) -> None:
     (multiviewx_root / "calibrations" / "extrinsic" / "extr_Camera2.xml").unlink()
     with pytest.raises(CblrsError, match=r"extr_Camera2\.xml does not exist"):
