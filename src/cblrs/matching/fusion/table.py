@@ -154,6 +154,11 @@ class TrackTable:
 
     def select(self, keep: np.ndarray) -> TrackTable:
         """The rows where ``keep`` (a (T,) mask or indices)."""
+        keep = np.asarray(keep)
+        if keep.dtype == bool and keep.shape == self.ids.shape and not keep.any():
+            # No row (most windows' ended tracks): an empty slice of each column, a sixth of
+            # the time of 24 boolean indexings.
+            return TrackTable(*(column[:0] for column in self.columns()))
         return TrackTable(*(column[keep] for column in self.columns()))
 
     def extend(self, other: TrackTable) -> TrackTable:
