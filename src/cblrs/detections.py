@@ -102,17 +102,15 @@ class Detections(_Columns):
     def __post_init__(self) -> None:
         xyxy = _column(self.xyxy, np.float64, (None, 4), "xyxy")
         count = len(xyxy)
-        defaults = {
-            "confidence": (np.ones(count), np.float64),
-            "class_id": (np.zeros(count, dtype=np.int64), np.int64),
-            "object_id": (np.full(count, -1, dtype=np.int64), np.int64),
-        }
         object.__setattr__(self, "xyxy", xyxy)
-        for name, (default, dtype) in defaults.items():
+        # Defaults are made only for the columns not given (data sets give every column, for
+        # thousands of boxes lists).
+        for name, dtype, default in (("confidence", np.float64, 1.0),
+                                     ("class_id", np.int64, 0), ("object_id", np.int64, -1)):
             value = getattr(self, name)
-            object.__setattr__(
-                self, name, _column(default if value is None else value, dtype, (None,), name)
-            )
+            if value is None:
+                value = np.full(count, default, dtype=dtype)
+            object.__setattr__(self, name, _column(value, dtype, (None,), name))
         self._validate_lengths()
 
     @classmethod
