@@ -78,6 +78,9 @@ class MotionCheck:
         matched = assigned >= 0
         if not matched.any():
             return assigned
+        context = self.context
+        if not np.isfinite(context.class_turn_radius[context.class_slot(tracks.class_id)]).any():
+            return assigned  # no track of a class with a turning radius: no cone to leave
         anchor, heading, limit, anchor_covariance = self.turn_limits(tracks, timestamp)
         rows = assigned[matched]
         checked = np.isfinite(limit)
