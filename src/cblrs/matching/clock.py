@@ -185,10 +185,17 @@ class ClockModel:
     def _learn_queued(self) -> None:
         if not self._queued:
             return
-        parts = [np.concatenate(column) for column in zip(*self._queued, strict=True)]
+        # (One window queued, as when every window is solved: its arrays as they are.)
+        parts = [column[0] if len(column) == 1 else np.concatenate(column)
+                 for column in zip(*self._queued, strict=True)]
         self._queued, self._queued_groups = [], 0
         camera, track, world_xy, covariance, velocity, across, predicted, spread = parts
         known = np.any(across != 0, axis=1)
+        if known.all():  # (every camera placed: all views at once, without selecting them)
+            _, label = np.unique(track, return_inverse=True)
+            self.learn(camera, label.reshape(-1), world_xy, covariance, velocity, across,
+                       predicted, spread)
+            return
         for mask, normals in ((known, across), (~known, None)):
             if mask.any():
                 _, label = np.unique(track[mask], return_inverse=True)
