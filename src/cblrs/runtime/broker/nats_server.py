@@ -318,12 +318,14 @@ class NatsCluster:
     def create(
         cls, directory: str | Path, nodes: int = 1, *, mqtt: bool = False,
         host: str = "127.0.0.1", security: NatsSecurity | None = None,
+        max_file_store: str = "4G",
     ) -> NatsCluster:
         """Configure ``nodes`` servers under ``directory`` on free ports (each its own store).
 
         Args:
             security: users, permissions and TLS of every node (see
                 :func:`~cblrs.runtime.broker.nats_auth.write_nats_security`); None: open servers.
+            max_file_store: each node's JetStream file storage limit (e.g. ``"4G"``).
 
         Raises:
             NatsServerError: no usable ``nats-server`` binary.
@@ -346,7 +348,7 @@ class NatsCluster:
         ]
         routes = [config.cluster_port for config in configs if config.cluster_port is not None]
         for config in configs:
-            write_nats_config(config, routes, security=security)
+            write_nats_config(config, routes, max_file_store=max_file_store, security=security)
         cluster = cls(configs)
         cluster.security = security
         return cluster
