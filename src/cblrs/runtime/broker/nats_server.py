@@ -39,6 +39,7 @@ from pathlib import Path
 
 from cblrs.errors import CblrsError
 from cblrs.runtime.addresses import is_loopback_host
+from cblrs.runtime.broker.credentials import append_private
 from cblrs.runtime.broker.mosquitto import free_port
 from cblrs.runtime.broker.nats_auth import NatsSecurity, NatsSecurityError, write_nats_security
 
@@ -232,7 +233,7 @@ class NatsServerProcess:
         if self.running:
             return self
         binary = require_nats_server()
-        with self.log_path.open("ab") as log:
+        with append_private(self.log_path) as log:
             self._process = subprocess.Popen(
                 [binary, "-c", str(self.node.config_path)],
                 stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
