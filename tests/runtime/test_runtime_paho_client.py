@@ -73,3 +73,11 @@ def test_bytes_read_from_a_replaced_socket_are_not_served():
     assert client.buffered() == 0
     theirs.sendall(b"\x20\x02\x00\x00")  # CONNACK
     assert client._sock_recv(4) == b"\x20\x02\x00\x00"
+
+
+def test_the_transport_uses_the_buffered_client_only_where_paho_has_what_it_builds_on(monkeypatch):
+    from cblrs.runtime.transport import paho_client
+
+    assert paho_client.buffered_reads_supported()  # the paho this project pins
+    monkeypatch.setattr(paho_client.paho.mqtt, "__version__", "3.0.0")
+    assert not paho_client.buffered_reads_supported()

@@ -19,10 +19,24 @@ from __future__ import annotations
 
 from typing import Any
 
+import paho.mqtt
 import paho.mqtt.client as mqtt
 
 READ_SIZE = 65536
 """Bytes asked of the socket per ``recv`` (TLS returns at most one record, 16 KiB)."""
+
+
+def buffered_reads_supported() -> bool:
+    """Whether this paho has the private reading methods :class:`BufferedClient` builds on.
+
+    Checked against paho-mqtt 2.1 and 2.2; another major version, or one without them, gets
+    paho's own client (correct, only slower).
+    """
+    return (
+        str(getattr(paho.mqtt, "__version__", "")).startswith("2.")
+        and callable(getattr(mqtt.Client, "_sock_recv", None))
+        and callable(getattr(mqtt.Client, "loop_read", None))
+    )
 
 
 class BufferedClient(mqtt.Client):
