@@ -139,7 +139,8 @@ class VehicleNoise:
             mine = slot == index
             along[mine], lateral[mine] = self.models[index].variances(
                 measured.distance[refined][mine], measured.along_distance[refined][mine])
-        floor = self.context.config.minimum_sigma_m ** 2
+        config = self.context.config
+        floor = max(config.minimum_sigma_m, config.vehicle_minimum_sigma_m) ** 2
         noise = ray_covariance(measured.direction[refined], np.maximum(along, floor),
                                np.maximum(lateral, floor)) + lag_covariance[refined]
         fused_xy, fused_covariance, seen = fuse(assigned[refined], len(tracks),
