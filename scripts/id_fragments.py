@@ -2,6 +2,7 @@
 
     python scripts/id_fragments.py crowd [--seed 1] [--option stitch_gap_s=0] [--dataset DIR]
     python scripts/id_fragments.py distorted --localisation
+    python scripts/id_fragments.py crowd --switches [--option swap_radius_m=0]
 
 Tracks one case of ``cblrs experiment tracking`` (exact boxes, ``fusion`` defaults unless
 ``--option`` sets some) and matches its rows to the ground truth frame by frame (Hungarian, 1 m).
@@ -17,6 +18,7 @@ images undo the lenses' distortion at the edges?).
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import sys
 from collections import Counter
@@ -114,6 +116,52 @@ def unseen(scene) -> tuple[int, int, Counter]:
     return missing, len(truth.frame), stretches
 
 
+def switches(scene, tracks, minimum: int = 5) -> list[tuple[int, int, int, int, float, bool]]:
+    """Each time a track goes on with another person for ``minimum`` matched frames or more:
+    (track, person before, person after, frame, closest the two people came in the 20 frames
+    before and 2 after, whether either had no box in any camera for a frame or more from 8
+    frames before to 2 after)."""
+    found = matches(scene.ground_truth, tracks)
+    truth = scene.ground_truth
+    where = {
+        (int(f), int(t)): xy
+        for f, t, xy in zip(truth.frame, truth.track_id, truth.world_xy, strict=True)
+    }
+    boxes: Counter = Counter()
+    for index, frame in enumerate(scene.frames):
+        for detections in scene.detections[index]:
+            boxes.update((int(frame), int(person)) for person in detections.object_id)
+    sequence: dict[int, list[tuple[int, int]]] = {}
+    for (frame, track), person in sorted(found.items()):
+        sequence.setdefault(track, []).append((frame, person))
+    events = []
+    for track, rows in sorted(sequence.items()):
+        runs: list[list[int]] = []  # [person, first, last, frames]
+        for frame, person in rows:
+            if runs and runs[-1][0] == person:
+                runs[-1][2], runs[-1][3] = frame, runs[-1][3] + 1
+            else:
+                runs.append([person, frame, frame, 1])
+        kept: list[list[int]] = []
+        for run in (run for run in runs if run[3] >= minimum):
+            if kept and kept[-1][0] == run[0]:
+                kept[-1][2] = run[2]
+            else:
+                kept.append(list(run))
+        for before, after in itertools.pairwise(kept):
+            a, b, last, first = before[0], after[0], before[2], after[1]
+            gaps = [
+                float(np.linalg.norm(where[(f, a)] - where[(f, b)]))
+                for f in range(last - 20, first + 3)
+                if (f, a) in where and (f, b) in where
+            ]
+            hidden = any(
+                boxes[(f, person)] == 0 for f in range(last - 8, first + 3) for person in (a, b)
+            )
+            events.append((track, a, b, first, min(gaps, default=float("nan")), hidden))
+    return events
+
+
 def localisation(scene, references) -> list[tuple[str, int, float, int, float]]:
     """Ground error of the located views (box bottom-centre looked up in the camera's
     reference image) against the ground truth, by distance of the foot pixel from the image
@@ -163,6 +211,11 @@ def main(argv: list[str]) -> int:
     )
     parser.add_argument("--dataset", type=Path, default=None, help="WILDTRACK (crowd)")
     parser.add_argument(
+        "--switches",
+        action="store_true",
+        help="also each time a track goes on with another person (for 5 frames or more)",
+    )
+    parser.add_argument(
         "--localisation",
         action="store_true",
         help="also the views' ground error by distance from the image centre",
@@ -202,6 +255,24 @@ def main(argv: list[str]) -> int:
         f"({100 * missing / rows:.1f} %); stretches (frames: count): "
         + ", ".join(f"{length}: {count}" for length, count in sorted(stretches.items()))
     )
+    if args.switches:
+        events = switches(scene, tracks)
+        for track, a, b, frame, closest, hidden in events:
+            print(
+                f"  track {track}: person {a} -> {b} at frame {frame}, closest {closest:.2f} m"
+                + (", one of them unseen by every camera around it" if hidden else "")
+            )
+        gaps = [event[4] for event in events]
+        print(
+            f"tracks going on with another person: {len(events)}"
+            + (
+                f", the two {min(gaps):.2f}-{max(gaps):.2f} m apart at closest (median "
+                f"{float(np.median(gaps)):.2f}), {sum(event[5] for event in events)} with one "
+                "unseen by every camera around it"
+                if events
+                else ""
+            )
+        )
     if args.localisation:
         print(
             "views' ground error by the foot pixel's distance from the image centre "

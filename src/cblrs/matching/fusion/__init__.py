@@ -48,7 +48,10 @@ observations of one point. Per instant:
    long or that left the planes; a track about to be confirmed that continues one deleted
    for being unseen too long (both moving, alike in position where they meet and in
    velocity, and no other pair could be it) takes that track's id instead of a new one
-   (stitching: decided at confirmation, no id ever rewritten); report the confirmed tracks
+   (stitching: decided at confirmation, no id ever rewritten); two people whose tracks
+   came within a metre exchange ids once they are apart again if each track's motion before
+   the encounter explains the other's views after it far better (swaps: decided half a
+   second after they part, from then on); report the confirmed tracks
    seen now, and, once the cameras are known to miss the people nearer ones hide, a person
    missed by every camera whose every covering view has someone right in front of them
    (hidden, for at most ``report_hidden_s``); a track that the other cameras covering its
@@ -85,6 +88,7 @@ only where a track seen by two cameras or another camera's sure view confirms th
 each camera sees), :mod:`~cblrs.matching.fusion.stitching` (7: new tracks continuing lost
 ones), :mod:`~cblrs.matching.fusion.occlusion` (7: people hidden behind others),
 :mod:`~cblrs.matching.fusion.support` (7: tracks the other covering cameras never see),
+:mod:`~cblrs.matching.fusion.swaps` (7: people whose tracks swapped while close),
 :mod:`~cblrs.matching.fusion.clocks` (camera clocks),
 :mod:`~cblrs.matching.fusion.table` (what the stages share), :mod:`~cblrs.matching.fusion.state`
 (snapshots) and :mod:`~cblrs.matching.fusion.tracker` (the tracker, which runs them: 2 and 5

@@ -176,6 +176,15 @@ class FusionConfig:
         stitch_sigmas: a new track continues a lost one when their (x, y, vx, vy) states are
             within this many standard deviations of each other (Mahalanobis distance under
             the sum of their covariances), and no other pair could be it.
+        swap_radius_m: two confirmed tracks of people closer than this open an encounter;
+            once they have been farther apart than this for ``swap_settle_s``, they exchange
+            ids from then on if their motion before the encounter explains what each saw
+            after it better swapped (the swap stage, :mod:`~cblrs.matching.fusion.swaps`),
+            metres; 0: off.
+        swap_settle_s: how long two tracks must have been apart again before the swap stage
+            decides, seconds.
+        swap_margin: how much more likely (log-likelihood) the swapped pairing must be,
+            log units.
         report_coasting_s: keep reporting the prediction of a confirmed track that was
             missed for at most this long, seconds (0: report only observed tracks).
         report_hidden_s: also report a confirmed track missed for at most this long,
@@ -242,6 +251,9 @@ class FusionConfig:
     stitch_gap_s: float = 3.0
     stitch_delay_s: float = 0.0
     stitch_sigmas: float = 3.0
+    swap_radius_m: float = 1.0
+    swap_settle_s: float = 0.5
+    swap_margin: float = 7.0
     report_coasting_s: float = 0.0
     report_hidden_s: float = 2.0
     occluder_width_m: float = 0.5
@@ -265,7 +277,8 @@ class FusionConfig:
         for name in ("sigma_per_distance", "along_sigma_per_distance", "merge_radius_m",
                      "report_coasting_s", "report_hidden_s", "occluder_width_m",
                      "object_sigma_m", "group_radius_m", "vehicle_minimum_sigma_m",
-                     "max_clock_offset_s", "stitch_gap_s", "stitch_delay_s"):
+                     "max_clock_offset_s", "stitch_gap_s", "stitch_delay_s",
+                     "swap_radius_m", "swap_settle_s", "swap_margin"):
             value = getattr(self, name)
             require(
                 _positive(value) or value == 0,

@@ -1,0 +1,350 @@
+"""Repair after assignment (step 7 of the fusion tracker's update): two people whose tracks
+swapped while they passed close get their ids back.
+
+In a crowd two people pass within a few decimetres of each other; their views overlap, the
+assignment of one instant takes the wrong pairing, and each track goes on with the other
+person (the crowd's main identity error). At that instant the pairing is a coin toss; a
+second later, when they are apart again, it is not: each track's motion before the encounter
+predicts one of the two people after it far better than the other. This stage takes that
+decision later, once the evidence is in:
+
+* an **encounter** opens when two confirmed tracks of people (classes that turn on the spot:
+  vehicles have the motion check) come within ``swap_radius_m`` of each other. From then
+  on the stage records, per instant, both tracks' filter states after the update and the
+  position their views were fused to (none when unseen);
+* it closes when they have been farther apart than that for ``swap_settle_s`` (or after
+  ``_LONGEST_S``; it is dropped when a track ends). The stage then asks, for every instant
+  ``k`` of the encounter, whether the tracks would explain what was seen from ``k`` on
+  better swapped: each track's filter state before ``k`` is run, with the tracker's motion
+  models, through its own fused positions and through the other track's, and the
+  log-likelihoods of the innovations are summed (``keep`` and ``swap``);
+* if for some ``k`` the swapped pairing is more likely by ``swap_margin`` (log units; the
+  default 7 is odds of about 1,100 to 1), the two tracks exchange ids from now on.
+
+Nothing else moves: the filters stay with the views they took (they follow the people they
+follow), and ids once reported are never rewritten; the rows reported between the swap and
+the decision (about ``swap_settle_s`` after the two are apart) keep the wrong ids. A
+service restarted from the tracker's state continues the open encounters.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from cblrs.matching import kalman
+from cblrs.matching.fusion.gaussian import close_pairs
+from cblrs.matching.fusion.table import FusionContext, TrackTable
+
+_LONGEST_S = 10.0  # an encounter still open after this long is decided then
+
+
+@dataclass
+class _Encounter:
+    """Two tracks close together: per instant since it opened, each track's state and view.
+
+    ``states[id]`` holds one (mode_state, mode_covariance, mode_probability) per instant
+    from the opening one; ``views[id]`` one (xy, covariance) per later instant (NaN: unseen).
+    """
+
+    opened: float
+    last: float
+    apart_since: float | None = None
+    steps: list[float] = field(default_factory=list)
+    states: dict[int, list[tuple[np.ndarray, np.ndarray, np.ndarray]]] = field(default_factory=dict)
+    views: dict[int, list[tuple[np.ndarray, np.ndarray]]] = field(default_factory=dict)
+
+
+class SwapCheck:
+    """The swap stage of :class:`~cblrs.matching.fusion.tracker.FusionTracker`.
+
+    The tracker gives it each instant's fused views (:meth:`observe`, after the filter
+    update) and then asks which confirmed tracks exchange ids (:meth:`decide`). It changes
+    neither the table nor its inputs.
+
+    Args:
+        context: the tracker's configuration and motion models.
+        class_acceleration: (K + 1,) white-noise acceleration of each class slot, m/s^2
+            (the tracker's; the motion models scale it).
+    """
+
+    def __init__(self, context: FusionContext, class_acceleration: np.ndarray):
+        self.context = context
+        self.class_acceleration = class_acceleration
+        config = context.config
+        self.enabled = config.swap_radius_m > 0
+        self._factors = np.asarray(config.model_acceleration_factors, np.float64)
+        self._sojourn = np.asarray(config.model_sojourn_s, np.float64)
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget every open encounter."""
+        self._open: dict[tuple[int, int], _Encounter] = {}
+        self._views: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+
+    @property
+    def open_count(self) -> int:
+        """Encounters open now."""
+        return len(self._open)
+
+    def observe(
+        self, ids: np.ndarray, fused_xy: np.ndarray, fused_covariance: np.ndarray, seen: np.ndarray
+    ) -> None:
+        """Each confirmed track's fused position at this instant (its views fused, plus the
+        object noise the filter adds), for the encounters it is part of."""
+        if not self.enabled:
+            return
+        rows = np.flatnonzero((ids >= 0) & seen)
+        self._views = {
+            int(ids[row]): (fused_xy[row].copy(), fused_covariance[row].copy())
+            for row in rows.tolist()
+        }
+
+    def decide(self, tracks: TrackTable, timestamp: float) -> list[tuple[int, int]]:
+        """Rows of tracks that exchange ids now: (row, row) pairs, no row twice.
+
+        Records this instant in every open encounter, opens those of people newly close,
+        and decides those that closed.
+        """
+        if not self.enabled:
+            return []
+        views, self._views = self._views, {}
+        people = (tracks.ids >= 0) & ~np.isfinite(
+            self.context.class_turn_radius[self.context.class_slot(tracks.class_id)]
+        )
+        row_of = {int(one): row for row, one in enumerate(tracks.ids.tolist()) if one >= 0}
+        radius = self.context.config.swap_radius_m
+        swaps: list[tuple[int, int]] = []
+        swapped: set[int] = set()
+        for key in list(self._open):
+            encounter = self._open[key]
+            first, second = key
+            if first not in row_of or second not in row_of:
+                del self._open[key]  # a track ended: nothing to swap
+                continue
+            self._record(encounter, tracks, views, key, row_of, timestamp)
+            rows = [row_of[first], row_of[second]]
+            apart = np.hypot(*(tracks.state[rows[0], :2] - tracks.state[rows[1], :2])) > radius
+            if not apart:
+                encounter.apart_since = None
+            elif encounter.apart_since is None:
+                encounter.apart_since = timestamp
+            settled = apart and timestamp - encounter.apart_since >= (
+                self.context.config.swap_settle_s
+            )
+            if not (settled or timestamp - encounter.opened >= _LONGEST_S):
+                continue
+            del self._open[key]
+            if first in swapped or second in swapped or not encounter.steps:
+                continue
+            if self.swap_gain(encounter, key, tracks.class_id[rows[0]]) > (
+                self.context.config.swap_margin
+            ):
+                swaps.append((rows[0], rows[1]))
+                swapped.update(key)
+        ids = tracks.ids
+        if swaps:
+            self._rename(swaps, tracks)
+            ids = ids.copy()
+            for a, b in swaps:
+                ids[a], ids[b] = ids[b], ids[a]
+        self._open_new(tracks, ids, people, timestamp)
+        return swaps
+
+    def swap_gain(self, encounter: _Encounter, key: tuple[int, int], class_id: int) -> float:
+        """The largest, over the encounter's instants, log-likelihood of the swapped pairing
+        from that instant on minus that of the pairing the tracker kept."""
+        count = len(encounter.steps)
+        slot = self.context.class_slot(np.array([class_id]))[0]
+        sigma = self.class_acceleration[slot] * self._factors
+        # Four runs per start instant: each track's filter through its own views and
+        # through the other's, batched (B = 4 x instants).
+        owners = [key[0], key[1], key[0], key[1]]
+        seen = [key[0], key[1], key[1], key[0]]
+        state, covariance, probability = (
+            np.concatenate(
+                [
+                    np.stack([one[part] for one in encounter.states[owner][:count]])
+                    for owner in owners
+                ]
+            )
+            for part in range(3)
+        )
+        xy = np.stack(
+            [np.stack([view[0] for view in encounter.views[one]]) for one in seen], axis=1
+        )  # (S, 4, 2)
+        view_covariance = np.stack(
+            [np.stack([view[1] for view in encounter.views[one]]) for one in seen], axis=1
+        )
+        runs = np.repeat(np.arange(4), count)
+        total = _log_likelihood(
+            state,
+            covariance,
+            probability,
+            np.tile(np.arange(count), 4),
+            encounter.steps,
+            xy[:, runs],
+            view_covariance[:, runs],
+            sigma,
+            self._sojourn,
+        ).reshape(4, count)
+        return float(np.max(total[2] + total[3] - total[0] - total[1]))
+
+    def _record(
+        self,
+        encounter: _Encounter,
+        tracks: TrackTable,
+        views: dict[int, tuple[np.ndarray, np.ndarray]],
+        key: tuple[int, int],
+        row_of: dict[int, int],
+        timestamp: float,
+    ) -> None:
+        encounter.steps.append(timestamp - encounter.last)
+        encounter.last = timestamp
+        for one in key:
+            row = row_of[one]
+            encounter.states[one].append(_snapshot(tracks, row))
+            encounter.views[one].append(views.get(one, _UNSEEN))
+
+    def _open_new(
+        self, tracks: TrackTable, ids: np.ndarray, people: np.ndarray, timestamp: float
+    ) -> None:
+        """Open an encounter for each pair of people closer than ``swap_radius_m`` that has
+        none, under the ids the tracks carry after this instant's swaps (``ids``)."""
+        rows = np.flatnonzero(people)
+        if len(rows) < 2:
+            return
+        xy = tracks.state[rows, :2]
+        first, second = close_pairs(xy, xy, np.full(len(rows), self.context.config.swap_radius_m))
+        keep = first < second
+        for a, b in zip(rows[first[keep]].tolist(), rows[second[keep]].tolist(), strict=True):
+            one, other = int(ids[a]), int(ids[b])
+            key = (min(one, other), max(one, other))
+            if key in self._open:
+                continue
+            self._open[key] = _Encounter(
+                opened=timestamp,
+                last=timestamp,
+                states={one: [_snapshot(tracks, a)], other: [_snapshot(tracks, b)]},
+                views={one: [], other: []},
+            )
+
+    def _rename(self, swaps: list[tuple[int, int]], tracks: TrackTable) -> None:
+        """After the tracker exchanges ids, what each open encounter recorded under an id
+        belongs to the track that carries the other id now."""
+        other: dict[int, int] = {}
+        for a, b in swaps:
+            one, two = int(tracks.ids[a]), int(tracks.ids[b])
+            other[one], other[two] = two, one
+        renamed: dict[tuple[int, int], _Encounter] = {}
+        for (first, second), encounter in self._open.items():
+            first_new, second_new = other.get(first, first), other.get(second, second)
+            encounter.states = {other.get(k, k): v for k, v in encounter.states.items()}
+            encounter.views = {other.get(k, k): v for k, v in encounter.views.items()}
+            renamed[(min(first_new, second_new), max(first_new, second_new))] = encounter
+        self._open = renamed
+
+    def get_state(self) -> list[dict]:
+        """The open encounters as JSON-ready data, restored by :meth:`set_state`."""
+        return [
+            {
+                "ids": list(key),
+                "opened": encounter.opened,
+                "last": encounter.last,
+                "apart_since": encounter.apart_since,
+                "steps": list(encounter.steps),
+                "states": {
+                    str(k): [[part.tolist() for part in one] for one in v]
+                    for k, v in encounter.states.items()
+                },
+                "views": {
+                    str(k): [[part.tolist() for part in one] for one in v]
+                    for k, v in encounter.views.items()
+                },
+            }
+            for key, encounter in self._open.items()
+        ]
+
+    def set_state(self, state: list[dict] | None) -> None:
+        """Restore :meth:`get_state`'s data (None: no open encounter)."""
+        self.reset()
+        for item in state or []:
+            key = (int(item["ids"][0]), int(item["ids"][1]))
+            self._open[key] = _Encounter(
+                opened=float(item["opened"]),
+                last=float(item["last"]),
+                apart_since=None if item["apart_since"] is None else float(item["apart_since"]),
+                steps=[float(step) for step in item["steps"]],
+                states={
+                    int(k): [tuple(np.asarray(part, np.float64) for part in one) for one in v]
+                    for k, v in item["states"].items()
+                },
+                views={
+                    int(k): [tuple(np.asarray(part, np.float64) for part in one) for one in v]
+                    for k, v in item["views"].items()
+                },
+            )
+
+
+_UNSEEN = (np.full(2, np.nan), np.eye(2))
+
+
+def _snapshot(tracks: TrackTable, row: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    return (
+        tracks.mode_state[row].copy(),
+        tracks.mode_covariance[row].copy(),
+        tracks.mode_probability[row].copy(),
+    )
+
+
+def _log_likelihood(
+    state: np.ndarray,
+    covariance: np.ndarray,
+    probability: np.ndarray,
+    starts: np.ndarray,
+    steps: list[float],
+    xy: np.ndarray,
+    view_covariance: np.ndarray,
+    sigma: np.ndarray,
+    sojourn: np.ndarray,
+) -> np.ndarray:
+    """(B,) log-likelihood of the views under the motion models, for B filters (``state``
+    (B, M, 4) and so on), filter ``b`` started at step ``starts[b]`` and fed ``xy[s, b]``
+    ((S, B, 2), NaN: unseen) with covariance ``view_covariance[s, b]`` at each step s."""
+    total = np.zeros(len(state))
+    acceleration = np.repeat(sigma[None], len(state), axis=0)
+    for index, step in enumerate(steps):
+        active = np.flatnonzero(starts <= index)
+        mode_state, mode_covariance, mode_probability = kalman.predict_models(
+            state[active],
+            covariance[active],
+            probability[active],
+            step,
+            acceleration[active],
+            sojourn,
+        )
+        seen = ~np.isnan(xy[index, active, 0])
+        if seen.any():
+            rows = active[seen]
+            where, cov = xy[index, rows], view_covariance[index, rows]
+            innovation = mode_covariance[seen][:, :, :2, :2] + cov[:, None]
+            residual = where[:, None] - mode_state[seen][:, :, :2]
+            determinant = (
+                innovation[..., 0, 0] * innovation[..., 1, 1]
+                - innovation[..., 0, 1] * innovation[..., 1, 0]
+            )
+            squared = np.einsum("bmi,bmij,bmj->bm", residual, np.linalg.inv(innovation), residual)
+            log = -0.5 * (squared + np.log(determinant)) + np.log(
+                np.maximum(mode_probability[seen], 1e-300)
+            )
+            peak = log.max(axis=1)
+            total[rows] += peak + np.log(np.exp(log - peak[:, None]).sum(axis=1))
+            (mode_state[seen], mode_covariance[seen], mode_probability[seen]) = (
+                kalman.update_models(
+                    mode_state[seen], mode_covariance[seen], mode_probability[seen], where, cov
+                )
+            )
+        state[active], covariance[active] = mode_state, mode_covariance
+        probability[active] = mode_probability
+    return total
