@@ -54,6 +54,8 @@ class _Encounter:
     steps: list[float] = field(default_factory=list)
     states: dict[int, list[tuple[np.ndarray, np.ndarray, np.ndarray]]] = field(default_factory=dict)
     views: dict[int, list[tuple[np.ndarray, np.ndarray]]] = field(default_factory=dict)
+    serial: int = -1  # its runs in the stage's run table (-1: none, replayed when decided)
+    sigma: np.ndarray | None = None  # the accelerations its runs were advanced with
 
 
 class SwapCheck:
@@ -82,6 +84,8 @@ class SwapCheck:
         """Forget every open encounter."""
         self._open: dict[tuple[int, int], _Encounter] = {}
         self._views: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        self._runs = _Runs.empty(len(self._sojourn))
+        self._serial = 0
 
     @property
     def open_count(self) -> int:
@@ -117,13 +121,17 @@ class SwapCheck:
         radius = self.context.config.swap_radius_m
         swaps: list[tuple[int, int]] = []
         swapped: set[int] = set()
+        closed: list[tuple[tuple[int, int], _Encounter]] = []
+        recorded: list[tuple[tuple[int, int], _Encounter, float]] = []
         for key in list(self._open):
             encounter = self._open[key]
             first, second = key
             if first not in row_of or second not in row_of:
                 del self._open[key]  # a track ended: nothing to swap
+                self._runs.drop({encounter.serial})
                 continue
             self._record(encounter, tracks, views, key, row_of, timestamp)
+            recorded.append((key, encounter, encounter.steps[-1]))
             rows = [row_of[first], row_of[second]]
             apart = np.hypot(*(tracks.state[rows[0], :2] - tracks.state[rows[1], :2])) > radius
             if not apart:
@@ -136,13 +144,19 @@ class SwapCheck:
             if not (settled or timestamp - encounter.opened >= _LONGEST_S):
                 continue
             del self._open[key]
+            closed.append((key, encounter))
+        self._advance(recorded, tracks, row_of, views)
+        for key, encounter in closed:
+            first, second = key
             if first in swapped or second in swapped or not encounter.steps:
                 continue
-            if self.swap_gain(encounter, key, tracks.class_id[rows[0]]) > (
+            rows = [row_of[first], row_of[second]]
+            if self._gain(encounter, key, tracks.class_id[rows[0]]) > (
                 self.context.config.swap_margin
             ):
                 swaps.append((rows[0], rows[1]))
                 swapped.update(key)
+        self._runs.drop({encounter.serial for _, encounter in closed})
         ids = tracks.ids
         if swaps:
             self._rename(swaps, tracks)
@@ -152,12 +166,107 @@ class SwapCheck:
         self._open_new(tracks, ids, people, timestamp)
         return swaps
 
+    def _sigma(self, class_id: int) -> np.ndarray:
+        """(M,) white-noise acceleration of each motion model for a track of this class."""
+        slot = self.context.class_slot(np.array([class_id]))[0]
+        return self.class_acceleration[slot] * self._factors
+
+    def _advance(
+        self,
+        recorded: list[tuple[tuple[int, int], _Encounter, float]],
+        tracks: TrackTable,
+        row_of: dict[int, int],
+        views: dict[int, tuple[np.ndarray, np.ndarray]],
+    ) -> None:
+        """Advance every run of the open encounters by this instant's step, after starting
+        the four runs of each encounter's previous instant.
+
+        The runs :meth:`swap_gain` would replay when an encounter is decided are the same
+        filters, each fed the same views in the same order: run here one step per instant,
+        all encounters at once, they cost a handful of array operations per instant instead
+        of per step of every encounter decided. An encounter restored from a saved state,
+        or whose accelerations changed (a track's class did), is replayed when decided.
+        """
+        new: list[tuple[_Encounter, int, int]] = []
+        for key, encounter, _ in recorded:
+            if encounter.serial < 0:
+                continue
+            sigma = self._sigma(tracks.class_id[row_of[key[0]]])
+            if encounter.sigma is None:
+                encounter.sigma = sigma
+            elif not np.array_equal(sigma, encounter.sigma):
+                self._runs.drop({encounter.serial})
+                encounter.serial = -1
+                continue
+            first, second = key
+            for owner, seen in ((first, first), (second, second), (first, second), (second, first)):
+                new.append((encounter, owner, seen))
+        if new:
+            self._runs.append(
+                *(
+                    np.stack([encounter.states[owner][-2][part] for encounter, owner, _ in new])
+                    for part in range(3)
+                ),
+                np.stack([encounter.sigma for encounter, _, _ in new]),
+                np.array([encounter.serial for encounter, _, _ in new], np.int64),
+                np.array([owner for _, owner, _ in new], np.int64),
+                np.array([seen for _, _, seen in new], np.int64),
+            )
+        runs = self._runs
+        if not len(runs.total):
+            return
+        ids, inverse = np.unique(runs.seen, return_inverse=True)
+        picked = [views.get(one, _UNSEEN) for one in ids.tolist()]
+        xy = np.stack([view[0] for view in picked])[inverse]
+        view_covariance = np.stack([view[1] for view in picked])[inverse]
+        step_of = {encounter.serial: step for _, encounter, step in recorded}
+        steps = sorted(set(step_of.values()))
+        if len(steps) > 1:  # (all encounters are recorded at every instant: not seen so far)
+            serials, where = np.unique(runs.serial, return_inverse=True)
+            run_step = np.array([step_of[one] for one in serials.tolist()])[where]
+        for step in steps:
+            if len(steps) == 1:
+                rows = slice(None)
+            else:
+                rows = np.flatnonzero(run_step == step)
+            state, covariance, probability, seen, gain = _step(
+                runs.state[rows],
+                runs.covariance[rows],
+                runs.probability[rows],
+                step,
+                xy[rows],
+                view_covariance[rows],
+                runs.acceleration[rows],
+                self._sojourn,
+            )
+            if len(steps) == 1:
+                runs.state, runs.covariance, runs.probability = state, covariance, probability
+                runs.total[seen] += gain
+            else:
+                runs.state[rows], runs.covariance[rows] = state, covariance
+                runs.probability[rows] = probability
+                runs.total[rows[seen]] += gain
+
+    def _gain(self, encounter: _Encounter, key: tuple[int, int], class_id: int) -> float:
+        """:meth:`swap_gain` from the runs advanced each instant (replayed if it has none)."""
+        if encounter.serial < 0 or not np.array_equal(self._sigma(class_id), encounter.sigma):
+            return self.swap_gain(encounter, key, class_id)
+        runs = self._runs
+        mine = runs.serial == encounter.serial
+        owner, seen, total = runs.owner[mine], runs.seen[mine], runs.total[mine]
+        first, second = key
+        keep_first, keep_second, first_swapped, second_swapped = (
+            total[(owner == a) & (seen == b)]
+            for a, b in ((first, first), (second, second), (first, second), (second, first))
+        )
+        return float(np.max(first_swapped + second_swapped - keep_first - keep_second))
+
     def swap_gain(self, encounter: _Encounter, key: tuple[int, int], class_id: int) -> float:
         """The largest, over the encounter's instants, log-likelihood of the swapped pairing
-        from that instant on minus that of the pairing the tracker kept."""
+        from that instant on minus that of the pairing the tracker kept (replayed from the
+        recorded states and views)."""
         count = len(encounter.steps)
-        slot = self.context.class_slot(np.array([class_id]))[0]
-        sigma = self.class_acceleration[slot] * self._factors
+        sigma = self._sigma(class_id)
         # Four runs per start instant: each track's filter through its own views and
         # through the other's, batched (B = 4 x instants).
         owners = [key[0], key[1], key[0], key[1]]
@@ -228,7 +337,9 @@ class SwapCheck:
                 last=timestamp,
                 states={one: [_snapshot(tracks, a)], other: [_snapshot(tracks, b)]},
                 views={one: [], other: []},
+                serial=self._serial,
             )
+            self._serial += 1
 
     def _rename(self, swaps: list[tuple[int, int]], tracks: TrackTable) -> None:
         """After the tracker exchanges ids, what each open encounter recorded under an id
@@ -244,6 +355,11 @@ class SwapCheck:
             encounter.views = {other.get(k, k): v for k, v in encounter.views.items()}
             renamed[(min(first_new, second_new), max(first_new, second_new))] = encounter
         self._open = renamed
+        runs = self._runs
+        runs.owner, runs.seen = (
+            np.array([other.get(one, one) for one in ids.tolist()], np.int64)
+            for ids in (runs.owner, runs.seen)
+        )
 
     def get_state(self) -> list[dict]:
         """The open encounters as JSON-ready data, restored by :meth:`set_state`."""
@@ -290,6 +406,65 @@ class SwapCheck:
 _UNSEEN = (np.full(2, np.nan), np.eye(2))
 
 
+@dataclass
+class _Runs:
+    """The filters of every open encounter, one row each: run from one instant's state of
+    track ``owner`` through the views of track ``seen``; ``total``, their log-likelihood."""
+
+    state: np.ndarray  # (R, M, 4)
+    covariance: np.ndarray  # (R, M, 4, 4)
+    probability: np.ndarray  # (R, M)
+    acceleration: np.ndarray  # (R, M)
+    serial: np.ndarray  # (R,) its encounter's
+    owner: np.ndarray  # (R,) id
+    seen: np.ndarray  # (R,) id
+    total: np.ndarray  # (R,)
+
+    @classmethod
+    def empty(cls, models: int) -> _Runs:
+        nothing = np.zeros(0, np.int64)
+        return cls(
+            np.zeros((0, models, 4)),
+            np.zeros((0, models, 4, 4)),
+            np.zeros((0, models)),
+            np.zeros((0, models)),
+            nothing,
+            nothing,
+            nothing,
+            np.zeros(0),
+        )
+
+    def append(self, state, covariance, probability, acceleration, serial, owner, seen):
+        """New runs, their log-likelihood 0."""
+        self.state = np.concatenate([self.state, state])
+        self.covariance = np.concatenate([self.covariance, covariance])
+        self.probability = np.concatenate([self.probability, probability])
+        self.acceleration = np.concatenate([self.acceleration, acceleration])
+        self.serial = np.concatenate([self.serial, serial])
+        self.owner = np.concatenate([self.owner, owner])
+        self.seen = np.concatenate([self.seen, seen])
+        self.total = np.concatenate([self.total, np.zeros(len(state))])
+
+    def drop(self, serials: set[int]) -> None:
+        """Forget the runs of these encounters."""
+        if not len(self.serial) or not serials:
+            return
+        keep = ~np.isin(self.serial, list(serials))
+        if keep.all():
+            return
+        for name in (
+            "state",
+            "covariance",
+            "probability",
+            "acceleration",
+            "serial",
+            "owner",
+            "seen",
+            "total",
+        ):
+            setattr(self, name, getattr(self, name)[keep])
+
+
 def _snapshot(tracks: TrackTable, row: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return (
         tracks.mode_state[row].copy(),
@@ -316,35 +491,54 @@ def _log_likelihood(
     acceleration = np.repeat(sigma[None], len(state), axis=0)
     for index, step in enumerate(steps):
         active = np.flatnonzero(starts <= index)
-        mode_state, mode_covariance, mode_probability = kalman.predict_models(
+        mode_state, mode_covariance, mode_probability, seen, gain = _step(
             state[active],
             covariance[active],
             probability[active],
             step,
+            xy[index, active],
+            view_covariance[index, active],
             acceleration[active],
             sojourn,
         )
-        seen = ~np.isnan(xy[index, active, 0])
-        if seen.any():
-            rows = active[seen]
-            where, cov = xy[index, rows], view_covariance[index, rows]
-            innovation = mode_covariance[seen][:, :, :2, :2] + cov[:, None]
-            residual = where[:, None] - mode_state[seen][:, :, :2]
-            determinant = (
-                innovation[..., 0, 0] * innovation[..., 1, 1]
-                - innovation[..., 0, 1] * innovation[..., 1, 0]
-            )
-            squared = np.einsum("bmi,bmij,bmj->bm", residual, np.linalg.inv(innovation), residual)
-            log = -0.5 * (squared + np.log(determinant)) + np.log(
-                np.maximum(mode_probability[seen], 1e-300)
-            )
-            peak = log.max(axis=1)
-            total[rows] += peak + np.log(np.exp(log - peak[:, None]).sum(axis=1))
-            (mode_state[seen], mode_covariance[seen], mode_probability[seen]) = (
-                kalman.update_models(
-                    mode_state[seen], mode_covariance[seen], mode_probability[seen], where, cov
-                )
-            )
+        total[active[seen]] += gain
         state[active], covariance[active] = mode_state, mode_covariance
         probability[active] = mode_probability
     return total
+
+
+def _step(
+    state: np.ndarray,
+    covariance: np.ndarray,
+    probability: np.ndarray,
+    step: float,
+    xy: np.ndarray,
+    view_covariance: np.ndarray,
+    acceleration: np.ndarray,
+    sojourn: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """One step of B filters (``state`` (B, M, 4) and so on) fed ``xy`` (B, 2) (NaN: unseen):
+    their new states, which saw a view, and the log-likelihood of each of those views."""
+    mode_state, mode_covariance, mode_probability = kalman.predict_models(
+        state, covariance, probability, step, acceleration, sojourn
+    )
+    seen = ~np.isnan(xy[:, 0])
+    gain = np.zeros(0)
+    if seen.any():
+        where, cov = xy[seen], view_covariance[seen]
+        innovation = mode_covariance[seen][:, :, :2, :2] + cov[:, None]
+        residual = where[:, None] - mode_state[seen][:, :, :2]
+        determinant = (
+            innovation[..., 0, 0] * innovation[..., 1, 1]
+            - innovation[..., 0, 1] * innovation[..., 1, 0]
+        )
+        squared = np.einsum("bmi,bmij,bmj->bm", residual, np.linalg.inv(innovation), residual)
+        log = -0.5 * (squared + np.log(determinant)) + np.log(
+            np.maximum(mode_probability[seen], 1e-300)
+        )
+        peak = log.max(axis=1)
+        gain = peak + np.log(np.exp(log - peak[:, None]).sum(axis=1))
+        (mode_state[seen], mode_covariance[seen], mode_probability[seen]) = kalman.update_models(
+            mode_state[seen], mode_covariance[seen], mode_probability[seen], where, cov
+        )
+    return mode_state, mode_covariance, mode_probability, seen, gain
