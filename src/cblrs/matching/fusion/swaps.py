@@ -78,6 +78,7 @@ class SwapCheck:
         self.enabled = config.swap_radius_m > 0
         self._factors = np.asarray(config.model_acceleration_factors, np.float64)
         self._sojourn = np.asarray(config.model_sojourn_s, np.float64)
+        self._sigmas: dict[int, np.ndarray] = {}
         self.reset()
 
     def reset(self) -> None:
@@ -86,6 +87,8 @@ class SwapCheck:
         self._views: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         self._runs = _Runs.empty(len(self._sojourn))
         self._serial = 0
+        self._previous: dict[int, int] = {}  # encounter: its first track's row in these
+        self._previous_parts: tuple[np.ndarray, ...] = ()
 
     @property
     def open_count(self) -> int:
@@ -118,45 +121,48 @@ class SwapCheck:
             self.context.class_turn_radius[self.context.class_slot(tracks.class_id)]
         )
         row_of = {int(one): row for row, one in enumerate(tracks.ids.tolist()) if one >= 0}
-        radius = self.context.config.swap_radius_m
+        config = self.context.config
         swaps: list[tuple[int, int]] = []
         swapped: set[int] = set()
-        closed: list[tuple[tuple[int, int], _Encounter]] = []
-        recorded: list[tuple[tuple[int, int], _Encounter, float]] = []
-        for key in list(self._open):
-            encounter = self._open[key]
-            first, second = key
-            if first not in row_of or second not in row_of:
+        gone: set[int] = set()  # encounters whose runs are no longer needed
+        alive: list[tuple[tuple[int, int], _Encounter]] = []
+        for key, encounter in list(self._open.items()):
+            if key[0] in row_of and key[1] in row_of:
+                alive.append((key, encounter))
+            else:
                 del self._open[key]  # a track ended: nothing to swap
-                self._runs.drop({encounter.serial})
-                continue
-            self._record(encounter, tracks, views, key, row_of, timestamp)
-            recorded.append((key, encounter, encounter.steps[-1]))
-            rows = [row_of[first], row_of[second]]
-            apart = np.hypot(*(tracks.state[rows[0], :2] - tracks.state[rows[1], :2])) > radius
-            if not apart:
-                encounter.apart_since = None
-            elif encounter.apart_since is None:
-                encounter.apart_since = timestamp
-            settled = apart and timestamp - encounter.apart_since >= (
-                self.context.config.swap_settle_s
+                gone.add(encounter.serial)
+        closed: list[tuple[tuple[int, int], _Encounter]] = []
+        if alive:
+            first_rows = np.array([row_of[key[0]] for key, _ in alive])
+            offset = (
+                tracks.state[first_rows, :2]
+                - tracks.state[np.array([row_of[key[1]] for key, _ in alive]), :2]
             )
-            if not (settled or timestamp - encounter.opened >= _LONGEST_S):
-                continue
-            del self._open[key]
-            closed.append((key, encounter))
-        self._advance(recorded, tracks, row_of, views)
+            far = np.hypot(offset[:, 0], offset[:, 1]) > config.swap_radius_m
+            for (key, encounter), apart in zip(alive, far.tolist(), strict=True):
+                encounter.steps.append(timestamp - encounter.last)
+                encounter.last = timestamp
+                for one in key:
+                    encounter.views[one].append(views.get(one, _UNSEEN))
+                if not apart:
+                    encounter.apart_since = None
+                elif encounter.apart_since is None:
+                    encounter.apart_since = timestamp
+                settled = apart and timestamp - encounter.apart_since >= config.swap_settle_s
+                if settled or timestamp - encounter.opened >= _LONGEST_S:
+                    del self._open[key]
+                    closed.append((key, encounter))
+            self._advance(alive, tracks.class_id[first_rows].tolist(), views, gone)
         for key, encounter in closed:
             first, second = key
             if first in swapped or second in swapped or not encounter.steps:
                 continue
             rows = [row_of[first], row_of[second]]
-            if self._gain(encounter, key, tracks.class_id[rows[0]]) > (
-                self.context.config.swap_margin
-            ):
+            if self._gain(encounter, key, tracks.class_id[rows[0]]) > config.swap_margin:
                 swaps.append((rows[0], rows[1]))
                 swapped.update(key)
-        self._runs.drop({encounter.serial for _, encounter in closed})
+        self._runs.drop(gone | {encounter.serial for _, encounter in closed})
         ids = tracks.ids
         if swaps:
             self._rename(swaps, tracks)
@@ -164,22 +170,46 @@ class SwapCheck:
             for a, b in swaps:
                 ids[a], ids[b] = ids[b], ids[a]
         self._open_new(tracks, ids, people, timestamp)
+        self._record(tracks, ids)
         return swaps
 
     def _sigma(self, class_id: int) -> np.ndarray:
         """(M,) white-noise acceleration of each motion model for a track of this class."""
-        slot = self.context.class_slot(np.array([class_id]))[0]
-        return self.class_acceleration[slot] * self._factors
+        sigma = self._sigmas.get(class_id)
+        if sigma is None:
+            slot = self.context.class_slot(np.array([class_id]))[0]
+            sigma = self._sigmas[class_id] = self.class_acceleration[slot] * self._factors
+        return sigma
+
+    def _record(self, tracks: TrackTable, ids: np.ndarray) -> None:
+        """Each open encounter's two filter states now, under the ids the tracks carry after
+        this instant's swaps (``ids``): its history, and where its next runs start."""
+        self._previous = {}
+        if not self._open:
+            return
+        row_of = {int(one): row for row, one in enumerate(ids.tolist()) if one >= 0}
+        rows = np.array([row_of[one] for key in self._open for one in key])
+        self._previous_parts = parts = (
+            tracks.mode_state[rows],
+            tracks.mode_covariance[rows],
+            tracks.mode_probability[rows],
+        )
+        for index, (key, encounter) in enumerate(self._open.items()):
+            for side, one in enumerate(key):
+                encounter.states[one].append(tuple(part[2 * index + side] for part in parts))
+            if encounter.serial >= 0:
+                self._previous[encounter.serial] = 2 * index
 
     def _advance(
         self,
-        recorded: list[tuple[tuple[int, int], _Encounter, float]],
-        tracks: TrackTable,
-        row_of: dict[int, int],
+        alive: list[tuple[tuple[int, int], _Encounter]],
+        class_ids: list[int],
         views: dict[int, tuple[np.ndarray, np.ndarray]],
+        gone: set[int],
     ) -> None:
         """Advance every run of the open encounters by this instant's step, after starting
-        the four runs of each encounter's previous instant.
+        the four runs of each encounter's previous instant (``class_ids``: each encounter's
+        first track's class; ``gone``: encounters whose runs are dropped first).
 
         The runs :meth:`swap_gain` would replay when an encounter is decided are the same
         filters, each fed the same views in the same order: run here one step per instant,
@@ -187,49 +217,51 @@ class SwapCheck:
         of per step of every encounter decided. An encounter restored from a saved state,
         or whose accelerations changed (a track's class did), is replayed when decided.
         """
-        new: list[tuple[_Encounter, int, int]] = []
-        for key, encounter, _ in recorded:
+        start: list[int] = []
+        sigmas: list[np.ndarray] = []
+        owner: list[int] = []
+        seen: list[int] = []
+        step_of: dict[int, float] = {}
+        for (key, encounter), class_id in zip(alive, class_ids, strict=True):
             if encounter.serial < 0:
                 continue
-            sigma = self._sigma(tracks.class_id[row_of[key[0]]])
+            sigma = self._sigma(class_id)
             if encounter.sigma is None:
                 encounter.sigma = sigma
             elif not np.array_equal(sigma, encounter.sigma):
-                self._runs.drop({encounter.serial})
+                gone.add(encounter.serial)
                 encounter.serial = -1
                 continue
             first, second = key
-            for owner, seen in ((first, first), (second, second), (first, second), (second, first)):
-                new.append((encounter, owner, seen))
-        if new:
-            self._runs.append(
-                *(
-                    np.stack([encounter.states[owner][-2][part] for encounter, owner, _ in new])
-                    for part in range(3)
-                ),
-                np.stack([encounter.sigma for encounter, _, _ in new]),
-                np.array([encounter.serial for encounter, _, _ in new], np.int64),
-                np.array([owner for _, owner, _ in new], np.int64),
-                np.array([seen for _, _, seen in new], np.int64),
-            )
+            step_of[encounter.serial] = encounter.steps[-1]
+            start.append(self._previous[encounter.serial])
+            sigmas.append(sigma)
+            owner += (first, second, first, second)
+            seen += (first, second, second, first)
         runs = self._runs
+        runs.drop(gone)
+        if start:
+            index = (np.array(start)[:, None] + _ROLES).ravel()
+            runs.append(
+                *(part[index] for part in self._previous_parts),
+                np.repeat(np.array(sigmas), 4, axis=0),
+                np.repeat(np.array(list(step_of)), 4),
+                np.array(owner, np.int64),
+                np.array(seen, np.int64),
+            )
         if not len(runs.total):
             return
         ids, inverse = np.unique(runs.seen, return_inverse=True)
         picked = [views.get(one, _UNSEEN) for one in ids.tolist()]
         xy = np.stack([view[0] for view in picked])[inverse]
         view_covariance = np.stack([view[1] for view in picked])[inverse]
-        step_of = {encounter.serial: step for _, encounter, step in recorded}
         steps = sorted(set(step_of.values()))
         if len(steps) > 1:  # (all encounters are recorded at every instant: not seen so far)
             serials, where = np.unique(runs.serial, return_inverse=True)
             run_step = np.array([step_of[one] for one in serials.tolist()])[where]
         for step in steps:
-            if len(steps) == 1:
-                rows = slice(None)
-            else:
-                rows = np.flatnonzero(run_step == step)
-            state, covariance, probability, seen, gain = _step(
+            rows = slice(None) if len(steps) == 1 else np.flatnonzero(run_step == step)
+            state, covariance, probability, seen_now, gain = _step(
                 runs.state[rows],
                 runs.covariance[rows],
                 runs.probability[rows],
@@ -241,11 +273,11 @@ class SwapCheck:
             )
             if len(steps) == 1:
                 runs.state, runs.covariance, runs.probability = state, covariance, probability
-                runs.total[seen] += gain
+                runs.total[seen_now] += gain
             else:
                 runs.state[rows], runs.covariance[rows] = state, covariance
                 runs.probability[rows] = probability
-                runs.total[rows[seen]] += gain
+                runs.total[rows[seen_now]] += gain
 
     def _gain(self, encounter: _Encounter, key: tuple[int, int], class_id: int) -> float:
         """:meth:`swap_gain` from the runs advanced each instant (replayed if it has none)."""
@@ -300,22 +332,6 @@ class SwapCheck:
         ).reshape(4, count)
         return float(np.max(total[2] + total[3] - total[0] - total[1]))
 
-    def _record(
-        self,
-        encounter: _Encounter,
-        tracks: TrackTable,
-        views: dict[int, tuple[np.ndarray, np.ndarray]],
-        key: tuple[int, int],
-        row_of: dict[int, int],
-        timestamp: float,
-    ) -> None:
-        encounter.steps.append(timestamp - encounter.last)
-        encounter.last = timestamp
-        for one in key:
-            row = row_of[one]
-            encounter.states[one].append(_snapshot(tracks, row))
-            encounter.views[one].append(views.get(one, _UNSEEN))
-
     def _open_new(
         self, tracks: TrackTable, ids: np.ndarray, people: np.ndarray, timestamp: float
     ) -> None:
@@ -335,7 +351,7 @@ class SwapCheck:
             self._open[key] = _Encounter(
                 opened=timestamp,
                 last=timestamp,
-                states={one: [_snapshot(tracks, a)], other: [_snapshot(tracks, b)]},
+                states={one: [], other: []},
                 views={one: [], other: []},
                 serial=self._serial,
             )
@@ -404,6 +420,7 @@ class SwapCheck:
 
 
 _UNSEEN = (np.full(2, np.nan), np.eye(2))
+_ROLES = np.array([0, 1, 0, 1])  # the four runs of a start: whose state each begins from
 
 
 @dataclass
@@ -463,14 +480,6 @@ class _Runs:
             "total",
         ):
             setattr(self, name, getattr(self, name)[keep])
-
-
-def _snapshot(tracks: TrackTable, row: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    return (
-        tracks.mode_state[row].copy(),
-        tracks.mode_covariance[row].copy(),
-        tracks.mode_probability[row].copy(),
-    )
 
 
 def _log_likelihood(
