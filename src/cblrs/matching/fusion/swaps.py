@@ -29,7 +29,7 @@ service restarted from the tracker's state continues the open encounters.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 
 import numpy as np
 
@@ -135,10 +135,8 @@ class SwapCheck:
         closed: list[tuple[tuple[int, int], _Encounter]] = []
         if alive:
             first_rows = np.array([row_of[key[0]] for key, _ in alive])
-            offset = (
-                tracks.state[first_rows, :2]
-                - tracks.state[np.array([row_of[key[1]] for key, _ in alive]), :2]
-            )
+            second_rows = np.array([row_of[key[1]] for key, _ in alive])
+            offset = tracks.state[first_rows, :2] - tracks.state[second_rows, :2]
             far = np.hypot(offset[:, 0], offset[:, 1]) > config.swap_radius_m
             for (key, encounter), apart in zip(alive, far.tolist(), strict=True):
                 encounter.steps.append(timestamp - encounter.last)
@@ -153,7 +151,7 @@ class SwapCheck:
                 if settled or timestamp - encounter.opened >= _LONGEST_S:
                     del self._open[key]
                     closed.append((key, encounter))
-            self._advance(alive, tracks.class_id[first_rows].tolist(), views, gone)
+            self._advance(alive, tracks, np.column_stack([first_rows, second_rows]), views, gone)
         for key, encounter in closed:
             first, second = key
             if first in swapped or second in swapped or not encounter.steps:
@@ -203,26 +201,34 @@ class SwapCheck:
     def _advance(
         self,
         alive: list[tuple[tuple[int, int], _Encounter]],
-        class_ids: list[int],
+        tracks: TrackTable,
+        rows: np.ndarray,
         views: dict[int, tuple[np.ndarray, np.ndarray]],
         gone: set[int],
     ) -> None:
-        """Advance every run of the open encounters by this instant's step, after starting
-        the four runs of each encounter's previous instant (``class_ids``: each encounter's
-        first track's class; ``gone``: encounters whose runs are dropped first).
+        """Advance the runs of the open encounters (``alive``, their tracks' ``rows``, (E, 2))
+        by this instant's step, after starting those of each one's previous instant
+        (``gone``: encounters whose runs are dropped first).
 
         The runs :meth:`swap_gain` would replay when an encounter is decided are the same
-        filters, each fed the same views in the same order: run here one step per instant,
-        all encounters at once, they cost a handful of array operations per instant instead
-        of per step of every encounter decided. An encounter restored from a saved state,
-        or whose accelerations changed (a track's class did), is replayed when decided.
+        filters, fed the same views in the same order: run here one step per instant, all
+        encounters at once, they cost a handful of array operations per instant instead of
+        one per step of each encounter decided. Only the runs through the other track's
+        views are kept: a track's run through its own views from any instant is its own
+        filter (the tracker runs the same models on the same views), as each instant's
+        check finds by running it one step from the previous instant; its log-likelihood
+        there is added to the runs that need it. An encounter where the check fails, whose
+        accelerations changed (a track's class did) or restored from a saved state is
+        replayed when decided.
         """
+        online: list[int] = []
         start: list[int] = []
         sigmas: list[np.ndarray] = []
         owner: list[int] = []
-        seen: list[int] = []
         step_of: dict[int, float] = {}
-        for (key, encounter), class_id in zip(alive, class_ids, strict=True):
+        for index, ((key, encounter), class_id) in enumerate(
+            zip(alive, tracks.class_id[rows[:, 0]].tolist(), strict=True)
+        ):
             if encounter.serial < 0:
                 continue
             sigma = self._sigma(class_id)
@@ -232,52 +238,79 @@ class SwapCheck:
                 gone.add(encounter.serial)
                 encounter.serial = -1
                 continue
-            first, second = key
+            online.append(index)
             step_of[encounter.serial] = encounter.steps[-1]
             start.append(self._previous[encounter.serial])
             sigmas.append(sigma)
-            owner += (first, second, first, second)
-            seen += (first, second, second, first)
+            owner += key
         runs = self._runs
         runs.drop(gone)
-        if start:
-            index = (np.array(start)[:, None] + _ROLES).ravel()
-            runs.append(
-                *(part[index] for part in self._previous_parts),
-                np.repeat(np.array(sigmas), 4, axis=0),
-                np.repeat(np.array(list(step_of)), 4),
-                np.array(owner, np.int64),
-                np.array(seen, np.int64),
-            )
-        if not len(runs.total):
+        if not online:
             return
-        ids, inverse = np.unique(runs.seen, return_inverse=True)
+        # The new runs through the other's views, then each track's one step through its own.
+        index = (np.array(start)[:, None] + _SIDES).ravel()
+        serial = np.repeat(np.array(list(step_of), np.int64), 2)
+        owner_ids = np.array(owner, np.int64)
+        seen_ids = owner_ids.reshape(-1, 2)[:, ::-1].ravel()
+        acceleration = np.repeat(np.array(sigmas), 2, axis=0)
+        starts = [part[index] for part in self._previous_parts]
+        runs.append(*starts, acceleration, serial, owner_ids, seen_ids)
+        count = len(runs.total)
+        state, covariance, probability = (
+            np.concatenate([whole, part])
+            for whole, part in zip(
+                (runs.state, runs.covariance, runs.probability), starts, strict=True
+            )
+        )
+        accelerations = np.concatenate([runs.acceleration, acceleration])
+        ids, inverse = np.unique(np.concatenate([runs.seen, owner_ids]), return_inverse=True)
         picked = [views.get(one, _UNSEEN) for one in ids.tolist()]
         xy = np.stack([view[0] for view in picked])[inverse]
         view_covariance = np.stack([view[1] for view in picked])[inverse]
+        gain = np.zeros(len(state))
+        saw = np.zeros(len(state), dtype=bool)
         steps = sorted(set(step_of.values()))
         if len(steps) > 1:  # (all encounters are recorded at every instant: not seen so far)
-            serials, where = np.unique(runs.serial, return_inverse=True)
-            run_step = np.array([step_of[one] for one in serials.tolist()])[where]
+            serials, where = np.unique(np.concatenate([runs.serial, serial]), return_inverse=True)
+            row_step = np.array([step_of[one] for one in serials.tolist()])[where]
         for step in steps:
-            rows = slice(None) if len(steps) == 1 else np.flatnonzero(run_step == step)
-            state, covariance, probability, seen_now, gain = _step(
-                runs.state[rows],
-                runs.covariance[rows],
-                runs.probability[rows],
+            part = np.arange(len(state))
+            if len(steps) > 1:
+                part = np.flatnonzero(row_step == step)
+            new_state, new_covariance, new_probability, seen_now, log = _step(
+                state[part],
+                covariance[part],
+                probability[part],
                 step,
-                xy[rows],
-                view_covariance[rows],
-                runs.acceleration[rows],
+                xy[part],
+                view_covariance[part],
+                accelerations[part],
                 self._sojourn,
             )
-            if len(steps) == 1:
-                runs.state, runs.covariance, runs.probability = state, covariance, probability
-                runs.total[seen_now] += gain
-            else:
-                runs.state[rows], runs.covariance[rows] = state, covariance
-                runs.probability[rows] = probability
-                runs.total[rows[seen_now]] += gain
+            state[part], covariance[part] = new_state, new_covariance
+            probability[part] = new_probability
+            gain[part[seen_now]] = log
+            saw[part[seen_now]] = True
+        runs.state, runs.covariance = state[:count], covariance[:count]
+        runs.probability = probability[:count]
+        runs.total[saw[:count]] += gain[:count][saw[:count]]
+        # Each track's own filter now must be its one step from the previous instant.
+        now = rows[online].ravel()
+        same = (
+            (state[count:] == tracks.mode_state[now]).all(axis=(1, 2))
+            & (covariance[count:] == tracks.mode_covariance[now]).all(axis=(1, 2, 3))
+            & (probability[count:] == tracks.mode_probability[now]).all(axis=1)
+        )
+        code = (serial << 32) | owner_ids
+        order = np.argsort(code)
+        probe = count + order[np.searchsorted(code[order], (runs.serial << 32) | runs.owner)]
+        own = saw[probe]
+        runs.keep[own] += gain[probe][own]
+        failed = np.flatnonzero(~same.reshape(-1, 2).all(axis=1)).tolist()
+        for one in failed:
+            gone.add(alive[online[one]][1].serial)
+            alive[online[one]][1].serial = -1
+        runs.drop(gone)
 
     def _gain(self, encounter: _Encounter, key: tuple[int, int], class_id: int) -> float:
         """:meth:`swap_gain` from the runs advanced each instant (replayed if it has none)."""
@@ -285,13 +318,17 @@ class SwapCheck:
             return self.swap_gain(encounter, key, class_id)
         runs = self._runs
         mine = runs.serial == encounter.serial
-        owner, seen, total = runs.owner[mine], runs.seen[mine], runs.total[mine]
+        owner, total, keep = runs.owner[mine], runs.total[mine], runs.keep[mine]
         first, second = key
-        keep_first, keep_second, first_swapped, second_swapped = (
-            total[(owner == a) & (seen == b)]
-            for a, b in ((first, first), (second, second), (first, second), (second, first))
+        # Per start: its two runs through the other's views and its tracks' own filters.
+        return float(
+            np.max(
+                total[owner == first]
+                + total[owner == second]
+                - keep[owner == first]
+                - keep[owner == second]
+            )
         )
-        return float(np.max(first_swapped + second_swapped - keep_first - keep_second))
 
     def swap_gain(self, encounter: _Encounter, key: tuple[int, int], class_id: int) -> float:
         """The largest, over the encounter's instants, log-likelihood of the swapped pairing
@@ -420,7 +457,7 @@ class SwapCheck:
 
 
 _UNSEEN = (np.full(2, np.nan), np.eye(2))
-_ROLES = np.array([0, 1, 0, 1])  # the four runs of a start: whose state each begins from
+_SIDES = np.array([0, 1])  # an encounter's two tracks' rows in the recorded states
 
 
 @dataclass
@@ -436,6 +473,7 @@ class _Runs:
     owner: np.ndarray  # (R,) id
     seen: np.ndarray  # (R,) id
     total: np.ndarray  # (R,)
+    keep: np.ndarray  # (R,) log-likelihood of the run of its start through its own views
 
     @classmethod
     def empty(cls, models: int) -> _Runs:
@@ -449,6 +487,7 @@ class _Runs:
             nothing,
             nothing,
             np.zeros(0),
+            np.zeros(0),
         )
 
     def append(self, state, covariance, probability, acceleration, serial, owner, seen):
@@ -461,25 +500,17 @@ class _Runs:
         self.owner = np.concatenate([self.owner, owner])
         self.seen = np.concatenate([self.seen, seen])
         self.total = np.concatenate([self.total, np.zeros(len(state))])
+        self.keep = np.concatenate([self.keep, np.zeros(len(state))])
 
     def drop(self, serials: set[int]) -> None:
         """Forget the runs of these encounters."""
         if not len(self.serial) or not serials:
             return
-        keep = ~np.isin(self.serial, list(serials))
-        if keep.all():
+        kept = ~np.isin(self.serial, list(serials))
+        if kept.all():
             return
-        for name in (
-            "state",
-            "covariance",
-            "probability",
-            "acceleration",
-            "serial",
-            "owner",
-            "seen",
-            "total",
-        ):
-            setattr(self, name, getattr(self, name)[keep])
+        for one in fields(self):
+            setattr(self, one.name, getattr(self, one.name)[kept])
 
 
 def _log_likelihood(
