@@ -17,7 +17,9 @@ decision later, once the evidence is in:
   ``k`` of the encounter, whether the tracks would explain what was seen from ``k`` on
   better swapped: each track's filter state before ``k`` is run, with the tracker's motion
   models, through its own fused positions and through the other track's, and the
-  log-likelihoods of the innovations are summed (``keep`` and ``swap``);
+  log-likelihoods of the innovations are summed (``keep`` and ``swap``). (The runs are
+  advanced as the instants come, all encounters together, and a track's run through its
+  own views is its own filter: see :meth:`SwapCheck._advance`; the sums are the replay's.)
 * if for some ``k`` the swapped pairing is more likely by ``swap_margin`` (log units; the
   default 7 is odds of about 1,100 to 1), the two tracks exchange ids from now on.
 
