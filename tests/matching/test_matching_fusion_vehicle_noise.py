@@ -24,8 +24,8 @@ CAR = CLASS_NAMES.index("car")
 PERSON = CLASS_NAMES.index("person")
 
 
-def _context() -> FusionContext:
-    config = FusionConfig()
+def _context(config: FusionConfig | None = None) -> FusionContext:
+    config = config or FusionConfig()
     extra = np.array([config.class_measurement_sigma_m.get(name, 0.0) for name in CLASS_NAMES]
                      + [0.0])
     return FusionContext(config, ["a", "b"], np.array([[0.0, 0.0], [20.0, 0.0]]), extra,
@@ -152,3 +152,34 @@ def test_a_car_on_a_ring_is_reported_nearer_its_centre(monkeypatch):
     assert np.array_equal(located.track_id, filtered.track_id)  # association unchanged
     assert mean_error(located) < 0.2
     assert mean_error(located) < 0.7 * mean_error(filtered)
+
+
+def _located_after_sharp_learning(vehicle_floor: float) -> np.ndarray:
+    """Where a settled truck track predicted at (10, 10) is reported from two views that
+    agree within centimetres at (10.6, 10.2), after the noise learned cameras agreeing
+    within 2 cm."""
+    noise = VehicleNoise(_context(FusionConfig(vehicle_minimum_sigma_m=vehicle_floor)))
+    truck = CLASS_NAMES.index("truck")
+    rng = np.random.default_rng(1)
+    for _ in range(200):
+        truth = rng.uniform(5.0, 15.0, (10, 2))
+        world_xy = np.repeat(truth, 2, axis=0) + rng.normal(0.0, 0.02, (20, 2))
+        camera = np.tile([0, 1], 10)
+        noise.learn(world_xy, _measured(world_xy, camera), np.ones(20, bool),
+                    np.repeat(np.arange(10), 2), np.full(20, truck))
+    tracks = _tracks([truck], [True])
+    tracks.covariance[:] = np.diag([0.05, 0.05, 1.0, 1.0])
+    world_xy = np.array([[10.61, 10.2], [10.59, 10.2]])
+    assigned = np.array([0, 0])
+    refined = noise.refined(tracks, np.array([truck, truck]), assigned)
+    return noise.locate(tracks, world_xy, _measured(world_xy, np.array([0, 1])), refined,
+                        np.zeros((2, 2, 2)), assigned, np.array([truck, truck]), 0.0)[0]
+
+
+def test_closely_agreeing_views_of_a_vehicle_are_trusted_no_more_than_its_floor():
+    # Cameras that agree within centimetres still share the footprint's error of a
+    # class-typical size: one instant's views move a settled track part of the way.
+    floored = _located_after_sharp_learning(0.3)
+    unfloored = _located_after_sharp_learning(0.0)  # 0: the shared minimum_sigma_m
+    assert 0.2 < floored[0] - 10.0 < 0.4  # gain 0.05 / (0.05 + 0.3^2 / 2 + 0.1^2) = 0.48
+    assert unfloored[0] - 10.0 > 0.45  # gain 0.05 / (0.05 + 0.05^2 / 2 + 0.1^2) = 0.82

@@ -64,6 +64,10 @@ class FusionConfig:
             splits one person's views into several tracks.
         minimum_sigma_m: smallest standard deviation of one camera's ground position, however
             closely the cameras agree, metres.
+        vehicle_minimum_sigma_m: the same for a vehicle's view refined with its track's
+            heading, where it is reported (:mod:`~cblrs.matching.fusion.vehicle_noise`;
+            the footprint centre of a class-typical size is off by this much per view
+            whatever the cameras' agreement); 0: ``minimum_sigma_m``.
         object_sigma_m: standard deviation of an object's position common to all the views
             of one instant, metres: a person is not a point (where the views' foot points
             fall on the body, where the ground truth marks it) and does not move at exactly
@@ -208,6 +212,7 @@ class FusionConfig:
     sigma_per_distance: float = 0.01
     along_sigma_per_distance: float = 0.03
     minimum_sigma_m: float = 0.05
+    vehicle_minimum_sigma_m: float = 0.3
     object_sigma_m: float = 0.1
     adapt_noise: bool = True
     class_measurement_sigma_m: Mapping[str, float] = field(
@@ -271,7 +276,7 @@ class FusionConfig:
             require(_positive(value), f"{name} must be a positive number, got {value!r}.")
         for name in ("sigma_per_distance", "along_sigma_per_distance", "merge_radius_m",
                      "report_coasting_s", "report_hidden_s", "occluder_width_m",
-                     "object_sigma_m", "group_radius_m",
+                     "object_sigma_m", "group_radius_m", "vehicle_minimum_sigma_m",
                      "max_clock_offset_s", "stitch_gap_s", "stitch_delay_s",
                      "swap_radius_m", "swap_settle_s", "swap_margin"):
             value = getattr(self, name)

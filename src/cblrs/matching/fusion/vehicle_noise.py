@@ -15,9 +15,12 @@ tenths of a metre while the fused views are within one.
 :class:`VehicleNoise` learns that remaining error like the noise model learns people's
 (:class:`~cblrs.matching.fusion.noise.NoiseModel`: from how much the cameras that see one
 vehicle disagree, along and across their rays, growing with distance) from the refined
-detections only, and gives the refined detections that covariance for the filter update.
-Association, the motion check and births still use the wide noise: only the estimate of
-where a tracked vehicle is gets sharper, not which detections it may take.
+detections only, and gives the refined detections that covariance for the filter update,
+never sharper than ``vehicle_minimum_sigma_m`` (0.3 m) per view: cameras that agree within
+centimetres still share the error of a class-typical footprint and of a lagging heading,
+which their disagreement cannot show. Association, the motion check and births still use
+the wide noise: only the estimate of where a tracked vehicle is gets sharper, not which
+detections it may take.
 """
 
 from __future__ import annotations
@@ -139,7 +142,8 @@ class VehicleNoise:
             mine = slot == index
             along[mine], lateral[mine] = self.models[index].variances(
                 measured.distance[refined][mine], measured.along_distance[refined][mine])
-        floor = self.context.config.minimum_sigma_m ** 2
+        config = self.context.config
+        floor = max(config.minimum_sigma_m, config.vehicle_minimum_sigma_m) ** 2
         noise = ray_covariance(measured.direction[refined], np.maximum(along, floor),
                                np.maximum(lateral, floor)) + lag_covariance[refined]
         fused_xy, fused_covariance, seen = fuse(assigned[refined], len(tracks),
