@@ -61,11 +61,17 @@ def table(state, covariance, probability, ids=(4, 9)) -> TrackTable:
 
 
 def track(
-    check: SwapCheck, swap_at: float | None, restore_at: float | None = None, seed: int = 0
+    check: SwapCheck,
+    swap_at: float | None,
+    restore_at: float | None = None,
+    seed: int = 0,
+    nudge_at: float | None = None,
 ) -> list[tuple[float, list[tuple[int, int]]]]:
     """Two tracks fed each instant with one person's views, as the tracker would, each
     following the other person from ``swap_at`` on (None: never); the stage's decisions.
-    ``restore_at``: the stage is rebuilt from its saved state (as JSON) at that time."""
+    ``restore_at``: the stage is rebuilt from its saved state (as JSON) at that time;
+    ``nudge_at``: the first track's filter moves by a millimetre then (as another stage of
+    the tracker could move it), after its update."""
     rng = np.random.default_rng(seed)
     times, people = crossing()
     config = check.context.config
@@ -86,7 +92,7 @@ def track(
                 state,
                 covariance,
                 probability,
-                1.0 / FPS,
+                now - times[index - 1],  # the tracker's step: between timestamps
                 np.tile(sigma, (2, 1)),
                 np.asarray(config.model_sojourn_s),
             )
@@ -96,6 +102,9 @@ def track(
         state, covariance, probability = kalman.update_models(
             state, covariance, probability, seen, np.stack([view, view])
         )
+        if nudge_at is not None and abs(now - nudge_at) < 1e-9:
+            state = state.copy()
+            state[0, :, 0] += 0.001
         rows = table(state, covariance, probability, ids)
         if restore_at is not None and abs(now - restore_at) < 1e-9:
             saved = json.loads(json.dumps(check.get_state()))
@@ -142,3 +151,43 @@ def test_a_restored_stage_continues_its_open_encounter():
     assert swapped(track(stage(), swap_at=2.5, restore_at=2.7)) == swapped(
         track(stage(), swap_at=2.5)
     )
+
+
+def gains(monkeypatch, **options) -> list[tuple[float, float, int]]:
+    """Each decision's gain as the stage took it and as replayed from its records, and the
+    encounter's serial (-1: the stage replayed it too)."""
+    taken: list[tuple[float, float, int]] = []
+    online = SwapCheck._gain
+
+    def both(self, encounter, key, class_id):
+        gain = online(self, encounter, key, class_id)
+        taken.append((gain, self.swap_gain(encounter, key, class_id), encounter.serial))
+        return gain
+
+    monkeypatch.setattr(SwapCheck, "_gain", both)
+    track(stage(), **options)
+    return taken
+
+
+def test_the_runs_advanced_each_instant_give_the_replayed_gains_bit_for_bit(monkeypatch):
+    for options in ({"swap_at": 2.5}, {"swap_at": None, "seed": 1}):
+        taken = gains(monkeypatch, **options)
+        assert taken
+        assert all(serial >= 0 for _, _, serial in taken)
+        assert all(gain == replayed for gain, replayed, _ in taken)
+
+
+def test_an_encounter_whose_filter_another_stage_moved_is_replayed(monkeypatch):
+    # The nudged track's filter is no longer its run through its own views: the stage
+    # notices (one step from the instant before) and replays that encounter when decided.
+    replays = []
+    replayed = SwapCheck.swap_gain
+
+    def counted(self, encounter, key, class_id):
+        replays.append(encounter.serial)
+        return replayed(self, encounter, key, class_id)
+
+    monkeypatch.setattr(SwapCheck, "swap_gain", counted)
+    decisions = track(stage(), swap_at=2.5, nudge_at=2.6)
+    assert replays and set(replays) == {-1}
+    assert len(swapped(decisions)) == 1
