@@ -133,19 +133,19 @@ def update(
     if len(state) == 0:
         return state.copy(), covariance.copy()
     innovation_inverse, _ = inverse_2x2(innovation_covariance(covariance, measurement_variance))
-    return _update(state, covariance, measurement_xy, innovation_inverse)
+    return _update(state, covariance, measurement_xy - state[:, :2], innovation_inverse)
 
 
 def _update(
     state: FloatArray,
     covariance: FloatArray,
-    measurement_xy: FloatArray,
+    residual: FloatArray,
     innovation_inverse: FloatArray,
 ) -> tuple[FloatArray, FloatArray]:
-    """:func:`update` given the inverse of the innovation covariance."""
+    """:func:`update` given the position residual and the inverse innovation covariance."""
     gain = covariance[:, :, :2] @ innovation_inverse  # (T, 4, 2)
-    residual = measurement_xy - state[:, :2]
-    state = state + np.einsum("tij,tj->ti", gain, residual)
+    # gain @ residual written out (two terms: the same sum as any einsum or loop).
+    state = state + (gain[:, :, 0] * residual[:, :1] + gain[:, :, 1] * residual[:, 1:])
     # Joseph-free form is fine here: the gain is optimal and the matrices are 4 x 4.
     covariance = covariance - gain @ covariance[:, :2, :]
     covariance = 0.5 * (covariance + covariance.transpose(0, 2, 1))
@@ -303,19 +303,22 @@ def update_models(
     count, models = mode_state.shape[:2]
     if count == 0:
         return mode_state.copy(), mode_covariance.copy(), probability.copy()
+    # All models of all tracks as one stack of T * M filters.
     measurement = measurement_matrices(measurement_variance, count)
-    new_state = np.empty_like(mode_state)
-    new_covariance = np.empty_like(mode_covariance)
-    log_likelihood = np.empty((count, models))
-    for mode in range(models):
-        state, covariance = mode_state[:, mode], mode_covariance[:, mode]
-        inverse, determinant = inverse_2x2(innovation_covariance(covariance, measurement))
-        residual = measurement_xy - state[:, :2]
-        squared = np.einsum("ti,tij,tj->t", residual, inverse, residual)
-        log_likelihood[:, mode] = -0.5 * (squared + np.log(determinant))
-        new_state[:, mode], new_covariance[:, mode] = _update(
-            state, covariance, measurement_xy, inverse
-        )
+    innovation = mode_covariance[:, :, :2, :2] + measurement[:, None]
+    inverse, determinant = inverse_2x2(innovation.reshape(-1, 2, 2))
+    residual = (measurement_xy[:, None, :] - mode_state[:, :, :2]).reshape(-1, 2)
+    # residual' inverse residual, the terms in the order einsum("ti,tij,tj->t") sums them.
+    r0, r1 = residual[:, 0], residual[:, 1]
+    flat = inverse.reshape(-1, 4)
+    squared = r0 * flat[:, 0] * r0 + r0 * flat[:, 1] * r1 + r1 * flat[:, 2] * r0
+    squared += r1 * flat[:, 3] * r1
+    log_likelihood = (-0.5 * (squared + np.log(determinant))).reshape(count, models)
+    new_state, new_covariance = _update(
+        mode_state.reshape(-1, 4), mode_covariance.reshape(-1, 4, 4), residual, inverse
+    )
+    new_state = new_state.reshape(mode_state.shape)
+    new_covariance = new_covariance.reshape(mode_covariance.shape)
     log_likelihood -= log_likelihood.max(axis=1, keepdims=True)
     weighted = probability * np.exp(log_likelihood)
     total = weighted.sum(axis=1, keepdims=True)
