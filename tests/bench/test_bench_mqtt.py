@@ -50,6 +50,11 @@ def test_the_stages_run_without_a_broker(capsys):
     assert main(["bench", "mqtt", "--stages", "--cameras", "2", "--json"]) == 0
     stages = json.loads(capsys.readouterr().out)["stages"]
     assert stages[0]["cameras"] == 2 and stages[0]["decode_us_per_message"] > 0
+    # The service's tracker process ran the same windows as the tracker alone: it costs at
+    # least what the tracker does (CPU in clock ticks, so within a few per cent).
+    alone, process = (stages[0]["tracker_alone_us_per_message"],
+                      stages[0]["tracker_process_us_per_message"])
+    assert 0 < alone < 1.5 * process
 
 
 @pytest.mark.parametrize("runs", [["broker/paced"], ["nobody/max"]])

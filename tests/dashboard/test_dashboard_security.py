@@ -330,8 +330,14 @@ def test_login_back_off_and_session_expiry_in_process(wildtrack_site, users_file
         waits.append(limiter.wait_s("bob", "1.2.3.4"))
     assert waits == [1.0, 2.0, 4.0, 8.0, 8.0]
     assert limiter.wait_s("alice", "5.6.7.8") == 0  # other names, other clients: free
-    limiter.succeeded("bob")
-    assert limiter.wait_s("bob", "5.6.7.8") == 0
+    assert limiter.wait_s("bob", "5.6.7.8") == 0  # bob's lock holds where bob failed only
+    limiter.succeeded("bob", "1.2.3.4")
+    assert limiter.wait_s("bob", "1.2.3.4") == 0
+    limiter.failed("bob", "1.2.3.4")  # bob's count stays: the next failure locks again
+    assert limiter.wait_s("bob", "1.2.3.4") == 8.0
+    now[0] += 2 * 8.0 + 1  # quiet for twice the longest lock: bob's count is forgotten
+    limiter.failed("bob", "1.2.3.4")
+    assert limiter.wait_s("bob", "1.2.3.4") == 0
 
     auth = Authenticator(users_path=users_file, session_s=100.0, idle_s=30.0,
                          clock=lambda: now[0],

@@ -181,6 +181,10 @@ def test_acl_and_credentials_files(mosquitto_auth):
     assert files.roles["CVLab1"] == "camera" and files.roles["viewer"] == "viewer"
     assert len(set(credentials.values())) == 5
     assert stat.S_IMODE(os.stat(files.password_file).st_mode) == 0o600
+    # The ACL (every login and what it may do), the configuration and the broker's log
+    # (logins, addresses, refusals) are the owner's alone too.
+    for path in (files.acl_file, files.config, mosquitto_auth.process.log_path):
+        assert stat.S_IMODE(os.stat(path).st_mode) == 0o600, path
     # No clear password anywhere in the broker's folder: only hashes.
     for path in files.directory.rglob("*"):
         if path.is_file() and path.suffix != ".db":

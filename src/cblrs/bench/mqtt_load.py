@@ -8,6 +8,7 @@ in-process, without a broker.
 from __future__ import annotations
 
 import math
+import os
 import statistics
 import subprocess
 import tempfile
@@ -303,8 +304,12 @@ def measure_stages(cameras: int, people: int, matcher_name: str, frames: int = 9
             lambda: store.save_matcher_state(state_text(matcher.get_state())), 3, repeats=3)
         stored_bytes = store.used_bytes() / len(rows)  # inbox + track rows, per message
         store.close()
+    alone, process = tracker_process_cpu(cameras, people, matcher_name,
+                                         max(frames, -(-PROCESS_MESSAGES // cameras)))
     return {
         "cameras": cameras, "people": people, "matcher": matcher_name,
+        "tracker_alone_us_per_message": 1e6 * alone,
+        "tracker_process_us_per_message": 1e6 * process,
         "decode_us_per_message": 1e6 * decode,
         "insert_us_per_message": 1e6 * insert,
         "update_ms_per_group": 1e3 * statistics.median(steady),
@@ -331,8 +336,81 @@ def stages_line(row: dict, matcher: str) -> str:
         f"{row['state_save_ms']:5.1f} ms; messages from entries "
         f"{row['build_us_per_message']:4.1f} us/msg, pipe {row['pipe_us_per_message']:4.1f}"
         f" us/msg ({row['pipe_bytes_per_message']:.0f} bytes); database "
-        f"{row['database_bytes_per_message']:.0f} bytes/message"
+        f"{row['database_bytes_per_message']:.0f} bytes/message; tracker process "
+        f"{row['tracker_process_us_per_message']:.0f} us CPU/msg, the tracker alone "
+        f"{row['tracker_alone_us_per_message']:.0f} us/msg "
+        f"({100 * row['tracker_alone_us_per_message'] / row['tracker_process_us_per_message']:.0f}"
+        " %)"
     )
+
+
+PROCESS_MESSAGES = 2000
+"""Messages :func:`tracker_process_cpu` tracks at least (CPU time is read in clock ticks)."""
+
+
+def tracker_process_cpu(cameras: int, people: int, matcher_name: str,
+                        frames: int) -> tuple[float, float]:
+    """CPU seconds per message of the tracker alone and of the matcher service's tracker
+    process on the same windows (ordered as the service orders them).
+
+    The tracker process is the service's own (:class:`TrackerProcess`, a fork-server child
+    writing to a SQLite store, track updates encoded), fed batches of up to 50 windows
+    through its pipe as fast as it takes them, with no broker: its CPU beyond the tracker
+    alone's is what the process adds (rebuilding messages is in both).
+    """
+    from cblrs.runtime.matcher.matcher_service import _process_context
+    from cblrs.runtime.matcher.store import PENDING
+    from cblrs.runtime.matcher.tracker_process import TrackerProcess
+
+    names = camera_names(cameras)
+    policy = ValidationPolicy(known_cameras=frozenset(names), max_future_s=3600.0)
+    epoch = time.time() - frames / 30.0
+    orderer = Orderer(names)
+    entries = []
+    for group in _frames(names, frames, 30.0, epoch, people, CameraClocks(0.01, 0.002)):
+        for payload in group:
+            entries.append(InboxEntry.from_wire(policy.decode_wire(payload, now=epoch)))
+            orderer.add(entries[-1], 0.0)
+    windows = orderer.release(0.0, force=True)
+    matcher = make_matcher(matcher_name, PlaneSet([PLANE]), names)
+    started = time.process_time()
+    for timestamp, group in windows:
+        matcher.update(timestamp, [entry.message() for entry in group])
+    alone = time.process_time() - started
+    with tempfile.TemporaryDirectory(prefix="cblrs-bench-") as folder:
+        store = RuntimeStore(Path(folder) / "process.db")
+        store.insert_messages([(entry, PENDING, epoch) for entry in entries])
+        process = TrackerProcess(_process_context(),
+                                 make_matcher(matcher_name, PlaneSet([PLANE]), names),
+                                 store.share(), store.claim(), PLANE_ID, names, True)
+        try:
+            answers: list[str] = []
+
+            def collect() -> None:
+                while not answers or answers[-1] not in ("stopped", "failed"):
+                    answers.append(process.receive()[0])
+
+            collector = threading.Thread(target=collect)
+            collector.start()
+            time.sleep(0.5)  # started and resumed from the (empty) store
+            before = _cpu_seconds(process.process.pid)
+            for start in range(0, len(windows), 50):
+                process.submit(windows[start:start + 50])
+            process.finish()
+            collector.join()
+            spent = _cpu_seconds(process.process.pid) - before
+        finally:
+            process.close(30)
+            store.close()
+    if answers[-1] != "stopped":
+        raise RuntimeError("the tracker process failed")
+    return alone / len(entries), spent / len(entries)
+
+
+def _cpu_seconds(pid: int) -> float:
+    """User + system CPU seconds of process ``pid`` so far (Linux ``/proc``)."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
 def tracker_alone(cameras: int, people: int, matcher_name: str, frames: int,

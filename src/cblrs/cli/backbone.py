@@ -62,6 +62,14 @@ def add_backbone_options(parser: argparse.ArgumentParser, matcher: bool) -> None
         default=168.0,
         help="NATS: how long the stream keeps detections (the replay horizon; default 168)",
     )
+    group.add_argument(
+        "--max-msgs-per-camera",
+        type=int,
+        metavar="N",
+        help="NATS, with --prepare: messages the plane's stream keeps per camera subject; "
+        "beyond, a camera's publishes are refused until retention makes room (default: "
+        "--retention-hours x 30 a second; docs/security.md, 'Stream limits')",
+    )
 
 
 def uses_nats(args: argparse.Namespace) -> bool:
@@ -116,11 +124,13 @@ def matcher_transport(
 
     if args.lease_ttl <= 0 or args.lease_wait < 0 or args.retention_hours <= 0:
         raise UsageError("--lease-ttl and --retention-hours must be > 0, --lease-wait >= 0.")
+    if args.max_msgs_per_camera is not None and args.max_msgs_per_camera < 1:
+        raise UsageError("--max-msgs-per-camera must be at least 1.")
     # --prepare (with the admin's login) creates the plane's streams, consumer and the
     # lease bucket; a matcher's own login may not (see docs/security.md).
     settings = nats_settings(
         args, replicas=args.replicas, retention_s=args.retention_hours * 3600.0,
-        manage=True if args.prepare else None,
+        manage=True if args.prepare else None, max_msgs_per_camera=args.max_msgs_per_camera,
     )
     where = f"plane {plane_id}" + (f" of site {args.site_id}" if args.site_id else "")
     return NatsTransport(

@@ -4,6 +4,7 @@ or write its systemd units and container definition."""
 from __future__ import annotations
 
 import argparse
+import os
 import signal
 import sys
 import threading
@@ -112,6 +113,9 @@ def run(args: argparse.Namespace) -> int:
                      speed=args.speed, run_as=args.run_as, dashboard=not args.no_dashboard,
                      check_files=not deploying, backbone=backbone)
     say = _printer(args)
+    # What this run and its processes create (references, databases, spools, the broker's
+    # store, logs) is readable by this user only; the site's folder is its owner's.
+    os.umask(0o077)
     if not deploying:
         from cblrs.up.plan import port_is_free  # lazy, as above
 

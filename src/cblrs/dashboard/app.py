@@ -532,8 +532,13 @@ def create_app(config: DashboardConfig, auth: Any) -> Any:
     return app
 
 
-def server_config(app: Any, tls_cert: Path | None = None, tls_key: Path | None = None) -> Any:
+def server_config(app: Any, tls_cert: Path | None = None, tls_key: Path | None = None,
+                  **limits: Any) -> Any:
     """uvicorn's configuration for the dashboard's application ``app``.
+
+    Connections are limited as :func:`~cblrs.dashboard.connections.guarded_protocol` says
+    (``limits`` are its arguments): a client that never finishes a request's headers, or
+    holds many connections, cannot take the dashboard from everyone else.
 
     ``X-Forwarded-For`` and ``X-Forwarded-Proto`` are ignored (uvicorn trusts them from
     127.0.0.1 by default): the login back-off and the log count the address of the
@@ -542,8 +547,11 @@ def server_config(app: Any, tls_cert: Path | None = None, tls_key: Path | None =
     """
     import uvicorn  # optional extra: pip install cblrs[dashboard]
 
+    from cblrs.dashboard.connections import guarded_protocol
+
     return uvicorn.Config(
-        app, log_level="warning", access_log=False, lifespan="off", proxy_headers=False,
+        app, http=guarded_protocol(**limits), log_level="warning", access_log=False,
+        lifespan="off", proxy_headers=False,
         server_header=False,
         ssl_certfile=str(tls_cert) if tls_cert else None,
         ssl_keyfile=str(tls_key) if tls_key else None,

@@ -114,22 +114,31 @@ class LoginLimiter:
 
     After ``free_per_user`` failures for a name (``free_per_client`` from an address) each
     further failure locks that name (address) for ``base_s`` doubled per failure, at most
-    ``max_s``; a success clears the name's count.
+    ``max_s``. A name's lock holds only for the addresses that failed for that name: anyone
+    who knows an admin's name could otherwise keep the admin out for good (a failure every
+    ``max_s``), as the right password is refused during a lock; a guesser on many addresses
+    gets one try per address before the name's lock slows it there too. A success clears
+    its own address's failures for the name, not the name's count (which would give a guesser
+    fresh tries whenever the owner logs in); the count is forgotten after ``2 * max_s``
+    without a failure.
     """
 
     def __init__(self, free_per_user: int = 5, free_per_client: int = 20, base_s: float = 1.0,
                  max_s: float = 300.0, clock: Callable[[], float] = time.monotonic):
         self.free = {"user": free_per_user, "client": free_per_client}
         self.base_s, self.max_s, self.clock = base_s, max_s, clock
-        self._failures: dict[tuple[str, str], tuple[int, float]] = {}
+        self._failures: dict[tuple[str, str], tuple[int, float]] = {}  # key -> count, until
+        self._last: dict[str, float] = {}  # user -> time of its last failure
         self._lock = threading.Lock()
 
     def wait_s(self, user: str, client: str) -> float:
         """Seconds until ``user`` may try again from ``client`` (0: now)."""
         now = self.clock()
+        keys = [("client", client)]
         with self._lock:
-            return max(0.0, *(self._failures.get(key, (0, 0.0))[1] - now
-                              for key in (("user", user), ("client", client))))
+            if ("pair", f"{user}\n{client}") in self._failures:
+                keys.append(("user", user))
+            return max(0.0, *(self._failures.get(key, (0, 0.0))[1] - now for key in keys))
 
     def failed(self, user: str, client: str) -> None:
         now = self.clock()
@@ -137,15 +146,22 @@ class LoginLimiter:
             if len(self._failures) > 100_000:  # bounded: forget the stale ones
                 self._failures = {key: value for key, value in self._failures.items()
                                   if value[1] > now - self.max_s}
+            if now - self._last.get(user, now) > 2 * self.max_s:  # quiet for long: forgotten
+                self._failures.pop(("user", user), None)
+            self._last[user] = now
+            if len(self._last) > 100_000:
+                self._last = {name: last for name, last in self._last.items()
+                              if last > now - 2 * self.max_s}
             for key in (("user", user), ("client", client)):
                 count = self._failures.get(key, (0, 0.0))[0] + 1
                 over = count - self.free[key[0]]
                 until = now + min(self.max_s, self.base_s * 2 ** (over - 1)) if over > 0 else 0.0
                 self._failures[key] = (count, until)
+            self._failures[("pair", f"{user}\n{client}")] = (1, now)
 
-    def succeeded(self, user: str) -> None:
+    def succeeded(self, user: str, client: str) -> None:
         with self._lock:
-            self._failures.pop(("user", user), None)
+            self._failures.pop(("pair", f"{user}\n{client}"), None)
 
 
 class Authenticator:
@@ -295,7 +311,7 @@ class Authenticator:
                 raise LoginRefused(401, "this dashboard has no users file: open the login "
                                    "link that cblrs dashboard printed.")
             raise LoginRefused(401, "wrong user name or password.")
-        self.limiter.succeeded(name)
+        self.limiter.succeeded(name, client)
         logger.info("dashboard: %s logged in (%s) from %s", name, user.role.label, client)
         return self.open_session(user.name, user.role, user.stamp)
 

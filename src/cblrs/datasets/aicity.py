@@ -189,7 +189,11 @@ def _write_metadata(
     if keep_timestamps:
         document["timestamps"] = _timestamps_document(tracks)
     try:
-        sidecar.write_text(json.dumps(document, indent=1) + "\n")
+        # Owner only, as its tracks file: it says how many rows and which tracks it holds.
+        descriptor = os.open(sidecar, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+        with os.fdopen(descriptor, "w") as handle:
+            handle.write(json.dumps(document, indent=1) + "\n")
+        os.chmod(sidecar, 0o600)
     except OSError as error:
         raise DatasetError(f"cannot write {sidecar}: {error.strerror or error}.") from None
 

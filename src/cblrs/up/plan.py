@@ -485,14 +485,22 @@ def read_state(out: Path) -> dict[str, Any] | None:
     return state if isinstance(state, dict) else None
 
 
+def _broker_runs_as_another_user(plan: SitePlan) -> bool:
+    """Whether the broker switches to another user (Mosquitto started by root)."""
+    return plan.backbone == MQTT and os.geteuid() == 0 and plan.run_as != "root"
+
+
 def write_state(plan: SitePlan) -> None:
     """Save what a restart must reuse (site, logins, broker port, epoch, pace)."""
+    # lazy: the broker's machinery pulls in the MQTT client
+    from cblrs.runtime.broker.credentials import write_private
+
     plan.out.mkdir(parents=True, exist_ok=True)
     state = {"site": str(plan.site_path), "backbone": plan.backbone,
              "broker_port": plan.broker_port, "mqtt_port": plan.mqtt_port,
              "monitor_port": plan.monitor_port, "epoch": plan.epoch,
              "realtime": plan.realtime, "speed": plan.speed, "users": users_of(plan)}
-    (plan.out / STATE_FILE).write_text(json.dumps(state, indent=2) + "\n")
+    write_private(plan.out / STATE_FILE, json.dumps(state, indent=2) + "\n")
 
 
 def users_of(plan: SitePlan) -> dict[str, Any]:
@@ -512,9 +520,14 @@ def prepare(plan: SitePlan, *, render: bool = True) -> list[str]:
 
     done = []
     plan.out.mkdir(parents=True, exist_ok=True)
+    # Everything here is its owner's alone: logins, the broker's hashes and log, the
+    # dashboard's login link, people's positions (databases, spools, tracks). Mosquitto
+    # started by root runs as its own user, which must pass through to the broker's folder
+    # (x only: it cannot list this one, and every file in it is 0600).
+    os.chmod(plan.out, 0o711 if _broker_runs_as_another_user(plan) else 0o700)
     for folder in (plan.logs_dir, plan.out / "spool", plan.references_dir):
         folder.mkdir(parents=True, exist_ok=True)
-    os.chmod(plan.logs_dir, 0o700)  # the dashboard's log holds its admin login link
+        os.chmod(folder, 0o700)
     saved = read_state(plan.out) or {}
     users = users_of(plan)
     fits = (plan.broker_config.is_file() and saved.get("users") == users

@@ -33,8 +33,9 @@ logger = logging.getLogger(__name__)
 
 CAMERA_UNCONFIRMED = 3
 """``cblrs camera``'s exit code when some messages are still in its spool."""
-STOP_GRACE_S = {"camera": 45.0, "matcher": 30.0, "dashboard": 5.0, "broker": 10.0}
-"""How long each role may take to stop after SIGTERM before it is killed."""
+STOP_GRACE_S = {"camera": 20.0, "matcher": 30.0, "dashboard": 5.0, "broker": 10.0}
+"""How long each role may take to stop after SIGTERM before it is killed: a little more than
+the watchdog of its own clean stop (cblrs.cli.stopping: 15 s for a camera, 25 s for a matcher)."""
 CAMERA_START_S = 4.0
 """A fresh paced replay's first capture time lies this far after its cameras are started
 (their start-up: imports, the reference, the broker connection)."""

@@ -90,7 +90,7 @@ def systemd_units(plan: SitePlan, mosquitto: str = "/usr/sbin/mosquitto",
         if spec.role == "camera":
             # A stop waits 5 s at most for the broker and ends within 15 s even when blocked
             # (cblrs.cli.stopping); exit 3 leaves messages in its spool.
-            lines += ["TimeoutStopSec=50", "SuccessExitStatus=3"]
+            lines += ["TimeoutStopSec=25", "SuccessExitStatus=3"]
         elif spec.role == "matcher":
             lines += ["TimeoutStopSec=40"]
         else:

@@ -28,7 +28,7 @@ import secrets
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, BinaryIO
 
 from cblrs.errors import CblrsError
 
@@ -58,6 +58,14 @@ def write_private(path: Path, text: str | bytes) -> Path:
         handle.write(text.encode() if isinstance(text, str) else text)
     os.chmod(path, 0o600)
     return path
+
+
+def append_private(path: Path) -> BinaryIO:
+    """Open ``path`` for appending, readable by its owner only (0600, also when it existed
+    before): a server's log names its users, their addresses and what they were refused."""
+    descriptor = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o600)
+    os.fchmod(descriptor, 0o600)
+    return os.fdopen(descriptor, "ab")
 
 
 def private_folder(path: Path) -> Path:

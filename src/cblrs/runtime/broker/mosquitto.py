@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from cblrs.errors import CblrsError
+from cblrs.runtime.broker.credentials import append_private
 
 if TYPE_CHECKING:
     from cblrs.runtime.broker.mosquitto_config import BrokerFiles
@@ -105,7 +106,7 @@ class MosquittoProcess:
         binary = find_mosquitto()
         if binary is None:
             raise BrokerError("mosquitto not found; install it (e.g. apt install mosquitto).")
-        with self.log_path.open("ab") as log:
+        with append_private(self.log_path) as log:
             self._process = subprocess.Popen(
                 [binary, "-c", str(self.config_path)],
                 stdout=log,

@@ -393,7 +393,7 @@ def write_broker_config(
         chosen_passwords = dict(credentials)
         stale = [directory / "credentials.json", directory / "secrets"]
         _remove_stale(stale)  # clear passwords left by an older cblrs
-        acl_file.write_text(_acl(cameras, planes_of, viewer_names, linkers))
+        write_private(acl_file, _acl(cameras, planes_of, viewer_names, linkers))
         lines += [
             f"password_file {password_file}",
             f"acl_file {acl_file}",
@@ -450,8 +450,7 @@ def write_broker_config(
         for user in users:
             clients[user] = write_client_folder(
                 clients_folder, user, chosen_passwords.get(user), authority)
-    config = directory / "mosquitto.conf"
-    config.write_text("\n".join(lines) + "\n")
+    config = write_private(directory / "mosquitto.conf", "\n".join(lines) + "\n")
     if owner is not None and os.geteuid() == 0:
         _hand_over(owner, directory, [config, password_file, acl_file, persistence_directory]
                    + ([directory / "tls", directory / "tls" / "server.key"] if tls else []))

@@ -39,6 +39,7 @@ from pathlib import Path
 
 from cblrs.errors import CblrsError
 from cblrs.runtime.addresses import is_loopback_host
+from cblrs.runtime.broker.credentials import append_private
 from cblrs.runtime.broker.mosquitto import free_port
 from cblrs.runtime.broker.nats_auth import NatsSecurity, NatsSecurityError, write_nats_security
 
@@ -232,7 +233,7 @@ class NatsServerProcess:
         if self.running:
             return self
         binary = require_nats_server()
-        with self.log_path.open("ab") as log:
+        with append_private(self.log_path) as log:
             self._process = subprocess.Popen(
                 [binary, "-c", str(self.node.config_path)],
                 stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
@@ -318,12 +319,14 @@ class NatsCluster:
     def create(
         cls, directory: str | Path, nodes: int = 1, *, mqtt: bool = False,
         host: str = "127.0.0.1", security: NatsSecurity | None = None,
+        max_file_store: str = "4G",
     ) -> NatsCluster:
         """Configure ``nodes`` servers under ``directory`` on free ports (each its own store).
 
         Args:
             security: users, permissions and TLS of every node (see
                 :func:`~cblrs.runtime.broker.nats_auth.write_nats_security`); None: open servers.
+            max_file_store: each node's JetStream file storage limit (e.g. ``"4G"``).
 
         Raises:
             NatsServerError: no usable ``nats-server`` binary.
@@ -346,7 +349,7 @@ class NatsCluster:
         ]
         routes = [config.cluster_port for config in configs if config.cluster_port is not None]
         for config in configs:
-            write_nats_config(config, routes, security=security)
+            write_nats_config(config, routes, max_file_store=max_file_store, security=security)
         cluster = cls(configs)
         cluster.security = security
         return cluster

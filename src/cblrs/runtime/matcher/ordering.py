@@ -107,6 +107,9 @@ class Orderer:
         self.slack = float(slack)
         count = len(self.camera_ids)
         self._waiting: list[_Waiting] = []  # sorted by (timestamp, camera)
+        # Their sort keys, in the same order: bisecting plain tuples compares in C, with no
+        # Python key function called per comparison (the receiver thread holds the GIL).
+        self._keys: list[tuple[float, int]] = []
         self._times: Counter[float] = Counter()
         self._latest = np.full(count, -np.inf)
         self._periods = PeriodEstimator(count, assumed_period_s)
@@ -134,8 +137,11 @@ class Orderer:
         """Buffer a (not late) message of a known camera, received at ``now``."""
         camera = self._index[entry.camera_id]
         timestamp = float(entry.timestamp)
-        item = _Waiting(timestamp, camera, now, entry)
-        bisect.insort(self._waiting, item, key=lambda one: (one.timestamp, one.camera))
+        key = (timestamp, camera)
+        # After those of equal key (as ``insort_right``): arrival order among equals.
+        index = bisect.bisect_right(self._keys, key)
+        self._keys.insert(index, key)
+        self._waiting.insert(index, _Waiting(timestamp, camera, now, entry))
         self._times[timestamp] += 1
         self._latest[camera] = max(self._latest[camera], timestamp)
         self._periods.observe(camera, timestamp)
@@ -195,6 +201,7 @@ class Orderer:
             if waiting.any() and not self._given_up(members, waiting, now):
                 return None
         del self._waiting[:count]
+        del self._keys[:count]
         for one in members:
             self._times[one.timestamp] -= 1
             if not self._times[one.timestamp]:

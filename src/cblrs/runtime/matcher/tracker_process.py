@@ -22,7 +22,8 @@ already), which gives the state after the last committed group.
 Messages (pickled) on the two pipes:
 
 * service -> tracker: a batch ``[(timestamp, [InboxEntry, ...]), ...]`` (windows in time
-  order, messages in time and camera order), ``None``: commit nothing more and stop,
+  order, messages in time and camera order; entries travel as plain tuples), ``None``:
+  commit nothing more and stop,
   ``"retrack"``: track the late messages stored since the last time
   (:mod:`cblrs.runtime.matcher.retrack`), answer ``("retracked", [(timestamp, tracks, payload or
   None), ...], counters, report)`` with the corrected updates, or
@@ -72,6 +73,8 @@ logger = logging.getLogger(__name__)
 
 Batch = list[tuple[float, list[InboxEntry]]]
 """Released groups sent to the tracker process: ``(timestamp, entries in camera order)``."""
+
+_entry = tuple.__new__  # an InboxEntry from its plain tuple, without a Python-level call
 
 
 class TrackerProcessError(RuntimeError):
@@ -129,6 +132,11 @@ class TrackerProcess:
         Raises:
             TrackerProcessError: the process has gone (its pipe is closed).
         """
+        if isinstance(batch, list):
+            # Plain tuples: a named tuple pickles through a Python call per entry, in the
+            # service's GIL-bound threads; the tracker process makes them entries again.
+            batch = [(timestamp, [tuple(entry) for entry in entries])
+                     for timestamp, entries in batch]
         try:
             self._requests.send(batch)
         except (OSError, TypeError, ValueError) as error:
@@ -243,6 +251,8 @@ def run(
                 updates = _retrack(store, matcher, snapshots, tracker, results, publish_tracks,
                                    plane_id, updates, camera_ids, analytics)
                 continue
+            batch = [(timestamp, [_entry(InboxEntry, row) for row in rows])
+                     for timestamp, rows in batch]
             tracked = []
             report = _Report(analytics)
             taken: list[tuple[int, float, Any, list[tuple[str, int]], Any]] = []

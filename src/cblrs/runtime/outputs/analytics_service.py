@@ -23,6 +23,7 @@ It also feeds :class:`~cblrs.runtime.matcher.metrics.ServiceMetrics` when the se
 
 from __future__ import annotations
 
+import functools
 import inspect
 import logging
 import threading
@@ -48,6 +49,10 @@ from cblrs.runtime.transport.topics import (
 )
 
 logger = logging.getLogger(__name__)
+
+_parse_detections_topic = functools.lru_cache(maxsize=4096)(parse_detections_topic)
+"""Cached: a plane has few cameras, hence few topics (the receiver thread parses one per
+message; a bad topic raises each time and is not kept)."""
 
 RATE_WINDOW_S = 5.0
 """Camera message rates are averaged over this many seconds."""
@@ -208,7 +213,7 @@ class ServiceReporter:
             if kind != "detections" or not delivery.payload:
                 continue
             try:
-                _, camera = parse_detections_topic(delivery.topic)
+                _, camera = _parse_detections_topic(delivery.topic)
             except TopicError:
                 continue
             received[camera] += 1

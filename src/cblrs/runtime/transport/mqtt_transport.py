@@ -29,6 +29,7 @@ from paho.mqtt.properties import Properties
 from paho.mqtt.reasoncodes import ReasonCode
 from paho.mqtt.subscribeoptions import SubscribeOptions
 
+from cblrs.runtime.transport.paho_client import BufferedClient, buffered_reads_supported
 from cblrs.runtime.transport.protocol import (
     ACCEPTED,
     LOST,
@@ -256,7 +257,8 @@ class MqttTransport:
             return
 
         settings = self.settings
-        client = mqtt.Client(
+        client_class = BufferedClient if buffered_reads_supported() else mqtt.Client
+        client = client_class(
             callback_api_version=CallbackAPIVersion.VERSION2,
             client_id=self.client_id,
             protocol=mqtt.MQTTv5 if settings.mqtt5 else mqtt.MQTTv311,

@@ -8,6 +8,7 @@ data, importable without the nats-py client: the CLI builds them from its option
 
 from __future__ import annotations
 
+import math
 import os
 import ssl
 from dataclasses import dataclass, field, replace
@@ -65,6 +66,15 @@ class NatsSettings:
         publish_window: stream publishes sent and awaiting acknowledgement at once; they
             leave in order on one connection, and what is not acknowledged is sent again in
             that order.
+        max_camera_rate_hz: the highest message rate a camera's subject (its detections, or
+            its status) has legitimately; with ``retention_s`` it sets
+            :attr:`messages_per_camera`.
+        max_msgs_per_camera: how many messages a plane's detections stream keeps per camera
+            subject, at most; a publish beyond is refused (JetStream's discard-new per
+            subject), so a camera that floods fills its own subject only. None:
+            ``retention_s`` x ``max_camera_rate_hz``.
+        max_msg_bytes: the largest message a plane's detections stream stores (the matcher
+            accepts 256 KiB).
     """
 
     servers: tuple[str, ...] = ("nats://127.0.0.1:4222",)
@@ -86,12 +96,26 @@ class NatsSettings:
     heartbeat_s: float = 1.0
     publish_timeout_s: float = 2.0
     publish_window: int = 256
+    max_camera_rate_hz: float = 30.0
+    max_msgs_per_camera: int | None = None
+    max_msg_bytes: int = 256 * 1024
 
     def __post_init__(self) -> None:
         if self.site is not None:
             validate_site(self.site)
         if self.publish_window < 1:
             raise ValueError(f"publish_window must be at least 1, got {self.publish_window}.")
+        if self.max_msgs_per_camera is not None and self.max_msgs_per_camera < 1:
+            raise ValueError("max_msgs_per_camera must be at least 1, got "
+                             f"{self.max_msgs_per_camera}.")
+
+    @property
+    def messages_per_camera(self) -> int:
+        """How many messages a detections stream keeps per camera subject (see
+        ``max_msgs_per_camera``)."""
+        if self.max_msgs_per_camera is not None:
+            return self.max_msgs_per_camera
+        return max(1, math.ceil(self.retention_s * self.max_camera_rate_hz))
 
     @property
     def manages(self) -> bool:

@@ -112,6 +112,11 @@ _GIVE_UP_S = 120.0
 on without it (a cluster still recovering answers within that; a refusal never does)."""
 
 
+_SUBJECT_FULL = 10077
+"""JetStream's error code for a publish refused by ``max_msgs_per_subject`` with
+``discard_new_per_subject`` (nats-server 2.15.1 answers ``code`` 503 with it)."""
+
+
 def _import_nats() -> Any:
     try:
         # optional extra: pip install cblrs[nats]
@@ -216,6 +221,10 @@ class NatsTransport:
         self._stream_locks: dict[str, asyncio.Lock] = {}
         self._consumer_stream = ""
         self._warned_no_stream: set[str] = set()
+        self.subject_full_refusals = 0
+        """Stream publishes refused because their subject held the stream's maximum of
+        messages per subject (sent again later; see :meth:`_subject_full`)."""
+        self._full_subjects: set[str] = set()
         self.refused_subjects: deque[str] = deque(maxlen=64)
         """Subjects the servers refused a publish (or request) of this login on, in lower
         case, latest last."""
@@ -650,7 +659,7 @@ class NatsTransport:
             return name  # runtime logins may not look streams up; the admin made them
         try:
             info = await self._js.stream_info(name)
-            await self._add_subjects(info, stream_subjects(name, plane_id, self._site))
+            await self._add_subjects(info, stream_subjects(name, plane_id, self._site), kind)
             return name
         except NotFoundError:
             pass
@@ -661,7 +670,7 @@ class NatsTransport:
             try:
                 info = await self._js.stream_info(legacy)
                 if kind == "tracks":
-                    await self._add_subjects(info, [f"{subject_root(None)}.*.alerts"])
+                    await self._add_subjects(info, [f"{subject_root(None)}.*.alerts"], kind)
                 logger.warning(
                     "%s: the NATS stream %s made by an older cblrs holds every plane's %s; "
                     "using it (to give each plane its own stream %s, see docs/security.md, "
@@ -675,6 +684,8 @@ class NatsTransport:
             max_age=self.settings.retention_s, duplicate_window=self.settings.duplicate_window_s,
             num_replicas=await self._replicas(), allow_direct=True,
         )
+        if kind == "detections":
+            config = replace(config, **self._camera_limits())
         try:
             await self._js.add_stream(config)
             logger.info("%s: created the NATS stream %s", self.client_id, name)
@@ -685,17 +696,35 @@ class NatsTransport:
             raise self._refused_management(f"create the stream {name}", error) from None
         return name
 
-    async def _add_subjects(self, info: Any, subjects: list[str]) -> None:
+    def _camera_limits(self) -> dict[str, Any]:
+        """A detections stream's limits per camera subject: at most
+        ``messages_per_camera`` messages of at most ``max_msg_bytes`` each, and a publish
+        beyond is refused (discard new, per subject) rather than dropping anyone's stored
+        messages, so a camera that floods fills its own subject, never another camera's."""
+        from nats.js.api import DiscardPolicy
+
+        return {"max_msgs_per_subject": self.settings.messages_per_camera,
+                "discard": DiscardPolicy.NEW, "discard_new_per_subject": True,
+                "max_msg_size": self.settings.max_msg_bytes}
+
+    async def _add_subjects(self, info: Any, subjects: list[str], kind: str) -> None:
         """Give an existing stream the subjects it lacks (one made before alerts were
-        stored lacks ``<root>.<plane>.alerts``)."""
+        stored lacks ``<root>.<plane>.alerts``) and, a plane's detections stream, the
+        per-camera limits (one made before them has none)."""
         current = list(info.config.subjects or [])
         missing = [subject for subject in subjects if subject not in current]
-        if not missing:
+        changes: dict[str, Any] = {}
+        if missing:
+            changes["subjects"] = current + missing
+        if kind == "detections":
+            limits = self._camera_limits()
+            if any(getattr(info.config, key) != value for key, value in limits.items()):
+                changes.update(limits)
+        if not changes:
             return
-        config = replace(info.config, subjects=current + missing)
-        await self._js.update_stream(config)
-        logger.info("%s: the NATS stream %s now also stores %s", self.client_id,
-                    info.config.name, ", ".join(missing))
+        await self._js.update_stream(replace(info.config, **changes))
+        logger.info("%s: the NATS stream %s now %s", self.client_id, info.config.name,
+                    "; ".join(f"{key} {value}" for key, value in changes.items()))
 
     def _refused_management(self, what: str, error: Exception) -> TransportError:
         """One sentence for a management call that failed (refused, or no answer)."""
@@ -1137,7 +1166,9 @@ class NatsTransport:
         error = answer.get("error")
         if error:
             code = error.get("code") or 0
-            if code == 503 or code >= 500:
+            if error.get("err_code") == _SUBJECT_FULL:
+                self._subject_full(item)
+            elif code == 503 or code >= 500:
                 self._retry(item, error.get("description", "no stream leader"))
             else:
                 self._finish(item, refused=error.get("description", str(error)))
@@ -1148,7 +1179,25 @@ class NatsTransport:
                            "(%d so far)", self.client_id, item.subject, self.reordered)
         self._stored_order = max(self._stored_order, item.order)
         self._retry_delay = 0.05
+        if item.subject in self._full_subjects:
+            self._full_subjects.discard(item.subject)
+            logger.warning("%s: the NATS stream stores publishes on %s again", self.client_id,
+                           item.subject)
         self._finish(item)
+
+    def _subject_full(self, item: _Outgoing) -> None:
+        """The stream refused ``item``: its subject holds ``max_msgs_per_subject`` messages.
+        Counted, warned once per subject until one is stored again, and sent again later
+        in its order (the camera's spool keeps what is not confirmed)."""
+        self.subject_full_refusals += 1
+        if item.subject not in self._full_subjects:
+            self._full_subjects.add(item.subject)
+            logger.error("%s: the NATS stream refused a publish on %s: the subject holds its "
+                         "maximum of messages (max_msgs_per_subject; this camera published "
+                         "more than its share, or a forged reply filled it, see "
+                         "docs/security.md); sending it again until the stream has room",
+                         self.client_id, item.subject)
+        self._retry(item, "maximum messages per subject")
 
     def _retry(self, item: _Outgoing, reason: str) -> None:
         """Send ``item`` again after a pause, before anything newer and in its order."""
