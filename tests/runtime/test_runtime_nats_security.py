@@ -901,9 +901,21 @@ def test_the_generated_backbone_runs_cameras_matcher_and_viewer_end_to_end(
             )
             for name in names
         ]
-        for camera in cameras:
-            output, error = camera.communicate(timeout=480)
-            assert camera.returncode == 0, f"{output}\n{error[-4000:]}"  # not cut short
+        ended = [camera.communicate(timeout=480) for camera in cameras]
+        if any(camera.returncode != 0 for camera in cameras):  # not cut short
+            # Everything that may tell why (1 run in 20 under load: a camera's publishes
+            # went unanswered for its whole --flush-timeout on a connection that stayed up).
+            matcher.kill()
+            _, matcher_error = matcher.communicate()
+            raise AssertionError(
+                "\n".join(
+                    [
+                        f"{name} exited {camera.returncode}: {output}\n{error[-4000:]}"
+                        for name, camera, (output, error) in zip(names, cameras, ended, strict=True)
+                    ]
+                    + [f"matcher: {matcher_error[-4000:]}", f"nats-server: {server.log_tail(40)}"]
+                )
+            )
         output, error = matcher.communicate(timeout=480)
         assert matcher.returncode == 0, error
     finally:

@@ -115,7 +115,7 @@ def test_live_seconds_stops_the_site_by_itself(tmp_path):
         pytest.skip(f"no broker: {error}")
     out = tmp_path / "demo"
     result = subprocess.run([*DEMO, "--preset", "roundabout", "--duration", "3", "--out",
-                             str(out), "--live-seconds", "20", "--quiet"], capture_output=True,
+                             str(out), "--live-seconds", "3", "--quiet"], capture_output=True,
                             text=True, timeout=300, env=ENVIRONMENT)
     assert result.returncode == 0, result.stderr
     assert "dashboard: http://127.0.0.1:" in result.stdout

@@ -217,6 +217,9 @@ class NatsTransport:
         self._stored_order = -1
         self._retry_at = 0.0
         self._retry_delay = 0.05
+        self._probe: asyncio.Task | None = None  # see _probe_connection
+        self.silent_reconnects = 0
+        """Reconnections forced because a connection said to be up answered no ping."""
         self._streams: dict[str, str] = {}  # a plane's stream name -> the stream used
         self._stream_locks: dict[str, asyncio.Lock] = {}
         self._consumer_stream = ""
@@ -1097,6 +1100,8 @@ class NatsTransport:
                 item = self._in_flight.pop(token)
                 self._abandoned[token] = item
                 self._retry(item, "no acknowledgement in time")
+            if expired and (self._probe is None or self._probe.done()):
+                self._probe = asyncio.ensure_future(self._probe_connection())
             # After a failure, nothing is sent again until every publish in flight is
             # answered or given up: then all that failed go again in their order, before
             # anything newer (a later publish stored first would overtake them).
@@ -1141,6 +1146,33 @@ class NatsTransport:
                 await asyncio.wait_for(wake.wait(), max(0.001, min(waits)))
             except TimeoutError:
                 pass
+
+    async def _probe_connection(self) -> None:
+        """After publishes went unanswered: does the connection still carry anything?
+
+        A stream without a leader leaves publishes unanswered on a healthy connection, and a
+        ping shows that one is healthy. But a connection nats-py calls up can carry nothing
+        (a stalled TLS write, a middlebox that dropped the flow): its own pings notice only
+        after minutes (two missed, two minutes apart), while every publish waits. Without an
+        answer to a ping within the publish timeout, the connection is dropped and made
+        again (nats-py resubscribes; what was not acknowledged goes again in its order).
+        """
+        nc = self._nc
+        if nc is None or self._closing or not nc.is_connected:
+            return
+        timeout = self.settings.publish_timeout_s
+        flusher = getattr(nc, "_flusher_task", None)
+        if flusher is None or not flusher.done():
+            try:
+                await nc.flush(timeout=timeout)
+                return
+            except Exception:  # nats-py's FlushTimeoutError, or the connection closing
+                if self._closing or nc is not self._nc or not nc.is_connected:
+                    return
+        self.silent_reconnects += 1
+        logger.warning("%s: the NATS connection is up but answered no ping within %g s "
+                       "(publishes unanswered): connecting again", self.client_id, timeout)
+        await nc.force_reconnect()
 
     async def _on_publish_answer(self, msg: Any) -> None:
         """A stream's answer to one of our publishes (or the servers' "no responders")."""
