@@ -169,12 +169,17 @@ def gains(monkeypatch, **options) -> list[tuple[float, float, int]]:
     return taken
 
 
-def test_the_runs_advanced_each_instant_give_the_replayed_gains_bit_for_bit(monkeypatch):
+def test_the_runs_advanced_each_instant_give_the_replayed_gains(monkeypatch):
+    # Equal within float summation noise: the two paths run the same filters on batches of
+    # other sizes, and BLAS may order a product's terms by batch size (they were equal bit
+    # for bit with one numpy build and 4e-15 apart with another). A decision is a margin of
+    # 7 log units: 1e-9 cannot move one.
     for options in ({"swap_at": 2.5}, {"swap_at": None, "seed": 1}):
         taken = gains(monkeypatch, **options)
         assert taken
         assert all(serial >= 0 for _, _, serial in taken)
-        assert all(gain == replayed for gain, replayed, _ in taken)
+        assert all(abs(gain - replayed) <= 1e-9 * max(1.0, abs(replayed))
+                   for gain, replayed, _ in taken)
 
 
 def test_an_encounter_whose_filter_another_stage_moved_is_replayed(monkeypatch):

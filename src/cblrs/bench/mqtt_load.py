@@ -385,10 +385,17 @@ def tracker_process_cpu(cameras: int, people: int, matcher_name: str,
                                  store.share(), store.claim(), PLANE_ID, names, True)
         try:
             answers: list[str] = []
+            # The process's CPU read after each answer: it may have exited by the time
+            # "stopped" is read (its last sample then is that of its last batch's answer).
+            samples: list[float] = []
 
             def collect() -> None:
                 while not answers or answers[-1] not in ("stopped", "failed"):
                     answers.append(process.receive()[0])
+                    try:
+                        samples.append(_cpu_seconds(process.process.pid))
+                    except OSError:
+                        pass
 
             collector = threading.Thread(target=collect)
             collector.start()
@@ -398,7 +405,7 @@ def tracker_process_cpu(cameras: int, people: int, matcher_name: str,
                 process.submit(windows[start:start + 50])
             process.finish()
             collector.join()
-            spent = _cpu_seconds(process.process.pid) - before
+            spent = (samples[-1] if samples else math.nan) - before
         finally:
             process.close(30)
             store.close()
