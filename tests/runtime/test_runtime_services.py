@@ -978,3 +978,21 @@ def test_a_camera_without_any_matcher_keeps_everything(small_world, caplog):
     assert (report.unconfirmed, report.extra["unrouted"], report.confirmed) == (5, 5, 0)
     assert "no subscriber for cblrs/1/cam1/detections" in caplog.text
     assert report.extra["final_status"] is False  # not the end of the stream for a matcher
+
+
+def test_a_cameras_report_shows_what_the_backbone_did_to_its_publishes(small_world):
+    # The NATS transport counts publishes held back at the camera's stream limit and silent
+    # connections it made again (tests/runtime/test_runtime_nats*.py make both happen on a
+    # real server); the camera's report (cblrs camera --json) carries them when not zero.
+    _, reference = small_world
+    broker = InProcessBroker()
+    transport = InProcessTransport(broker, "cam1", persistent=False)
+    node = CameraNode(transport, PLANE, "cam1", reference, epoch=1000.0, confirm_timeout_s=0.2)
+    report = node.run(_frames(2))
+    assert "silent_reconnects" not in report.extra
+    assert "subject_full_refusals" not in report.extra
+    transport.silent_reconnects, transport.subject_full_refusals = 2, 0
+    node = CameraNode(transport, PLANE, "cam1", reference, epoch=1000.0, confirm_timeout_s=0.2)
+    report = node.run(_frames(2))
+    assert report.extra["silent_reconnects"] == 2
+    assert "subject_full_refusals" not in report.extra

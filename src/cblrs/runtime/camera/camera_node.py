@@ -468,6 +468,13 @@ class CameraNode:
         if self._counts["already_spooled"]:
             report.extra["already_spooled"] = self._counts["already_spooled"]
         report.extra["unrouted"] = self._counts["unrouted"]
+        # What the backbone did to this camera's publishes, where the transport counts it
+        # (NATS: publishes held back at its per-camera stream limit, silent connections
+        # made again); shown only when something happened.
+        for name in ("subject_full_refusals", "silent_reconnects"):
+            value = getattr(self.transport, name, 0)
+            if isinstance(value, int) and value:
+                report.extra[name] = value
 
     # -- the pump ---------------------------------------------------------------------------
 
