@@ -95,6 +95,7 @@ from cblrs.bench.mqtt_load import (
     CameraClocks,
     camera_names,
     measure_stages,
+    process_cpu_seconds,
     publisher,
     stages_line,
     tracker_alone,
@@ -427,10 +428,9 @@ def _process_cpu_seconds(service: MatcherService) -> float:
     tracker = getattr(service, "_tracker", None)
     pid = getattr(getattr(tracker, "process", None), "pid", None)
     try:
-        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-    except (OSError, IndexError):
+        return process_cpu_seconds(pid)
+    except (OSError, IndexError, ValueError):
         return math.nan
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
 def check_runs(runs: list[str]) -> str | None:

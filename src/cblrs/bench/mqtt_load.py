@@ -393,14 +393,14 @@ def tracker_process_cpu(cameras: int, people: int, matcher_name: str,
                 while not answers or answers[-1] not in ("stopped", "failed"):
                     answers.append(process.receive()[0])
                     try:
-                        samples.append(_cpu_seconds(process.process.pid))
+                        samples.append(process_cpu_seconds(process.process.pid))
                     except OSError:
                         pass
 
             collector = threading.Thread(target=collect)
             collector.start()
             time.sleep(0.5)  # started and resumed from the (empty) store
-            before = _cpu_seconds(process.process.pid)
+            before = process_cpu_seconds(process.process.pid)
             for start in range(0, len(windows), 50):
                 process.submit(windows[start:start + 50])
             process.finish()
@@ -414,7 +414,7 @@ def tracker_process_cpu(cameras: int, people: int, matcher_name: str,
     return alone / len(entries), spent / len(entries)
 
 
-def _cpu_seconds(pid: int) -> float:
+def process_cpu_seconds(pid: int) -> float:
     """User + system CPU seconds of process ``pid`` so far (Linux ``/proc``)."""
     fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
