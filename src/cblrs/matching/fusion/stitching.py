@@ -25,6 +25,19 @@ lost track within the test and that lost track no other tentative track that cou
 crowd two people lost side by side are left apart (two new ids) rather than risk swapping
 them; two cars are told apart by their velocities (opposite lanes, a car overtaking).
 
+**Coasting people** (``stitch_coasting``). Where the cameras miss people hidden behind others
+(the occlusion stage's learnt miss rate above one half: a crowd seen by a detector), a person
+unseen by every camera for a second is often still there and walks off the coasting track's
+prediction (they turned); the association's gate misses them when they reappear, a new track
+is born and confirmed while the old one still coasts, and the person has two ids. The tracker
+then also passes its coasting people's tracks (unseen now, not dropped yet) as ends: a new
+track may continue one by the test above, or, when its velocity is not known yet (two cameras
+confirmed it at once), by position alone, near enough to the coasting track's prediction
+(:meth:`Stitching._possible`) and unambiguous as above. The new track takes the id and the
+coasting track is dropped (:attr:`Stitches.replaced`). Where cameras see people through
+occlusion (annotated boxes) or for vehicles, a coasting track's object is not hidden and the
+tracker passes none.
+
 **Delay**: none by default. The decision is taken when the new track would be confirmed, with
 its velocity as known then; a track confirmed before its velocity is known (two cameras see it
 at once) is not stitched. With ``stitch_delay_s`` > 0 such a track, if a lost track could be
@@ -54,16 +67,19 @@ class Stitches:
             lost track; their velocity is not known well enough yet).
         rows: (K,) int64 rows of tentative tracks that continue a lost track.
         ids: (K,) int64 the id each of them takes.
+        replaced: (J,) int64 rows of coasting tracks whose id a new track took (to drop).
     """
 
     hold: np.ndarray
     rows: np.ndarray
     ids: np.ndarray
+    replaced: np.ndarray
 
     @classmethod
     def none(cls, count: int) -> Stitches:
         """Nothing to do for ``count`` tracks."""
-        return cls(np.zeros(count, dtype=bool), np.zeros(0, np.int64), np.zeros(0, np.int64))
+        return cls(np.zeros(count, dtype=bool), np.zeros(0, np.int64), np.zeros(0, np.int64),
+                   np.zeros(0, np.int64))
 
 
 class Stitching:
@@ -120,13 +136,19 @@ class Stitching:
         if confirmed.any():
             self.lost = self.lost.extend(ended.select(confirmed))
 
-    def decide(self, tracks: TrackTable, confirmable: np.ndarray, timestamp: float) -> Stitches:
+    def decide(
+        self, tracks: TrackTable, confirmable: np.ndarray, timestamp: float,
+        coasting: np.ndarray | None = None,
+    ) -> Stitches:
         """Which of the tracks about to be confirmed continue a lost track.
 
         Args:
             tracks: the table, predicted to ``timestamp`` and updated with this window.
             confirmable: (T,) bool, tentative tracks that would be confirmed now.
             timestamp: the window's time, seconds.
+            coasting: (T,) bool, confirmed tracks unseen now that a new track may continue
+                as well (``stitch_coasting``; None: none): the new track takes the id and
+                the coasting track is dropped (``replaced``).
 
         Returns:
             The tracks to hold back, and the stitched tracks and the ids they take.
@@ -138,6 +160,10 @@ class Stitching:
         self._forget(tracks, timestamp)
         config = self.context.config
         ended = self.lost
+        coasting_rows = np.zeros(0, np.int64)
+        if coasting is not None and config.stitch_coasting:
+            coasting_rows = np.flatnonzero(coasting & (tracks.ids >= 0))
+            ended = ended.extend(tracks.select(coasting_rows))
         fresh = np.flatnonzero(tracks.ids < 0)  # every tentative track, for ambiguity
         if not len(ended) or not confirmable.any():
             return Stitches.none(count)
@@ -147,6 +173,12 @@ class Stitching:
         close = self._within_gate(ended, candidates, possible, timestamp)
         # Held until its velocity is clearly known, for at most the delay.
         young = (timestamp - candidates.born < config.stitch_delay_s) & ~_moving(candidates)
+        if len(coasting_rows):
+            # A coasting track is still in the table; a new track near its prediction whose
+            # velocity is not known yet may be it (the cameras lost the person, the coasting
+            # track's gate missed them when they reappeared off its prediction).
+            unknown = ~_moving(candidates)
+            close[len(self.lost):] |= possible[len(self.lost):] & unknown[None, :]
         # A young track's velocity is not known yet: it may be any lost track it could reach.
         rivals = close | (possible & young[None, :])
         stitches = Stitches.none(count)
@@ -162,6 +194,7 @@ class Stitching:
         taken = np.isin(self.lost.ids, ids)
         stitches.rows = np.asarray(rows, np.int64)
         stitches.ids = np.asarray(ids, np.int64)
+        stitches.replaced = coasting_rows[np.isin(tracks.ids[coasting_rows], stitches.ids)]
         if taken.any():
             self.lost = self.lost.select(~taken)
         return stitches
