@@ -174,11 +174,13 @@ class Stitching:
         # Held until its velocity is clearly known, for at most the delay.
         young = (timestamp - candidates.born < config.stitch_delay_s) & ~_moving(candidates)
         if len(coasting_rows):
-            # A coasting track is still in the table; a new track near its prediction whose
-            # velocity is not known yet may be it (the cameras lost the person, the coasting
-            # track's gate missed them when they reappeared off its prediction).
-            unknown = ~_moving(candidates)
-            close[len(self.lost):] |= possible[len(self.lost):] & unknown[None, :]
+            # A coasting track is still in the table; a new track whose velocity is not known
+            # yet may be it (the cameras lost the person, who walked off the prediction)
+            # when it is no farther off than a change of velocity could have taken it.
+            first = len(self.lost)
+            close[first:] |= self._within_reach(
+                ended.select(np.arange(first, len(ended))), candidates, timestamp
+            ) & possible[first:]
         # A young track's velocity is not known yet: it may be any lost track it could reach.
         rivals = close | (possible & young[None, :])
         stitches = Stitches.none(count)
@@ -223,6 +225,22 @@ class Stitching:
             & _moving(ended)[:, None]
             & (distance <= reach)
         )
+
+    def _within_reach(
+        self, coasting: TrackTable, fresh: TrackTable, timestamp: float
+    ) -> np.ndarray:
+        """(K, F) bool: which new tracks whose velocity is not known yet are within reach of
+        which coasting tracks: off the prediction by at most how far a change of velocity
+        of ``class_velocity_sigma`` (a person's: 1.5 m/s) takes it in the time the
+        coasting track was not seen, plus three standard deviations of the new track's
+        position."""
+        unseen = timestamp - coasting.last_seen
+        speed = self.context.class_velocity_sigma[self.context.class_slot(coasting.class_id)]
+        spread = np.sqrt(np.trace(fresh.covariance[:, :2, :2], axis1=1, axis2=2))
+        reach = (speed * unseen)[:, None] + 3.0 * spread[None, :]
+        distance = np.linalg.norm(
+            fresh.state[None, :, :2] - coasting.state[:, None, :2], axis=2)
+        return (distance <= reach) & ~_moving(fresh)[None, :]
 
     def _within_gate(
         self, ended: TrackTable, fresh: TrackTable, possible: np.ndarray, timestamp: float
