@@ -32,19 +32,20 @@ prediction (they turned); the association's gate misses them when they reappear,
 is born and confirmed while the old one still coasts, and the person has two ids. The tracker
 then also passes its coasting people's tracks (unseen now, not dropped yet) as ends: a new
 track may continue one by the test above, or, when its velocity is not known yet (two cameras
-confirmed it at once), by position alone, near enough to the coasting track's prediction
-(:meth:`Stitching._possible`) and unambiguous as above. The new track takes the id and the
-coasting track is dropped (:attr:`Stitches.replaced`). Where cameras see people through
-occlusion (annotated boxes) or for vehicles, a coasting track's object is not hidden and the
-tracker passes none.
+confirmed it at once), by position alone: off the coasting track's prediction by no more than
+a change of velocity of ``class_velocity_sigma`` (1.5 m/s for a person) takes a walker in the
+time the track was unseen (:meth:`Stitching._within_reach`), and unambiguous as above. The
+new track takes the id and the coasting track is dropped (:attr:`Stitches.replaced`). Where
+cameras see people through occlusion (annotated boxes), and for vehicles, a coasting track's
+object is not hidden and the tracker passes none.
 
 **Delay**: none by default. The decision is taken when the new track would be confirmed, with
 its velocity as known then; a track confirmed before its velocity is known (two cameras see it
-at once) is not stitched. With ``stitch_delay_s`` > 0 such a track, if a lost track could be
-it, is held back (tentative, not reported) until its velocity is clearly known or that long
-after its first detection. Either way ids are never rewritten: a row once reported keeps its
-id, which is what the matcher service publishes and stores, and a restarted or re-tracking
-service restores the lost tracks with the tracker's state.
+at once) is not stitched to a dropped track. With ``stitch_delay_s`` > 0 such a track, if a
+lost track could be it, is held back (tentative, not reported) until its velocity is clearly
+known or that long after its first detection. Either way ids are never rewritten: a row once
+reported keeps its id, which is what the matcher service publishes and stores, and a
+restarted or re-tracking service restores the lost tracks with the tracker's state.
 """
 
 from __future__ import annotations
