@@ -2,7 +2,10 @@
 
 * :mod:`cblrs.runtime.matcher.matcher_service` — the service: receives detections, stores
   them, tracks, publishes tracks and confirmations;
-* :mod:`cblrs.runtime.matcher.store` — its SQLite database (inbox, tracks, state);
+* :mod:`cblrs.runtime.matcher.store` — its SQLite database (inbox, tracks, state), with
+  its tables (:mod:`~cblrs.runtime.matcher.store_schema`), rows
+  (:mod:`~cblrs.runtime.matcher.store_rows`) and file (:mod:`~cblrs.runtime.matcher.store_file`:
+  checks, private mode, writers' lock);
 * :mod:`cblrs.runtime.matcher.ordering` — which received messages go to the tracker together
   (also used by the offline pipeline);
 * :mod:`cblrs.runtime.matcher.confirmations` — end-to-end confirmations to the cameras;
