@@ -41,7 +41,8 @@ from cblrs.runtime.camera.sources import (
     scene_source,
     video_source,
 )
-from cblrs.runtime.matcher.matcher_service import MatcherService, ServiceClock
+from cblrs.runtime.matcher.matcher_service import MatcherService
+from cblrs.runtime.matcher.matcher_state import ServiceClock
 from cblrs.runtime.matcher.retrack import RetrackPolicy
 from cblrs.runtime.matcher.store import RuntimeStore
 from cblrs.runtime.matcher.store_schema import LATE, PENDING, PROCESSED
