@@ -84,7 +84,7 @@ from cblrs.runtime.wire import (
     encode_status,
 )
 
-__all__ = ["CameraNode", "CameraReport", "camera_last_will"]
+__all__ = ["STOP_FLUSH_S", "STOP_OFFLINE_S", "CameraNode", "CameraReport", "camera_last_will"]
 
 logger = logging.getLogger(__name__)
 

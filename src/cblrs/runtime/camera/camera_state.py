@@ -31,6 +31,9 @@ logger = logging.getLogger("cblrs.runtime.camera.camera_node")
 """The node's logger: its parts log under the one name."""
 
 
+__all__ = ["_CameraState"]  # in the API reference: the attributes of CameraNode are set here
+
+
 class _CameraState:
     """What a camera node holds (its constructor: see
     :class:`~cblrs.runtime.camera.camera_node.CameraNode`)."""

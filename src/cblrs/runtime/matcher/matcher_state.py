@@ -72,6 +72,10 @@ class ServiceClock:
             return now - self._paused
 
 
+__all__ = ["LeaseLost", "ServiceClock", "_MatcherState"]  # _MatcherState: in the API reference
+# (the attributes of MatcherService are set there)
+
+
 class _MatcherState:
     """What a matcher service holds (its constructor: see
     :class:`~cblrs.runtime.matcher.matcher_service.MatcherService`)."""

@@ -31,6 +31,9 @@ logger = logging.getLogger("cblrs.runtime.transport.mqtt_transport")
 dashboard does, hold for all of them)."""
 
 
+__all__ = ["_MqttState"]  # in the API reference: the attributes of MqttTransport are set here
+
+
 class _MqttState:
     """What an MQTT transport holds (its constructor: see
     :class:`~cblrs.runtime.transport.mqtt_transport.MqttTransport`)."""

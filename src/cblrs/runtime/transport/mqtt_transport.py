@@ -48,7 +48,13 @@ from cblrs.runtime.transport.topics import (
     validate_topic,
 )
 
-__all__ = ["MqttSettings", "MqttTransport", "unreachable_reason"]
+__all__ = [
+    "SESSION_TAKEN_OVER",
+    "SHORT_CONNECTION_S",
+    "MqttSettings",
+    "MqttTransport",
+    "unreachable_reason",
+]
 
 _paho_logger = logging.getLogger("cblrs.runtime.transport.mqtt_transport.paho")
 

@@ -27,6 +27,9 @@ if TYPE_CHECKING:
     from cblrs.runtime.transport.nats_publisher import _Outgoing
 
 
+__all__ = ["_NatsState"]  # in the API reference: the attributes of NatsTransport are set here
+
+
 class _NatsState:
     """What a NATS transport holds (its constructor: see
     :class:`~cblrs.runtime.transport.nats_transport.NatsTransport`)."""
