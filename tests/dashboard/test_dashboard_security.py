@@ -20,7 +20,14 @@ from urllib.parse import urlsplit
 
 import pytest
 import yaml
-from dashboard_helpers import ADMIN, VIEWER, calibration_points, cblrs_command, site_copy
+from dashboard_helpers import (
+    ADMIN,
+    VIEWER,
+    calibration_points,
+    cblrs_command,
+    self_signed,
+    site_copy,
+)
 
 from cblrs.cli.main import main
 from cblrs.dashboard.app import STATIC, DashboardConfig, create_app
@@ -447,37 +454,6 @@ def test_hostile_names_in_the_site_file_are_refused(own_site, tmp_path, capsys):
         assert main(["dashboard", "--site", str(path), "--port", "0"]) == 1
         error = capsys.readouterr().err
         assert "may not contain '<'" in error and len(error.strip().splitlines()) == 1, what
-
-
-def self_signed(folder: Path) -> tuple[Path, Path]:
-    """A certificate for 127.0.0.1 and localhost, and its key (PEM files)."""
-    import datetime
-    import ipaddress
-
-    from cryptography import x509
-    from cryptography.hazmat.primitives import hashes, serialization
-    from cryptography.hazmat.primitives.asymmetric import ec
-    from cryptography.x509.oid import NameOID
-
-    key = ec.generate_private_key(ec.SECP256R1())
-    name = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, "cblrs dashboard test")])
-    now = datetime.datetime.now(datetime.UTC) - datetime.timedelta(minutes=5)
-    certificate = (
-        x509.CertificateBuilder().subject_name(name).issuer_name(name)
-        .public_key(key.public_key()).serial_number(x509.random_serial_number())
-        .not_valid_before(now).not_valid_after(now + datetime.timedelta(days=1))
-        .add_extension(x509.SubjectAlternativeName([
-            x509.DNSName("localhost"), x509.IPAddress(ipaddress.ip_address("127.0.0.1"))]),
-            critical=False)
-        .sign(key, hashes.SHA256())
-    )
-    cert_path, key_path = folder / "dash.crt", folder / "dash.key"
-    cert_path.write_bytes(certificate.public_bytes(serialization.Encoding.PEM))
-    key_path.write_bytes(key.private_bytes(serialization.Encoding.PEM,
-                                           serialization.PrivateFormat.PKCS8,
-                                           serialization.NoEncryption()))
-    key_path.chmod(0o600)
-    return cert_path, key_path
 
 
 def test_over_tls_the_cookie_is_secure(own_site, users_file, start_dashboard, tmp_path):
