@@ -497,3 +497,43 @@ def test_over_tls_the_cookie_is_secure(own_site, users_file, start_dashboard, tm
     assert status == 403
     with pytest.raises((http.client.HTTPException, ConnectionError, OSError)):
         call(f"http://127.0.0.1:{port}/", "/api/site")  # no clear text on the TLS port
+
+
+def test_a_viewer_never_learns_the_servers_paths(own_site, users_file, start_dashboard,
+                                                 wildtrack_root, tmp_path):
+    """The answers a viewer reads name the stored run by its file name, not by where it lies
+    on the server (before: /api/status, /api/replay/info, the replay's first message and its
+    refusals gave the database's absolute path)."""
+    from cblrs.datasets import load_scene
+    from cblrs.runtime.matcher.store import RuntimeStore
+
+    folder = tmp_path / "private-state-folder"
+    folder.mkdir()
+    database, empty = folder / "plane1.db", folder / "empty.db"
+    rows = load_scene(wildtrack_root).ground_truth
+    rows = rows[rows.timestamp == rows.timestamp.min()]
+    store = RuntimeStore(database)
+    store.commit_group([], rows, None, float(rows.timestamp.max()), {})
+    store.close()
+    RuntimeStore(empty).close()
+    refused = start_dashboard("--site", str(own_site), "--users", str(users_file),
+                              "--db", str(empty))
+    status, _, body = Browser(refused.url, VIEWER).get("/api/replay")
+    assert status == 400 and b"empty.db" in body and str(folder).encode() not in body, body
+    served = start_dashboard("--site", str(own_site), "--users", str(users_file),
+                             "--db", str(database))
+    viewer = Browser(served.url, VIEWER)
+    answers = [viewer.get("/api/status"), viewer.get("/api/replay/info")]
+    parts = urlsplit(served.url)
+    connection = http.client.HTTPConnection(parts.hostname, parts.port, timeout=60)
+    try:
+        connection.request("GET", "/api/replay", headers={"Cookie": viewer.cookie})
+        response = connection.getresponse()
+        first = response.fp.readline()
+        answers.append((response.status, {}, first))
+    finally:
+        connection.close()
+    for status, _, body in answers:
+        assert status == 200, body
+        assert str(folder) not in body.decode(), body
+    assert b"plane1.db" in answers[0][2] and b"plane1.db" in answers[1][2]
