@@ -23,12 +23,14 @@ def main() -> None:
     parser.add_argument("--option", action="append", default=[], help="name=JSON value (A)")
     parser.add_argument("--scenes", default="", help="comma-separated; default all")
     parser.add_argument("--boxes", default="", help="comma-separated kinds; default all")
+    parser.add_argument("--no-held-out", action="store_true", help="skip the held-out rows")
     args = parser.parse_args()
     options = tuple((name, json.loads(value)) for name, _, value in
                     (text.partition("=") for text in args.option))
     cases = [case for case in default_cases()
              if (not args.scenes or case.scene in args.scenes.split(","))
-             and (not args.boxes or case.boxes in args.boxes.split(","))]
+             and (not args.boxes or case.boxes in args.boxes.split(","))
+             and not (args.no_held_out and case.held_out)]
     cases.sort(key=lambda case: not case.held_out)
     built: dict = {}
     for case in cases:
