@@ -400,7 +400,7 @@ class FusionTracker:
         # Tracks the other covering cameras never see (support module) are not confirmed,
         # nor reported.
         unsupported = self.support.unsupported(self.tracks)
-        confirmable = self._confirmable() & ~unsupported
+        confirmable = self._confirmable(timestamp) & ~unsupported
         # Coasting people may be continued too where cameras lose people who are still there.
         coasting = ~seen_now & (self.tracks.class_id == _PERSON) & (self.hidden.miss_rate > 0.5)
         stitches = self.stitching.decide(self.tracks, confirmable, timestamp, coasting)
@@ -472,7 +472,7 @@ class FusionTracker:
             self._clock.corroboration(observed.camera, np.zeros(len(observed), dtype=bool))
         return seen_now, report_camera, report_box, cameras_of_track
 
-    def _confirmable(self) -> np.ndarray:
+    def _confirmable(self, timestamp: float) -> np.ndarray:
         """Step 7: (T,) bool, the tentative tracks with enough evidence to be confirmed."""
         tracks = self.tracks
         newly_confirmed = (tracks.ids < 0) & (tracks.evidence >= self.config.confirm_evidence)
@@ -485,7 +485,9 @@ class FusionTracker:
             needed = np.clip(covering, 1, self.config.confirm_cameras)
             if self.config.confirm_moving_mps > 0:
                 needed[tracks.clearly_moving(self.config.confirm_moving_mps, candidates)] = 1
-            newly_confirmed[candidates[cameras_seen < needed]] = False
+            # A second camera's one coincidence does not confirm one camera's old track.
+            lone = (needed > 1) & self.support.uncorroborated(tracks, candidates, timestamp)
+            newly_confirmed[candidates[(cameras_seen < needed) | lone]] = False
         return newly_confirmed
 
     def _confirm(
