@@ -236,7 +236,7 @@ class SwapCheck:
             sigma = self._sigma(class_id)
             if encounter.sigma is None:
                 encounter.sigma = sigma
-            elif not np.array_equal(sigma, encounter.sigma):
+            elif sigma is not encounter.sigma and not np.array_equal(sigma, encounter.sigma):
                 gone.add(encounter.serial)
                 encounter.serial = -1
                 continue
@@ -316,7 +316,9 @@ class SwapCheck:
 
     def _gain(self, encounter: _Encounter, key: tuple[int, int], class_id: int) -> float:
         """:meth:`swap_gain` from the runs advanced each instant (replayed if it has none)."""
-        if encounter.serial < 0 or not np.array_equal(self._sigma(class_id), encounter.sigma):
+        sigma = self._sigma(class_id)  # (the cached array itself while the class is the same)
+        if encounter.serial < 0 or (sigma is not encounter.sigma
+                                    and not np.array_equal(sigma, encounter.sigma)):
             return self.swap_gain(encounter, key, class_id)
         runs = self._runs
         mine = runs.serial == encounter.serial
