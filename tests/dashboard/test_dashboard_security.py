@@ -20,7 +20,14 @@ from urllib.parse import urlsplit
 
 import pytest
 import yaml
-from dashboard_helpers import ADMIN, VIEWER, calibration_points, cblrs_command, site_copy
+from dashboard_helpers import (
+    ADMIN,
+    VIEWER,
+    calibration_points,
+    cblrs_command,
+    self_signed,
+    site_copy,
+)
 
 from cblrs.cli.main import main
 from cblrs.dashboard.app import STATIC, DashboardConfig, create_app
@@ -449,37 +456,6 @@ def test_hostile_names_in_the_site_file_are_refused(own_site, tmp_path, capsys):
         assert "may not contain '<'" in error and len(error.strip().splitlines()) == 1, what
 
 
-def self_signed(folder: Path) -> tuple[Path, Path]:
-    """A certificate for 127.0.0.1 and localhost, and its key (PEM files)."""
-    import datetime
-    import ipaddress
-
-    from cryptography import x509
-    from cryptography.hazmat.primitives import hashes, serialization
-    from cryptography.hazmat.primitives.asymmetric import ec
-    from cryptography.x509.oid import NameOID
-
-    key = ec.generate_private_key(ec.SECP256R1())
-    name = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, "cblrs dashboard test")])
-    now = datetime.datetime.now(datetime.UTC) - datetime.timedelta(minutes=5)
-    certificate = (
-        x509.CertificateBuilder().subject_name(name).issuer_name(name)
-        .public_key(key.public_key()).serial_number(x509.random_serial_number())
-        .not_valid_before(now).not_valid_after(now + datetime.timedelta(days=1))
-        .add_extension(x509.SubjectAlternativeName([
-            x509.DNSName("localhost"), x509.IPAddress(ipaddress.ip_address("127.0.0.1"))]),
-            critical=False)
-        .sign(key, hashes.SHA256())
-    )
-    cert_path, key_path = folder / "dash.crt", folder / "dash.key"
-    cert_path.write_bytes(certificate.public_bytes(serialization.Encoding.PEM))
-    key_path.write_bytes(key.private_bytes(serialization.Encoding.PEM,
-                                           serialization.PrivateFormat.PKCS8,
-                                           serialization.NoEncryption()))
-    key_path.chmod(0o600)
-    return cert_path, key_path
-
-
 def test_over_tls_the_cookie_is_secure(own_site, users_file, start_dashboard, tmp_path):
     import ssl
 
@@ -521,3 +497,43 @@ def test_over_tls_the_cookie_is_secure(own_site, users_file, start_dashboard, tm
     assert status == 403
     with pytest.raises((http.client.HTTPException, ConnectionError, OSError)):
         call(f"http://127.0.0.1:{port}/", "/api/site")  # no clear text on the TLS port
+
+
+def test_a_viewer_never_learns_the_servers_paths(own_site, users_file, start_dashboard,
+                                                 wildtrack_root, tmp_path):
+    """The answers a viewer reads name the stored run by its file name, not by where it lies
+    on the server (before: /api/status, /api/replay/info, the replay's first message and its
+    refusals gave the database's absolute path)."""
+    from cblrs.datasets import load_scene
+    from cblrs.runtime.matcher.store import RuntimeStore
+
+    folder = tmp_path / "private-state-folder"
+    folder.mkdir()
+    database, empty = folder / "plane1.db", folder / "empty.db"
+    rows = load_scene(wildtrack_root).ground_truth
+    rows = rows[rows.timestamp == rows.timestamp.min()]
+    store = RuntimeStore(database)
+    store.commit_group([], rows, None, float(rows.timestamp.max()), {})
+    store.close()
+    RuntimeStore(empty).close()
+    refused = start_dashboard("--site", str(own_site), "--users", str(users_file),
+                              "--db", str(empty))
+    status, _, body = Browser(refused.url, VIEWER).get("/api/replay")
+    assert status == 400 and b"empty.db" in body and str(folder).encode() not in body, body
+    served = start_dashboard("--site", str(own_site), "--users", str(users_file),
+                             "--db", str(database))
+    viewer = Browser(served.url, VIEWER)
+    answers = [viewer.get("/api/status"), viewer.get("/api/replay/info")]
+    parts = urlsplit(served.url)
+    connection = http.client.HTTPConnection(parts.hostname, parts.port, timeout=60)
+    try:
+        connection.request("GET", "/api/replay", headers={"Cookie": viewer.cookie})
+        response = connection.getresponse()
+        first = response.fp.readline()
+        answers.append((response.status, {}, first))
+    finally:
+        connection.close()
+    for status, _, body in answers:
+        assert status == 200, body
+        assert str(folder) not in body.decode(), body
+    assert b"plane1.db" in answers[0][2] and b"plane1.db" in answers[1][2]

@@ -1049,3 +1049,29 @@ def test_messages_moved_onto_a_viewers_subject_are_dropped_not_kept(backbone, cl
     )
     assert viewer.moved_messages == pending
     assert seen.deliveries == [] and viewer._handlers._orphans == []
+
+
+def test_the_monitoring_pages_lie_under_a_path_only_the_configuration_holds(backbone):
+    """nats-server's monitoring port has no login and checks no host name, so a web page a
+    node's browser opens could read it through DNS rebinding (connections, logins,
+    subscriptions); before, `/connz` answered any request naming any host. Now the pages lie
+    under a random path that only the node's configuration (0600) holds."""
+    import urllib.error
+    import urllib.request
+
+    from cblrs.runtime.broker.nats_server import monitor_url
+
+    _, cluster = backbone
+    node = cluster.nodes[0].node
+    forged = {"Host": "evil.example"}
+    for page in ("/connz", "/varz", "/subsz", "/healthz"):
+        request = urllib.request.Request(f"http://127.0.0.1:{node.monitor_port}{page}",
+                                         headers=forged)
+        with pytest.raises(urllib.error.HTTPError) as refused:
+            urllib.request.urlopen(request, timeout=10)
+        assert refused.value.code == 404
+    url = monitor_url(node)
+    secret = url.rstrip("/").rsplit("/", 1)[-1]
+    assert len(secret) >= 20 and secret in node.config_path.read_text()
+    with urllib.request.urlopen(url + "connz", timeout=10) as answer:  # the operator's way
+        assert "connections" in json.loads(answer.read())

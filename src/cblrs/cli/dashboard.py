@@ -178,13 +178,13 @@ def run(args: argparse.Namespace) -> int:
         print("cblrs dashboard: warning: passwords and session cookies cross the network in "
               "clear; give --tls-cert and --tls-key, or serve it behind a TLS proxy (--origin "
               "https://...).", file=sys.stderr, flush=True)
-    from cblrs.dashboard.connections import raise_open_files_limit  # lazy, as above
+    from cblrs.dashboard.connections import raise_open_files_limit, serve  # lazy, as above
 
     raise_open_files_limit()  # connections, not files, should run out first: see connections.py
     server = uvicorn.Server(server_config(create_app(config, auth), args.tls_cert,
                                           args.tls_key))
     try:
-        server.run(sockets=[listener])
+        serve(server, [listener])  # a stalled TLS handshake ends within seconds
     finally:
         if feed is not None:
             feed.close()

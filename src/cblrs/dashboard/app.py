@@ -304,7 +304,7 @@ def create_app(config: DashboardConfig, auth: Any) -> Any:
             "live": feed is not None,
             "connected": bool(feed and feed.connected),
             "messages": feed.counters if feed else {},
-            "replay": str(config.database) if config.database else None,
+            "replay": config.database.name if config.database else None,  # not its folder
         })
 
     @requires(viewer)
@@ -339,6 +339,14 @@ def create_app(config: DashboardConfig, auth: Any) -> Any:
 
         return streaming(body(), release)
 
+    def replay_refusal(error: ReplayError, status: int) -> Any:
+        """The refusal of a replay, naming the database by its file name (viewers read it;
+        the server's folders are not theirs to know)."""
+        text = str(error)
+        if config.database is not None:
+            text = text.replace(str(config.database), config.database.name)
+        return JSONResponse({"error": text}, status_code=status)
+
     def open_replay() -> StoreReplay:
         if config.database is None:
             raise ReplayError("this dashboard has no stored run (--db).")
@@ -349,7 +357,7 @@ def create_app(config: DashboardConfig, auth: Any) -> Any:
         try:
             replay = open_replay()
         except ReplayError as error:
-            return JSONResponse({"error": str(error)}, status_code=404)
+            return replay_refusal(error, 404)
         try:
             return JSONResponse(replay.info())
         finally:
@@ -371,14 +379,14 @@ def create_app(config: DashboardConfig, auth: Any) -> Any:
             stored = open_replay()
         except ReplayError as error:
             release()
-            return JSONResponse({"error": str(error)}, status_code=404)
+            return replay_refusal(error, 404)
         messages = stored.messages(speed, start)
         try:
             first = await messages.__anext__()  # errors (speed, empty run) as an answer
         except ReplayError as error:
             stored.close()
             release()
-            return JSONResponse({"error": str(error)}, status_code=400)
+            return replay_refusal(error, 400)
 
         async def body():
             try:

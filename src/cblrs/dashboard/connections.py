@@ -22,10 +22,15 @@ wrote a traceback to the log (89,000 lines in 10 s).
   answering a request, e.g. live streams), the new connection is closed at once.
 
 Each is counted (``stats``: ``slow``, ``evicted``, ``refused``); a refusal is logged.
+
+With TLS, asyncio hands a connection to the protocol only once its handshake is done, so
+these limits start there; :func:`serve` runs uvicorn on an event loop that gives a handshake
+(and the closing exchange) :data:`TLS_HANDSHAKE_TIMEOUT_S` instead of asyncio's 60 s.
 """
 
 from __future__ import annotations
 
+import asyncio
 import logging
 import resource
 from collections import Counter
@@ -38,6 +43,10 @@ PER_ADDRESS = 64
 RESERVED_FILES = 128
 """File descriptors kept for what is not a connection: databases, the site file, logs."""
 MAX_CONNECTIONS = 16_384
+TLS_HANDSHAKE_TIMEOUT_S = 5.0
+"""With TLS, the seconds a connection has to finish its handshake (and to close it again):
+until then the limits below do not see it (asyncio hands it to the protocol once the
+handshake is done), and asyncio's default would hold it for 60 s."""
 
 
 def raise_open_files_limit() -> int:
@@ -157,3 +166,21 @@ def guarded_protocol(
             super().connection_lost(exc)
 
     return GuardedH11Protocol
+
+
+class BoundedHandshakeLoop(asyncio.SelectorEventLoop):
+    """asyncio's event loop whose servers give a TLS handshake, and a TLS connection's
+    closing exchange, :data:`TLS_HANDSHAKE_TIMEOUT_S` (uvicorn passes neither)."""
+
+    async def create_server(self, *args: Any, **kwargs: Any) -> Any:
+        if kwargs.get("ssl") is not None:
+            kwargs.setdefault("ssl_handshake_timeout", TLS_HANDSHAKE_TIMEOUT_S)
+            kwargs.setdefault("ssl_shutdown_timeout", TLS_HANDSHAKE_TIMEOUT_S)
+        return await super().create_server(*args, **kwargs)
+
+
+def serve(server: Any, sockets: list[Any]) -> None:
+    """Run the uvicorn ``server`` on ``sockets`` until it stops, as ``server.run`` does, on a
+    :class:`BoundedHandshakeLoop`."""
+    with asyncio.Runner(loop_factory=BoundedHandshakeLoop) as runner:
+        runner.run(server.serve(sockets=sockets))

@@ -66,14 +66,16 @@ class StoreReplay:
         self._store.close()
 
     def info(self) -> dict[str, Any]:
-        """``{"start", "end", "rows", "tracks", "events"}`` of the stored run."""
+        """``{"start", "end", "rows", "tracks", "events", "database"}`` of the stored run
+        (``database``: the file's name; viewers read this, and the server's folders are not
+        theirs to know)."""
         ((start, end, rows, tracks),) = self._store.query(
             "SELECT MIN(timestamp), MAX(timestamp), COUNT(*), COUNT(DISTINCT track_id) "
             "FROM tracks"
         )
         ((events,),) = self._store.query("SELECT COUNT(*) FROM events")
         return {"start": start, "end": end, "rows": int(rows), "tracks": int(tracks),
-                "events": int(events), "database": str(self.path)}
+                "events": int(events), "database": self.path.name}
 
     def counts_before(self, timestamp: float) -> dict[str, Any]:
         """The counts of the stored events before ``timestamp`` (the page's starting point)."""

@@ -14,8 +14,11 @@ JetStream lacks multi-filter consumers).
 and, given the :class:`~cblrs.runtime.broker.nats_auth.NatsSecurity` of
 :func:`~cblrs.runtime.broker.nats_auth.write_nats_security`, its users and permissions
 (``authorization``), TLS on the client, MQTT and route ports, and monitoring on loopback
-only (its pages list connections and subscriptions). :func:`write_nats_backbone` writes a
-whole secured cluster's files at once (``cblrs broker-config --backbone nats``).
+only (its pages list connections and subscriptions), under a random path that only the
+configuration file holds (:func:`monitor_url`): the port has no login and checks no host
+name, so a web page reaching it through DNS rebinding would otherwise read it.
+:func:`write_nats_backbone` writes a whole secured cluster's files at once (``cblrs
+broker-config --backbone nats``).
 
 Example:
     >>> cluster = NatsCluster.create(tmp_path, nodes=3, mqtt=True).start()  # doctest: +SKIP
@@ -28,6 +31,7 @@ from __future__ import annotations
 
 import logging
 import re
+import secrets
 import shutil
 import socket
 import subprocess
@@ -143,6 +147,17 @@ class NatsNodeConfig:
         return f"nats://{self.host}:{self.port}"
 
 
+def monitor_url(node: NatsNodeConfig) -> str:
+    """The address of ``node``'s monitoring pages, ending in ``/`` (add ``varz``, ``connz``,
+    ``jsz``, ...), as its configuration file says: with users, under the random path that only
+    the file holds."""
+    text = node.config_path.read_text() if node.config_path.exists() else ""
+    address = re.search(r'^http: "([^"]+)"', text, re.MULTILINE)
+    base = re.search(r'^http_base_path: "([^"]*)"', text, re.MULTILINE)
+    where = address.group(1) if address else f"{node.host}:{node.monitor_port}"
+    return f"http://{where}{base.group(1).rstrip('/') if base else ''}/"
+
+
 def write_nats_config(
     node: NatsNodeConfig,
     routes: Sequence[int | str] = (),
@@ -169,6 +184,7 @@ def write_nats_config(
         f'server_name: "{node.name}"',
         f'listen: "{node.host}:{node.port}"',
         f'http: "{monitor_host}:{node.monitor_port}"',
+        *([] if security is None else [f'http_base_path: "/{secrets.token_urlsafe(18)}"']),
         "jetstream {",
         f'  store_dir: "{node.store_directory}"',
         "  max_memory_store: 256M",
@@ -415,7 +431,8 @@ class NatsBackboneFiles:
             "url": self.url,
             "nodes": [{"name": node.name, "config": str(node.config_path), "host": node.host,
                        "port": node.port, "cluster_port": node.cluster_port,
-                       "mqtt_port": node.mqtt_port, "monitor_port": node.monitor_port}
+                       "mqtt_port": node.mqtt_port, "monitor_port": node.monitor_port,
+                       "monitor_url": monitor_url(node)}
                       for node in self.nodes],
         }
 
