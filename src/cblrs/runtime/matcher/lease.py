@@ -16,7 +16,9 @@ claim for as long as it runs:
   seen before it is the current one;
 * the plane is free when there is no record, the record says ``released`` (a clean stop),
   or its holder has not renewed it for ``ttl_s`` (a crash): a newcomer that finds a fresh
-  record waits up to ``ttl_s`` for the holder's next heartbeat and refuses if one comes;
+  record waits up to ``ttl_s`` (on its own clock, from when it read the record) for the
+  holder's next heartbeat — any renewal the broker delivers, live or retained — and refuses
+  if one comes;
 * the holder renews the record every ``heartbeat_s``, checks it again after every
   reconnection, and steps down as soon as it sees another instance's claim;
 * the record names the database (its ``database_id``): a matcher started under the same id
@@ -167,11 +169,14 @@ class PlaneLease:
         if record is not None and record.state == "held" and record.instance != self.instance:
             age = self._clock() - record.heartbeat
             if age < self.ttl_s:
+                # Waited for on this matcher's own clock from now, not from the holder's
+                # timestamp: a holder starved of CPU, or knocked off the broker by this very
+                # matcher (same login, same session), renews late, not never.
                 logger.warning(
                     "plane %d: the lease is held by %s (renewed %.1f s ago); waiting up to "
-                    "%.0f s for it to be renewed or to expire", self.plane_id,
-                    record.describe(), max(age, 0.0), self.ttl_s - max(age, 0.0))
-                renewed = self._wait_for_renewal(record, self.ttl_s - max(age, 0.0))
+                    "%.0f s for its next renewal", self.plane_id, record.describe(),
+                    max(age, 0.0), self.ttl_s)
+                renewed = self._wait_for_renewal(record, self.ttl_s)
                 if renewed is not None:
                     raise LeaseError(
                         f"plane {self.plane_id} is already served by {renewed.describe()} "
@@ -179,7 +184,7 @@ class PlaneLease:
                         "acknowledging anything (stop that matcher first, or give this one "
                         "another plane)."
                     )
-            logger.warning("plane %d: the lease of %s expired (no renewal for %.0f s); "
+            logger.warning("plane %d: the lease of %s expired (no renewal seen for %.0f s); "
                            "taking over", self.plane_id, record.describe(), self.ttl_s)
         if record is not None:
             self._check_database(record)
@@ -315,16 +320,46 @@ class PlaneLease:
                 self._condition.wait(min(remaining, 0.1))
 
     def _wait_for_renewal(self, record: LeaseRecord, seconds: float) -> LeaseRecord | None:
-        """A newer claim of ``record``'s instance within ``seconds``, or None."""
+        """A newer claim of ``record``'s instance (or another instance's claim) within
+        ``seconds``, or None (also when that instance released the plane).
+
+        Decided from every record the broker delivers: renewals published while this matcher
+        is connected, and the retained record the broker sends again on each re-subscription
+        (asked for every ``heartbeat_s``; no probe round trip, which a connection that
+        another client with this login keeps taking over may never complete).
+        """
         deadline = time.monotonic() + seconds
-        while time.monotonic() < deadline:
-            time.sleep(min(self.heartbeat_s, max(deadline - time.monotonic(), 0.0)))
-            current = self._read()
-            if current is None or current.state != "held":
+        next_ask = time.monotonic() + self.heartbeat_s
+        with self._condition:
+            seen = len(self._log)
+        while True:
+            with self._condition:
+                fresh, seen = self._log[seen:], len(self._log)
+            for item in fresh:
+                if item.state == "probe":
+                    continue
+                if item.instance == record.instance:
+                    if item.state == "released":
+                        return None
+                    if item.heartbeat > record.heartbeat:
+                        return item
+                elif item.state == "held" and item.instance != self.instance:
+                    return item
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
                 return None
-            if current.instance != record.instance or current.heartbeat > record.heartbeat:
-                return current
-        return None
+            self._check_refused()
+            resubscribe = getattr(self.transport, "resubscribe", None)
+            if (resubscribe is not None and time.monotonic() >= next_ask
+                    and getattr(self.transport, "connected", True)):
+                next_ask = time.monotonic() + self.heartbeat_s
+                try:
+                    resubscribe(self.topic)
+                except TransportError:
+                    pass  # the connection went: asked again on the next round
+            with self._condition:
+                if len(self._log) == seen:
+                    self._condition.wait(max(0.01, min(remaining, next_ask - time.monotonic())))
 
     def _check_database(self, record: LeaseRecord) -> None:
         # Only for the same matcher id, i.e. the same MQTT session: what that session's
