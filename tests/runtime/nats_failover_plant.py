@@ -27,12 +27,8 @@ from cblrs.runtime.broker.nats_server import NatsCluster, find_nats_server
 from cblrs.runtime.camera.camera_node import CameraNode
 from cblrs.runtime.camera.sources import scene_source
 from cblrs.runtime.matcher.store import RuntimeStore
-from cblrs.runtime.transport.nats_transport import (
-    NatsSettings,
-    NatsTransport,
-    detections_stream,
-    tracks_stream,
-)
+from cblrs.runtime.transport.nats_subjects import detections_stream, tracks_stream
+from cblrs.runtime.transport.nats_transport import NatsSettings, NatsTransport
 from cblrs.runtime.wire import decode_tracks
 
 PLANE = 1

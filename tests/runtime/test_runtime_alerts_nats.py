@@ -29,7 +29,8 @@ from waiting import wait_until
 from cblrs.detections import CameraMessage
 from cblrs.runtime.broker.nats_server import NatsCluster, find_nats_server
 from cblrs.runtime.outputs.events import decode_alert
-from cblrs.runtime.transport.nats_transport import NatsTransport, tracks_stream
+from cblrs.runtime.transport.nats_subjects import tracks_stream
+from cblrs.runtime.transport.nats_transport import NatsTransport
 from cblrs.runtime.transport.topics import alerts_topic, detections_topic
 from cblrs.runtime.wire import encode_message
 

@@ -14,7 +14,8 @@ from cblrs.detections import CameraMessage
 from cblrs.matching import make_matcher
 from cblrs.plane import PlaneSet, PlaneSpec
 from cblrs.runtime.matcher.matcher_service import MatcherService
-from cblrs.runtime.matcher.store import PENDING, PROCESSED, RuntimeStore
+from cblrs.runtime.matcher.store import RuntimeStore
+from cblrs.runtime.matcher.store_schema import PENDING, PROCESSED
 from cblrs.runtime.transport.inprocess import InProcessBroker, InProcessTransport
 from cblrs.runtime.transport.topics import detections_topic
 from cblrs.runtime.wire import encode_message

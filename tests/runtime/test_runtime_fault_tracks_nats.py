@@ -27,7 +27,8 @@ from fault_tracks import (
 )
 from waiting import wait_until
 
-from cblrs.runtime.transport.nats_transport import NatsSettings, NatsTransport, detections_stream
+from cblrs.runtime.transport.nats_subjects import detections_stream
+from cblrs.runtime.transport.nats_transport import NatsSettings, NatsTransport
 
 
 @pytest.fixture(scope="module")

@@ -18,7 +18,8 @@ from cblrs.runtime.matcher.retention import (
     RetentionPolicy,
     apply_retention,
 )
-from cblrs.runtime.matcher.store import LATE, PENDING, PROCESSED, RuntimeStore
+from cblrs.runtime.matcher.store import RuntimeStore
+from cblrs.runtime.matcher.store_schema import LATE, PENDING, PROCESSED
 
 NOW = 1_800_000_000.0
 HOUR = 3600.0

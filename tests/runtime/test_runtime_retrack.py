@@ -14,7 +14,9 @@ from cblrs.matching import make_matcher
 from cblrs.plane import PlaneSet, PlaneSpec
 from cblrs.runtime.matcher.retention import RetentionPolicy, apply_retention
 from cblrs.runtime.matcher.retrack import RetrackPolicy, Snapshots, retrack
-from cblrs.runtime.matcher.store import LATE, PENDING, PROCESSED, InboxEntry, RuntimeStore
+from cblrs.runtime.matcher.store import RuntimeStore
+from cblrs.runtime.matcher.store_rows import InboxEntry
+from cblrs.runtime.matcher.store_schema import LATE, PENDING, PROCESSED
 
 CAMERAS = ["A", "B"]
 NOW = 1_800_000_000.0

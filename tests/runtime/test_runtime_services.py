@@ -41,9 +41,11 @@ from cblrs.runtime.camera.sources import (
     scene_source,
     video_source,
 )
-from cblrs.runtime.matcher.matcher_service import MatcherService, ServiceClock
+from cblrs.runtime.matcher.matcher_service import MatcherService
+from cblrs.runtime.matcher.matcher_state import ServiceClock
 from cblrs.runtime.matcher.retrack import RetrackPolicy
-from cblrs.runtime.matcher.store import LATE, PENDING, PROCESSED, RuntimeStore
+from cblrs.runtime.matcher.store import RuntimeStore
+from cblrs.runtime.matcher.store_schema import LATE, PENDING, PROCESSED
 from cblrs.runtime.matcher.tracker_process import TrackerProcessError
 from cblrs.runtime.transport.inprocess import InProcessBroker, InProcessTransport
 from cblrs.runtime.transport.mqtt_transport import MqttTransport

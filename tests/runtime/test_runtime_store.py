@@ -16,16 +16,10 @@ from hypothesis import strategies as st
 from waiting import wait_until
 
 from cblrs.detections import CameraMessage, Tracks
-from cblrs.runtime.matcher.store import (
-    LATE,
-    PENDING,
-    PROCESSED,
-    InboxEntry,
-    RuntimeStore,
-    StoreError,
-    WriterLock,
-    checkpoint_regularly,
-)
+from cblrs.runtime.matcher.store import RuntimeStore
+from cblrs.runtime.matcher.store_file import StoreError, WriterLock, checkpoint_regularly
+from cblrs.runtime.matcher.store_rows import InboxEntry
+from cblrs.runtime.matcher.store_schema import LATE, PENDING, PROCESSED
 
 
 def message(camera: str = "CVLab1", sequence: int = 0, timestamp: float = 10.0, count: int = 2):

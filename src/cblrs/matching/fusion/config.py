@@ -176,6 +176,11 @@ class FusionConfig:
         stitch_sigmas: a new track continues a lost one when their (x, y, vx, vy) states are
             within this many standard deviations of each other (Mahalanobis distance under
             the sum of their covariances), and no other pair could be it.
+        stitch_coasting: a new person's track may also continue a confirmed track that still
+            coasts (unseen now, not dropped yet), even before its velocity is known, where the
+            cameras are known to miss people hidden behind others (the occlusion stage's
+            learnt miss rate above one half): it takes the id and the coasting track is
+            dropped (:mod:`~cblrs.matching.fusion.stitching`).
         swap_radius_m: two confirmed tracks of people closer than this open an encounter;
             once they have been farther apart than this for ``swap_settle_s``, they exchange
             ids from then on if their motion before the encounter explains what each saw
@@ -251,6 +256,7 @@ class FusionConfig:
     stitch_gap_s: float = 3.0
     stitch_delay_s: float = 0.0
     stitch_sigmas: float = 3.0
+    stitch_coasting: bool = True
     swap_radius_m: float = 1.0
     swap_settle_s: float = 0.5
     swap_margin: float = 7.0
@@ -297,7 +303,7 @@ class FusionConfig:
             "model_acceleration_factors and model_sojourn_s need one entry per model, got "
             f"{len(self.model_acceleration_factors)} and {len(self.model_sojourn_s)}.",
         )
-        for name in ("adapt_noise", "estimate_clocks", "end_off_plane"):
+        for name in ("adapt_noise", "estimate_clocks", "end_off_plane", "stitch_coasting"):
             value = getattr(self, name)
             require(isinstance(value, bool), f"{name} must be true or false, got {value!r}.")
         require(

@@ -50,6 +50,7 @@ from cblrs.matching.fusion.vehicle_noise import VehicleNoise
 from cblrs.matching.timing import Window, WindowBuffer
 from cblrs.plane import PlaneSet
 
+_PERSON = CLASS_NAMES.index("person")
 _REPORTED_FRAMES = 64  # frames remembered to report each track at most once per frame
 
 
@@ -400,10 +401,19 @@ class FusionTracker:
         # nor reported.
         unsupported = self.support.unsupported(self.tracks)
         confirmable = self._confirmable() & ~unsupported
-        stitches = self.stitching.decide(self.tracks, confirmable, timestamp)
+        # Coasting people may be continued too where cameras lose people who are still there.
+        coasting = ~seen_now & (self.tracks.class_id == _PERSON) & (self.hidden.miss_rate > 0.5)
+        stitches = self.stitching.decide(self.tracks, confirmable, timestamp, coasting)
         confirmable &= ~stitches.hold
         confirmable[stitches.rows] = False
         self.tracks.ids[stitches.rows] = stitches.ids
+        if len(stitches.replaced):  # the coasting tracks a new one continues: gone
+            keep = np.ones(len(self.tracks.ids), dtype=bool)
+            keep[stitches.replaced] = False
+            self.tracks, seen_now, confirmable = (
+                self.tracks.select(keep), seen_now[keep], confirmable[keep])
+            report_camera, report_box = report_camera[keep], report_box[keep]
+            unsupported = unsupported[keep]
         report = self._confirm(timestamp, seen_now, confirmable)
         for pair in self.swaps.decide(self.tracks, timestamp):  # swapped people (swaps module)
             self.tracks.ids[list(pair)] = self.tracks.ids[list(pair[::-1])]

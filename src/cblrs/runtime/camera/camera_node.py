@@ -48,9 +48,12 @@ when it is stopped (a signal) before its source ended — it ends with an untime
 "offline", like its last will: the connection ended, the stream did not, and the matcher
 keeps waiting for the rest.
 
-It stays one module because :class:`CameraNode`'s capture loop, spool pump and resend timer
-share the spool, the sequence numbers and the stop signal; the spool, the sources and the
-transports are their own modules.
+:class:`CameraNode` keeps the run: the capture loop, the spool pump and the pacing; its state is
+in :mod:`~cblrs.runtime.camera.camera_state`, the delivery side (results, confirmations,
+resends) in :mod:`~cblrs.runtime.camera.camera_delivery`, the run's counts
+(:class:`~cblrs.runtime.camera.camera_report.CameraReport`) in
+:mod:`~cblrs.runtime.camera.camera_report`; the spool, the sources and the transports are their
+own modules.
 """
 
 from __future__ import annotations
@@ -60,40 +63,31 @@ import inspect
 import logging
 import threading
 import time
-from collections import Counter
-from collections.abc import Callable, Iterable, Iterator
-from dataclasses import dataclass, field
-from typing import Any
+from collections.abc import Iterable, Iterator
 
 import numpy as np
 
 from cblrs.datasets.images import SkippedImages
 from cblrs.detections import Detections
 from cblrs.edge import box_rejections, make_message
-from cblrs.reference import ReferenceImage
+from cblrs.runtime.camera.camera_delivery import _CameraDelivery
+from cblrs.runtime.camera.camera_report import CameraReport
 from cblrs.runtime.camera.sources import SourceFrame
 from cblrs.runtime.camera.spool import Spool
-from cblrs.runtime.matcher.confirmations import decode_confirmation
-from cblrs.runtime.transport.protocol import LOST, NO_MATCHING_SUBSCRIBERS, reason_text, refused
 from cblrs.runtime.transport.topics import (
-    detections_topic,
     matcher_status_filter,
     status_topic,
     stored_topic,
-    validate_camera_id,
 )
 from cblrs.runtime.wire import (
-    DEFAULT_MAX_BYTES,
-    RejectedMessage,
-    decode_status,
     encode_message,
     encode_status,
 )
-from cblrs.targeting import TargetingPosition
+
+__all__ = ["STOP_FLUSH_S", "STOP_OFFLINE_S", "CameraNode", "CameraReport", "camera_last_will"]
 
 logger = logging.getLogger(__name__)
 
-MAX_RESEND_AFTER_S = 300.0
 _REMINDER_S = 60.0
 # A first paced frame due later than _FIRST_WAIT_SAID_S is announced (INFO; a warning when
 # later than _FIRST_WAIT_WARN_S): the replay is silent until then.
@@ -111,73 +105,7 @@ def camera_last_will(plane_id: int, camera_id: str) -> tuple[str, bytes]:
     return status_topic(plane_id, camera_id), encode_status(camera_id, "offline", role="camera")
 
 
-@dataclass
-class CameraReport:
-    """What a camera node did.
-
-    Attributes:
-        camera_id: the camera.
-        plane_id: the plane it published for.
-        frames: frames read from the source.
-        messages: messages produced (one per frame, unless a frame was dropped).
-        detections: boxes published.
-        located: boxes whose target pixel saw a plane (colour B != 0).
-        bytes: payload bytes produced.
-        first_sequence: sequence number of the first message.
-        next_sequence: sequence number the next message would have had.
-        elapsed_s: wall time from the first to the last message produced, seconds.
-        acknowledged: broker acknowledgements received (re-sends count again).
-        confirmed: messages the matcher confirmed as stored.
-        rejected_by_matcher: messages the matcher confirmed as rejected, by reason.
-        refused_by_broker: publishes the broker refused.
-        refusal: the broker's first refusal as one sentence, or None.
-        resent: messages sent again (see the module docstring).
-        boxes_rejected: boxes dropped before sending, by reason.
-        frames_too_large: frames dropped because their message exceeded the size limit.
-        frames_skipped: frames skipped because their image file was unusable, by reason
-            (``empty``, ``truncated``, ``undecodable``; each logged).
-        unconfirmed: messages still in the spool at the end (sent again on the next start).
-        dropped_from_spool: messages the full spool dropped (ever, for a spool file).
-        flushed: every message of the spool acknowledged by the broker at the end (none
-            waiting, none refused).
-        confirmed_all: the spool is empty: the matcher confirmed everything.
-        epoch: the epoch added to recorded timestamps, seconds since the Unix epoch.
-    """
-
-    camera_id: str
-    plane_id: int
-    frames: int = 0
-    messages: int = 0
-    detections: int = 0
-    located: int = 0
-    bytes: int = 0
-    first_sequence: int = 0
-    next_sequence: int = 0
-    elapsed_s: float = 0.0
-    acknowledged: int = 0
-    confirmed: int = 0
-    rejected_by_matcher: dict[str, int] = field(default_factory=dict)
-    refused_by_broker: int = 0
-    refusal: str | None = None
-    resent: int = 0
-    boxes_rejected: dict[str, int] = field(default_factory=dict)
-    frames_too_large: int = 0
-    frames_skipped: dict[str, int] = field(default_factory=dict)
-    unconfirmed: int = 0
-    dropped_from_spool: int = 0
-    flushed: bool = False
-    confirmed_all: bool = False
-    epoch: float | None = None
-    extra: dict[str, Any] = field(default_factory=dict)
-
-    def to_dict(self) -> dict[str, Any]:
-        data = {key: value for key, value in self.__dict__.items() if key != "extra"}
-        data.update(self.extra)
-        data["messages_per_s"] = self.messages / self.elapsed_s if self.elapsed_s > 0 else None
-        return data
-
-
-class CameraNode:
+class CameraNode(_CameraDelivery):
     """One edge camera publishing its detections.
 
     Args:
@@ -209,70 +137,6 @@ class CameraNode:
             camera's detections topic (an empty retained publish).
         clock: wall clock, seconds since the Unix epoch.
     """
-
-    def __init__(
-        self,
-        transport: Any,
-        plane_id: int,
-        camera_id: str,
-        reference: ReferenceImage,
-        *,
-        realtime: bool = False,
-        speed: float = 1.0,
-        epoch: float | None = None,
-        first_sequence: int = 0,
-        targeting: dict[str, TargetingPosition] | None = None,
-        drop_hidden_feet: bool = False,
-        flush_timeout_s: float = 30.0,
-        confirm_timeout_s: float = 0.0,
-        spool: Spool | None = None,
-        resend_after_s: float = 30.0,
-        window: int = 1000,
-        max_bytes: int = DEFAULT_MAX_BYTES,
-        clear_retained: bool = False,
-        clock: Callable[[], float] = time.time,
-    ):
-        validate_camera_id(camera_id)
-        if speed <= 0:
-            raise ValueError(f"speed must be positive, got {speed}.")
-        self.transport = transport
-        self.plane_id = int(plane_id)
-        self.camera_id = camera_id
-        self.reference = reference
-        self.realtime = realtime
-        self.speed = float(speed)
-        self.epoch = epoch
-        self.first_sequence = int(first_sequence)
-        self.targeting = targeting
-        self.drop_hidden_feet = bool(drop_hidden_feet)
-        self.flush_timeout_s = float(flush_timeout_s)
-        self.confirm_timeout_s = float(confirm_timeout_s)
-        self.spool = spool
-        self.resend_after_s = float(resend_after_s)
-        self.window = max(1, int(window))
-        self.max_bytes = int(max_bytes)
-        self.clear_retained = clear_retained
-        self._clock = clock
-        self._stop = threading.Event()
-        self._wake = threading.Event()
-        self._pump_stop = threading.Event()
-        self._counts: Counter[str] = Counter()
-        self._rejected_by_matcher: Counter[str] = Counter()
-        self._refusal: str | None = None
-        self._matcher_online = False
-        self._last_confirmation = -float("inf")
-        self._resend_wait = self.resend_after_s
-        self._lock = threading.Lock()
-        self._online_published = False
-        self._done = False
-        self._flushed = False
-        self._answers = True
-        self._marks_resends = False
-        self._fresh: set[int] = set()  # produced in this run and not yet handed over
-        self._resends = 0
-        self._run_token = f"{int(time.time() * 1000):x}"
-        self.topic = detections_topic(self.plane_id, camera_id)
-        self.status_topic = status_topic(self.plane_id, camera_id)
 
     def stop(self) -> None:
         """Ask :meth:`run` to finish after the current frame (thread-safe); what is not
@@ -516,170 +380,6 @@ class CameraNode:
                 disconnected_since = None
             self._wake.wait(0.1)
             self._wake.clear()
-
-    def _resend_token(self, sequence: int) -> str | None:
-        """None for the first publish of a message produced in this run; else a token no
-        earlier publish of it carried (this process's start and a counter): a re-send, a
-        message an earlier run left in the spool, which that run may have published, or one
-        this run produced again (a replay restarted from its beginning) under a sequence an
-        earlier run handed over: the stream would drop it as a duplicate, so the matcher
-        would never see it again to confirm it."""
-        with self._lock:
-            if sequence in self._fresh:
-                self._fresh.discard(sequence)
-                if sequence >= getattr(self._spool, "handed_before", 0):
-                    return None
-            self._resends += 1
-            return f"r{self._run_token}-{self._resends}"
-
-    def _on_result(self, sequence: int, topic: str, reason: int) -> None:
-        if self._done:
-            return
-        spool = self._spool
-        if reason == LOST:
-            spool.not_sent(sequence)
-            return
-        if refused(reason):
-            spool.not_sent(sequence)
-            with self._lock:
-                self._counts["refused"] += 1
-                first = self._refusal is None
-                if first:
-                    text = reason_text(reason)
-                    self._refusal = (
-                        f"the broker refused to take message {sequence} on {topic} ({text}): "
-                        "check that this camera logs in as its own user and publishes for its "
-                        "own id and plane"
-                    )
-            if first:
-                logger.error("camera %s: %s; stopping", self.camera_id, self._refusal)
-                self.stop()
-            return
-        spool.acknowledged(sequence)
-        with self._lock:
-            self._counts["acknowledged"] += 1
-            first_unrouted = reason == NO_MATCHING_SUBSCRIBERS and not self._counts["unrouted"]
-            if reason == NO_MATCHING_SUBSCRIBERS:
-                self._counts["unrouted"] += 1
-        if first_unrouted:
-            logger.warning("camera %s: the broker has no subscriber for %s (no matcher has "
-                           "subscribed yet); the spool keeps the messages until one confirms "
-                           "them", self.camera_id, topic)
-
-    def _maybe_resend(self) -> None:
-        if not self._matcher_online:
-            return
-        spool = self._spool
-        oldest = spool.oldest_acknowledged()
-        if oldest is None:
-            return
-        now = spool.clock()
-        quiet = now - max(self._last_confirmation, oldest)
-        if quiet < self._resend_wait:
-            return
-        count = spool.requeue(acknowledged_before=now - self._resend_wait)
-        if count:
-            with self._lock:
-                self._counts["resent"] += count
-            logger.warning(
-                "camera %s: the matcher confirmed nothing for %.0f s; sending %d unconfirmed "
-                "messages again", self.camera_id, quiet, count)
-            self._wake.set()
-        self._resend_wait = min(2 * self._resend_wait, MAX_RESEND_AFTER_S)
-
-    # -- transport callbacks ------------------------------------------------------------
-
-    def _announce(self, state: str, final: bool = True) -> None:
-        timestamp = self._clock() if (state == "online" or final) else None
-        self.transport.publish(
-            self.status_topic,
-            encode_status(self.camera_id, state, role="camera", timestamp=timestamp),  # type: ignore[arg-type]
-            qos=1,
-            retain=True,
-        )
-        if state == "online":
-            self._online_published = True
-
-    def _on_connected(self, session_present: bool) -> None:
-        if not self._pump_stop.is_set():
-            self._announce("online")
-            self._wake.set()
-
-    def _on_stored(self, delivery: Any) -> None:
-        delivery.ack()
-        if self._done:
-            return
-        try:
-            confirmation = decode_confirmation(delivery.payload)
-        except RejectedMessage as error:
-            logger.warning("camera %s: ignored a malformed confirmation: %s", self.camera_id,
-                           error)
-            return
-        if confirmation.camera != self.camera_id:
-            return
-        stored = confirmation.stored_sequences()
-        rejected = confirmation.rejected_sequences()
-        answered = stored + [value for values in rejected.values() for value in values]
-        top = max(answered) if answered else None
-        top_acked = None if top is None else self._spool.acked_at(top)
-        count = self._spool.confirm(stored)
-        rejected_count = 0
-        for reason, sequences in rejected.items():
-            dropped = self._spool.confirm(sequences)
-            rejected_count += dropped
-            if dropped:
-                with self._lock:
-                    self._rejected_by_matcher[reason] += dropped
-                logger.warning("camera %s: the matcher rejected %d messages (%s)",
-                               self.camera_id, dropped, reason)
-        # Only where "acknowledged" means the broker has it (MQTT answers; a NATS transport
-        # retries on its own and its matcher may see re-deliveries out of order), and only
-        # while the pump still sends.
-        if (top is not None and top_acked is not None and self._answers
-                and not self._pump_stop.is_set()):
-            gaps = self._spool.requeue_gaps(below=top, acknowledged_before=top_acked)
-            if gaps:
-                with self._lock:
-                    self._counts["resent"] += gaps
-                logger.warning(
-                    "camera %s: the matcher confirmed message %d but not %d earlier ones the "
-                    "broker had acknowledged (dropped on the way); sending them again",
-                    self.camera_id, top, gaps)
-                self._wake.set()
-        with self._lock:
-            self._counts["confirmed"] += count
-        self._last_confirmation = self._spool.clock()
-        self._resend_wait = self.resend_after_s
-        self._matcher_online = True
-
-    def _on_matcher_status(self, delivery: Any) -> None:
-        delivery.ack()
-        if self._done:
-            return
-        try:
-            status = decode_status(delivery.payload)
-        except RejectedMessage:
-            return
-        if status.role != "matcher":
-            return
-        if status.state == "online":
-            self._matcher_online = True
-            # A live "online" with a new session: the broker held nothing for this matcher
-            # until now. A retained one is history (the session exists since; what this
-            # camera sends now reaches it, and spooled messages of earlier runs go anyway).
-            if status.session_present is False and not getattr(delivery, "retain", False):
-                # The broker held nothing for this matcher: whatever it has not confirmed
-                # must be sent again.
-                count = self._spool.requeue()
-                if count:
-                    with self._lock:
-                        self._counts["resent"] += count
-                    logger.info("camera %s: matcher %s started a new session; sending %d "
-                                "unconfirmed messages again", self.camera_id, status.client,
-                                count)
-                self._wake.set()
-        else:
-            self._matcher_online = False
 
     # -- timing ------------------------------------------------------------------------------
 

@@ -65,48 +65,37 @@ Lifecycle (this module's share of "nothing acknowledged is lost"):
 * rejections are counted by reason and logged at most once per reason every
   ``log_interval_s`` seconds.
 
-It stays one module because :class:`MatcherService` is the one place where the numbered steps
-meet in a single transaction per delivery (store, track, analytics, confirmations); the steps
-themselves live in their own modules (wire, store, ordering, the matchers, online analytics).
+:class:`MatcherService` keeps the lifecycle and the queries; its state and failure handling are
+in :mod:`~cblrs.runtime.matcher.matcher_state`, steps 1-3 (the receiver thread) in
+:mod:`~cblrs.runtime.matcher.matcher_receiver`, step 4 (the releaser and collector threads) in
+:mod:`~cblrs.runtime.matcher.matcher_releaser`; the steps' own logic lives in their modules
+(wire, store, ordering, the matchers, online analytics).
 """
 
 from __future__ import annotations
 
 import functools
 import logging
-import math
 import multiprocessing
 import threading
 import time
-from collections import Counter, defaultdict, deque
-from collections.abc import Callable, Sequence
+from collections import defaultdict
 from typing import Any
 
 from cblrs.detections import Tracks
-from cblrs.errors import CblrsError
 from cblrs.matching.fusion import clock_report
-from cblrs.runtime.matcher.confirmations import ConfirmationBuffer, peek_sequence
 from cblrs.runtime.matcher.lease import PlaneLease
-from cblrs.runtime.matcher.metrics import ServiceMetrics
-from cblrs.runtime.matcher.ordering import Orderer
-from cblrs.runtime.matcher.retention import RetentionPolicy, apply_retention
-from cblrs.runtime.matcher.retrack import RetrackPolicy
-from cblrs.runtime.matcher.store import LATE, PENDING, InboxEntry, RuntimeStore
-from cblrs.runtime.matcher.tracker_process import Batch, TrackerProcess, TrackerProcessError
-from cblrs.runtime.outputs.alert_service import AlertService
-from cblrs.runtime.outputs.analytics_service import ServiceReporter
-from cblrs.runtime.transport.rate_limited import RateLimitedLog
+from cblrs.runtime.matcher.matcher_receiver import _Receiver
+from cblrs.runtime.matcher.matcher_releaser import _Releaser
+from cblrs.runtime.matcher.matcher_state import LeaseLost
+from cblrs.runtime.matcher.store import LATE, RuntimeStore
+from cblrs.runtime.matcher.tracker_process import TrackerProcess
 from cblrs.runtime.transport.topics import (
-    TopicError,
     detections_filter,
     matcher_status_topic,
-    parse_detections_topic,
-    parse_status_topic,
     status_filter,
-    tracks_topic,
-    validate_camera_id,
 )
-from cblrs.runtime.wire import RejectedMessage, ValidationPolicy, decode_status, encode_status
+from cblrs.runtime.wire import encode_status
 
 logger = logging.getLogger(__name__)
 
@@ -115,41 +104,7 @@ COUNTER_NAMES = ("received", "accepted", "duplicates", "conflicts", "late", "pro
 """Counters every summary shows (rejections add ``rejected.<reason>``)."""
 
 
-class LeaseLost(RuntimeError):
-    """Another matcher instance took the plane: this one stopped acknowledging."""
-
-
-class ServiceClock:
-    """Monotonic seconds that stand still while ``connected()`` is False.
-
-    Args:
-        connected: whether the service is currently connected to its broker.
-        monotonic: the underlying clock.
-    """
-
-    def __init__(
-        self, connected: Callable[[], bool], monotonic: Callable[[], float] = time.monotonic
-    ):
-        self._connected = connected
-        self._monotonic = monotonic
-        self._paused = 0.0
-        self._down_since: float | None = None
-        self._lock = threading.Lock()
-
-    def __call__(self) -> float:
-        with self._lock:
-            now = self._monotonic()
-            if not self._connected():
-                if self._down_since is None:
-                    self._down_since = now
-                return now - self._paused - (now - self._down_since)
-            if self._down_since is not None:
-                self._paused += now - self._down_since
-                self._down_since = None
-            return now - self._paused
-
-
-class MatcherService:
+class MatcherService(_Receiver, _Releaser):
     """The matcher of one plane, fed through a transport, persisted in a store.
 
     Args:
@@ -171,7 +126,7 @@ class MatcherService:
         observer: optional object with ``on_stored(entries, wall_time)``,
             ``on_released(timestamps, wall_time)`` and/or ``on_group(timestamp, entries,
             tracks, wall_time)`` (benchmarks, viewers), called once the entries
-            (:class:`~cblrs.runtime.matcher.store.InboxEntry`) are stored and acknowledged,
+            (:class:`~cblrs.runtime.matcher.store_rows.InboxEntry`) are stored and acknowledged,
             once groups leave the ordering buffer for the tracker process (their
             timestamps), and once a group's tracks are committed and handed to the
             transport; ``wall_time`` is the wall clock then.
@@ -203,121 +158,6 @@ class MatcherService:
             (its first four frames), so its first frames do not wait for their successors;
             a camera found faster is predicted from its intervals at once. None: they wait.
     """
-
-    def __init__(
-        self,
-        transport: Any,
-        store: RuntimeStore,
-        matcher: Any,
-        plane_id: int,
-        camera_ids: Sequence[str],
-        *,
-        policy: ValidationPolicy | None = None,
-        window_s: float = 2.0,
-        publish_tracks: bool = True,
-        max_buffered_groups: int = 10_000,
-        batch_size: int = 500,
-        groups_per_commit: int = 50,
-        settings: dict[str, Any] | None = None,
-        observer: Any = None,
-        wall_clock: Callable[[], float] = time.time,
-        lease: bool | None = None,
-        allow_other_database: bool = False,
-        confirm_interval_s: float = 0.25,
-        log_interval_s: float = 10.0,
-        retention: RetentionPolicy | None = RetentionPolicy(),  # noqa: B008 (frozen)
-        analytics: Any = None,
-        metrics: ServiceMetrics | None = None,
-        live_interval_s: float | None = 1.0,
-        retrack: RetrackPolicy | None = RetrackPolicy(),  # noqa: B008 (frozen)
-        alerts: Any = None,
-        alert_senders: dict[str, Any] | None = None,
-        camera_fps: float | None = None,
-    ):
-        if window_s < 0 or not math.isfinite(window_s):
-            raise ValueError(f"window must be a finite number >= 0, got {window_s}.")
-        self.camera_ids = [validate_camera_id(name) for name in camera_ids]
-        if not self.camera_ids or len(set(self.camera_ids)) != len(self.camera_ids):
-            raise ValueError(f"camera ids must be distinct and non-empty, got {camera_ids}.")
-        self.transport = transport
-        self.store = store
-        self.matcher = matcher
-        self.plane_id = int(plane_id)
-        base = policy or ValidationPolicy()
-        self.policy = ValidationPolicy(
-            known_cameras=frozenset(self.camera_ids),
-            bits=base.bits,
-            max_age_s=base.max_age_s,
-            max_future_s=base.max_future_s,
-            max_bytes=base.max_bytes,
-        )
-        self.window_s = float(window_s)
-        self.publish_tracks = publish_tracks
-        self.max_buffered_groups = int(max_buffered_groups)
-        if camera_fps is not None and not (camera_fps > 0 and math.isfinite(camera_fps)):
-            raise ValueError(f"camera fps must be a finite number > 0, got {camera_fps}.")
-        self.camera_fps = camera_fps
-        self._orderer = Orderer(
-            self.camera_ids, timeout_s=self.window_s, max_buffered_groups=self.max_buffered_groups,
-            assumed_period_s=None if camera_fps is None else 1.0 / camera_fps)
-        self.batch_size = int(batch_size)
-        self.groups_per_commit = max(1, int(groups_per_commit))
-        self.observer = observer
-        self._wall_clock = wall_clock
-        # The silence timeout counts only while messages can arrive: connected, and (NATS)
-        # the plane's consumer has delivered what its stream holds.
-        self.clock = ServiceClock(lambda: bool(getattr(
-            transport, "caught_up", getattr(transport, "connected", True))))
-        self._settings = {"plane_id": self.plane_id, "camera_ids": self.camera_ids}
-        self._settings.update(settings or {})
-
-        self._inbox: deque[tuple[str, Any, float]] = deque()
-        self._arrived = threading.Event()
-        self._offline: dict[str, bool] = dict.fromkeys(self.camera_ids, False)
-        self._final_offline: dict[str, bool] = dict.fromkeys(self.camera_ids, False)
-        self._offline_at: dict[str, float | None] = dict.fromkeys(self.camera_ids, None)
-        self._started_at = wall_clock()
-        self._active_this_run: set[str] = set()
-        self._last_delivery = 0.0
-        self._stop = threading.Event()
-        self._flush_requested = threading.Event()
-        self._wake = threading.Event()
-        self._received_all = threading.Event()
-        self._state_lock = threading.RLock()
-        self._inflight: deque[Batch] = deque()  # sent to the tracker process, not answered
-        self._tracker: TrackerProcess | None = None
-        self._threads: list[threading.Thread] = []
-        self._failure: BaseException | None = None
-        self._started = False
-        self.matcher_id = str(getattr(transport, "client_id", f"matcher{self.plane_id}"))
-        self._use_lease = (getattr(transport, "lease", None) is None) if lease is None else lease
-        self._allow_other_database = allow_other_database
-        self._lease: PlaneLease | None = None
-        self._receiving = threading.Event()
-        self._connections = 0
-        self._session_present = False
-        self._confirmations = ConfirmationBuffer(self.plane_id, self.matcher_id)
-        self.confirm_interval_s = float(confirm_interval_s)
-        self._last_confirmation = 0.0
-        self._rejections = RateLimitedLog(logger, log_interval_s)
-        self._retained_warned: set[str] = set()
-        self.retention = retention
-        self.retrack = retrack
-        self._late_at: float | None = None  # service clock of the last late message waiting
-        self._retracks_inflight = 0
-        self.analytics = analytics
-        self.reporter = ServiceReporter(
-            transport, store, self.plane_id, self.camera_ids,
-            places=None if analytics is None else analytics.places, metrics=metrics,
-            live_interval_s=live_interval_s,
-        )
-        self.alerts: AlertService | None = None
-        if alerts is not None and alerts.rules:
-            # The opening hours that gate counting gate the places' alerts too.
-            calendar = None if analytics is None else analytics.engine.config.calendar
-            self.alerts = AlertService(transport, store, self.plane_id, self.camera_ids,
-                                       alerts, alert_senders or {}, self.reporter, self.lag,
-                                       calendar=calendar)
 
     # -- lifecycle -------------------------------------------------------------------------
 
@@ -489,338 +329,6 @@ class MatcherService:
                 self.plane_id, released, len(pending),
             )
 
-    def _fail(self, error: BaseException, role: str) -> None:
-        """Record the first failure and stop the service (``stop`` raises it)."""
-        # A cause the operator can fix (a deleted database, a lost lease) is one sentence;
-        # anything else is a bug and keeps its traceback.
-        expected = isinstance(error, CblrsError | LeaseLost) or (
-            isinstance(error, TrackerProcessError) and "Traceback" not in str(error))
-        logger.error("matcher service %s failed: %s", role, error,
-                     exc_info=None if expected else error)
-        if self._failure is None:
-            self._failure = error
-        self._stop.set()
-        self._arrived.set()
-        self._wake.set()
-
-    # -- transport callbacks (transport thread) -----------------------------------------
-
-    def _on_detections(self, delivery: Any) -> None:
-        self._inbox.append(("detections", delivery, self._wall_clock()))
-        self._arrived.set()
-
-    def _on_status(self, delivery: Any) -> None:
-        self._inbox.append(("status", delivery, self._wall_clock()))
-        self._arrived.set()
-
-    # -- receiver thread -----------------------------------------------------------------
-
-    def _work(self) -> None:
-        """Receiver thread: store and acknowledge deliveries, buffer them for the tracker."""
-        try:
-            while not self._stop.is_set():
-                if not self._receiving.is_set():  # no verified lease: acknowledge nothing
-                    self._receiving.wait(0.2)
-                    continue
-                self._arrived.wait(0.2)
-                self._arrived.clear()  # before emptying the inbox, so no arrival is missed
-                while self._receiving.is_set() and self._handle():
-                    self._wake.set()
-                    self._send_confirmations()
-                    if self._stop.is_set():
-                        break
-                self._send_confirmations()
-            # Stopping: with a flush, also store what is queued. Anything left is
-            # unacknowledged, so the broker delivers it again later.
-            while (self._flush_requested.is_set() and self._failure is None
-                   and self._receiving.is_set() and self._handle()):
-                pass
-        except BaseException as error:  # surfaced by stop()
-            self._fail(error, "receiver")
-        finally:
-            self._received_all.set()
-            self._wake.set()
-
-    def _handle(self) -> bool:
-        """Store, acknowledge and buffer the next batch of deliveries; False if none."""
-        # Taking the batch, late marking, storing and buffering happen as one step against
-        # the release of groups (see the module docstring) and ``drained``.
-        with self._state_lock:
-            count = min(len(self._inbox), self.batch_size)
-            if not count:
-                return False
-            self._handle_locked([self._inbox.popleft() for _ in range(count)])
-            return True
-
-    def _handle_locked(self, batch: list[tuple[str, Any, float]]) -> None:
-        started = time.perf_counter()
-        now = self.clock()
-        counters: Counter[str] = Counter()
-        accepted: list[tuple[InboxEntry, str, float]] = []
-        acknowledge = []
-        rejected: list[tuple[str, int, str]] = []
-        for kind, delivery, received_at in batch:
-            acknowledge.append(delivery)
-            if kind == "status":
-                self._status(delivery, now)
-                continue
-            if not delivery.payload:
-                # An empty retained publish removes a retained message (a camera clearing its
-                # detections topic); it is never a message.
-                continue
-            if delivery.retain and delivery.topic not in self._retained_warned:
-                self._retained_warned.add(delivery.topic)
-                logger.warning(
-                    "plane %d: a retained message sits on %s (some client published with "
-                    "retain); every new subscription receives it again. It is stored once "
-                    "(duplicates are ignored); `cblrs camera` removes it when it starts.",
-                    self.plane_id, delivery.topic)
-            self._last_delivery = now
-            counters["received"] += 1
-            try:
-                plane_id, camera = _parse_topic(delivery.topic)
-                wire = self.policy.decode_wire(
-                    delivery.payload, topic_camera=camera, now=received_at, topic_plane=plane_id
-                )
-            except TopicError:
-                counters["rejected.bad_topic"] += 1
-                self._rejections.log(logging.WARNING, "bad_topic",
-                                     "plane %d: rejected a message on %s: not a detections "
-                                     "topic", self.plane_id, delivery.topic)
-                continue
-            except RejectedMessage as error:
-                reason = error.reason.value
-                counters[f"rejected.{reason}"] += 1
-                self._rejections.log(logging.WARNING, reason,
-                                     "plane %d: rejected a message on %s (%s): %s",
-                                     self.plane_id, delivery.topic, reason, error)
-                sequence = peek_sequence(delivery.payload, camera)
-                if sequence is not None:
-                    rejected.append((camera, sequence, reason))
-                continue
-            late = self._orderer.is_late(wire.timestamp)
-            accepted.append((InboxEntry.from_wire(wire), LATE if late else PENDING, received_at))
-        inserted = self.store.insert_messages(accepted, counters)
-        if counters.get("conflicts"):
-            self._rejections.log(
-                logging.ERROR, "conflicts",
-                "plane %d: %d messages repeat a stored camera and sequence number with other "
-                "content (another run of a camera reusing its numbers: give it another "
-                "--first-sequence); the stored ones are kept, these are counted as conflicts",
-                self.plane_id, counters["conflicts"])
-        # Acknowledge only now: everything above is durably stored (or rejected on purpose).
-        for delivery in acknowledge:
-            delivery.ack()
-        for entry, _, _ in accepted:  # new or duplicates: stored either way
-            self._confirmations.add_stored(entry.camera_id, entry.sequence)
-        for camera, sequence, reason in rejected:
-            self._confirmations.add_rejected(camera, sequence, reason)
-        self.reporter.stored(batch, accepted, inserted, counters, time.perf_counter() - started)
-        stored = []
-        for (entry, status, _), new in zip(accepted, inserted, strict=True):
-            if not new:
-                continue
-            stored.append(entry)
-            self._active_this_run.add(entry.camera_id)
-            if status == PENDING:
-                self._orderer.add(entry, now)
-            else:
-                self._orderer.heard(entry.camera_id, now)
-                if self.retrack is not None:
-                    self._late_at = now
-        if self.observer is not None and hasattr(self.observer, "on_stored") and stored:
-            self.observer.on_stored(stored, self._wall_clock())
-
-    def _retain(self) -> None:
-        """Retention thread: apply the retention policy every ``interval_s``."""
-        policy = self.retention
-        if policy is None or not policy.enabled:
-            return
-        try:
-            while not self._stop.wait(policy.interval_s):
-                apply_retention(self.store, policy, self._wall_clock())
-        except BaseException as error:  # surfaced by stop(): a store that fails, fails
-            self._fail(error, "retention")
-
-    def _send_confirmations(self, force: bool = False) -> None:
-        """Publish the buffered confirmations, at most every ``confirm_interval_s``."""
-        now = time.monotonic()
-        if not force and now - self._last_confirmation < self.confirm_interval_s:
-            return
-        if not self._confirmations:
-            return
-        self._last_confirmation = now
-        for topic, payload in self._confirmations.take():
-            try:
-                self.transport.publish(topic, payload, qos=1)
-            except Exception as error:  # a camera sends again what it does not hear about
-                logger.warning("plane %d: could not publish confirmations on %s: %s",
-                               self.plane_id, topic, error)
-
-    def _status(self, delivery: Any, now: float) -> None:
-        try:
-            plane_id, camera = parse_status_topic(delivery.topic)
-            status = decode_status(delivery.payload)
-        except (TopicError, RejectedMessage) as error:
-            logger.debug("ignored status on %s: %s", delivery.topic, error)
-            return
-        if camera not in self._offline or plane_id != self.plane_id:
-            return
-        self.reporter.status(camera, status.state == "online")
-        if status.state == "online":
-            self._offline[camera] = self._final_offline[camera] = False
-            self._offline_at[camera] = None
-            self._active_this_run.add(camera)
-            self._orderer.set_offline(camera, False)
-            self._orderer.heard(camera, now)
-        elif status.timestamp is None:
-            # A last will (no timestamp): the connection dropped — a crash, or a broker
-            # restart. It does not say the stream ended, so ordering keeps waiting for the
-            # camera's messages (bounded by the silence window).
-            pass
-        else:
-            # The camera's own "offline" at the end of its stream: nothing more will come.
-            self._final_offline[camera] = True
-            self._offline_at[camera] = status.timestamp
-            # A retained one older than this service is history (the end of an earlier
-            # replay): the camera may be about to start again, so ordering still waits.
-            stale = bool(getattr(delivery, "retain", False)) and (
-                status.timestamp < self._started_at
-            )
-            if not stale:
-                self._offline[camera] = True
-                self._orderer.set_offline(camera, True)
-        logger.info("plane %d: camera %s is %s", self.plane_id, camera, status.state)
-
-    # -- releaser and collector threads ---------------------------------------------------
-
-    def _release(self) -> None:
-        """Releaser thread: send ready groups to the tracker process, then let it stop."""
-        assert self._tracker is not None
-        try:
-            while not self._received_all.is_set():
-                self._wake.wait(0.05 if len(self._orderer) else 0.2)
-                self._wake.clear()
-                self._release_ready()
-                self._retrack_if_due()
-            if self._failure is None and self._flush_requested.is_set():
-                self._release_ready()
-                self._release_ready(force=True)
-                self._retrack_if_due(force=True)
-        except TrackerProcessError as error:
-            if not self._abandoning():  # else: the tracker process left as it was told
-                self._fail(error, "releaser")
-        except BaseException as error:  # surfaced by stop()
-            self._fail(error, "releaser")
-        finally:
-            # A flushed stop ends the stream: the analytics end every track, as offline.
-            self._tracker.finish(flush=self._flush_requested.is_set() and self._failure is None)
-
-    def _abandoning(self) -> bool:
-        """Stopping without a flush: nothing more is released (it stays pending)."""
-        return self._stop.is_set() and not self._flush_requested.is_set()
-
-    def _release_ready(self, force: bool = False) -> None:
-        assert self._tracker is not None
-        while self._failure is None and not self._abandoning():
-            with self._state_lock:
-                batch: Batch = self._orderer.release(
-                    self.clock(), force=force, limit=self.groups_per_commit
-                )
-                if not batch:
-                    return
-                # From now on a message at or before these timestamps is late; the store
-                # records the same timestamp when the windows are committed.
-                self._inflight.append(batch)
-            if self.observer is not None and hasattr(self.observer, "on_released"):
-                self.observer.on_released([timestamp for timestamp, _ in batch],
-                                          self._wall_clock())
-            self._tracker.submit(batch)  # blocks while the tracker process is behind
-
-    def _retrack_if_due(self, force: bool = False) -> None:
-        """Ask the tracker process to track the late messages once none has come for
-        ``retrack.delay_s`` (``force``: now), after the groups already sent."""
-        assert self._tracker is not None
-        with self._state_lock:
-            if self._late_at is None or self.retrack is None or self._failure is not None \
-                    or self._abandoning():
-                return
-            if not force and self.clock() - self._late_at < self.retrack.delay_s:
-                return
-            self._late_at = None
-            self._retracks_inflight += 1
-        self._tracker.submit("retrack")
-
-    def _collect(self) -> None:
-        """Collector thread: publish what the tracker process committed, tell the observer."""
-        assert self._tracker is not None
-        try:
-            while True:
-                try:
-                    answer = self._tracker.receive()
-                except EOFError:
-                    if self._abandoning():
-                        return  # it left without answering for what it abandoned
-                    self._tracker.process.join(1.0)  # for its exit code
-                    # A tracker process that found its database gone exits in one line; the
-                    # operator's sentence is the database's (StoreError), not the exit code.
-                    self.store.check_file()
-                    raise TrackerProcessError(
-                        f"the tracker process exited (code {self._tracker.process.exitcode})"
-                        " without answering"
-                    ) from None
-                if answer[0] == "stopped":
-                    return
-                if answer[0] == "failed":
-                    separator = "\n" if "Traceback" in answer[1] else " "
-                    raise TrackerProcessError(f"the tracker process failed:{separator}{answer[1]}")
-                if answer[0] == "retracked":  # late messages tracked: corrected updates
-                    _, results, counters, report = answer
-                    self.reporter.tracked([], report)
-                    if self.reporter.metrics is not None:
-                        self.reporter.metrics.retracked(counters)
-                    for timestamp, tracks, payload in results:
-                        self._publish(timestamp, [], tracks, payload, corrected=True)
-                    if counters.get("late_tracked") or counters.get("late_untracked"):
-                        logger.info("plane %d: re-tracked %d messages: %d late ones tracked, "
-                                    "%d too old to track", self.plane_id,
-                                    counters.get("retracked", 0), counters.get("late_tracked", 0),
-                                    counters.get("late_untracked", 0))
-                    with self._state_lock:
-                        self._retracks_inflight -= 1
-                    continue
-                if answer[0] == "flushed":  # the end of the stream: what the matcher held
-                    _, timestamp, tracks, payload, report = answer
-                    if len(tracks):
-                        self._publish(timestamp, [], tracks, payload)
-                    self.reporter.tracked([(timestamp, len(tracks))] if len(tracks) else [],
-                                          report)
-                    continue
-                _, results, _, report = answer
-                batch = self._inflight[0]
-                self.reporter.tracked([(item[0], len(item[1])) for item in results], report)
-                for (timestamp, tracks, payload), (_, entries) in zip(results, batch, strict=True):
-                    started = time.perf_counter()
-                    self._publish(timestamp, entries, tracks, payload)
-                    if self.reporter.metrics is not None:
-                        self.reporter.metrics.published(time.perf_counter() - started)
-                with self._state_lock:
-                    self._inflight.popleft()
-        except BaseException as error:  # surfaced by stop()
-            self._fail(error, "tracker")
-
-    def _publish(
-        self, timestamp: float, entries: list[InboxEntry], tracks: Tracks, payload: bytes | None,
-        corrected: bool = False,
-    ) -> None:
-        if payload is not None:
-            try:
-                self.transport.publish(tracks_topic(self.plane_id), payload, qos=1)
-            except Exception:  # a viewer feed must never stop the matcher
-                logger.exception("could not publish tracks of %s", timestamp)
-        if not corrected and self.observer is not None and hasattr(self.observer, "on_group"):
-            self.observer.on_group(timestamp, entries, tracks, self._wall_clock())
-
     # -- queries (any thread) --------------------------------------------------------------
 
     def idle_seconds(self) -> float:
@@ -933,12 +441,6 @@ def _process_context() -> Any:
     context = multiprocessing.get_context("forkserver")
     context.set_forkserver_preload(["cblrs.runtime.matcher.tracker_process", "cblrs.matching"])
     return context
-
-
-@functools.lru_cache(maxsize=4096)
-def _parse_topic(topic: str) -> tuple[int, str]:
-    """:func:`parse_detections_topic`, cached: a plane has few cameras, hence few topics."""
-    return parse_detections_topic(topic)
 
 
 def stored_tracks(store: RuntimeStore) -> Tracks:

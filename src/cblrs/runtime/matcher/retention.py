@@ -39,7 +39,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from cblrs.errors import CblrsError
-from cblrs.runtime.matcher.store import set_meta_value
+from cblrs.runtime.matcher.store_schema import set_meta_value
 from cblrs.runtime.outputs.analytics_store import RETAINED_BINS, RETAINED_EVENTS
 
 logger = logging.getLogger(__name__)

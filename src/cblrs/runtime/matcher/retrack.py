@@ -60,17 +60,15 @@ import numpy as np
 from cblrs.detections import Tracks
 from cblrs.errors import CblrsError
 from cblrs.runtime.matcher.ordering import Orderer
-from cblrs.runtime.matcher.store import (
-    INSERT_TRACKS,
+from cblrs.runtime.matcher.store import RuntimeStore
+from cblrs.runtime.matcher.store_rows import INSERT_TRACKS, InboxEntry, track_rows
+from cblrs.runtime.matcher.store_schema import (
     LATE,
     PROCESSED,
-    InboxEntry,
-    RuntimeStore,
     add_counter_values,
     check_tracker,
     set_matcher_state,
     set_meta_value,
-    track_rows,
 )
 from cblrs.runtime.outputs.analytics_store import (
     keep_published,

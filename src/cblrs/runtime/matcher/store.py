@@ -1,28 +1,9 @@
 """The matcher's durable state in one SQLite file (WAL mode).
 
-Tables:
-
-* ``inbox`` — every accepted camera message, unique by ``(camera_id, sequence)``; the key is
-  the de-duplication set, so a re-delivered message is recognised across restarts. It is a
-  rowid table with a unique index: rows of a few hundred bytes insert about twice as fast as
-  in the ``WITHOUT ROWID`` table of earlier files, which open and work the same. A row is
-  ``pending`` until its timestamp group has been tracked (then ``processed``), or ``late``
-  when it arrived after its timestamp had already been released (``processed`` too once
-  re-tracking has tracked it, :mod:`cblrs.runtime.matcher.retrack`).
-* ``tracks`` — the tracker's output rows (frame, timestamp, track id, world x/y, camera, box).
-* ``meta`` — the matcher state snapshot (``get_state()`` JSON), the last released timestamp,
-  the service settings and the token of the service currently tracking (:meth:`claim`).
-* ``replay`` — the groups committed since the matcher state was last saved, in order
-  (``timestamp``, ``keys``: JSON ``[[camera, sequence], ...]``). The state (a few hundred kB
-  of JSON with many cameras) is not saved with every group: a resumed matcher restores it
-  and updates it with these groups again, which gives the state after the last committed
-  group (:meth:`RuntimeStore.replay_groups`); saving the state empties the table.
-* ``counters`` — received, rejected by reason, duplicates, late, processed, ...
-* ``snapshots`` — the matcher's state every few seconds of capture time, for re-tracking
-  late messages (:mod:`cblrs.runtime.matcher.retrack`, which owns that table's SQL).
-* ``events``, ``counts``, ``count_bins``, ``od`` — the online analytics' outbox of events
-  and its persistent counters (:mod:`cblrs.runtime.outputs.analytics_store`), written in the
-  transaction of the group whose tracks produced them.
+Its tables, and the statements other modules run inside its transactions, are in
+:mod:`~cblrs.runtime.matcher.store_schema`; the rows of messages and tracks in
+:mod:`~cblrs.runtime.matcher.store_rows`; the file (its checks, private mode, writers' lock,
+transaction; it holds people's positions) in :mod:`~cblrs.runtime.matcher.store_file`.
 
 Processing a timestamp group is one transaction (track rows + inbox rows marked processed +
 matcher state, or the group's ``replay`` row + counters), so after a crash the file holds
@@ -34,231 +15,55 @@ process (the groups), which take turns through a lock shared by :meth:`RuntimeSt
 readers (``cblrs matcher --stats``) may open the file concurrently. A service holds the file
 exclusively (:meth:`RuntimeStore.hold`, a lock on ``<file>-matcher.lock``), so a second
 matcher on the same file is refused.
-
-The file holds people's positions: it is created with mode 0600 (SQLite gives its ``-wal``
-and ``-shm`` files the same mode), an existing one is set to 0600 when opened for writing.
-Opening refuses, with one sentence, a missing folder (nothing is created silently), an empty
-file and a file that is not a SQLite database or holds another program's tables. Every
-transaction checks that the path still names the file that was opened: a database deleted or
-replaced under a running matcher fails the next commit (:class:`StoreError`), so nothing more
-is acknowledged into a file nobody will ever read.
-
-It stays one module because the schema, the transactions and every query that reads it must
-change together: a newcomer changing a table finds all of its SQL here.
 """
 
 from __future__ import annotations
 
 import fcntl
 import json
-import logging
-import math
 import os
 import socket
 import sqlite3
 import threading
 import uuid
 from collections.abc import Callable, Iterable, Mapping, MutableMapping, Sequence
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import Any
 
-import msgspec
-import numpy as np
-
-from cblrs.detections import CameraMessage, Tracks
-from cblrs.errors import CblrsError
-from cblrs.runtime.outputs.analytics_store import ANALYTICS_SCHEMA
-from cblrs.runtime.wire import CLASS_IDS, WireMessage
-
-SCHEMA_VERSION = 1
-SQLITE_HEADER = b"SQLite format 3\x00"
-_OWN_TABLES = frozenset({"inbox", "tracks", "meta", "counters"})
-
-PENDING = "pending"
-PROCESSED = "processed"
-LATE = "late"
-
-_SCHEMA = """
-CREATE TABLE IF NOT EXISTS inbox (
-    camera_id TEXT NOT NULL,
-    sequence INTEGER NOT NULL,
-    timestamp REAL NOT NULL,
-    frame INTEGER NOT NULL,
-    received_at REAL NOT NULL,
-    status TEXT NOT NULL,
-    body TEXT NOT NULL,
-    UNIQUE (camera_id, sequence)
-);
-CREATE INDEX IF NOT EXISTS inbox_pending ON inbox (status, timestamp);
-CREATE TABLE IF NOT EXISTS tracks (
-    row INTEGER PRIMARY KEY AUTOINCREMENT,
-    frame INTEGER NOT NULL,
-    timestamp REAL NOT NULL,
-    track_id INTEGER NOT NULL,
-    x REAL NOT NULL,
-    y REAL NOT NULL,
-    camera INTEGER NOT NULL,
-    x_min REAL, y_min REAL, x_max REAL, y_max REAL,
-    class_id INTEGER
-);
-CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
-CREATE TABLE IF NOT EXISTS counters (name TEXT PRIMARY KEY, value INTEGER NOT NULL);
-CREATE TABLE IF NOT EXISTS replay (
-    position INTEGER PRIMARY KEY AUTOINCREMENT,
-    timestamp REAL NOT NULL,
-    keys TEXT NOT NULL
-);
-""" + ANALYTICS_SCHEMA
-
-
-class StoreError(CblrsError):
-    """The runtime database cannot be opened or does not belong to this matcher."""
-
-
-@dataclass(frozen=True)
-class StoredMessage:
-    """An inbox row with its decoded message."""
-
-    message: CameraMessage
-    status: str
-    received_at: float
-
-
-class InboxEntry(NamedTuple):
-    """An accepted message as the inbox holds it: its header and its detections as JSON.
-
-    What the receiver stores, orders and hands to the tracker: cheap to build from the
-    decoded wire struct and to send to another process; :meth:`message` builds the numpy
-    columns when they are needed.
-    """
-
-    camera_id: str
-    sequence: int
-    timestamp: float
-    frame: int
-    body: str
-    """The detection columns as compact JSON (see :func:`message_body`)."""
-
-    @classmethod
-    def from_wire(cls, wire: WireMessage) -> InboxEntry:
-        """The entry of a validated ``cblrs.detections/1`` payload."""
-        detections = wire.detections
-        body = _encoder.encode(
-            {
-                "xyxy": [item.box for item in detections],
-                "confidence": [item.confidence for item in detections],
-                "class_id": [CLASS_IDS[item.class_name] for item in detections],
-                "colour": [item.colour for item in detections],
-            }
-        )
-        return cls(wire.camera, wire.sequence, wire.timestamp, wire.frame, body.decode())
-
-    @classmethod
-    def from_message(cls, message: CameraMessage) -> InboxEntry:
-        """The entry of a camera message.
-
-        Raises:
-            ValueError: a value is NaN or infinite (JSON has no such numbers).
-        """
-        return cls(
-            message.camera_id,
-            int(message.sequence),
-            float(message.timestamp),
-            int(message.frame),
-            message_body(message),
-        )
-
-    def message(self) -> CameraMessage:
-        """The camera message, with its numpy columns."""
-        return message_from_row(self.camera_id, self.sequence, self.timestamp, self.frame,
-                                self.body)
-
-
-def message_body(message: CameraMessage) -> str:
-    """The detection columns of a message as compact JSON (the inbox ``body``).
-
-    Raises:
-        ValueError: a value is NaN or infinite (JSON has no such numbers).
-    """
-    body = _encoder.encode(
-        {
-            "xyxy": message.xyxy.tolist(),
-            "confidence": message.confidence.tolist(),
-            "class_id": message.class_id.tolist(),
-            "colour": message.colour.tolist(),
-        }
-    )
-    if b"null" in body:  # msgspec writes NaN and infinities as null
-        raise ValueError("Out of range float values are not JSON compliant")
-    return body.decode()
-
-
-_encoder = msgspec.json.Encoder()
-_decoder = msgspec.json.Decoder()
-
-
-def message_from_row(camera_id: str, sequence: int, timestamp: float, frame: int, body: str):
-    """A :class:`CameraMessage` rebuilt from an inbox row (its columns and JSON body)."""
-    data = _decoder.decode(body)
-    return CameraMessage(
-        camera_id=camera_id,
-        sequence=int(sequence),
-        timestamp=float(timestamp),
-        frame=int(frame),
-        xyxy=np.asarray(data["xyxy"], dtype=np.float64).reshape(-1, 4),
-        confidence=np.asarray(data["confidence"], dtype=np.float64),
-        class_id=np.asarray(data["class_id"], dtype=np.int64),
-        colour=np.asarray(data["colour"], dtype=np.int64).reshape(-1, 3),
-    )
-
-
-class WriterLock:
-    """The lock the writing processes of one database take turns with: ``flock`` on a file.
-
-    The kernel releases it when the process holding it ends, so a writer killed in the middle
-    of a transaction cannot leave the other one waiting forever. Each process opens the lock
-    file itself (a pickled lock is its path), and each open file is a lock of its own, so two
-    stores of one process exclude each other too.
-
-    Args:
-        path: the lock file (created when missing).
-    """
-
-    def __init__(self, path: Path):
-        self.path = Path(path)
-        self._file: Any = None
-
-    def __getstate__(self) -> dict[str, Any]:
-        return {"path": self.path, "_file": None}
-
-    def acquire(self) -> None:
-        if self._file is None:
-            # Kept open: the lock belongs to the open file.
-            self._file = os.fdopen(os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_APPEND,
-                                           0o600), "ab")
-        fcntl.flock(self._file.fileno(), fcntl.LOCK_EX)
-
-    def release(self) -> None:
-        fcntl.flock(self._file.fileno(), fcntl.LOCK_UN)
-
-    def close(self) -> None:
-        if self._file is not None:
-            self._file.close()
-            self._file = None
-
-
-@dataclass(frozen=True)
-class SharedStore:
-    """What another process needs to write to the same store (see :meth:`RuntimeStore.share`).
-
-    Attributes:
-        path: the database file.
-        write_lock: the lock every writer holds for its transactions.
-    """
-
-    path: Path
-    write_lock: WriterLock
+from cblrs.detections import Tracks
+from cblrs.runtime.matcher.store_file import (
+    SharedStore,
+    StoreError,
+    WriterLock,
+    _check_file,
+    _create_private,
+    _identity,
+    _make_private,
+    _Transaction,
+)
+from cblrs.runtime.matcher.store_rows import (
+    INSERT_TRACKS,
+    InboxEntry,
+    StoredMessage,
+    _decoder,
+    _encoder,
+    message_from_row,
+    track_rows,
+    tracks_from_rows,
+)
+from cblrs.runtime.matcher.store_schema import (
+    _INSERT_INBOX,
+    _OWN_TABLES,
+    _SCHEMA,
+    LATE,
+    PENDING,
+    SCHEMA_VERSION,
+    _add_counters,
+    _conflicts,
+    _set_meta,
+    check_tracker,
+    set_matcher_state,
+)
 
 
 class RuntimeStore:
@@ -787,230 +592,3 @@ class RuntimeStore:
         }
 
 
-INSERT_TRACKS = (
-    "INSERT INTO tracks (frame, timestamp, track_id, x, y, camera, "
-    "x_min, y_min, x_max, y_max, class_id) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)"
-)
-"""Insert one row of :func:`track_rows` into the ``tracks`` table."""
-
-
-def track_rows(tracks: Tracks) -> list[tuple]:
-    """The ``tracks`` table rows of :class:`Tracks` (NaN boxes and class -1 as NULL)."""
-    if not len(tracks):
-        return []
-    # Whole columns to Python numbers at once (``tolist`` gives the same ints and floats as
-    # converting element by element, several times faster with WILDTRACK-sized groups).
-    boxes = np.asarray(tracks.xyxy, dtype=np.float64)
-    box_values: list[list[float | None]] = boxes.tolist()
-    if not np.isfinite(boxes).all():
-        box_values = [[value if math.isfinite(value) else None for value in row]
-                      for row in box_values]
-    classes = [None if value < 0 else value for value in tracks.class_id.tolist()]
-    world = tracks.world_xy.tolist()
-    return [
-        (frame, timestamp, track_id, x_y[0], x_y[1], camera, *box, class_id)
-        for frame, timestamp, track_id, x_y, camera, box, class_id in zip(
-            tracks.frame.tolist(), tracks.timestamp.tolist(), tracks.track_id.tolist(), world,
-            tracks.camera_id.tolist(), box_values, classes, strict=True)
-    ]
-
-
-def tracks_from_rows(rows: Sequence[Sequence[Any]]) -> Tracks:
-    """Track rows ``(frame, timestamp, track_id, x, y, camera, x_min, y_min, x_max, y_max,
-    class_id)`` as :class:`Tracks` (NULL boxes become NaN, a NULL class -1)."""
-    if not rows:
-        return Tracks.empty()
-    table = np.array(rows, dtype=object)
-    return Tracks(
-        frame=table[:, 0].astype(np.int64),
-        timestamp=table[:, 1].astype(np.float64),
-        track_id=table[:, 2].astype(np.int64),
-        world_xy=table[:, 3:5].astype(np.float64),
-        camera_id=table[:, 5].astype(np.int64),
-        xyxy=np.where(table[:, 6:10] == None, np.nan, table[:, 6:10]).astype(np.float64),  # noqa: E711
-        class_id=np.where(table[:, 10] == None, -1, table[:, 10]).astype(np.int64),  # noqa: E711
-    )
-
-
-def checkpoint_regularly(path: Path, stop: threading.Event, interval_s: float = 1.0) -> None:
-    """Copy the WAL of a shared store into its database file every ``interval_s`` seconds
-    until ``stop`` is set (in a thread of one of its writers, on a connection of its own).
-
-    A passive checkpoint does not block the writers: they go on appending to the WAL. One
-    that fails is tried again at the next interval and never ends the thread: a database
-    deleted under the matcher failed it ("disk I/O error") and printed a traceback beside the
-    one sentence the matcher says about it (the writers find and report what is wrong).
-    """
-    connection = sqlite3.connect(str(path), check_same_thread=False)
-    try:
-        while not stop.wait(interval_s):
-            try:
-                connection.execute("PRAGMA wal_checkpoint(PASSIVE)")
-            except sqlite3.Error as error:
-                logging.getLogger(__name__).debug("checkpoint of %s failed: %s", path, error)
-    finally:
-        connection.close()
-
-
-class _Transaction:
-    """``BEGIN IMMEDIATE`` ... ``COMMIT`` (or ``ROLLBACK`` on an exception), holding the
-    writers' lock when the store is shared; ``check`` runs before and after (it raises if the
-    file was deleted or replaced, so the caller does not acknowledge what it wrote)."""
-
-    def __init__(
-        self,
-        connection: sqlite3.Connection,
-        write_lock: WriterLock | None,
-        check: Callable[[], None] | None = None,
-    ):
-        self._connection = connection
-        self._write_lock = write_lock
-        self._check = check
-
-    def __enter__(self) -> sqlite3.Cursor:
-        if self._check is not None:
-            self._check()
-        if self._write_lock is not None:
-            self._write_lock.acquire()
-        try:
-            self._cursor = self._connection.cursor()
-            self._cursor.execute("BEGIN IMMEDIATE")
-        except BaseException:
-            self._release()
-            raise
-        return self._cursor
-
-    def __exit__(self, kind, value, traceback) -> None:
-        try:
-            self._cursor.execute("COMMIT" if kind is None else "ROLLBACK")
-        finally:
-            self._release()
-        if kind is None and self._check is not None:
-            self._check()
-
-    def _release(self) -> None:
-        if self._write_lock is not None:
-            self._write_lock.release()
-
-
-def _identity(path: Path) -> tuple[int, int]:
-    status = os.stat(path)
-    return status.st_dev, status.st_ino
-
-
-def _check_file(path: Path, read_only: bool) -> None:
-    """One sentence for every file that cannot be a matcher database (see the module)."""
-    folder = path.parent
-    if not folder.is_dir():
-        raise StoreError(
-            f"the folder {folder} of the database {path.name} does not exist; create it first "
-            "(it is not created silently, so a mistyped path does not start an empty database)."
-        )
-    if not path.exists():
-        if read_only:
-            raise StoreError(f"runtime database {path} does not exist.")
-        return
-    if not path.is_file():
-        raise StoreError(f"{path} is not a file.")
-    try:
-        with path.open("rb") as handle:
-            header = handle.read(len(SQLITE_HEADER))
-    except OSError as error:
-        raise StoreError(f"cannot read {path}: {error.strerror or error}.") from None
-    if not header:
-        raise StoreError(
-            f"{path} is an empty file, not a cblrs matcher database; delete it to start a new "
-            "database, or give the right --db."
-        )
-    if header != SQLITE_HEADER:
-        raise StoreError(f"{path} is not a SQLite database (a cblrs matcher database is one).")
-
-
-def _create_private(path: Path) -> None:
-    """Create ``path`` with mode 0600 if it does not exist (SQLite would use 0644)."""
-    try:
-        os.close(os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600))
-    except FileExistsError:
-        pass
-
-
-def _make_private(path: Path) -> None:
-    for name in (path.name, path.name + "-wal", path.name + "-shm"):
-        try:
-            os.chmod(path.with_name(name), 0o600)
-        except OSError:  # not ours, or gone: nothing to do
-            pass
-
-
-_INSERT_INBOX = (
-    "INSERT OR IGNORE INTO inbox "
-    "(camera_id, sequence, timestamp, frame, received_at, status, body) "
-    "VALUES (?, ?, ?, ?, ?, ?, ?)"
-)
-
-
-def check_tracker(cursor: sqlite3.Cursor, path: Path, tracker: str) -> None:
-    """Inside a write transaction: raise unless ``tracker`` is still the file's tracker.
-
-    Raises:
-        StoreError: another service has claimed the file (:meth:`RuntimeStore.claim`).
-    """
-    (claimed,) = cursor.execute(
-        "SELECT value FROM meta WHERE key = 'tracker'"
-    ).fetchone() or (None,)
-    if claimed is None or json.loads(claimed) != tracker:
-        raise StoreError(f"another matcher service has taken over {path}; not committing.")
-
-
-def set_matcher_state(cursor: sqlite3.Cursor, state: Any) -> None:
-    """Inside a write transaction: save the matcher state (a value, or its JSON text) and
-    empty the replay table (the state has seen every committed group)."""
-    cursor.execute(
-        "INSERT INTO meta (key, value) VALUES ('matcher_state', ?) "
-        "ON CONFLICT(key) DO UPDATE SET value = excluded.value",
-        (state if isinstance(state, str) else json.dumps(state, default=_json_default),),
-    )
-    cursor.execute("DELETE FROM replay")
-
-
-def set_meta_value(cursor: sqlite3.Cursor, key: str, value: Any) -> None:
-    """Inside a write transaction: set one ``meta`` value (JSON)."""
-    _set_meta(cursor, key, value)
-
-
-def add_counter_values(cursor: sqlite3.Cursor, counters: Mapping[str, int]) -> None:
-    """Inside a write transaction: add counter increments."""
-    _add_counters(cursor, counters)
-
-
-def _set_meta(cursor: sqlite3.Cursor, key: str, value: Any) -> None:
-    cursor.execute(
-        "INSERT INTO meta (key, value) VALUES (?, ?) "
-        "ON CONFLICT(key) DO UPDATE SET value = excluded.value",
-        (key, json.dumps(value, default=_json_default)),
-    )
-
-
-def _add_counters(cursor: sqlite3.Cursor, counters: Mapping[str, int]) -> None:
-    cursor.executemany(
-        "INSERT INTO counters (name, value) VALUES (?, ?) "
-        "ON CONFLICT(name) DO UPDATE SET value = value + excluded.value",
-        [(name, int(value)) for name, value in counters.items() if value],
-    )
-
-
-def _conflicts(cursor: sqlite3.Cursor, row: tuple) -> int:
-    """1 if the stored message under ``row``'s camera and sequence differs from ``row``."""
-    stored = cursor.execute(
-        "SELECT timestamp, frame, body FROM inbox WHERE camera_id = ? AND sequence = ?",
-        (row[0], row[1]),
-    ).fetchone()
-    return int(stored is not None and tuple(stored) != (row[2], row[3], row[6]))
-
-
-def _json_default(value: Any) -> Any:
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    if isinstance(value, np.generic):
-        return value.item()
-    raise TypeError(f"cannot store {type(value).__name__} in the matcher state")

@@ -66,7 +66,9 @@ import numpy.ma  # noqa: F401
 from cblrs.detections import Tracks
 from cblrs.errors import CblrsError
 from cblrs.runtime.matcher.retrack import RetrackPolicy, Snapshots, retrack, state_text
-from cblrs.runtime.matcher.store import InboxEntry, RuntimeStore, SharedStore, checkpoint_regularly
+from cblrs.runtime.matcher.store import RuntimeStore
+from cblrs.runtime.matcher.store_file import SharedStore, checkpoint_regularly
+from cblrs.runtime.matcher.store_rows import InboxEntry
 from cblrs.runtime.wire import encode_tracks
 
 logger = logging.getLogger(__name__)

@@ -1,6 +1,6 @@
 """The online analytics' tables in the matcher's SQLite file: event outbox and counters.
 
-Tables (created with the store's own, see :mod:`cblrs.runtime.matcher.store`):
+Tables (created with the store's own, see :mod:`cblrs.runtime.matcher.store_schema`):
 
 * ``events`` — every final analytics event (``line_crossed``, ``zone_entered``,
   ``zone_left``) in the order the engine emitted them; ``id`` is the plane's event sequence,

@@ -2,54 +2,59 @@
 
 It implements :class:`cblrs.runtime.transport.protocol.Transport`: QoS 1 with manual
 acknowledgement, persistent sessions, publishes queued while the broker is away and sent in order on
-reconnection, and each publish's reason code reported back. It stays one module because
-:class:`MqttTransport` is one state machine (connection, ordered outgoing queue, subscriptions,
-acknowledgements) driven by paho's callbacks, and its parts only make sense together.
+reconnection, and each publish's reason code reported back.
+
+:class:`MqttTransport` keeps the public API and the connection (paho's connect and disconnect
+callbacks); its parts, one module each, are mixins: the shared state
+(:mod:`~cblrs.runtime.transport.mqtt_state`), the ordered publish queue
+(:mod:`~cblrs.runtime.transport.mqtt_publisher`) and the subscriptions with their deliveries
+(:mod:`~cblrs.runtime.transport.mqtt_subscriptions`); the settings and socket options are in
+:mod:`~cblrs.runtime.transport.mqtt_settings`.
 """
 
 from __future__ import annotations
 
-import errno
 import logging
-import socket
 import ssl
 import threading
 import time
-import zlib
-from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass, field, replace
-from pathlib import Path
-from typing import Any
+from dataclasses import replace
 
 import paho.mqtt.client as mqtt
 from paho.mqtt.enums import CallbackAPIVersion
 from paho.mqtt.packettypes import PacketTypes
 from paho.mqtt.properties import Properties
 from paho.mqtt.reasoncodes import ReasonCode
-from paho.mqtt.subscribeoptions import SubscribeOptions
 
+from cblrs.runtime.transport.mqtt_publisher import _MqttPublisher, _Outgoing, _report
+from cblrs.runtime.transport.mqtt_settings import (
+    MqttSettings,
+    _refuse_self_connection,
+    _socket_options,
+    unreachable_reason,
+)
+from cblrs.runtime.transport.mqtt_subscriptions import _MqttSubscriptions, _subscription_id
 from cblrs.runtime.transport.paho_client import BufferedClient, buffered_reads_supported
 from cblrs.runtime.transport.protocol import (
-    ACCEPTED,
     LOST,
-    PACKET_TOO_LARGE,
     Handler,
     PublishResult,
     TransportError,
-    Will,
-    _HandlerTable,
-    _Incoming,
-    reason_text,
-    refused,
 )
-from cblrs.runtime.transport.rate_limited import RateLimitedLog
 from cblrs.runtime.transport.topics import (
     filters_overlap,
-    topic_matches,
     validate_filter,
     validate_topic,
 )
+
+__all__ = [
+    "SESSION_TAKEN_OVER",
+    "SHORT_CONNECTION_S",
+    "MqttSettings",
+    "MqttTransport",
+    "unreachable_reason",
+]
 
 _paho_logger = logging.getLogger("cblrs.runtime.transport.mqtt_transport.paho")
 
@@ -63,85 +68,7 @@ Mosquitto 2.0.11 closes the older of two clients with one client id without the 
 0x8E, and two such clients then take the session from each other many times a second."""
 
 
-
-
-@dataclass(frozen=True)
-class MqttSettings:
-    """How to reach and log into a broker.
-
-    Attributes:
-        host: broker address.
-        port: broker port (1883 plain, 8883 usual for TLS).
-        username: user name (None: anonymous).
-        password: password; pass it from the environment or a 0600 file, never the repo.
-        ca_file: CA certificate that signed the broker's certificate; enables TLS.
-        cert_file: client certificate (PEM), when the broker requires one.
-        key_file: the client certificate's private key (PEM).
-        keepalive_s: MQTT keepalive, seconds.
-        session_expiry_s: how long the broker keeps a disconnected persistent session.
-        reconnect_min_s: first reconnection delay; doubles up to ``reconnect_max_s``.
-        reconnect_max_s: longest reconnection delay.
-        connect_timeout_s: how long ``connect()`` waits for the broker's answer.
-        max_inflight: QoS 1 publishes sent but not yet acknowledged, at most (paho's window).
-        max_handed: publishes handed to paho and not yet acknowledged, at most; the rest
-            wait in the transport's own queue (paho numbers messages with 16 bits and fails
-            past 65 535 outstanding ones).
-        tcp_nodelay: disable Nagle's algorithm on the connection, so small packets (a
-            track update, an acknowledgement) leave at once instead of up to ~40 ms later.
-        protocol: MQTT version: "5", "3.1.1" (e.g. the NATS server's MQTT listener, which
-            refuses MQTT 5), or "auto" (MQTT 5, and 3.1.1 when the broker refuses version 5).
-            Under 3.1.1 the session expiry is the broker's, overlapping subscriptions get no
-            identifiers, ``close(unclean=True)`` does not make the broker send the will, and
-            a publish's answer is always "accepted" (3.1.1 has no reason codes).
-    """
-
-    host: str = "127.0.0.1"
-    port: int = 1883
-    username: str | None = None
-    password: str | None = field(default=None, repr=False)
-    ca_file: Path | None = None
-    cert_file: Path | None = None
-    key_file: Path | None = None
-    keepalive_s: int = 30
-    session_expiry_s: int = 24 * 3600
-    reconnect_min_s: float = 0.1
-    reconnect_max_s: float = 5.0
-    connect_timeout_s: float = 5.0
-    max_inflight: int = 100
-    max_handed: int = 1000
-    tcp_nodelay: bool = True
-    protocol: str = "5"
-
-    @property
-    def mqtt5(self) -> bool:
-        """Whether MQTT 5 is spoken (else 3.1.1)."""
-        return self.protocol != "3.1.1"
-
-    @property
-    def tls(self) -> bool:
-        """Whether the connection uses TLS."""
-        return self.ca_file is not None
-
-    @property
-    def address(self) -> str:
-        """``host:port`` of the broker, for messages."""
-        return f"{self.host}:{self.port}"
-
-
-
-@dataclass
-class _Outgoing:
-    """A publish waiting in the transport's queue or handed to paho."""
-
-    topic: str
-    payload: bytes
-    qos: int
-    retain: bool
-    on_result: PublishResult | None
-
-
-
-class MqttTransport:
+class MqttTransport(_MqttPublisher, _MqttSubscriptions):
     """A client of an MQTT 5 broker (paho-mqtt >= 2.1), with the :class:`Transport` behaviour.
 
     Args:
@@ -160,66 +87,6 @@ class MqttTransport:
     reorders a camera's stream. Queued publishes are lost if the process exits first (use
     ``flush``, or the camera's disk spool, :mod:`cblrs.runtime.camera.spool`).
     """
-
-    def __init__(
-        self,
-        client_id: str,
-        settings: MqttSettings | None = None,
-        *,
-        persistent: bool = True,
-        will: Will | None = None,
-    ):
-        self.client_id = client_id
-        self.settings = settings or MqttSettings()
-        self.persistent = persistent
-        self.will = will
-        self.refused_publishes = 0
-        """QoS 1 publishes the broker acknowledged with a failure code (e.g. not authorised)."""
-        self.last_refusal: tuple[str, str] | None = None
-        """``(topic, reason)`` of the latest refused publish."""
-        self.connections = 0
-        """Successful connections so far (1 after the first, more after reconnections)."""
-        self.disconnections = 0
-        """Connections lost or closed so far."""
-        self.takeovers = 0
-        """Times another client logged in with this login and took this one's session (the
-        broker closes the older connection: MQTT 5 reason 0x8E, or a connection lost less
-        than :data:`SHORT_CONNECTION_S` after it was accepted): a login shared by two
-        clients, or a stolen one."""
-        self._connected_at = 0.0
-        self._takeover_log = RateLimitedLog(logger, interval_s=10.0)
-        self._handlers = _HandlerTable()
-        self._qos: dict[str, int] = {}
-        self._subscribed: set[str] = set()
-        self._client: Any = None  # paho.mqtt.client.Client, imported lazily
-        self._connected = threading.Event()
-        self._disconnected = threading.Event()
-        self._answered = threading.Event()
-        self._attempt_failed = threading.Event()
-        self._refusal: str | None = None
-        self._condition = threading.Condition()
-        self._backlog: deque[_Outgoing] = deque()
-        self._handed: dict[int, _Outgoing] = {}
-        self._early: dict[int, int] = {}
-        self._hold = False
-        """True after a reconnection until paho's re-sends are all acknowledged."""
-        self._send_lock = threading.Lock()
-        self._pump_wanted = False
-        self._will_on_close = True
-        self._max_packet: int | None = None
-        """The broker's Maximum Packet Size (MQTT 5 CONNACK property), if it announced one."""
-        self._connect_hooks: list[Callable[[bool], None]] = []
-        self._suback: dict[int, list] = {}
-        self._background_subscribes: dict[int, str] = {}
-        """Subscriptions sent on (re)connection, by packet id, until the broker answers."""
-        self._suspected_takeover: tuple[float, Any] | None = None
-        """A connection the broker closed soon after accepting it: ``(lived, reason)``; a
-        takeover if the next attempt succeeds at once, a broker going away if it fails."""
-        self._filter_ids: dict[int, str] = {}
-        self._identified: set[str] = set()
-        """Filters overlapping another one: subscribed with a subscription identifier so each
-        copy the broker sends (one per matching subscription) reaches its own handlers only.
-        Identifiers cost paho ~tens of µs per message to parse, so other filters go without."""
 
     # Public API ------------------------------------------------------------------------
 
@@ -487,123 +354,12 @@ class MqttTransport:
         client = self._client
         return None if client is None else getattr(client, "_thread", None)
 
-    def _pump(self, blocking: bool) -> None:
-        """Hand queued publishes to paho, in order, while connected and within the window.
-
-        Only one thread hands over at a time (``_send_lock``). paho's network thread never
-        waits for that lock: it holds paho's own lock when it calls back, and the handing
-        thread needs that one inside ``client.publish``; it asks the holder to go on instead.
-        """
-        while True:
-            if not self._send_lock.acquire(blocking=blocking):
-                self._pump_wanted = True
-                return
-            try:
-                self._pump_wanted = False
-                self._hand_over()
-            finally:
-                self._send_lock.release()
-            if not self._pump_wanted:
-                return
-            blocking = False
-
-    def _hand_over(self) -> None:
-        client = self._client
-        while client is not None:
-            with self._condition:
-                if not (
-                    self._backlog
-                    and self._connected.is_set()
-                    and not self._hold
-                    and len(self._handed) < self.settings.max_handed
-                ):
-                    return
-                item = self._backlog.popleft()
-            if self._max_packet is not None and (
-                len(item.payload) + len(item.topic.encode()) + 32 > self._max_packet
-            ):
-                # The broker would close the connection, paho would send it again after
-                # reconnecting, and so on: refuse it here, as the broker would.
-                logger.warning("%s: a %d-byte publish on %s exceeds the broker's packet limit "
-                               "of %d bytes; not sent", self.client_id, len(item.payload),
-                               item.topic, self._max_packet)
-                self._finished(item, PACKET_TOO_LARGE)
-                continue
-            info = client.publish(item.topic, item.payload, qos=item.qos, retain=item.retain)
-            if info.rc not in (mqtt.MQTT_ERR_SUCCESS, mqtt.MQTT_ERR_NO_CONN):
-                # Not expected within the window; keep the order by putting it back.
-                with self._condition:
-                    self._backlog.appendleft(item)
-                logger.warning("%s: paho could not take publish on %s: %s", self.client_id,
-                               item.topic, mqtt.error_string(info.rc))
-                return
-            if item.qos == 0:
-                _report(item, ACCEPTED)
-                continue
-            with self._condition:
-                early = self._early.pop(info.mid, None)
-                if early is None:
-                    self._handed[info.mid] = item
-            if early is not None:
-                self._finished(item, early)
-
-    def _finished(self, item: _Outgoing, reason: int) -> None:
-        if refused(reason):
-            self.refused_publishes += 1
-            self.last_refusal = (item.topic, reason_text(reason))
-        _report(item, reason)
-
-    def _wait_for_subscriptions(self, timeout: float) -> None:
-        deadline = time.monotonic() + timeout
-        with self._condition:
-            while self._background_subscribes:
-                remaining = deadline - time.monotonic()
-                if remaining <= 0:
-                    return
-                self._condition.wait(remaining)
-
-    def _require_client(self):
-        if self._client is None:
-            raise TransportError(f"{self.client_id}: not connected (call connect() first).")
-        return self._client
-
     def _abandon(self) -> None:
         client = self._client
         if client is not None:
             client.disconnect()
             client.loop_stop()
         self._client = None
-
-    def _subscribe_and_wait(self, topic_filter: str, qos: int) -> list:
-        client = self._require_client()
-        result, mid = self._send_subscribe(client, topic_filter, qos)
-        if mid is None:
-            raise TransportError(
-                f"{self.client_id}: subscribe to {topic_filter} failed ({result})."
-            )
-        deadline = time.monotonic() + self.settings.connect_timeout_s
-        with self._condition:
-            while mid not in self._suback:
-                remaining = deadline - time.monotonic()
-                if remaining <= 0:
-                    raise TransportError(
-                        f"{self.client_id}: no answer to the subscription to {topic_filter}."
-                    )
-                self._condition.wait(remaining)
-            return self._suback.pop(mid)
-
-    def _send_subscribe(self, client, topic_filter: str, qos: int) -> tuple:
-        if not self.settings.mqtt5:
-            return client.subscribe(topic_filter, qos=qos)
-
-        return client.subscribe(
-            topic_filter,
-            options=SubscribeOptions(qos=qos),
-            properties=self._subscribe_properties(topic_filter),
-        )
-
-    def _subscribe_properties(self, topic_filter: str):
-        return _identifier_properties(topic_filter) if topic_filter in self._identified else None
 
     def _on_log(self, client, userdata, level, text) -> None:
         # After a wanted disconnection paho's loop runs once more and reports "Client is not
@@ -699,129 +455,4 @@ class MqttTransport:
             "reconnecting", self.client_id, self.settings.username or self.client_id,
             lived, self.takeovers)
 
-    def _on_publish(self, client, userdata, mid, reason_code, properties) -> None:
-        reason = int(getattr(reason_code, "value", 0))
-        if refused(reason):
-            logger.debug("%s: broker refused publish %d: %s", self.client_id, mid, reason_code)
-        with self._condition:
-            item = self._handed.pop(mid, None)
-            if item is None:
-                self._early[mid] = reason
-            if self._hold and not self._handed:
-                self._hold = False
-            self._condition.notify_all()
-        if item is not None:
-            self._finished(item, reason)
-        self._pump(blocking=False)
 
-    def _on_subscribe(self, client, userdata, mid, reason_codes, properties) -> None:
-        failures = [code for code in reason_codes if code.is_failure]
-        with self._condition:
-            topic_filter = self._background_subscribes.pop(mid, None)
-            if topic_filter is None:
-                self._suback[mid] = list(reason_codes)
-            elif not failures:
-                self._subscribed.add(topic_filter)
-            self._condition.notify_all()
-        if failures:
-            logger.warning("%s: subscription %d refused: %s", self.client_id, mid, failures[0])
-
-    def _on_message(self, client, userdata, message) -> None:
-        mid, qos = message.mid, message.qos
-
-        def send_ack() -> None:
-            if qos > 0 and self._client is client:
-                client.ack(mid, qos)
-
-        identifiers = getattr(message.properties, "SubscriptionIdentifier", None)
-        filters = None
-        if identifiers:
-            if isinstance(identifiers, int):
-                identifiers = [identifiers]
-            known = [self._filter_ids[i] for i in identifiers if i in self._filter_ids]
-            filters = tuple(known) if known else None
-        elif self._identified:
-            # A copy for a subscription without identifier: not for the identified filters.
-            filters = tuple(
-                topic_filter
-                for topic_filter in self._handlers.filters()
-                if topic_filter not in self._identified
-                and topic_matches(topic_filter, message.topic)
-            )
-        self._handlers.dispatch(
-            _Incoming(
-                message.topic,
-                message.payload,
-                bool(message.dup),
-                bool(message.retain),
-                qos,
-                send_ack,
-                filters,
-            )
-        )
-
-
-
-def _report(item: _Outgoing, reason: int) -> None:
-    if item.on_result is not None:
-        try:
-            item.on_result(reason)
-        except Exception:
-            logger.exception("publish result handler for %s failed", item.topic)
-
-
-
-def _refuse_self_connection(client, userdata, sock) -> None:
-    """paho's on_socket_open: refuse a TCP connection to itself.
-
-    Reconnecting to a local broker that is down, a client can draw the broker's own port as
-    its source port and connect to itself (TCP simultaneous open); it would then hold the
-    port the broker needs to start again. The OSError makes paho retry later.
-    """
-    try:
-        same = sock.getsockname() == sock.getpeername()
-    except (OSError, AttributeError):
-        return
-    if same:
-        sock.close()
-        raise OSError(errno.ECONNREFUSED, "connected to itself: nothing listens on that port")
-
-
-
-def _socket_options(client, userdata, sock) -> None:
-    """paho's on_socket_open: refuse a self-connection, disable Nagle's algorithm (paho
-    does not set TCP_NODELAY)."""
-    _refuse_self_connection(client, userdata, sock)
-    try:
-        sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-    except (OSError, AttributeError):  # not a TCP socket (e.g. a unix socket): nothing to do
-        pass
-
-
-
-def unreachable_reason(host: str, port: int, timeout: float = 2.0) -> str | None:
-    """Why a TCP connection to ``host:port`` fails (the OS's words), or None if it opens."""
-    try:
-        with socket.create_connection((host, port), timeout=timeout):
-            return None
-    except TimeoutError:
-        return f"no TCP answer within {timeout:g} s"
-    except OSError as error:
-        return error.strerror or str(error)
-
-
-
-def _subscription_id(topic_filter: str) -> int:
-    """A stable MQTT 5 subscription identifier for a filter (1 .. 2**28 - 1).
-
-    Stable across processes, so a resumed persistent session's messages still name the
-    filter they were delivered for.
-    """
-    return zlib.crc32(topic_filter.encode()) % (2**28 - 2) + 1
-
-
-
-def _identifier_properties(topic_filter: str):
-    properties = Properties(PacketTypes.SUBSCRIBE)
-    properties.SubscriptionIdentifier = _subscription_id(topic_filter)
-    return properties

@@ -308,9 +308,9 @@ def _no_ack() -> None:
 _MOVED = {
     "InProcessBroker": "cblrs.runtime.transport.inprocess",
     "InProcessTransport": "cblrs.runtime.transport.inprocess",
-    "MqttSettings": "cblrs.runtime.transport.mqtt_transport",
+    "MqttSettings": "cblrs.runtime.transport.mqtt_settings",
     "MqttTransport": "cblrs.runtime.transport.mqtt_transport",
-    "unreachable_reason": "cblrs.runtime.transport.mqtt_transport",
+    "unreachable_reason": "cblrs.runtime.transport.mqtt_settings",
 }
 
 
