@@ -370,7 +370,9 @@ const Cblrs = (() => {
             const data = block.split("\n").filter((line) => line.startsWith("data:"))
               .map((line) => line.slice(line.startsWith("data: ") ? 6 : 5));
             if (data.length && handlers.onmessage && !stream.closed) {
-              handlers.onmessage({ data: data.join("\n") });
+              try {  // a handler's error is its own, as with an EventSource: read on
+                handlers.onmessage({ data: data.join("\n") });
+              } catch (error) { console.error(error); }
             }
           }
         }
