@@ -129,7 +129,11 @@ def register(subparsers) -> None:
         action="store_true",
         help="pace by the recorded timestamps (default for files: as fast as possible)",
     )
-    timing.add_argument("--speed", type=float, default=1.0, help="with --realtime: speed-up")
+    timing.add_argument(
+        "--speed", type=float, default=1.0,
+        help="with --realtime: speed-up. Capture times are divided by it, so the matcher sees "
+        "everyone move SPEED times faster and its tracks differ from the recording's (a load "
+        "test); for the recording's own tracks, replay without --realtime")
     timing.add_argument(
         "--epoch",
         type=float,

@@ -37,8 +37,11 @@ Every camera of one replay must use the same ``epoch`` (``--epoch``), or timesta
 same frame would differ between cameras and never be grouped. Without one, the node picks
 ``now - first_timestamp`` when pacing in real time (the first frame is "now") and
 ``now - last_timestamp`` when replaying as fast as possible (the whole recording lies in the
-recent past, never in the future). Live sources (``timestamp=None``) are stamped with the
-wall clock at capture.
+recent past, never in the future). A sped-up replay therefore shows the matcher everyone
+moving ``speed`` times faster: its tracks are a load test's, not the recording's (measured on
+WILDTRACK's first 120 frames: 132 track ids at speed 1, 323 at 10 and 338 at 25, for twelve
+times the tracker's CPU); replaying as fast as possible keeps the recorded spacing. Live
+sources (``timestamp=None``) are stamped with the wall clock at capture.
 
 Status. The node publishes a retained, timestamped "online" on its status topic at the start
 and after every reconnection, and at the end a timestamped "offline" — the matcher's sign
