@@ -201,31 +201,70 @@ def test_a_refused_and_a_silent_port_are_each_named_and_nothing_is_claimed(
     assert spool_rows(tmp_path / "CVLab1.spool") == PER_CAMERA
 
 
-def test_a_refused_login_is_an_error_not_endless_retries(case, tmp_path):
-    """A wrong password on a secured server (users, TLS): exit 1 with one sentence naming
-    the refused login, as the MQTT camera's refused connection is; the spool keeps what was
-    captured."""
+def test_a_refused_login_is_an_error_but_a_tls_failure_is_retried(case, tmp_path):
+    """On a secured server (users, TLS): a wrong password ends the camera with exit 1 and
+    one sentence naming the refused login, as the MQTT camera's refused connection does —
+    also when the servers come up only after the camera started spooling;
+    a camera without its client certificate is told so within 10 s and keeps capturing
+    into its spool, retrying (as the MQTT camera does on a TLS failure)."""
     pytest.importorskip("bcrypt", reason="bcrypt is not installed (pip install -e '.[nats]')")
     from cblrs.runtime.broker.nats_auth import write_nats_security
 
     security = write_nats_security(tmp_path / "servers", CAMERAS, {"matcher1": [1]}, tls=True)
-    cluster = NatsCluster.create(tmp_path / "nodes", 1, security=security).start()
+    cluster = NatsCluster.create(tmp_path / "nodes", 1, security=security)  # not started yet
+    files = security.clients["CVLab1"]
+    wrong = tmp_path / "wrong.password"
+    wrong.write_text("guessed\n")
+    wrong.chmod(0o600)
+    tls = ["--ca-file", str(files.ca_file), "--cert-file", str(files.cert_file),
+           "--key-file", str(files.key_file)]
+    backbone = ["--backbone", cluster.url]
     try:
-        files = security.clients["CVLab1"]
-        wrong = tmp_path / "wrong.password"
-        wrong.write_text("guessed\n")
-        wrong.chmod(0o600)
-        login = ["--username", "CVLab1", "--password-file", str(wrong),
-                 "--ca-file", str(files.ca_file), "--cert-file", str(files.cert_file),
-                 "--key-file", str(files.key_file)]
+        # The servers are away at first: the camera spools; once they answer, they refuse
+        # its login, and it stops with the error.
+        log = tmp_path / "late-refusal.err"
+        started = time.monotonic()
+        late = start_logged(camera(case, tmp_path, "CVLab1", [
+            *backbone, "--username", "CVLab1", "--password-file", str(wrong), *tls],
+            "--flush-timeout", "600", spool="late.spool"), log)
+        try:
+            warned_within(log, "Connection refused", started)
+            wait_until(lambda: spool_rows(tmp_path / "late.spool") == PER_CAMERA, 60,
+                       "a full spool")
+            cluster.start()
+            code, out, _ = finish(late, 60)
+        finally:
+            if late.poll() is None:
+                late.kill()
+                late.wait()
+        assert code == 1, log.read_text()
+        assert "refused the login CVLab1" in one_sentence(log.read_text())
+        assert json.loads(out)["unconfirmed"] == PER_CAMERA
         started = time.monotonic()
         result = subprocess.run(
-            camera(case, tmp_path, "CVLab1", ["--backbone", cluster.url], *login),
+            camera(case, tmp_path, "CVLab1", [*backbone, "--username", "CVLab1",
+                                               "--password-file", str(wrong), *tls]),
             capture_output=True, text=True, env=ENVIRONMENT, timeout=120)
         elapsed = time.monotonic() - started
+        log = tmp_path / "no-certificate.err"
+        other = security.clients["CVLab2"]
+        started = time.monotonic()
+        process = start_logged(camera(case, tmp_path, "CVLab2", [
+            *backbone, "--username", "CVLab2", "--password-file", str(other.password_file),
+            "--ca-file", str(other.ca_file)], "--flush-timeout", "600"), log)
+        try:
+            warned_within(log, "client certificate", started)
+            wait_until(lambda: spool_rows(tmp_path / "CVLab2.spool") == PER_CAMERA, 60,
+                       "a full spool")
+            report = _stopped_report(process)
+        finally:
+            if process.poll() is None:
+                process.kill()
+                process.wait()
     finally:
         cluster.kill()
     assert result.returncode == 1, result.stderr
     sentence = one_sentence(result.stderr)
     assert "refused the login CVLab1 (wrong or missing user name and password)" in sentence
     assert elapsed < 60, elapsed
+    assert report["acknowledged"] == 0 and report["unconfirmed"] == PER_CAMERA, report

@@ -585,7 +585,13 @@ def attempt_reason(error: BaseException, settings: NatsSettings) -> str:
                 + ("" if settings.ca_file is not None else ", or it wants TLS first")
                 + ")")
     if isinstance(error, OSError) and error.errno is not None:
-        return os.strerror(error.errno)
+        reason = os.strerror(error.errno)
+        if settings.ca_file is not None and settings.cert_file is None \
+                and isinstance(error, (BrokenPipeError, ConnectionResetError)):
+            # The server ended the TLS handshake: nats-py sees only the closed connection.
+            reason += (" (the server closed the TLS connection: it may require a client "
+                       "certificate, --cert-file and --key-file)")
+        return reason
     return text
 
 
