@@ -39,6 +39,11 @@ behaviour the services rely on, on a NATS server or cluster with JetStream:
   then what was not acknowledged goes again in its order (a publish stored after a later one,
   possible only when a leader dies between two of them, is counted in ``reordered``).
   Publishes made while the servers are away wait in memory;
+* **connecting**: :meth:`NatsTransport.connect` waits for a first server as long as it takes;
+  ``connect(wait=False)`` (a camera) connects in the background instead, publishes waiting in
+  memory meanwhile, and :meth:`NatsTransport.wait_connected` says in one sentence why no server
+  answers yet (refused, a silent port, TLS); a refused login ends the attempts
+  (``connect_failure``, ``on_failure``);
 * **plane lease** (``lease=``): a key (``plane-<plane>``, ``<site>.plane-<plane>``) with a
   time to live in the replicated key-value bucket ``cblrs_leases``; :meth:`connect` refuses
   (one sentence) when another client holds it, the transport renews it every third of its
@@ -71,9 +76,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
-import os
 import re
-import ssl
 import threading
 import time
 from collections.abc import Coroutine
@@ -84,7 +87,13 @@ from cblrs.runtime.transport.mqtt_settings import unreachable_reason
 from cblrs.runtime.transport.nats_consumer import _NatsConsumer
 from cblrs.runtime.transport.nats_lease import _NatsLease
 from cblrs.runtime.transport.nats_publisher import _NatsPublisher
-from cblrs.runtime.transport.nats_settings import LeaseSettings, NatsSettings
+from cblrs.runtime.transport.nats_settings import (
+    LeaseSettings,
+    NatsSettings,
+    _is_login_refusal,
+    _is_tls_failure,
+    attempt_reason,
+)
 from cblrs.runtime.transport.nats_subjects import (
     _classify,
     message_id,
@@ -94,7 +103,7 @@ from cblrs.runtime.transport.nats_subjects import (
 from cblrs.runtime.transport.protocol import Handler, TransportError
 from cblrs.runtime.transport.topics import validate_filter, validate_topic
 
-__all__ = ["LeaseSettings", "NatsSettings", "NatsTransport", "attempt_reason"]
+__all__ = ["LeaseSettings", "NatsSettings", "NatsTransport"]
 
 logger = logging.getLogger(__name__)
 
@@ -557,42 +566,6 @@ class NatsTransport(_NatsPublisher, _NatsConsumer, _NatsLease):
         if not refused:
             logger.error("%s: the NATS servers refused a publish on %s (permissions of the "
                          "login %s)", self.client_id, subject, self.settings.username)
-
-
-def _is_login_refusal(error: BaseException) -> bool:
-    return "authorization" in str(error).lower()
-
-
-def _is_tls_failure(error: BaseException) -> bool:
-    lowered = str(error).lower()
-    return isinstance(error, ssl.SSLError) or "tls" in lowered or "ssl" in lowered \
-        or "certificate" in lowered
-
-
-def attempt_reason(error: BaseException, settings: NatsSettings) -> str:
-    """Why an attempt to connect failed, in words: the operating system's for a refused or
-    unreachable port, a TLS failure with what to check, a silent port, a refused login."""
-    text = str(error) or type(error).__name__
-    if _is_login_refusal(error):
-        return (f"the servers refused the login {settings.username or '(none)'} (wrong or "
-                "missing user name and password)")
-    if _is_tls_failure(error):
-        return (f"TLS failed ({text}); the servers require TLS with a client certificate "
-                "signed by their CA (--ca-file, --cert-file, --key-file)")
-    if isinstance(error, TimeoutError):
-        return (f"no NATS greeting within {round(settings.connect_timeout_s):g} s (the TCP "
-                "connection opens, or did, but what answers is not a NATS server"
-                + ("" if settings.ca_file is not None else ", or it wants TLS first")
-                + ")")
-    if isinstance(error, OSError) and error.errno is not None:
-        reason = os.strerror(error.errno)
-        if settings.ca_file is not None and settings.cert_file is None \
-                and isinstance(error, (BrokenPipeError, ConnectionResetError)):
-            # The server ended the TLS handshake: nats-py sees only the closed connection.
-            reason += (" (the server closed the TLS connection: it may require a client "
-                       "certificate, --cert-file and --key-file)")
-        return reason
-    return text
 
 
 _PERMISSION = re.compile(r'permissions violation for (publish|subscription) to "([^"]+)"', re.I)
