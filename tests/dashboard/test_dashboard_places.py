@@ -129,6 +129,9 @@ def test_cross_site_and_non_json_saves_are_refused(clients, site_path):
     (lambda body: body["zones"][1].update(colour="red"), "unknown key 'colour'"),
     (lambda body: body["zones"].pop(0), "not saved"),  # the alert rule names it
     (lambda body: body.update(version="0" * 16), "changed since this page read it"),
+    # a body that lacks a list is not read as "delete every place"
+    (lambda body: body.pop("lines"), "gives both lists"),
+    (lambda body: body.clear(), "gives both lists"),
 ])
 def test_bad_places_are_refused_in_one_sentence(clients, site_path, change, words):
     admin = clients(ADMIN)
@@ -191,5 +194,7 @@ def test_a_script_saves_with_an_admin_token(site_path, tmp_path):
     assert answer.status_code == 200, answer.text
     assert load_site(site_path).places.zone("gate area").polygon.tolist() == [
         [12, 2], [16, 2], [14, 5]]
+    assert script.post("/api/places/save", json={}).status_code == 422  # not "delete all"
+    assert load_site(site_path).places.names == ["deck zone", "gate area"]
     assert script.post("/api/places/save", content="{}", headers={
         "Content-Type": "text/plain"}).status_code == 415

@@ -187,6 +187,53 @@ def test_two_lost_tracks_a_new_one_could_continue_are_left_apart():
     assert stitching.decide(fresh, np.array([True]), 13.0).rows.tolist() == []
 
 
+def coasting_walker(fresh_at, fresh_born: float = 11.4) -> TrackTable:
+    """Row 0: a confirmed person (id 7) last seen at 10 s at (0, 0) walking east at 1.2 m/s,
+    still coasting at 12 s (predicted at (2.4, 0)); row 1: a new track born at ``fresh_born``
+    at ``fresh_at``, its velocity not known yet."""
+    walker = rows([2.4, 0.0], [1.2, 0.0], ids=7, last_seen=10.0, position_sigma=0.5)
+    fresh = rows(fresh_at, [0.0, 0.0], ids=-1, last_seen=12.0, born=fresh_born,
+                 velocity_sigma=1.5)
+    return walker.extend(fresh)
+
+
+def test_a_new_track_near_a_coasting_persons_prediction_takes_its_id_and_replaces_it():
+    # The person turned while no camera saw them: they reappear 1.2 m off the prediction,
+    # and two cameras confirm the new track before its velocity is known.
+    table = coasting_walker([2.0, 1.1])
+    coasting = np.array([True, False])
+    stitches = stage(**one_model()).decide(table, np.array([False, True]), 12.0, coasting)
+    assert stitches.rows.tolist() == [1] and stitches.ids.tolist() == [7]
+    assert stitches.replaced.tolist() == [0]
+    # Off, or no coasting track given (only dropped ones count): a new id.
+    off = stage(**one_model(stitch_coasting=False))
+    assert off.decide(table, np.array([False, True]), 12.0, coasting).rows.tolist() == []
+    assert stage(**one_model()).decide(table, np.array([False, True]), 12.0).rows.tolist() == []
+
+
+@pytest.mark.parametrize(
+    ("case", "fresh_at", "fresh_born"),
+    [
+        ("seen while the person still was", [2.0, 1.1], 9.5),
+        ("farther than the coasting track could have gone", [2.4, 5.0], 11.4),
+    ],
+)
+def test_a_new_track_unlike_a_coasting_one_gets_a_new_id(case, fresh_at, fresh_born):
+    table = coasting_walker(fresh_at, fresh_born)
+    stitches = stage(**one_model()).decide(table, np.array([False, True]), 12.0,
+                                           np.array([True, False]))
+    assert stitches.rows.tolist() == [] and stitches.replaced.tolist() == [], case
+
+
+def test_two_coasting_tracks_a_new_one_could_continue_are_left_apart():
+    table = coasting_walker([2.0, 1.1])
+    other = rows([2.4, 1.6], [1.2, 0.0], ids=8, last_seen=10.0, position_sigma=0.5)
+    table = table.extend(other)
+    stitches = stage(**one_model()).decide(table, np.array([False, True, False]), 12.0,
+                                           np.array([True, False, True]))
+    assert stitches.rows.tolist() == []
+
+
 def test_only_tracks_born_after_the_lost_one_was_last_seen_and_within_the_gap():
     stitching = stage(**one_model(stitch_gap_s=3.0, stitch_delay_s=1.0))
     lost_walker(stitching)
@@ -225,6 +272,11 @@ def test_tentative_tracks_and_a_zero_gap_are_not_remembered():
 def test_stitching_options_are_checked(name):
     with pytest.raises(MatcherError, match=name):
         FusionConfig(**{name: -1.0})
+
+
+def test_stitch_coasting_must_be_true_or_false():
+    with pytest.raises(MatcherError, match="stitch_coasting"):
+        FusionConfig(stitch_coasting="yes")
 
 
 # ------------------------------------------------------------------ the whole tracker
@@ -285,6 +337,38 @@ def test_a_person_hidden_for_seconds_keeps_one_id_and_no_row_is_rewritten():
     stitched = tracks(stitch_delay_s=1.0)
     assert np.unique(stitched.track_id).tolist() == [1]
     assert 0 < len(apart) - len(stitched) <= 10  # decided once moving: at most 1 s, 10 fps
+
+
+def turning_walk(frame: int) -> list[list[float]]:
+    """A person walking east at 1.2 m/s whom nobody sees from 2 s to 3 s (hidden behind
+    others), who turned north meanwhile: they reappear 1.8 m off the coasting track's
+    prediction, within max_age_s."""
+    time = frame * 0.1
+    if 2.0 <= time < 3.0:
+        return []
+    if time < 2.0:
+        return [[-10.0 + 1.2 * time, 0.0]]
+    return [[-7.6, 1.2 * (time - 2.0)]]
+
+
+def test_a_person_who_turned_while_hidden_keeps_their_id_from_the_coasting_track():
+    def tracks(miss_rate: float, **options) -> Tracks:
+        tracker = FusionTracker(PLANES, list(CAMERAS), camera_positions=CAMERAS, **options)
+        # The occlusion stage's learnt rate: these cameras miss people hidden behind others.
+        tracker.hidden.occluded_views, tracker.hidden.occluded_missed = 100.0, 100.0 * miss_rate
+        return Tracks.concatenate([
+            tracker.update(frame * 0.1, [message(name, frame, turning_walk(frame))
+                                         for name in CAMERAS])
+            for frame in range(60)])
+
+    stitched = tracks(0.9)
+    assert np.unique(stitched.track_id).tolist() == [1]
+    # Off, or where the cameras see people through occlusion (a person missed by every
+    # camera has left): the new track keeps its new id. No row is lost either way.
+    apart = tracks(0.9, stitch_coasting=False)
+    assert np.unique(apart.track_id).tolist() == [1, 2]
+    assert np.unique(tracks(0.01).track_id).tolist() == [1, 2]
+    assert len(stitched) == len(apart)
 
 
 def test_lost_tracks_are_part_of_the_saved_state():

@@ -160,3 +160,55 @@ def test_the_support_counts_are_saved_with_the_state():
 def test_bad_support_options_are_refused_in_one_sentence(option):
     with pytest.raises(MatcherError, match="support_"):
         FusionTracker(PLANES, CAMERAS, **option)
+
+
+def late_coincidence(frame: int, rng: np.random.Generator) -> dict[str, list]:
+    """The north camera sees the sign from the start; the east camera sees something there
+    at one instant only, 4 s later (a passer-by); a person whom only the north camera sees
+    for 1.5 s (hidden from the others) is then seen by every camera."""
+    jitter = rng.normal(0.0, 0.05, (2, 2))
+    sign = np.add(SIGN, jitter[0])
+    person = np.add(STANDING, jitter[1])
+    return {
+        "north": [sign, person],
+        "east": ([sign] if frame == 8 else []) + ([person] if frame >= 3 else []),
+        "south": [person] if frame >= 3 else [],
+    }
+
+
+def track_late(**options) -> Tracks:
+    # support_evidence_s: the support stage's own judgement waits, so this is the
+    # confirmation test alone.
+    fusion = FusionTracker(PLANES, CAMERAS, camera_positions=CAMERA_XY, support_evidence_s=50.0,
+                           **options)
+    for camera in range(len(CAMERAS)):
+        fusion.coverage.set_view(camera, WHOLE_PLAZA)
+    rng = np.random.default_rng(7)
+    parts = []
+    for frame in range(12):
+        points = {camera: found for camera, found in late_coincidence(frame, rng).items()
+                  if found}
+        parts.append(fusion.update(
+            frame * 0.5, [message(camera, frame, found) for camera, found in points.items()]))
+    return Tracks.concatenate([*parts, fusion.flush()])
+
+
+def test_one_instant_of_a_second_camera_does_not_confirm_an_old_one_camera_track():
+    without = track_late(confirm_support_share=0.0)
+    # Without the test the passer-by's instant confirms the sign's track.
+    assert len(rows_near(without, SIGN)) >= 4
+    assert len(rows_near(track_late(), SIGN)) == 0
+
+
+def test_a_person_one_camera_saw_alone_is_confirmed_once_others_keep_seeing_them():
+    person = rows_near(track_late(), STANDING)
+    assert len(np.unique(person.track_id)) == 1
+    # The others see them from frame 3; their share of the north camera's time passes a
+    # quarter at once (0.5 s each against 1.5 s) and they are reported from frame 3 or 4.
+    assert person.frame.min() <= 4
+    assert len(person) >= 12 - 4
+
+
+def test_confirm_support_share_must_be_a_non_negative_number():
+    with pytest.raises(MatcherError, match="confirm_support_share"):
+        FusionTracker(PLANES, CAMERAS, confirm_support_share=-0.1)

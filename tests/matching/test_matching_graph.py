@@ -4,13 +4,16 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
 
 from cblrs.matching.graph import component_labels
 
 
 def _scipy_labels(node_count: int, first: np.ndarray, second: np.ndarray) -> np.ndarray:
+    # lazy: every pytest-xdist worker collects this file; SciPy's sparse graphs cost it
+    # about half a CPU-second to import there, for the one worker that runs these tests
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
     graph = coo_matrix((np.ones(len(first)), (first, second)), shape=(node_count, node_count))
     return connected_components(graph, directed=False)[1]
 

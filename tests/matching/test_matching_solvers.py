@@ -10,14 +10,17 @@ import sys
 
 import numpy as np
 import pytest
-import scipy.optimize
-from scipy.spatial import cKDTree
 
 from cblrs.matching import neighbours, solvers
 from cblrs.matching.fusion import gaussian
 
+# SciPy is imported in the tests that compare with it, not at the top: every pytest-xdist
+# worker collects this file, and scipy.optimize and scipy.spatial cost about 0.6 CPU-s there.
+
 
 def test_assignment_is_scipys():
+    import scipy.optimize
+
     generator = np.random.default_rng(1)
     for shape in [(1, 1), (3, 3), (4, 7), (7, 4), (12, 12)]:
         # Integer costs: many ties, where only the same algorithm picks the same answer.
@@ -31,6 +34,8 @@ def test_assignment_is_scipys():
 
 
 def test_nnls_is_scipys():
+    import scipy.optimize
+
     generator = np.random.default_rng(2)
     for size in (2, 4, 6):
         matrix = generator.normal(size=(size + 3, size))
@@ -52,6 +57,8 @@ def _grid_points(generator, count: int, dimensions: int) -> np.ndarray:
 
 
 def test_chebyshev_pairs_are_the_trees():
+    from scipy.spatial import cKDTree
+
     generator = np.random.default_rng(3)
     for trial in range(200):
         query = _grid_points(generator, int(generator.integers(0, 120)), 3)

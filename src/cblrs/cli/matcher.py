@@ -237,7 +237,6 @@ def run(args: argparse.Namespace) -> int:
     from cblrs.runtime.matcher.retention import RetentionPolicy
     from cblrs.runtime.matcher.store import RuntimeStore
     from cblrs.runtime.matcher.views import tell_views
-    from cblrs.runtime.outputs.alert_service import site_alerts
     from cblrs.runtime.transport.mqtt_transport import MqttTransport
     from cblrs.runtime.transport.protocol import Will
     from cblrs.runtime.transport.topics import matcher_status_topic, validate_client_id
@@ -305,7 +304,11 @@ def run(args: argparse.Namespace) -> int:
     stop = threading.Event()
     failures: list[str] = []
     analytics = make_analytics(site, plane_id, args)
-    alerts, senders = site_alerts(site)  # the webhooks' secrets are read now
+    alerts, senders = None, {}
+    if site is not None:  # lazy: a site has imported the alerts' models already
+        from cblrs.runtime.outputs.alert_service import site_alerts
+
+        alerts, senders = site_alerts(site)  # the webhooks' secrets are read now
     metrics = server = None
     if args.http is not None:
         # lazy: a subcommand imports the library when it runs, so its --help starts fast

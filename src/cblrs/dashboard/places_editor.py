@@ -177,8 +177,10 @@ def save_places(site_path: Path, data: Any, plane_id: int | None) -> dict[str, A
     Args:
         site_path: the site file (rewritten; the previous one is kept as ``<file>.bak``).
         data: ``{"zones": [{name, polygon, ...}], "lines": [{name, start, end, ...}],
-            "version"}`` in site metres; ``version`` (from :func:`places_view`), when given,
-            must name the file as it is now (the page always gives it).
+            "version"}`` in site metres. Both lists are required (a body without them is
+            refused, not read as "delete every place"); ``version`` (from
+            :func:`places_view`), when given, must name the file as it is now (the page
+            always gives it; a script may leave it out).
         plane_id: the plane the dashboard shows.
 
     Returns:
@@ -188,7 +190,10 @@ def save_places(site_path: Path, data: Any, plane_id: int | None) -> dict[str, A
         PlacesEditError: the places are refused, or the file changed since the page read it
             (nothing written).
     """
-    if isinstance(data, dict) and data.get("version") not in (None, site_version(site_path)):
+    if not isinstance(data, dict) or not {"zones", "lines"} <= data.keys():
+        raise PlacesEditError("a save gives both lists, \"zones\" and \"lines\" (empty to "
+                              "delete every place of the plane); nothing written.")
+    if data.get("version") not in (None, site_version(site_path)):
         raise PlacesEditError("the site file changed since this page read it; reload the page "
                               "and draw again.")
     site = load_site(site_path)

@@ -300,9 +300,23 @@ def update_models(
         The updated ``(mode_state, mode_covariance, probability)``, new arrays. Each model's
         probability is multiplied by the likelihood of the measurement under it.
     """
+    return update_models_likelihood(
+        mode_state, mode_covariance, probability, measurement_xy, measurement_variance)[:3]
+
+
+def update_models_likelihood(
+    mode_state: FloatArray,
+    mode_covariance: FloatArray,
+    probability: FloatArray,
+    measurement_xy: FloatArray,
+    measurement_variance: FloatArray,
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+    """:func:`update_models`, and the (T, M) log-likelihood of each measurement under each
+    model before the update (``-(r' S^-1 r + log det S) / 2``, constant dropped)."""
     count, models = mode_state.shape[:2]
     if count == 0:
-        return mode_state.copy(), mode_covariance.copy(), probability.copy()
+        return (mode_state.copy(), mode_covariance.copy(), probability.copy(),
+                np.zeros((0, models)))
     # All models of all tracks as one stack of T * M filters.
     measurement = measurement_matrices(measurement_variance, count)
     innovation = mode_covariance[:, :, :2, :2] + measurement[:, None]
@@ -313,14 +327,14 @@ def update_models(
     flat = inverse.reshape(-1, 4)
     squared = r0 * flat[:, 0] * r0 + r0 * flat[:, 1] * r1 + r1 * flat[:, 2] * r0
     squared += r1 * flat[:, 3] * r1
-    log_likelihood = (-0.5 * (squared + np.log(determinant))).reshape(count, models)
+    likelihood = (-0.5 * (squared + np.log(determinant))).reshape(count, models)
     new_state, new_covariance = _update(
         mode_state.reshape(-1, 4), mode_covariance.reshape(-1, 4, 4), residual, inverse
     )
     new_state = new_state.reshape(mode_state.shape)
     new_covariance = new_covariance.reshape(mode_covariance.shape)
-    log_likelihood -= log_likelihood.max(axis=1, keepdims=True)
+    log_likelihood = likelihood - likelihood.max(axis=1, keepdims=True)
     weighted = probability * np.exp(log_likelihood)
     total = weighted.sum(axis=1, keepdims=True)
     new_probability = np.where(total > 0, weighted / np.where(total > 0, total, 1.0), probability)
-    return new_state, new_covariance, new_probability
+    return new_state, new_covariance, new_probability, likelihood

@@ -27,9 +27,9 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.ndimage import map_coordinates
-from scipy.optimize import minimize
-from scipy.signal import fftconvolve
+
+# SciPy (ndimage, optimize, signal: about 1.5 CPU-s to import) is imported by the functions
+# that use it, so that importing this module costs nothing until an attack runs.
 
 FloatArray = NDArray[np.float64]
 
@@ -157,6 +157,9 @@ def align_to_density(
     for angle in np.arange(coarse - coarse_deg, coarse + coarse_deg + 1e-9, fine_deg):
         best = _better(best, _place(centred, float(angle), density, log_density))
     _, angle, offset = best
+    from scipy.ndimage import map_coordinates  # lazy, see the imports
+    from scipy.optimize import minimize
+
     # Last, a continuous refinement of angle and offset (the grid search is one cell coarse):
     # the positions' log-density, interpolated between cell centres, by Nelder-Mead.
     def cost(parameters: FloatArray) -> float:
@@ -206,6 +209,8 @@ def _place(
     floor = float(log_density.min())
     padded = np.pad(log_density, ((pad_rows, pad_rows), (pad_columns, pad_columns)),
                     constant_values=floor)
+    from scipy.signal import fftconvolve  # lazy, see the imports
+
     correlation = fftconvolve(padded, counts[::-1, ::-1], mode="valid")
     row, column = np.unravel_index(int(np.argmax(correlation)), correlation.shape)
     # counts' cell (0, 0) lands on padded cell (row, column) = map cell (row - pad_rows, ...)
@@ -229,4 +234,6 @@ def _blur(values: FloatArray, sigma_cells: float) -> FloatArray:
     offsets = np.arange(-radius, radius + 1)
     kernel = np.exp(-0.5 * (offsets / sigma_cells) ** 2)
     kernel /= kernel.sum()
+    from scipy.signal import fftconvolve  # lazy, see the imports
+
     return np.asarray(fftconvolve(values, np.outer(kernel, kernel), mode="same").clip(0.0))

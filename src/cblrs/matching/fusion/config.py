@@ -151,6 +151,11 @@ class FusionConfig:
             confirmed nor reported (the support stage,
             :mod:`~cblrs.matching.fusion.support`: a detector's persistent false positive,
             seen by one camera where others look). 0: off.
+        confirm_support_share: a tentative track at least a second old that needs two
+            cameras is confirmed only once the cameras other than its main one have seen it
+            for this share of the time its main camera did (one instant of another camera
+            does not confirm a false positive one camera has carried for seconds; the
+            support stage, :mod:`~cblrs.matching.fusion.support`). 0: off.
         support_evidence_s: camera-seconds the other covering cameras must have had to
             see a track before the support stage judges it.
         support_memory_s: the support stage forgets what the cameras saw over this time
@@ -176,6 +181,11 @@ class FusionConfig:
         stitch_sigmas: a new track continues a lost one when their (x, y, vx, vy) states are
             within this many standard deviations of each other (Mahalanobis distance under
             the sum of their covariances), and no other pair could be it.
+        stitch_coasting: a new person's track may also continue a confirmed track that still
+            coasts (unseen now, not dropped yet), even before its velocity is known, where the
+            cameras are known to miss people hidden behind others (the occlusion stage's
+            learnt miss rate above one half): it takes the id and the coasting track is
+            dropped (:mod:`~cblrs.matching.fusion.stitching`).
         swap_radius_m: two confirmed tracks of people closer than this open an encounter;
             once they have been farther apart than this for ``swap_settle_s``, they exchange
             ids from then on if their motion before the encounter explains what each saw
@@ -243,6 +253,7 @@ class FusionConfig:
     high_confidence: float = SURE_CONFIDENCE
     support_ratio: float = 0.1
     support_evidence_s: float = 2.0
+    confirm_support_share: float = 0.25
     support_memory_s: float = 10.0
     tentative_max_age_s: float = 1.0
     max_age_s: float = 2.0
@@ -251,6 +262,7 @@ class FusionConfig:
     stitch_gap_s: float = 3.0
     stitch_delay_s: float = 0.0
     stitch_sigmas: float = 3.0
+    stitch_coasting: bool = True
     swap_radius_m: float = 1.0
     swap_settle_s: float = 0.5
     swap_margin: float = 7.0
@@ -297,7 +309,7 @@ class FusionConfig:
             "model_acceleration_factors and model_sojourn_s need one entry per model, got "
             f"{len(self.model_acceleration_factors)} and {len(self.model_sojourn_s)}.",
         )
-        for name in ("adapt_noise", "estimate_clocks", "end_off_plane"):
+        for name in ("adapt_noise", "estimate_clocks", "end_off_plane", "stitch_coasting"):
             value = getattr(self, name)
             require(isinstance(value, bool), f"{name} must be true or false, got {value!r}.")
         require(
@@ -339,6 +351,13 @@ class FusionConfig:
             isinstance(self.support_ratio, (int, float))
             and not isinstance(self.support_ratio, bool) and 0.0 <= self.support_ratio <= 1.0,
             f"support_ratio must be a number within 0..1, got {self.support_ratio!r}.",
+        )
+        require(
+            isinstance(self.confirm_support_share, (int, float))
+            and not isinstance(self.confirm_support_share, bool)
+            and math.isfinite(self.confirm_support_share) and self.confirm_support_share >= 0,
+            "confirm_support_share must be a number >= 0, "
+            f"got {self.confirm_support_share!r}.",
         )
         for name in ("class_measurement_sigma_m", "class_acceleration_sigma",
                      "class_turn_radius_m"):

@@ -25,13 +25,27 @@ lost track within the test and that lost track no other tentative track that cou
 crowd two people lost side by side are left apart (two new ids) rather than risk swapping
 them; two cars are told apart by their velocities (opposite lanes, a car overtaking).
 
+**Coasting people** (``stitch_coasting``). Where the cameras miss people hidden behind others
+(the occlusion stage's learnt miss rate above one half: a crowd seen by a detector), a person
+unseen by every camera for a second is often still there and walks off the coasting track's
+prediction (they turned); the association's gate misses them when they reappear, a new track
+is born and confirmed while the old one still coasts, and the person has two ids. The tracker
+then also passes its coasting people's tracks (unseen now, not dropped yet) as ends: a new
+track may continue one by the test above, or, when its velocity is not known yet (two cameras
+confirmed it at once), by position alone: off the coasting track's prediction by no more than
+a change of velocity of ``class_velocity_sigma`` (1.5 m/s for a person) takes a walker in the
+time the track was unseen (:meth:`Stitching._within_reach`), and unambiguous as above. The
+new track takes the id and the coasting track is dropped (:attr:`Stitches.replaced`). Where
+cameras see people through occlusion (annotated boxes), and for vehicles, a coasting track's
+object is not hidden and the tracker passes none.
+
 **Delay**: none by default. The decision is taken when the new track would be confirmed, with
 its velocity as known then; a track confirmed before its velocity is known (two cameras see it
-at once) is not stitched. With ``stitch_delay_s`` > 0 such a track, if a lost track could be
-it, is held back (tentative, not reported) until its velocity is clearly known or that long
-after its first detection. Either way ids are never rewritten: a row once reported keeps its
-id, which is what the matcher service publishes and stores, and a restarted or re-tracking
-service restores the lost tracks with the tracker's state.
+at once) is not stitched to a dropped track. With ``stitch_delay_s`` > 0 such a track, if a
+lost track could be it, is held back (tentative, not reported) until its velocity is clearly
+known or that long after its first detection. Either way ids are never rewritten: a row once
+reported keeps its id, which is what the matcher service publishes and stores, and a
+restarted or re-tracking service restores the lost tracks with the tracker's state.
 """
 
 from __future__ import annotations
@@ -54,16 +68,19 @@ class Stitches:
             lost track; their velocity is not known well enough yet).
         rows: (K,) int64 rows of tentative tracks that continue a lost track.
         ids: (K,) int64 the id each of them takes.
+        replaced: (J,) int64 rows of coasting tracks whose id a new track took (to drop).
     """
 
     hold: np.ndarray
     rows: np.ndarray
     ids: np.ndarray
+    replaced: np.ndarray
 
     @classmethod
     def none(cls, count: int) -> Stitches:
         """Nothing to do for ``count`` tracks."""
-        return cls(np.zeros(count, dtype=bool), np.zeros(0, np.int64), np.zeros(0, np.int64))
+        return cls(np.zeros(count, dtype=bool), np.zeros(0, np.int64), np.zeros(0, np.int64),
+                   np.zeros(0, np.int64))
 
 
 class Stitching:
@@ -120,13 +137,19 @@ class Stitching:
         if confirmed.any():
             self.lost = self.lost.extend(ended.select(confirmed))
 
-    def decide(self, tracks: TrackTable, confirmable: np.ndarray, timestamp: float) -> Stitches:
+    def decide(
+        self, tracks: TrackTable, confirmable: np.ndarray, timestamp: float,
+        coasting: np.ndarray | None = None,
+    ) -> Stitches:
         """Which of the tracks about to be confirmed continue a lost track.
 
         Args:
             tracks: the table, predicted to ``timestamp`` and updated with this window.
             confirmable: (T,) bool, tentative tracks that would be confirmed now.
             timestamp: the window's time, seconds.
+            coasting: (T,) bool, confirmed tracks unseen now that a new track may continue
+                as well (``stitch_coasting``; None: none): the new track takes the id and
+                the coasting track is dropped (``replaced``).
 
         Returns:
             The tracks to hold back, and the stitched tracks and the ids they take.
@@ -138,6 +161,10 @@ class Stitching:
         self._forget(tracks, timestamp)
         config = self.context.config
         ended = self.lost
+        coasting_rows = np.zeros(0, np.int64)
+        if coasting is not None and config.stitch_coasting:
+            coasting_rows = np.flatnonzero(coasting & (tracks.ids >= 0))
+            ended = ended.extend(tracks.select(coasting_rows))
         fresh = np.flatnonzero(tracks.ids < 0)  # every tentative track, for ambiguity
         if not len(ended) or not confirmable.any():
             return Stitches.none(count)
@@ -147,6 +174,14 @@ class Stitching:
         close = self._within_gate(ended, candidates, possible, timestamp)
         # Held until its velocity is clearly known, for at most the delay.
         young = (timestamp - candidates.born < config.stitch_delay_s) & ~_moving(candidates)
+        if len(coasting_rows):
+            # A coasting track is still in the table; a new track whose velocity is not known
+            # yet may be it (the cameras lost the person, who walked off the prediction)
+            # when it is no farther off than a change of velocity could have taken it.
+            first = len(self.lost)
+            close[first:] |= self._within_reach(
+                ended.select(np.arange(first, len(ended))), candidates, timestamp
+            ) & possible[first:]
         # A young track's velocity is not known yet: it may be any lost track it could reach.
         rivals = close | (possible & young[None, :])
         stitches = Stitches.none(count)
@@ -162,6 +197,7 @@ class Stitching:
         taken = np.isin(self.lost.ids, ids)
         stitches.rows = np.asarray(rows, np.int64)
         stitches.ids = np.asarray(ids, np.int64)
+        stitches.replaced = coasting_rows[np.isin(tracks.ids[coasting_rows], stitches.ids)]
         if taken.any():
             self.lost = self.lost.select(~taken)
         return stitches
@@ -190,6 +226,22 @@ class Stitching:
             & _moving(ended)[:, None]
             & (distance <= reach)
         )
+
+    def _within_reach(
+        self, coasting: TrackTable, fresh: TrackTable, timestamp: float
+    ) -> np.ndarray:
+        """(K, F) bool: which new tracks whose velocity is not known yet are within reach of
+        which coasting tracks: off the prediction by at most how far a change of velocity
+        of ``class_velocity_sigma`` (a person's: 1.5 m/s) takes it in the time the
+        coasting track was not seen, plus three standard deviations of the new track's
+        position."""
+        unseen = timestamp - coasting.last_seen
+        speed = self.context.class_velocity_sigma[self.context.class_slot(coasting.class_id)]
+        spread = np.sqrt(np.trace(fresh.covariance[:, :2, :2], axis1=1, axis2=2))
+        reach = (speed * unseen)[:, None] + 3.0 * spread[None, :]
+        distance = np.linalg.norm(
+            fresh.state[None, :, :2] - coasting.state[:, None, :2], axis=2)
+        return (distance <= reach) & ~_moving(fresh)[None, :]
 
     def _within_gate(
         self, ended: TrackTable, fresh: TrackTable, possible: np.ndarray, timestamp: float

@@ -236,7 +236,7 @@ class SwapCheck:
             sigma = self._sigma(class_id)
             if encounter.sigma is None:
                 encounter.sigma = sigma
-            elif not np.array_equal(sigma, encounter.sigma):
+            elif sigma is not encounter.sigma and not np.array_equal(sigma, encounter.sigma):
                 gone.add(encounter.serial)
                 encounter.serial = -1
                 continue
@@ -316,7 +316,9 @@ class SwapCheck:
 
     def _gain(self, encounter: _Encounter, key: tuple[int, int], class_id: int) -> float:
         """:meth:`swap_gain` from the runs advanced each instant (replayed if it has none)."""
-        if encounter.serial < 0 or not np.array_equal(self._sigma(class_id), encounter.sigma):
+        sigma = self._sigma(class_id)  # (the cached array itself while the class is the same)
+        if encounter.serial < 0 or (sigma is not encounter.sigma
+                                    and not np.array_equal(sigma, encounter.sigma)):
             return self.swap_gain(encounter, key, class_id)
         runs = self._runs
         mine = runs.serial == encounter.serial
@@ -567,20 +569,13 @@ def _step(
     seen = ~np.isnan(xy[:, 0])
     gain = np.zeros(0)
     if seen.any():
-        where, cov = xy[seen], view_covariance[seen]
-        innovation = mode_covariance[seen][:, :, :2, :2] + cov[:, None]
-        residual = where[:, None] - mode_state[seen][:, :, :2]
-        determinant = (
-            innovation[..., 0, 0] * innovation[..., 1, 1]
-            - innovation[..., 0, 1] * innovation[..., 1, 0]
-        )
-        squared = np.einsum("bmi,bmij,bmj->bm", residual, np.linalg.inv(innovation), residual)
-        log = -0.5 * (squared + np.log(determinant)) + np.log(
-            np.maximum(mode_probability[seen], 1e-300)
-        )
+        # The update's own innovations give each model's likelihood of the view (closed-form
+        # 2 x 2 inverses, as the tracker's filter uses them).
+        prior = mode_probability[seen]
+        (mode_state[seen], mode_covariance[seen], mode_probability[seen],
+         likelihood) = kalman.update_models_likelihood(
+            mode_state[seen], mode_covariance[seen], prior, xy[seen], view_covariance[seen])
+        log = likelihood + np.log(np.maximum(prior, 1e-300))
         peak = log.max(axis=1)
         gain = peak + np.log(np.exp(log - peak[:, None]).sum(axis=1))
-        (mode_state[seen], mode_covariance[seen], mode_probability[seen]) = kalman.update_models(
-            mode_state[seen], mode_covariance[seen], mode_probability[seen], where, cov
-        )
     return mode_state, mode_covariance, mode_probability, seen, gain

@@ -159,7 +159,10 @@ class TrackTable:
             # No row (most windows' ended tracks): an empty slice of each column, a sixth of
             # the time of 24 boolean indexings.
             return TrackTable(*(column[:0] for column in self.columns()))
-        return TrackTable(*(column[keep] for column in self.columns()))
+        # Row indices once, then a take per column: a third of the time of a boolean
+        # indexing per column (each counts the mask again); the same rows.
+        rows = np.flatnonzero(keep) if keep.dtype == bool else keep
+        return TrackTable(*(column.take(rows, axis=0) for column in self.columns()))
 
     def extend(self, other: TrackTable) -> TrackTable:
         """These rows, then ``other``'s (this table itself when ``other`` has none)."""

@@ -50,6 +50,7 @@ from cblrs.matching.fusion.vehicle_noise import VehicleNoise
 from cblrs.matching.timing import Window, WindowBuffer
 from cblrs.plane import PlaneSet
 
+_PERSON = CLASS_NAMES.index("person")
 _REPORTED_FRAMES = 64  # frames remembered to report each track at most once per frame
 
 
@@ -399,11 +400,20 @@ class FusionTracker:
         # Tracks the other covering cameras never see (support module) are not confirmed,
         # nor reported.
         unsupported = self.support.unsupported(self.tracks)
-        confirmable = self._confirmable() & ~unsupported
-        stitches = self.stitching.decide(self.tracks, confirmable, timestamp)
+        confirmable = self._confirmable(timestamp) & ~unsupported
+        # Coasting people may be continued too where cameras lose people who are still there.
+        coasting = ~seen_now & (self.tracks.class_id == _PERSON) & (self.hidden.miss_rate > 0.5)
+        stitches = self.stitching.decide(self.tracks, confirmable, timestamp, coasting)
         confirmable &= ~stitches.hold
         confirmable[stitches.rows] = False
         self.tracks.ids[stitches.rows] = stitches.ids
+        if len(stitches.replaced):  # the coasting tracks a new one continues: gone
+            keep = np.ones(len(self.tracks.ids), dtype=bool)
+            keep[stitches.replaced] = False
+            self.tracks, seen_now, confirmable = (
+                self.tracks.select(keep), seen_now[keep], confirmable[keep])
+            report_camera, report_box = report_camera[keep], report_box[keep]
+            unsupported = unsupported[keep]
         report = self._confirm(timestamp, seen_now, confirmable)
         for pair in self.swaps.decide(self.tracks, timestamp):  # swapped people (swaps module)
             self.tracks.ids[list(pair)] = self.tracks.ids[list(pair[::-1])]
@@ -462,7 +472,7 @@ class FusionTracker:
             self._clock.corroboration(observed.camera, np.zeros(len(observed), dtype=bool))
         return seen_now, report_camera, report_box, cameras_of_track
 
-    def _confirmable(self) -> np.ndarray:
+    def _confirmable(self, timestamp: float) -> np.ndarray:
         """Step 7: (T,) bool, the tentative tracks with enough evidence to be confirmed."""
         tracks = self.tracks
         newly_confirmed = (tracks.ids < 0) & (tracks.evidence >= self.config.confirm_evidence)
@@ -475,7 +485,9 @@ class FusionTracker:
             needed = np.clip(covering, 1, self.config.confirm_cameras)
             if self.config.confirm_moving_mps > 0:
                 needed[tracks.clearly_moving(self.config.confirm_moving_mps, candidates)] = 1
-            newly_confirmed[candidates[cameras_seen < needed]] = False
+            # A second camera's one coincidence does not confirm one camera's old track.
+            lone = (needed > 1) & self.support.uncorroborated(tracks, candidates, timestamp)
+            newly_confirmed[candidates[(cameras_seen < needed) | lone]] = False
         return newly_confirmed
 
     def _confirm(

@@ -28,7 +28,6 @@ from cblrs.runtime.matcher.retention import RetentionPolicy
 from cblrs.runtime.matcher.retrack import RetrackPolicy
 from cblrs.runtime.matcher.store import RuntimeStore
 from cblrs.runtime.matcher.tracker_process import Batch, TrackerProcess, TrackerProcessError
-from cblrs.runtime.outputs.alert_service import AlertService
 from cblrs.runtime.outputs.analytics_service import ServiceReporter
 from cblrs.runtime.transport.rate_limited import RateLimitedLog
 from cblrs.runtime.transport.topics import validate_camera_id
@@ -189,8 +188,12 @@ class _MatcherState:
             places=None if analytics is None else analytics.places, metrics=metrics,
             live_interval_s=live_interval_s,
         )
-        self.alerts: AlertService | None = None
+        self.alerts: Any = None  # an AlertService when the site has alert rules
         if alerts is not None and alerts.rules:
+            # lazy: the alerts' rule models (pydantic) cost a matcher without rules about
+            # 0.25 CPU-s to import, paid at every start
+            from cblrs.runtime.outputs.alert_service import AlertService
+
             # The opening hours that gate counting gate the places' alerts too.
             calendar = None if analytics is None else analytics.engine.config.calendar
             self.alerts = AlertService(transport, store, self.plane_id, self.camera_ids,
