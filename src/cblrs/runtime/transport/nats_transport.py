@@ -325,6 +325,12 @@ class NatsTransport(_NatsPublisher, _NatsConsumer, _NatsLease):
             return
         if self._connecting is not None:
             self._connecting.cancel()  # still connecting in the background: stop that
+        if self._nc is None:  # never connected: nothing can be taken or said now
+            if self.pending():
+                logger.warning("%s: closing with %d publishes never sent (no NATS server "
+                               "answered)", self.client_id, self.pending())
+            self._shutdown_loop()
+            return
         if not unclean:
             if self.will is not None and self._nc is not None:
                 self.publish(self.will.topic, self.will.payload, self.will.qos, self.will.retain)
@@ -577,4 +583,5 @@ async def _cancel_tasks() -> None:
     tasks = [task for task in asyncio.all_tasks() if task is not asyncio.current_task()]
     for task in tasks:
         task.cancel()
-    await asyncio.gather(*tasks, return_exceptions=True)
+    if tasks:  # bounded: a task that swallowed its cancellation must not hold the close
+        await asyncio.wait(tasks, timeout=2.0)
