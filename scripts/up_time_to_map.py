@@ -10,7 +10,6 @@ with tracks in it arrives, then stops the site with SIGINT (Ctrl-C) and times th
 from __future__ import annotations
 
 import argparse
-import http.cookiejar
 import json
 import os
 import signal
@@ -22,10 +21,16 @@ import urllib.request
 
 def first_tracks(url: str, timeout: float) -> list:
     """Rows of the first track update with tracks, read from the dashboard's live stream."""
-    opener = urllib.request.build_opener(
-        urllib.request.HTTPCookieProcessor(http.cookiejar.CookieJar()))
-    opener.open(url, timeout=10).read()  # the login link sets the session cookie
-    stream = opener.open(url.split("/login")[0] + "/api/stream", timeout=timeout)
+    # As the login link's page does: its token posted to /api/login, whose answer holds the
+    # session's page token; every request carries it beside the session cookie.
+    base = url.split("/login")[0]
+    login = urllib.request.urlopen(urllib.request.Request(
+        base + "/api/login", data=json.dumps({"token": url.split("token=", 1)[1]}).encode(),
+        headers={"Content-Type": "application/json", "Origin": base}), timeout=10)
+    session = {"Cookie": login.headers["Set-Cookie"].split(";")[0],
+               "X-CBLRS-Session": json.loads(login.read())["session"]}
+    stream = urllib.request.urlopen(urllib.request.Request(base + "/api/stream",
+                                                           headers=session), timeout=timeout)
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         line = stream.readline().decode()

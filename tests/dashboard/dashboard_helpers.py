@@ -1,7 +1,7 @@
 """Helpers the dashboard tests import by name (a module of its own: `from conftest import`
 finds whichever conftest.py pytest imported last, another folder's when folders are collected
 together): the test users, waiting for a condition, starting `cblrs`, site copies, clicked
-calibration points and logging a page in."""
+calibration points and logging a page in (by the form or the run's login link)."""
 
 from __future__ import annotations
 
@@ -87,6 +87,13 @@ def login(page, url: str, user: tuple[str, str], path: str = "") -> None:
     except PlaywrightTimeout:
         raise AssertionError(f"{user[0]} was not logged in: "
                              f"{page.inner_text('#login-message')!r}") from None
+
+
+def open_login_link(page, link: str) -> None:
+    """Open the run's login link (``.../login?token=...``) in ``page`` and wait until its
+    script has logged in (its page token kept) and left the login page."""
+    page.goto(link)
+    page.wait_for_url(lambda address: "/login" not in address, timeout=60_000)
 
 
 def self_signed(folder: Path) -> tuple[Path, Path]:

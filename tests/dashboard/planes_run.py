@@ -120,22 +120,24 @@ def request(url: str, path: str, method: str = "GET", headers: dict | None = Non
         connection.close()
 
 
-def log_in(url: str, user: tuple[str, str]) -> str:
-    """The session cookie of ``user`` (a login of the dashboard's users file)."""
+def log_in(url: str, user: tuple[str, str]) -> dict[str, str]:
+    """The headers of ``user``'s session (a login of the dashboard's users file): its cookie
+    and its page token."""
     status, headers, body = request(url, "/api/login", "POST", {
         "Content-Type": "application/json", "Origin": url.rstrip("/")},
         json.dumps({"user": user[0], "password": user[1]}))
     assert status == 200, body
-    return headers["set-cookie"].split(";")[0]
+    return {"Cookie": headers["set-cookie"].split(";")[0],
+            "X-CBLRS-Session": json.loads(body)["session"]}
 
 
 class Stream:
     """The dashboard's live stream read in a thread: every message, in order."""
 
-    def __init__(self, url: str, path: str, cookie: str):
+    def __init__(self, url: str, path: str, session: dict[str, str]):
         parts = urlsplit(url)
         self.connection = http.client.HTTPConnection(parts.hostname, parts.port, timeout=300)
-        self.connection.request("GET", path, headers={"Cookie": cookie})
+        self.connection.request("GET", path, headers=session)
         self.response = self.connection.getresponse()
         self.status = self.response.status
         self.messages: list[dict] = []

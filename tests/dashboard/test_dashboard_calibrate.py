@@ -17,7 +17,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import yaml
-from dashboard_helpers import ADMIN, login, wait_until
+from dashboard_helpers import ADMIN, login, open_login_link, wait_until
 
 from cblrs.cli.main import main
 from cblrs.reference import ReferenceImage
@@ -120,7 +120,7 @@ def test_calibration_page_zooms_pans_and_takes_typed_ground_points(multiviewx_si
     truth = load_site(multiviewx_site).camera(CAMERA).camera
     ground, pixels = spread_points(truth)
     served = start_dashboard("--site", str(multiviewx_site))
-    page.goto(served.link)  # no --users: the run's login link makes this page an admin
+    open_login_link(page, served.link)  # no --users: the run's login link makes this page an admin
     url = served.url
     page.goto(f"{url}calibrate?camera={CAMERA}")
     wait_until(lambda: page.evaluate("window.cblrsCalibrate.ready && "

@@ -62,8 +62,8 @@ def clients(site_path, users_file, tmp_path):
             answer = browser.post("/api/login", json={"user": user[0], "password": user[1]},
                                   headers={"Origin": ORIGIN})
             assert answer.status_code == 200, answer.text
-            csrf = browser.get("/api/session").json()["csrf"]
-            browser.headers.update({"Origin": ORIGIN, "X-CSRF-Token": csrf})
+            browser.headers.update({"Origin": ORIGIN,
+                                    "X-CBLRS-Session": answer.json()["session"]})
             made[user] = browser
         return made[user]
 
@@ -102,8 +102,8 @@ def test_cross_site_and_non_json_saves_are_refused(clients, site_path):
     refusals = [
         (admin.post("/api/places/save", json=body, headers={"Origin": "http://evil.example"}),
          403, "another site"),
-        (admin.post("/api/places/save", json=body, headers={"X-CSRF-Token": "x" * 43}),
-         403, "CSRF"),
+        (admin.post("/api/places/save", json=body, headers={"X-CBLRS-Session": "x" * 43}),
+         401, "X-CBLRS-Session"),
         (admin.post("/api/places/save", content=yaml.safe_dump(body),
                     headers={"Content-Type": "text/plain"}), 415, "application/json"),
     ]

@@ -149,8 +149,8 @@ def test_the_overview_shows_every_plane_with_global_ids(run, tmp_path):
     status, headers, _ = request(url, "/")
     assert status in (302, 303, 307) and "/login" in headers["location"]
 
-    cookie = log_in(url, VIEWER)
-    overview = Stream(url, "/api/stream?plane=all", cookie)
+    session = log_in(url, VIEWER)
+    overview = Stream(url, "/api/stream?plane=all", session)
     assert overview.status == 200
     try:
         for plane in PLANES:
@@ -205,7 +205,7 @@ def test_the_overview_shows_every_plane_with_global_ids(run, tmp_path):
     assert healthy == set(camera_names(scenes))
 
     # A plane's own stream holds that plane only (and its page is the plane's map).
-    plane_two = Stream(url, "/api/stream?plane=2", cookie)
+    plane_two = Stream(url, "/api/stream?plane=2", session)
     try:
         messages = plane_two.wait(lambda items: any(item["type"] == "tracks" for item in items),
                                   WAIT, "plane 2's held track frame")
@@ -213,11 +213,11 @@ def test_the_overview_shows_every_plane_with_global_ids(run, tmp_path):
         plane_two.close()
     assert messages[0] == {"type": "hello", "mode": "live", "plane": 2, "planes": [1, 2]}
     assert {item["plane"] for item in messages[1:]} == {2}
-    status, _, body = request(url, "/?plane=2", headers={"Cookie": cookie})
+    status, _, body = request(url, "/?plane=2", headers=session)
     assert status == 200 and b'id="places-editor"' in body
-    status, _, body = request(url, "/", headers={"Cookie": cookie})
+    status, _, body = request(url, "/", headers=session)
     assert status == 200 and b"overview.js" in body
-    assert request(url, "/api/stream?plane=7", headers={"Cookie": cookie})[0] == 404
+    assert request(url, "/api/stream?plane=7", headers=session)[0] == 404
 
     if backbone.kind == "nats":
         # The viewer of this site asks for another site's subjects: the servers refuse it.

@@ -18,7 +18,7 @@ import secrets
 import time
 
 import pytest
-from dashboard_helpers import wait_until
+from dashboard_helpers import open_login_link, wait_until
 from planes_run import city_two_planes
 
 from cblrs.dashboard.app import DashboardConfig, create_app
@@ -76,7 +76,7 @@ def test_the_overview_page_shows_every_plane_and_names_as_text(
         url = serve_app(create_app(config, Authenticator(run_token=token)))
         dialogs: list[str] = []
         page.on("dialog", lambda dialog: (dialogs.append(dialog.message), dialog.dismiss()))
-        page.goto(f"{url}login?token={token}")
+        open_login_link(page, f"{url}login?token={token}")
         wait_until(lambda: page.evaluate("window.cblrsOverview && window.cblrsOverview()"
                                          ".connected"), 60, "the overview's live stream")
         for plane in (1, 2):

@@ -2,8 +2,9 @@
 in its own process) with a users file, spoken to over real sockets.
 
 Anonymous requests, a viewer saving, cross-site writes (another origin, ``text/plain``,
-forms, no CSRF token), a forged Host (DNS rebinding), a non-loopback bind without users,
-and the legitimate admin save with the session's token. Session expiry and the login
+forms, no page token), the session cookie without its page token, a forged Host (DNS
+rebinding), a non-loopback bind without users, and the legitimate admin save with the
+session's cookie and page token. Session expiry and the login
 back-off are tested in-process with a clock the test moves (no test waits on a timer).
 """
 
@@ -64,7 +65,7 @@ def other_port(url: str) -> str:
 
 
 class Browser:
-    """A logged-in client: the session cookie and its CSRF token."""
+    """A logged-in client: the session cookie and the page token the login answered."""
 
     def __init__(self, url: str, user: tuple[str, str]):
         self.url = url
@@ -74,21 +75,28 @@ class Browser:
         assert status == 200, body
         self.set_cookie = headers["set-cookie"]
         self.cookie = self.set_cookie.split(";")[0]
-        status, _, body = call(url, "/api/session", headers={"Cookie": self.cookie})
+        self.token = json.loads(body)["session"]
+        self.headers = {"Cookie": self.cookie, "X-CBLRS-Session": self.token}
+        status, _, body = call(url, "/api/session", headers=self.headers)
         assert status == 200, body
         self.session = json.loads(body)
 
-    def get(self, path: str) -> tuple[int, dict[str, str], bytes]:
-        return call(self.url, path, headers={"Cookie": self.cookie})
+    def get(self, path: str, token: str | None = "session") -> tuple[int, dict[str, str], bytes]:
+        return call(self.url, path, headers=self.with_token(token))
+
+    def with_token(self, token: str | None) -> dict[str, str]:
+        """The cookie, and the page token (``"session"``: the login's; None: none)."""
+        headers = {"Cookie": self.cookie}
+        if token is not None:
+            headers["X-CBLRS-Session"] = self.token if token == "session" else token
+        return headers
 
     def post(self, path: str, body: str, content_type: str = "application/json",
-             origin_header: str | None = "same", csrf: str | None = "session",
+             origin_header: str | None = "same", token: str | None = "session",
              referer: str | None = None) -> tuple[int, dict[str, str], bytes]:
-        headers = {"Cookie": self.cookie, "Content-Type": content_type}
+        headers = {**self.with_token(token), "Content-Type": content_type}
         if origin_header is not None:
             headers["Origin"] = origin(self.url) if origin_header == "same" else origin_header
-        if csrf is not None:
-            headers["X-CSRF-Token"] = self.session["csrf"] if csrf == "session" else csrf
         if referer is not None:
             headers["Referer"] = referer
         return call(self.url, path, "POST", headers, body)
@@ -205,9 +213,17 @@ def test_session_cookie_flags_roles_and_logout(shared, wildtrack_site):
     flags = [part.strip().lower() for part in viewer.set_cookie.split(";")]
     assert "httponly" in flags and "samesite=strict" in flags and "path=/" in flags
     assert "secure" not in flags  # plain HTTP on loopback; over TLS the cookie is Secure
-    assert viewer.session["role"] == "viewer" and len(viewer.session["csrf"]) >= 32
+    assert viewer.session == {"user": VIEWER[0], "role": "viewer", "via": "session"}
+    assert len(viewer.token) >= 32 and viewer.token not in viewer.cookie
     assert viewer.get("/api/site")[0] == 200
     assert viewer.get("/")[0] == 200
+    # The cookie alone (or with another token) is nobody for the API; the page itself (a
+    # static file) it may have.
+    for token in (None, "x" * 43, viewer.cookie.split("=", 1)[1]):
+        for path in API:
+            status, _, body = viewer.get(path, token)
+            assert status == 401 and b"X-CBLRS-Session" in body, (path, token)
+    assert viewer.get("/", None)[0] == 200
     # A viewer sees, and cannot calibrate: 403 even with the token, same origin, JSON.
     before = own_site.read_bytes()
     status, _, body = viewer.post("/api/calibrate/save", json.dumps(calibration_points(own_site)))
@@ -217,7 +233,7 @@ def test_session_cookie_flags_roles_and_logout(shared, wildtrack_site):
     assert viewer.get("/calibrate")[0] == 403
     assert own_site.read_bytes() == before
     # Logging out needs the token too, and ends the session for good.
-    assert viewer.post("/api/logout", "{}", csrf=None)[0] == 403
+    assert viewer.post("/api/logout", "{}", token=None)[0] == 401
     status, headers, _ = viewer.post("/api/logout", "{}")
     assert status == 200 and "max-age=0" in headers["set-cookie"].lower()
     assert viewer.get("/api/site")[0] == 401
@@ -248,8 +264,10 @@ def test_cross_site_writes_are_refused_and_the_admin_saves(dashboard, own_site, 
          "another site"),
         ("JSON without Origin or Referer", admin.post(save, body, origin_header=None), 403,
          "without Origin"),
-        ("JSON without the CSRF token", admin.post(save, body, csrf=None), 403, "CSRF"),
-        ("JSON with another token", admin.post(save, body, csrf="x" * 43), 403, "CSRF"),
+        ("JSON without the page token", admin.post(save, body, token=None), 401,
+         "X-CBLRS-Session"),
+        ("JSON with another token", admin.post(save, body, token="x" * 43), 401,
+         "X-CBLRS-Session"),
         ("an origin of the same host on another port",
          admin.post(save, body, origin_header=other_port(dashboard)), 403,
          "another site"),
@@ -279,9 +297,9 @@ def test_api_tokens_and_users_file_changes(own_site, users_file, start_dashboard
     bearer = {"Authorization": f"Bearer {token}"}
     status, _, body = call(url, "/api/session", headers=bearer)
     assert status == 200 and json.loads(body) == {"user": ADMIN[0], "role": "admin",
-                                                  "csrf": None, "via": "token"}
+                                                  "via": "token"}
     assert call(url, "/api/session", headers={"Authorization": f"Bearer {token}x"})[0] == 401
-    # A script with a token needs no CSRF token (no browser sends it on its own), but
+    # A script with a token needs no session page token (no browser sends it on its own), but
     # still JSON, and never from another origin.
     json_type = {**bearer, "Content-Type": "application/json"}
     status, _, body = call(url, "/api/calibrate/fit", "POST", json_type, json.dumps(
@@ -364,13 +382,18 @@ def test_login_back_off_and_session_expiry_in_process(wildtrack_site, users_file
     app = create_app(DashboardConfig(wildtrack_site, 1, references=tmp_path / "r"), auth)
     client = TestClient(app, base_url="http://127.0.0.1")
     origin_header = {"Origin": "http://127.0.0.1"}
-    assert client.post("/api/login", json={"user": VIEWER[0], "password": VIEWER[1]},
-                       headers=origin_header).status_code == 200
+
+    def log_in() -> None:
+        answer = client.post("/api/login", json={"user": VIEWER[0], "password": VIEWER[1]},
+                             headers=origin_header)
+        assert answer.status_code == 200
+        client.headers["X-CBLRS-Session"] = answer.json()["session"]
+
+    log_in()
     assert client.get("/api/site").status_code == 200
     now[0] += 31.0  # idle too long
     assert client.get("/api/site").status_code == 401
-    assert client.post("/api/login", json={"user": VIEWER[0], "password": VIEWER[1]},
-                       headers=origin_header).status_code == 200
+    log_in()
     for _ in range(4):  # requests keep it alive ...
         now[0] += 25.0
         assert client.get("/api/site").status_code == 200
@@ -417,11 +440,26 @@ def test_without_users_the_run_link_is_the_only_way_in(own_site, start_dashboard
     token = served.link.split("token=", 1)[1]
     assert call(served.url, "/api/site")[0] == 401
     assert call(served.url, "/login?token=" + "x" * len(token))[0] == 401
-    status, headers, _ = call(served.url, "/login?token=" + token + "&next=//evil.example/")
-    assert status == 303 and headers["location"] == "/"  # never to another site
-    cookie = headers["set-cookie"].split(";")[0]
-    status, _, body = call(served.url, "/api/session", headers={"Cookie": cookie})
+    # The link's page opens no session itself: its script posts the token (the browser test
+    # is in test_dashboard_redirect_browser.py); the answer holds the page token.
+    status, headers, _ = call(served.url, "/login?token=" + token)
+    assert status == 200 and "set-cookie" not in headers
+    json_type = {"Content-Type": "application/json", "Origin": origin(served.url)}
+    status, _, body = call(served.url, "/api/login", "POST", json_type,
+                           json.dumps({"token": "x" * len(token)}))
+    assert status == 401 and "login link is not valid" in json.loads(body)["error"]
+    status, headers, body = call(served.url, "/api/login", "POST", json_type,
+                                 json.dumps({"token": token}))
+    assert status == 200
+    session = {"Cookie": headers["set-cookie"].split(";")[0],
+               "X-CBLRS-Session": json.loads(body)["session"]}
+    status, _, body = call(served.url, "/api/session", headers=session)
     assert status == 200 and json.loads(body)["role"] == "admin"
+    assert call(served.url, "/api/session", headers={"Cookie": session["Cookie"]})[0] == 401
+    # The run's token is also the admin's API token (scripts).
+    status, _, body = call(served.url, "/api/session",
+                           headers={"Authorization": f"Bearer {token}"})
+    assert status == 200 and json.loads(body)["via"] == "token"
     status, _, body = call(served.url, "/api/login", "POST", {
         "Content-Type": "application/json", "Origin": origin(served.url)},
         json.dumps({"user": "admin", "password": "any-password-1"}))
@@ -479,20 +517,21 @@ def test_over_tls_the_cookie_is_secure(own_site, users_file, start_dashboard, tm
             connection.close()
 
     https_origin = f"https://127.0.0.1:{port}"
-    status, headers, _ = tls_call("/api/login", "POST", {
+    status, headers, body = tls_call("/api/login", "POST", {
         "Content-Type": "application/json", "Origin": https_origin},
         json.dumps({"user": VIEWER[0], "password": VIEWER[1]}))
     assert status == 200
+    token = json.loads(body)["session"]
     cookie = headers["set-cookie"]
     flags = [part.strip().lower() for part in cookie.split(";")]
     assert cookie.startswith("__Host-cblrs_session=") and "secure" in flags
     assert "httponly" in flags and "samesite=strict" in flags
-    session = {"Cookie": cookie.split(";")[0]}
+    session = {"Cookie": cookie.split(";")[0], "X-CBLRS-Session": token}
     assert tls_call("/api/site", headers=session)[0] == 200
-    csrf = json.loads(tls_call("/api/session", headers=session)[2])["csrf"]
+    assert tls_call("/api/site", headers={"Cookie": session["Cookie"]})[0] == 401
     # The same host and port over plain HTTP is another origin.
     status, _, _ = tls_call("/api/logout", "POST", {
-        **session, "Content-Type": "application/json", "X-CSRF-Token": csrf,
+        **session, "Content-Type": "application/json",
         "Origin": f"http://127.0.0.1:{port}"}, "{}")
     assert status == 403
     with pytest.raises((http.client.HTTPException, ConnectionError, OSError)):
@@ -527,7 +566,7 @@ def test_a_viewer_never_learns_the_servers_paths(own_site, users_file, start_das
     parts = urlsplit(served.url)
     connection = http.client.HTTPConnection(parts.hostname, parts.port, timeout=60)
     try:
-        connection.request("GET", "/api/replay", headers={"Cookie": viewer.cookie})
+        connection.request("GET", "/api/replay", headers=viewer.headers)
         response = connection.getresponse()
         first = response.fp.readline()
         answers.append((response.status, {}, first))

@@ -25,7 +25,15 @@ import time
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 
 import pytest
-from dashboard_helpers import ADMIN, VIEWER, calibration_points, login, site_copy, wait_until
+from dashboard_helpers import (
+    ADMIN,
+    VIEWER,
+    calibration_points,
+    login,
+    open_login_link,
+    site_copy,
+    wait_until,
+)
 
 from cblrs.dashboard.app import DashboardConfig, create_app
 from cblrs.dashboard.auth import Authenticator
@@ -90,7 +98,7 @@ def test_hostile_names_reach_the_page_as_text(wildtrack_site, tmp_path, monkeypa
         console: list[str] = []
         page.on("dialog", lambda dialog: (dialogs.append(dialog.message), dialog.dismiss()))
         page.on("console", lambda message: console.append(message.text))
-        page.goto(f"{url}login?token={token}")
+        open_login_link(page, f"{url}login?token={token}")
         wait_until(lambda: page.evaluate("window.cblrsStats && window.cblrsStats.connected"),
                    30, "the page's live stream")
 

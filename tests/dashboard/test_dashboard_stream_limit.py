@@ -12,7 +12,8 @@ from dashboard_helpers import ADMIN, VIEWER, wait_until
 from cblrs.dashboard.app import STREAMS_PER_USER
 
 
-def _login(url: str, user: tuple[str, str]) -> str:
+def _login(url: str, user: tuple[str, str]) -> dict[str, str]:
+    """The headers of a new session of ``user``: its cookie and its page token."""
     parts = urlsplit(url)
     connection = http.client.HTTPConnection(parts.hostname, parts.port, timeout=120)
     try:
@@ -23,18 +24,20 @@ def _login(url: str, user: tuple[str, str]) -> str:
             {"Content-Type": "application/json", "Origin": url.rstrip("/")},
         )
         response = connection.getresponse()
-        response.read()
+        answer = json.loads(response.read())
         assert response.status == 200
-        return response.getheader("set-cookie").split(";")[0]
+        return {"Cookie": response.getheader("set-cookie").split(";")[0],
+                "X-CBLRS-Session": answer["session"]}
     finally:
         connection.close()
 
 
-def _open_stream(url: str, cookie: str) -> tuple[int, http.client.HTTPConnection, bytes]:
+def _open_stream(url: str, session: dict[str, str]
+                 ) -> tuple[int, http.client.HTTPConnection, bytes]:
     """Ask for the live stream; (status, the open connection, the body of a refusal)."""
     parts = urlsplit(url)
     connection = http.client.HTTPConnection(parts.hostname, parts.port, timeout=60)
-    connection.request("GET", "/api/stream", headers={"Cookie": cookie})
+    connection.request("GET", "/api/stream", headers=session)
     response = connection.getresponse()
     body = b"" if response.status == 200 else response.read()
     return response.status, connection, body
@@ -63,8 +66,8 @@ def test_a_viewer_cannot_open_streams_without_limit(
             status, connection, _ = _open_stream(url, viewer)
             held.append(connection)
             assert status == 200
-        for cookie in (viewer, again):
-            status, connection, body = _open_stream(url, cookie)
+        for session in (viewer, again):
+            status, connection, body = _open_stream(url, session)
             connection.close()
             assert status == 429
             assert json.loads(body)["error"] == (

@@ -5,7 +5,11 @@ a deliberately slow tracker, in process).
 
 from __future__ import annotations
 
+import subprocess
+import sys
+import textwrap
 import time
+from pathlib import Path
 
 import numpy as np
 from waiting import wait_until
@@ -114,3 +118,45 @@ def test_item5_stopping_with_a_backlog_is_prompt_and_the_restart_tracks_it(tmp_p
     finally:
         resumed.close()
         undisturbed.close()
+
+
+_LEFT_RUNNING = textwrap.dedent("""
+    import sys, time
+    sys.path[:0] = [{tests!r}, {here!r}]
+    from waiting import wait_until
+    from test_runtime_fault_tracks_backlog import _SlowMatcher, _publish_groups
+    from cblrs.runtime.matcher.matcher_service import MatcherService
+    from cblrs.runtime.matcher.store import RuntimeStore
+    from cblrs.runtime.transport.inprocess import InProcessBroker, InProcessTransport
+
+    broker, store = InProcessBroker(), RuntimeStore({database!r})
+    service = MatcherService(InProcessTransport(broker, "matcher"), store, _SlowMatcher(0.2),
+                             1, ["A", "B"], window_s=60)
+    service.start()
+    _publish_groups(broker, time.time(), 300)
+    wait_until(lambda: store.counters().get("groups", 0) >= 5, 60, "tracking to begin")
+    print("tracking", flush=True)
+    raise SystemExit(3)  # an error on the way out: the service is never closed
+""")
+
+
+def test_a_program_that_exits_without_closing_its_service_does_not_hang(tmp_path):
+    """The tracker process ignores SIGTERM (the service decides when it stops), which made
+    multiprocessing's exit handler wait for it forever when a program left without closing
+    its service; it now ends within seconds, with the program's own exit code, and what it
+    had not committed stays pending for a restart."""
+    here = Path(__file__).parent
+    script = _LEFT_RUNNING.format(tests=str(here.parent), here=str(here),
+                                  database=str(tmp_path / "left.db"))
+    try:
+        done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                              timeout=90)
+    except subprocess.TimeoutExpired:
+        raise AssertionError("the program hung at exit (its tracker process was left "
+                             "running)") from None
+    assert done.stdout.strip() == "tracking", done.stderr
+    assert done.returncode == 3, done.stderr
+    assert "was not stopped before the program's exit" in done.stderr
+    assert "Traceback" not in done.stderr, done.stderr
+    with RuntimeStore(tmp_path / "left.db", read_only=True) as store:
+        assert store.status_counts().get(PENDING, 0) > 0, "the backlog should stay pending"

@@ -23,3 +23,29 @@ def wait_until(predicate: Callable[[], object], timeout: float, what: str) -> No
             raise AssertionError(f"timed out after {timeout} s waiting for {what}")
         time.sleep(pause)
         pause = min(LAST_POLL_S, pause * 1.25)
+
+
+def wait_while_progressing(
+    predicate: Callable[[], object], progress: Callable[[], object], stall_s: float, what: str
+) -> None:
+    """Poll ``predicate`` like :func:`wait_until`, for as long as ``progress()`` keeps changing;
+    fail the test with ``what`` once it has not changed for ``stall_s`` seconds.
+
+    For waits whose length is CPU work on a shared machine (tracking a backlog): a loaded
+    machine makes them slower, never stuck, while a stall (a lost wake-up, a retry waiting
+    for a timer) still fails within ``stall_s``. ``progress`` must be made of counts that
+    only grow and are bounded (messages stored, messages tracked), so the wait ends.
+    """
+    seen = progress()
+    changed = time.monotonic()
+    pause = FIRST_POLL_S
+    while not predicate():
+        now = progress()
+        if now != seen:
+            seen, changed = now, time.monotonic()
+        elif time.monotonic() - changed > stall_s:
+            raise AssertionError(
+                f"no progress for {stall_s:g} s (still at {seen}) waiting for {what}"
+            )
+        time.sleep(pause)
+        pause = min(LAST_POLL_S, pause * 1.25)

@@ -50,15 +50,19 @@ def run_up(site: Path, out: Path, *extra: str, timeout: float = 120,
 
 
 def first_tracks_on_the_map(url: str, timeout: float) -> list:
-    """Log in with the dashboard's link and read its live stream until a track update with
-    tracks in it arrives; its rows."""
-    import http.cookiejar
+    """Log in with the dashboard's link as its login page does (the link's token posted to
+    /api/login: a session cookie and its page token), and read its live stream until a track
+    update with tracks in it arrives; its rows."""
     import urllib.request
 
-    opener = urllib.request.build_opener(
-        urllib.request.HTTPCookieProcessor(http.cookiejar.CookieJar()))
-    opener.open(url, timeout=10).read()  # the login link sets the session cookie
-    stream = opener.open(url.split("/login")[0] + "/api/stream", timeout=timeout)
+    base = url.split("/login")[0]
+    login = urllib.request.urlopen(urllib.request.Request(
+        base + "/api/login", data=json.dumps({"token": url.split("token=", 1)[1]}).encode(),
+        headers={"Content-Type": "application/json", "Origin": base}), timeout=10)
+    session = {"Cookie": login.headers["Set-Cookie"].split(";")[0],
+               "X-CBLRS-Session": json.loads(login.read())["session"]}
+    stream = urllib.request.urlopen(urllib.request.Request(base + "/api/stream",
+                                                           headers=session), timeout=timeout)
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         line = stream.readline().decode()

@@ -12,6 +12,7 @@ cluster.
 from __future__ import annotations
 
 import argparse
+import logging
 from typing import Any
 
 from cblrs.cli.common import UsageError
@@ -70,6 +71,9 @@ def add_backbone_options(parser: argparse.ArgumentParser, matcher: bool) -> None
         "beyond, a camera's publishes are refused until retention makes room (default: "
         "--retention-hours x 30 a second; docs/security.md, 'Stream limits')",
     )
+
+
+logger = logging.getLogger(__name__)
 
 
 def uses_nats(args: argparse.Namespace) -> bool:
@@ -152,3 +156,22 @@ def camera_transport(args: argparse.Namespace, client_id: str) -> Any:
     from cblrs.runtime.transport.nats_transport import NatsTransport
 
     return NatsTransport(client_id, nats_settings(args))
+
+
+def connect_or_spool(transport: Any, where: str) -> None:
+    """Start a camera's NATS connection in the background; if it is not up within a few
+    seconds, say why (refused, no answer, TLS) at once and go on: messages wait ``where``
+    and are sent, in order, once a server answers (as :func:`~cblrs.cli.mqtt_options.
+    connect_or_queue` does on MQTT).
+
+    Raises:
+        TransportError: the servers refused the login (an error, as MQTT's refusal is).
+    """
+    settings = transport.settings
+    logger.info("%s: connecting to the NATS servers at %s", transport.client_id,
+                ", ".join(settings.servers))
+    transport.connect(wait=False)
+    problem = transport.wait_connected(settings.connect_timeout_s + 1.0)
+    if problem is not None:
+        logger.warning("%s. Messages wait %s; connecting again every %g s in the background.",
+                       problem.rstrip("."), where, settings.reconnect_wait_s)

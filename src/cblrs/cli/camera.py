@@ -10,7 +10,12 @@ import time
 from pathlib import Path
 from typing import Any
 
-from cblrs.cli.backbone import add_backbone_options, camera_transport, uses_nats
+from cblrs.cli.backbone import (
+    add_backbone_options,
+    camera_transport,
+    connect_or_spool,
+    uses_nats,
+)
 from cblrs.cli.common import InputError, UsageError, add_output_options, print_json
 from cblrs.cli.mqtt_options import add_mqtt_options, connect_or_queue, mqtt_settings
 from cblrs.cli.stopping import Interrupted
@@ -129,7 +134,11 @@ def register(subparsers) -> None:
         action="store_true",
         help="pace by the recorded timestamps (default for files: as fast as possible)",
     )
-    timing.add_argument("--speed", type=float, default=1.0, help="with --realtime: speed-up")
+    timing.add_argument(
+        "--speed", type=float, default=1.0,
+        help="with --realtime: speed-up. Capture times are divided by it, so the matcher sees "
+        "everyone move SPEED times faster and its tracks differ from the recording's (a load "
+        "test); for the recording's own tracks, replay without --realtime")
     timing.add_argument(
         "--epoch",
         type=float,
@@ -439,7 +448,12 @@ def _run(args: argparse.Namespace, signals: Any, held: dict[str, Any]) -> int:
     started = time.perf_counter()
     try:
         # A signal while connecting (a broker that does not answer) ends it at once.
-        connect_or_queue(transport, f"in the spool {spool_path}")
+        if nats:
+            # A login the servers refuse later (they were away at first) stops the node.
+            transport.on_failure = node.fail
+            connect_or_spool(transport, f"in the spool {spool_path}")
+        else:
+            connect_or_queue(transport, f"in the spool {spool_path}")
         signals.arm(node.stop)
         held["sending"] = True
         report = node.run(frames, connect=False)

@@ -55,7 +55,9 @@ def register(subparsers) -> None:
                         help="replay sources as fast as possible (default: paced by their "
                         "timestamps, like live cameras)")
     parser.add_argument("--speed", type=float, default=None,
-                        help="speed-up of paced replays (default 1; a restart keeps its run's)")
+                        help="speed-up of paced replays (default 1; a restart keeps its run's). "
+                        "The matcher then sees everyone move SPEED times faster, so its tracks "
+                        "differ from the recording's; --fast keeps the recorded times")
     parser.add_argument("--run-as", metavar="USER",
                         help="the user Mosquitto runs as when started as root (default: "
                         "mosquitto)")

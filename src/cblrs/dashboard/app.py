@@ -14,7 +14,8 @@ Pages (static files shipped with the package, no build step, nothing fetched fro
 * ``/calibrate`` — a camera's frame beside the site map: click point pairs, see each
   point's reprojection error live, save to the site file and render the reference.
 
-API (JSON, and Server-Sent Events for the streams):
+API (JSON, and Server-Sent Events for the streams, which the pages read with ``fetch``: an
+``EventSource`` cannot send the page token):
 
 * ``GET /api/site``, ``GET /api/site?plane=N|all`` — the site as drawn
   (:func:`cblrs.dashboard.scene.site_scene`);
@@ -31,7 +32,8 @@ API (JSON, and Server-Sent Events for the streams):
 * ``GET /api/places`` (viewers may read), ``POST /api/places/save`` (admins) — the map's
   places editor (:mod:`cblrs.dashboard.places_editor`);
 * ``GET /login``, ``POST /api/login``, ``POST /api/logout``, ``GET /api/session`` — logging
-  in and out, and who the page's user is (with the session's CSRF token).
+  in (the answer holds the session's page token, which every later request carries in
+  ``X-CBLRS-Session`` beside the cookie) and out, and who the page's user is.
 
 Who may do what (:mod:`cblrs.dashboard.auth`): ``/login``, ``/healthz`` and ``/static``
 are open; every other route needs a viewer, and the calibration page and its API, and saving
@@ -150,7 +152,6 @@ def create_app(config: DashboardConfig, auth: Any) -> Any:
         from starlette.responses import (
             FileResponse,
             JSONResponse,
-            RedirectResponse,
             Response,
             StreamingResponse,
         )
@@ -161,7 +162,6 @@ def create_app(config: DashboardConfig, auth: Any) -> Any:
             LoginRefused,
             SecurityMiddleware,
             requires,
-            safe_next,
         )
     except ImportError:  # pragma: no cover - depends on the environment
         raise CblrsError(
@@ -221,19 +221,31 @@ def create_app(config: DashboardConfig, auth: Any) -> Any:
     # -- logging in -----------------------------------------------------------------------
 
     async def login_page(request: Any) -> Any:
+        # The run's login link (?token=...): the page posts the token to /api/login, whose
+        # answer alone holds the session's page token; an invalid link is told at once.
         token = request.query_params.get("token")
-        if token is None:
-            return FileResponse(STATIC / "login.html")
-        identity = auth.login_with_run_token(token)
-        if identity is None:
+        if token is not None and not auth.is_run_token(token):
             return FileResponse(STATIC / "login.html", status_code=401)
-        response = RedirectResponse(safe_next(request.query_params.get("next")), 303)
+        return FileResponse(STATIC / "login.html")
+
+    def logged_in(identity: Any) -> Any:
+        """The answer to a login: the session's cookie, and its page token (given here only:
+        the page keeps it in its origin's sessionStorage and sends it on every request)."""
+        response = JSONResponse({"user": identity.user, "role": identity.role.label,
+                                 "session": identity.page_token})
         auth.set_cookie(response, identity)
         return response
 
     async def login(request: Any) -> Any:
         try:
             data = await request.json()
+            if isinstance(data, dict) and set(data) == {"token"}:
+                identity = auth.login_with_run_token(str(data["token"]))
+                if identity is None:
+                    return JSONResponse({"error": "this login link is not valid: it changes "
+                                                  "each time the dashboard starts."},
+                                        status_code=401)
+                return logged_in(identity)
             name, password = str(data["user"]), str(data["password"])
         except (ValueError, KeyError, TypeError):
             return JSONResponse({"error": "give user and password."}, status_code=400)
@@ -246,9 +258,7 @@ def create_app(config: DashboardConfig, auth: Any) -> Any:
                        if refused.status == 429 else None)
             return JSONResponse({"error": str(refused)}, status_code=refused.status,
                                 headers=headers)
-        response = JSONResponse({"user": identity.user, "role": identity.role.label})
-        auth.set_cookie(response, identity)
-        return response
+        return logged_in(identity)
 
     @requires(viewer)
     async def logout(request: Any) -> Any:
@@ -261,7 +271,7 @@ def create_app(config: DashboardConfig, auth: Any) -> Any:
     async def session(request: Any) -> Any:
         identity = request.state.identity
         return JSONResponse({"user": identity.user, "role": identity.role.label,
-                             "csrf": identity.csrf, "via": identity.via})
+                             "via": identity.via})
 
     # -- the map --------------------------------------------------------------------------
 

@@ -4,9 +4,22 @@ Every route but ``/login``, ``/healthz`` and the static files needs an identity
 (:meth:`Authenticator.identify`):
 
 * a **session**: ``POST /api/login`` with a user's name and password from the users file
-  (:mod:`cblrs.dashboard.users`) opens one; its id travels in a cookie that scripts cannot
-  read (``HttpOnly``), that no other site's page sends (``SameSite=Strict``) and, over TLS,
-  that is never sent in clear (``Secure``, ``__Host-`` name). A session ends at logout, after
+  (:mod:`cblrs.dashboard.users`), or with the run's login link token, opens one. It has two
+  secrets, and every API request of a browser must carry both:
+
+  - its id, in a cookie that scripts cannot read (``HttpOnly``), that no other site's page
+    sends (``SameSite=Strict``) and, over TLS, that is never sent in clear (``Secure``,
+    ``__Host-`` name);
+  - its **page token**, in the ``X-CBLRS-Session`` header (:data:`SESSION_HEADER`). Only the
+    login's answer holds it; the page keeps it in ``sessionStorage``, which belongs to the
+    page's origin (scheme, host *and port*).
+
+  The cookie alone is worth nothing: browsers send a host's cookies to every port of that
+  host, so a server on another port that the user visits receives it; it cannot have the
+  page token (no answer hands it out again, and another port's page cannot read the
+  dashboard's storage). The page routes themselves (``/``, ``/calibrate``) take the cookie
+  alone (:meth:`Authenticator.identify_page`): they serve static files, no data, and send a
+  browser without a session to the login page. A session ends at logout, after
   :attr:`Authenticator.session_s` (absolute) or :attr:`~Authenticator.idle_s` without a
   request, and as soon as its user's role, password or tokens change in the users file;
 * an **API token** (``Authorization: Bearer <token>``): a user's token from the users file,
@@ -18,9 +31,10 @@ decorator every endpoint uses (``@requires(Role.ADMIN)``); it answers 401 to nob
 (a page: a redirect to the login page) and 403 to a role too low.
 
 Cross-site requests: a state-changing request (any method but GET/HEAD/OPTIONS) made with a
-session must come from the dashboard's own origin (``Origin``, else ``Referer``) and carry
-the session's CSRF token in ``X-CSRF-Token`` (the page reads it from ``/api/session``, which
-no other origin can read); :class:`SecurityMiddleware` refuses any such request whose body is
+session must come from the dashboard's own origin (``Origin``, else ``Referer``); the page
+token does the work of a CSRF token as well (another site's page can neither know it nor
+send a custom header without a CORS permission that is never given);
+:class:`SecurityMiddleware` refuses any such request whose body is
 not JSON (415: forms and ``text/plain`` are what a foreign page can send without asking),
 and adds the headers that keep the page to itself (a strict Content-Security-Policy with no
 inline script, ``frame-ancestors 'none'``, ``nosniff``, ``Referrer-Policy``). Bound to a
@@ -55,7 +69,8 @@ from cblrs.dashboard.users import Role, User, UsersError, UsersFile, verify_pass
 logger = logging.getLogger(__name__)
 
 SAFE_METHODS = frozenset({"GET", "HEAD", "OPTIONS"})
-CSRF_HEADER = "x-csrf-token"
+SESSION_HEADER = "x-cblrs-session"
+"""The header that carries a browser session's page token on every API request."""
 MAX_BODY_BYTES = 1 << 20
 MAX_SESSIONS = 10_000
 
@@ -82,10 +97,11 @@ class Identity:
     Attributes:
         user: the user's name.
         role: what they may do.
-        via: ``"session"`` (a browser's cookie) or ``"token"`` (an API token).
+        via: ``"session"`` (a browser's cookie and page token) or ``"token"`` (an API token).
         stamp: the user's record when the identity was made (:attr:`User.stamp`).
-        session: the session id (sessions only).
-        csrf: the session's CSRF token (sessions only).
+        session: the session id, the cookie's value (sessions only).
+        page_token: the session's page token, the ``X-CBLRS-Session`` header's value
+            (sessions only; handed out once, in the login's answer).
         created: when the session was opened (monotonic seconds).
         last_seen: the session's last request (monotonic seconds).
     """
@@ -95,7 +111,7 @@ class Identity:
     via: str
     stamp: str
     session: str | None = None
-    csrf: str | None = None
+    page_token: str | None = None
     created: float = 0.0
     last_seen: float = 0.0
 
@@ -243,10 +259,30 @@ class Authenticator:
 
     # ------------------------------------------------------------------ identify
     def identify(self, request: Request) -> Identity | None:
-        """The request's identity (bearer token or session cookie), or None."""
+        """The request's identity, or None: a bearer token, or a session's cookie together
+        with its page token (``X-CBLRS-Session``); a cookie alone is nobody."""
         header = request.headers.get("authorization", "")
         if header[:7].lower() == "bearer ":
             return self._from_token(header[7:].strip())
+        identity = self._from_cookie(request)
+        if identity is None:
+            return None
+        given = request.headers.get(SESSION_HEADER, "")
+        if not given or not hmac.compare_digest(given.encode(),
+                                                (identity.page_token or "").encode()):
+            return None
+        return identity
+
+    def identify_page(self, request: Request) -> Identity | None:
+        """The session of the request's cookie alone, or None: for the page routes only,
+        which serve static files (every request for data needs :meth:`identify`); a bearer
+        token as in :meth:`identify`."""
+        header = request.headers.get("authorization", "")
+        if header[:7].lower() == "bearer ":
+            return self._from_token(header[7:].strip())
+        return self._from_cookie(request)
+
+    def _from_cookie(self, request: Request) -> Identity | None:
         session_id = request.cookies.get(self.cookie_name)
         if not session_id:
             return None
@@ -329,6 +365,11 @@ class Authenticator:
             self._sessions[identity.session] = identity
         return identity
 
+    def is_run_token(self, token: str) -> bool:
+        """Whether ``token`` is this run's login link token."""
+        identity = self._from_token(token)
+        return identity is not None and identity.stamp == "run"
+
     def login_with_run_token(self, token: str) -> Identity | None:
         identity = self._from_token(token)
         if identity is None or identity.stamp != "run":
@@ -381,14 +422,12 @@ class Authenticator:
                 return "a request referred by another site is refused."
         return None
 
-    def csrf_problem(self, request: Request, identity: Identity) -> str | None:
+    def origin_problem(self, request: Request, identity: Identity) -> str | None:
+        """A session's write must say where it comes from (``Origin`` or ``Referer``)."""
         if identity.via != "session":
             return None  # a bearer token is never sent by a browser on its own
         if request.headers.get("origin") is None and not request.headers.get("referer"):
             return "a request without Origin or Referer is refused (reload the page)."
-        given = request.headers.get(CSRF_HEADER, "")
-        if not given or not hmac.compare_digest(given.encode(), (identity.csrf or "").encode()):
-            return "the request lacks this session's CSRF token (reload the page)."
         return None
 
     def host_problem(self, host_header: str) -> str | None:
@@ -415,8 +454,10 @@ def requires(role: Role, page: bool = False) -> Callable[[Endpoint], Endpoint]:
     """Guard an endpoint: only an identity of ``role`` or higher reaches it.
 
     Anonymous: 401 (``page``: a redirect to the login page); a lower role: 403; a
-    state-changing method with a session: also the same-origin and CSRF checks (403). The
-    endpoint finds the identity in ``request.state.identity``.
+    state-changing method with a session: also the same-origin checks (403). A ``page``
+    (static HTML, no data) takes a session's cookie alone; anything else needs the session's
+    page token too (:meth:`Authenticator.identify`). The endpoint finds the identity in
+    ``request.state.identity``.
 
     Example:
         >>> @requires(Role.ADMIN)  # doctest: +SKIP
@@ -427,13 +468,15 @@ def requires(role: Role, page: bool = False) -> Callable[[Endpoint], Endpoint]:
         @functools.wraps(endpoint)
         async def guarded(request: Request) -> Response:
             auth = authenticator(request)
-            identity = auth.identify(request)
+            identity = auth.identify_page(request) if page else auth.identify(request)
             if identity is None:
                 if page:
                     target = request.url.path + (f"?{request.url.query}"
                                                  if request.url.query else "")
                     return RedirectResponse(f"/login?next={quote(target, safe='')}", 303)
-                return JSONResponse({"error": "log in first (/login)."}, status_code=401,
+                return JSONResponse({"error": "log in first (/login): a browser's session needs "
+                                              "its page token (X-CBLRS-Session) as well as "
+                                              "its cookie."}, status_code=401,
                                     headers={"WWW-Authenticate": 'Bearer realm="cblrs"'})
             if identity.role < role:
                 message = (f"{identity.user} is a {identity.role.label}; this needs an "
@@ -442,8 +485,8 @@ def requires(role: Role, page: bool = False) -> Callable[[Endpoint], Endpoint]:
                     return PlainTextResponse(message + "\n", status_code=403)
                 return JSONResponse({"error": message}, status_code=403)
             if request.method not in SAFE_METHODS:
-                problem = auth.cross_site_problem(request) or auth.csrf_problem(request,
-                                                                                identity)
+                problem = (auth.cross_site_problem(request)
+                           or auth.origin_problem(request, identity))
                 if problem is not None:
                     logger.warning("dashboard: refused %s %s for %s: %s", request.method,
                                    request.url.path, identity.user, problem)
@@ -538,15 +581,3 @@ class SecurityMiddleware:
 
 class _BodyTooLarge(Exception):
     """A request body grew past :data:`MAX_BODY_BYTES` while it was read."""
-
-
-def safe_next(target: str | None) -> str:
-    """A redirect target after login: a path of this site only (never another host).
-
-    Browsers drop tabs and newlines from a URL and read ``\\`` as ``/``, so ``/<TAB>/host``
-    would become ``//host``: control characters, spaces and backslashes are refused too.
-    """
-    if (not target or not target.startswith("/") or target.startswith("//")
-            or any(character <= " " or character in "\\\x7f" for character in target)):
-        return "/"
-    return target

@@ -383,7 +383,8 @@ $c("save").onclick = async () => {
       ` (previous file: ${answer.backup}); reference ${answer.reference}`);
     const image = $c("reference");
     image.onload = () => { cal.referenceLoaded = true; };
-    image.src = `/api/calibrate/reference/${encodeURIComponent(cal.camera)}?t=${Date.now()}`;
+    image.src = await Cblrs.imageURL(
+      `/api/calibrate/reference/${encodeURIComponent(cal.camera)}?t=${Date.now()}`);
     image.classList.remove("hidden");
   } catch (error) {
     saved.replaceChildren(element("span", error.message, "error"));
@@ -423,7 +424,9 @@ function chooseCamera(name) {
       cal.frameLoaded = true;
       redraw();
     };
-    image.src = `/api/calibrate/frame/${encodeURIComponent(name)}`;
+    Cblrs.imageURL(`/api/calibrate/frame/${encodeURIComponent(name)}`).then(
+      (url) => { image.src = url; },
+      (error) => { $c("frame-note").textContent = `(the frame did not load: ${error.message})`; });
   }
   refit();
 }

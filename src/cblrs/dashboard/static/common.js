@@ -1,5 +1,5 @@
-// cblrs dashboard: what both pages share — the session (who is logged in, the CSRF token
-// that every write carries), building page elements from data, the site map view (metres <->
+// cblrs dashboard: what both pages share — the session (who is logged in, the page token
+// that every request carries, the event streams read with it), building page elements from data, the site map view (metres <->
 // canvas pixels) and the drawing of the site (map image or metric grid, planes, zones, lines,
 // cameras).
 //
@@ -32,7 +32,7 @@ const Cblrs = (() => {
       if (scene.map) {
         const image = new Image();
         image.onload = () => { this.mapImage = image; this.dirtyStatic = true; };
-        image.src = "/map";
+        imageURL("/map").then((url) => { image.src = url; }, () => { /* the grid instead */ });
       }
       this.resize();
     }
@@ -197,15 +197,76 @@ const Cblrs = (() => {
   }
 
   // ---------------------------------------------------------------- session
+  // A browser session has two secrets: the cookie (HttpOnly; the browser sends it) and the
+  // page token, which the login's answer gave and which lives here only, in this origin's
+  // sessionStorage (scheme, host and port: a page of another port of this host cannot read
+  // it, though the browser sends it the cookie). Every request carries the token in
+  // X-CBLRS-Session; the server refuses a cookie without it. sessionStorage survives a
+  // reload and the tab's own navigation; a new tab asks the dashboard's open tabs for the
+  // token (a BroadcastChannel, also this origin's only), else the user logs in again.
+  const TOKEN_KEY = "cblrs-session";
+  const SESSION_HEADER = "X-CBLRS-Session";
   let session = null;
+  let channel = null;
+
+  function pageToken() { return sessionStorage.getItem(TOKEN_KEY); }
+
+  function keepToken(token) {
+    if (token) sessionStorage.setItem(TOKEN_KEY, token);
+    else sessionStorage.removeItem(TOKEN_KEY);
+  }
+
+  // This origin's other tabs: answer their request for the token; ask them for it.
+  function tabs() {
+    if (channel === null && typeof BroadcastChannel === "function") {
+      channel = new BroadcastChannel("cblrs-session");
+      channel.addEventListener("message", (event) => {
+        if (event.data && event.data.type === "ask" && pageToken()) {
+          channel.postMessage({ type: "token", token: pageToken() });
+        }
+      });
+    }
+    return channel;
+  }
+
+  function tokenFromOtherTabs(waitMs = 400) {
+    const open = tabs();
+    if (!open) return Promise.resolve(null);
+    return new Promise((resolve) => {
+      const heard = (event) => {
+        if (event.data && event.data.type === "token" && event.data.token) {
+          open.removeEventListener("message", heard);
+          clearTimeout(timer);
+          resolve(event.data.token);
+        }
+      };
+      const timer = setTimeout(() => { open.removeEventListener("message", heard); resolve(null); },
+        waitMs);
+      open.addEventListener("message", heard);
+      open.postMessage({ type: "ask" });
+    });
+  }
+
+  // Requests of this site: the page token on every one.
+  function authFetch(url, init) {
+    const options = { ...(init || {}), credentials: "same-origin" };
+    const headers = new Headers(options.headers || {});
+    const token = pageToken();
+    if (token) headers.set(SESSION_HEADER, token);
+    options.headers = headers;
+    return fetch(url, options);
+  }
 
   function toLogin() {
+    keepToken(null);
     location.assign(`/login?next=${encodeURIComponent(location.pathname + location.search)}`);
   }
 
   // Who is logged in; a page without a session goes to the login page.
   async function loadSession() {
-    const response = await fetch("/api/session", { credentials: "same-origin" });
+    tabs();
+    if (!pageToken()) keepToken(await tokenFromOtherTabs());
+    const response = await authFetch("/api/session");
     if (response.status === 401) {
       toLogin();
       throw new Error("not logged in");
@@ -224,26 +285,24 @@ const Cblrs = (() => {
 
   async function logoutNow() {
     try { await fetchJSON("/api/logout", { method: "POST", body: "{}" }); } catch (error) { /* gone */ }
+    keepToken(null);
     location.assign("/login");
   }
 
   // A stream that broke: if the session ended, go and log in again.
   async function checkSession() {
-    const response = await fetch("/api/session", { credentials: "same-origin" });
+    const response = await authFetch("/api/session");
     if (response.status === 401) toLogin();
   }
 
-  // JSON requests of this site; writes carry the session's CSRF token.
+  // JSON requests of this site (writes as JSON).
   function fetchJSON(url, options) {
-    const init = { ...(options || {}), credentials: "same-origin" };
+    const init = { ...(options || {}) };
     const method = (init.method || "GET").toUpperCase();
     const headers = new Headers(init.headers || {});
-    if (method !== "GET" && method !== "HEAD") {
-      headers.set("Content-Type", "application/json");
-      if (session && session.csrf) headers.set("X-CSRF-Token", session.csrf);
-    }
+    if (method !== "GET" && method !== "HEAD") headers.set("Content-Type", "application/json");
     init.headers = headers;
-    return fetch(url, init).then(async (response) => {
+    return authFetch(url, init).then(async (response) => {
       if (response.status === 401 && url !== "/api/logout") {
         toLogin();
         throw new Error("logged out");
@@ -252,6 +311,76 @@ const Cblrs = (() => {
       if (!response.ok) throw new Error(data.error || `${response.status}`);
       return data;
     });
+  }
+
+  // An image of this site (the map, a camera's frame), fetched with the page token: an
+  // object URL for an <img> (the policy allows blob: images).
+  async function imageURL(url) {
+    const response = await authFetch(url);
+    if (response.status === 401) {
+      toLogin();
+      throw new Error("logged out");
+    }
+    if (!response.ok) throw new Error(`${url}: ${response.status}`);
+    return URL.createObjectURL(await response.blob());
+  }
+
+  // A stream of Server-Sent Events read with fetch (an EventSource cannot send the page
+  // token), behaving as an EventSource does: onopen on a 200 answer; onmessage({data}) per
+  // event; onerror when the stream fails or ends, then a new try after RETRY_MS unless the
+  // answer was an HTTP error or close() was called (an onerror handler may call it).
+  const RETRY_MS = 3000;
+  function eventStream(url, handlers) {
+    const stream = { closed: false, controller: null, close() {
+      this.closed = true;
+      if (this.controller) this.controller.abort();
+    } };
+    const failed = (retry) => {
+      if (stream.closed) return;
+      if (handlers.onerror) handlers.onerror();
+      if (retry && !stream.closed) setTimeout(open, RETRY_MS);
+    };
+    async function open() {
+      if (stream.closed) return;
+      stream.controller = new AbortController();
+      let response;
+      try {
+        response = await authFetch(url, { signal: stream.controller.signal,
+          headers: { Accept: "text/event-stream" } });
+      } catch (error) {
+        failed(true);
+        return;
+      }
+      if (!response.ok || !response.body) {
+        failed(false);
+        return;
+      }
+      if (handlers.onopen) handlers.onopen();
+      const reader = response.body.pipeThrough(new TextDecoderStream()).getReader();
+      let buffer = "";
+      try {
+        for (;;) {
+          const { value, done } = await reader.read();
+          if (done) break;
+          buffer += value.replace(/\r\n?/g, "\n");
+          let end;
+          while ((end = buffer.indexOf("\n\n")) >= 0) {
+            const block = buffer.slice(0, end);
+            buffer = buffer.slice(end + 2);
+            const data = block.split("\n").filter((line) => line.startsWith("data:"))
+              .map((line) => line.slice(line.startsWith("data: ") ? 6 : 5));
+            if (data.length && handlers.onmessage && !stream.closed) {
+              try {  // a handler's error is its own, as with an EventSource: read on
+                handlers.onmessage({ data: data.join("\n") });
+              } catch (error) { console.error(error); }
+            }
+          }
+        }
+      } catch (error) { /* aborted or broken: as an end */ }
+      failed(true);
+    }
+    open();
+    return stream;
   }
 
   // ---------------------------------------------------------------- elements
@@ -341,6 +470,6 @@ const Cblrs = (() => {
     return globalId === null || globalId === undefined ? String(id) : `${id} · G${globalId}`;
   }
 
-  return { idColour, MapView, fetchJSON, clockText, openAt, loadSession, checkSession, el, fill,
-    planeQuery, trackLabel, session: () => session };
+  return { idColour, MapView, fetchJSON, imageURL, eventStream, clockText, openAt,
+    loadSession, checkSession, el, fill, planeQuery, trackLabel, session: () => session };
 })();

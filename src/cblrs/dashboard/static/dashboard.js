@@ -205,16 +205,17 @@ function connect(url, mode) {
   resetCounts();
   CblrsPlaces.heatReset(state.scene.bounds);
   hideNotice();
-  const source = new EventSource(url);
+  const source = Cblrs.eventStream(url, {
+    onopen: () => { stats.connected = true; setConnection(mode, true); },
+    onerror: () => {
+      stats.connected = false;
+      setConnection(mode, false);
+      if (mode === "replay" && stats.ended) source.close();
+      else Cblrs.checkSession();  // a stream refused or ended because the login did
+    },
+    onmessage: (message) => onMessage(JSON.parse(message.data)),
+  });
   state.source = source;
-  source.onopen = () => { stats.connected = true; setConnection(mode, true); };
-  source.onerror = () => {
-    stats.connected = false;
-    setConnection(mode, false);
-    if (mode === "replay" && stats.ended) source.close();
-    else Cblrs.checkSession();  // a stream refused or ended because the login did
-  };
-  source.onmessage = (message) => onMessage(JSON.parse(message.data));
   $("live-button").classList.toggle("active", mode === "live");
   $("replay-button").classList.toggle("active", mode === "replay");
   state.dirty = true;

@@ -1,15 +1,13 @@
-// cblrs login page: posts the user's name and password as JSON to /api/login (which sets
-// the session cookie), then goes where the user was going (a path of this site only).
+// cblrs login page: posts the user's name and password (or the run's login link token) as
+// JSON to /api/login, which sets the session cookie and answers the session's page token;
+// the page token goes to this origin's sessionStorage (common.js sends it on every request),
+// then the browser goes where the user was going (a path of this site only).
 "use strict";
 
 (() => {
   const form = document.getElementById("login-form");
   const message = document.getElementById("login-message");
   const params = new URLSearchParams(location.search);
-  if (params.has("token")) {
-    message.textContent = "This login link is not valid: it changes each time the dashboard "
-      + "starts. Open the link it printed last.";
-  }
 
   function nextPath() {
     // Only a page of this site. Browsers drop tabs and newlines from a URL and read "\" as
@@ -26,25 +24,30 @@
     }
   }
 
+  async function logIn(body) {
+    const response = await fetch("/api/login", {
+      method: "POST",
+      credentials: "same-origin",
+      headers: { "Content-Type": "application/json" },
+      body: JSON.stringify(body),
+    });
+    const data = await response.json().catch(() => ({}));
+    if (!response.ok) throw new Error(data.error || `refused (${response.status})`);
+    sessionStorage.setItem("cblrs-session", data.session);
+    window.cblrsLoggedIn = { user: data.user, role: data.role };
+    location.assign(nextPath());
+  }
+
   form.addEventListener("submit", async (event) => {
     event.preventDefault();
     message.textContent = "";
     const button = document.getElementById("login-button");
     button.disabled = true;
     try {
-      const response = await fetch("/api/login", {
-        method: "POST",
-        credentials: "same-origin",
-        headers: { "Content-Type": "application/json" },
-        body: JSON.stringify({
-          user: document.getElementById("user-name").value,
-          password: document.getElementById("password").value,
-        }),
+      await logIn({
+        user: document.getElementById("user-name").value,
+        password: document.getElementById("password").value,
       });
-      const data = await response.json().catch(() => ({}));
-      if (!response.ok) throw new Error(data.error || `refused (${response.status})`);
-      window.cblrsLoggedIn = data;
-      location.assign(nextPath());
     } catch (error) {
       message.textContent = error.message;
       document.getElementById("password").value = "";
@@ -52,4 +55,16 @@
       button.disabled = false;
     }
   });
+
+  // The run's login link (/login?token=...): log in with its token, out of the address bar
+  // (and the history) first.
+  if (params.has("token")) {
+    const token = params.get("token");
+    params.delete("token");
+    history.replaceState(null, "", `/login${params.toString() ? `?${params}` : ""}`);
+    logIn({ token }).catch(() => {
+      message.textContent = "This login link is not valid: it changes each time the dashboard "
+        + "starts. Open the link it printed last.";
+    });
+  }
 })();

@@ -138,11 +138,11 @@ function onMessage(message) {
 
 function connect() {
   if (state.source) state.source.close();
-  const source = new EventSource("/api/stream?plane=all");
-  state.source = source;
-  source.onopen = () => { state.connected = true; setConnection(true); };
-  source.onerror = () => { state.connected = false; setConnection(false); Cblrs.checkSession(); };
-  source.onmessage = (message) => onMessage(JSON.parse(message.data));
+  state.source = Cblrs.eventStream("/api/stream?plane=all", {
+    onopen: () => { state.connected = true; setConnection(true); },
+    onerror: () => { state.connected = false; setConnection(false); Cblrs.checkSession(); },
+    onmessage: (message) => onMessage(JSON.parse(message.data)),
+  });
 }
 
 function setConnection(ok) {

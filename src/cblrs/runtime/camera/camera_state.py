@@ -95,6 +95,7 @@ class _CameraState:
         self._resend_wait = self.resend_after_s
         self._lock = threading.Lock()
         self._online_published = False
+        self._announce_when_connected = False
         self._done = False
         self._flushed = False
         self._answers = True

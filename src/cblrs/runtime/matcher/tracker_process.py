@@ -49,6 +49,7 @@ events, counter increments and engine state go into the batch's transaction.
 
 from __future__ import annotations
 
+import atexit
 import gc
 import logging
 import math
@@ -56,6 +57,7 @@ import signal
 import threading
 import time
 import traceback
+import weakref
 from collections.abc import Sequence
 from typing import Any
 
@@ -127,6 +129,12 @@ class TrackerProcess:
         # ``receive`` then raises EOFError instead of waiting forever.
         requests_reader.close()
         results_writer.close()
+        # A program that exits without closing its service (an error on its way out) would
+        # otherwise hang: multiprocessing's exit handler terminates daemon children with
+        # SIGTERM, which this process ignores, and then waits for them. Registered after
+        # multiprocessing's own handler, this one runs first (atexit is last in, first out).
+        self._at_exit = _stop_at_exit(weakref.ref(self))
+        atexit.register(self._at_exit)
 
     def submit(self, batch: Batch) -> None:
         """Send a batch of released groups (blocks while the pipe is full).
@@ -178,6 +186,7 @@ class TrackerProcess:
 
     def close(self, timeout: float) -> None:
         """Wait for the process to exit (terminate it after ``timeout``); close the pipes."""
+        atexit.unregister(self._at_exit)
         self.process.join(timeout)
         if self.process.is_alive():
             logger.warning("tracker process %s did not stop within %.0f s; terminating it",
@@ -186,6 +195,36 @@ class TrackerProcess:
             self.process.join(5)
         self._requests.close()
         self._results.close()
+
+
+def _stop_at_exit(tracker: weakref.ref) -> Any:
+    """An exit handler for a tracker process its program never closed: abandon what was
+    sent (it stays pending in the store, as on a stop without flush), end the process's
+    wait on the pipe, and kill it if it is still inside a group after a few seconds (its
+    SQLite transaction then rolls back)."""
+
+    def stop() -> None:
+        process = tracker()
+        if process is None or not process.process.is_alive():
+            return
+        logger.warning("tracker process %s was not stopped before the program's exit; "
+                       "abandoning what it holds (it stays pending)", process.process.name)
+        process.abandon()
+        process._requests.close()  # the process's recv() ends: EOFError
+        process.process.join(EXIT_GRACE_S)
+        if process.process.is_alive():
+            process.process.kill()
+            process.process.join(5)
+
+    return stop
+
+
+def _next_request(requests: Any) -> Any:
+    """The service's next request; ``None`` (stop) once the service has closed its end."""
+    try:
+        return requests.recv()
+    except EOFError:
+        return None
 
 
 def run(
@@ -243,7 +282,7 @@ def run(
         released = store.released_timestamp()
         state = _StateSaving(released)
         abandoned = abandon.is_set if abandon is not None else lambda: False
-        while not abandoned() and (batch := requests.recv()) is not None:
+        while not abandoned() and (batch := _next_request(requests)) is not None:
             if batch == "flush":
                 if released is not None:
                     updates = _flush(store, matcher, analytics, released, tracker, results,
@@ -330,6 +369,9 @@ def run(
         checkpoints.join()
         store.close()
 
+
+EXIT_GRACE_S = 5.0
+"""Seconds a tracker process left running at the program's exit has to end its group."""
 
 STATE_INTERVAL_S = 2.0
 """Capture-time seconds between saves of the matcher state while groups keep coming."""

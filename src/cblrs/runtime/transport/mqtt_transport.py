@@ -88,6 +88,9 @@ class MqttTransport(_MqttPublisher, _MqttSubscriptions):
     ``flush``, or the camera's disk spool, :mod:`cblrs.runtime.camera.spool`).
     """
 
+    backbone_name = "the MQTT broker"
+    """What the services call this backbone in messages."""
+
     # Public API ------------------------------------------------------------------------
 
     @property

@@ -218,6 +218,9 @@ class _NatsPublisher(_NatsStreams):
                            self.client_id, item.subject, refused)
         with self._condition:
             self._pending -= 1
+            self._pending_by_subject[item.subject] -= 1
+            if not self._pending_by_subject[item.subject]:
+                del self._pending_by_subject[item.subject]
             self._condition.notify_all()
         if self._publish_wake is not None:
             self._publish_wake.set()

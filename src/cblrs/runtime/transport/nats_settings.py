@@ -3,7 +3,8 @@
 :class:`NatsSettings` (and :class:`LeaseSettings`, a lease one client at a time holds) are plain
 data, importable without the nats-py client: the CLI builds them from its options,
 :mod:`~cblrs.runtime.broker.nats_auth` from a site's logins, and
-:class:`~cblrs.runtime.transport.nats_transport.NatsTransport` connects with them.
+:class:`~cblrs.runtime.transport.nats_transport.NatsTransport` connects with them;
+:func:`attempt_reason` says in words why an attempt to connect failed.
 """
 
 from __future__ import annotations
@@ -174,3 +175,39 @@ class NatsSettings:
 def with_servers(settings: NatsSettings, url: str) -> NatsSettings:
     """``settings`` pointed at the servers of ``url`` (``nats://host:port[,...]``)."""
     return replace(settings, servers=NatsSettings.from_url(url).servers)
+
+
+def _is_login_refusal(error: BaseException) -> bool:
+    return "authorization" in str(error).lower()
+
+
+def _is_tls_failure(error: BaseException) -> bool:
+    lowered = str(error).lower()
+    return isinstance(error, ssl.SSLError) or "tls" in lowered or "ssl" in lowered \
+        or "certificate" in lowered
+
+
+def attempt_reason(error: BaseException, settings: NatsSettings) -> str:
+    """Why an attempt to connect failed, in words: the operating system's for a refused or
+    unreachable port, a TLS failure with what to check, a silent port, a refused login."""
+    text = str(error) or type(error).__name__
+    if _is_login_refusal(error):
+        return (f"the servers refused the login {settings.username or '(none)'} (wrong or "
+                "missing user name and password)")
+    if _is_tls_failure(error):
+        return (f"TLS failed ({text}); the servers require TLS with a client certificate "
+                "signed by their CA (--ca-file, --cert-file, --key-file)")
+    if isinstance(error, TimeoutError):
+        return (f"no NATS greeting within {round(settings.connect_timeout_s):g} s (the TCP "
+                "connection opens, or did, but what answers is not a NATS server"
+                + ("" if settings.ca_file is not None else ", or it wants TLS first")
+                + ")")
+    if isinstance(error, OSError) and error.errno is not None:
+        reason = os.strerror(error.errno)
+        if settings.ca_file is not None and settings.cert_file is None \
+                and isinstance(error, (BrokenPipeError, ConnectionResetError)):
+            # The server ended the TLS handshake: nats-py sees only the closed connection.
+            reason += (" (the server closed the TLS connection: it may require a client "
+                       "certificate, --cert-file and --key-file)")
+        return reason
+    return text

@@ -16,7 +16,7 @@ import os
 import socket
 import threading
 import time
-from collections import deque
+from collections import Counter, deque
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
@@ -72,6 +72,14 @@ class _NatsState:
         """Subjects the servers refused this login (permissions; in lower case), latest
         last."""
         self.lease_lost = False
+        self.connect_failure: str | None = None
+        """Why a connection made in the background (``connect(wait=False)``) gave up, one
+        sentence (the servers refused the login); None while it connects or once connected."""
+        self._failed_attempts = 0  # first connection: attempts that failed so far
+        self._attempt_error: BaseException | None = None  # ... and the last one's error
+        self._connecting: Any = None  # the background connection (a concurrent Future)
+        self._core_live = False  # plain subscriptions are made as they come (see _add_core)
+        self._pending_by_subject: Counter[str] = Counter()  # under _condition
         self._lease_paused = False
         self._held: list[_Incoming] = []
         self._handlers = _HandlerTable()

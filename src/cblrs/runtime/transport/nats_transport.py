@@ -39,6 +39,11 @@ behaviour the services rely on, on a NATS server or cluster with JetStream:
   then what was not acknowledged goes again in its order (a publish stored after a later one,
   possible only when a leader dies between two of them, is counted in ``reordered``).
   Publishes made while the servers are away wait in memory;
+* **connecting**: :meth:`NatsTransport.connect` waits for a first server as long as it takes;
+  ``connect(wait=False)`` (a camera) connects in the background instead, publishes waiting in
+  memory meanwhile, and :meth:`NatsTransport.wait_connected` says in one sentence why no server
+  answers yet (refused, a silent port, TLS); a refused login ends the attempts
+  (``connect_failure``, ``on_failure``);
 * **plane lease** (``lease=``): a key (``plane-<plane>``, ``<site>.plane-<plane>``) with a
   time to live in the replicated key-value bucket ``cblrs_leases``; :meth:`connect` refuses
   (one sentence) when another client holds it, the transport renews it every third of its
@@ -72,16 +77,23 @@ from __future__ import annotations
 import asyncio
 import logging
 import re
-import ssl
 import threading
 import time
 from collections.abc import Coroutine
 from typing import Any
+from urllib.parse import urlsplit
 
+from cblrs.runtime.transport.mqtt_settings import unreachable_reason
 from cblrs.runtime.transport.nats_consumer import _NatsConsumer
 from cblrs.runtime.transport.nats_lease import _NatsLease
 from cblrs.runtime.transport.nats_publisher import _NatsPublisher
-from cblrs.runtime.transport.nats_settings import LeaseSettings, NatsSettings
+from cblrs.runtime.transport.nats_settings import (
+    LeaseSettings,
+    NatsSettings,
+    _is_login_refusal,
+    _is_tls_failure,
+    attempt_reason,
+)
 from cblrs.runtime.transport.nats_subjects import (
     _classify,
     message_id,
@@ -132,6 +144,9 @@ class NatsTransport(_NatsPublisher, _NatsConsumer, _NatsLease):
         persistent: accepted for interface compatibility; a durable consumer is persistent.
     """
 
+    backbone_name = "the NATS servers"
+    """What the services call this backbone in messages."""
+
     # Public API ------------------------------------------------------------------------
 
     @property
@@ -161,11 +176,7 @@ class NatsTransport(_NatsPublisher, _NatsConsumer, _NatsLease):
         _import_nats()
         if self._thread is not None:
             return
-        self._loop = asyncio.new_event_loop()
-        self._thread = threading.Thread(
-            target=self._loop.run_forever, name=f"cblrs-nats-{self.client_id}", daemon=True
-        )
-        self._thread.start()
+        self._start_loop()
         try:
             self._run(self._open(), None)
         except BaseException:
@@ -176,17 +187,67 @@ class NatsTransport(_NatsPublisher, _NatsConsumer, _NatsLease):
         """:meth:`open` if not yet done, then start the subscriptions and the consumer.
 
         Args:
-            wait: accepted for interface compatibility; the first connection is always
-                waited for (nats-py does not retry a first connection in the background).
+            wait: wait for the first connection (as long as it takes: an absent server is
+                waited for). False: return at once and connect in the background, retrying
+                every ``reconnect_wait_s``; publishes wait in memory and subscriptions are
+                made once connected. :meth:`wait_connected` then tells why it is not
+                connected yet, and a refused login ends the attempts
+                (:attr:`connect_failure`, ``on_failure``).
 
         Raises:
             TransportError: as :meth:`open`, or the consumer could not be set up.
         """
+        if not wait:
+            self._connect_in_background()
+            return
         self.open()
         if self._started:
             return
         self._started = True
         self._run(self._start(), None)
+
+    def wait_connected(self, timeout: float) -> str | None:
+        """After ``connect(wait=False)``: wait up to ``timeout`` seconds for the connection.
+
+        Returns:
+            None once connected; else why not, one sentence naming the servers and the
+            reason the client saw (refused, no answer, TLS), as soon as every server failed
+            once (a refused port at once, a silent one after ``connect_timeout_s``).
+
+        Raises:
+            TransportError: the servers refused the login (it will not get better).
+        """
+        deadline = time.monotonic() + timeout
+        while True:
+            if self.connect_failure is not None:
+                raise TransportError(self.connect_failure)
+            if self._connected.is_set():
+                return None
+            error = self._attempt_error
+            if error is not None and self._failed_attempts >= len(self.settings.servers):
+                break
+            if time.monotonic() >= deadline:
+                break
+            time.sleep(0.02)
+        where = ", ".join(self.settings.servers)
+        if error is None:
+            return (f"{self.client_id}: no answer from the NATS servers at {where} within "
+                    f"{timeout:g} s.")
+        reason = attempt_reason(error, self.settings)
+        if isinstance(error, TimeoutError):
+            # nats-py does not say whether the TCP connection or the greeting timed out.
+            addresses = [urlsplit(server) for server in self.settings.servers]
+            tcp = [unreachable_reason(url.hostname or "127.0.0.1", url.port or 4222)
+                   for url in addresses]
+            if all(tcp):
+                reason = str(tcp[0])
+        return f"{self.client_id}: cannot reach the NATS servers at {where}: {reason}."
+
+    def pending_on(self, topic: str) -> int:
+        """Stream publishes on ``topic`` not yet acknowledged by the stream (e.g. a camera's
+        detections while the servers are away)."""
+        with self._condition:
+            return self._pending_by_subject[site_subject(topic, self._site)]
 
     def publish(self, topic: str, payload: bytes, qos: int = 1, retain: bool = False,
                 *, resend: str | None = None) -> None:
@@ -214,6 +275,7 @@ class NatsTransport(_NatsPublisher, _NatsConsumer, _NatsLease):
             identifier = f"{identifier}.{resend}"
         with self._condition:
             self._pending += 1
+            self._pending_by_subject[subject] += 1
         loop.call_soon_threadsafe(self._enqueue_publish, subject, data, identifier)
 
     def subscribe(self, topic_filter: str, handler: Handler, qos: int = 1) -> None:
@@ -235,10 +297,10 @@ class NatsTransport(_NatsPublisher, _NatsConsumer, _NatsLease):
                     f"{self.client_id}: subscribe to {topic_filter} before connect()."
                 )
             self._bound.append(topic_filter)
-        else:
+        elif not self._started:
             self._core[topic_filter] = None
-            if self._started:
-                self._run(self._subscribe_core(topic_filter), self.settings.connect_timeout_s)
+        else:
+            self._run(self._add_core(topic_filter), self.settings.connect_timeout_s)
 
     def flush(self, timeout: float) -> bool:
         """Wait until every publish made so far is answered; False on timeout (see
@@ -260,6 +322,14 @@ class NatsTransport(_NatsPublisher, _NatsConsumer, _NatsLease):
     def close(self, unclean: bool = False, timeout: float = 5.0) -> None:
         """Disconnect, stop its threads (:class:`~cblrs.runtime.transport.protocol.Transport`)."""
         if self._loop is None:
+            return
+        if self._connecting is not None:
+            self._connecting.cancel()  # still connecting in the background: stop that
+        if self._nc is None:  # never connected: nothing can be taken or said now
+            if self.pending():
+                logger.warning("%s: closing with %d publishes never sent (no NATS server "
+                               "answered)", self.client_id, self.pending())
+            self._shutdown_loop()
             return
         if not unclean:
             if self.will is not None and self._nc is not None:
@@ -298,6 +368,40 @@ class NatsTransport(_NatsPublisher, _NatsConsumer, _NatsLease):
             future.cancel()
             raise TransportError(f"{self.client_id}: no answer from NATS in time.") from None
 
+    def _start_loop(self) -> None:
+        self._loop = asyncio.new_event_loop()
+        self._publish_wake = asyncio.Event()
+        self._thread = threading.Thread(
+            target=self._loop.run_forever, name=f"cblrs-nats-{self.client_id}", daemon=True
+        )
+        self._thread.start()
+
+    def _connect_in_background(self) -> None:
+        _import_nats()
+        if self._thread is not None:
+            return
+        self.settings.tls_context()  # unreadable TLS files: one sentence now, not later
+        self._start_loop()
+        self._started = True
+        assert self._loop is not None
+        self._connecting = asyncio.run_coroutine_threadsafe(self._open_and_start(), self._loop)
+
+    async def _open_and_start(self) -> None:
+        """The background connection: :meth:`_open` (retrying until a server answers, unless
+        it refuses the login), then the subscriptions and the consumer."""
+        try:
+            await self._open(background=True)
+            await self._start()
+        except asyncio.CancelledError:
+            raise
+        except Exception as error:
+            sentence = str(error).rstrip(".") if isinstance(error, TransportError) else (
+                f"{self.client_id}: connecting to NATS failed: {error or type(error).__name__}")
+            self.connect_failure = sentence + "."
+            logger.error("%s", self.connect_failure)
+            if self.on_failure is not None:
+                self.on_failure(self.connect_failure)
+
     def _shutdown_loop(self) -> None:
         loop, thread = self._loop, self._thread
         if loop is None:
@@ -316,7 +420,10 @@ class NatsTransport(_NatsPublisher, _NatsConsumer, _NatsLease):
 
     # Internals: connection -----------------------------------------------------------------
 
-    async def _open(self) -> None:
+    async def _open(self, background: bool = False) -> None:
+        """Connect (nats-py retries until a server answers), then the lease, the answers'
+        inbox and the publisher. A refused login ends the attempts, and so does a failed TLS
+        handshake unless ``background`` (then it is retried, as an absent server is)."""
         nats = _import_nats()
         settings = self.settings
 
@@ -348,16 +455,14 @@ class NatsTransport(_NatsPublisher, _NatsConsumer, _NatsLease):
         async def on_first_error(error: Exception) -> None:
             # nats-py keeps retrying a first connection; a refused login or TLS handshake
             # will not get better, so it ends the attempt (an absent server is waited for).
-            text = str(error) or type(error).__name__
-            lowered = text.lower()
-            if "authorization" in lowered:
+            if not self._connected.is_set():
+                self._attempt_error = error
+                self._failed_attempts += 1
+            if _is_login_refusal(error):
                 refusals.append(f"the servers refused the login {settings.username or '(none)'}"
                                 " (wrong or missing user name and password)")
-            elif isinstance(error, ssl.SSLError) or "tls" in lowered or "ssl" in lowered \
-                    or "certificate" in lowered:
-                refusals.append(f"TLS failed ({text}); the servers require TLS with a client "
-                                "certificate signed by their CA (--ca-file, --cert-file, "
-                                "--key-file)")
+            elif _is_tls_failure(error) and not background:
+                refusals.append(attempt_reason(error, settings))
             await on_error(error)
 
         connecting = asyncio.ensure_future(nats.connect(
@@ -406,16 +511,25 @@ class NatsTransport(_NatsPublisher, _NatsConsumer, _NatsLease):
                 f"{self.client_id}: NATS JetStream did not answer ({error or type(error).__name__}"
                 "); is JetStream enabled and does the cluster have a leader?"
             ) from None
-        self._publish_wake = asyncio.Event()
+        if self._publish_wake is None:
+            self._publish_wake = asyncio.Event()
         self._ack_prefix = self._nc.new_inbox() + "."
         await self._nc.subscribe(self._ack_prefix + "*", cb=self._on_publish_answer)
         self._publisher = asyncio.get_running_loop().create_task(self._publish_loop())
 
     async def _start(self) -> None:
+        self._core_live = True  # from now on _add_core subscribes at once
         for topic_filter in list(self._core):
             await self._subscribe_core(topic_filter)
         if self._bound:
             await self._start_consumer()
+
+    async def _add_core(self, topic_filter: str) -> None:
+        """A plain subscription made after :meth:`connect`: at once once the subscriptions
+        are made, else left to :meth:`_start` (on this loop, so it is made once)."""
+        self._core[topic_filter] = None
+        if self._core_live:
+            await self._subscribe_core(topic_filter)
 
     async def _close(self, release: bool) -> None:
         self._closing = True
@@ -469,4 +583,5 @@ async def _cancel_tasks() -> None:
     tasks = [task for task in asyncio.all_tasks() if task is not asyncio.current_task()]
     for task in tasks:
         task.cancel()
-    await asyncio.gather(*tasks, return_exceptions=True)
+    if tasks:  # bounded: a task that swallowed its cancellation must not hold the close
+        await asyncio.wait(tasks, timeout=2.0)
