@@ -114,7 +114,8 @@ def benchmark_dashboard(
             publisher.connect()
             sent = [0]
             with chromium_page() as page:
-                page.goto(url)
+                page.goto(url)  # the run's login link: its page logs in, then leaves it
+                page.wait_for_url(lambda address: "/login" not in address, timeout=60_000)
                 _wait(lambda: page.evaluate("window.cblrsStats.connected"), 20)
                 thread = threading.Thread(
                     target=_publish, args=(publisher, tracks, rate_hz, warmup_s + seconds + 1.0,
