@@ -16,7 +16,7 @@ import time
 from pathlib import Path
 
 import pytest
-from waiting import wait_until
+from waiting import store_counter, wait_until
 
 from cblrs.datasets import load_scene
 from cblrs.pipeline import render_scene_references
@@ -123,13 +123,8 @@ def assert_all_stored_once(database: Path) -> dict:
     return counters
 
 
-def counter(database: Path, name: str) -> int:
-    """A counter of a running matcher's database (0 while it is being created)."""
-    try:
-        with RuntimeStore(database, read_only=True) as store:
-            return store.counters().get(name, 0)
-    except Exception:  # not there yet, or its tables not yet written
-        return 0
+counter = store_counter
+"""A counter of a running matcher's database (0 while its matcher is still creating it)."""
 
 
 def spool_rows(path: Path, state: int | None = None) -> int:

@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from waiting import store_counter
 
 from cblrs.datasets import load_scene
 from cblrs.matching import make_matcher
@@ -139,9 +140,5 @@ def nats_backbone(tmp_path: Path) -> Iterator[list[str]]:
     cluster.kill()
 
 
-def counter(database: Path, name: str) -> int:
-    try:
-        with RuntimeStore(database, read_only=True) as store:
-            return store.counters().get(name, 0)
-    except Exception:  # not created yet
-        return 0
+counter = store_counter
+"""A counter of a running matcher's database (0 while its matcher is still creating it)."""

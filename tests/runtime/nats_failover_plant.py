@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from waiting import wait_until
+from waiting import store_counter, wait_until
 
 from cblrs.datasets import load_scene
 from cblrs.matching import make_matcher
@@ -165,14 +165,8 @@ def start_cameras(case, cluster, epoch: float) -> tuple[list[threading.Thread], 
     return threads, results
 
 
-def counter(database, name: str) -> int:
-    if not database.exists():
-        return 0
-    try:
-        with RuntimeStore(database, read_only=True) as store:
-            return store.counters().get(name, 0)
-    except Exception:  # created but not yet initialised
-        return 0
+counter = store_counter
+"""A counter of a running matcher's database (0 while its matcher is still creating it)."""
 
 
 def wait_for_consumer(

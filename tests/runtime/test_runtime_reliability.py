@@ -23,7 +23,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from waiting import wait_until, wait_while_progressing
+from waiting import store_counter, wait_until, wait_while_progressing
 
 from cblrs.datasets import load_scene
 from cblrs.detections import CameraMessage
@@ -200,11 +200,7 @@ def test_matcher_killed_mid_stream_resumes_exactly_once(case, start_mosquitto, t
         delivery.ack()
 
     def counts() -> tuple[int, int]:
-        if not database.exists():
-            return (0, 0)
-        with RuntimeStore(database, read_only=True) as store:
-            counters = store.counters()
-        return counters.get("accepted", 0), counters.get("processed", 0)
+        return store_counter(database, "accepted"), store_counter(database, "processed")
 
     def progress(matcher: subprocess.Popen, threads=()) -> tuple:
         # Starting up (imports) shows only as the child's CPU time; a child that waits on a

@@ -17,9 +17,14 @@ from waiting import wait_until
 
 from cblrs.detections import CameraMessage, Tracks
 from cblrs.runtime.matcher.store import RuntimeStore
-from cblrs.runtime.matcher.store_file import StoreError, WriterLock, checkpoint_regularly
+from cblrs.runtime.matcher.store_file import (
+    StoreError,
+    StoreNotReady,
+    WriterLock,
+    checkpoint_regularly,
+)
 from cblrs.runtime.matcher.store_rows import InboxEntry
-from cblrs.runtime.matcher.store_schema import LATE, PENDING, PROCESSED
+from cblrs.runtime.matcher.store_schema import _SCHEMA, LATE, PENDING, PROCESSED
 
 
 def message(camera: str = "CVLab1", sequence: int = 0, timestamp: float = 10.0, count: int = 2):
@@ -208,7 +213,8 @@ def _other_program(path):
 @pytest.mark.parametrize(
     ("make", "expected"),
     [
-        (lambda path: path.write_bytes(b""), r"is an empty file, not a cblrs matcher database"),
+        (lambda path: path.write_bytes(b""),
+         r"is an empty file[,:] (not a cblrs matcher database|a matcher is still creating)"),
         (lambda path: path.write_bytes(b"this is not a database, just some text" * 20),
          r"is not a SQLite database \(a cblrs matcher database is one\)"),
         (_other_program, r"is a SQLite database of another program \(tables invoices\)"),
@@ -229,6 +235,55 @@ def test_missing_database_and_missing_folder(tmp_path):
     with pytest.raises(StoreError, match=r"the folder .*gone of the database m\.db does not exist"):
         RuntimeStore(tmp_path / "gone" / "m.db")
     assert not (tmp_path / "gone").exists(), "the folder must not be created silently"
+
+
+def test_a_database_being_created_is_not_ready_for_readers(tmp_path):
+    """Each state a starting matcher's file passes through tells a reader to try again."""
+    path = tmp_path / "runtime.db"
+    path.write_bytes(b"")  # created private, nothing written yet
+    with pytest.raises(StoreNotReady, match="a matcher is still creating it"):
+        RuntimeStore(path, read_only=True)
+    with sqlite3.connect(path) as connection:  # WAL switched on, no table yet
+        connection.execute("PRAGMA journal_mode=WAL")
+    with pytest.raises(StoreNotReady, match="holds no matcher tables yet"):
+        RuntimeStore(path, read_only=True)
+    with sqlite3.connect(path) as connection:  # tables, no schema version yet
+        connection.executescript(_SCHEMA)
+    with pytest.raises(StoreNotReady, match="holds no matcher tables yet"):
+        RuntimeStore(path, read_only=True)
+    RuntimeStore(path).close()
+    with RuntimeStore(path, read_only=True) as reader:
+        assert reader.counters() == {}
+
+
+def test_reading_databases_while_they_are_created_never_fails_otherwise(tmp_path):
+    """A reader polling a starting matcher (the fault tests, ``--stats`` in a loop) sees the
+    database either not ready or whole; it used to meet "no such table: counters"."""
+    paths = [tmp_path / f"m{index}.db" for index in range(150)]
+    done = threading.Event()
+    outcomes: dict[str, int] = {}
+
+    def create() -> None:
+        for path in paths:
+            RuntimeStore(path).close()
+        done.set()
+
+    writer = threading.Thread(target=create)
+    writer.start()
+    for path in paths:
+        while True:
+            if not path.exists():
+                continue
+            try:
+                with RuntimeStore(path, read_only=True) as reader:
+                    reader.counters()
+            except StoreNotReady:
+                outcomes["not ready"] = outcomes.get("not ready", 0) + 1
+                continue
+            outcomes["read"] = outcomes.get("read", 0) + 1
+            break
+    writer.join()
+    assert done.is_set() and outcomes["read"] == len(paths), outcomes
 
 
 def test_damaged_database_is_reported(tmp_path):

@@ -1,9 +1,13 @@
-"""Polling helper shared by the runtime service tests."""
+"""Polling helpers shared by the runtime service tests."""
 
 from __future__ import annotations
 
 import time
 from collections.abc import Callable
+from pathlib import Path
+
+from cblrs.runtime.matcher.store import RuntimeStore
+from cblrs.runtime.matcher.store_file import StoreNotReady
 
 FIRST_POLL_S = 0.02
 LAST_POLL_S = 0.1
@@ -49,3 +53,15 @@ def wait_while_progressing(
             )
         time.sleep(pause)
         pause = min(LAST_POLL_S, pause * 1.25)
+
+
+def store_counter(database: Path, name: str) -> int:
+    """A counter of a running matcher's database: 0 while the file is missing or its matcher
+    is still creating it; any other problem with the file fails the test."""
+    if not database.exists():
+        return 0
+    try:
+        with RuntimeStore(database, read_only=True) as store:
+            return store.counters().get(name, 0)
+    except StoreNotReady:
+        return 0

@@ -304,13 +304,14 @@ def start_cameras(
 def store_counter(database: Path, name: str) -> int:
     """A counter of a matcher database being written (0 until it exists)."""
     from cblrs.runtime.matcher.store import RuntimeStore
+    from cblrs.runtime.matcher.store_file import StoreNotReady
 
     if not database.exists():
         return 0
     try:
         with RuntimeStore(database, read_only=True) as store:
             return store.counters().get(name, 0)
-    except Exception:  # created but not yet initialised
+    except StoreNotReady:
         return 0
 
 

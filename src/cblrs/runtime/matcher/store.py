@@ -36,6 +36,7 @@ from cblrs.runtime.matcher.store_file import (
     StoreError,
     WriterLock,
     _check_file,
+    _check_ready,
     _create_private,
     _identity,
     _make_private,
@@ -71,7 +72,8 @@ class RuntimeStore:
 
     Args:
         path: the database file (created with its tables when missing).
-        read_only: open for reading only (``--stats``); the file must exist.
+        read_only: open for reading only (``--stats``); the file must exist
+            (:class:`StoreNotReady` while its matcher is still creating it).
         write_lock: the :class:`WriterLock` of the processes writing to the file (see
             :meth:`share`); None while this is the only writer.
 
@@ -94,6 +96,7 @@ class RuntimeStore:
                     f"file:{self.path}?mode=ro", uri=True, check_same_thread=False
                 )
                 self._check_tables()
+                _check_ready(self._connection, self.path)
             else:
                 _create_private(self.path)
                 self._connection = sqlite3.connect(

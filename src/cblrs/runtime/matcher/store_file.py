@@ -35,6 +35,12 @@ class StoreError(CblrsError):
     """The runtime database cannot be opened or does not belong to this matcher."""
 
 
+class StoreNotReady(StoreError):
+    """Opened for reading, the database is still being created by its matcher: the file is
+    empty or its tables are not all written yet. A reader that polls a starting matcher
+    (``--stats`` in a loop, a test, the live experiment) may try again."""
+
+
 class WriterLock:
     """The lock the writing processes of one database take turns with: ``flock`` on a file.
 
@@ -168,6 +174,11 @@ def _check_file(path: Path, read_only: bool) -> None:
             header = handle.read(len(SQLITE_HEADER))
     except OSError as error:
         raise StoreError(f"cannot read {path}: {error.strerror or error}.") from None
+    if not header and read_only:
+        raise StoreNotReady(
+            f"{path} is an empty file: a matcher is still creating it, or it is not a cblrs "
+            "matcher database; try again once the matcher has started."
+        )
     if not header:
         raise StoreError(
             f"{path} is an empty file, not a cblrs matcher database; delete it to start a new "
@@ -175,6 +186,20 @@ def _check_file(path: Path, read_only: bool) -> None:
         )
     if header != SQLITE_HEADER:
         raise StoreError(f"{path} is not a SQLite database (a cblrs matcher database is one).")
+
+
+def _check_ready(connection: sqlite3.Connection, path: Path) -> None:
+    """Refuse (:class:`StoreNotReady`) a database whose matcher has not finished creating it:
+    the schema version is written after every table and column."""
+    tables = connection.execute("SELECT 1 FROM sqlite_master WHERE name = 'meta'").fetchone()
+    row = tables and connection.execute(
+        "SELECT 1 FROM meta WHERE key = 'schema_version'"
+    ).fetchone()
+    if not row:
+        raise StoreNotReady(
+            f"{path} holds no matcher tables yet: a matcher is still creating it, or it "
+            "never finished; try again once the matcher has started."
+        )
 
 
 def _create_private(path: Path) -> None:
