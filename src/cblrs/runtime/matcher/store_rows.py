@@ -105,7 +105,7 @@ def message_from_row(camera_id: str, sequence: int, timestamp: float, frame: int
 
     The body was written by :func:`message_body` or :meth:`InboxEntry.from_wire` from a
     message already checked, so the columns are set without ``CameraMessage``'s checks again
-    (half the cost of this function with small messages, which the tracker process pays for
+    (a third of this function's cost with small messages, which the tracker process pays for
     every message); only their shapes and lengths are checked, as those checks would.
     """
     data = _decoder.decode(body)
