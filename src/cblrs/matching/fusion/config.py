@@ -192,6 +192,13 @@ class FusionConfig:
             cameras are known to miss people hidden behind others (the occlusion stage's
             learnt miss rate above one half): it takes the id and the coasting track is
             dropped (:mod:`~cblrs.matching.fusion.stitching`).
+        stitch_turn_dps: a new person's track whose velocity is known may also continue a
+            coasting one it reached by turning: on the arc of constant speed and turn rate
+            from where the coasting track was last seen to the new track's heading now, the
+            turn at most this many degrees a second, the speeds alike
+            (:mod:`~cblrs.matching.fusion.stitching`); 0: off.
+        stitch_arc_m: how far off that arc the new track may be, beyond three standard
+            deviations of the two positions, metres (a walker turns, then goes straight).
         swap_radius_m: two confirmed tracks of people closer than this open an encounter;
             once they have been farther apart than this for ``swap_settle_s``, they exchange
             ids from then on if their motion before the encounter explains what each saw
@@ -270,6 +277,8 @@ class FusionConfig:
     stitch_delay_s: float = 0.0
     stitch_sigmas: float = 3.0
     stitch_coasting: bool = True
+    stitch_turn_dps: float = 180.0
+    stitch_arc_m: float = 0.8
     swap_radius_m: float = 1.0
     swap_settle_s: float = 0.5
     swap_margin: float = 7.0
@@ -297,7 +306,8 @@ class FusionConfig:
                      "report_coasting_s", "report_hidden_s", "occluder_width_m",
                      "object_sigma_m", "group_radius_m", "vehicle_minimum_sigma_m",
                      "max_clock_offset_s", "stitch_gap_s", "stitch_delay_s",
-                     "swap_radius_m", "swap_settle_s", "swap_margin"):
+                     "swap_radius_m", "swap_settle_s", "swap_margin", "stitch_turn_dps",
+                     "stitch_arc_m"):
             value = getattr(self, name)
             require(
                 _positive(value) or value == 0,
