@@ -1,5 +1,5 @@
-"""The pages (``/``, ``/calibrate``) tell a caught session cookie nothing (real `cblrs
-dashboard`, real Chromium).
+"""The pages (``/``, ``/calibrate``) tell a caught session cookie nothing, and nothing the
+cookie alone asks keeps its session alive (real `cblrs dashboard`, real Chromium).
 
 A server on another port of the dashboard's host receives the session cookie of a user
 whose browser visits it (browsers send a host's cookies to every port). Every API route
@@ -10,7 +10,10 @@ role (``/calibrate``: "bob is a viewer; this needs an admin."), which planes the
 request counted as the session's activity, so the other server kept a session that its
 user had left alive for as long as it liked, past the idle time-out. Now a page's answer
 depends on nothing but the path and whether the request carries a cookie at all: a caught
-cookie gets exactly what a made-up one gets, and keeps nothing alive.
+cookie gets exactly what a made-up one gets, and keeps nothing alive. The API routes refused
+the cookie without its page token, but still counted the request as the session's activity
+(the session was looked up and touched before the token was checked): now only a request
+with both is.
 """
 
 from __future__ import annotations
@@ -65,11 +68,12 @@ def test_a_caught_cookie_learns_nothing_from_the_pages_and_keeps_nothing_alive(
             assert with_caught == with_forged, (path, with_caught[:2], with_forged[:2])
             assert VIEWER[0].encode() not in with_caught[2] and b"viewer" not in with_caught[2]
 
-        # The other server asks for a page every 2 s, long past the idle time-out: the
-        # session its user left still ends.
+        # The other server asks for a page, and for data (refused), every 2 s, long past
+        # the idle time-out: the session its user left still ends.
         deadline = time.monotonic() + IDLE_MINUTES * 60 * 2.5
         while time.monotonic() < deadline:
             assert get(url, "/", {"Cookie": cookie})[0] in (200, 303)
+            assert get(url, "/api/session", {"Cookie": cookie})[0] == 401
             time.sleep(2)
         status, _, body = get(url, "/api/session", own)
         assert status == 401, body

@@ -273,6 +273,9 @@ class Authenticator:
         if not given or not hmac.compare_digest(given.encode(),
                                                 (identity.page_token or "").encode()):
             return None
+        # Only now is it the session's activity: a cookie without its page token (a server
+        # on another port replaying it) must not keep an idle session alive.
+        identity.last_seen = self.clock()
         return identity
 
     def carries_credentials(self, request: Request) -> bool:
@@ -289,7 +292,6 @@ class Authenticator:
             identity = self._sessions.get(session_id)
         if identity is None or not self.still_valid(identity):
             return None
-        identity.last_seen = self.clock()
         return identity
 
     def _from_token(self, token: str) -> Identity | None:
