@@ -203,7 +203,8 @@ def test_the_site_file_holds_the_rules(tmp_path):
     ("change", "message"),
     [
         (lambda a: a["webhooks"][0].update(secret="hunter2"),
-         "alerts.webhooks.0: a webhook's secret never goes in the site file in clear"),
+         r"alerts.webhooks\[0\] \(ops\): a webhook's secret never goes in the site file in "
+         "clear"),
         (lambda a: a["webhooks"][0].update(url="ftp://x/y"),
          "url must be an http:// or https:// address"),
         (lambda a: a["webhooks"][0].update(url="https://me:pw@x/y"),
@@ -214,7 +215,24 @@ def test_the_site_file_holds_the_rules(tmp_path):
          r"alerts.rules\[0\] \(crowd\): the site has no zone 'plaza' \(market\)"),
         (lambda a: a["rules"][2].update(line="exit"), "the site has no line 'exit' \\(gate\\)"),
         (lambda a: a["rules"][0].update(above=-1), "greater than or equal to 0"),
-        (lambda a: a["rules"][1].update(kind="loud"), "alerts.rules.1"),
+        # A typo in a rule's kind, key or section: the path as the file writes it (no
+        # pydantic union tag), the rule's name, and what is allowed.
+        (lambda a: a["rules"][1].update(kind="loud"),
+         r"^site.yaml: alerts.rules\[1\] \(loitering\): kind must be one of occupancy, dwell, "
+         r"line_count, camera_offline, matcher_lag; got 'loud'\.$"),
+        (lambda a: a["rules"][0].update(for_s=-2),
+         r"^site.yaml: alerts.rules\[0\] \(crowd\).for_s: Input should be greater than or "
+         r"equal to 0\.$"),
+        (lambda a: a["rules"][0].update(fors=3),
+         r"^site.yaml: alerts.rules\[0\] \(crowd\).fors: unknown key \(allowed: name, kind, "
+         r"zone, above, for_s\)\.$"),
+        (lambda a: a["rules"][0].pop("kind"), r"alerts.rules\[0\] \(crowd\): a rule needs kind"),
+        (lambda a: a["rules"][0].pop("above"),
+         r"alerts.rules\[0\] \(crowd\).above: required key is missing\.$"),
+        (lambda a: a["webhooks"][0].update(retry=3),
+         r"alerts.webhooks\[0\] \(ops\).retry: unknown key \(allowed: name, url, "),
+        (lambda a: a.update(rule=a.pop("rules")),
+         r"^site.yaml: alerts.rule: unknown key \(allowed: rules, webhooks\)\.$"),
         (lambda a: a["rules"].append(dict(a["rules"][0])), "two rules are named 'crowd'"),
     ],
 )

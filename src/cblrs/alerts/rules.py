@@ -179,10 +179,7 @@ def load_alerts(
     try:
         model = AlertsModel.model_validate(data)
     except ValidationError as error:
-        item = error.errors(include_url=False)[0]
-        where = ".".join(str(part) for part in ("alerts", *item["loc"]))
-        message = str(item["msg"]).removeprefix("Value error, ")
-        raise AlertsError(f"{source}: {where}: {message}.") from None
+        raise AlertsError(_sentence(error.errors(include_url=False)[0], source, data)) from None
     known = {"zone": zones, "line": lines, "camera": cameras}
     for index, rule in enumerate(model.rules):
         for key, names in known.items():
@@ -193,3 +190,45 @@ def load_alerts(
                     f"{value!r} ({', '.join(names) or 'none'})."
                 )
     return model
+
+
+RULE_MODELS: dict[str, type[BaseModel]] = {
+    "occupancy": OccupancyRule, "dwell": DwellRule, "line_count": LineCountRule,
+    "camera_offline": CameraOfflineRule, "matcher_lag": MatcherLagRule,
+}
+"""Each rule ``kind`` and its model (the keys a rule of that kind takes)."""
+
+
+def _sentence(item: Any, source: str, data: Any) -> str:
+    """A pydantic error of the section as the site file's other sentences read:
+    ``site.yaml: alerts.rules[0] (crowd).for_s: ...`` (the rule's name, no union tag)."""
+    loc = list(item["loc"])
+    kind = item["type"]
+    if len(loc) >= 3 and loc[0] == "rules" and loc[2] in RULE_MODELS:
+        loc.pop(2)  # pydantic names the union's member; the file has no such key
+    entry = None
+    if len(loc) >= 2 and isinstance(data, dict) and isinstance(data.get(loc[0]), list):
+        entries = data[loc[0]]
+        if isinstance(loc[1], int) and loc[1] < len(entries) and isinstance(entries[loc[1]], dict):
+            entry = entries[loc[1]]
+    where = "alerts"
+    for index, part in enumerate(loc):
+        where += f"[{part}]" if isinstance(part, int) else f".{part}"
+        if index == 1 and entry is not None and entry.get("name"):
+            where += f" ({entry['name']})"
+    message = str(item["msg"]).removeprefix("Value error, ")
+    kinds = ", ".join(RULE_MODELS)
+    if kind == "union_tag_invalid":
+        message = f"kind must be one of {kinds}; got {entry.get('kind')!r}" if entry else message
+    elif kind == "union_tag_not_found":
+        message = f"a rule needs kind: one of {kinds}"
+    elif kind == "missing":
+        message = "required key is missing"
+    elif kind == "extra_forbidden":
+        model: type[BaseModel] = AlertsModel
+        if len(loc) >= 2 and loc[0] == "webhooks":
+            model = WebhookModel
+        elif len(loc) >= 2 and loc[0] == "rules" and entry is not None:
+            model = RULE_MODELS.get(str(entry.get("kind")), AlertsModel)
+        message = f"unknown key (allowed: {', '.join(model.model_fields)})"
+    return f"{source}: {where}: {message.rstrip('.')}."
