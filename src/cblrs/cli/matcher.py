@@ -115,6 +115,13 @@ def register(subparsers) -> None:
         action="store_true",
         help="stop once every camera has published its final 'offline' status",
     )
+    stopping.add_argument(
+        "--offline-after",
+        type=float,
+        metavar="SECONDS",
+        help="with --until-cameras-offline: only an 'offline' published after this time "
+        "(seconds since 1970) counts, not an earlier run's (cblrs up gives its start)",
+    )
     parser.add_argument(
         "--stats-interval", type=float, metavar="SECONDS", help="log counters every N seconds"
     )
@@ -525,7 +532,8 @@ def _wait(service: Any, stop: threading.Event, args: argparse.Namespace) -> bool
         if args.stats_interval and time.monotonic() - last_stats >= args.stats_interval:
             last_stats = time.monotonic()
             print(_one_line(service.stats()), file=sys.stderr, flush=True)
-        if args.until_cameras_offline and service.cameras_done() and service.drained():
+        ended = args.until_cameras_offline and service.cameras_done(args.offline_after)
+        if ended and service.drained():
             settled += 1
             if settled >= 3:
                 return True

@@ -229,6 +229,18 @@ def _run_site(args: argparse.Namespace, plan, mosquitto: str, say, started: floa
             stored = sum(info["stored"].values())
             say(f"plane {plane}: {stored} messages stored, {info['pending']} not yet tracked, "
                 f"{info['track_ids']} tracks; tracks in {info['tracks_file']}")
+            alerts = info.get("alerts")
+            if alerts is not None:
+                say(f"plane {plane}: alerts {alerts['fired']} fired, {alerts['cleared']} "
+                    "cleared" + (f"; firing at the stop: {', '.join(alerts['firing'])}"
+                                 if alerts["firing"] else ""))
+                for name, count in alerts["undelivered"].items():
+                    if count:
+                        why = runner.webhook_failure(int(plane), name) if name != "broker" else None
+                        say(f"plane {plane}: {count} alert(s) not delivered to "
+                            f"{'the broker' if name == 'broker' else 'webhook ' + name}; the "
+                            "matcher sends them at the next cblrs up on this --out"
+                            + (f" (last failure: {why})" if why else ""))
         if runner.first_track_s is not None:
             say(f"first tracks stored {runner.first_track_s:.1f} s after cblrs up started")
         waiting = runner.unconfirmed_cameras()

@@ -91,8 +91,11 @@ def safe_stem(name: str) -> str:
 
 
 def port_is_free(port: int, host: str = "127.0.0.1") -> bool:
-    """Whether ``host:port`` can be bound now."""
+    """Whether ``host:port`` can be bound now by a server: as Mosquitto, nats-server and
+    uvicorn bind (``SO_REUSEADDR``), so the connections a stopped run left in TIME_WAIT
+    (a minute after its broker or dashboard closed them) do not count, only a listener."""
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as probe:
+        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         try:
             probe.bind((host, port))
         except OSError:
@@ -124,6 +127,8 @@ class SitePlan:
         monitor_port: NATS only: the server's monitoring port (loopback).
         fresh_epoch: the epoch is not a saved run's: the runner sets it when it starts the
             cameras (a paced replay then begins as they start).
+        made_at: when the plan was made (seconds since 1970): this run's start. With
+            ``until_done``, only the cameras' ends after it count (not an earlier run's).
     """
 
     site: Site
@@ -143,6 +148,7 @@ class SitePlan:
     mqtt_port: int | None = None
     monitor_port: int | None = None
     command: list[str] = field(default_factory=cblrs_command)
+    made_at: float = field(default_factory=time.time)
 
     # ------------------------------------------------------------------ paths
     @property
@@ -246,8 +252,8 @@ class SitePlan:
         fps = self.camera_fps(plane)
         if fps is not None:
             argv += ["--camera-fps", repr(fps)]
-        if until_done:
-            argv.append("--until-cameras-offline")
+        if until_done:  # the ends of an earlier run's replays (retained) are not this run's
+            argv += ["--until-cameras-offline", "--offline-after", repr(self.made_at)]
         return ProcessSpec(f"matcher-{plane}", "matcher", argv, ("broker",))
 
     def dashboard_spec(self) -> ProcessSpec:
@@ -409,6 +415,8 @@ def make_plan(
                 if not (site.folder / value).exists():
                     raise UpError(f"{site_path.name}: camera {spec.name!r}: {what} "
                                   f"{(site.folder / value).resolve()} does not exist.")
+    if check_files:
+        _check_webhook_secrets(site, site_path)
     if speed is not None and not (speed > 0 and speed < float("inf")):
         raise UpError(f"--speed must be a finite number greater than 0, got {speed}.")
     if dashboard_port is not None and not 0 <= dashboard_port <= 65535:
@@ -455,6 +463,21 @@ def make_plan(
                     dashboard_port, float(epoch), realtime=realtime, speed=speed,
                     run_as=run_as, dashboard=dashboard, fresh_epoch=fresh and realtime,
                     backbone=backbone, mqtt_port=mqtt_port, monitor_port=monitor_port)
+
+
+def _check_webhook_secrets(site: Site, site_path: Path) -> None:
+    """Read each webhook's secret as the matcher will, so a missing or readable-by-others one
+    stops ``cblrs up`` before anything starts (not the matcher, once the broker runs)."""
+    from cblrs.alerts.rules import AlertsError
+    from cblrs.alerts.webhook import read_secret
+
+    if not site.alerts.rules:
+        return  # the matcher reads no secret without rules
+    for webhook in site.alerts.webhooks:
+        try:
+            read_secret(webhook, site_path.parent)
+        except AlertsError as error:
+            raise UpError(f"{site_path.name}: alerts: {error}") from None
 
 
 def _files_of(source: SourceModel) -> list[tuple[str, str]]:

@@ -274,13 +274,14 @@ class SiteRunner:
                                     f"{child.last_error()} (log: {child.log})")
         stored: dict[str, int] = {}
         for matcher, plane in zip(self.of_role("matcher"), self.plan.planes, strict=True):
-            counts = database_counts(self.plan.database(plane))
+            counts = database_counts(self.plan.database(plane), self.webhooks)
             stored.update(counts["stored"])
             if counts["counters"]:
                 numbers = counts["counters"]
                 matcher.detail = (f"received {numbers.get('received', 0)}, processed "
                                   f"{numbers.get('processed', 0)}, tracks "
-                                  f"{counts['track_ids']} ({counts['track_rows']} rows)")
+                                  f"{counts['track_ids']} ({counts['track_rows']} rows)"
+                                  + alerts_detail(counts.get("alerts")))
                 if counts["track_rows"] and self.first_track_s is None:
                     self.first_track_s = time.monotonic() - self.started_at
         for camera in self.of_role("camera"):
@@ -364,7 +365,7 @@ class SiteRunner:
     def summary(self) -> dict[str, Any]:
         planes = {}
         for plane in self.plan.planes:
-            counts = database_counts(self.plan.database(plane))
+            counts = database_counts(self.plan.database(plane), self.webhooks)
             tracks = self.plan.tracks_file(plane)
             planes[str(plane)] = {
                 "database": str(self.plan.database(plane)),
@@ -373,6 +374,8 @@ class SiteRunner:
                 "track_rows": counts["track_rows"],
                 "tracks_file": str(tracks) if tracks.is_file() else None,
             }
+            if "alerts" in counts:
+                planes[str(plane)]["alerts"] = counts["alerts"]
         return {
             "site": str(self.plan.site_path), "out": str(self.plan.out),
             "backbone": self.plan.backbone, "broker": self.plan.backbone_url,
@@ -385,6 +388,19 @@ class SiteRunner:
             "first_track_s": self.first_track_s,
             "elapsed_s": time.monotonic() - self.started_at,
         }
+
+    @property
+    def webhooks(self) -> tuple[str, ...] | None:
+        """The site's webhooks (None: the site has no alert rules)."""
+        alerts = self.plan.site.alerts
+        return tuple(hook.name for hook in alerts.webhooks) if alerts.rules else None
+
+    def webhook_failure(self, plane: int, webhook: str) -> str | None:
+        """The matcher's last sentence on why ``webhook`` got no alert, from its log."""
+        matcher = self.of_role("matcher")[self.plan.planes.index(plane)]
+        lines = [line for line in _log_lines(matcher) if f"webhook {webhook}: " in line
+                 and "not delivered" in line]
+        return lines[-1].split(f"webhook {webhook}: ", 1)[1].strip() if lines else None
 
     def unconfirmed_cameras(self) -> list[str]:
         """The cameras that ended with messages still in their spools (sent at their next
@@ -443,11 +459,48 @@ def _log_has(child: Child, text: str) -> bool:
     return any(text in line for line in _log_lines(child))
 
 
-def database_counts(path: Path) -> dict[str, Any]:
+def alerts_detail(alerts: dict[str, Any] | None) -> str:
+    """The status table's words on a plane's alerts: how many fired, the episodes firing
+    now, and the alerts a webhook or the broker has not yet acknowledged."""
+    if alerts is None:
+        return ""
+    text = f"; alerts {alerts['fired']} fired"
+    if alerts["firing"]:
+        text += f", firing {', '.join(alerts['firing'])}"
+    waiting = [f"{name} {count}" for name, count in alerts["undelivered"].items() if count]
+    if waiting:
+        text += f"; not yet delivered: {', '.join(waiting)}"
+    return text
+
+
+def _alert_counts(connection: sqlite3.Connection, webhooks: tuple[str, ...]) -> dict[str, Any]:
+    from cblrs.runtime.outputs.alert_service import BACKBONE  # the broker's outbox name
+
+    fired, cleared = connection.execute(
+        "SELECT COUNT(*) FILTER (WHERE state = 'fired'), COUNT(*) FILTER (WHERE state = "
+        "'cleared') FROM alerts").fetchone()
+    firing = [episode for (episode,) in connection.execute(
+        "SELECT episode FROM alerts WHERE state = 'fired' AND episode NOT IN (SELECT episode "
+        "FROM alerts WHERE state = 'cleared') ORDER BY id")]
+    undelivered = {}
+    for name, key in (("broker", BACKBONE), *((hook, hook) for hook in webhooks)):
+        undelivered[name] = int(connection.execute(
+            "SELECT COUNT(*) FROM alerts WHERE NOT EXISTS (SELECT 1 FROM "
+            "json_each(alerts.delivered) WHERE json_each.value = ?)", (key,)).fetchone()[0])
+    return {"fired": int(fired), "cleared": int(cleared), "firing": firing,
+            "undelivered": undelivered}
+
+
+def database_counts(path: Path, webhooks: tuple[str, ...] | None = None) -> dict[str, Any]:
     """What a matcher's database holds now: messages stored per camera, pending ones, its
-    counters and tracks (zeros while it does not exist; read-only, never blocks a writer)."""
+    counters and tracks (zeros while it does not exist; read-only, never blocks a writer);
+    with ``webhooks`` (the site has alert rules), its alerts too: how many fired and cleared,
+    the episodes firing now, and per webhook (and ``broker``) the alerts not yet delivered."""
     counts: dict[str, Any] = {"stored": {}, "pending": 0, "counters": {}, "track_ids": 0,
                               "track_rows": 0}
+    if webhooks is not None:
+        counts["alerts"] = {"fired": 0, "cleared": 0, "firing": [],
+                            "undelivered": dict.fromkeys(("broker", *webhooks), 0)}
     if not path.is_file():
         return counts
     try:
@@ -463,6 +516,9 @@ def database_counts(path: Path) -> dict[str, Any]:
             rows, ids = connection.execute(
                 "SELECT COUNT(*), COUNT(DISTINCT track_id) FROM tracks").fetchone()
             counts["track_rows"], counts["track_ids"] = int(rows), int(ids)
+            if webhooks is not None and connection.execute(
+                    "SELECT 1 FROM sqlite_master WHERE name = 'alerts'").fetchone():
+                counts["alerts"] = _alert_counts(connection, webhooks)
         finally:
             connection.close()
     except sqlite3.Error:

@@ -340,23 +340,27 @@ class MatcherService(_Receiver, _Releaser):
         with self._state_lock:
             return len(self._orderer)
 
-    def cameras_done(self) -> bool:
+    def cameras_done(self, after: float | None = None) -> bool:
         """Whether every camera has ended its stream with its own "offline" status.
 
         A camera counts when it went offline after being online or sending during this
         run, or when its "offline" is newer than everything the store holds from it (a
         replay that finished while this service was down). A last will (a dropped
-        connection) does not count.
+        connection) does not count. With ``after`` (seconds since 1970), an "offline"
+        published before it does not count either: an earlier run's end, when the caller
+        starts the cameras again (``cblrs up --until-done`` on a finished run's folder).
         """
         summary = None
         for camera in self.camera_ids:
             if not self._final_offline[camera]:
                 return False
+            offline_at = self._offline_at[camera]
+            if after is not None and (offline_at is None or offline_at < after):
+                return False
             if camera in self._active_this_run:
                 continue
             if summary is None:
                 summary = self.store.inbox_summary()
-            offline_at = self._offline_at[camera]
             if camera not in summary or offline_at is None:
                 return False
             if offline_at < summary[camera]["max_received_at"]:
