@@ -85,10 +85,21 @@ def run(args: argparse.Namespace) -> int:
     from cblrs.up.backbone import MQTT, BackboneError, choose_backbone
     from cblrs.up.plan import default_out, read_state
 
-    if args.status_interval <= 0:
+    if not args.status_interval > 0:
         raise UsageError("--status-interval must be a positive number of seconds.")
     if args.stop_after is not None and not args.stop_after > 0:
         raise UsageError("--stop-after must be a positive number of seconds.")
+    # Bad options are usage errors (exit 2), before the site file is read (make_plan
+    # checks them too, for the library's callers).
+    if args.speed is not None and not 0 < args.speed < float("inf"):
+        raise UsageError(f"--speed must be a finite number greater than 0, got {args.speed}.")
+    for option, port in (("--broker-port", args.broker_port),
+                         ("--dashboard-port", args.dashboard_port)):
+        if port is not None and not 0 <= port <= 65535:
+            raise UsageError(f"{option} must be 0..65535, got {port}.")
+    if args.out is not None and args.out.exists() and not args.out.is_dir():
+        raise UsageError(f"--out {args.out} is a file; the state folder must be a folder "
+                         "(or a path that does not exist yet).")
     deploying = args.systemd is not None or args.container is not None
     if deploying:
         if args.backbone == "nats":

@@ -542,15 +542,19 @@ def prepare(plan: SitePlan, *, render: bool = True) -> list[str]:
     from cblrs.runtime.broker.mosquitto_config import BrokerError, write_broker_config
 
     done = []
-    plan.out.mkdir(parents=True, exist_ok=True)
-    # Everything here is its owner's alone: logins, the broker's hashes and log, the
-    # dashboard's login link, people's positions (databases, spools, tracks). Mosquitto
-    # started by root runs as its own user, which must pass through to the broker's folder
-    # (x only: it cannot list this one, and every file in it is 0600).
-    os.chmod(plan.out, 0o711 if _broker_runs_as_another_user(plan) else 0o700)
-    for folder in (plan.logs_dir, plan.out / "spool", plan.references_dir):
-        folder.mkdir(parents=True, exist_ok=True)
-        os.chmod(folder, 0o700)
+    try:
+        plan.out.mkdir(parents=True, exist_ok=True)
+        # Everything here is its owner's alone: logins, the broker's hashes and log, the
+        # dashboard's login link, people's positions (databases, spools, tracks). Mosquitto
+        # started by root runs as its own user, which must pass through to the broker's
+        # folder (x only: it cannot list this one, and every file in it is 0600).
+        os.chmod(plan.out, 0o711 if _broker_runs_as_another_user(plan) else 0o700)
+        for folder in (plan.logs_dir, plan.out / "spool", plan.references_dir):
+            folder.mkdir(parents=True, exist_ok=True)
+            os.chmod(folder, 0o700)
+    except OSError as error:
+        raise UpError(f"cannot make the state folder {plan.out} ({error.strerror or error}); "
+                      "choose another --out.") from None
     saved = read_state(plan.out) or {}
     users = users_of(plan)
     fits = (plan.broker_config.is_file() and saved.get("users") == users
