@@ -466,6 +466,7 @@ class SwapCheck:
 
 _UNSEEN = (np.full(2, np.nan), np.eye(2))
 _SIDES = np.array([0, 1])  # an encounter's two tracks' rows in the recorded states
+_FEW_SERIALS = 16  # encounters dropped at once, up to which a comparison table is cheaper
 
 
 @dataclass
@@ -514,9 +515,13 @@ class _Runs:
         """Forget the runs of these encounters."""
         if not len(self.serial) or not serials:
             return
-        # (a few serials against a few hundred runs: one comparison table costs less than
-        # np.isin's sorting; the same mask)
-        kept = ~(self.serial[:, None] == np.fromiter(serials, np.int64, len(serials))).any(axis=1)
+        if len(serials) <= _FEW_SERIALS:
+            # (a few serials against a few hundred runs: one comparison table costs less
+            # than np.isin's sorting; the same mask)
+            wanted = np.fromiter(serials, np.int64, len(serials))
+            kept = ~(self.serial[:, None] == wanted).any(axis=1)
+        else:
+            kept = ~np.isin(self.serial, list(serials))
         if kept.all():
             return
         for one in fields(self):
