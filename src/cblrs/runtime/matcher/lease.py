@@ -326,13 +326,22 @@ class PlaneLease:
         Decided from every record the broker delivers: renewals published while this matcher
         is connected, and the retained record the broker sends again on each re-subscription
         (asked for every ``heartbeat_s``; no probe round trip, which a connection that
-        another client with this login keeps taking over may never complete).
+        another client with this login keeps taking over may never complete). A client with
+        this login taking this matcher's session over meanwhile is the holder alive too (two
+        matchers with one login knock each other off the broker many times a second, and the
+        holder's renewals may never reach this one): ``record`` is returned.
         """
         deadline = time.monotonic() + seconds
         next_ask = time.monotonic() + self.heartbeat_s
+        takeovers = getattr(self.transport, "takeovers", 0)
         with self._condition:
             seen = len(self._log)
         while True:
+            if getattr(self.transport, "takeovers", 0) > takeovers:
+                logger.warning("plane %d: another client with this login took this matcher's "
+                               "session over while it waited: %s is alive", self.plane_id,
+                               record.describe())
+                return record
             with self._condition:
                 fresh, seen = self._log[seen:], len(self._log)
             for item in fresh:
