@@ -60,6 +60,25 @@ def wildtrack_root() -> Path:
     return root
 
 
+SHORT_WILDTRACK_FRAMES = 40
+"""Annotated frames of :func:`wildtrack_short_root` (WILDTRACK's first 20 seconds)."""
+
+
+@pytest.fixture(scope="session")
+def wildtrack_short_root(wildtrack_root, tmp_path_factory) -> Path:
+    """WILDTRACK's first 40 annotated frames (of 200): a folder of links to its calibrations
+    and to those frames' annotation files, for the tests whose checks do not need every
+    frame (a command's structure, a tracker that works at all) and that would otherwise
+    track all 200 frames in a subprocess or under tracemalloc."""
+    root = tmp_path_factory.mktemp("wildtrack_short")
+    (root / "calibrations").symlink_to(wildtrack_root / "calibrations")
+    (root / "annotations_positions").mkdir()
+    annotations = sorted((wildtrack_root / "annotations_positions").glob("*.json"))
+    for path in annotations[:SHORT_WILDTRACK_FRAMES]:
+        (root / "annotations_positions" / path.name).symlink_to(path)
+    return root
+
+
 def find_multiviewx() -> Path | None:
     """The real MultiviewX folder (images, annotations, left-handed calibrations) in ../shared."""
     candidates = [os.environ.get("CBLRS_MULTIVIEWX"), REPO_ROOT.parent / "shared/data/multiviewx"]
