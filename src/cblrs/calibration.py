@@ -27,8 +27,9 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from cblrs.camera import Camera, orient_to_ground
+from cblrs.camera import Camera
 from cblrs.errors import CalibrationError
+from cblrs.handedness import orient_to_ground
 
 logger = logging.getLogger(__name__)
 
@@ -50,7 +51,7 @@ def orient_cameras(
     """Cameras described so that the ground each one sees lies in front of it.
 
     Left-handed calibrations (every MultiviewX camera) are converted to their equivalent
-    right-handed, proper-rotation form (:func:`cblrs.camera.orient_to_ground`), and one
+    right-handed, proper-rotation form (:func:`cblrs.handedness.orient_to_ground`), and one
     warning names the converted cameras.
 
     Args:

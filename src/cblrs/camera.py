@@ -14,75 +14,43 @@ A camera is either fully calibrated (``K``, distortion, ``R``, ``t``) or known o
 ground homography (as in AI City 2024). The second kind can only map the plane z = 0 and
 has no lens model.
 
-Left-handed calibrations. Some published extrinsics (every MultiviewX camera: its world
-comes from Unity) describe a world whose (x, y, up) axes are left-handed as seen by the
-camera: ``K [R | t] X`` still gives the right pixel as a homogeneous point, but every ground
-point has *negative* depth, so any code that rejects points behind the camera sees nothing.
-``K [R | t] X`` and ``-K [R | t] X`` are the same pixel; ``-R`` is an improper rotation, but
-with the height axis mirrored, ``R' = -R diag(1, 1, -1)`` is a proper rotation and
-``t' = -t``: ``R' (x, y, -z) + t' = -(R (x, y, z) + t)``. :func:`orient_to_ground` detects
-such a camera (the ground it sees lies behind it) and returns this equivalent description:
-it reprojects every point identically, has positive depths, keeps ground x, y, and records
-``height_axis = -1`` so that heights stay heights (metres above the ground) in every method.
+A calibration whose world is left-handed as seen by the camera (every MultiviewX camera) is
+turned into an equivalent proper-rotation description by :mod:`cblrs.handedness`; such a
+camera records ``height_axis = -1``.
 
 OpenCV is imported by the methods that call it (lens distortion, projections through a lens
 model, RQ decomposition), not with this module: a WILDTRACK camera read from its files needs
 none of them, and ``cblrs track`` then starts without loading OpenCV (40-80 ms of CPU and
-some 30 MiB); the Rodrigues vector is converted by :func:`rotation_from_vector`, OpenCV's own
-arithmetic.
+some 30 MiB); the Rodrigues vector is converted by
+:func:`cblrs.geometry.rotation_from_vector`, OpenCV's own arithmetic.
 
-It stays one module because :class:`Camera` is one value type (intrinsics, distortion, pose)
-whose methods are the projections every stage uses; the file readers are in
-:mod:`cblrs.calibration`.
+The rotations and ground-plane homographies the camera is built from are pure functions in
+:mod:`cblrs.geometry`; the file readers are in :mod:`cblrs.calibration`.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from cblrs.errors import CalibrationError
+from cblrs.geometry import (
+    _as_points,
+    homography_pixel_to_world,
+    plane_homography,
+    rotation_from_pose,
+    rotation_from_vector,
+)
 
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
 
 # World points closer than this to the camera (in camera depth, metres) count as behind it.
 _MIN_DEPTH_M = 1e-6
-# Rays meeting a plane farther away than this (metres) count as missing it: they graze the
-# horizon, where rounding decides the side and the hit point is meaningless. The limit is a
-# world distance, so it does not depend on how a bare homography happens to be scaled.
-MAX_WORLD_DISTANCE_M = 1e7
-_DOUBLE_EPSILON = float(np.finfo(np.float64).eps)  # OpenCV's DBL_EPSILON
-
-
-def rotation_from_vector(vector: NDArray) -> FloatArray:
-    """The (3, 3) rotation of a Rodrigues vector (axis times angle, radians).
-
-    OpenCV's ``cv2.Rodrigues`` arithmetic step by step (the angle from the sum of squares,
-    the axis scaled by its inverse, ``cos I + (1 - cos) r r^T + sin [r]x``), so the matrices
-    are bit for bit OpenCV's (tested), without importing OpenCV.
-    """
-    x, y, z = (float(value) for value in np.asarray(vector, np.float64).ravel())
-    theta = math.sqrt(x * x + y * y + z * z)
-    if theta < _DOUBLE_EPSILON:
-        return np.eye(3)
-    cosine, sine = math.cos(theta), math.sin(theta)
-    inverse = 1.0 / theta
-    x, y, z = x * inverse, y * inverse, z * inverse
-    outer = np.array([[x * x, x * y, x * z], [x * y, y * y, y * z], [x * z, y * z, z * z]])
-    cross = np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
-    return cosine * np.eye(3) + (1.0 - cosine) * outer + sine * cross
-
-
-def _as_points(points: NDArray[np.floating] | list, name: str) -> FloatArray:
-    array = np.asarray(points, dtype=np.float64)
-    if array.ndim != 2 or array.shape[1] != 2:
-        raise ValueError(f"{name} must have shape (N, 2), got {array.shape}")
-    return array
 
 
 def _check_matrix(matrix: Any, shape: tuple[int, ...], name: str) -> FloatArray:
@@ -92,30 +60,6 @@ def _check_matrix(matrix: Any, shape: tuple[int, ...], name: str) -> FloatArray:
     if not np.all(np.isfinite(array)):
         raise CalibrationError(f"{name} contains NaN or infinite values.")
     return array
-
-
-def rotation_from_pose(pan_deg: float, tilt_deg: float, roll_deg: float = 0.0) -> FloatArray:
-    """World-to-camera rotation for a camera given by pan, tilt and roll.
-
-    Args:
-        pan_deg: heading of the optical axis in the ground plane, degrees counter-clockwise
-            from the world +x axis.
-        tilt_deg: angle of the optical axis below the horizon, degrees (90 looks straight
-            down).
-        roll_deg: rotation about the optical axis, degrees (clockwise in the image).
-
-    Returns:
-        (3, 3) rotation matrix R with ``X_cam = R @ (X_world - C)``.
-    """
-    pan, tilt, roll = np.radians([pan_deg, tilt_deg, roll_deg])
-    forward = np.array([np.cos(tilt) * np.cos(pan), np.cos(tilt) * np.sin(pan), -np.sin(tilt)])
-    # The image x axis stays horizontal for zero roll, even when looking straight down.
-    right = np.array([np.sin(pan), -np.cos(pan), 0.0])
-    down = np.cross(forward, right)
-    rotation = np.stack([right, down, forward])
-    cos_r, sin_r = np.cos(roll), np.sin(roll)
-    roll_matrix = np.array([[cos_r, -sin_r, 0.0], [sin_r, cos_r, 0.0], [0.0, 0.0, 1.0]])
-    return roll_matrix @ rotation
 
 
 @dataclass(frozen=True, eq=False)
@@ -135,7 +79,7 @@ class Camera:
         homography: (3, 3) map from the ground plane z = 0 (metres) to undistorted pixels.
         height_axis: +1 when ``rotation``/``translation`` act on (x, y, height); -1 when
             they act on (x, y, -height), the proper-rotation form of a left-handed
-            calibration (see the module notes and :func:`orient_to_ground`). Methods take
+            calibration (see :mod:`cblrs.handedness`). Methods take
             and return heights either way.
     """
 
@@ -201,7 +145,8 @@ class Camera:
         """Camera from K, a world-to-camera rotation (matrix or Rodrigues vector) and t, metres.
 
         The extrinsics are taken as given, whatever side of the camera the ground lies on;
-        calibration readers pass the result through :func:`orient_to_ground`.
+        calibration readers pass the result through
+        :func:`cblrs.handedness.orient_to_ground`.
         ``height_axis`` -1 says the world's third axis points down (see the class notes).
         """
         rotation = np.asarray(rotation, dtype=np.float64)
@@ -643,126 +588,3 @@ def _field_radius(distortion: FloatArray, largest: float = 20.0) -> float:
             1 + r2 * (k4 + r2 * (k5 + r2 * k6)))
     falling = np.flatnonzero(~(np.diff(mapped) > 0))
     return math.inf if len(falling) == 0 else float(radius[falling[0]])
-
-
-def ground_depth_sign(
-    camera: Camera, area: tuple[float, float, float, float] | None = None
-) -> int:
-    """On which side of ``camera`` the ground it sees lies: +1 in front, -1 behind.
-
-    A homography maps a ground point to a pixel up to a scale of either sign; the sign of
-    that scale is the sign of the point's depth. Which ground points does the camera see?
-    With ``area`` (x0, y0, width, length metres, e.g. a data set's annotated area) they are
-    the area's points that land inside the image; without it, or when none does, those
-    seen by the image's bottom row (an upright camera sees the ground at the bottom of its
-    image, as :meth:`Camera.from_homography` assumes too). The majority decides.
-
-    Args:
-        camera: any camera.
-        area: optional ground rectangle the camera is known to look at.
-
-    Returns:
-        +1 or -1.
-    """
-    width, height = camera.image_size
-    depths = np.zeros(0)
-    if area is not None:
-        x0, y0, area_width, area_length = area
-        grid_x, grid_y = np.meshgrid(
-            np.linspace(x0, x0 + area_width, 41), np.linspace(y0, y0 + area_length, 41)
-        )
-        world = np.column_stack([grid_x.ravel(), grid_y.ravel(), np.ones(grid_x.size)])
-        homogeneous = world @ camera.homography.T
-        with np.errstate(divide="ignore", invalid="ignore"):
-            pixels = homogeneous[:, :2] / homogeneous[:, 2:3]
-        seen = camera.contains(pixels) & (np.abs(homogeneous[:, 2]) > 1e-12)
-        depths = homogeneous[seen, 2]
-    if len(depths) == 0:
-        bottom = camera.undistort_pixels(
-            np.column_stack([np.linspace(0, width - 1, 33), np.full(33, height - 1.0)])
-        )
-        bottom = bottom[np.isfinite(bottom).all(axis=1)]
-        homogeneous = np.column_stack([bottom, np.ones(len(bottom))]) @ np.linalg.inv(
-            camera.homography
-        ).T
-        depths = homogeneous[:, 2]
-    return 1 if np.count_nonzero(depths > 0) >= np.count_nonzero(depths < 0) else -1
-
-
-def orient_to_ground(
-    camera: Camera, area: tuple[float, float, float, float] | None = None
-) -> tuple[Camera, bool]:
-    """The camera described so that the ground it sees lies in front of it.
-
-    A posed camera whose visible ground has negative depth (a left-handed calibration, see
-    the module notes) becomes ``R' = -R diag(1, 1, -1)``, ``t' = -t`` with its height axis
-    mirrored: a proper rotation, positive depths, the same pixel for every world point, the
-    same ground x, y and the same heights. A homography-only camera gets the sign of its
-    homography fixed the same way. Other cameras are returned unchanged.
-
-    Args:
-        camera: the camera as read.
-        area: optional ground rectangle it looks at (see :func:`ground_depth_sign`).
-
-    Returns:
-        ``(camera, converted)``; ``converted`` is True when the description was changed.
-    """
-    if ground_depth_sign(camera, area) > 0:
-        return camera, False
-    if not camera.has_pose:
-        return replace(camera, homography=-camera.homography), True
-    rotation, translation = camera._pose()
-    assert camera.intrinsics is not None
-    mirror = np.diag([1.0, 1.0, -1.0])
-    return (
-        Camera.from_extrinsics(
-            camera.name,
-            camera.intrinsics,
-            -rotation @ mirror,
-            -translation,
-            camera.image_size,
-            distortion=camera.distortion,
-            height_axis=-camera.height_axis,
-        ),
-        True,
-    )
-
-
-def plane_homography(
-    intrinsics: NDArray, rotation: NDArray, translation: NDArray, height_m: float
-) -> FloatArray:
-    """Homography from the plane z = height_m (metres) to pixels: ``K [r1 r2 (z r3 + t)]``."""
-    rotation = np.asarray(rotation, dtype=np.float64)
-    translation = np.asarray(translation, dtype=np.float64).ravel()
-    columns = np.column_stack(
-        [rotation[:, 0], rotation[:, 1], height_m * rotation[:, 2] + translation]
-    )
-    return np.asarray(intrinsics, dtype=np.float64) @ columns
-
-
-def homography_pixel_to_world(homography: NDArray, pixels: NDArray) -> tuple[FloatArray, BoolArray]:
-    """Map undistorted pixels through the inverse of a world-to-pixel homography.
-
-    The homography's sign must make points in front of the camera have a positive third
-    coordinate (true for ``K [r1 r2 t]`` and for :meth:`Camera.from_homography`).
-
-    Args:
-        homography: (3, 3) world (metres) -> undistorted pixel map.
-        pixels: (N, 2) undistorted pixel coordinates.
-
-    Returns:
-        ``(world_xy, valid)``: (N, 2) metres and (N,) bool. Rows whose ray does not meet the
-        plane in front of the camera (at or above the horizon, or beyond
-        :data:`MAX_WORLD_DISTANCE_M`) are invalid and NaN.
-    """
-    pixels = _as_points(pixels, "pixels")
-    inverse = np.linalg.inv(np.asarray(homography, dtype=np.float64))
-    homogeneous = np.column_stack([pixels, np.ones(len(pixels))]) @ inverse.T
-    scale = homogeneous[:, 2]
-    # The depth of the world point is proportional to 1 / scale (exactly 1 / scale for
-    # K [r1 r2 t]), so the point is in front of the camera exactly when scale > 0.
-    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        world_xy = homogeneous[:, :2] / scale[:, None]
-        valid = (scale > 0) & (np.abs(world_xy) <= MAX_WORLD_DISTANCE_M).all(axis=1)
-    world_xy[~valid] = np.nan
-    return world_xy, valid

@@ -17,8 +17,9 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 from numpy.typing import NDArray
 
-from cblrs.camera import MAX_WORLD_DISTANCE_M, Camera, homography_pixel_to_world
+from cblrs.camera import Camera
 from cblrs.errors import ReferenceImageError
+from cblrs.geometry import MAX_WORLD_DISTANCE_M, homography_pixel_to_world
 from cblrs.reference import ReferenceImage, nearest_pixel_indices
 
 FloatArray = NDArray[np.float64]

@@ -170,7 +170,7 @@ def test_a_sidecar_that_is_not_one_is_refused(tmp_path):
 
 @pytest.mark.parametrize("matcher", ["fusion", "paper"])
 def test_both_matchers_report_the_class_of_their_detections(matcher):
-    from cblrs.datasets.synthetic import make_scene
+    from cblrs.datasets.presets import make_scene
     from cblrs.detections import class_id_of
     from cblrs.pipeline import track_scene
 

@@ -8,8 +8,9 @@ from core_cameras import posed_camera
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from cblrs.camera import Camera, homography_pixel_to_world, rotation_from_pose
+from cblrs.camera import Camera
 from cblrs.errors import CalibrationError
+from cblrs.geometry import homography_pixel_to_world, rotation_from_pose
 
 LENSES = {
     "pinhole": None,

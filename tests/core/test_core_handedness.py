@@ -24,10 +24,11 @@ from cblrs.calibration import (
     read_multiviewx_cameras,
     read_opencv_matrices,
 )
-from cblrs.camera import Camera, ground_depth_sign, orient_to_ground
+from cblrs.camera import Camera
 from cblrs.datasets import load_scene
 from cblrs.edge import make_message
 from cblrs.evaluation.metrics import evaluate
+from cblrs.handedness import ground_depth_sign, orient_to_ground
 from cblrs.pipeline import render_scene_references, track_scene
 
 

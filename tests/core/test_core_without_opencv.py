@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from cblrs import calibration
-from cblrs.camera import rotation_from_vector
+from cblrs.geometry import rotation_from_vector
 
 NAMES = ("camera_matrix", "distortion_coefficients", "rvec", "tvec")
 

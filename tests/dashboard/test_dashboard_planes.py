@@ -215,7 +215,7 @@ def test_the_overview_shows_every_plane_with_global_ids(run, tmp_path):
     assert {item["plane"] for item in messages[1:]} == {2}
     status, _, body = request(url, "/?plane=2", headers=session)
     assert status == 200 and b'id="places-editor"' in body
-    status, _, body = request(url, "/", headers=session)
+    status, _, body = request(url, "/?plane=all", headers=session)
     assert status == 200 and b"overview.js" in body
     assert request(url, "/api/stream?plane=7", headers=session)[0] == 404
 

@@ -77,6 +77,8 @@ def test_the_overview_page_shows_every_plane_and_names_as_text(
         dialogs: list[str] = []
         page.on("dialog", lambda dialog: (dialogs.append(dialog.message), dialog.dismiss()))
         open_login_link(page, f"{url}login?token={token}")
+        # "/" answers by its address alone: its page finds an overview and goes there
+        page.wait_for_url(lambda address: address.endswith("/?plane=all"), timeout=60_000)
         wait_until(lambda: page.evaluate("window.cblrsOverview && window.cblrsOverview()"
                                          ".connected"), 60, "the overview's live stream")
         for plane in (1, 2):

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from cblrs.datasets.clocks import ClockSimulation, camera_clocks, parse_clock_errors
-from cblrs.datasets.synthetic import make_scene
+from cblrs.datasets.presets import make_scene
 from cblrs.errors import DatasetError
 
 

@@ -10,7 +10,7 @@ import pytest
 
 from cblrs.cli.main import main
 from cblrs.datasets.aicity import read_tracks
-from cblrs.datasets.synthetic import make_scene
+from cblrs.datasets.presets import make_scene
 
 SCORES = {"HOTA", "DetA", "AssA", "LocA", "MOTA", "IDF1"}
 

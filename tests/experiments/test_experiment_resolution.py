@@ -7,7 +7,7 @@ import json
 import pytest
 
 from cblrs.cli.main import main
-from cblrs.datasets.synthetic import make_scene
+from cblrs.datasets.presets import make_scene
 from cblrs.experiments.resolution import raster_step_table, square_plane
 
 

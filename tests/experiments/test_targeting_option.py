@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from cblrs.camera import Camera
-from cblrs.datasets.synthetic import make_scene, project_boxes_3d
+from cblrs.datasets.presets import make_scene
+from cblrs.datasets.synthetic import project_boxes_3d
 from cblrs.detections import Detections, class_id_of
 from cblrs.edge import make_message
 from cblrs.geometric_targeting import GeometricTargeter

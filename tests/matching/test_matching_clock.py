@@ -13,7 +13,7 @@ import pytest
 
 from cblrs.datasets import load_scene
 from cblrs.datasets.clocks import ClockSimulation, camera_clocks
-from cblrs.datasets.synthetic import make_scene
+from cblrs.datasets.presets import make_scene
 from cblrs.evaluation import evaluate
 from cblrs.matching import make_matcher
 from cblrs.matching.clock import ClockModel

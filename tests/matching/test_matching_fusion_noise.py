@@ -19,7 +19,7 @@ from cblrs.matching.fusion import (
 )
 
 
-def ray_pairs(rng, count, along_per_metre, lateral_m, bias_per_metre=0.0):
+def ray_pairs(rng, count, along_per_metre, lateral_m, bias_per_metre=0.0, constant_m=0.0):
     """Two cameras' views of ``count`` objects: errors elongated along each camera's ray."""
     truth = rng.uniform(0, 20, size=(count, 2))
     cameras = rng.uniform(-20, 40, size=(2, count, 2))
@@ -30,7 +30,7 @@ def ray_pairs(rng, count, along_per_metre, lateral_m, bias_per_metre=0.0):
         direction = offset / distance[:, None]
         across = np.column_stack([-direction[:, 1], direction[:, 0]])
         along_error = rng.normal(size=count) * along_per_metre * distance
-        along_error += bias_per_metre * distance
+        along_error += bias_per_metre * distance + constant_m
         lateral_error = rng.normal(size=count) * lateral_m
         views.append(truth + along_error[:, None] * direction + lateral_error[:, None] * across)
         distances.append(distance)
@@ -103,6 +103,55 @@ def test_noise_model_learns_a_bias_along_the_ray():
     assert model.bias_per_distance == pytest.approx(0.01, rel=0.1)
     # The bias is removed before the noise is fitted: it does not inflate the noise.
     assert model.sigma_per_distance == pytest.approx(0.01, rel=0.2)
+
+
+@pytest.mark.parametrize("constant_bias", [True, False])
+def test_a_foot_point_short_of_the_centre_is_learnt_as_a_constant_bias(constant_bias):
+    """A box's bottom is the near edge of a body: 0.25 m short of its centre at any distance."""
+    rng = np.random.default_rng(4)
+    model = NoiseModel(0.2, 0.01, constant_bias=constant_bias)
+    for _ in range(100):
+        world_xy, distance, direction = ray_pairs(rng, 50, 0.002, 0.03, constant_m=-0.25)
+        model.learn(world_xy, distance, np.tile(np.arange(50), 2), direction)
+    if constant_bias:
+        assert model.bias_constant_m == pytest.approx(-0.25, abs=0.02)
+        assert model.bias(np.array([5.0, 30.0])) == pytest.approx([-0.25, -0.25], abs=0.03)
+    else:  # the proportional bias alone: a compromise, wrong near and far
+        assert model.bias_constant_m == 0.0
+        near, far = model.bias(np.array([5.0, 30.0]))
+        assert abs(near - far) > 0.1
+
+
+@pytest.mark.parametrize("bias_per_metre", [0.0, 0.01])
+def test_no_constant_bias_where_the_views_have_none(bias_per_metre):
+    """Noise with no offset, or a bias proportional to distance: the constant stays 0 and
+    the proportional bias is what the model without it learns."""
+    results = []
+    for constant_bias in (True, False):
+        rng = np.random.default_rng(3)
+        model = NoiseModel(0.2, 0.01, constant_bias=constant_bias)
+        for _ in range(100):
+            world_xy, distance, direction = ray_pairs(rng, 50, 0.02, 0.05,
+                                                      bias_per_metre=bias_per_metre)
+            model.learn(world_xy, distance, np.tile(np.arange(50), 2), direction)
+        results.append((model.bias_constant_m, model.bias_per_distance))
+    assert results[0] == results[1]
+    assert results[0][0] == 0.0
+
+
+def test_the_constant_bias_is_saved_and_restored():
+    rng = np.random.default_rng(4)
+    model = NoiseModel(0.2, 0.01, constant_bias=True)
+    for _ in range(20):
+        world_xy, distance, direction = ray_pairs(rng, 50, 0.002, 0.03, constant_m=-0.25)
+        model.learn(world_xy, distance, np.tile(np.arange(50), 2), direction)
+    restored = NoiseModel(0.2, 0.01, constant_bias=True)
+    restored.set_state(model.get_state())
+    assert restored.bias_constant_m == model.bias_constant_m < 0
+    world_xy, distance, direction = ray_pairs(rng, 50, 0.002, 0.03, constant_m=-0.25)
+    for one in (model, restored):
+        one.learn(world_xy, distance, np.tile(np.arange(50), 2), direction)
+    assert restored.bias_constant_m == model.bias_constant_m
 
 
 def test_low_cameras_see_more_along_ray_noise():

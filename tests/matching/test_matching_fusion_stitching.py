@@ -225,6 +225,40 @@ def test_a_new_track_unlike_a_coasting_one_gets_a_new_id(case, fresh_at, fresh_b
     assert stitches.rows.tolist() == [] and stitches.replaced.tolist() == [], case
 
 
+def turned_walker(fresh_velocity) -> TrackTable:
+    """Row 0: a confirmed person (id 7) last seen at 10 s at (0, 0) walking east at 1.2 m/s,
+    still coasting at 12 s (predicted at (2.4, 0)); row 1: a new track born at 11.4 s, now at
+    (1.53, 1.53), where a quarter turn to the left at 1.2 m/s over the 2 s ends, moving at
+    ``fresh_velocity`` (clearly known)."""
+    walker = rows([2.4, 0.0], [1.2, 0.0], ids=7, last_seen=10.0)
+    walker.seen_covariance = walker.covariance[:, :2, :2].copy()
+    fresh = rows([1.53, 1.53], fresh_velocity, ids=-1, last_seen=12.0, born=11.4)
+    return walker.extend(fresh)
+
+
+def test_a_walker_who_turned_while_hidden_keeps_the_id():
+    # 1.8 m off the prediction and heading north, not east: neither the gate test nor the
+    # reach of a change of velocity holds; the arc of a quarter turn does.
+    table = turned_walker([0.0, 1.2])
+    confirmable, coasting = np.array([False, True]), np.array([True, False])
+    stitches = stage(**one_model()).decide(table, confirmable, 12.0, coasting)
+    assert stitches.rows.tolist() == [1] and stitches.ids.tolist() == [7]
+    assert stitches.replaced.tolist() == [0]
+    off = stage(**one_model(stitch_turn_dps=0.0))
+    assert off.decide(table, confirmable, 12.0, coasting).rows.tolist() == []
+
+
+@pytest.mark.parametrize(
+    ("case", "velocity"),
+    [("heading south: the arc to the right ends 3 m away", [0.0, -1.2]),
+     ("twice as fast", [0.0, 2.4])],
+)
+def test_a_new_track_off_the_turned_walkers_arc_gets_a_new_id(case, velocity):
+    stitches = stage(**one_model()).decide(turned_walker(velocity), np.array([False, True]),
+                                           12.0, np.array([True, False]))
+    assert stitches.rows.tolist() == [], case
+
+
 def test_two_coasting_tracks_a_new_one_could_continue_are_left_apart():
     table = coasting_walker([2.0, 1.1])
     other = rows([2.4, 1.6], [1.2, 0.0], ids=8, last_seen=10.0, position_sigma=0.5)

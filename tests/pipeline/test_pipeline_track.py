@@ -14,7 +14,7 @@ import pytest
 
 from cblrs.cli.main import main
 from cblrs.datasets import load_scene, read_tracks, simulate_detections
-from cblrs.datasets.synthetic import make_scene
+from cblrs.datasets.presets import make_scene
 from cblrs.evaluation import evaluate
 from cblrs.pipeline import render_scene_references, scene_messages, track_scene
 

@@ -20,7 +20,7 @@ from waiting import wait_until
 
 from cblrs.datasets import load_scene
 from cblrs.datasets.clocks import ClockSimulation
-from cblrs.datasets.synthetic import make_scene
+from cblrs.datasets.presets import make_scene
 from cblrs.detections import CameraMessage
 from cblrs.matching import make_matcher
 from cblrs.pipeline import camera_positions, render_scene_references, scene_planes, track_scene

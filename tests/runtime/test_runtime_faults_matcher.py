@@ -81,7 +81,7 @@ def test_item6_a_second_matcher_for_the_plane_is_refused(plant, tmp_path):
     assert "is in use by another matcher" in one_sentence(same_db.stderr)
     second = plant.run(plant.matcher(second_db, "--idle-exit", "30"), timeout=60)
     assert second.returncode == 1
-    assert "is already served by matcher matcher1" in one_sentence(second.stderr)
+    assert "is already served by matcher matcher1" in one_sentence(second.stderr), second.stderr
     assert first.poll() is None, "the first matcher must keep the plane"
     for camera in cameras:
         code, out, err = finish(camera, timeout=120)

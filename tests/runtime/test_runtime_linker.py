@@ -4,6 +4,7 @@ the offline link of the same rows, through duplicates, bad updates and restarts.
 from __future__ import annotations
 
 import math
+import random
 import sqlite3
 import time
 from collections import Counter
@@ -222,22 +223,94 @@ def test_bad_settings_are_refused(city, tmp_path):
 
 
 
+SINCE, UNTIL = EPOCH + 30.0, EPOCH + 38.0
+"""Plane 2's matcher got messages late: its rows from SINCE to UNTIL were wrong."""
+
+
+def wrong_then_corrected(scenes, per_plane):
+    """What plane 2's matcher publishes when it got messages late: first, with every other
+    plane's, its wrong rows (from SINCE to UNTIL other track ids — a split — and 40 cm off);
+    after update ``cut`` of those, it re-tracks and publishes the right rows of every group
+    after SINCE up to its clock with ``corrected_from`` = SINCE."""
+    truth = per_plane[2]
+    window = (truth.timestamp > SINCE) & (truth.timestamp <= UNTIL)
+    first = updates_of(scenes, {**per_plane, 2: replace(
+        truth, track_id=np.where(window, truth.track_id + 1000, truth.track_id),
+        world_xy=truth.world_xy + np.where(window[:, None], 0.4, 0.0))})
+    cut = next(index for index, item in enumerate(first) if item[0] > UNTIL + 12.0)
+    clock = max(item[0] for item in first[:cut] if item[1] == 2)
+    corrected = [encode_tracks(truth[truth.frame == index], 2, sequence=100_000 + index,
+                               timestamp=EPOCH + seconds, corrected_from=SINCE)
+                 for index, seconds in enumerate(scenes.timestamps.tolist())
+                 if SINCE < EPOCH + seconds <= clock]
+    return first, cut, corrected
+
+
+def assert_rows_equal(live, offline):
+    for name in ("frame", "timestamp", "track_id", "world_xy", "class_id"):
+        np.testing.assert_array_equal(getattr(live.tracks, name), getattr(offline.tracks, name))
+
+
+class _Delivery:
+    def __init__(self, topic: str, payload: bytes):
+        self.topic, self.payload = topic, payload
+
+    def ack(self) -> None:
+        pass
+
+
+@pytest.mark.parametrize("seed", [1, 10, 11])
+def test_a_correction_is_linked_whatever_batches_its_updates_come_in(city, tmp_path, seed):
+    """The deliveries of a batch are taken together (``_process``), and a broker interleaves
+    the planes' matchers as it likes: whatever the batches, the rows are the offline link's.
+    (These seeds lost plane 2's two rows at the linker's clock: a correction went back to a
+    snapshot taken at their very time, which had linked that time without them.)"""
+    scenes, per_plane = city
+    first, cut, corrected = wrong_then_corrected(scenes, per_plane)
+    rng = random.Random(seed)
+    service = make_service(InProcessBroker(), scenes, tmp_path / "linker.db")
+    service.start()
+
+    def feed(streams, stop=lambda: False):
+        """Random batches of the planes' streams, each plane's in its order."""
+        while any(streams.values()) and not stop():
+            batch = []
+            for _ in range(rng.randint(1, 40)):
+                planes = [plane for plane, stream in streams.items() if stream]
+                if planes:
+                    _, plane, payload = streams[rng.choice(planes)].pop(0)
+                    batch.append((_Delivery(tracks_topic(plane), payload), time.time()))
+            service._process(batch)
+        return streams
+
+    try:
+        rest = feed({plane: [item for item in first[:cut] if item[1] == plane]
+                     for plane in sorted(per_plane)}, stop=lambda: service.linker.clock > UNTIL)
+        later = {plane: rest[plane] + [item for item in first[cut:] if item[1] == plane]
+                 for plane in sorted(per_plane) if plane != 2}
+        later[2] = rest[2] + [(None, 2, payload) for payload in corrected] + [
+            item for item in first[cut:] if item[1] == 2]
+        feed(later)
+        service.close(finish=True)
+        offline, handovers, _ = link_tracks(scenes.spec.planes, scenes.spec.links, per_plane)
+        assert_rows_equal(service.store.rows(), offline)
+        assert service.store.handovers() == handovers
+        assert service.store.counters()["relinks"] >= 1
+    finally:
+        service.stop()
+        service.store.close()
+
+
 @pytest.mark.parametrize("restart", [False, True], ids=["running", "restarted-midway"])
 def test_a_planes_correction_is_linked_again_as_if_it_had_come_in_time(city, broker, tmp_path,
                                                                      restart):
-    """Plane 2's matcher got messages late: from T to T + 8 s its first rows had other track
-    ids (a track split) and were 40 cm off; re-tracked, it publishes the right rows of every
-    group after T with ``corrected_from`` = T, after the linker had linked the wrong ones. The
+    """Plane 2's matcher got messages late (:func:`wrong_then_corrected`); re-tracked, it
+    publishes the right rows after the linker had linked the wrong ones. The
     linker's final rows, ids, hand-overs and counts are those of the right rows from the
     start (the offline link of them) — also when it stops halfway through the correction and
     starts again (the correction under way is in its file)."""
     scenes, per_plane = city
-    since, until = EPOCH + 30.0, EPOCH + 38.0
-    truth = per_plane[2]
-    window = (truth.timestamp > since) & (truth.timestamp <= until)
-    first = updates_of(scenes, {**per_plane, 2: replace(
-        truth, track_id=np.where(window, truth.track_id + 1000, truth.track_id),
-        world_xy=truth.world_xy + np.where(window[:, None], 0.4, 0.0))})
+    first, cut, corrected = wrong_then_corrected(scenes, per_plane)
     assert first != updates_of(scenes, per_plane)
     # Not "viewer": that session (the first test's, on the module's broker) also holds a
     # subscription to the events, which this viewer would not acknowledge.
@@ -251,17 +324,10 @@ def test_a_planes_correction_is_linked_again_as_if_it_had_come_in_time(city, bro
         transport.connect()
     service = make_service(broker, scenes, tmp_path / "linker.db")
     service.start()
-    cut = next(index for index, item in enumerate(first) if item[0] > until + 12.0)
     for _, plane, payload in first[:cut]:
         matchers[plane].publish(tracks_topic(plane), payload)
-    wait_until(lambda: service.linker.clock > until, 30, "the wrong rows linked")
+    wait_until(lambda: service.linker.clock > UNTIL, 30, "the wrong rows linked")
     assert len(service.store.rows())
-    # The re-tracking: every group of plane 2 after T up to its clock, the right rows.
-    clock = max(item[0] for item in first[:cut] if item[1] == 2)
-    corrected = [encode_tracks(truth[truth.frame == index], 2, sequence=100_000 + index,
-                               timestamp=EPOCH + seconds, corrected_from=since)
-                 for index, seconds in enumerate(scenes.timestamps.tolist())
-                 if since < EPOCH + seconds <= clock]
     corrections = len(corrected)
     halfway = corrections // 2 if restart else corrections
     for payload in corrected[:halfway]:
@@ -285,9 +351,7 @@ def test_a_planes_correction_is_linked_again_as_if_it_had_come_in_time(city, bro
     assert counters["relinks"] >= 1 and counters.get("corrections_unlinked", 0) == 0
     assert counters["rows_linked_again"] > 0 and counters.get("late_rows", 0) == 0
     offline, handovers, _ = link_tracks(scenes.spec.planes, scenes.spec.links, per_plane)
-    live = store.rows()
-    for name in ("frame", "timestamp", "track_id", "world_xy", "class_id"):
-        np.testing.assert_array_equal(getattr(live.tracks, name), getattr(offline.tracks, name))
+    assert_rows_equal(store.rows(), offline)
     assert store.handovers() == handovers
     counted = analyse_tracks(offline.tracks, scenes.spec.places,
                              site_analytics_config(scenes.spec.links))

@@ -102,6 +102,33 @@ def test_stored_messages_read_back_exactly(store, count):
         assert getattr(back, name).dtype == getattr(original, name).dtype
 
 
+@pytest.mark.parametrize("count", [0, 1, 3])
+def test_an_entry_rebuilds_the_message_a_checked_constructor_builds(count):
+    """The tracker process's message of an entry (set without CameraMessage's checks) has the
+    columns, shapes, dtypes and schema the checked constructor gives."""
+    original = message("IDIAP1", 7, 12.5, count)
+    rebuilt = InboxEntry.from_message(original).message()
+    assert type(rebuilt) is CameraMessage
+    for name in ("camera_id", "sequence", "timestamp", "frame", "schema"):
+        assert getattr(rebuilt, name) == getattr(original, name)
+        assert type(getattr(rebuilt, name)) is type(getattr(original, name))
+    for name in ("xyxy", "confidence", "class_id", "colour"):
+        assert getattr(rebuilt, name).shape == getattr(original, name).shape
+        assert getattr(rebuilt, name).dtype == getattr(original, name).dtype
+        np.testing.assert_array_equal(getattr(rebuilt, name), getattr(original, name))
+
+
+@pytest.mark.parametrize("body", [
+    '{"xyxy":[[0,0,1,1]],"confidence":[0.5,0.6],"class_id":[0],"colour":[[1,2,3]]}',
+    '{"xyxy":[[0,0,1]],"confidence":[0.5],"class_id":[0],"colour":[[1,2,3]]}',
+    '{"xyxy":[[0,0,1,1]],"confidence":[0.5],"class_id":[0],"colour":[[1,2]]}',
+    '{"xyxy":[[0,0,1,1]],"confidence":[[0.5]],"class_id":[0],"colour":[[1,2,3]]}',
+])
+def test_an_entry_whose_columns_do_not_fit_is_refused(body):
+    with pytest.raises(ValueError, match="columns of other shapes"):
+        InboxEntry("IDIAP1", 7, 12.5, 3, body).message()
+
+
 def test_commit_group_is_one_transaction_and_survives_reopening(tmp_path):
     path = tmp_path / "runtime.db"
     with RuntimeStore(path) as store:

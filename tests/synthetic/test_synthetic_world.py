@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from cblrs.camera import Camera
+from cblrs.datasets.presets import make_scene, make_world
 from cblrs.datasets.synthetic import (
     CLASS_SIZE_PRIORS,
     LanePath,
@@ -19,8 +20,6 @@ from cblrs.datasets.synthetic import (
     WaypointPath,
     WorldSpec,
     class_size,
-    make_scene,
-    make_world,
     occluded,
 )
 from cblrs.detections import CLASS_NAMES

@@ -14,7 +14,7 @@ import pytest
 from up_helpers import ENVIRONMENT, first_tracks_on_the_map
 
 from cblrs.cli.main import main
-from cblrs.datasets.synthetic import make_scene
+from cblrs.datasets.presets import make_scene
 from cblrs.site import load_site
 from cblrs.up.backbone import choose_backbone
 from cblrs.up.scene_site import ping_pong, write_scene_site

@@ -4,9 +4,11 @@ SIGTERM half-way and restarted, and the mistakes it answers in one sentence."""
 from __future__ import annotations
 
 import json
+import resource
 import signal
 import subprocess
 import time
+from pathlib import Path
 
 import pytest
 from up_helpers import (
@@ -108,7 +110,13 @@ def test_when_cblrs_up_dies_its_children_stop_and_none_is_left(small_site, tmp_p
     process too) without anyone's help. After an interrupted run, cameras were seen
     ignoring SIGTERM: tests/runtime/test_runtime_stop_signals.py stops each phase."""
     out = tmp_path / "state"
-    process = subprocess.Popen(up_command(small_site, out, "--no-dashboard", "--speed", "2"),
+    # Started with systemd's soft open-files limit (1,024): the broker's is raised to the
+    # hard one (connections that never log in must exhaust it; see
+    # tests/runtime/test_broker_silent_connections.py).
+    _, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    limit = f"--nofile=1024:{'unlimited' if hard == resource.RLIM_INFINITY else hard}"
+    process = subprocess.Popen(["prlimit", limit,
+                                *up_command(small_site, out, "--no-dashboard", "--speed", "2")],
                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                                env=ENVIRONMENT)
     try:
@@ -119,6 +127,13 @@ def test_when_cblrs_up_dies_its_children_stop_and_none_is_left(small_site, tmp_p
             time.sleep(0.1)
         groups = site_groups(out)
         assert len(groups) == 4, processes()
+        brokers = [pid for pid, _, args in processes()
+                   if str(out) in args and "mosquitto.conf" in args and " up " not in args]
+        assert len(brokers) == 1, processes()
+        limits = Path(f"/proc/{brokers[0]}/limits").read_text()
+        soft = next(line.split()[3] for line in limits.splitlines()
+                    if line.startswith("Max open files"))
+        assert soft == ("unlimited" if hard == resource.RLIM_INFINITY else str(hard)), limits
     finally:
         process.kill()
         process.communicate()

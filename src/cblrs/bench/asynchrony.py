@@ -27,8 +27,8 @@ from cblrs.bench.report import markdown_table
 from cblrs.calibration import default_ground
 from cblrs.datasets import load_scene
 from cblrs.datasets.clocks import ClockSimulation, camera_clocks
+from cblrs.datasets.presets import make_scene
 from cblrs.datasets.scene import Scene
-from cblrs.datasets.synthetic import make_scene
 from cblrs.detections import Tracks
 from cblrs.evaluation import evaluate
 from cblrs.matching import make_matcher

@@ -387,6 +387,11 @@ def run_once(receiver_kind: str, publisher_kind: str, cameras: int, frames: int,
         row["tracked_per_s"] = total / max(probe.last_group - report["start"], 1e-9)
         row["service_cpu_us_per_message"] = 1e6 * cpu.get("service", math.nan) / total
         row["tracker_cpu_us_per_message"] = 1e6 * cpu.get("tracker", math.nan) / total
+        # The share of a core the tracker process had from the first publish to the last
+        # group tracked: near 1, its own CPU bounds the tracked rate; far below, the cores
+        # went to the service, the broker, the publishers and other jobs.
+        row["tracker_core_share"] = cpu.get("tracker", math.nan) / max(
+            probe.last_group - report["start"], 1e-9)
         row["late"], row["rejected"] = stats["late"], stats["rejected"]
         if paced:  # in max runs capture times are synthetic: latencies would mean nothing
             row["receipt_p50_ms"] = 1000 * float(np.percentile(probe.receipt, 50))
@@ -512,7 +517,9 @@ def run_mqtt_benchmark(args: Any) -> int:
                 if receiver == "matcher":
                     print(f"{'':20s} CPU per message: service process "
                           f"{row['service_cpu_us_per_message']:.0f} us, tracker process "
-                          f"{row['tracker_cpu_us_per_message']:.0f} us", flush=True)
+                          f"{row['tracker_cpu_us_per_message']:.0f} us; the tracker process "
+                          f"had {100 * row['tracker_core_share']:.0f} % of a core while the "
+                          "service tracked", flush=True)
                 if "tracker_alone_per_s" in row:
                     print(f"{'':20s} the tracker alone on these messages: "
                           f"{row['tracker_alone_per_s']:.0f} msg per CPU second, "

@@ -89,7 +89,7 @@ def synthetic_scene(dataset: Path, simulation: ClockSimulation | None, duration_
     """The synthetic world named ``synthetic:PRESET``, rendered at a rate every camera's
     frame rate divides (the preset's own rate without ``--camera-fps``)."""
     # lazy: a subcommand imports the library when it runs, so its --help starts fast
-    from cblrs.datasets.synthetic import PRESETS, make_scene, make_world
+    from cblrs.datasets.presets import PRESETS, make_scene, make_world
 
     preset = str(dataset)[len(SYNTHETIC_PREFIX):]
     if preset not in PRESETS:

@@ -294,7 +294,8 @@ def scene_notes(report: SceneReport) -> str:
 def synthetic_scene(preset: str, seed: int = 0, duration_s: float | None = None):
     """The scene and the world spec of a synthetic preset."""
     # lazy: a subcommand imports the library when it runs, so its --help starts fast
-    from cblrs.datasets.synthetic import SyntheticWorld, make_world
+    from cblrs.datasets.presets import make_world
+    from cblrs.datasets.synthetic import SyntheticWorld
 
     world = make_world(preset, seed=seed, duration_s=duration_s)
     return SyntheticWorld(world).scene(), world

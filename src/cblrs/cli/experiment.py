@@ -253,8 +253,8 @@ def run_targeting_command(args: argparse.Namespace) -> tuple[dict[str, Any], str
         plot_targeting,
         run_targeting,
         targeting_report,
-        wildtrack_targeting,
     )
+    from cblrs.experiments.targeting_scenes import wildtrack_targeting
 
     tilts = parse_numbers(args.tilts, "--tilts")
     if not all(0 < tilt <= 90 for tilt in tilts):
@@ -282,7 +282,7 @@ def run_targeting_command(args: argparse.Namespace) -> tuple[dict[str, Any], str
     if tracking_scenes:
         # lazy: a subcommand imports the library when it runs, so its --help starts fast
         from cblrs.experiments.resolution import load_named_scene
-        from cblrs.experiments.targeting import tracking_effect
+        from cblrs.experiments.targeting_scenes import tracking_effect
 
         scenes = {name: load_named_scene(name, args.dataset, None) for name in tracking_scenes}
         result["tracking"] = tracking_effect(scenes)

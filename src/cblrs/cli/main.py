@@ -108,13 +108,30 @@ LOG_FORMAT = "%(asctime)s.%(msecs)03d %(levelname)s %(name)s: %(message)s"
 LOG_DATE_FORMAT = "%Y-%m-%dT%H:%M:%S"
 
 
+_CONTROL = {code: f"\\x{code:02x}" for code in (*range(0x20), 0x7F, *range(0x80, 0xA0))
+            if code != 0x09}
+_CONTROL.update({0x0A: "\\n", 0x0D: "\\r", 0x2028: "\\u2028", 0x2029: "\\u2029"})
+
+
+class OneLineFormatter(logging.Formatter):
+    """A record is one line: control characters in its message are escaped (``\\n``,
+    ``\\x1b``), so a name or path a client chose (a URL's ``%0A``, a name on the wire) cannot
+    add a line of its own to the log, which is the services' audit trail, nor move the
+    terminal's cursor. An exception's traceback still follows on lines of its own."""
+
+    def formatMessage(self, record: logging.LogRecord) -> str:
+        return super().formatMessage(record).translate(_CONTROL)
+
+
 def configure_logging(verbosity: int, quiet: bool = False) -> None:
-    """Timestamped lines on stderr. cblrs logs its lifecycle at INFO (connections,
-    reconnections, cameras online/offline, rejections at most once per reason every few
-    seconds); other libraries only warnings. ``--quiet``: cblrs warnings only; ``-v``: cblrs
-    at DEBUG; ``-vv``: paho's packet log too."""
+    """Timestamped lines on stderr, one per record (:class:`OneLineFormatter`). cblrs logs
+    its lifecycle at INFO (connections, reconnections, cameras online/offline, rejections at
+    most once per reason every few seconds); other libraries only warnings. ``--quiet``:
+    cblrs warnings only; ``-v``: cblrs at DEBUG; ``-vv``: paho's packet log too."""
     # A no-op where logging is configured already (a program embedding the CLI, pytest).
-    logging.basicConfig(level=logging.WARNING, format=LOG_FORMAT, datefmt=LOG_DATE_FORMAT)
+    handler = logging.StreamHandler()
+    handler.setFormatter(OneLineFormatter(LOG_FORMAT, LOG_DATE_FORMAT))
+    logging.basicConfig(level=logging.WARNING, handlers=[handler])
     level = logging.WARNING if quiet else logging.INFO
     logging.getLogger("cblrs").setLevel(logging.DEBUG if verbosity >= 1 else level)
     paho = logging.getLogger("cblrs.runtime.transport.mqtt_transport.paho")

@@ -10,6 +10,7 @@ import numpy as np
 
 from cblrs.cli.common import InputError, UsageError, add_output_options, print_json
 from cblrs.reference import ReferenceImage
+from cblrs.viz.overlay import save_image
 from cblrs.viz.reference import reference_overlay
 
 
@@ -72,9 +73,10 @@ def run(args: argparse.Namespace) -> int:
                 f"is {width}x{height}."
             )
     image = reference_overlay(reference, frame, grid_m=args.grid or None, alpha=args.alpha)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    if not cv2.imwrite(str(args.out), image[..., ::-1]):
-        raise UsageError(f"could not write {args.out}.")
+    try:  # 0600: over a frame, the picture shows people
+        save_image(args.out, image)
+    except OSError as error:
+        raise UsageError(f"could not write {args.out}: {error}") from None
     if args.json:
         print_json(
             {

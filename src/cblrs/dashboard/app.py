@@ -38,7 +38,9 @@ API (JSON, and Server-Sent Events for the streams, which the pages read with ``f
 Who may do what (:mod:`cblrs.dashboard.auth`): ``/login``, ``/healthz`` and ``/static``
 are open; every other route needs a viewer, and the calibration page and its API, and saving
 places, an admin.
-Each endpoint states its role with :func:`~cblrs.dashboard.auth.requires`.
+Each endpoint states its role with :func:`~cblrs.dashboard.auth.requires`; the pages
+(static shells, no data) are guarded by :func:`~cblrs.dashboard.auth.page`, which answers
+by the address alone.
 """
 
 from __future__ import annotations
@@ -161,6 +163,7 @@ def create_app(config: DashboardConfig, auth: Any) -> Any:
         from cblrs.dashboard.auth import (
             LoginRefused,
             SecurityMiddleware,
+            page,
             requires,
         )
     except ImportError:  # pragma: no cover - depends on the environment
@@ -275,15 +278,15 @@ def create_app(config: DashboardConfig, auth: Any) -> Any:
 
     # -- the map --------------------------------------------------------------------------
 
-    @requires(viewer, page=True)
+    # The pages answer by their address alone, never by the session or the site (see
+    # auth.page): a plane's page, or the overview at ?plane=all; a plane's page that finds
+    # the dashboard is an overview goes there, and one of a plane not shown says so.
+    @page
     async def index(request: Any) -> Any:
-        try:
-            plane = asked_plane(request)
-        except ValueError as error:
-            return Response(f"{error}\n", status_code=404, media_type="text/plain")
-        return FileResponse(STATIC / ("overview.html" if plane is None else "index.html"))
+        overview = request.query_params.get("plane") == "all"
+        return FileResponse(STATIC / ("overview.html" if overview else "index.html"))
 
-    @requires(admin, page=True)
+    @page
     async def calibrate_page(request: Any) -> Any:
         return FileResponse(STATIC / "calibrate.html")
 

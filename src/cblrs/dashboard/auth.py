@@ -17,9 +17,11 @@ Every route but ``/login``, ``/healthz`` and the static files needs an identity
   The cookie alone is worth nothing: browsers send a host's cookies to every port of that
   host, so a server on another port that the user visits receives it; it cannot have the
   page token (no answer hands it out again, and another port's page cannot read the
-  dashboard's storage). The page routes themselves (``/``, ``/calibrate``) take the cookie
-  alone (:meth:`Authenticator.identify_page`): they serve static files, no data, and send a
-  browser without a session to the login page. A session ends at logout, after
+  dashboard's storage). The page routes themselves (``/``, ``/calibrate``) never look the
+  session up (:func:`page`): a request that carries a session cookie or a bearer token, valid
+  or not, gets the page's static shell, one without either the redirect to the login page;
+  so a caught cookie learns nothing there (not whether it is alive, whose, which role, which
+  planes) and keeps nothing alive. A session ends at logout, after
   :attr:`Authenticator.session_s` (absolute) or :attr:`~Authenticator.idle_s` without a
   request, and as soon as its user's role, password or tokens change in the users file;
 * an **API token** (``Authorization: Bearer <token>``): a user's token from the users file,
@@ -62,7 +64,7 @@ from urllib.parse import quote, urlsplit
 
 # optional extra: pip install cblrs[dashboard] (this module serves the dashboard only)
 from starlette.requests import Request
-from starlette.responses import JSONResponse, PlainTextResponse, RedirectResponse, Response
+from starlette.responses import JSONResponse, RedirectResponse, Response
 
 from cblrs.dashboard.users import Role, User, UsersError, UsersFile, verify_password
 
@@ -271,16 +273,16 @@ class Authenticator:
         if not given or not hmac.compare_digest(given.encode(),
                                                 (identity.page_token or "").encode()):
             return None
+        # Only now is it the session's activity: a cookie without its page token (a server
+        # on another port replaying it) must not keep an idle session alive.
+        identity.last_seen = self.clock()
         return identity
 
-    def identify_page(self, request: Request) -> Identity | None:
-        """The session of the request's cookie alone, or None: for the page routes only,
-        which serve static files (every request for data needs :meth:`identify`); a bearer
-        token as in :meth:`identify`."""
+    def carries_credentials(self, request: Request) -> bool:
+        """Whether the request carries a session cookie or a bearer token, valid or not
+        (never looked up: for the page routes, :func:`page`)."""
         header = request.headers.get("authorization", "")
-        if header[:7].lower() == "bearer ":
-            return self._from_token(header[7:].strip())
-        return self._from_cookie(request)
+        return bool(request.cookies.get(self.cookie_name)) or header[:7].lower() == "bearer "
 
     def _from_cookie(self, request: Request) -> Identity | None:
         session_id = request.cookies.get(self.cookie_name)
@@ -290,7 +292,6 @@ class Authenticator:
             identity = self._sessions.get(session_id)
         if identity is None or not self.still_valid(identity):
             return None
-        identity.last_seen = self.clock()
         return identity
 
     def _from_token(self, token: str) -> Identity | None:
@@ -450,14 +451,35 @@ def authenticator(request: Request) -> Authenticator:
     return request.app.state.auth
 
 
-def requires(role: Role, page: bool = False) -> Callable[[Endpoint], Endpoint]:
+def page(endpoint: Endpoint) -> Endpoint:
+    """Guard a page route (``/``, ``/calibrate``): static HTML that holds no data.
+
+    A browser's navigation cannot send the page token, so a page request carries the cookie
+    alone, which a server on another port of the host receives too. The answer therefore
+    depends on the request's path and on whether it carries a session cookie or a bearer
+    token at all, never on the session: with either, the page (its script logs in again
+    when the session is gone, and the API refuses a role too low); with neither, a redirect
+    to the login page. The session is not looked up, so a page request is no activity
+    either. The endpoint must not read the session (``request.state.identity`` is unset).
+    """
+
+    @functools.wraps(endpoint)
+    async def guarded(request: Request) -> Response:
+        if not authenticator(request).carries_credentials(request):
+            target = request.url.path + (f"?{request.url.query}" if request.url.query else "")
+            return RedirectResponse(f"/login?next={quote(target, safe='')}", 303)
+        return await endpoint(request)
+
+    return guarded
+
+
+def requires(role: Role) -> Callable[[Endpoint], Endpoint]:
     """Guard an endpoint: only an identity of ``role`` or higher reaches it.
 
-    Anonymous: 401 (``page``: a redirect to the login page); a lower role: 403; a
-    state-changing method with a session: also the same-origin checks (403). A ``page``
-    (static HTML, no data) takes a session's cookie alone; anything else needs the session's
-    page token too (:meth:`Authenticator.identify`). The endpoint finds the identity in
-    ``request.state.identity``.
+    Anonymous: 401; a lower role: 403; a state-changing method with a session: also the
+    same-origin checks (403). A session needs its page token as well as its cookie
+    (:meth:`Authenticator.identify`); pages are guarded by :func:`page` instead. The
+    endpoint finds the identity in ``request.state.identity``.
 
     Example:
         >>> @requires(Role.ADMIN)  # doctest: +SKIP
@@ -468,12 +490,8 @@ def requires(role: Role, page: bool = False) -> Callable[[Endpoint], Endpoint]:
         @functools.wraps(endpoint)
         async def guarded(request: Request) -> Response:
             auth = authenticator(request)
-            identity = auth.identify_page(request) if page else auth.identify(request)
+            identity = auth.identify(request)
             if identity is None:
-                if page:
-                    target = request.url.path + (f"?{request.url.query}"
-                                                 if request.url.query else "")
-                    return RedirectResponse(f"/login?next={quote(target, safe='')}", 303)
                 return JSONResponse({"error": "log in first (/login): a browser's session needs "
                                               "its page token (X-CBLRS-Session) as well as "
                                               "its cookie."}, status_code=401,
@@ -481,8 +499,6 @@ def requires(role: Role, page: bool = False) -> Callable[[Endpoint], Endpoint]:
             if identity.role < role:
                 message = (f"{identity.user} is a {identity.role.label}; this needs an "
                            f"{role.label}." if role == Role.ADMIN else "not allowed.")
-                if page:
-                    return PlainTextResponse(message + "\n", status_code=403)
                 return JSONResponse({"error": message}, status_code=403)
             if request.method not in SAFE_METHODS:
                 problem = (auth.cross_site_problem(request)

@@ -17,7 +17,6 @@ the browser from a local file.
 from __future__ import annotations
 
 import math
-import shutil
 from pathlib import Path
 from typing import Any
 
@@ -26,7 +25,7 @@ import numpy as np
 from cblrs.calibrate import Correspondences, calibrate_camera
 from cblrs.errors import CblrsError
 from cblrs.reference import ReferenceImage
-from cblrs.site import Site, load_site, save_document
+from cblrs.site import Site, backup_document, load_site, save_document
 from cblrs.site.core import site_from_document
 from cblrs.site.schema import read_document
 from cblrs.viz.reference import reference_overlay
@@ -193,8 +192,7 @@ def save_points(
         reference = updated.render_reference(camera)
     except CblrsError as error:
         raise CalibrationPageError(f"not saved: {error}") from None
-    backup = site_path.with_name(site_path.name + ".bak")
-    shutil.copyfile(site_path, backup)
+    backup = backup_document(site_path)  # no more open than the site file
     save_document(document, site_path)
     load_site(site_path).camera(camera)  # what was written loads, or this raises
     references.mkdir(parents=True, exist_ok=True)

@@ -19,14 +19,13 @@ from __future__ import annotations
 
 import hashlib
 import math
-import shutil
 from pathlib import Path
 from typing import Any
 
 from cblrs.errors import CblrsError
 from cblrs.names import name_problem
 from cblrs.places import PlaceError, Places
-from cblrs.site import Site, load_site, save_document
+from cblrs.site import Site, backup_document, load_site, save_document
 from cblrs.site.core import site_from_document
 from cblrs.site.schema import read_document
 
@@ -207,8 +206,7 @@ def save_places(site_path: Path, data: Any, plane_id: int | None) -> dict[str, A
         site_from_document(document, site_path)  # alerts naming a deleted place, ...
     except CblrsError as error:
         raise PlacesEditError(f"not saved: {error}") from None
-    backup = site_path.with_name(site_path.name + ".bak")
-    shutil.copyfile(site_path, backup)
+    backup = backup_document(site_path)  # no more open than the site file
     save_document(document, site_path)
     saved = load_site(site_path)  # what was written loads, or this raises
     plane = shown_plane(saved, plane_id)

@@ -17,6 +17,7 @@ from collections import Counter
 import numpy as np
 
 from cblrs.camera import Camera
+from cblrs.datasets.presets import roundabout_markings
 from cblrs.datasets.scene import Scene
 from cblrs.datasets.synthetic import (
     MovingObject,
@@ -25,7 +26,6 @@ from cblrs.datasets.synthetic import (
     WaypointPath,
     WorldSpec,
     class_size,
-    roundabout_markings,
 )
 
 ARMS = {"east": 0.0, "north": 90.0, "west": 180.0, "south": 270.0}

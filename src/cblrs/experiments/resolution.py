@@ -23,8 +23,8 @@ from cblrs.bench.cameras import find_wildtrack
 from cblrs.bench.machine import json_ready
 from cblrs.bench.report import markdown_table
 from cblrs.datasets import load_scene
+from cblrs.datasets.presets import make_scene
 from cblrs.datasets.scene import Scene
-from cblrs.datasets.synthetic import make_scene
 from cblrs.errors import DatasetError
 from cblrs.evaluation import evaluate
 from cblrs.pipeline import track_scene

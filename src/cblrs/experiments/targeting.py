@@ -18,14 +18,14 @@ the box height; several draws per position), under which the geometric targeter 
 :mod:`cblrs.geometric_targeting` (which only knows the class prior) is compared with the best
 fixed VTP chosen with hindsight for each tilt.
 
-It stays one module because the experiment, its markdown table and its figure read and write the
-same result dictionary; splitting them would spread one experiment's format over three files.
+The experiment, its markdown table and its figure read and write the same result dictionary, so
+they stay together here; the same comparison on data-set scenes (WILDTRACK's annotated boxes,
+the tracking metrics) is in :mod:`cblrs.experiments.targeting_scenes`.
 """
 
 from __future__ import annotations
 
 import logging
-import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -36,11 +36,8 @@ from numpy.typing import NDArray
 from cblrs.bench.machine import json_ready
 from cblrs.bench.report import markdown_table
 from cblrs.camera import Camera
-from cblrs.datasets import load_scene
 from cblrs.datasets.synthetic import project_boxes_3d
-from cblrs.evaluation import evaluate
 from cblrs.geometric_targeting import DEFAULT_CLASS_SIZES, GeometricTargeter
-from cblrs.pipeline import render_scene_references, track_scene
 from cblrs.targeting import target_pixels
 
 logger = logging.getLogger(__name__)
@@ -548,98 +545,3 @@ def plot_targeting(result: dict[str, Any], out: str | Path) -> list[Path]:
     plt.close(figure)
     written.append(path)
     return written
-
-
-def wildtrack_targeting(
-    root: str | Path, frame_step: int = 4, class_sizes: dict | None = None
-) -> dict[str, Any]:
-    """Target error on WILDTRACK's annotated boxes: bottom centre vs geometric targeting.
-
-    Each annotated box (every ``frame_step``-th frame, all seven cameras) is targeted, the
-    target's ground point computed through the camera, and its distance to the annotated
-    position of the same person measured.
-
-    Returns:
-        JSON-ready dict: per camera and overall ``median_m`` and ``mean_m`` for
-        ``bottom_centre`` and ``geometric``, and the box count.
-    """
-
-    sizes = (class_sizes or DEFAULT_CLASS_SIZES)["person"]
-    scene = load_scene(root)
-    truth = scene.ground_truth
-    per_camera = {}
-    errors: dict[str, list] = {"bottom_centre": [], "geometric": []}
-    for camera_index, camera in enumerate(scene.cameras):
-        boxes, positions = [], []
-        for frame_index in range(0, len(scene.frames), frame_step):
-            detections = scene.detections[frame_index][camera_index]
-            rows = truth.frame == scene.frames[frame_index]
-            by_id = dict(zip(truth.track_id[rows].tolist(), truth.world_xy[rows], strict=True))
-            for row, identity in enumerate(detections.object_id.tolist()):
-                if identity in by_id:
-                    boxes.append(detections.xyxy[row])
-                    positions.append(by_id[identity])
-        if not boxes:
-            continue
-        boxes_array, positions_array = np.array(boxes), np.array(positions)
-        bottom, _ = target_pixels(boxes_array, 0.5, 1.0)
-        geometric, _ = GeometricTargeter(camera, {"person": sizes}).pixels_for(
-            boxes_array, np.asarray(sizes)
-        )
-        entry: dict[str, Any] = {"boxes": len(boxes)}
-        for name, pixels in (("bottom_centre", bottom), ("geometric", geometric)):
-            ground, valid = camera.pixel_to_world(np.nan_to_num(pixels, nan=-1e6))
-            distance = np.hypot(*(ground - positions_array).T)[valid]
-            errors[name].append(distance)
-            entry[name] = {
-                "median_m": float(np.median(distance)),
-                "mean_m": float(np.mean(distance)),
-            }
-        per_camera[camera.name] = entry
-    overall = {
-        name: {
-            "median_m": float(np.median(np.concatenate(values))),
-            "mean_m": float(np.mean(np.concatenate(values))),
-        }
-        for name, values in errors.items()
-    }
-    return _json_ready(
-        {
-            "frame_step": frame_step,
-            "person_size_lwh_m": list(sizes),
-            "cameras": per_camera,
-            "overall": overall,
-        }
-    )
-
-
-def tracking_effect(scenes: dict[str, Any]) -> dict[str, Any]:
-    """HOTA & co of the default pipeline with box targeting against geometric targeting.
-
-    Args:
-        scenes: name -> :class:`cblrs.datasets.scene.Scene` (posed cameras).
-
-    Returns:
-        JSON-ready dict: per scene, per targeting mode, the metrics and tracking seconds.
-    """
-
-    output: dict[str, Any] = {}
-    for name, scene in scenes.items():
-        references = render_scene_references(scene)
-        output[name] = {}
-        vehicles = {name: size for name, size in DEFAULT_CLASS_SIZES.items() if name != "person"}
-        modes: dict[str, Any] = {
-            "box": "box",
-            "geometric": "geometric",
-            # people keep their foot point; only vehicles are fitted
-            "geometric, vehicles only": [
-                GeometricTargeter(camera, vehicles) for camera in scene.cameras
-            ],
-        }
-        for targeting, option in modes.items():
-            start = time.perf_counter()
-            result = track_scene(scene, references=references, targeting=option)
-            seconds = time.perf_counter() - start
-            metrics = evaluate(scene.ground_truth, result.tracks).to_dict()
-            output[name][targeting] = {**metrics, "seconds": seconds}
-    return _json_ready(output)

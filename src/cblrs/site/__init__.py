@@ -18,7 +18,15 @@ Example:
 """
 
 from cblrs.site.check import check_site, format_check
-from cblrs.site.core import Site, SiteCamera, SiteMap, load_site, parse_site, save_document
+from cblrs.site.core import (
+    Site,
+    SiteCamera,
+    SiteMap,
+    backup_document,
+    load_site,
+    parse_site,
+    save_document,
+)
 from cblrs.site.dataset import site_from_dataset
 from cblrs.site.schema import SITE_VERSION, SiteError, SiteModel, dump_document
 
@@ -29,6 +37,7 @@ __all__ = [
     "SiteError",
     "SiteMap",
     "SiteModel",
+    "backup_document",
     "check_site",
     "dump_document",
     "format_check",

@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import base64
 import logging
+import os
+import stat
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -392,3 +394,26 @@ def save_document(data: dict[str, Any], path: str | Path) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(dump_document(data, path))
     return path
+
+
+def backup_document(path: str | Path) -> Path:
+    """Copy the site file ``path`` to ``<file>.bak`` (replaced), no more open than the file.
+
+    The copy is created 0600 and only then given the file's own mode: a site file its owner
+    keeps 0600 (its webhooks' addresses, its calibrations) does not get a backup that every
+    user of the machine reads (``shutil.copyfile`` made it 0644 under the usual umask). A
+    symbolic link at the backup's name is refused, not followed.
+    """
+    path = Path(path)
+    backup = path.with_name(path.name + ".bak")
+    mode = stat.S_IMODE(path.stat().st_mode)
+    data = path.read_bytes()
+    descriptor = os.open(backup, os.O_WRONLY | os.O_CREAT | os.O_TRUNC
+                         | getattr(os, "O_NOFOLLOW", 0), 0o600)
+    with os.fdopen(descriptor, "wb") as out:
+        if hasattr(os, "fchmod"):
+            os.fchmod(descriptor, 0o600)  # an older backup may be more open
+        out.write(data)
+        if hasattr(os, "fchmod"):
+            os.fchmod(descriptor, mode)
+    return backup

@@ -27,6 +27,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from cblrs.runtime.broker.mosquitto import open_files_to_the_hard_limit
 from cblrs.up.plan import ProcessSpec, SitePlan, UpError, write_state
 
 logger = logging.getLogger(__name__)
@@ -50,6 +51,14 @@ def _child_setup() -> None:  # pragma: no cover - runs in the child between fork
         libc.prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG: SIGTERM when cblrs up dies
     except (OSError, AttributeError):
         pass
+
+
+def _broker_setup() -> None:  # pragma: no cover - runs in the child between fork and exec
+    """The broker's: as :func:`_child_setup`, and its open-files limit raised to the hard
+    one (silent connections must exhaust it: see
+    :func:`cblrs.runtime.broker.mosquitto.open_files_to_the_hard_limit`)."""
+    _child_setup()
+    open_files_to_the_hard_limit()
 
 
 @dataclass
@@ -125,7 +134,9 @@ class SiteRunner:
             child.process = subprocess.Popen(
                 child.spec.argv, stdout=log, stderr=subprocess.STDOUT,
                 stdin=subprocess.DEVNULL, env=environment, start_new_session=True,
-                preexec_fn=_child_setup if sys.platform.startswith("linux") else None,
+                preexec_fn=(None if not sys.platform.startswith("linux")
+                            else _broker_setup if child.spec.role == "broker"
+                            else _child_setup),
             )
         child.state = "starting"
         child.started_at = time.monotonic()

@@ -25,6 +25,9 @@ import yaml
 
 from cblrs.up.plan import ProcessSpec, SitePlan, safe_stem
 
+BROKER_OPEN_FILES = 524288
+"""The broker unit's ``LimitNOFILE=`` (soft and hard): systemd's default hard limit, where its
+soft default, 1,024, is what a few hundred connections that never log in use up."""
 UNIT_ROLES = {"broker": "Mosquitto broker", "matcher": "matcher", "dashboard": "dashboard",
               "camera": "camera"}
 
@@ -78,7 +81,11 @@ def systemd_units(plan: SitePlan, mosquitto: str = "/usr/sbin/mosquitto",
             lines += [f"Wants=network-online.target {after}".rstrip()]
         lines += ["", "[Service]", "Type=exec",
                   f"ExecStart={_quote(spec.argv)}", "Restart=on-failure", "RestartSec=2"]
-        if spec.role != "broker":
+        if spec.role == "broker":
+            # Mosquitto holds a connection that never logs in for ~90 s: its open-files
+            # limit (systemd's soft default: 1,024) is what such connections must exhaust.
+            lines += [f"LimitNOFILE={BROKER_OPEN_FILES}"]
+        else:
             lines += [f"User={user}", f"WorkingDirectory={plan.out}",
                       "Environment=PYTHONUNBUFFERED=1"]
         if spec.role == "dashboard":

@@ -6,6 +6,7 @@ which it handles).
 
 from __future__ import annotations
 
+import os
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -171,11 +172,18 @@ def _label(
 
 
 def save_image(path: str | Path, image: UInt8Image) -> Path:
-    """Write an (H, W, 3) uint8 RGB image as PNG; returns the path."""
+    """Write an (H, W, 3) uint8 RGB image as PNG, readable by its owner only (0600, also
+    when the file existed with a wider mode: an overlay holds a camera's frame, which shows
+    people); returns the path."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    if not cv2.imwrite(str(path), np.ascontiguousarray(image[..., ::-1])):
+    ok, encoded = cv2.imencode(".png", np.ascontiguousarray(image[..., ::-1]))
+    if not ok:
         raise OSError(f"could not write image {path}")
+    descriptor = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    with os.fdopen(descriptor, "wb") as out:
+        os.fchmod(descriptor, 0o600)
+        out.write(encoded.tobytes())
     return path
 
 

@@ -411,6 +411,9 @@ function applyScene(scene) {
 const PLANE = Cblrs.planeQuery();  // "?plane=N" on a plane's page of a site's overview
 
 Cblrs.loadSession().then(() => Cblrs.fetchJSON(`/api/site${PLANE}`)).then((scene) => {
+  // "/" of a site's overview: the server answers every page by its address alone (never
+  // by the session or the site), so the overview's own page is "/?plane=all".
+  if (!PLANE && scene.overview) { location.replace("/?plane=all"); return; }
   document.title = `cblrs · ${scene.name}`;
   $("site-name").textContent = `${scene.name} · plane ${scene.plane}`;
   if (scene.overview) $("overview-link").classList.remove("hidden");

@@ -77,6 +77,12 @@ class FusionConfig:
             disagreement of the cameras that see the same object at the same instant (so the
             same defaults serve exact boxes and a noisy detector); False keeps the initial
             values.
+        constant_bias: also learn a constant along-ray bias of people's views beside the
+            one proportional to distance: a box's bottom is the near edge of a body, short of
+            its centre by about half a body at any distance (a synthetic crowd's 0.26 m).
+            Used only when it is short (negative) and explains a clear share of the cameras'
+            disagreement (:class:`~cblrs.matching.fusion.noise.NoiseModel`); annotated boxes
+            and a noisy detector on WILDTRACK learn none and are unchanged.
         class_measurement_sigma_m: extra standard deviation (added in quadrature) for classes
             whose footprint is large (vehicles: the box bottom only bounds it), metres;
             the gate cap and the cluster radius grow with it.
@@ -186,6 +192,13 @@ class FusionConfig:
             cameras are known to miss people hidden behind others (the occlusion stage's
             learnt miss rate above one half): it takes the id and the coasting track is
             dropped (:mod:`~cblrs.matching.fusion.stitching`).
+        stitch_turn_dps: a new person's track whose velocity is known may also continue a
+            coasting one it reached by turning: on the arc of constant speed and turn rate
+            from where the coasting track was last seen to the new track's heading now, the
+            turn at most this many degrees a second, the speeds alike
+            (:mod:`~cblrs.matching.fusion.stitching`); 0: off.
+        stitch_arc_m: how far off that arc the new track may be, beyond three standard
+            deviations of the two positions, metres (a walker turns, then goes straight).
         swap_radius_m: two confirmed tracks of people closer than this open an encounter;
             once they have been farther apart than this for ``swap_settle_s``, they exchange
             ids from then on if their motion before the encounter explains what each saw
@@ -225,6 +238,7 @@ class FusionConfig:
     vehicle_minimum_sigma_m: float = 0.3
     object_sigma_m: float = 0.1
     adapt_noise: bool = True
+    constant_bias: bool = True
     class_measurement_sigma_m: Mapping[str, float] = field(
         default_factory=lambda: dict(DEFAULT_CLASS_MEASUREMENT_SIGMA_M)
     )
@@ -263,6 +277,8 @@ class FusionConfig:
     stitch_delay_s: float = 0.0
     stitch_sigmas: float = 3.0
     stitch_coasting: bool = True
+    stitch_turn_dps: float = 180.0
+    stitch_arc_m: float = 0.8
     swap_radius_m: float = 1.0
     swap_settle_s: float = 0.5
     swap_margin: float = 7.0
@@ -290,7 +306,8 @@ class FusionConfig:
                      "report_coasting_s", "report_hidden_s", "occluder_width_m",
                      "object_sigma_m", "group_radius_m", "vehicle_minimum_sigma_m",
                      "max_clock_offset_s", "stitch_gap_s", "stitch_delay_s",
-                     "swap_radius_m", "swap_settle_s", "swap_margin"):
+                     "swap_radius_m", "swap_settle_s", "swap_margin", "stitch_turn_dps",
+                     "stitch_arc_m"):
             value = getattr(self, name)
             require(
                 _positive(value) or value == 0,
@@ -309,7 +326,8 @@ class FusionConfig:
             "model_acceleration_factors and model_sojourn_s need one entry per model, got "
             f"{len(self.model_acceleration_factors)} and {len(self.model_sojourn_s)}.",
         )
-        for name in ("adapt_noise", "estimate_clocks", "end_off_plane", "stitch_coasting"):
+        for name in ("adapt_noise", "constant_bias", "estimate_clocks", "end_off_plane",
+                     "stitch_coasting"):
             value = getattr(self, name)
             require(isinstance(value, bool), f"{name} must be true or false, got {value!r}.")
         require(

@@ -47,12 +47,17 @@ class NoiseModel:
     prior_distances_m = (5.0, 25.0)
     clip_sigmas = 3.0
 
+    constant_share = 0.04
+    """Share of the views' squared disagreement a constant along-ray bias must explain,
+    beyond the bias proportional to distance, to be used (``constant_bias``)."""
+
     def __init__(
         self, sigma_m: float, sigma_per_distance: float,
-        lateral_per_distance: float | None = None,
+        lateral_per_distance: float | None = None, constant_bias: bool = False,
     ):
         lateral = sigma_per_distance if lateral_per_distance is None else lateral_per_distance
         self.prior = np.array([sigma_m**2, sigma_per_distance**2, sigma_m**2, lateral**2])
+        self.constant_bias = constant_bias
         self.reset()
 
     def reset(self) -> None:
@@ -75,6 +80,13 @@ class NoiseModel:
         self.bias_normal = self.prior_pairs * self.prior_distances_m[1] ** 2
         self.bias_moment = 0.0
         self.bias_per_distance = 0.0
+        # A constant along-ray bias beside it (``constant_bias``), zero a priori (worth
+        # prior_pairs pairs), and the sums its fit needs.
+        self.constant_normal = self.prior_pairs
+        self.constant_moment = 0.0
+        self.bias_cross = 0.0
+        self.difference_square = 0.0
+        self.bias_constant_m = 0.0
 
     def bias(self, distance: np.ndarray, along_distance: np.ndarray | None = None) -> np.ndarray:
         """(N,) mean error along the ray (metres, positive: beyond the object) at (N,) metres.
@@ -86,7 +98,7 @@ class NoiseModel:
         Cameras looking from different sides disagree by it, so it is learned like the noise.
         """
         along_distance = distance if along_distance is None else along_distance
-        return self.bias_per_distance * along_distance
+        return self.bias_constant_m + self.bias_per_distance * along_distance
 
     def _learn_bias(
         self, world_xy: np.ndarray, distance: np.ndarray, along_distance: np.ndarray,
@@ -96,6 +108,14 @@ class NoiseModel:
 
         The difference of two views of one object is ``q (g_1 - g_2)`` on average (``g =
         along_distance * u``, ``u`` the unit rays): a least-squares fit of ``q``.
+
+        With ``constant_bias`` it is ``k (u_1 - u_2) + q (g_1 - g_2)``: a body's foot point
+        (its box's bottom) is its footprint's near edge, short of the centre the ground truth
+        marks by about half a body whatever the distance. ``k`` and ``q`` are fitted together
+        and used when ``k`` is negative (short: the near edge) and explains at least
+        :attr:`constant_share` of the squared disagreement beyond what ``q`` alone does;
+        otherwise ``q`` alone, as without it. Where boxes are drawn around the person's
+        centre (annotations), or a detector's noise swamps it, nothing changes.
         """
         del distance
         reach = along_distance[:, None] * direction
@@ -105,7 +125,23 @@ class NoiseModel:
         self.bias_normal = decay * self.bias_normal + float(np.sum(feature**2))
         self.bias_moment = decay * self.bias_moment + float(np.sum(feature * difference))
         self.bias_per_distance = self.bias_moment / self.bias_normal
-        return world_xy - self.bias_per_distance * reach
+        if not self.constant_bias:
+            return world_xy - self.bias_per_distance * reach
+        turn = direction[first] - direction[second]
+        self.constant_normal = decay * self.constant_normal + float(np.sum(turn**2))
+        self.constant_moment = decay * self.constant_moment + float(np.sum(turn * difference))
+        self.bias_cross = decay * self.bias_cross + float(np.sum(turn * feature))
+        self.difference_square = decay * self.difference_square + float(np.sum(difference**2))
+        normal = np.array([[self.constant_normal, self.bias_cross],
+                           [self.bias_cross, self.bias_normal]])
+        moment = np.array([self.constant_moment, self.bias_moment])
+        constant, per_distance = np.linalg.solve(normal, moment)
+        explained = float(moment @ (constant, per_distance)) - (
+            self.bias_moment * self.bias_per_distance)
+        self.bias_constant_m = 0.0
+        if constant < 0 and explained > self.constant_share * self.difference_square:
+            self.bias_constant_m, self.bias_per_distance = float(constant), float(per_distance)
+        return world_xy - self.bias_constant_m * direction - self.bias_per_distance * reach
 
     def variances(
         self, distance: np.ndarray, along_distance: np.ndarray | None = None
@@ -256,6 +292,8 @@ class NoiseModel:
             "bias_normal": self.bias_normal,
             "bias_moment": self.bias_moment,
             "bias_per_distance": self.bias_per_distance,
+            "constant": [self.constant_normal, self.constant_moment, self.bias_cross,
+                         self.difference_square, self.bias_constant_m],
         }
 
     def set_state(self, state: dict) -> None:
@@ -266,3 +304,7 @@ class NoiseModel:
         self.bias_normal = float(state["bias_normal"])
         self.bias_moment = float(state["bias_moment"])
         self.bias_per_distance = float(state["bias_per_distance"])
+        # (a state saved before the constant bias: none learnt yet)
+        constant = state.get("constant", [self.prior_pairs, 0.0, 0.0, 0.0, 0.0])
+        (self.constant_normal, self.constant_moment, self.bias_cross,
+         self.difference_square, self.bias_constant_m) = (float(value) for value in constant)

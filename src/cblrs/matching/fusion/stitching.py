@@ -35,7 +35,10 @@ track may continue one by the test above, or, when its velocity is not known yet
 confirmed it at once), by position alone: off the coasting track's prediction by no more than
 a change of velocity of ``class_velocity_sigma`` (1.5 m/s for a person) takes a walker in the
 time the track was unseen (:meth:`Stitching._within_reach`), and unambiguous as above. The
-new track takes the id and the coasting track is dropped (:attr:`Stitches.replaced`). Where
+new track takes the id and the coasting track is dropped (:attr:`Stitches.replaced`). A new
+track whose velocity is known may continue a coasting person who turned while hidden
+(``stitch_turn_dps``, :meth:`Stitching._on_arc`): its position and heading now lie on the arc
+of constant speed and turn rate from where the coasting track was last seen. Where
 cameras see people through occlusion (annotated boxes), and for vehicles, a coasting track's
 object is not hidden and the tracker passes none.
 
@@ -179,9 +182,12 @@ class Stitching:
             # yet may be it (the cameras lost the person, who walked off the prediction)
             # when it is no farther off than a change of velocity could have taken it.
             first = len(self.lost)
-            close[first:] |= self._within_reach(
-                ended.select(np.arange(first, len(ended))), candidates, timestamp
-            ) & possible[first:]
+            coasting_ends = ended.select(np.arange(first, len(ended)))
+            close[first:] |= self._within_reach(coasting_ends, candidates, timestamp) & (
+                possible[first:])
+            if config.stitch_turn_dps > 0:
+                close[first:] |= self._on_arc(coasting_ends, candidates, timestamp) & (
+                    possible[first:])
         # A young track's velocity is not known yet: it may be any lost track it could reach.
         rivals = close | (possible & young[None, :])
         stitches = Stitches.none(count)
@@ -242,6 +248,51 @@ class Stitching:
         distance = np.linalg.norm(
             fresh.state[None, :, :2] - coasting.state[:, None, :2], axis=2)
         return (distance <= reach) & ~_moving(fresh)[None, :]
+
+    def _on_arc(self, coasting: TrackTable, fresh: TrackTable, timestamp: float) -> np.ndarray:
+        """(K, F) bool: which moving new tracks a coasting person reached by turning.
+
+        A walker hidden for a second often turns meanwhile (the crowd's people walk arcs);
+        the coasting track goes straight on and the new track's velocity disagrees with it,
+        so neither the gate test nor the reach of a change of velocity holds. Here the
+        coasting track's last seen position and velocity are carried along the arc of
+        constant speed (the mean of the two ends') and turn rate that ends in the new
+        track's heading now; the new track must lie on it within three standard deviations
+        of the two positions plus ``stitch_arc_m``, turn by at most ``stitch_turn_dps``
+        degrees a second, and keep its speed (within three standard deviations of the two
+        speeds).
+        """
+        config = self.context.config
+        shape = (len(coasting), len(fresh))
+        if not all(shape):
+            return np.zeros(shape, dtype=bool)
+        unseen = np.maximum(timestamp - coasting.last_seen, 1e-6)[:, None]  # (K, 1)
+        old_velocity = coasting.state[:, None, 2:4]
+        new_velocity = fresh.state[None, :, 2:4]
+        last = coasting.state[:, None, :2] - old_velocity * unseen[..., None]
+        old_speed = np.hypot(old_velocity[..., 0], old_velocity[..., 1])
+        new_speed = np.hypot(new_velocity[..., 0], new_velocity[..., 1])
+        heading = np.arctan2(old_velocity[..., 1], old_velocity[..., 0])
+        turn = np.angle(np.exp(1j * (np.arctan2(new_velocity[..., 1], new_velocity[..., 0])
+                                     - heading)))  # (K, F), in (-pi, pi]
+        speed = 0.5 * (old_speed + new_speed)
+        chord = speed * unseen * np.sinc(turn / (2.0 * np.pi))  # sin(t/2) / (t/2)
+        direction = heading + 0.5 * turn
+        arc_end = last + chord[..., None] * np.stack([np.cos(direction), np.sin(direction)], -1)
+        error = np.linalg.norm(fresh.state[None, :, :2] - arc_end, axis=2)
+        seen = (coasting.covariance[:, :2, :2] if coasting.seen_covariance is None
+                else coasting.seen_covariance)  # (where it was when last seen)
+        spread = np.sqrt(
+            np.trace(fresh.covariance[:, :2, :2], axis1=1, axis2=2)[None, :]
+            + np.trace(seen, axis1=1, axis2=2)[:, None]
+        )
+        speed_sigma = np.hypot(coasting.velocity_sigma[:, None], fresh.velocity_sigma[None, :])
+        return (
+            (error <= 3.0 * spread + config.stitch_arc_m)
+            & (np.abs(turn) <= np.radians(config.stitch_turn_dps) * unseen)
+            & (np.abs(new_speed - old_speed) <= 3.0 * speed_sigma)
+            & _moving(fresh)[None, :]
+        )
 
     def _within_gate(
         self, ended: TrackTable, fresh: TrackTable, possible: np.ndarray, timestamp: float

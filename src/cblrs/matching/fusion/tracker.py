@@ -112,7 +112,7 @@ class FusionTracker:
         self.context = FusionContext(
             config, self.camera_ids, self._camera_xy, self._class_extra, self._class_scale,
             NoiseModel(config.measurement_sigma_m, config.along_sigma_per_distance,
-                       config.sigma_per_distance),
+                       config.sigma_per_distance, constant_bias=config.constant_bias),
         )
         self.association = Association(self.context)
         self.motion = MotionCheck(self.context)

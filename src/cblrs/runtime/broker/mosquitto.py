@@ -39,6 +39,22 @@ def free_port(host: str = "127.0.0.1") -> int:
         return probe.getsockname()[1]
 
 
+def open_files_to_the_hard_limit() -> None:  # pragma: no cover - between fork and exec
+    """Raise the process's soft limit of open files to its hard limit (a ``preexec_fn`` for
+    the broker: Mosquitto keeps a connection that never sends its ``CONNECT`` for about 90 s
+    and has no setting to shorten it, so its open-files limit is what silent connections
+    must exhaust before a login fails; a shell's or systemd's soft limit, 1,024, is a few
+    hundred connections a second away. nats-server, a Go program, raises its own)."""
+    import resource
+
+    try:
+        soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+        if hard == resource.RLIM_INFINITY or soft < hard:
+            resource.setrlimit(resource.RLIMIT_NOFILE, (hard, hard))
+    except (OSError, ValueError):
+        pass
+
+
 def find_mosquitto() -> str | None:
     """Path of the mosquitto binary, or None."""
     found = shutil.which(MOSQUITTO)
@@ -112,6 +128,7 @@ class MosquittoProcess:
                 stdout=log,
                 stderr=subprocess.STDOUT,
                 stdin=subprocess.DEVNULL,
+                preexec_fn=open_files_to_the_hard_limit if os.name == "posix" else None,
             )
         deadline = time.monotonic() + self.startup_timeout_s
         while time.monotonic() < deadline:

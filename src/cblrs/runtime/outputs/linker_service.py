@@ -361,7 +361,10 @@ class LinkerService:
                     if len(rows):
                         inputs.append(("fix", plane, rows))
                         if rows.timestamp[0] <= self.linker.clock:  # linked without them
-                            back_to = min(back_to, float(rows.timestamp[0]))
+                            # Back to a snapshot from before the first row: one taken at its
+                            # very time has linked that time already.
+                            back_to = min(back_to, math.nextafter(float(rows.timestamp[0]),
+                                                                  -math.inf))
                     self._heard[plane] = now
                     counters["corrections"] += 1
                     continue
