@@ -258,7 +258,7 @@ def create_app(config: DashboardConfig, auth: Any) -> Any:
                 identity = await asyncio.to_thread(auth.login, name, password, client)
         except LoginRefused as refused:
             headers = ({"Retry-After": str(max(1, round(refused.retry_after_s)))}
-                       if refused.status == 429 else None)
+                       if refused.status in (429, 503) else None)
             return JSONResponse({"error": str(refused)}, status_code=refused.status,
                                 headers=headers)
         return logged_in(identity)

@@ -66,6 +66,7 @@ from urllib.parse import quote, urlsplit
 from starlette.requests import Request
 from starlette.responses import JSONResponse, RedirectResponse, Response
 
+from cblrs.dashboard.sessions import SessionsFull, SessionTable
 from cblrs.dashboard.users import Role, User, UsersError, UsersFile, verify_password
 
 logger = logging.getLogger(__name__)
@@ -75,6 +76,9 @@ SESSION_HEADER = "x-cblrs-session"
 """The header that carries a browser session's page token on every API request."""
 MAX_BODY_BYTES = 1 << 20
 MAX_SESSIONS = 10_000
+"""Sessions in all: past it a viewer's login is refused (503), no other session ends."""
+SESSIONS_PER_USER = 32
+"""Sessions of one user: their next login ends their own session idle the longest."""
 
 CONTENT_SECURITY_POLICY = (
     "default-src 'none'; script-src 'self'; style-src 'self'; img-src 'self' blob:; "
@@ -119,7 +123,7 @@ class Identity:
 
 
 class LoginRefused(Exception):
-    """A login is refused: ``status`` (401, 429), one sentence, and the seconds to wait."""
+    """A login is refused: ``status`` (401, 429, 503), one sentence, the seconds to wait."""
 
     def __init__(self, status: int, message: str, retry_after_s: float = 0.0):
         super().__init__(message)
@@ -195,6 +199,8 @@ class Authenticator:
             ``https://dashboard.example.org``); None: the request's own scheme and host.
         loopback: bound to a loopback address: requests must name a loopback host.
         limiter: the login back-off (default: :class:`LoginLimiter` on ``clock``).
+        max_sessions: sessions in all (default :data:`MAX_SESSIONS`).
+        sessions_per_user: sessions of one user (default :data:`SESSIONS_PER_USER`).
     """
 
     def __init__(
@@ -208,6 +214,8 @@ class Authenticator:
         loopback: bool = True,
         clock: Callable[[], float] = time.monotonic,
         limiter: LoginLimiter | None = None,
+        max_sessions: int | None = None,
+        sessions_per_user: int | None = None,
     ):
         if users_path is None and run_token is None:
             raise ValueError("the dashboard needs a users file or a run token")
@@ -220,8 +228,10 @@ class Authenticator:
         self.clock = clock
         self.limiter = limiter if limiter is not None else LoginLimiter(clock=clock)
         self.cookie_name = "__Host-cblrs_session" if self.secure else "cblrs_session"
-        self._sessions: dict[str, Identity] = {}
-        self._lock = threading.Lock()
+        self._sessions = SessionTable(
+            MAX_SESSIONS if max_sessions is None else max_sessions,
+            SESSIONS_PER_USER if sessions_per_user is None else sessions_per_user,
+            lambda identity: self._expired(identity, self.clock()))
         self._users: UsersFile | None = None
         self._users_key: tuple[int, int] | None = None
         if users_path is not None:
@@ -288,8 +298,7 @@ class Authenticator:
         session_id = request.cookies.get(self.cookie_name)
         if not session_id:
             return None
-        with self._lock:
-            identity = self._sessions.get(session_id)
+        identity = self._sessions.get(session_id)
         if identity is None or not self.still_valid(identity):
             return None
         return identity
@@ -309,21 +318,14 @@ class Authenticator:
     def still_valid(self, identity: Identity) -> bool:
         """Whether the identity may still act: its session is open and not expired, and its
         user's record is unchanged."""
-        now = self.clock()
-        if identity.via == "session":
-            with self._lock:
-                if self._sessions.get(identity.session or "") is not identity:
-                    return False
-                if self._expired(identity, now):
-                    self._sessions.pop(identity.session or "", None)
-                    return False
+        if identity.via == "session" and not self._sessions.drop_if(identity):
+            return False
         if identity.stamp == "run":
             return self.run_token is not None
         user = self._user(identity.user)
         if user is None or user.stamp != identity.stamp:
             if identity.session is not None:
-                with self._lock:
-                    self._sessions.pop(identity.session, None)
+                self._sessions.drop(identity.session)
             return False
         return True
 
@@ -353,17 +355,24 @@ class Authenticator:
         return self.open_session(user.name, user.role, user.stamp)
 
     def open_session(self, user: str, role: Role, stamp: str) -> Identity:
+        """Open a session of ``user`` (ending their own idle-longest one at their limit).
+
+        Raises:
+            LoginRefused: 503, the dashboard holds its most sessions (an admin's is opened).
+        """
         now = self.clock()
         identity = Identity(user, role, "session", stamp, secrets.token_urlsafe(32),
                             secrets.token_urlsafe(32), now, now)
-        with self._lock:
-            if len(self._sessions) >= MAX_SESSIONS:
-                self._prune(now)
-            if len(self._sessions) >= MAX_SESSIONS:  # the oldest goes
-                oldest = min(self._sessions.values(), key=lambda item: item.last_seen)
-                self._sessions.pop(oldest.session or "", None)
-            assert identity.session is not None
-            self._sessions[identity.session] = identity
+        try:
+            ended = self._sessions.add(identity)
+        except SessionsFull as full:
+            logger.warning("dashboard: refused a session to %s: %d sessions open", user,
+                           self._sessions.most)
+            raise LoginRefused(503, str(full), 60.0) from None
+        if ended:
+            logger.info("dashboard: %s holds %d sessions, the most one user may; ended "
+                        "their %d idle the longest", user, self._sessions.per_user,
+                        len(ended))
         return identity
 
     def is_run_token(self, token: str) -> bool:
@@ -378,16 +387,10 @@ class Authenticator:
         return self.open_session(identity.user, identity.role, identity.stamp)
 
     def logout(self, identity: Identity) -> None:
-        with self._lock:
-            self._sessions.pop(identity.session or "", None)
+        self._sessions.drop(identity.session or "")
 
     def _expired(self, identity: Identity, now: float) -> bool:
         return now - identity.created > self.session_s or now - identity.last_seen > self.idle_s
-
-    def _prune(self, now: float) -> None:
-        for key, identity in list(self._sessions.items()):
-            if self._expired(identity, now):
-                del self._sessions[key]
 
     def set_cookie(self, response: Response, identity: Identity) -> None:
         assert identity.session is not None
