@@ -42,9 +42,11 @@ and adds the headers that keep the page to itself (a strict Content-Security-Pol
 inline script, ``frame-ancestors 'none'``, ``nosniff``, ``Referrer-Policy``). Bound to a
 loopback address it also refuses requests for any other host name (DNS rebinding).
 
-Failed logins are slowed down (:class:`LoginLimiter`): after a few failures for a user name
-or from one client, each further attempt waits twice as long as the previous one, up to five
-minutes (429 with ``Retry-After``).
+Failed logins are slowed down (:class:`~cblrs.dashboard.logins.LoginLimiter`): after a few
+failures for a user name or from one client, each further attempt waits twice as long as the
+previous one, up to five minutes (429 with ``Retry-After``); logins wait their turn
+(:class:`~cblrs.dashboard.logins.LoginSlots`). Sessions are bounded per user and in all
+(:mod:`cblrs.dashboard.sessions`).
 """
 
 from __future__ import annotations
@@ -54,7 +56,6 @@ import hmac
 import ipaddress
 import logging
 import secrets
-import threading
 import time
 from collections.abc import Awaitable, Callable, MutableMapping
 from dataclasses import dataclass
@@ -66,6 +67,7 @@ from urllib.parse import quote, urlsplit
 from starlette.requests import Request
 from starlette.responses import JSONResponse, RedirectResponse, Response
 
+from cblrs.dashboard.logins import LoginLimiter, LoginRefused
 from cblrs.dashboard.sessions import SessionsFull, SessionTable
 from cblrs.dashboard.users import Role, User, UsersError, UsersFile, verify_password
 
@@ -120,70 +122,6 @@ class Identity:
     page_token: str | None = None
     created: float = 0.0
     last_seen: float = 0.0
-
-
-class LoginRefused(Exception):
-    """A login is refused: ``status`` (401, 429, 503), one sentence, the seconds to wait."""
-
-    def __init__(self, status: int, message: str, retry_after_s: float = 0.0):
-        super().__init__(message)
-        self.status = status
-        self.retry_after_s = retry_after_s
-
-
-class LoginLimiter:
-    """Exponential back-off of failed logins, per user name and per client address.
-
-    After ``free_per_user`` failures for a name (``free_per_client`` from an address) each
-    further failure locks that name (address) for ``base_s`` doubled per failure, at most
-    ``max_s``. A name's lock holds only for the addresses that failed for that name: anyone
-    who knows an admin's name could otherwise keep the admin out for good (a failure every
-    ``max_s``), as the right password is refused during a lock; a guesser on many addresses
-    gets one try per address before the name's lock slows it there too. A success clears
-    its own address's failures for the name, not the name's count (which would give a guesser
-    fresh tries whenever the owner logs in); the count is forgotten after ``2 * max_s``
-    without a failure.
-    """
-
-    def __init__(self, free_per_user: int = 5, free_per_client: int = 20, base_s: float = 1.0,
-                 max_s: float = 300.0, clock: Callable[[], float] = time.monotonic):
-        self.free = {"user": free_per_user, "client": free_per_client}
-        self.base_s, self.max_s, self.clock = base_s, max_s, clock
-        self._failures: dict[tuple[str, str], tuple[int, float]] = {}  # key -> count, until
-        self._last: dict[str, float] = {}  # user -> time of its last failure
-        self._lock = threading.Lock()
-
-    def wait_s(self, user: str, client: str) -> float:
-        """Seconds until ``user`` may try again from ``client`` (0: now)."""
-        now = self.clock()
-        keys = [("client", client)]
-        with self._lock:
-            if ("pair", f"{user}\n{client}") in self._failures:
-                keys.append(("user", user))
-            return max(0.0, *(self._failures.get(key, (0, 0.0))[1] - now for key in keys))
-
-    def failed(self, user: str, client: str) -> None:
-        now = self.clock()
-        with self._lock:
-            if len(self._failures) > 100_000:  # bounded: forget the stale ones
-                self._failures = {key: value for key, value in self._failures.items()
-                                  if value[1] > now - self.max_s}
-            if now - self._last.get(user, now) > 2 * self.max_s:  # quiet for long: forgotten
-                self._failures.pop(("user", user), None)
-            self._last[user] = now
-            if len(self._last) > 100_000:
-                self._last = {name: last for name, last in self._last.items()
-                              if last > now - 2 * self.max_s}
-            for key in (("user", user), ("client", client)):
-                count = self._failures.get(key, (0, 0.0))[0] + 1
-                over = count - self.free[key[0]]
-                until = now + min(self.max_s, self.base_s * 2 ** (over - 1)) if over > 0 else 0.0
-                self._failures[key] = (count, until)
-            self._failures[("pair", f"{user}\n{client}")] = (1, now)
-
-    def succeeded(self, user: str, client: str) -> None:
-        with self._lock:
-            self._failures.pop(("pair", f"{user}\n{client}"), None)
 
 
 class Authenticator:
@@ -336,10 +274,7 @@ class Authenticator:
         Raises:
             LoginRefused: wrong name or password (401), or too many failures (429).
         """
-        wait = self.limiter.wait_s(name, client)
-        if wait > 0:
-            raise LoginRefused(429, f"too many failed logins; try again in {wait:.0f} s.",
-                               wait)
+        self.limiter.check(name, client)
         user = self._user(name)
         # An unknown name costs the same scrypt as a known one (no user enumeration).
         ok = verify_password(password, user.password if user is not None else "")
