@@ -16,7 +16,6 @@ import pytest
 from fault_plant import (
     CAMERAS,
     PER_CAMERA,
-    TOTAL,
     assert_all_stored_once,
     broker_saves,
     finish,
