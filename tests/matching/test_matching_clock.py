@@ -203,15 +203,3 @@ def test_clock_model_state_round_trip():
     copy.set_state(json.loads(json.dumps(model.get_state())))
     assert copy.report(["a", "b", "c"]) == model.report(["a", "b", "c"])
     np.testing.assert_array_equal(copy.solve(), model.solve())
-
-
-def test_the_median_of_the_offsets_is_numpys():
-    from cblrs.matching.clock import _median
-
-    generator = np.random.default_rng(5)
-    for count in range(1, 12):
-        for _ in range(300):
-            values = generator.normal(size=count) * generator.choice([1e-4, 1e-2, 1.0])
-            values[generator.integers(count)] = values[0]  # ties
-            assert _median(values) == float(np.median(values))
-    assert np.isnan(_median(np.array([0.1, np.nan, 0.2])))
