@@ -60,6 +60,28 @@ def wildtrack_root() -> Path:
     return root
 
 
+@pytest.fixture(scope="session")
+def wildtrack_first_frames(wildtrack_root, tmp_path_factory):
+    """``first(count)``: a folder of WILDTRACK's first ``count`` annotated frames (of 200):
+    links to its calibrations and to those frames' annotation files, for the tests whose
+    checks do not need every frame and that would otherwise track all 200 in a subprocess or
+    under tracemalloc. WILDTRACK is at 2 fps: 40 frames are its first 20 seconds."""
+    folders: dict[int, Path] = {}
+
+    def first(count: int) -> Path:
+        if count not in folders:
+            root = tmp_path_factory.mktemp(f"wildtrack_first_{count}")
+            (root / "calibrations").symlink_to(wildtrack_root / "calibrations")
+            (root / "annotations_positions").mkdir()
+            annotations = sorted((wildtrack_root / "annotations_positions").glob("*.json"))
+            for path in annotations[:count]:
+                (root / "annotations_positions" / path.name).symlink_to(path)
+            folders[count] = root
+        return folders[count]
+
+    return first
+
+
 def find_multiviewx() -> Path | None:
     """The real MultiviewX folder (images, annotations, left-handed calibrations) in ../shared."""
     candidates = [os.environ.get("CBLRS_MULTIVIEWX"), REPO_ROOT.parent / "shared/data/multiviewx"]

@@ -47,6 +47,7 @@ from typing import Protocol
 
 import numpy as np
 
+from cblrs.arrays import unique_integers
 from cblrs.detections import CLASS_NAMES, SURE_CONFIDENCE, CameraMessage, Detections
 from cblrs.reference import Reference
 from cblrs.targeting import TargetingPosition, target_pixels, targeting_for
@@ -145,7 +146,7 @@ def targeting_columns(
     overrides = overrides or {}
     horizontal = np.empty(len(class_id))
     vertical = np.empty(len(class_id))
-    for value in np.unique(class_id):
+    for value in unique_integers(class_id):
         name = CLASS_NAMES[value] if 0 <= value < len(CLASS_NAMES) else "unknown"
         position = overrides.get(name, targeting_for(name))
         rows = class_id == value
@@ -386,7 +387,7 @@ def depth_offsets(
     """Per-detection ground offset (metres) away from the camera; 0 for overridden classes."""
     overrides = overrides or {}
     offset = np.zeros(len(class_id))
-    for value in np.unique(class_id):
+    for value in unique_integers(class_id):
         name = CLASS_NAMES[value] if 0 <= value < len(CLASS_NAMES) else "unknown"
         if name not in overrides:
             offset[class_id == value] = GROUND_DEPTH_OFFSET_M.get(name, 0.0)

@@ -20,6 +20,7 @@ from typing import Any
 
 import numpy as np
 
+from cblrs.arrays import unique_integers
 from cblrs.datasets.clocks import ClockSimulation, camera_clocks
 from cblrs.datasets.scene import Scene
 from cblrs.detections import CameraMessage, Tracks
@@ -335,7 +336,7 @@ def track_scene(
     messages: Iterable[CameraMessage] = camera_messages(
         scene, references, scene_targeters(scene, targeting), clocks, drop_hidden_feet
     )
-    captured = np.unique([message.frame for message in messages])
+    captured = unique_integers([message.frame for message in messages])
     if progress and sys.stderr.isatty():
         # lazy: tqdm reads its version through importlib.metadata (~20 ms); only a bar needs it
         from tqdm import tqdm

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import contextlib
+import io
 import json
 
 import pytest
@@ -10,10 +12,21 @@ from cblrs.cli.main import main
 
 
 @pytest.fixture(scope="module")
-def claims():
-    from cblrs.bench.claims import benchmark_claims
+def claims_run(tmp_path_factory):
+    """One ``cblrs bench claims`` run for the module (most of its CPU is rendering, whatever
+    --n): (what it printed, its --out folder). The claims' tests read the JSON it wrote."""
+    out = tmp_path_factory.mktemp("claims")
+    printed = io.StringIO()
+    with contextlib.redirect_stdout(printed):
+        code = main(["bench", "claims", "--n", "3000", "--repeats", "1", "--seed", "1",
+                     "--out", str(out)])
+    assert code == 0
+    return printed.getvalue(), out
 
-    return benchmark_claims(count=3000, repeats=1, seed=1)
+
+@pytest.fixture(scope="module")
+def claims(claims_run):
+    return json.loads((claims_run[1] / "bench_claims.json").read_text())
 
 
 def test_distortion_colour_is_exact_homography_is_not(claims):
@@ -59,11 +72,10 @@ def test_camera_side(claims):
     assert colour["stored_bytes"] < rows["LUT"]["stored_bytes"] / 10
 
 
-def test_claims_cli(tmp_path, capsys):
-    argv = ["bench", "claims", "--n", "500", "--repeats", "1", "--out", str(tmp_path)]
-    assert main(argv) == 0
-    assert "Lens distortion" in capsys.readouterr().out
-    saved = json.loads((tmp_path / "bench_claims.json").read_text())
-    assert saved["n"] == 500
-    figure = (tmp_path / "claims_distortion.png").read_bytes()
+def test_claims_cli(claims_run):
+    printed, out = claims_run
+    assert "Lens distortion" in printed
+    saved = json.loads((out / "bench_claims.json").read_text())
+    assert saved["n"] == 3000
+    figure = (out / "claims_distortion.png").read_bytes()
     assert figure.startswith(b"\x89PNG") and len(figure) < 300_000

@@ -31,13 +31,15 @@ def test_tracker_grid_and_plot(tmp_path, capsys):
     assert "CPU µs/detection" in (tmp_path / "bench_tracker.md").read_text()
 
 
-def test_pipeline_on_wildtrack(wildtrack_root, capsys):
+def test_pipeline_on_wildtrack(wildtrack_first_frames, capsys):
+    """On WILDTRACK's first 40 frames (HOTA 88.8; 93.8 on all 200): the command's stages and
+    a tracker that works; the reference images alone are most of the tracemalloc peak."""
     argv = ["bench", "pipeline", "--repeats", "1", "--targeting", "box"]
-    argv += ["--calibration", str(wildtrack_root), "--json"]
+    argv += ["--calibration", str(wildtrack_first_frames(40)), "--json"]
     assert main(argv) == 0
     result = json.loads(capsys.readouterr().out)
     assert set(result["stages_seconds"]) == {"load", "render", "track", "evaluate"}
-    assert result["frames"] > 0 and result["cameras"] == 7
+    assert result["frames"] == 40 and result["cameras"] == 7
     assert 50 < result["metrics"]["box"]["HOTA"] <= 100
     assert result["memory"]["tracemalloc_peak_bytes"] > 7 * 1920 * 1080 * 6
 

@@ -1,4 +1,9 @@
-"""The in-process pipeline and `cblrs track`: synthetic scenes and WILDTRACK."""
+"""The in-process pipeline and `cblrs track`: synthetic scenes and WILDTRACK.
+
+WILDTRACK's runs (all frames, about a CPU-second each) are tracked once per module and shared
+by the tests that score them and the test that checks the clock estimate leaves synchronised
+cameras alone (it was in tests/matching/test_matching_clock.py and tracked the same inputs
+again); no test changes a result it is given."""
 
 from __future__ import annotations
 
@@ -23,6 +28,28 @@ def roundabout():
 def wildtrack(wildtrack_root):
     scene = load_scene(wildtrack_root)
     return scene, render_scene_references(scene)
+
+
+@pytest.fixture(scope="module")
+def wildtrack_runs(wildtrack):
+    """``run(seed, estimate_clocks=True)``: (scene, TrackResult) of WILDTRACK with exact boxes
+    (seed None) or the noisy detector's (20 % dropped, 5 % jitter, that seed), each tracked
+    once in this module."""
+    scene, references = wildtrack
+    scenes: dict = {}
+    results: dict = {}
+
+    def run(seed, estimate_clocks=True):
+        if seed not in scenes:
+            scenes[seed] = scene if seed is None else simulate_detections(
+                scene, drop=0.2, jitter=0.05, seed=seed)
+        key = (seed, estimate_clocks)
+        if key not in results:
+            options = {} if estimate_clocks else {"estimate_clocks": False}
+            results[key] = track_scene(scenes[seed], references=references, **options)
+        return scenes[seed], results[key]
+
+    return run
 
 
 def test_messages_carry_colours_for_every_camera_and_frame(roundabout):
@@ -66,7 +93,7 @@ def test_track_scene_rejects_options_with_an_instance(roundabout):
         track_scene(roundabout, matcher, threshold_m=2.0)
 
 
-def test_wildtrack_fusion_scores(wildtrack):
+def test_wildtrack_fusion_scores(wildtrack_runs):
     """Exact annotated boxes, all frames, through the colour path.
 
     The benchmark target is HOTA >= 92 and IDF1 >= 95 over all frames; the tracker reaches
@@ -74,8 +101,7 @@ def test_wildtrack_fusion_scores(wildtrack):
     hold most of the implausible ground-truth jumps). The pipeline is deterministic; these
     guard against regressions with a small margin below the measured figures.
     """
-    scene, references = wildtrack
-    result = track_scene(scene, references=references)
+    scene, result = wildtrack_runs(None)
     metrics = evaluate(scene.ground_truth, result.tracks)
     assert metrics.HOTA >= 93.5
     assert metrics.IDF1 >= 95.2
@@ -85,7 +111,7 @@ def test_wildtrack_fusion_scores(wildtrack):
 
 
 @pytest.mark.parametrize(("seed", "measured"), [(0, 86.08), (1, 86.72), (2, 84.88)])
-def test_wildtrack_fusion_with_a_noisy_detector(wildtrack, seed, measured):
+def test_wildtrack_fusion_with_a_noisy_detector(wildtrack_runs, seed, measured):
     """20 % of boxes dropped and every edge jittered by 5 % of the box size.
 
     The target is HOTA >= 85. Seeds 0..6 measure 86.08, 86.72, 84.88, 87.08, 86.02, 86.48,
@@ -93,11 +119,22 @@ def test_wildtrack_fusion_with_a_noisy_detector(wildtrack, seed, measured):
     ground-truth identities and the same filter reaches about 93.5. Each seed is guarded
     half a point below its measured figure (the pipeline is deterministic).
     """
-    scene, references = wildtrack
-    noisy = simulate_detections(scene, drop=0.2, jitter=0.05, seed=seed)
-    metrics = evaluate(scene.ground_truth, track_scene(noisy, references=references).tracks)
+    scene, _ = wildtrack_runs(None)
+    _, result = wildtrack_runs(seed)
+    metrics = evaluate(scene.ground_truth, result.tracks)
     assert metrics.HOTA >= measured - 0.5
     assert metrics.IDF1 >= 90.0
+
+
+@pytest.mark.parametrize("seed", [None, 2])
+def test_synchronised_cameras_keep_their_timestamps(wildtrack_runs, seed):
+    """On WILDTRACK (exact boxes, and a noisy detector) no offset is significant: the tracks
+    are exactly those of a tracker that trusts the timestamps."""
+    _, estimating = wildtrack_runs(seed)
+    _, trusting = wildtrack_runs(seed, estimate_clocks=False)
+    assert all(one["offset_s"] == 0.0 for one in estimating.clocks.values())
+    np.testing.assert_array_equal(estimating.tracks.world_xy, trusting.tracks.world_xy)
+    np.testing.assert_array_equal(estimating.tracks.track_id, trusting.tracks.track_id)
 
 
 def test_cli_track_writes_valid_tracks(wildtrack_root, tmp_path, capsys):

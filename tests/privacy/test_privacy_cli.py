@@ -34,8 +34,10 @@ def test_keygen_writes_a_0600_key_and_never_replaces_one(key_file, capsys):
 
 
 def test_track_with_a_key_tracks_as_well_and_only_the_key_maps_back(
-    wildtrack_root, key_file, tmp_path, capsys
+    wildtrack_first_frames, key_file, tmp_path, capsys
 ):
+    """On WILDTRACK's first 80 frames (HOTA 92.1 plain; 93.8 on all 200)."""
+    wildtrack_root = wildtrack_first_frames(80)
     plain, pseudo = tmp_path / "plain.txt", tmp_path / "pseudo.txt"
     common = ["track", "--dataset", str(wildtrack_root), "--quiet", "--json"]
     assert main([*common, "--out", str(plain)]) == 0

@@ -9,7 +9,15 @@ from pathlib import Path
 from typing import Any
 
 from cblrs.cli.common import UsageError
-from cblrs.detectors import DEFAULT_CONFIDENCE, DEFAULT_IOU, DEFAULT_TILING, LAYOUTS, TILING_MODES
+
+# cblrs.detectors' own defaults, written out: importing the package (every detector module,
+# ~10 ms) at the start of every `cblrs track` that tracks annotated boxes would cost more than
+# the rest of its command line. tests/cli/test_cli_detector_options.py keeps them equal.
+DEFAULT_CONFIDENCE = 0.25
+DEFAULT_IOU = 0.45
+DEFAULT_TILING = "auto"
+LAYOUTS = ("auto", "yolox", "yolov5", "yolov8")
+TILING_MODES = ("auto", "off")
 
 DETECTIONS_HELP = (
     "folder of per-camera MOT files instead of the annotated boxes: one file per camera named "

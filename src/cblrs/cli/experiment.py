@@ -329,10 +329,11 @@ def run_calibration_command(args: argparse.Namespace) -> tuple[dict[str, Any], s
         click_px=args.click_px,
         ground_m=args.ground_m,
     )
-    result = run_calibration(scene, setup, progress=not args.quiet)
+    sites: dict[tuple[int, int], Any] = {}
+    result = run_calibration(scene, setup, progress=not args.quiet, sites=sites)
     text = calibration_report(result)
     if args.figures is not None or args.out is not None:
-        figure = calibration_figure(scene, setup, args.figures or args.out)
+        figure = calibration_figure(scene, setup, args.figures or args.out, sites)
         result["figures"] = [str(figure)]
     if args.out is not None:
         _write(args.out, "calibration", result, text)

@@ -55,7 +55,7 @@ from typing import Any
 
 from cblrs.dashboard import calibration, places_editor
 from cblrs.dashboard.feed import LiveFeed, sse
-from cblrs.dashboard.replay import ReplayError, StoreReplay
+from cblrs.dashboard.replay import ReplayError, StoredRunInfo, StoreReplay
 from cblrs.dashboard.scene import map_image, site_scene
 from cblrs.dashboard.users import Role
 from cblrs.errors import CblrsError
@@ -166,6 +166,7 @@ def create_app(config: DashboardConfig, auth: Any) -> Any:
             page,
             requires,
         )
+        from cblrs.dashboard.logins import LoginSlots
     except ImportError:  # pragma: no cover - depends on the environment
         raise CblrsError(
             "the dashboard needs Starlette and uvicorn: pip install cblrs[dashboard]"
@@ -174,7 +175,7 @@ def create_app(config: DashboardConfig, auth: Any) -> Any:
     viewer, admin = Role.VIEWER, Role.ADMIN
     scene_cache: dict[str, Any] = {}
     places_lock = asyncio.Lock()  # one save of the site file at a time
-    logins = asyncio.Semaphore(2)  # scrypt takes 128 MiB and a good part of a second each
+    logins = LoginSlots()  # one at a time per name and address, two checked at once
     open_streams: dict[str, int] = {}  # user -> live streams and replays open
 
     def take_stream(user: str) -> Callable[[], None] | None:
@@ -254,11 +255,12 @@ def create_app(config: DashboardConfig, auth: Any) -> Any:
             return JSONResponse({"error": "give user and password."}, status_code=400)
         client = request.client.host if request.client else "?"
         try:
-            async with logins:
+            auth.limiter.check(name, client)  # a locked name waits in no queue
+            async with logins.slot(name, client):
                 identity = await asyncio.to_thread(auth.login, name, password, client)
         except LoginRefused as refused:
             headers = ({"Retry-After": str(max(1, round(refused.retry_after_s)))}
-                       if refused.status == 429 else None)
+                       if refused.status in (429, 503) else None)
             return JSONResponse({"error": str(refused)}, status_code=refused.status,
                                 headers=headers)
         return logged_in(identity)
@@ -365,16 +367,14 @@ def create_app(config: DashboardConfig, auth: Any) -> Any:
             raise ReplayError("this dashboard has no stored run (--db).")
         return StoreReplay(config.database, config.to_site)
 
+    stored_run = StoredRunInfo(open_replay)  # read in a thread, at most every 10 s
+
     @requires(viewer)
     async def replay_info(request: Any) -> Any:
         try:
-            replay = open_replay()
+            return JSONResponse(await stored_run.get())
         except ReplayError as error:
             return replay_refusal(error, 404)
-        try:
-            return JSONResponse(replay.info())
-        finally:
-            replay.close()
 
     @requires(viewer)
     async def replay(request: Any) -> Any:
@@ -389,11 +389,12 @@ def create_app(config: DashboardConfig, auth: Any) -> Any:
         if release is None:
             return too_many_streams(identity.user)
         try:
-            stored = open_replay()
+            info = await stored_run.get()
+            stored = await asyncio.to_thread(open_replay)
         except ReplayError as error:
             release()
             return replay_refusal(error, 404)
-        messages = stored.messages(speed, start)
+        messages = stored.messages(speed, start, info)
         try:
             first = await messages.__anext__()  # errors (speed, empty run) as an answer
         except ReplayError as error:

@@ -42,9 +42,11 @@ and adds the headers that keep the page to itself (a strict Content-Security-Pol
 inline script, ``frame-ancestors 'none'``, ``nosniff``, ``Referrer-Policy``). Bound to a
 loopback address it also refuses requests for any other host name (DNS rebinding).
 
-Failed logins are slowed down (:class:`LoginLimiter`): after a few failures for a user name
-or from one client, each further attempt waits twice as long as the previous one, up to five
-minutes (429 with ``Retry-After``).
+Failed logins are slowed down (:class:`~cblrs.dashboard.logins.LoginLimiter`): after a few
+failures for a user name or from one client, each further attempt waits twice as long as the
+previous one, up to five minutes (429 with ``Retry-After``); logins wait their turn
+(:class:`~cblrs.dashboard.logins.LoginSlots`). Sessions are bounded per user and in all
+(:mod:`cblrs.dashboard.sessions`).
 """
 
 from __future__ import annotations
@@ -54,7 +56,6 @@ import hmac
 import ipaddress
 import logging
 import secrets
-import threading
 import time
 from collections.abc import Awaitable, Callable, MutableMapping
 from dataclasses import dataclass
@@ -66,6 +67,8 @@ from urllib.parse import quote, urlsplit
 from starlette.requests import Request
 from starlette.responses import JSONResponse, RedirectResponse, Response
 
+from cblrs.dashboard.logins import LoginLimiter, LoginRefused
+from cblrs.dashboard.sessions import SessionsFull, SessionTable
 from cblrs.dashboard.users import Role, User, UsersError, UsersFile, verify_password
 
 logger = logging.getLogger(__name__)
@@ -75,6 +78,9 @@ SESSION_HEADER = "x-cblrs-session"
 """The header that carries a browser session's page token on every API request."""
 MAX_BODY_BYTES = 1 << 20
 MAX_SESSIONS = 10_000
+"""Sessions in all: past it a viewer's login is refused (503), no other session ends."""
+SESSIONS_PER_USER = 32
+"""Sessions of one user: their next login ends their own session idle the longest."""
 
 CONTENT_SECURITY_POLICY = (
     "default-src 'none'; script-src 'self'; style-src 'self'; img-src 'self' blob:; "
@@ -118,70 +124,6 @@ class Identity:
     last_seen: float = 0.0
 
 
-class LoginRefused(Exception):
-    """A login is refused: ``status`` (401, 429), one sentence, and the seconds to wait."""
-
-    def __init__(self, status: int, message: str, retry_after_s: float = 0.0):
-        super().__init__(message)
-        self.status = status
-        self.retry_after_s = retry_after_s
-
-
-class LoginLimiter:
-    """Exponential back-off of failed logins, per user name and per client address.
-
-    After ``free_per_user`` failures for a name (``free_per_client`` from an address) each
-    further failure locks that name (address) for ``base_s`` doubled per failure, at most
-    ``max_s``. A name's lock holds only for the addresses that failed for that name: anyone
-    who knows an admin's name could otherwise keep the admin out for good (a failure every
-    ``max_s``), as the right password is refused during a lock; a guesser on many addresses
-    gets one try per address before the name's lock slows it there too. A success clears
-    its own address's failures for the name, not the name's count (which would give a guesser
-    fresh tries whenever the owner logs in); the count is forgotten after ``2 * max_s``
-    without a failure.
-    """
-
-    def __init__(self, free_per_user: int = 5, free_per_client: int = 20, base_s: float = 1.0,
-                 max_s: float = 300.0, clock: Callable[[], float] = time.monotonic):
-        self.free = {"user": free_per_user, "client": free_per_client}
-        self.base_s, self.max_s, self.clock = base_s, max_s, clock
-        self._failures: dict[tuple[str, str], tuple[int, float]] = {}  # key -> count, until
-        self._last: dict[str, float] = {}  # user -> time of its last failure
-        self._lock = threading.Lock()
-
-    def wait_s(self, user: str, client: str) -> float:
-        """Seconds until ``user`` may try again from ``client`` (0: now)."""
-        now = self.clock()
-        keys = [("client", client)]
-        with self._lock:
-            if ("pair", f"{user}\n{client}") in self._failures:
-                keys.append(("user", user))
-            return max(0.0, *(self._failures.get(key, (0, 0.0))[1] - now for key in keys))
-
-    def failed(self, user: str, client: str) -> None:
-        now = self.clock()
-        with self._lock:
-            if len(self._failures) > 100_000:  # bounded: forget the stale ones
-                self._failures = {key: value for key, value in self._failures.items()
-                                  if value[1] > now - self.max_s}
-            if now - self._last.get(user, now) > 2 * self.max_s:  # quiet for long: forgotten
-                self._failures.pop(("user", user), None)
-            self._last[user] = now
-            if len(self._last) > 100_000:
-                self._last = {name: last for name, last in self._last.items()
-                              if last > now - 2 * self.max_s}
-            for key in (("user", user), ("client", client)):
-                count = self._failures.get(key, (0, 0.0))[0] + 1
-                over = count - self.free[key[0]]
-                until = now + min(self.max_s, self.base_s * 2 ** (over - 1)) if over > 0 else 0.0
-                self._failures[key] = (count, until)
-            self._failures[("pair", f"{user}\n{client}")] = (1, now)
-
-    def succeeded(self, user: str, client: str) -> None:
-        with self._lock:
-            self._failures.pop(("pair", f"{user}\n{client}"), None)
-
-
 class Authenticator:
     """The dashboard's users, sessions and API tokens (see the module docstring).
 
@@ -195,6 +137,8 @@ class Authenticator:
             ``https://dashboard.example.org``); None: the request's own scheme and host.
         loopback: bound to a loopback address: requests must name a loopback host.
         limiter: the login back-off (default: :class:`LoginLimiter` on ``clock``).
+        max_sessions: sessions in all (default :data:`MAX_SESSIONS`).
+        sessions_per_user: sessions of one user (default :data:`SESSIONS_PER_USER`).
     """
 
     def __init__(
@@ -208,6 +152,8 @@ class Authenticator:
         loopback: bool = True,
         clock: Callable[[], float] = time.monotonic,
         limiter: LoginLimiter | None = None,
+        max_sessions: int | None = None,
+        sessions_per_user: int | None = None,
     ):
         if users_path is None and run_token is None:
             raise ValueError("the dashboard needs a users file or a run token")
@@ -220,8 +166,10 @@ class Authenticator:
         self.clock = clock
         self.limiter = limiter if limiter is not None else LoginLimiter(clock=clock)
         self.cookie_name = "__Host-cblrs_session" if self.secure else "cblrs_session"
-        self._sessions: dict[str, Identity] = {}
-        self._lock = threading.Lock()
+        self._sessions = SessionTable(
+            MAX_SESSIONS if max_sessions is None else max_sessions,
+            SESSIONS_PER_USER if sessions_per_user is None else sessions_per_user,
+            lambda identity: self._expired(identity, self.clock()))
         self._users: UsersFile | None = None
         self._users_key: tuple[int, int] | None = None
         if users_path is not None:
@@ -288,8 +236,7 @@ class Authenticator:
         session_id = request.cookies.get(self.cookie_name)
         if not session_id:
             return None
-        with self._lock:
-            identity = self._sessions.get(session_id)
+        identity = self._sessions.get(session_id)
         if identity is None or not self.still_valid(identity):
             return None
         return identity
@@ -309,21 +256,14 @@ class Authenticator:
     def still_valid(self, identity: Identity) -> bool:
         """Whether the identity may still act: its session is open and not expired, and its
         user's record is unchanged."""
-        now = self.clock()
-        if identity.via == "session":
-            with self._lock:
-                if self._sessions.get(identity.session or "") is not identity:
-                    return False
-                if self._expired(identity, now):
-                    self._sessions.pop(identity.session or "", None)
-                    return False
+        if identity.via == "session" and not self._sessions.drop_if(identity):
+            return False
         if identity.stamp == "run":
             return self.run_token is not None
         user = self._user(identity.user)
         if user is None or user.stamp != identity.stamp:
             if identity.session is not None:
-                with self._lock:
-                    self._sessions.pop(identity.session, None)
+                self._sessions.drop(identity.session)
             return False
         return True
 
@@ -334,10 +274,7 @@ class Authenticator:
         Raises:
             LoginRefused: wrong name or password (401), or too many failures (429).
         """
-        wait = self.limiter.wait_s(name, client)
-        if wait > 0:
-            raise LoginRefused(429, f"too many failed logins; try again in {wait:.0f} s.",
-                               wait)
+        self.limiter.check(name, client)
         user = self._user(name)
         # An unknown name costs the same scrypt as a known one (no user enumeration).
         ok = verify_password(password, user.password if user is not None else "")
@@ -353,17 +290,24 @@ class Authenticator:
         return self.open_session(user.name, user.role, user.stamp)
 
     def open_session(self, user: str, role: Role, stamp: str) -> Identity:
+        """Open a session of ``user`` (ending their own idle-longest one at their limit).
+
+        Raises:
+            LoginRefused: 503, the dashboard holds its most sessions (an admin's is opened).
+        """
         now = self.clock()
         identity = Identity(user, role, "session", stamp, secrets.token_urlsafe(32),
                             secrets.token_urlsafe(32), now, now)
-        with self._lock:
-            if len(self._sessions) >= MAX_SESSIONS:
-                self._prune(now)
-            if len(self._sessions) >= MAX_SESSIONS:  # the oldest goes
-                oldest = min(self._sessions.values(), key=lambda item: item.last_seen)
-                self._sessions.pop(oldest.session or "", None)
-            assert identity.session is not None
-            self._sessions[identity.session] = identity
+        try:
+            ended = self._sessions.add(identity)
+        except SessionsFull as full:
+            logger.warning("dashboard: refused a session to %s: %d sessions open", user,
+                           self._sessions.most)
+            raise LoginRefused(503, str(full), 60.0) from None
+        if ended:
+            logger.info("dashboard: %s holds %d sessions, the most one user may; ended "
+                        "their %d idle the longest", user, self._sessions.per_user,
+                        len(ended))
         return identity
 
     def is_run_token(self, token: str) -> bool:
@@ -378,16 +322,10 @@ class Authenticator:
         return self.open_session(identity.user, identity.role, identity.stamp)
 
     def logout(self, identity: Identity) -> None:
-        with self._lock:
-            self._sessions.pop(identity.session or "", None)
+        self._sessions.drop(identity.session or "")
 
     def _expired(self, identity: Identity, now: float) -> bool:
         return now - identity.created > self.session_s or now - identity.last_seen > self.idle_s
-
-    def _prune(self, now: float) -> None:
-        for key, identity in list(self._sessions.items()):
-            if self._expired(identity, now):
-                del self._sessions[key]
 
     def set_cookie(self, response: Response, identity: Identity) -> None:
         assert identity.session is not None

@@ -6,6 +6,12 @@ beside a running matcher too) and yields the same messages as the live feed
 the page shows during a replay are those of the stored events up to the replay's time
 (events trimmed by retention are not counted); a ``counts`` message gives the totals before
 the replay's start.
+
+Reading a stored run scans its tables (``info``: a second for two million rows), so none of
+it runs on the server's event loop: :class:`StoredRunInfo` reads the run's summary in a
+thread at most once every :data:`INFO_MAX_AGE_S` whoever asks, and a replay reads its rows
+and events in threads. Before, every ``/api/replay/info`` scanned the tracks on the loop: one
+viewer asking it over and over stopped every page, stream and login of the dashboard.
 """
 
 from __future__ import annotations
@@ -32,6 +38,8 @@ TICK_S = 0.2
 """Wall seconds between messages while nothing happens (so stale marks go)."""
 MAX_GAP_S = 5.0
 """A stretch of capture time without rows longer than this is shortened to ``TICK_S``."""
+INFO_MAX_AGE_S = 10.0
+"""A stored run's summary is read again at most this often (a matcher may still write it)."""
 
 
 class ReplayError(CblrsError):
@@ -89,28 +97,30 @@ class StoreReplay:
                 "open": {zone: list(visits.items()) for zone, visits in open_visits.items()}}
 
     async def messages(
-        self, speed: float = 1.0, start: float | None = None
+        self, speed: float = 1.0, start: float | None = None,
+        info: dict[str, Any] | None = None,
     ) -> AsyncIterator[dict[str, Any]]:
-        """The stored run as page messages, paced at ``speed`` times the capture rate.
+        """The stored run as page messages, paced at ``speed`` times the capture rate (the
+        database is read in threads, never on the event loop).
 
         Args:
             speed: 1 to :data:`MAX_SPEED`.
             start: capture time to start from (default: the first row).
+            info: the run's :meth:`info` if known (:class:`StoredRunInfo`), else read here.
 
         Raises:
             ReplayError: a speed out of range, or a run with no track rows.
         """
         if not (math.isfinite(speed) and 1.0 <= speed <= MAX_SPEED):
             raise ReplayError(f"replay speed must be 1 to {MAX_SPEED:g}, got {speed}.")
-        info = self.info()
+        if info is None:
+            info = await asyncio.to_thread(self.info)
         if info["start"] is None:
             raise ReplayError(f"{self.path} holds no track rows to replay.")
         start = info["start"] if start is None else max(float(start), info["start"])
         yield {"type": "hello", "mode": "replay", "speed": speed, **info}
-        yield self.counts_before(start)
-        events = [self._event(stored.body) for stored in read_events(self._store)
-                  if stored.body["timestamp"] >= start]
-        events.sort(key=lambda body: body["timestamp"])
+        yield await asyncio.to_thread(self.counts_before, start)
+        events = await asyncio.to_thread(self._events_from, start)
         event_index = 0
         origin_wall = time.monotonic()
         origin_t = start
@@ -137,6 +147,13 @@ class StoreReplay:
             yield {"type": "event", **body}
         yield {"type": "end", "t": last_sent_t}
 
+    def _events_from(self, start: float) -> list[dict[str, Any]]:
+        """The stored events from ``start`` on, in time order."""
+        events = [self._event(stored.body) for stored in read_events(self._store)
+                  if stored.body["timestamp"] >= start]
+        events.sort(key=lambda body: body["timestamp"])
+        return events
+
     def _event(self, body: dict[str, Any]) -> dict[str, Any]:
         """An event body, its position mapped to the site for a pseudo-coordinate database."""
         if self.to_site is None or body.get("world_xy") is None:
@@ -149,7 +166,8 @@ class StoreReplay:
         pending_t: float | None = None
         pending: list[list[Any]] = []
         while True:
-            rows = self._store.query(
+            rows = await asyncio.to_thread(
+                self._store.query,
                 "SELECT row, timestamp, track_id, x, y, class_id FROM tracks "
                 "WHERE row > ? AND timestamp >= ? ORDER BY row LIMIT ?",
                 (after, start, CHUNK_ROWS),
@@ -173,6 +191,42 @@ class StoreReplay:
             await asyncio.sleep(0)
         if pending_t is not None:
             yield pending_t, pending
+
+
+class StoredRunInfo:
+    """The summary of a stored run (:meth:`StoreReplay.info`), read in a thread, one read at
+    a time, at most once every ``max_age_s``: asking for it costs the server nothing however
+    often anyone asks.
+
+    Args:
+        open_replay: opens the stored run (raises :class:`ReplayError`).
+        max_age_s: a summary this old is read again.
+        clock: monotonic seconds.
+    """
+
+    def __init__(self, open_replay: Callable[[], StoreReplay],
+                 max_age_s: float = INFO_MAX_AGE_S, clock: Callable[[], float] = time.monotonic):
+        self.open_replay, self.max_age_s, self.clock = open_replay, max_age_s, clock
+        self._info: dict[str, Any] | None = None
+        self._read_at = -math.inf
+        self._lock: asyncio.Lock | None = None
+
+    async def get(self) -> dict[str, Any]:
+        """The run's summary (``ReplayError``: it cannot be read)."""
+        if self._lock is None:
+            self._lock = asyncio.Lock()
+        async with self._lock:
+            if self._info is None or self.clock() - self._read_at > self.max_age_s:
+                self._info = await asyncio.to_thread(self._read)
+                self._read_at = self.clock()
+            return self._info
+
+    def _read(self) -> dict[str, Any]:
+        replay = self.open_replay()
+        try:
+            return replay.info()
+        finally:
+            replay.close()
 
 
 def _count(body: dict[str, Any], lines: dict, zones: dict, open_visits: dict) -> None:

@@ -266,9 +266,16 @@ def _run(scene: Scene, references: list, positions: dict[str, Any]) -> dict[str,
 
 
 def run_calibration(
-    scene: Scene, setup: CalibrationSetup = CalibrationSetup(), progress: bool = False
+    scene: Scene,
+    setup: CalibrationSetup = CalibrationSetup(),
+    progress: bool = False,
+    sites: dict[tuple[int, int], Any] | None = None,
 ) -> dict[str, Any]:
     """Clicked calibrations vs the lab calibration on one scene.
+
+    Args:
+        sites: when given, filled with each run's site, ``(count, seed) -> Site`` (its cameras
+            fitted), for :func:`calibration_figure` to draw without fitting them again.
 
     Returns:
         JSON-ready ``{"setup", "lab", "runs": [...], "rows": [...]}``: ``runs`` has one entry per
@@ -292,6 +299,8 @@ def run_calibration(
         site_scene = site.scene(scene)
         references = [site.render_reference(name) for name in scene.camera_names]
         cameras = site.cameras()
+        if sites is not None:
+            sites[(count, seed)] = site
         run = _run(site_scene, references, site.camera_positions())
         for camera, (pixels, world) in zip(cameras, boxes, strict=True):
             if camera.fit is not None:
@@ -462,16 +471,26 @@ def calibration_report(result: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-def calibration_figure(scene: Scene, setup: CalibrationSetup, folder: Any) -> Any:
+def calibration_figure(
+    scene: Scene,
+    setup: CalibrationSetup,
+    folder: Any,
+    sites: dict[tuple[int, int], Any] | None = None,
+) -> Any:
     """``calibration_clicked.png``: one clicked calibration (10 points or the largest count
     below it, first seed) drawn by :func:`cblrs.viz.calibration.calibration_picture` on a grey
     canvas (WILDTRACK ships no frames): the camera whose fit leaves the largest part of the
-    image between its points poorly constrained, to show the shading and the warning."""
+    image between its points poorly constrained, to show the shading and the warning.
+
+    ``sites``: those :func:`run_calibration` filled; that run's site is drawn as it was
+    fitted there (the points are seeded: fitting them again gives the same site)."""
 
     count = max([n for n in setup.counts if n <= 10] or [min(setup.counts)])
-    document = clicked_site(scene, count, setup.seeds[0], setup)
-    document.pop("refused")
-    site = site_from_document(document, None)
+    site = (sites or {}).get((count, setup.seeds[0]))
+    if site is None:
+        document = clicked_site(scene, count, setup.seeds[0], setup)
+        document.pop("refused")
+        site = site_from_document(document, None)
     fits = [site.camera(name).fit for name in scene.camera_names]
     fit = max(
         (fit for fit in fits if fit is not None),

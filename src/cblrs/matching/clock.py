@@ -47,6 +47,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from cblrs.arrays import median_of_few, unique_integers
 from cblrs.matching.neighbours import chebyshev_pairs
 
 FloatArray = NDArray[np.float64]
@@ -309,7 +310,7 @@ class ClockModel:
         known = index < len(self._keys)
         known[known] = self._keys[index[known]] == keys[known]
         if not known.all():
-            new = np.unique(keys[~known])
+            new = unique_integers(keys[~known])
             self._keys = np.concatenate([self._keys, new])
             self._key_camera = np.concatenate([self._key_camera, new >> 43])
             self._sums = np.concatenate([self._sums, np.zeros((len(new), 5))])
@@ -454,7 +455,7 @@ class ClockModel:
         """Keep offsets relative to the median camera (a common shift is unobservable)."""
         informed = self._information >= self.minimum_information
         if informed.sum() >= 2:
-            self.offsets -= _median(self.offsets[informed])
+            self.offsets -= median_of_few(self.offsets[informed])
 
     def _report(self, time_s: float) -> None:
         if not self._flagged.any() and float(np.abs(self.offsets).max(initial=0.0)) <= (
@@ -474,7 +475,7 @@ class ClockModel:
         if enough.sum() >= 2:
             ratio = np.where(enough, self._corroborated / np.maximum(self._located, 1e-9),
                              np.nan)
-            typical = float(np.nanmedian(ratio))
+            typical = median_of_few(ratio[enough])  # np.nanmedian's value, without numpy.ma
             worst = int(np.nanargmin(ratio))
             if typical >= 0.3 and ratio[worst] < 0.5 * typical:
                 return worst
@@ -576,7 +577,7 @@ class ClockModel:
         if len(sample):
             entry = np.concatenate(history_entry)[near]
             # One hit per (detection, instant), however many tracks were near.
-            pair = np.unique(sample * len(entry_time) + entry)
+            pair = unique_integers(sample * len(entry_time) + entry)
             sample, entry = pair // len(entry_time), pair % len(entry_time)
             lag = (times[sample] - origin) - (entry_time[entry] - origin)
             np.add.at(hits, np.rint(lag / bin_s).astype(np.int64) + bins, 1.0)
@@ -585,7 +586,7 @@ class ClockModel:
             return None
         rate = np.where(counted, hits / np.maximum(pairs, 1.0), np.nan)
         # Standing people fit at every lag: measure each lag's fit above that baseline.
-        excess = rate - float(np.nanmedian(rate))
+        excess = rate - median_of_few(rate[counted])  # np.nanmedian's value, without numpy.ma
         excess = np.where(counted, excess, -np.inf)
         best = int(np.argmax(excess))
         current = int(np.clip(round(self.offsets[camera] / bin_s) + bins, 0, 2 * bins))
@@ -710,16 +711,3 @@ def _inverse_2x2(matrices: FloatArray) -> tuple[FloatArray, FloatArray]:
     inverse[:, 1, 0] = -c / determinant
     inverse[:, 1, 1] = a / determinant
     return inverse, determinant
-
-
-def _median(values: FloatArray) -> float:
-    """``float(np.median(values))`` of a few values (one per camera), without its overhead
-    (a tenth of a millisecond, every window): the middle value, or the two middle ones added
-    and halved, as np.median's mean of them computes it."""
-    ordered = np.sort(values)
-    if len(ordered) == 0 or np.isnan(ordered[-1]):  # NaN sorts last
-        return float(np.median(values))
-    middle = len(ordered) // 2
-    if len(ordered) % 2:
-        return float(ordered[middle])
-    return float((ordered[middle - 1] + ordered[middle]) / 2)

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from cblrs.arrays import median_of_few, unique_integers
 from cblrs.matching import kalman
 from cblrs.matching.base import (
     Observations,
@@ -133,7 +134,8 @@ class _Run:
         # more likely than leaving it unassigned), and only contested detections go through
         # the camera-by-camera assignment below. (One camera has a single order anyway.)
         contested = np.ones(len(rest), dtype=bool)
-        if len(np.unique(observed.camera[rest])) > 1:
+        rest_cameras = observed.camera[rest]
+        if (rest_cameras != rest_cameras[0]).any():  # more than one camera
             contested, rows, columns, cost = self._contested(observed, covariance, rest)
             direct = ~contested[rows]
             if direct.any():
@@ -150,8 +152,8 @@ class _Run:
             if len(rest) == 0:
                 return assigned
         rest_camera = observed.camera[rest]
-        cameras = np.unique(rest_camera)
-        precision = np.array([np.median(self.measured.sigma[rest[rest_camera == one]])
+        cameras = unique_integers(rest_camera)
+        precision = np.array([median_of_few(self.measured.sigma[rest[rest_camera == one]])
                               for one in cameras.tolist()])
         order = cameras[np.argsort(precision, kind="stable")].tolist()
         best = self._associate_in_order(observed, covariance, assigned, rest, taken, order)
@@ -530,7 +532,7 @@ def assign_per_camera(
         return assigned
     rows, columns, cost = rows[contested], columns[contested], cost[contested]
     pair_camera = camera[rows]
-    for one_camera in np.unique(pair_camera).tolist():
+    for one_camera in unique_integers(pair_camera).tolist():
         mine = pair_camera == one_camera
         block_rows, row_index = np.unique(rows[mine], return_inverse=True)
         block_columns, column_index = np.unique(columns[mine], return_inverse=True)
@@ -577,7 +579,7 @@ def _merge_assignments(
     keep = target >= 0
     label = component_labels(node_count, source[keep], target[keep])
     track_label, detection_label = label[:track_count], label[track_count:]
-    involved = np.unique(detection_label[differ])
+    involved = unique_integers(detection_label[differ])
     size = int(label.max()) + 1
     track_gain = np.bincount(track_label, best_track - candidate_track, minlength=size)
     detection_gain = np.bincount(

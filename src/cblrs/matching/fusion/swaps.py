@@ -104,10 +104,12 @@ class SwapCheck:
         object noise the filter adds), for the encounters it is part of."""
         if not self.enabled:
             return
-        rows = np.flatnonzero((ids >= 0) & seen)
+        rows = np.flatnonzero((ids >= 0) & seen).tolist()
+        # Rows of the caller's arrays, not copies: the tracker makes them anew each instant
+        # and never writes to them after.
         self._views = {
-            int(ids[row]): (fused_xy[row].copy(), fused_covariance[row].copy())
-            for row in rows.tolist()
+            one: (fused_xy[row], fused_covariance[row])
+            for one, row in zip(ids[rows].tolist(), rows, strict=True)
         }
 
     def decide(self, tracks: TrackTable, timestamp: float) -> list[tuple[int, int]]:
@@ -194,9 +196,11 @@ class SwapCheck:
             tracks.mode_covariance[rows],
             tracks.mode_probability[rows],
         )
+        state, covariance, probability = parts
         for index, (key, encounter) in enumerate(self._open.items()):
             for side, one in enumerate(key):
-                encounter.states[one].append(tuple(part[2 * index + side] for part in parts))
+                row = 2 * index + side
+                encounter.states[one].append((state[row], covariance[row], probability[row]))
             if encounter.serial >= 0:
                 self._previous[encounter.serial] = 2 * index
 
@@ -462,6 +466,7 @@ class SwapCheck:
 
 _UNSEEN = (np.full(2, np.nan), np.eye(2))
 _SIDES = np.array([0, 1])  # an encounter's two tracks' rows in the recorded states
+_FEW_SERIALS = 16  # encounters dropped at once, up to which a comparison table is cheaper
 
 
 @dataclass
@@ -510,7 +515,13 @@ class _Runs:
         """Forget the runs of these encounters."""
         if not len(self.serial) or not serials:
             return
-        kept = ~np.isin(self.serial, list(serials))
+        if len(serials) <= _FEW_SERIALS:
+            # (a few serials against a few hundred runs: one comparison table costs less
+            # than np.isin's sorting; the same mask)
+            wanted = np.fromiter(serials, np.int64, len(serials))
+            kept = ~(self.serial[:, None] == wanted).any(axis=1)
+        else:
+            kept = ~np.isin(self.serial, list(serials))
         if kept.all():
             return
         for one in fields(self):

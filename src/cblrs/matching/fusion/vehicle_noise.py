@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from cblrs.arrays import unique_integers
 from cblrs.detections import CLASS_NAMES
 from cblrs.matching.fusion.gaussian import fuse, ray_covariance
 from cblrs.matching.fusion.noise import NoiseModel
@@ -102,7 +103,7 @@ class VehicleNoise:
         if refined.sum() < 2:
             return
         slot = FusionContext.class_slot(class_id)
-        for index in np.unique(slot[refined]).tolist():
+        for index in unique_integers(slot[refined]).tolist():
             self.models[index].learn(world_xy, measured.distance,
                                      np.where(refined & (slot == index), assigned, -1),
                                      measured.direction, measured.along_distance)
@@ -138,7 +139,7 @@ class VehicleNoise:
         along = np.zeros(int(refined.sum()))
         lateral = np.zeros(int(refined.sum()))
         slot = FusionContext.class_slot(class_id[refined])
-        for index in np.unique(slot).tolist():
+        for index in unique_integers(slot).tolist():
             mine = slot == index
             along[mine], lateral[mine] = self.models[index].variances(
                 measured.distance[refined][mine], measured.along_distance[refined][mine])

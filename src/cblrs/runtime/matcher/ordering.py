@@ -188,8 +188,9 @@ class Orderer:
 
     def _next(self, now: float, force: bool) -> tuple[float, list[Any]] | None:
         head = self._waiting[: 2 * len(self.camera_ids) + 1]
-        times = np.array([one.timestamp for one in head])
-        cameras = np.array([one.camera for one in head], np.int64)
+        # The head's (timestamp, camera) sort keys as one array: one conversion, not two.
+        keys = np.array(self._keys[: len(head)])
+        times, cameras = keys[:, 0], keys[:, 1].astype(np.int64)
         width = self._periods.width(self.max_window_s, self.window_fraction)
         count, end = form_window(times, cameras, width)
         members = head[:count]

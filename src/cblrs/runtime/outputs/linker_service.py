@@ -24,7 +24,12 @@ matchers may run on any host of the backbone), and per batch of deliveries:
    rows, hand-overs, events and counts made after it and links every plane's rows since
    again: the global rows, ids and counts are those of a linker that had the corrected rows
    from the start. A correction older than the oldest snapshot is counted
-   ``corrections_unlinked`` and not linked;
+   ``corrections_unlinked`` and not linked. While a correction is under way (its updates
+   have not reached the plane's clock when it began, and the plane has sent no other update
+   since), the plane's part of the watermark is the correction's newest update time, not its
+   clock: the times its corrected rows have yet to come for are not linked (each would send
+   the linker back again), so a correction costs about one relink. Kept in the file with the
+   correction; a plane silent for ``max_wait_s`` is left out as above;
 3. counts the global rows that became final with the site's **analytics** (the matchers'
    engine, :class:`~cblrs.runtime.outputs.online_analytics.OnlineAnalytics`, on every place of the
    site; lives span a portal's longest transit);
@@ -162,7 +167,8 @@ class LinkerService:
         self._started_at = 0.0
         self._sequence = 0
         self._last_watermark = -math.inf
-        self._correcting: dict[int, list[float]] = {}  # plane -> [corrected_from, last time]
+        # plane -> [corrected_from, last time, the plane's clock when it began]
+        self._correcting: dict[int, list[float]] = {}
         self._snapshot_clock = -math.inf
         self.last_activity = monotonic()
         self.reporter = ServiceReporter(
@@ -189,7 +195,7 @@ class LinkerService:
             self.analytics.log_increments = True  # a correction takes back what was counted
         self._clocks = self.store.plane_clocks()
         self._lags = self.store.plane_lags()
-        self._correcting = {int(plane): [float(value) for value in since] for plane, since in
+        self._correcting = {int(plane): _under_way(values) for plane, values in
                             (self.store.get_meta("correcting") or {}).items()}
         if not self.store.has_snapshots():
             # The first snapshot: the state it starts from (the rows it holds are inputs).
@@ -340,6 +346,7 @@ class LinkerService:
             inputs: list[tuple[str, int, Any]] = []
             corrections: list[tuple[int, float, float]] = []
             back_to = math.inf  # the earliest corrected_from of a correction begun here
+            caught_up = False  # a correction under way ended by the plane's next update
             for plane, time_of, update, received_at in decoded:
                 rows = update.tracks
                 if len(rows):
@@ -352,11 +359,14 @@ class LinkerService:
                     corrections.append(key)
                     since = float(update.corrected_from)
                     under_way = self._correcting.get(plane)
+                    until = self._clocks.get(plane, -math.inf)
                     if under_way is None or under_way[0] != since or time_of <= under_way[1]:
                         # A new correction: the plane's rows after ``since`` are replaced.
                         inputs.append(("cut", plane, since))
                         back_to = min(back_to, since)
-                    self._correcting[plane] = [since, time_of]
+                    else:
+                        until = under_way[2]
+                    self._correcting[plane] = [since, time_of, until]
                     rows = rows[rows.timestamp > since] if len(rows) else rows
                     if len(rows):
                         inputs.append(("fix", plane, rows))
@@ -373,6 +383,11 @@ class LinkerService:
                     counters["duplicates"] += 1
                     continue
                 taken.add(key)
+                under_way = self._correcting.get(plane)
+                if under_way is not None and under_way[1] < under_way[2]:
+                    # The matcher has moved on: its correction is over, wherever it ended.
+                    under_way[2] = under_way[1]
+                    caught_up = True
                 if len(rows):
                     late = rows.timestamp <= self.linker.clock
                     if late.any():  # counted, not linked (see PlaneLinker.push)
@@ -392,7 +407,7 @@ class LinkerService:
                 if math.isfinite(back_to):  # older than every snapshot: not linked again
                     inputs = [item for item in inputs if item[0] == "add"]
                     for plane, _, since in corrections:  # nor are its later updates
-                        self._correcting[plane] = [since, math.inf]
+                        self._correcting[plane] = [since, math.inf, math.inf]
                 for operation, plane, rows in inputs:
                     if operation != "cut":
                         self.linker.push(plane, rows)
@@ -418,7 +433,7 @@ class LinkerService:
                 state=self.linker.get_state(), clocks=dict(self._clocks), lags=dict(self._lags),
                 counters=dict(counters), analytics=writes, inputs=inputs,
                 corrections=corrections, rewound=rewound, snapshot=snapshot,
-                correcting=dict(self._correcting) if corrections else None))
+                correcting=dict(self._correcting) if corrections or caught_up else None))
             for delivery, _ in batch:
                 delivery.ack()
             if watermark is not None and (len(rows_out) or updates or rewound is not None):
@@ -489,8 +504,19 @@ class LinkerService:
         live = [plane for plane in heard_of
                 if now - self._heard.get(plane, self._started_at) <= self.max_wait_s]
         counted = live or heard_of
-        return min(self._clocks[plane] - self._lags.get(plane, 0.0)
+        return min(self._plane_clock(plane) - self._lags.get(plane, 0.0)
                    for plane in counted) - self.delay_s
+
+    def _plane_clock(self, plane: int) -> float:
+        """The plane's clock; while a correction of it is under way (its updates have not
+        reached the clock the plane had when it began, and the plane has sent nothing else
+        since), the correction's newest update time: later times would be linked without
+        the corrected rows still to come, and each would send the linker back again."""
+        clock = self._clocks[plane]
+        under_way = self._correcting.get(plane)
+        if under_way is not None and under_way[1] < under_way[2]:
+            return min(clock, under_way[1])
+        return clock
 
     def _publish(self, rows: LinkedRows, watermark: float,
                  corrected_from: float | None = None) -> None:
@@ -528,6 +554,13 @@ def _rows(rows: list[list[Any]]) -> Tracks:
                   track_id=np.array(columns[2], np.int64),
                   world_xy=np.column_stack([columns[4], columns[5]]).astype(float),
                   class_id=np.array(columns[6], np.int64))
+
+
+def _under_way(values: Sequence[float]) -> list[float]:
+    """A stored correction under way; one stored without the clock it must reach (an older
+    file) is taken as caught up."""
+    since, last, *until = (float(value) for value in values)
+    return [since, last, until[0] if until else last]
 
 
 def _finite(value: float) -> float | None:

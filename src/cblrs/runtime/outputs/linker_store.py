@@ -155,7 +155,8 @@ class LinkerBatch:
             the global rows, hand-overs, events and counts after it are taken back first.
         snapshot: a snapshot to take after the batch (``clock``, ``emitted_until``, ``state``,
             ``analytics``).
-        correcting: each plane's correction under way (``[corrected_from, update time]``).
+        correcting: each plane's correction under way (``[corrected_from, update time, the
+            plane's clock when it began]``; caught up once its update time reaches that).
     """
 
     updates: list[tuple[int, float, float, int]] = field(default_factory=list)

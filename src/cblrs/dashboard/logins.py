@@ -1,0 +1,130 @@
+"""Logging in without taking logins from others: the back-off of failed logins and the
+queue of logins being checked.
+
+* :class:`LoginLimiter`: after a few failures for a user name or from one client address,
+  each further failure locks that name (address) for twice as long as the previous one, up to
+  five minutes (429 with ``Retry-After``).
+* :class:`LoginSlots`: a login's password is checked with scrypt (128 MiB, a good part of a
+  second), two at a time; one user name from one address has at most one login waiting or
+  being checked, the next gets 429 at once. Before, a viewer sending its own right password
+  on 16 connections at once kept the queue full: another user's login waited 20 s (the
+  back-off counts failures only). A locked name is refused before it queues.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import threading
+import time
+from collections.abc import AsyncIterator, Callable
+
+LOGINS_AT_ONCE = 2
+"""Passwords checked at once (scrypt takes 128 MiB and a good part of a second each)."""
+
+
+class LoginRefused(Exception):
+    """A login is refused: ``status`` (401, 429, 503), one sentence, the seconds to wait."""
+
+    def __init__(self, status: int, message: str, retry_after_s: float = 0.0):
+        super().__init__(message)
+        self.status = status
+        self.retry_after_s = retry_after_s
+
+
+class LoginLimiter:
+    """Exponential back-off of failed logins, per user name and per client address.
+
+    After ``free_per_user`` failures for a name (``free_per_client`` from an address) each
+    further failure locks that name (address) for ``base_s`` doubled per failure, at most
+    ``max_s``. A name's lock holds only for the addresses that failed for that name: anyone
+    who knows an admin's name could otherwise keep the admin out for good (a failure every
+    ``max_s``), as the right password is refused during a lock; a guesser on many addresses
+    gets one try per address before the name's lock slows it there too. A success clears
+    its own address's failures for the name, not the name's count (which would give a guesser
+    fresh tries whenever the owner logs in); the count is forgotten after ``2 * max_s``
+    without a failure.
+    """
+
+    def __init__(self, free_per_user: int = 5, free_per_client: int = 20, base_s: float = 1.0,
+                 max_s: float = 300.0, clock: Callable[[], float] = time.monotonic):
+        self.free = {"user": free_per_user, "client": free_per_client}
+        self.base_s, self.max_s, self.clock = base_s, max_s, clock
+        self._failures: dict[tuple[str, str], tuple[int, float]] = {}  # key -> count, until
+        self._last: dict[str, float] = {}  # user -> time of its last failure
+        self._lock = threading.Lock()
+
+    def wait_s(self, user: str, client: str) -> float:
+        """Seconds until ``user`` may try again from ``client`` (0: now)."""
+        now = self.clock()
+        keys = [("client", client)]
+        with self._lock:
+            if ("pair", f"{user}\n{client}") in self._failures:
+                keys.append(("user", user))
+            return max(0.0, *(self._failures.get(key, (0, 0.0))[1] - now for key in keys))
+
+    def check(self, user: str, client: str) -> None:
+        """Refuse ``user`` from ``client`` while locked.
+
+        Raises:
+            LoginRefused: 429, with the seconds to wait.
+        """
+        wait = self.wait_s(user, client)
+        if wait > 0:
+            raise LoginRefused(429, f"too many failed logins; try again in {wait:.0f} s.",
+                               wait)
+
+    def failed(self, user: str, client: str) -> None:
+        now = self.clock()
+        with self._lock:
+            if len(self._failures) > 100_000:  # bounded: forget the stale ones
+                self._failures = {key: value for key, value in self._failures.items()
+                                  if value[1] > now - self.max_s}
+            if now - self._last.get(user, now) > 2 * self.max_s:  # quiet for long: forgotten
+                self._failures.pop(("user", user), None)
+            self._last[user] = now
+            if len(self._last) > 100_000:
+                self._last = {name: last for name, last in self._last.items()
+                              if last > now - 2 * self.max_s}
+            for key in (("user", user), ("client", client)):
+                count = self._failures.get(key, (0, 0.0))[0] + 1
+                over = count - self.free[key[0]]
+                until = now + min(self.max_s, self.base_s * 2 ** (over - 1)) if over > 0 else 0.0
+                self._failures[key] = (count, until)
+            self._failures[("pair", f"{user}\n{client}")] = (1, now)
+
+    def succeeded(self, user: str, client: str) -> None:
+        with self._lock:
+            self._failures.pop(("pair", f"{user}\n{client}"), None)
+
+
+class LoginSlots:
+    """Logins waiting for their password check: :data:`LOGINS_AT_ONCE` checked at a time,
+    at most one per user name and client address waiting or being checked (see the module
+    docstring). Used from one event loop.
+    """
+
+    def __init__(self, at_once: int = LOGINS_AT_ONCE):
+        self.at_once = at_once
+        self._pending: set[tuple[str, str]] = set()
+        self._semaphore: asyncio.Semaphore | None = None
+
+    @contextlib.asynccontextmanager
+    async def slot(self, user: str, client: str) -> AsyncIterator[None]:
+        """Wait for a turn to check ``user``'s password from ``client``.
+
+        Raises:
+            LoginRefused: 429, a login of ``user`` from ``client`` is waiting already.
+        """
+        key = (user, client)
+        if key in self._pending:
+            raise LoginRefused(429, f"a login of {user[:64]!r} from this address is under way; "
+                               "wait for its answer.", 1.0)
+        if self._semaphore is None:
+            self._semaphore = asyncio.Semaphore(self.at_once)
+        self._pending.add(key)
+        try:
+            async with self._semaphore:
+                yield
+        finally:
+            self._pending.discard(key)
