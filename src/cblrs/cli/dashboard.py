@@ -7,8 +7,10 @@ import json
 import logging
 import re
 import secrets
+import signal
 import socket
 import sys
+import threading
 from pathlib import Path
 from typing import Any
 
@@ -183,14 +185,34 @@ def run(args: argparse.Namespace) -> int:
     raise_open_files_limit()  # connections, not files, should run out first: see connections.py
     server = uvicorn.Server(server_config(create_app(config, auth), args.tls_cert,
                                           args.tls_key))
+    previous = _stop_cleanly_on_sigterm(server)
     try:
         serve(server, [listener])  # a stalled TLS handshake ends within seconds
     finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
         if feed is not None:
             feed.close()
         listener.close()
     print("dashboard stopped", file=sys.stderr)
     return 0
+
+
+def _stop_cleanly_on_sigterm(server: Any) -> Any:
+    """Make SIGTERM a clean stop with exit code 0, as ``cblrs matcher``'s and ``cblrs
+    camera``'s: uvicorn handles the SIGTERM (a graceful shutdown), then raises it again once
+    it has shut down, and the default action would end the process by the signal (exit
+    -15, reported by ``cblrs up`` as such) before the feed is closed. With this handler the
+    raised-again signal only asks the server to stop (it has), and one that comes before
+    uvicorn takes its signals over stops it as soon as it has started. Returns the handler
+    it replaced (None: none replaced)."""
+    if threading.current_thread() is not threading.main_thread():
+        return None  # only the main thread sets handlers (uvicorn then leaves signals alone)
+
+    def stop(signum: int, frame: Any) -> None:
+        server.should_exit = True
+
+    return signal.signal(signal.SIGTERM, stop)
 
 
 def _shown_plane(args: argparse.Namespace, config: Any) -> int | None:
