@@ -16,6 +16,10 @@ from up_helpers import run_up
     (["--stop-after", "-3"], 2, "--stop-after must be a positive number of seconds."),
     (["--out", "{tmp}/a-file"], 2, "--out {tmp}/a-file is a file; the state folder must be a "
      "folder (or a path that does not exist yet)."),
+    (["--fast", "--speed", "2"], 2, "--speed paces replays and --fast replays them as fast "
+     "as possible; give one or the other."),
+    (["--run-as", "nosuchuser"], 2, "--run-as nosuchuser: there is no such user for Mosquitto "
+     "to run as; create it (the Debian package creates mosquitto) or choose another."),
     (["--out", "{tmp}/a-file/state"], 1, "cannot make the state folder {tmp}/a-file/state "
      "(Not a directory); choose another --out."),
 ])

@@ -115,6 +115,24 @@ def test_a_restart_keeps_its_runs_speed_and_refuses_another(tmp_path):
     assert make_plan(site, tmp_path / "fresh").speed == 1.0
 
 
+@pytest.mark.parametrize(("options", "message"), [
+    ({"realtime": False, "speed": 2.0}, "--speed paces replays and --fast replays them as fast "
+     "as possible; give one or the other."),
+    ({"run_as": "nosuchuser"}, "--run-as nosuchuser: there is no such user for Mosquitto to "
+     "run as; create it (the Debian package creates mosquitto) or choose another."),
+])
+def test_options_that_cannot_run_are_refused_before_anything_is_made(tmp_path, options,
+                                                                     message):
+    """For the library's callers as for the CLI (tests/up/test_up_options.py): --speed
+    would be ignored by --fast, and an unknown --run-as once left an empty state folder."""
+    site = write_site(tmp_path, [("a", SOURCE)], planes=1)
+    with pytest.raises(UpError) as raised:
+        make_plan(site, tmp_path / "state", broker_port=0, **options)
+    assert str(raised.value) == message
+    assert not (tmp_path / "state").exists()
+    assert make_plan(site, tmp_path / "state", broker_port=0, realtime=False).speed == 1.0
+
+
 @pytest.mark.parametrize(("source", "options"), [
     ({"kind": "dataset", "path": "wt", "frames": "0:195"},
      ["--dataset", "{folder}/wt", "--frames", "0:195"]),

@@ -53,11 +53,11 @@ def register(subparsers) -> None:
                         "have tracked everything (replays, tests, demos)")
     parser.add_argument("--fast", action="store_true",
                         help="replay sources as fast as possible (default: paced by their "
-                        "timestamps, like live cameras)")
+                        "timestamps, like live cameras); goes without --speed")
     parser.add_argument("--speed", type=float, default=None,
                         help="speed-up of paced replays (default 1; a restart keeps its run's). "
                         "The matcher then sees everyone move SPEED times faster, so its tracks "
-                        "differ from the recording's; --fast keeps the recorded times")
+                        "differ from the recording's; not with --fast")
     parser.add_argument("--run-as", metavar="USER",
                         help="the user Mosquitto runs as when started as root (default: "
                         "mosquitto)")
@@ -83,7 +83,7 @@ def run(args: argparse.Namespace) -> int:
     # lazy: a subcommand imports the library when it runs, so its --help starts fast
     from cblrs.up import UpError, make_plan, prepare
     from cblrs.up.backbone import MQTT, BackboneError, choose_backbone
-    from cblrs.up.plan import default_out, read_state
+    from cblrs.up.plan import FAST_AND_SPEED, default_out, read_state, unknown_user
 
     if not args.status_interval > 0:
         raise UsageError("--status-interval must be a positive number of seconds.")
@@ -93,6 +93,10 @@ def run(args: argparse.Namespace) -> int:
     # checks them too, for the library's callers).
     if args.speed is not None and not 0 < args.speed < float("inf"):
         raise UsageError(f"--speed must be a finite number greater than 0, got {args.speed}.")
+    if args.fast and args.speed is not None:
+        raise UsageError(FAST_AND_SPEED)
+    if args.run_as is not None and (unknown := unknown_user(args.run_as)):
+        raise UsageError(unknown)
     for option, port in (("--broker-port", args.broker_port),
                          ("--dashboard-port", args.dashboard_port)):
         if port is not None and not 0 <= port <= 65535:

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import json
 import os
+import pwd
 import re
 import shutil
 import socket
@@ -419,6 +420,10 @@ def make_plan(
         _check_webhook_secrets(site, site_path)
     if speed is not None and not (speed > 0 and speed < float("inf")):
         raise UpError(f"--speed must be a finite number greater than 0, got {speed}.")
+    if speed is not None and not realtime:
+        raise UpError(FAST_AND_SPEED)
+    if run_as is not None and (unknown := unknown_user(run_as)):
+        raise UpError(unknown)  # before prepare() makes the state folder
     if dashboard_port is not None and not 0 <= dashboard_port <= 65535:
         raise UpError(f"--dashboard-port must be 0..65535, got {dashboard_port}.")
     if broker_port is not None and not 0 <= broker_port <= 65535:
@@ -463,6 +468,21 @@ def make_plan(
                     dashboard_port, float(epoch), realtime=realtime, speed=speed,
                     run_as=run_as, dashboard=dashboard, fresh_epoch=fresh and realtime,
                     backbone=backbone, mqtt_port=mqtt_port, monitor_port=monitor_port)
+
+
+FAST_AND_SPEED = ("--speed paces replays and --fast replays them as fast as possible; give "
+                  "one or the other.")
+"""The sentence that refuses ``--fast`` with ``--speed``."""
+
+
+def unknown_user(name: str) -> str | None:
+    """The sentence refusing ``--run-as NAME`` when the system has no such user, else None."""
+    try:
+        pwd.getpwnam(name)
+    except KeyError:
+        return (f"--run-as {name}: there is no such user for Mosquitto to run as; create it "
+                "(the Debian package creates mosquitto) or choose another.")
+    return None
 
 
 def _check_webhook_secrets(site: Site, site_path: Path) -> None:
