@@ -80,6 +80,9 @@ def test_without_mosquitto_it_runs_on_nats_tracks_reach_the_map_and_sigterm_stop
                                          "camera-CVLab2"}
     assert {info["state"] for info in summary["processes"].values()} <= {"stopped",
                                                                          "finished"}, summary
+    codes = {name: info["exit_code"] for name, info in summary["processes"].items()}
+    assert {name: codes[name] for name in ("broker", "matcher-1", "dashboard")} == dict.fromkeys(
+        ("broker", "matcher-1", "dashboard"), 0), codes  # a clean stop is 0, as on Mosquitto
     config = (out / "broker" / "n1" / "n1.conf").read_text()
     assert "authorization {" in config and "no_auth_user" not in config
     assert (out / "broker" / "n1" / "n1.conf").stat().st_mode & 0o077 == 0

@@ -53,6 +53,14 @@ def first_tracks_on_the_map(url: str, timeout: float) -> list:
     """Log in with the dashboard's link as its login page does (the link's token posted to
     /api/login: a session cookie and its page token), and read its live stream until a track
     update with tracks in it arrives; its rows."""
+    item = first_on_the_stream(url, lambda item: item.get("type") == "tracks" and item["rows"],
+                               timeout, "no tracks on the map")
+    return item["rows"]
+
+
+def first_on_the_stream(url: str, wanted, timeout: float, what: str = "nothing wanted") -> dict:
+    """Log in with the dashboard's link (as :func:`first_tracks_on_the_map`) and read its live
+    stream until an item for which ``wanted(item)`` holds arrives; that item."""
     import urllib.request
 
     base = url.split("/login")[0]
@@ -64,14 +72,16 @@ def first_tracks_on_the_map(url: str, timeout: float) -> list:
     stream = urllib.request.urlopen(urllib.request.Request(base + "/api/stream",
                                                            headers=session), timeout=timeout)
     deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        line = stream.readline().decode()
-        if line.startswith("data: "):
-            item = json.loads(line[len("data: "):])
-            if item.get("type") == "tracks" and item["rows"]:
-                stream.close()
-                return item["rows"]
-    raise AssertionError(f"no tracks on the map within {timeout} s")
+    try:
+        while time.monotonic() < deadline:
+            line = stream.readline().decode()
+            if line.startswith("data: "):
+                item = json.loads(line[len("data: "):])
+                if wanted(item):
+                    return item
+    finally:
+        stream.close()
+    raise AssertionError(f"{what} within {timeout} s")
 
 
 def processes() -> list[tuple[int, int, str]]:

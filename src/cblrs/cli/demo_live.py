@@ -1,7 +1,8 @@
 """``cblrs demo``'s live part: after the offline results, the plaza scene as a live site.
 
 On a terminal (or with ``--live-seconds``), ``cblrs demo`` writes a site file whose four
-cameras replay the synthetic plaza's boxes (:func:`cblrs.up.scene_site.write_scene_site`)
+cameras replay the synthetic plaza's boxes (:func:`cblrs.up.scene_site.write_scene_site`),
+with the plaza's zones and counting lines (``sites/plaza.yaml``'s) and the demo's alert rules,
 and runs ``cblrs up`` on it: a secured broker (Mosquitto when installed, else the NATS server
 from PyPI), the matcher, the dashboard (its login link is printed) and the cameras, until
 Ctrl-C. Without a terminal (tests, CI, pipes) it stops after the offline part, so nothing
@@ -72,7 +73,7 @@ def run_live(args: argparse.Namespace, out: Path, scene: Any) -> int:
     # lazy: a subcommand imports the library when it runs, so its --help starts fast
     from cblrs.cli.main import main
     from cblrs.up.plan import DEFAULT_DASHBOARD_PORT, port_is_free
-    from cblrs.up.scene_site import write_scene_site
+    from cblrs.up.scene_site import demo_places_and_rules, write_scene_site
 
     missing = missing_for_live()
     if missing is not None:
@@ -81,10 +82,19 @@ def run_live(args: argparse.Namespace, out: Path, scene: Any) -> int:
     folder = out / LIVE_FOLDER
     state = folder / "state"
     shutil.rmtree(state, ignore_errors=True)  # each demo's replay starts at its beginning
-    site = write_scene_site(scene, folder)
+    places, rules = demo_places_and_rules(scene.name)  # a broken site file: one sentence
+    site = write_scene_site(scene, folder, places=places, alert_rules=rules)
     print(f"\nLive: the {scene.name} scene's {len(scene.cameras)} cameras replayed in real "
-          f"time through a live site (site file {site}).\nOpen the dashboard link below in a "
-          "browser for the live map; Ctrl-C stops everything.", flush=True)
+          f"time through a live site (site file {site}).", flush=True)
+    if places:
+        names = [item["name"] for kind in ("zones", "lines") for item in places.get(kind, [])]
+        print(f"Places counted: {', '.join(names)}; alert rules: "
+              + "; ".join(describe_rule(rule) for rule in rules) + ".", flush=True)
+    else:
+        print(f"No sites/{scene.name}.yaml here (an installed wheel has none): the live site "
+              "has no zones, lines or alerts.", flush=True)
+    print("Open the dashboard link below in a browser for the live map, its counts and "
+          "alerts; Ctrl-C stops everything.", flush=True)
     port = DEFAULT_DASHBOARD_PORT if port_is_free(DEFAULT_DASHBOARD_PORT) else 0
     # The broker runs as the demo's user: as root, Mosquitto would switch to its own user,
     # which cannot enter a home folder (e.g. /root) to read the demo's files.
@@ -96,3 +106,14 @@ def run_live(args: argparse.Namespace, out: Path, scene: Any) -> int:
     if args.quiet:
         argv.append("--quiet")
     return main(argv)
+
+
+def describe_rule(rule: dict[str, Any]) -> str:
+    """A rule of the site file in words, e.g. ``crowd: more than 3 in zone centre for 5 s``."""
+    if rule.get("kind") == "occupancy":
+        return (f"{rule['name']}: more than {rule['above']} in zone {rule['zone']} for "
+                f"{rule.get('for_s', 0):g} s")
+    if rule.get("kind") == "line_count":
+        return (f"{rule['name']}: more than {rule['above']} crossings of {rule['line']} in "
+                f"{rule['per_s']:g} s")
+    return f"{rule['name']}: {rule.get('kind')}"

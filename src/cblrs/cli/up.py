@@ -186,6 +186,7 @@ def _deploy(args: argparse.Namespace, plan, mosquitto: str | None) -> int:
 
 def _run_site(args: argparse.Namespace, plan, mosquitto: str, say, started: float) -> int:
     from cblrs.up import SiteRunner  # lazy, as above
+    from cblrs.up.runner import counts_text
 
     runner = SiteRunner(plan, mosquitto, until_done=args.until_done, report=say,
                         status_interval_s=args.status_interval, started_at=started)
@@ -244,6 +245,8 @@ def _run_site(args: argparse.Namespace, plan, mosquitto: str, say, started: floa
             stored = sum(info["stored"].values())
             say(f"plane {plane}: {stored} messages stored, {info['pending']} not yet tracked, "
                 f"{info['track_ids']} tracks; tracks in {info['tracks_file']}")
+            if "counts" in info:
+                say(f"plane {plane}: counts {counts_text(info['counts'])}")
             alerts = info.get("alerts")
             if alerts is not None:
                 say(f"plane {plane}: alerts {alerts['fired']} fired, {alerts['cleared']} "

@@ -281,6 +281,7 @@ class SiteRunner:
                 matcher.detail = (f"received {numbers.get('received', 0)}, processed "
                                   f"{numbers.get('processed', 0)}, tracks "
                                   f"{counts['track_ids']} ({counts['track_rows']} rows)"
+                                  + places_detail(counts["places"], len(self.plan.site.places))
                                   + alerts_detail(counts.get("alerts")))
                 if counts["track_rows"] and self.first_track_s is None:
                     self.first_track_s = time.monotonic() - self.started_at
@@ -374,6 +375,9 @@ class SiteRunner:
                 "track_rows": counts["track_rows"],
                 "tracks_file": str(tracks) if tracks.is_file() else None,
             }
+            if len(self.plan.site.places):
+                planes[str(plane)]["counts"] = plane_counts(self.plan.site.places,
+                                                            counts["places"], plane)
             if "alerts" in counts:
                 planes[str(plane)]["alerts"] = counts["alerts"]
         return {
@@ -459,6 +463,25 @@ def _log_has(child: Child, text: str) -> bool:
     return any(text in line for line in _log_lines(child))
 
 
+def places_detail(places: dict[str, Any], count: int) -> str:
+    """The status table's words on a plane's counts (none when the site has no places):
+    the lines' crossings and the zones' entries so far."""
+    if not count:
+        return ""
+    crossings = sum(sum(row.values()) for row in places["lines"].values())
+    entries = sum(row["entries"] for row in places["zones"].values())
+    return f"; counted {crossings} crossings, {entries} zone entries"
+
+
+def counts_text(places: dict[str, Any]) -> str:
+    """A plane's counts in one line: ``line +positive/-negative`` and ``zone in/out``."""
+    lines = [f"{name} +{row['positive']}/-{row['negative']}"
+             for name, row in places["lines"].items()]
+    zones = [f"{name} {row['entries']} in/{row['exits']} out"
+             for name, row in places["zones"].items()]
+    return "; ".join(part for part in (", ".join(lines), ", ".join(zones)) if part) or "none yet"
+
+
 def alerts_detail(alerts: dict[str, Any] | None) -> str:
     """The status table's words on a plane's alerts: how many fired, the episodes firing
     now, and the alerts a webhook or the broker has not yet acknowledged."""
@@ -491,13 +514,45 @@ def _alert_counts(connection: sqlite3.Connection, webhooks: tuple[str, ...]) -> 
             "undelivered": undelivered}
 
 
+PLACE_MEASURES = {"lines": ("positive", "negative"), "zones": ("entries", "exits")}
+"""What ``cblrs up`` reports of the analytics' counters: a line's crossings per direction, a
+zone's entries and exits (every class together)."""
+
+
+def plane_counts(places: Any, counted: dict[str, Any], plane: int) -> dict[str, Any]:
+    """``counted`` (:func:`_place_counts`) with every place of ``plane`` (a
+    :class:`~cblrs.places.Places`' places on it or on every plane), 0 where nothing was
+    counted yet, in the site file's order."""
+    result: dict[str, Any] = {}
+    for kind, items in (("lines", places.lines), ("zones", places.zones)):
+        zero = dict.fromkeys(PLACE_MEASURES[kind], 0)
+        result[kind] = {item.name: counted[kind].get(item.name, dict(zero)) for item in items
+                        if item.plane_id in (None, plane)}
+    return result
+
+
+def _place_counts(connection: sqlite3.Connection) -> dict[str, dict[str, dict[str, int]]]:
+    """The analytics' counters so far: ``{"lines": {line: {"positive": n, "negative": n}},
+    "zones": {zone: {"entries": n, "exits": n}}}`` (the places counted at least once)."""
+    places: dict[str, dict[str, dict[str, int]]] = {kind: {} for kind in PLACE_MEASURES}
+    for place, measure, value in connection.execute(
+            "SELECT place, measure, SUM(value) FROM counts GROUP BY place, measure "
+            "ORDER BY place, measure"):
+        for kind, measures in PLACE_MEASURES.items():
+            if measure in measures:
+                row = places[kind].setdefault(place, dict.fromkeys(measures, 0))
+                row[measure] = int(value)
+    return places
+
+
 def database_counts(path: Path, webhooks: tuple[str, ...] | None = None) -> dict[str, Any]:
     """What a matcher's database holds now: messages stored per camera, pending ones, its
-    counters and tracks (zeros while it does not exist; read-only, never blocks a writer);
+    counters and tracks, what its analytics counted per place (``places``: see
+    :func:`_place_counts`) (zeros while it does not exist; read-only, never blocks a writer);
     with ``webhooks`` (the site has alert rules), its alerts too: how many fired and cleared,
     the episodes firing now, and per webhook (and ``broker``) the alerts not yet delivered."""
     counts: dict[str, Any] = {"stored": {}, "pending": 0, "counters": {}, "track_ids": 0,
-                              "track_rows": 0}
+                              "track_rows": 0, "places": {"lines": {}, "zones": {}}}
     if webhooks is not None:
         counts["alerts"] = {"fired": 0, "cleared": 0, "firing": [],
                             "undelivered": dict.fromkeys(("broker", *webhooks), 0)}
@@ -519,6 +574,9 @@ def database_counts(path: Path, webhooks: tuple[str, ...] | None = None) -> dict
             if webhooks is not None and connection.execute(
                     "SELECT 1 FROM sqlite_master WHERE name = 'alerts'").fetchone():
                 counts["alerts"] = _alert_counts(connection, webhooks)
+            if connection.execute(
+                    "SELECT 1 FROM sqlite_master WHERE name = 'counts'").fetchone():
+                counts["places"] = _place_counts(connection)
         finally:
             connection.close()
     except sqlite3.Error:

@@ -4,8 +4,14 @@
 calibrations), its plane the scene's plane, and whose sources replay the scene's boxes
 (one MOT detections file per camera, its people: a MOT file has no class)::
 
-    <folder>/site.yaml                 the site: plane, cameras, sources
+    <folder>/site.yaml                 the site: plane, cameras, sources, places, alerts
     <folder>/detections/<camera>.txt   the camera's boxes, frame by frame (MOT format)
+
+The site also gets the scene's places (its zones and counting lines) and alert rules when
+given: :func:`scene_places` reads the places of the scene's checked-in site file
+(``sites/<scene>.yaml``, the ones the offline analytics and ``cblrs experiment counts`` use),
+and :data:`DEMO_ALERT_RULES` holds the demo's rules, so the live map shows counts and an alert
+fires and clears while the replay runs.
 
 A synthetic scene lasts seconds; to keep people on the map for minutes the replay plays the
 scene forward, then backward, then forward again, ... for ``replay_s``: positions stay
@@ -14,6 +20,7 @@ continuous where the direction turns, so tracks go on rather than jump.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -21,9 +28,22 @@ import numpy as np
 import yaml
 
 from cblrs.detections import class_id_of
+from cblrs.site import load_site
 from cblrs.site.cameras import camera_entry
 from cblrs.up.plan import safe_stem
 
+SITES = Path(__file__).resolve().parents[3] / "sites"
+"""The repository's checked-in site files (absent from an installed wheel)."""
+DEMO_ALERT_RULES: dict[str, tuple[dict[str, Any], ...]] = {
+    # The plaza's centre (8 x 6 m) holds 1 to 7 people most of the time; twice in each 60 s
+    # of the back-and-forth replay (from its 11th and 45th second) 9 to 11 gather there for
+    # about 5 s (4 s as the tracker counts confirmed tracks): the episode fires about 13 s
+    # into the replay and clears 2 to 3 s later.
+    "plaza": ({"name": "crowd", "kind": "occupancy", "zone": "centre", "above": 7,
+               "for_s": 2.0},),
+}
+"""The demo's alert rules per scene (site file ``alerts: rules:`` entries; no webhook: the
+dashboard and ``cblrs up`` show them)."""
 LIVE_REPLAY_S = 300.0
 """How long the demo's live replay lasts (the scene played back and forth)."""
 PERSON = class_id_of("person")
@@ -44,8 +64,34 @@ def ping_pong(count: int, total: int) -> np.ndarray:
     return np.where(phase < count, phase, period - phase).astype(np.int64)
 
 
+def scene_places(scene_name: str, sites: str | Path = SITES) -> dict[str, Any] | None:
+    """The ``places:`` of the scene's checked-in site file ``<sites>/<scene_name>.yaml`` as
+    written there (zones and counting lines); None when there is no such file (an installed
+    wheel has no ``sites/``) or it has no places.
+
+    Raises:
+        cblrs.site.SiteError: the file exists but is not a valid site file.
+    """
+    path = Path(sites) / f"{scene_name}.yaml"
+    if not path.is_file():
+        return None
+    load_site(path)  # a broken file is one sentence, not a live site that fails later
+    document = yaml.safe_load(path.read_text()) or {}
+    return document.get("places") or None
+
+
+def demo_places_and_rules(scene_name: str, sites: str | Path = SITES
+                          ) -> tuple[dict[str, Any] | None, tuple[dict[str, Any], ...]]:
+    """What ``cblrs demo``'s live site of a scene counts and watches: the places of its
+    checked-in site file (:func:`scene_places`) and, with them, :data:`DEMO_ALERT_RULES`
+    (none without places: the rules name them)."""
+    places = scene_places(scene_name, sites)
+    return places, (DEMO_ALERT_RULES.get(scene_name, ()) if places else ())
+
+
 def write_scene_site(scene: Any, folder: str | Path, replay_s: float = LIVE_REPLAY_S,
-                     name: str | None = None) -> Path:
+                     name: str | None = None, places: dict[str, Any] | None = None,
+                     alert_rules: Sequence[dict[str, Any]] = ()) -> Path:
     """Write the live site of ``scene`` into ``folder`` (see the module docstring); its path.
 
     Args:
@@ -53,6 +99,10 @@ def write_scene_site(scene: Any, folder: str | Path, replay_s: float = LIVE_REPL
         folder: where the site file and the detections go (created).
         replay_s: length of the replay, seconds (at least the scene once).
         name: the site's name (default ``<scene>-live``).
+        places: the site file's ``places:`` (zones and lines, metres on the scene's plane),
+            e.g. :func:`scene_places`; None: none.
+        alert_rules: the site file's ``alerts: rules:`` (they name the places' zones and
+            lines), e.g. :data:`DEMO_ALERT_RULES`; empty: no alerts.
     """
     folder = Path(folder)
     (folder / "detections").mkdir(parents=True, exist_ok=True)
@@ -87,6 +137,10 @@ def write_scene_site(scene: Any, folder: str | Path, replay_s: float = LIVE_REPL
                     "bits": int(plane.bits)}],
         "cameras": cameras,
     }
+    if places:
+        document["places"] = places
+    if alert_rules:
+        document["alerts"] = {"rules": [dict(rule) for rule in alert_rules]}
     site = folder / "site.yaml"
     header = (f"# Written by cblrs demo: the {scene.name} scene replayed live by cblrs up "
               f"({len(scene.frames)} frames played back and forth for {total / fps:.0f} s).\n")
