@@ -83,7 +83,8 @@ def run(args: argparse.Namespace) -> int:
     # lazy: a subcommand imports the library when it runs, so its --help starts fast
     from cblrs.up import UpError, make_plan, prepare
     from cblrs.up.backbone import MQTT, BackboneError, choose_backbone
-    from cblrs.up.plan import FAST_AND_SPEED, default_out, read_state, unknown_user
+    from cblrs.up.host import unknown_user
+    from cblrs.up.plan import FAST_AND_SPEED, default_out, read_state
 
     if not args.status_interval > 0:
         raise UsageError("--status-interval must be a positive number of seconds.")
@@ -109,7 +110,7 @@ def run(args: argparse.Namespace) -> int:
         if args.backbone == "nats":
             raise UsageError("--systemd and --container write a Mosquitto deployment; leave "
                              "out --backbone nats (see docs/scaling.md for NATS).")
-        from cblrs.up.plan import find_broker  # lazy, as above
+        from cblrs.up.host import find_broker  # lazy, as above
 
         backbone, mosquitto = MQTT, find_broker()
     else:
@@ -134,7 +135,7 @@ def run(args: argparse.Namespace) -> int:
     # store, logs) is readable by this user only; the site's folder is its owner's.
     os.umask(0o077)
     if not deploying:
-        from cblrs.up.plan import port_is_free  # lazy, as above
+        from cblrs.up.host import port_is_free  # lazy, as above
 
         for what, port, option in (("the broker", plan.broker_port, "--broker-port"),
                                    ("the dashboard", plan.dashboard_port, "--dashboard-port")):

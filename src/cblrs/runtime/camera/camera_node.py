@@ -346,7 +346,9 @@ class CameraNode(_CameraDelivery):
             report.acknowledged = max(0, self._counts["acknowledged"] - unstored)
             report.confirmed = self._counts["confirmed"]
             report.refused_by_broker = self._counts["refused"]
-            report.resent = self._counts["resent"]
+            # Sent again, not queued again: the matcher's confirmations of the first copies
+            # may empty the queue before it goes.
+            report.resent = self._spool.taken_again
             report.rejected_by_matcher = dict(self._rejected_by_matcher)
             report.refusal = self._refusal
         report.unconfirmed = len(spool)

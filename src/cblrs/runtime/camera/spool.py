@@ -129,6 +129,9 @@ class Spool:
         self.max_bytes = int(max_bytes)
         self._clock = clock
         self._lock = threading.RLock()
+        self.taken_again = 0
+        """Messages :meth:`take` handed out that a broker had acknowledged before (sent
+        again), since this spool was opened."""
         self._holder: Any = None
         self._last_drop_log = -float("inf")
         self._dropped_since_log = 0
@@ -297,10 +300,11 @@ class Spool:
         """Up to ``limit`` waiting messages, oldest first, now ``handed``."""
         with self._lock:
             rows = self._db.execute(
-                "SELECT sequence, topic, payload FROM outbox WHERE state = 0 "
-                "ORDER BY sequence LIMIT ?",
+                "SELECT sequence, topic, payload, acked_at IS NOT NULL FROM outbox "
+                "WHERE state = 0 ORDER BY sequence LIMIT ?",
                 (int(limit),),
             ).fetchall()
+            self.taken_again += sum(int(row[3]) for row in rows)
             if rows:
                 self._db.executemany("UPDATE outbox SET state = 1 WHERE sequence = ?",
                                      [(row[0],) for row in rows])
@@ -308,7 +312,7 @@ class Spool:
                     "INSERT INTO counters (name, value) VALUES ('handed_below', ?) "
                     "ON CONFLICT(name) DO UPDATE SET value = MAX(value, excluded.value)",
                     (max(int(row[0]) for row in rows) + 1,))
-        return [(int(sequence), topic, bytes(payload)) for sequence, topic, payload in rows]
+        return [(int(sequence), topic, bytes(payload)) for sequence, topic, payload, _ in rows]
 
     def acknowledged(self, sequence: int) -> None:
         """The broker accepted ``sequence``."""
