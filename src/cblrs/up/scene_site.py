@@ -37,8 +37,9 @@ SITES = Path(__file__).resolve().parents[3] / "sites"
 DEMO_ALERT_RULES: dict[str, tuple[dict[str, Any], ...]] = {
     # The plaza's centre (8 x 6 m) holds 1 to 7 people most of the time; twice in each 60 s
     # of the back-and-forth replay (from its 11th and 45th second) 9 to 11 gather there for
-    # about 5 s (4 s as the tracker counts confirmed tracks): the episode fires about 13 s
-    # into the replay and clears 2 to 3 s later.
+    # about 5 s (4 s as the tracker counts confirmed tracks): the episode fires about 15 s
+    # after the replay's first capture time (the matcher's 2 s window included) and clears
+    # 2 s later.
     "plaza": ({"name": "crowd", "kind": "occupancy", "zone": "centre", "above": 7,
                "for_s": 2.0},),
 }
