@@ -152,10 +152,10 @@ def test_source_options(tmp_path, source, options):
 def test_the_backbone_is_mosquitto_when_installed_else_nats(monkeypatch, requested, saved,
                                                             mosquitto, nats, expected):
     import cblrs.runtime.broker.nats_server
-    import cblrs.up.plan
+    import cblrs.up.host
     from cblrs.up.backbone import BackboneError, choose_backbone
 
-    monkeypatch.setattr(cblrs.up.plan, "find_broker", lambda path=None: mosquitto)
+    monkeypatch.setattr(cblrs.up.host, "find_broker", lambda path=None: mosquitto)
     monkeypatch.setattr(cblrs.runtime.broker.nats_server, "find_nats_server", lambda: nats)
     if expected in ("mqtt", "nats"):
         chosen = choose_backbone(requested, saved)

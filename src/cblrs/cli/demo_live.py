@@ -71,7 +71,8 @@ def run_live(args: argparse.Namespace, out: Path, scene: Any) -> int:
     says what to install)."""
     # lazy: a subcommand imports the library when it runs, so its --help starts fast
     from cblrs.cli.main import main
-    from cblrs.up.plan import DEFAULT_DASHBOARD_PORT, port_is_free
+    from cblrs.up.host import port_is_free
+    from cblrs.up.plan import DEFAULT_DASHBOARD_PORT
     from cblrs.up.scene_site import write_scene_site
 
     missing = missing_for_live()

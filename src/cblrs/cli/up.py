@@ -105,7 +105,7 @@ def run(args: argparse.Namespace) -> int:
         if args.backbone == "nats":
             raise UsageError("--systemd and --container write a Mosquitto deployment; leave "
                              "out --backbone nats (see docs/scaling.md for NATS).")
-        from cblrs.up.plan import find_broker  # lazy, as above
+        from cblrs.up.host import find_broker  # lazy, as above
 
         backbone, mosquitto = MQTT, find_broker()
     else:
@@ -130,7 +130,7 @@ def run(args: argparse.Namespace) -> int:
     # store, logs) is readable by this user only; the site's folder is its owner's.
     os.umask(0o077)
     if not deploying:
-        from cblrs.up.plan import port_is_free  # lazy, as above
+        from cblrs.up.host import port_is_free  # lazy, as above
 
         for what, port, option in (("the broker", plan.broker_port, "--broker-port"),
                                    ("the dashboard", plan.dashboard_port, "--dashboard-port")):

@@ -6,7 +6,8 @@ broker's secured configuration, the references, one command line per process;
 :mod:`cblrs.up.units` writes the same processes as systemd units and a container definition.
 """
 
-from cblrs.up.plan import SitePlan, UpError, find_broker, make_plan, prepare
+from cblrs.up.host import find_broker
+from cblrs.up.plan import SitePlan, UpError, make_plan, prepare
 from cblrs.up.runner import SiteRunner, database_counts
 from cblrs.up.units import systemd_units, write_container, write_systemd
 

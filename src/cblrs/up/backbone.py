@@ -55,7 +55,7 @@ def choose_backbone(requested: str = "auto", saved: str | None = None,
     """
     # lazy: the NATS machinery is an optional extra
     from cblrs.runtime.broker.nats_server import MIN_VERSION, find_nats_server
-    from cblrs.up.plan import find_broker
+    from cblrs.up.host import find_broker
 
     if requested not in CHOICES:
         raise BackboneError(f"--backbone must be one of {', '.join(CHOICES)}, got "

@@ -25,8 +25,6 @@ from __future__ import annotations
 import json
 import os
 import re
-import shutil
-import socket
 import sys
 import time
 from dataclasses import dataclass, field
@@ -34,9 +32,11 @@ from pathlib import Path
 from typing import Any
 
 from cblrs.errors import CblrsError
+from cblrs.runtime.broker.mosquitto import free_port
 from cblrs.site import Site, load_site
 from cblrs.site.schema import SourceModel
 from cblrs.up.backbone import ADMIN, DEFAULT_NATS_PORT, MQTT, NATS
+from cblrs.up.host import port_is_free
 
 STATE_FILE = "up.json"
 DEFAULT_BROKER_PORT = 1883
@@ -90,17 +90,6 @@ def safe_stem(name: str) -> str:
     return re.sub(r"[^A-Za-z0-9._-]+", "_", name).strip("._") or "camera"
 
 
-def port_is_free(port: int, host: str = "127.0.0.1") -> bool:
-    """Whether ``host:port`` can be bound now by a server: as Mosquitto, nats-server and
-    uvicorn bind (``SO_REUSEADDR``), so the connections a stopped run left in TIME_WAIT
-    (a minute after its broker or dashboard closed them) do not count, only a listener."""
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as probe:
-        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        try:
-            probe.bind((host, port))
-        except OSError:
-            return False
-    return True
 
 
 @dataclass
@@ -488,13 +477,6 @@ def _files_of(source: SourceModel) -> list[tuple[str, str]]:
     return files
 
 
-def free_port() -> int:
-    """A free TCP port on loopback."""
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as probe:
-        probe.bind(("127.0.0.1", 0))
-        return int(probe.getsockname()[1])
-
-
 def read_state(out: Path) -> dict[str, Any] | None:
     """The saved run of a state folder (None when there is none)."""
     path = out / STATE_FILE
@@ -601,20 +583,3 @@ def _write_nats(plan: SitePlan, users: dict[str, Any]) -> str:
         raise UpError(str(error).rstrip(".") + ".") from None
     return (f"NATS configuration written to {plan.broker_config} (port {plan.broker_port}, "
             f"MQTT listener {plan.mqtt_port}; logins in {plan.clients_dir})")
-
-
-def find_broker(path: str | None = None) -> str | None:
-    """The mosquitto binary on the PATH (``path``, default the environment's), or in the
-    system's sbin folders when the PATH is a user's ordinary one (Debian installs it in
-    /usr/sbin, outside a user's PATH); None when there is none."""
-    path = os.environ.get("PATH", "") if path is None else path
-    found = shutil.which("mosquitto", path=path)
-    if found:
-        return found
-    folders = path.split(os.pathsep)
-    if "/usr/bin" in folders:
-        for folder in ("/usr/local/sbin", "/usr/sbin", "/sbin"):
-            candidate = Path(folder) / "mosquitto"
-            if folder not in folders and candidate.is_file() and os.access(candidate, os.X_OK):
-                return str(candidate)
-    return None
