@@ -106,6 +106,15 @@ class Processes:
                 process.communicate()
 
 
+def first_headers(response: http.client.HTTPResponse) -> dict[str, str]:
+    """The answer's headers, lower-cased; of a repeated one the first (a login sets the
+    session's cookie, then the browser's device cookie)."""
+    headers: dict[str, str] = {}
+    for name, value in response.getheaders():
+        headers.setdefault(name.lower(), value)
+    return headers
+
+
 def request(url: str, path: str, method: str = "GET", headers: dict | None = None,
             body: str | None = None) -> tuple[int, dict[str, str], bytes]:
     """One request, no redirect followed: (status, lower-cased headers, body)."""
@@ -115,7 +124,7 @@ def request(url: str, path: str, method: str = "GET", headers: dict | None = Non
         connection.request(method, path, body=body, headers=headers or {})
         response = connection.getresponse()
         data = response.read()
-        return response.status, {k.lower(): v for k, v in response.getheaders()}, data
+        return response.status, first_headers(response), data
     finally:
         connection.close()
 

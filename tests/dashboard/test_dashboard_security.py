@@ -39,6 +39,15 @@ from cblrs.site import load_site
 EVIL = "http://evil.example"
 
 
+def first_headers(response: http.client.HTTPResponse) -> dict[str, str]:
+    """The answer's headers, lower-cased; of a repeated one the first (a login sets the
+    session's cookie, then the browser's device cookie)."""
+    headers: dict[str, str] = {}
+    for name, value in response.getheaders():
+        headers.setdefault(name.lower(), value)
+    return headers
+
+
 def call(url: str, path: str, method: str = "GET", headers: dict | None = None,
          body: bytes | str | None = None) -> tuple[int, dict[str, str], bytes]:
     """One request, no redirect followed: (status, lower-cased headers, body)."""
@@ -48,7 +57,7 @@ def call(url: str, path: str, method: str = "GET", headers: dict | None = None,
         connection.request(method, path, body=body, headers=headers or {})
         response = connection.getresponse()
         data = response.read()
-        return response.status, {k.lower(): v for k, v in response.getheaders()}, data
+        return response.status, first_headers(response), data
     finally:
         connection.close()
 
@@ -505,6 +514,7 @@ def test_over_tls_the_cookie_is_secure(own_site, users_file, start_dashboard, tm
     assert served.url.startswith("https://127.0.0.1:")
     port = urlsplit(served.url).port
     context = ssl.create_default_context(cafile=str(cert))
+    set_cookies: list[str] = []  # every Set-Cookie of the last answer
 
     def tls_call(path: str, method: str = "GET", headers: dict | None = None,
                  body: str | None = None) -> tuple[int, dict[str, str], bytes]:
@@ -513,8 +523,8 @@ def test_over_tls_the_cookie_is_secure(own_site, users_file, start_dashboard, tm
         try:
             connection.request(method, path, body=body, headers=headers or {})
             response = connection.getresponse()
-            return (response.status, {k.lower(): v for k, v in response.getheaders()},
-                    response.read())
+            set_cookies[:] = response.msg.get_all("set-cookie") or []
+            return response.status, first_headers(response), response.read()
         finally:
             connection.close()
 
@@ -528,6 +538,10 @@ def test_over_tls_the_cookie_is_secure(own_site, users_file, start_dashboard, tm
     flags = [part.strip().lower() for part in cookie.split(";")]
     assert cookie.startswith("__Host-cblrs_session=") and "secure" in flags
     assert "httponly" in flags and "samesite=strict" in flags
+    device = [value for value in set_cookies if value.startswith("__Host-cblrs_device=")]
+    assert len(device) == 1, set_cookies  # the browser's device cookie, as guarded
+    device_flags = [part.strip().lower() for part in device[0].split(";")]
+    assert {"secure", "httponly", "samesite=strict", "path=/"} <= set(device_flags)
     session = {"Cookie": cookie.split(";")[0], "X-CBLRS-Session": token}
     assert tls_call("/api/site", headers=session)[0] == 200
     assert tls_call("/api/site", headers={"Cookie": session["Cookie"]})[0] == 401

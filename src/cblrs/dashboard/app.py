@@ -33,7 +33,8 @@ API (JSON, and Server-Sent Events for the streams, which the pages read with ``f
   places editor (:mod:`cblrs.dashboard.places_editor`);
 * ``GET /login``, ``POST /api/login``, ``POST /api/logout``, ``GET /api/session`` — logging
   in (the answer holds the session's page token, which every later request carries in
-  ``X-CBLRS-Session`` beside the cookie) and out, and who the page's user is.
+  ``X-CBLRS-Session`` beside the cookie, and sets the browser's device cookie, whose later
+  logins of that user meet only their own back-off) and out, and who the page's user is.
 
 Who may do what (:mod:`cblrs.dashboard.auth`): ``/login``, ``/healthz`` and ``/static``
 are open; every other route needs a viewer, and the calibration page and its API, and saving
@@ -254,16 +255,19 @@ def create_app(config: DashboardConfig, auth: Any) -> Any:
         except (ValueError, KeyError, TypeError):
             return JSONResponse({"error": "give user and password."}, status_code=400)
         client = request.client.host if request.client else "?"
+        device = auth.device_of(name, request)  # a browser that logged in as name before
         try:
-            auth.limiter.check(name, client)  # a locked name waits in no queue
-            async with logins.slot(name, client):
-                identity = await asyncio.to_thread(auth.login, name, password, client)
+            auth.limiter.check(name, client, device)  # a locked name waits in no queue
+            async with logins.slot(name, client if device is None else f"{client} {device}"):
+                identity = await asyncio.to_thread(auth.login, name, password, client, device)
         except LoginRefused as refused:
             headers = ({"Retry-After": str(max(1, round(refused.retry_after_s)))}
                        if refused.status in (429, 503) else None)
             return JSONResponse({"error": str(refused)}, status_code=refused.status,
                                 headers=headers)
-        return logged_in(identity)
+        response = logged_in(identity)
+        auth.set_device_cookie(response, name, device)
+        return response
 
     @requires(viewer)
     async def logout(request: Any) -> Any:

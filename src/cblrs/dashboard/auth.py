@@ -44,7 +44,10 @@ loopback address it also refuses requests for any other host name (DNS rebinding
 
 Failed logins are slowed down (:class:`~cblrs.dashboard.logins.LoginLimiter`): after a few
 failures for a user name or from one client, each further attempt waits twice as long as the
-previous one, up to five minutes (429 with ``Retry-After``); logins wait their turn
+previous one, up to five minutes (429 with ``Retry-After``); a browser's login of a user it
+has logged in as before (its device cookie, :meth:`Authenticator.device_of`) meets only its
+own device's back-off, so failures of others on the same address (every local client is
+127.0.0.1) cannot keep a user out of a browser they use; logins wait their turn
 (:class:`~cblrs.dashboard.logins.LoginSlots`). Sessions are bounded per user and in all
 (:mod:`cblrs.dashboard.sessions`).
 """
@@ -67,7 +70,7 @@ from urllib.parse import quote, urlsplit
 from starlette.requests import Request
 from starlette.responses import JSONResponse, RedirectResponse, Response
 
-from cblrs.dashboard.logins import LoginLimiter, LoginRefused
+from cblrs.dashboard.logins import DEVICE_DAYS, LoginLimiter, LoginRefused, device_cookie, device_of
 from cblrs.dashboard.sessions import SessionsFull, SessionTable
 from cblrs.dashboard.users import Role, User, UsersError, UsersFile, verify_password
 
@@ -166,6 +169,7 @@ class Authenticator:
         self.clock = clock
         self.limiter = limiter if limiter is not None else LoginLimiter(clock=clock)
         self.cookie_name = "__Host-cblrs_session" if self.secure else "cblrs_session"
+        self.device_cookie_name = "__Host-cblrs_device" if self.secure else "cblrs_device"
         self._sessions = SessionTable(
             MAX_SESSIONS if max_sessions is None else max_sessions,
             SESSIONS_PER_USER if sessions_per_user is None else sessions_per_user,
@@ -268,24 +272,45 @@ class Authenticator:
         return True
 
     # ------------------------------------------------------------------ sessions
-    def login(self, name: str, password: str, client: str) -> Identity:
-        """Check ``name`` and ``password`` (slow: scrypt) and open a session.
+    def device_of(self, name: str, request: Request) -> str | None:
+        """The known device of user ``name`` that the request's device cookie names, or None
+        (no cookie, another user's, a forged one, or one from before a new password)."""
+        cookie = request.cookies.get(self.device_cookie_name, "")
+        user = self._user(name) if cookie else None
+        return device_of(cookie, name, user.password) if user is not None else None
+
+    def set_device_cookie(self, response: Response, name: str, device: str | None) -> None:
+        """Give the browser the device cookie of user ``name`` (``device``: keep its known
+        device; None: a new one) after a login with their password."""
+        user = self._user(name)
+        if user is None or not user.password:
+            return
+        response.set_cookie(self.device_cookie_name, device_cookie(name, user.password, device),
+                            max_age=DEVICE_DAYS * 86400, path="/", secure=self.secure,
+                            httponly=True, samesite="strict")
+
+    def login(self, name: str, password: str, client: str,
+              device: str | None = None) -> Identity:
+        """Check ``name`` and ``password`` (slow: scrypt) and open a session; ``device``: the
+        user's known device the request comes from (:meth:`device_of`), whose own back-off
+        then applies instead of the name's and the address's.
 
         Raises:
             LoginRefused: wrong name or password (401), or too many failures (429).
         """
-        self.limiter.check(name, client)
+        self.limiter.check(name, client, device)
         user = self._user(name)
         # An unknown name costs the same scrypt as a known one (no user enumeration).
         ok = verify_password(password, user.password if user is not None else "")
         if user is None or not ok:
-            self.limiter.failed(name, client)
-            logger.warning("dashboard: failed login for %r from %s", name[:64], client)
+            self.limiter.failed(name, client, device)
+            logger.warning("dashboard: failed login for %r from %s%s", name[:64], client,
+                           " (a known device)" if device is not None else "")
             if self.users_path is None:
                 raise LoginRefused(401, "this dashboard has no users file: open the login "
                                    "link that cblrs dashboard printed.")
             raise LoginRefused(401, "wrong user name or password.")
-        self.limiter.succeeded(name, client)
+        self.limiter.succeeded(name, client, device)
         logger.info("dashboard: %s logged in (%s) from %s", name, user.role.label, client)
         return self.open_session(user.name, user.role, user.stamp)
 
