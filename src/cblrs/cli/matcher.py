@@ -382,7 +382,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         # Connects, holds the database and the plane's lease, then starts the tracker
         # process: a refusal (wrong password, another matcher) ends here with one sentence.
-        service.start()
+        service.start(on_started=lambda: args.signals.arm(stop.set))
     except BaseException:
         try:
             service.stop()

@@ -80,6 +80,7 @@ import multiprocessing
 import threading
 import time
 from collections import defaultdict
+from collections.abc import Callable
 from typing import Any
 
 from cblrs.detections import Tracks
@@ -161,11 +162,15 @@ class MatcherService(_Receiver, _Releaser):
 
     # -- lifecycle -------------------------------------------------------------------------
 
-    def start(self, connect: bool = True) -> None:
+    def start(self, connect: bool = True,
+              on_started: Callable[[], None] | None = None) -> None:
         """Resume from the store, start the tracker process and the threads, subscribe.
 
         Args:
             connect: also connect the transport (else the caller connects it afterwards).
+            on_started: called once everything runs, just before the "online" status goes
+                out (``cblrs matcher`` arms its clean stop there: whoever saw "online" and
+                sends SIGTERM gets a clean stop and its summary, not an aborted start-up).
         """
         if self._started:
             return
@@ -213,6 +218,8 @@ class MatcherService(_Receiver, _Releaser):
         if self.alerts is not None:
             self.alerts.start()
         self._receiving.set()
+        if on_started is not None:
+            on_started()
         self._announce("online")
         self._started = True
         logger.info("plane %d: matcher %s serving cameras %s", self.plane_id, self.matcher_id,
