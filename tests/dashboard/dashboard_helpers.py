@@ -5,6 +5,8 @@ calibration points and logging a page in (by the form or the run's login link)."
 
 from __future__ import annotations
 
+import http.client
+import subprocess
 import sys
 import time
 from collections.abc import Callable
@@ -125,3 +127,22 @@ def self_signed(folder: Path) -> tuple[Path, Path]:
                                            serialization.NoEncryption()))
     key_path.chmod(0o600)
     return cert_path, key_path
+
+
+def first_headers(response: http.client.HTTPResponse) -> dict[str, str]:
+    """The answer's headers, lower-cased; of a repeated one the first (a login sets the
+    session's cookie, then the browser's device cookie)."""
+    headers: dict[str, str] = {}
+    for name, value in response.getheaders():
+        headers.setdefault(name.lower(), value)
+    return headers
+
+
+def stop_process(process: subprocess.Popen) -> None:
+    """SIGTERM a dashboard process, then SIGKILL it if it has not ended within 10 s."""
+    process.terminate()
+    try:
+        process.wait(10)
+    except subprocess.TimeoutExpired:
+        process.kill()
+        process.wait()

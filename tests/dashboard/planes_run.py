@@ -21,7 +21,7 @@ from urllib.parse import urlsplit
 
 import numpy as np
 import yaml
-from dashboard_helpers import cblrs_command
+from dashboard_helpers import cblrs_command, first_headers
 
 from cblrs.datasets.city import CityScenes, city_scenes, city_site_document, street_world
 from cblrs.detections import CameraMessage
@@ -104,15 +104,6 @@ class Processes:
             except subprocess.TimeoutExpired:
                 process.kill()
                 process.communicate()
-
-
-def first_headers(response: http.client.HTTPResponse) -> dict[str, str]:
-    """The answer's headers, lower-cased; of a repeated one the first (a login sets the
-    session's cookie, then the browser's device cookie)."""
-    headers: dict[str, str] = {}
-    for name, value in response.getheaders():
-        headers.setdefault(name.lower(), value)
-    return headers
 
 
 def request(url: str, path: str, method: str = "GET", headers: dict | None = None,

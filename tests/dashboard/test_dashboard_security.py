@@ -26,8 +26,10 @@ from dashboard_helpers import (
     VIEWER,
     calibration_points,
     cblrs_command,
+    first_headers,
     self_signed,
     site_copy,
+    stop_process,
 )
 
 from cblrs.cli.main import main
@@ -37,15 +39,6 @@ from cblrs.dashboard.users import Role
 from cblrs.site import load_site
 
 EVIL = "http://evil.example"
-
-
-def first_headers(response: http.client.HTTPResponse) -> dict[str, str]:
-    """The answer's headers, lower-cased; of a repeated one the first (a login sets the
-    session's cookie, then the browser's device cookie)."""
-    headers: dict[str, str] = {}
-    for name, value in response.getheaders():
-        headers.setdefault(name.lower(), value)
-    return headers
 
 
 def call(url: str, path: str, method: str = "GET", headers: dict | None = None,
@@ -139,12 +132,7 @@ def shared(wildtrack_site, users_file, tmp_path_factory) -> Iterator[str]:
                                                         if process.stderr else "")
         yield line.split()[2]
     finally:
-        process.terminate()
-        try:
-            process.wait(10)
-        except subprocess.TimeoutExpired:
-            process.kill()
-            process.wait()
+        stop_process(process)
 
 
 PAGES = ["/", "/calibrate"]

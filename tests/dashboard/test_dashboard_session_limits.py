@@ -19,7 +19,7 @@ from pathlib import Path
 from urllib.parse import parse_qs, urlsplit
 
 import pytest
-from dashboard_helpers import ADMIN, VIEWER, cblrs_command
+from dashboard_helpers import ADMIN, VIEWER, cblrs_command, stop_process
 
 _LAUNCH = (
     "import sys\n"
@@ -51,12 +51,7 @@ def start_limited() -> Iterator:
 
     yield start
     for process in processes:
-        process.terminate()
-        try:
-            process.wait(10)
-        except subprocess.TimeoutExpired:
-            process.kill()
-            process.wait()
+        stop_process(process)
 
 
 def _request(url: str, method: str, path: str, body: dict | None = None,

@@ -23,7 +23,7 @@ from collections.abc import Iterator
 from urllib.parse import urlsplit
 
 import pytest
-from dashboard_helpers import ADMIN, VIEWER
+from dashboard_helpers import ADMIN, VIEWER, stop_process
 
 _LAUNCH = (
     "import sys, time\n"
@@ -49,12 +49,7 @@ def dashboard(wildtrack_site, users_file) -> Iterator[str]:
                                  f"{process.communicate(timeout=10)[1]}")
         yield line.split()[2].split("login?", 1)[0]
     finally:
-        process.terminate()
-        try:
-            process.wait(10)
-        except subprocess.TimeoutExpired:
-            process.kill()
-            process.wait()
+        stop_process(process)
 
 
 def login(url: str, user: str, password: str, cookie: str = "") -> tuple[int, str]:
